@@ -1,0 +1,286 @@
+//! `server.toml` and `bake.toml`: one serde struct per section, defaults equal to the
+//! files in `config/` (embedded here), unknown keys and out-of-range values rejected
+//! with the file, the key and the allowed range.
+
+use std::path::{Path, PathBuf};
+
+use kfmap_shared::cloud::FilterOptions;
+use kfmap_shared::cov::CovOptions;
+use kfmap_shared::io::BinLayout;
+use kfmap_shared::options::{InvalidOption, ensure};
+use serde::de::DeserializeOwned;
+use serde::{Deserialize, Serialize};
+
+/// The default `config/server.toml`, as shipped.
+pub const DEFAULT_SERVER_TOML: &str = include_str!("../../config/server.toml");
+/// The default `config/bake.toml`, as shipped.
+pub const DEFAULT_BAKE_TOML: &str = include_str!("../../config/bake.toml");
+
+/// A configuration file could not be used.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    /// The file could not be read.
+    #[error("{}: {source}", path.display())]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// What the OS said.
+        source: std::io::Error,
+    },
+    /// Not valid TOML, an unknown key, or a value of the wrong type.
+    #[error("{}: {message}", path.display())]
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// The parser's message: line, column and key.
+        message: String,
+    },
+    /// A value outside its allowed range.
+    #[error("{}: [{section}] {source}", path.display())]
+    Invalid {
+        /// The file.
+        path: PathBuf,
+        /// The section holding the key.
+        section: &'static str,
+        /// Which key, what value, what is allowed.
+        source: InvalidOption,
+    },
+}
+
+/// `[server]` of `server.toml`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
+pub struct ServerSection {
+    /// Map name used in service names; empty means the map file's stem.
+    pub map_name: String,
+    /// Worker threads; 0 means one per core.
+    pub worker_threads: usize,
+    /// Largest scan a client may send, in points.
+    pub max_points_per_request: usize,
+}
+
+impl Default for ServerSection {
+    fn default() -> Self {
+        Self {
+            map_name: String::new(),
+            worker_threads: 0,
+            max_points_per_request: 1 << 20,
+        }
+    }
+}
+
+impl ServerSection {
+    fn validate(&self) -> Result<(), InvalidOption> {
+        let name_ok = self
+            .map_name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c));
+        ensure(
+            name_ok,
+            "map-name",
+            format!("{:?}", self.map_name),
+            "letters, digits, '-', '_' and '.' only",
+        )?;
+        ensure(
+            self.worker_threads <= 1024,
+            "worker-threads",
+            self.worker_threads,
+            "0 (one per core) to 1024",
+        )?;
+        let max = self.max_points_per_request;
+        ensure(
+            (1..=1 << 26).contains(&max),
+            "max-points-per-request",
+            max,
+            "1 to 67108864 points",
+        )
+    }
+}
+
+/// `[input]` of `bake.toml`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
+pub struct InputSection {
+    /// Layout of headerless `.bin` scans.
+    pub bin_layout: BinLayout,
+}
+
+impl Default for InputSection {
+    fn default() -> Self {
+        Self {
+            bin_layout: BinLayout::Xyzi,
+        }
+    }
+}
+
+fn validate_filter(filter: &FilterOptions) -> Result<(), InvalidOption> {
+    let r = filter.min_range;
+    ensure(
+        r.is_finite() && r >= 0.0,
+        "min-range",
+        r,
+        "a finite distance >= 0 m",
+    )
+}
+
+/// `server.toml`.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
+pub struct ServerConfig {
+    /// Process-level settings.
+    pub server: ServerSection,
+    /// Invalid-return filter for incoming scans.
+    pub filter: FilterOptions,
+    /// Covariances of incoming scans.
+    pub covariance: CovOptions,
+}
+
+/// `bake.toml`.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
+pub struct BakeConfig {
+    /// How input scans are read.
+    pub input: InputSection,
+    /// Invalid-return filter applied on load.
+    pub filter: FilterOptions,
+    /// Per-point covariances baked into the map.
+    pub covariance: CovOptions,
+}
+
+/// A configuration file type: parsed from TOML, then validated section by section.
+pub trait ConfigFile: DeserializeOwned + Default {
+    /// The shipped defaults (the file in `config/`).
+    const DEFAULT_TOML: &'static str;
+
+    /// Checks every value; the error names the section and key.
+    fn validate(&self) -> Result<(), (&'static str, InvalidOption)>;
+
+    /// Parses and validates TOML text; `path` only names the source in errors.
+    fn from_toml(text: &str, path: &Path) -> Result<Self, ConfigError> {
+        let config: Self = toml::from_str(text).map_err(|e| ConfigError::Parse {
+            path: path.to_path_buf(),
+            message: e.to_string().trim_end().to_string(),
+        })?;
+        config
+            .validate()
+            .map_err(|(section, source)| ConfigError::Invalid {
+                path: path.to_path_buf(),
+                section,
+                source,
+            })?;
+        Ok(config)
+    }
+
+    /// Loads `path`, or the built-in defaults when `None`.
+    fn load(path: Option<&Path>) -> Result<Self, ConfigError> {
+        match path {
+            None => Ok(Self::default()),
+            Some(path) => {
+                let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+                    path: path.to_path_buf(),
+                    source,
+                })?;
+                Self::from_toml(&text, path)
+            }
+        }
+    }
+}
+
+impl ConfigFile for ServerConfig {
+    const DEFAULT_TOML: &'static str = DEFAULT_SERVER_TOML;
+
+    fn validate(&self) -> Result<(), (&'static str, InvalidOption)> {
+        self.server.validate().map_err(|e| ("server", e))?;
+        validate_filter(&self.filter).map_err(|e| ("filter", e))?;
+        self.covariance.validate().map_err(|e| ("covariance", e))
+    }
+}
+
+impl ConfigFile for BakeConfig {
+    const DEFAULT_TOML: &'static str = DEFAULT_BAKE_TOML;
+
+    fn validate(&self) -> Result<(), (&'static str, InvalidOption)> {
+        validate_filter(&self.filter).map_err(|e| ("filter", e))?;
+        self.covariance.validate().map_err(|e| ("covariance", e))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shipped_files_equal_the_code_defaults() {
+        let server =
+            ServerConfig::from_toml(DEFAULT_SERVER_TOML, Path::new("config/server.toml")).unwrap();
+        assert_eq!(server, ServerConfig::default());
+        let bake = BakeConfig::from_toml(DEFAULT_BAKE_TOML, Path::new("config/bake.toml")).unwrap();
+        assert_eq!(bake, BakeConfig::default());
+    }
+
+    #[test]
+    fn shipped_files_list_every_option() {
+        // Serializing the defaults gives every key; each must appear in the shipped file.
+        let check = |serialized: String, file: &str| {
+            for line in serialized.lines().filter(|l| l.contains(" = ")) {
+                let key = line.split(" = ").next().unwrap();
+                assert!(
+                    file.lines().any(|l| l.starts_with(&format!("{key} = "))),
+                    "{key} missing"
+                );
+            }
+        };
+        check(
+            toml::to_string(&ServerConfig::default()).unwrap(),
+            DEFAULT_SERVER_TOML,
+        );
+        check(
+            toml::to_string(&BakeConfig::default()).unwrap(),
+            DEFAULT_BAKE_TOML,
+        );
+    }
+
+    #[test]
+    fn unknown_key_is_named_with_the_file() {
+        let err = BakeConfig::from_toml("[covariance]\nk-neighbours = 3\n", Path::new("my.toml"))
+            .unwrap_err();
+        let text = err.to_string();
+        assert!(
+            text.contains("my.toml") && text.contains("k-neighbours") && text.contains("line 2"),
+            "{text}"
+        );
+    }
+
+    #[test]
+    fn out_of_range_value_names_key_and_range() {
+        let err = ServerConfig::from_toml(
+            "[covariance]\nmin-correspondences-for-cov = 50\n",
+            Path::new("s.toml"),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            err.contains("s.toml") && err.contains("[covariance]"),
+            "{err}"
+        );
+        assert!(
+            err.contains("min-correspondences-for-cov")
+                && err.contains("[3, k-correspondences-for-cov = 20]"),
+            "{err}"
+        );
+        let err = BakeConfig::from_toml("[filter]\nmin-range = -1\n", Path::new("b.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("min-range") && err.contains(">= 0"), "{err}");
+        let err = BakeConfig::from_toml("[input]\nbin-layout = \"xyzrgb\"\n", Path::new("b.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("xyzrgb") && err.contains("xyzi"), "{err}");
+    }
+
+    #[test]
+    fn missing_file_is_a_read_error() {
+        let err = ServerConfig::load(Some(Path::new("/nonexistent/server.toml"))).unwrap_err();
+        assert!(matches!(err, ConfigError::Read { .. }));
+    }
+}

@@ -1,0 +1,5 @@
+//! One module per subcommand: its clap arguments and its `run`.
+
+pub mod demo;
+pub mod inspect_cloud;
+mod report;

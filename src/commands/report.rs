@@ -1,0 +1,32 @@
+//! Human-readable printing shared by subcommands.
+
+use kfmap_shared::summary::CloudSummary;
+
+fn opt(value: Option<f64>, unit: &str, digits: usize) -> String {
+    value.map_or_else(|| "n/a".to_string(), |v| format!("{v:.digits$} {unit}"))
+}
+
+/// Prints the statistics block of a cloud summary.
+pub fn print_summary(s: &CloudSummary) {
+    let [x0, y0, z0] = s.bbox_min;
+    let [x1, y1, z1] = s.bbox_max;
+    println!("  points:           {}", s.points);
+    println!("  bounding box:     [{x0:.2}, {y0:.2}, {z0:.2}] .. [{x1:.2}, {y1:.2}, {z1:.2}] m");
+    println!(
+        "  density:          {}",
+        opt(s.density_points_per_m3, "points/m^3 of box", 2)
+    );
+    println!("  median spacing:   {}", opt(s.median_nn_spacing_m, "m", 3));
+    println!(
+        "  fallback covs:    {:.2} % (isotropic, too few neighbours)",
+        s.fallback_fraction * 100.0
+    );
+    println!("  mean planarity:   {}", opt(s.mean_planarity, "", 3));
+    println!(
+        "  timings:          kd-tree {:.1} ms, covariances {:.1} ms on {} threads ({:.2} M points/s)",
+        s.tree_ms,
+        s.covariances_ms,
+        s.threads,
+        s.points as f64 / s.covariances_ms / 1e3
+    );
+}

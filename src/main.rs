@@ -1,0 +1,37 @@
+//! `kfmap`: the command-line front end. Each subcommand lives in `commands/`; the work
+//! itself is in the `kfmap-shared`, `kfmap-service` and `kfmap-client` crates.
+
+mod commands;
+
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+
+/// kfmap: a keyframe point-cloud map server for LiDAR localization.
+#[derive(Parser)]
+#[command(name = "kfmap", version, about, long_about = None, propagate_version = true)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    InspectCloud(commands::inspect_cloud::Args),
+    Demo(commands::demo::Args),
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse(); // Usage errors exit with code 2 and a message from clap.
+    let result = match cli.command {
+        Command::InspectCloud(args) => commands::inspect_cloud::run(args),
+        Command::Demo(args) => commands::demo::run(args),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(error) => {
+            eprintln!("error: {error:#}");
+            ExitCode::from(2)
+        }
+    }
+}

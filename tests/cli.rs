@@ -1,0 +1,174 @@
+//! End-to-end tests of the `kfmap` binary: real processes, real files, exit codes.
+
+use std::path::PathBuf;
+use std::process::{Command, Output};
+
+use kfmap_shared::cloud::PointCloud;
+use kfmap_shared::datasets::require_test_data;
+use kfmap_shared::io::{CloudFormat, PcdData, write_cloud};
+
+fn kfmap(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_kfmap"))
+        .args(args)
+        .output()
+        .expect("run kfmap")
+}
+
+fn temp_dir(test: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("kfmap-cli-{test}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+fn stderr(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+fn json(out: &Output) -> serde_json::Value {
+    assert!(out.status.success(), "kfmap failed: {}", stderr(out));
+    serde_json::from_slice(&out.stdout).expect("stdout is one JSON object")
+}
+
+#[test]
+fn inspect_cloud_json_on_a_written_pcd() {
+    // A 30 x 30 grid at 0.2 m on z = 0 plus 5 points at the origin the filter drops.
+    let mut points: Vec<[f32; 3]> = (0..900)
+        .map(|i| [1.0 + (i % 30) as f32 * 0.2, (i / 30) as f32 * 0.2, 0.0])
+        .collect();
+    points.extend([[0.0; 3]; 5]);
+    let path = temp_dir("grid").join("grid.pcd");
+    write_cloud(
+        &path,
+        &PointCloud::from_points(points),
+        CloudFormat::Pcd(PcdData::BinaryCompressed),
+    )
+    .unwrap();
+    let report = json(&kfmap(&["inspect-cloud", path.to_str().unwrap(), "--json"]));
+    assert_eq!(report["format"], "pcd-binary-compressed");
+    assert_eq!(report["points"], 900);
+    assert_eq!(report["points_in_file"], 905);
+    assert_eq!(report["filter"]["at_origin"], 5);
+    assert_eq!(report["fields"], serde_json::json!(["x", "y", "z"]));
+    assert_eq!(report["bbox_min"], serde_json::json!([1.0, 0.0, 0.0]));
+    let max = report["bbox_max"].as_array().unwrap();
+    assert!(
+        (max[0].as_f64().unwrap() - 6.8).abs() < 1e-5
+            && (max[1].as_f64().unwrap() - 5.8).abs() < 1e-5
+    );
+    assert!((report["median_nn_spacing_m"].as_f64().unwrap() - 0.2).abs() < 1e-5);
+    // numpy on the same grid (k = 20, r = 1 m): mean planarity 0.842, the exact value
+    // depending on how ties among equidistant grid neighbours are broken.
+    let planarity = report["mean_planarity"].as_f64().unwrap();
+    assert!((0.80..0.90).contains(&planarity), "{planarity}");
+}
+
+#[test]
+fn inspect_cloud_json_on_real_scan() {
+    let Some(path) = require_test_data("small_gicp/target.ply", "inspect_cloud_json_on_real_scan")
+    else {
+        return;
+    };
+    let report = json(&kfmap(&["inspect-cloud", path.to_str().unwrap(), "--json"]));
+    assert_eq!(report["format"], "ply-binary-le");
+    // 69 088 points in the header, 5 032 of them at (0,0,0) (numpy count).
+    assert_eq!(report["points_in_file"], 69_088);
+    assert_eq!(report["points"], 69_088 - 5_032);
+    assert_eq!(
+        report["fields"],
+        serde_json::json!(["x", "y", "z", "scalar_intensity"])
+    );
+    let min = report["bbox_min"].as_array().unwrap();
+    assert!((min[1].as_f64().unwrap() - -74.6816).abs() < 1e-3);
+}
+
+#[test]
+fn bad_input_exits_2_with_a_message_naming_the_problem() {
+    let dir = temp_dir("bad");
+    let truncated = dir.join("cut.pcd");
+    std::fs::write(
+        &truncated,
+        b"FIELDS x y z\nPOINTS 10\nDATA binary\n\x01\x02",
+    )
+    .unwrap();
+    let bad_config = dir.join("bake.toml");
+    std::fs::write(&bad_config, "[covariance]\nk-correspondences-for-cov = 1\n").unwrap();
+    let empty = dir.join("empty.ply");
+    std::fs::write(&empty, b"ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\nproperty float z\nend_header\n").unwrap();
+    let cases: Vec<(Vec<&str>, &str)> = vec![
+        (vec!["inspect-cloud", "/nonexistent/scan.pcd"], "scan.pcd"),
+        (
+            vec!["inspect-cloud", truncated.to_str().unwrap()],
+            "truncated",
+        ),
+        (vec!["inspect-cloud", empty.to_str().unwrap()], "empty.ply"),
+        (
+            vec![
+                "inspect-cloud",
+                truncated.to_str().unwrap(),
+                "--config",
+                bad_config.to_str().unwrap(),
+            ],
+            "k-correspondences-for-cov",
+        ),
+        (
+            vec![
+                "inspect-cloud",
+                truncated.to_str().unwrap(),
+                "--bin-layout",
+                "xyzw",
+            ],
+            "xyzw",
+        ),
+        (
+            vec![
+                "inspect-cloud",
+                truncated.to_str().unwrap(),
+                "--min-range=-3",
+            ],
+            "--min-range",
+        ),
+        (vec!["no-such-command"], "no-such-command"),
+    ];
+    for (args, expect) in cases {
+        let out = kfmap(&args);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {}", stderr(&out));
+        assert!(stderr(&out).contains(expect), "{args:?}: {}", stderr(&out));
+    }
+}
+
+#[test]
+fn demo_runs_on_the_synthetic_scan() {
+    let out = kfmap(&["demo", "--synthetic"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("built-in synthetic scan") && text.contains("points:           39600"),
+        "{text}"
+    );
+}
+
+#[test]
+fn demo_runs_on_real_data() {
+    if require_test_data("kitti00/000000.bin", "demo_runs_on_real_data").is_none() {
+        return;
+    }
+    let out = kfmap(&["demo"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("000000.bin") && text.contains("points:           124668"),
+        "{text}"
+    );
+}
+
+#[test]
+fn every_subcommand_help_has_an_example() {
+    for sub in ["inspect-cloud", "demo"] {
+        let out = kfmap(&[sub, "--help"]);
+        assert!(out.status.success());
+        assert!(
+            String::from_utf8_lossy(&out.stdout).contains("Example:"),
+            "{sub}"
+        );
+    }
+}
