@@ -29,6 +29,16 @@ pub enum CloudError {
     /// A voxel size that is not a positive finite number of metres.
     #[error("voxel size must be a positive finite number of metres, got {0}")]
     BadVoxelSize(f64),
+    /// The cloud spans more voxels per axis than the grid can index (2^21).
+    #[error(
+        "voxel size {voxel_size} m is too fine for this cloud: {cells} cells on one axis, at most 2097152; use a larger voxel"
+    )]
+    VoxelGridTooFine {
+        /// The voxel size asked for, metres.
+        voxel_size: f64,
+        /// Cells needed on the longest axis.
+        cells: i64,
+    },
 }
 
 /// Points of one scan or keyframe, all in one frame (sensor or keyframe-local).

@@ -4,11 +4,19 @@ use rayon::prelude::*;
 
 use super::{CloudError, PointCloud};
 
-type VoxelKey = [i64; 3];
+/// Cells per axis that fit in a packed key (21 bits each, x in the high bits).
+const MAX_CELLS: i64 = 1 << 21;
 
-fn voxel_key(p: &[f32; 3], inv_size: f64) -> VoxelKey {
+fn cell(c: f32, inv_size: f64) -> i64 {
     // `as i64` saturates, so far-away points cannot overflow.
-    p.map(|c| (c as f64 * inv_size).floor() as i64)
+    (c as f64 * inv_size).floor() as i64
+}
+
+/// Packs the cell of `p`, relative to the cell `origin`, into one sortable u64 whose
+/// order equals the lexicographic order of (x, y, z) cells.
+fn packed_key(p: &[f32; 3], inv_size: f64, origin: &[i64; 3]) -> u64 {
+    let rel = |axis: usize| (cell(p[axis], inv_size) - origin[axis]) as u64;
+    rel(0) << 42 | rel(1) << 21 | rel(2)
 }
 
 fn mean_of<const N: usize>(values: impl Iterator<Item = [f32; N]>) -> [f64; N] {
@@ -33,12 +41,24 @@ impl PointCloud {
             return Err(CloudError::BadVoxelSize(voxel_size));
         }
         let inv_size = 1.0 / voxel_size;
-        let mut keyed: Vec<(VoxelKey, u32)> = self
+        let Some(bbox) = self.bounding_box() else {
+            return Ok(self.select(&[]));
+        };
+        let origin = bbox.min.map(|c| cell(c, inv_size));
+        let cells =
+            std::array::from_fn::<i64, 3, _>(|i| cell(bbox.max[i], inv_size) - origin[i] + 1);
+        if cells.iter().any(|&n| n > MAX_CELLS) {
+            return Err(CloudError::VoxelGridTooFine {
+                voxel_size,
+                cells: cells.into_iter().max().unwrap_or(0),
+            });
+        }
+        let mut keyed: Vec<(u64, u32)> = self
             .points
             .par_iter()
             .enumerate()
             .filter(|(_, p)| p.iter().all(|c| c.is_finite()))
-            .map(|(i, p)| (voxel_key(p, inv_size), i as u32))
+            .map(|(i, p)| (packed_key(p, inv_size, &origin), i as u32))
             .collect();
         keyed.par_sort_unstable();
 
@@ -121,6 +141,16 @@ mod tests {
         let h = std::f32::consts::FRAC_1_SQRT_2;
         assert!((v[0] - h).abs() < 1e-6 && (v[1] - h).abs() < 1e-6 && v[2] == 0.0);
         assert_eq!(down.intensity.unwrap(), vec![3.0]);
+    }
+
+    #[test]
+    fn too_fine_a_grid_is_an_error_not_a_wrong_answer() {
+        let cloud = PointCloud::from_points(vec![[0.0; 3], [50_000.0, 0.0, 0.0]]);
+        assert!(matches!(
+            cloud.voxel_downsample(0.01),
+            Err(CloudError::VoxelGridTooFine { .. })
+        ));
+        assert_eq!(cloud.voxel_downsample(1.0).unwrap().len(), 2);
     }
 
     #[test]

@@ -137,3 +137,20 @@ pub fn output_value(cloud: &PointCloud, field: &str, i: usize) -> f32 {
         _ => 0.0,
     }
 }
+
+/// Appends point `i` as one text line of `fields`, shortest round-trip floats.
+pub fn push_ascii_row(out: &mut Vec<u8>, cloud: &PointCloud, fields: &[&str], i: usize) {
+    let line: Vec<String> = fields
+        .iter()
+        .map(|f| output_value(cloud, f, i).to_string())
+        .collect();
+    out.extend_from_slice(line.join(" ").as_bytes());
+    out.push(b'\n');
+}
+
+/// Appends point `i` as little-endian `f32` values of `fields`.
+pub fn push_binary_row(out: &mut Vec<u8>, cloud: &PointCloud, fields: &[&str], i: usize) {
+    for f in fields {
+        out.extend_from_slice(&output_value(cloud, f, i).to_le_bytes());
+    }
+}

@@ -4,7 +4,7 @@
 use std::path::Path;
 
 use super::error::{IoError, Location};
-use super::fields::{Assembler, Scalar, output_value};
+use super::fields::{Assembler, Scalar, output_value, push_ascii_row, push_binary_row};
 use super::lzf;
 use crate::cloud::PointCloud;
 
@@ -83,24 +83,23 @@ fn parse_header(path: &Path, bytes: &[u8]) -> Result<Header, IoError> {
                 )
             })
         };
+        let integers = |what: &str| -> Result<Vec<usize>, IoError> {
+            rest.iter()
+                .map(|w| w.parse::<usize>())
+                .collect::<Result<Vec<_>, _>>()
+                .map_err(|_| {
+                    bad(
+                        line_no,
+                        format!("{what} has a non-integer entry: '{}'", rest.join(" ")),
+                    )
+                })
+        };
         match key.as_str() {
             "VERSION" | "VIEWPOINT" => {}
             "FIELDS" | "COLUMNS" => {
                 names = Some(rest.iter().map(|s| s.to_string()).collect::<Vec<_>>())
             }
-            "SIZE" => {
-                sizes = Some(
-                    rest.iter()
-                        .map(|s| s.parse::<usize>())
-                        .collect::<Result<Vec<_>, _>>()
-                        .map_err(|_| {
-                            bad(
-                                line_no,
-                                format!("SIZE has a non-integer entry: '{}'", rest.join(" ")),
-                            )
-                        })?,
-                )
-            }
+            "SIZE" => sizes = Some(integers("SIZE")?),
             "TYPE" => {
                 types = Some(
                     rest.iter()
@@ -108,19 +107,7 @@ fn parse_header(path: &Path, bytes: &[u8]) -> Result<Header, IoError> {
                         .collect::<Vec<_>>(),
                 )
             }
-            "COUNT" => {
-                counts = Some(
-                    rest.iter()
-                        .map(|s| s.parse::<usize>())
-                        .collect::<Result<Vec<_>, _>>()
-                        .map_err(|_| {
-                            bad(
-                                line_no,
-                                format!("COUNT has a non-integer entry: '{}'", rest.join(" ")),
-                            )
-                        })?,
-                )
-            }
+            "COUNT" => counts = Some(integers("COUNT")?),
             "WIDTH" => width = Some(one_number("WIDTH")?),
             "HEIGHT" => height = Some(one_number("HEIGHT")?),
             "POINTS" => points = Some(one_number("POINTS")?),
@@ -396,19 +383,12 @@ pub fn write_pcd(cloud: &PointCloud, data: PcdData) -> Vec<u8> {
     match data {
         PcdData::Ascii => {
             for i in 0..n {
-                let line: Vec<String> = fields
-                    .iter()
-                    .map(|f| output_value(cloud, f, i).to_string())
-                    .collect();
-                out.extend_from_slice(line.join(" ").as_bytes());
-                out.push(b'\n');
+                push_ascii_row(&mut out, cloud, &fields, i);
             }
         }
         PcdData::Binary => {
             for i in 0..n {
-                for f in &fields {
-                    out.extend_from_slice(&output_value(cloud, f, i).to_le_bytes());
-                }
+                push_binary_row(&mut out, cloud, &fields, i);
             }
         }
         PcdData::BinaryCompressed => {

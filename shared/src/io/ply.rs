@@ -4,7 +4,7 @@
 use std::path::Path;
 
 use super::error::{IoError, Location};
-use super::fields::{Assembler, Scalar, output_value};
+use super::fields::{Assembler, Scalar, push_ascii_row, push_binary_row};
 use crate::cloud::PointCloud;
 
 /// The encoding of a PLY file's body.
@@ -295,19 +295,8 @@ pub fn write_ply(cloud: &PointCloud, encoding: PlyEncoding) -> Vec<u8> {
     let mut out = out.into_bytes();
     for i in 0..cloud.len() {
         match encoding {
-            PlyEncoding::Ascii => {
-                let line: Vec<String> = fields
-                    .iter()
-                    .map(|f| output_value(cloud, f, i).to_string())
-                    .collect();
-                out.extend_from_slice(line.join(" ").as_bytes());
-                out.push(b'\n');
-            }
-            PlyEncoding::BinaryLittleEndian => {
-                for f in &fields {
-                    out.extend_from_slice(&output_value(cloud, f, i).to_le_bytes());
-                }
-            }
+            PlyEncoding::Ascii => push_ascii_row(&mut out, cloud, &fields, i),
+            PlyEncoding::BinaryLittleEndian => push_binary_row(&mut out, cloud, &fields, i),
         }
     }
     out
