@@ -18,6 +18,7 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     InspectCloud(commands::inspect_cloud::Args),
+    Simulate(commands::simulate::Args),
     Demo(commands::demo::Args),
 }
 
@@ -25,6 +26,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse(); // Usage errors exit with code 2 and a message from clap.
     let result = match cli.command {
         Command::InspectCloud(args) => commands::inspect_cloud::run(args),
+        Command::Simulate(args) => commands::simulate::run(args),
         Command::Demo(args) => commands::demo::run(args),
     };
     match result {

@@ -137,14 +137,88 @@ fn bad_input_exits_2_with_a_message_naming_the_problem() {
 }
 
 #[test]
-fn demo_runs_on_the_synthetic_scan() {
-    let out = kfmap(&["demo", "--synthetic"]);
+fn demo_simulates_and_uses_a_courtyard_without_data() {
+    let out = Command::new(env!("CARGO_BIN_EXE_kfmap"))
+        .arg("demo")
+        .env("KFMAP_DATA_DIR", "/nonexistent")
+        .output()
+        .expect("run kfmap");
     assert!(out.status.success(), "{}", stderr(&out));
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(
-        text.contains("built-in synthetic scan") && text.contains("points:           39600"),
+        text.contains("50 scans")
+            && text.contains("scans/000010.pcd")
+            && text.contains("no real scan"),
         "{text}"
     );
+}
+
+#[test]
+fn simulate_writes_a_readable_dataset() {
+    let dir = temp_dir("simulate").join("out");
+    let out = kfmap(&[
+        "simulate",
+        "--preset",
+        "corridor",
+        "--seconds",
+        "0.3",
+        "--beams",
+        "16",
+        "--tilt-deg",
+        "2,-1",
+        "--out",
+        dir.to_str().unwrap(),
+        "--json",
+    ]);
+    let report = json(&out);
+    assert_eq!(report["scans"], 3);
+    assert_eq!(report["imu_samples"], 61);
+    let meta = std::fs::read_to_string(dir.join("meta.toml")).unwrap();
+    assert!(
+        meta.contains("preset = \"corridor\"") && meta.contains("tilt-deg = [2.0, -1.0]"),
+        "{meta}"
+    );
+    let scan = json(&kfmap(&[
+        "inspect-cloud",
+        dir.join("scans/000002.pcd").to_str().unwrap(),
+        "--json",
+    ]));
+    assert_eq!(
+        scan["fields"],
+        serde_json::json!(["x", "y", "z", "view_x", "view_y", "view_z", "time"])
+    );
+    // Same folder again: refused, nothing overwritten.
+    let again = kfmap(&[
+        "simulate",
+        "--seconds",
+        "0.3",
+        "--out",
+        dir.to_str().unwrap(),
+    ]);
+    assert_eq!(again.status.code(), Some(2));
+    assert!(stderr(&again).contains("not empty"), "{}", stderr(&again));
+    for (args, expect) in [
+        (
+            vec!["simulate", "--preset", "plaza", "--out", "/tmp/x"],
+            "plaza",
+        ),
+        (
+            vec!["simulate", "--beams", "40", "--out", "/tmp/kfmap-never"],
+            "beams",
+        ),
+        (
+            vec!["simulate", "--tilt-deg", "2", "--out", "/tmp/kfmap-never"],
+            "ROLL,PITCH",
+        ),
+        (
+            vec!["simulate", "--seconds", "0", "--out", "/tmp/kfmap-never"],
+            "seconds",
+        ),
+    ] {
+        let out = kfmap(&args);
+        assert_eq!(out.status.code(), Some(2), "{args:?}");
+        assert!(stderr(&out).contains(expect), "{args:?}: {}", stderr(&out));
+    }
 }
 
 #[test]
@@ -163,7 +237,7 @@ fn demo_runs_on_real_data() {
 
 #[test]
 fn every_subcommand_help_has_an_example() {
-    for sub in ["inspect-cloud", "demo"] {
+    for sub in ["inspect-cloud", "simulate", "demo"] {
         let out = kfmap(&[sub, "--help"]);
         assert!(out.status.success());
         assert!(

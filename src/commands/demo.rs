@@ -1,82 +1,131 @@
-//! `kfmap demo`: the main job on built-in defaults. For now it loads a real scan
-//! (or builds a synthetic one), filters it, downsamples it, estimates per-point
-//! covariances and prints statistics and timings. Later stages (simulate, bake, serve,
-//! localize) join it as they land.
+//! `kfmap demo`: the main job on built-in defaults. It simulates a small courtyard
+//! (LiDAR + IMU with ground truth), loads a simulated scan back through the readers,
+//! downsamples it and estimates its covariances; with the real data beside the
+//! checkout it does the same on a real Velodyne scan. Baking, serving and localizing
+//! join it as they land.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use anyhow::Context;
 use kfmap_service::config::BakeConfig;
-use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::datasets::shared_data_dir;
-use kfmap_shared::io::{ReadOptions, read_cloud};
+use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
+use kfmap_shared::sim::{LidarParams, Preset, SimConfig, write_dataset};
 use kfmap_shared::summary::summarize;
-use rand::rngs::StdRng;
-use rand::{Rng, SeedableRng};
 
 use super::report::print_summary;
 
 /// Run the kfmap pipeline end to end on built-in defaults.
 ///
-/// Uses ../shared/data/kitti00/000000.bin (a real Velodyne HDL-64E scan) when the
-/// shared data folder is beside the checkout (or named by $KFMAP_DATA_DIR), else a
-/// built-in synthetic scan of ground, walls and poles.
+/// 1. Simulates 5 s of a 32-beam LiDAR and an IMU driving around the courtyard preset
+///    (into a temporary folder, or --out DIR to keep it).
+/// 2. Reads a simulated scan back, downsamples it, estimates per-point covariances.
+/// 3. When ../shared/data is beside the checkout (or $KFMAP_DATA_DIR names it), does the
+///    same on a real Velodyne HDL-64E scan (kitti00/000000.bin), or on --scan FILE.
 ///
 /// Example: cargo run --release -- demo
 #[derive(clap::Args)]
 #[command(verbatim_doc_comment)]
 pub struct Args {
-    /// Use this cloud file instead of the default scan.
+    /// Keep the simulated dataset in this folder (must be empty or absent).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Also analyze this cloud file instead of the default real scan.
     #[arg(long)]
     scan: Option<PathBuf>,
-    /// Use the built-in synthetic scan even when real data is present.
-    #[arg(long, conflicts_with = "scan")]
-    synthetic: bool,
+}
+
+/// Removes the temporary dataset folder when the demo ends, however it ends.
+struct TempDir(PathBuf);
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
 }
 
 /// Runs the subcommand.
 pub fn run(args: Args) -> anyhow::Result<()> {
     let config = BakeConfig::default();
-    let default_scan = || {
+    let (dataset, _cleanup) = match args.out {
+        Some(dir) => (dir, None),
+        None => {
+            let dir = std::env::temp_dir().join(format!("kfmap-demo-{}", std::process::id()));
+            (dir.clone(), Some(TempDir(dir)))
+        }
+    };
+
+    let sim = SimConfig {
+        preset: Preset::Courtyard,
+        seconds: 5.0,
+        lidar: LidarParams {
+            beams: 32,
+            ..LidarParams::default()
+        },
+        ..SimConfig::default()
+    };
+    println!(
+        "kfmap demo: simulating {} s of the courtyard ({} beams, seed {}) into {}",
+        sim.seconds,
+        sim.lidar.beams,
+        sim.seed,
+        dataset.display()
+    );
+    let started = Instant::now();
+    let summary = write_dataset(sim, &dataset, false, &|_, _| {})?;
+    println!(
+        "  {} scans, {} points, {} IMU samples, {:.1} m driven in {:.2} s",
+        summary.scans,
+        summary.points,
+        summary.imu_samples,
+        summary.distance_m,
+        started.elapsed().as_secs_f64()
+    );
+    let truth = read_trajectory(&dataset.join("poses_gt.txt"))?;
+    println!(
+        "  ground truth: {} poses in poses_gt.txt",
+        truth.poses.len()
+    );
+    analyze(&dataset.join("scans/000010.pcd"), &config)?;
+
+    let real = args.scan.or_else(|| {
         shared_data_dir()
             .map(|d| d.join("kitti00/000000.bin"))
             .filter(|p| p.is_file())
-    };
-    let scan_path = if args.synthetic {
-        None
-    } else {
-        args.scan.or_else(default_scan)
-    };
-
-    let started = Instant::now();
-    let (label, cloud) = match &scan_path {
-        Some(path) => {
-            let options = ReadOptions {
-                bin_layout: None,
-                filter: config.filter,
-            };
-            let loaded = read_cloud(path, &options)?;
-            let dropped = loaded.filter.map_or(0, |f| f.dropped());
-            let label = format!(
-                "{} ({}, {} invalid returns dropped)",
-                path.display(),
-                loaded.format,
-                dropped
-            );
-            (label, loaded.cloud)
+    });
+    match real {
+        Some(path) => analyze(&path, &config)?,
+        None => {
+            println!("(no real scan: put the shared data beside the checkout or pass --scan FILE)")
         }
-        None => (
-            "built-in synthetic scan (ground, walls, poles; seed 7)".to_string(),
-            synthetic_scan(7),
-        ),
-    };
-    println!("kfmap demo: {label}");
+    }
+    println!("done: bake, serve and localize join this demo as they land (see README).");
+    Ok(())
+}
+
+/// Loads `path`, downsamples it and prints its covariance statistics.
+fn analyze(path: &Path, config: &BakeConfig) -> anyhow::Result<()> {
+    let started = Instant::now();
+    let loaded = read_cloud(
+        path,
+        &ReadOptions {
+            bin_layout: None,
+            filter: config.filter,
+        },
+    )?;
+    let dropped = loaded.filter.map_or(0, |f| f.dropped());
     println!(
-        "  loaded in {:.1} ms",
+        "{} ({}, {} invalid returns dropped, read in {:.1} ms)",
+        path.display(),
+        loaded.format,
+        dropped,
         started.elapsed().as_secs_f64() * 1e3
     );
-    cloud.validate()?;
-
+    let cloud = loaded.cloud;
+    cloud
+        .validate()
+        .with_context(|| path.display().to_string())?;
     let started = Instant::now();
     let downsampled = cloud.voxel_downsample(0.25)?;
     println!(
@@ -85,53 +134,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         downsampled.len(),
         started.elapsed().as_secs_f64() * 1e3
     );
-    println!(
-        "full-resolution scan, covariances k = {}, r = {} m:",
-        config.covariance.k_correspondences_for_cov, config.covariance.max_distance_for_cov
-    );
     print_summary(&summarize(&cloud, &config.covariance)?);
-    println!("done: simulate, bake, serve and localize join this demo as they land (see README).");
     Ok(())
-}
-
-/// A LiDAR-like scan around a sensor 1.7 m above flat ground: a ground disc, four
-/// walls and a ring of poles, with 1 cm range noise; about 40 000 points.
-fn synthetic_scan(seed: u64) -> PointCloud {
-    let mut rng = StdRng::seed_from_u64(seed);
-    let mut points = Vec::new();
-    let noise = |rng: &mut StdRng| rng.random_range(-0.01f32..0.01);
-    for _ in 0..20_000 {
-        let (r, a) = (
-            rng.random_range(2.0f32..30.0),
-            rng.random_range(0.0..std::f32::consts::TAU),
-        );
-        points.push([r * a.cos(), r * a.sin(), -1.7 + noise(&mut rng)]);
-    }
-    for wall in 0..4 {
-        for _ in 0..4_000 {
-            let (along, up) = (
-                rng.random_range(-20.0f32..20.0),
-                rng.random_range(-1.7f32..4.0),
-            );
-            let off = 20.0 + noise(&mut rng);
-            points.push(match wall {
-                0 => [off, along, up],
-                1 => [-off, along, up],
-                2 => [along, off, up],
-                _ => [along, -off, up],
-            });
-        }
-    }
-    for pole in 0..12 {
-        let centre = (pole as f32 * 0.52).sin_cos();
-        for _ in 0..300 {
-            let a = rng.random_range(0.0..std::f32::consts::TAU);
-            let (x, y) = (
-                centre.0 * 10.0 + 0.15 * a.cos(),
-                centre.1 * 10.0 + 0.15 * a.sin(),
-            );
-            points.push([x, y, rng.random_range(-1.7f32..3.0)]);
-        }
-    }
-    PointCloud::from_points(points)
 }

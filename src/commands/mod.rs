@@ -3,3 +3,4 @@
 pub mod demo;
 pub mod inspect_cloud;
 mod report;
+pub mod simulate;

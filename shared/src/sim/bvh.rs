@@ -1,0 +1,224 @@
+//! A bounding-volume hierarchy over scene shapes: median split on the widest centroid
+//! axis, flattened depth-first, traversed nearest child first.
+
+use nalgebra::Vector3;
+
+use super::shapes::{Bounds, Ray, Shape};
+
+const LEAF_SHAPES: usize = 4;
+
+#[derive(Debug, Clone)]
+struct Node {
+    bounds: Bounds,
+    /// Leaf: first shape index. Inner: index of the second child (the first follows).
+    first_or_right: u32,
+    /// Leaf: number of shapes; 0 marks an inner node.
+    count: u32,
+}
+
+/// The shapes of a scene, reordered, with their hierarchy.
+#[derive(Debug, Clone)]
+pub struct Bvh {
+    shapes: Vec<Shape>,
+    nodes: Vec<Node>,
+}
+
+impl Bvh {
+    /// Builds the hierarchy (takes the shapes).
+    pub fn new(shapes: Vec<Shape>) -> Self {
+        let mut items: Vec<(Bounds, Vector3<f64>, Shape)> = shapes
+            .into_iter()
+            .map(|s| (s.bounds(), s.bounds().centre(), s))
+            .collect();
+        let mut nodes = Vec::with_capacity(2 * items.len() / LEAF_SHAPES + 1);
+        if !items.is_empty() {
+            build(&mut items, 0, &mut nodes);
+        }
+        Self {
+            shapes: items.into_iter().map(|(_, _, s)| s).collect(),
+            nodes,
+        }
+    }
+
+    /// Number of shapes.
+    pub fn len(&self) -> usize {
+        self.shapes.len()
+    }
+
+    /// True when there are no shapes.
+    pub fn is_empty(&self) -> bool {
+        self.shapes.is_empty()
+    }
+
+    /// Bounds of everything; `None` when empty.
+    pub fn bounds(&self) -> Option<Bounds> {
+        self.nodes.first().map(|n| n.bounds)
+    }
+
+    /// Nearest hit distance along `ray` below `t_max`, and the shape hit.
+    pub fn cast(&self, ray: &Ray, t_max: f64) -> Option<(f64, &Shape)> {
+        if self.nodes.is_empty() {
+            return None;
+        }
+        let inv_dir = ray.dir.map(|d| 1.0 / d);
+        let mut best: Option<(f64, usize)> = None;
+        let mut limit = t_max;
+        // Fixed stack: the median split keeps depth near log2(n), far below 64 levels.
+        let mut stack = [0usize; 128];
+        let mut top = 1;
+        while top > 0 {
+            top -= 1;
+            let index = stack[top];
+            let node = &self.nodes[index];
+            if node.bounds.hit(ray, &inv_dir, limit).is_none() {
+                continue;
+            }
+            if node.count > 0 {
+                let first = node.first_or_right as usize;
+                for i in first..first + node.count as usize {
+                    if let Some(t) = self.shapes[i].hit(ray, limit) {
+                        limit = t;
+                        best = Some((t, i));
+                    }
+                }
+                continue;
+            }
+            let (left, right) = (index + 1, node.first_or_right as usize);
+            let near_left = self.nodes[left].bounds.hit(ray, &inv_dir, limit);
+            let near_right = self.nodes[right].bounds.hit(ray, &inv_dir, limit);
+            // Push the farther child first so the nearer one is searched first.
+            let mut push = |node: usize| {
+                stack[top] = node;
+                top += 1;
+            };
+            match (near_left, near_right) {
+                (Some(l), Some(r)) if l <= r => {
+                    push(right);
+                    push(left);
+                }
+                (Some(_), Some(_)) => {
+                    push(left);
+                    push(right);
+                }
+                (Some(_), None) => push(left),
+                (None, Some(_)) => push(right),
+                (None, None) => {}
+            }
+        }
+        best.map(|(t, i)| (t, &self.shapes[i]))
+    }
+
+    /// The same answer as [`Bvh::cast`] by testing every shape: the oracle for tests.
+    pub fn cast_brute_force(&self, ray: &Ray, t_max: f64) -> Option<(f64, &Shape)> {
+        let mut best: Option<(f64, &Shape)> = None;
+        for shape in &self.shapes {
+            if let Some(t) = shape.hit(ray, best.map_or(t_max, |b| b.0)) {
+                best = Some((t, shape));
+            }
+        }
+        best
+    }
+}
+
+/// Builds the subtree over `items` (whose first shape has global index `offset`).
+fn build(items: &mut [(Bounds, Vector3<f64>, Shape)], offset: usize, nodes: &mut Vec<Node>) {
+    let bounds = items
+        .iter()
+        .fold(Bounds::empty(), |acc, item| acc.union(&item.0));
+    let me = nodes.len();
+    nodes.push(Node {
+        bounds,
+        first_or_right: offset as u32,
+        count: items.len() as u32,
+    });
+    if items.len() <= LEAF_SHAPES {
+        return;
+    }
+    let centres = items.iter().fold(Bounds::empty(), |acc, item| {
+        acc.union(&Bounds {
+            min: item.1,
+            max: item.1,
+        })
+    });
+    let extent = centres.max - centres.min;
+    let axis = extent.imax();
+    let mid = items.len() / 2;
+    items.select_nth_unstable_by(mid, |a, b| a.1[axis].total_cmp(&b.1[axis]));
+    let (left, right) = items.split_at_mut(mid);
+    build(left, offset, nodes);
+    let right_index = nodes.len();
+    build(right, offset + mid, nodes);
+    nodes[me].first_or_right = right_index as u32;
+    nodes[me].count = 0;
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::rngs::StdRng;
+    use rand::{Rng, SeedableRng};
+
+    #[test]
+    fn matches_brute_force_on_random_scenes() {
+        let mut rng = StdRng::seed_from_u64(11);
+        let mut shapes = Vec::new();
+        for _ in 0..400 {
+            let a = Vector3::new(
+                rng.random_range(-50.0..50.0),
+                rng.random_range(-50.0..50.0),
+                rng.random_range(-5.0..5.0),
+            );
+            let jitter = |rng: &mut StdRng| {
+                Vector3::new(
+                    rng.random_range(-3.0..3.0),
+                    rng.random_range(-3.0..3.0),
+                    rng.random_range(-3.0..3.0),
+                )
+            };
+            shapes.push(Shape::Triangle {
+                a,
+                b: a + jitter(&mut rng),
+                c: a + jitter(&mut rng),
+            });
+        }
+        for _ in 0..100 {
+            let centre = [rng.random_range(-50.0..50.0), rng.random_range(-50.0..50.0)];
+            shapes.push(Shape::Cylinder {
+                centre,
+                radius: rng.random_range(0.1..1.0),
+                z0: -5.0,
+                z1: rng.random_range(0.0..5.0),
+            });
+        }
+        let bvh = Bvh::new(shapes);
+        let mut hits = 0;
+        for _ in 0..5000 {
+            let origin = Vector3::new(
+                rng.random_range(-20.0..20.0),
+                rng.random_range(-20.0..20.0),
+                rng.random_range(-2.0..2.0),
+            );
+            let dir = Vector3::new(
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-0.3..0.3),
+            )
+            .normalize();
+            let ray = Ray { origin, dir };
+            let fast = bvh.cast(&ray, 200.0).map(|h| h.0);
+            let slow = bvh.cast_brute_force(&ray, 200.0).map(|h| h.0);
+            assert_eq!(fast, slow);
+            hits += fast.is_some() as usize;
+        }
+        assert!(hits > 1000, "{hits}");
+    }
+
+    #[test]
+    fn empty_scene_hits_nothing() {
+        let ray = Ray {
+            origin: Vector3::zeros(),
+            dir: Vector3::x(),
+        };
+        assert!(Bvh::new(Vec::new()).cast(&ray, 10.0).is_none());
+    }
+}
