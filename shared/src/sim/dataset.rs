@@ -236,6 +236,15 @@ pub fn write_dataset(
     }
     let scans_dir = out.join("scans");
     std::fs::create_dir_all(&scans_dir).map_err(|e| IoError::os(&scans_dir, e))?;
+    // With --force, scans left by an earlier, longer run would pose as part of this one.
+    for entry in std::fs::read_dir(&scans_dir)
+        .map_err(|e| IoError::os(&scans_dir, e))?
+        .flatten()
+    {
+        if entry.path().extension().is_some_and(|e| e == "pcd") {
+            std::fs::remove_file(entry.path()).map_err(|e| IoError::os(entry.path(), e))?;
+        }
+    }
 
     let total = sim.config.scan_count();
     let done = std::sync::atomic::AtomicUsize::new(0);

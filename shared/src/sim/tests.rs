@@ -220,7 +220,16 @@ fn same_seed_gives_byte_identical_datasets() {
     let files_a = all_files(&a);
     assert_eq!(files_a.len(), 4 + 5); // imu.csv, meta.toml, poses_gt.txt, poses_imu_gt.txt + 5 scans
     assert_eq!(files_a, all_files(&b));
-    write_dataset(SimConfig { seed: 2, ..config }, &c, false, &quiet).unwrap();
+    write_dataset(
+        SimConfig {
+            seed: 2,
+            ..config.clone()
+        },
+        &c,
+        false,
+        &quiet,
+    )
+    .unwrap();
     let scan_a = std::fs::read(a.join("scans/000000.pcd")).unwrap();
     assert_ne!(scan_a, std::fs::read(c.join("scans/000000.pcd")).unwrap());
     // A non-empty folder is refused without force.
