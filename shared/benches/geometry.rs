@@ -37,9 +37,8 @@ fn bench_kernels(c: &mut Criterion) {
         group.bench_function(BenchmarkId::new("kdtree_build", threads), |b| {
             b.iter(|| pool.install(|| build_tree(points).expect("tree")))
         });
-        let tree = build_tree(points).expect("tree");
         group.bench_function(BenchmarkId::new("covariances_k20", threads), |b| {
-            b.iter(|| pool.install(|| estimate_covariances(points, &tree, &options)))
+            b.iter(|| pool.install(|| estimate_covariances(points, &options)))
         });
         group.bench_function(BenchmarkId::new("voxel_downsample_0.25", threads), |b| {
             b.iter(|| pool.install(|| cloud.voxel_downsample(0.25).expect("voxel")))

@@ -5,11 +5,11 @@
 use std::num::NonZeroUsize;
 
 use nalgebra::{Matrix3, Vector3};
-use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::eigen::{smallest_eigenvector, sorted_symmetric_eigen, symmetric_eigenvalues};
 use crate::geometry::{PackedSym3, pack_sym3, to_vec3};
+use crate::neighbourhoods::map_neighbourhoods;
 use crate::options::{InvalidOption, ensure};
 use crate::spatial::{PointTree, nearest_within_unsorted};
 
@@ -114,17 +114,22 @@ pub const ISOTROPIC: PackedSym3 = [1.0, 0.0, 0.0, 1.0, 0.0, 1.0];
 /// Result for one point: covariance and planarity, or `None` for the fallback.
 type PointEstimate = Option<(PackedSym3, f64)>;
 
-/// Estimates the covariance of every point of `points`, using `tree` built over the
-/// same points. Runs on the current rayon pool; the output does not depend on threads.
-pub fn estimate_covariances(
-    points: &[[f32; 3]],
-    tree: &PointTree,
-    options: &CovOptions,
-) -> Covariances {
-    let estimates: Vec<PointEstimate> = points
-        .par_iter()
-        .map(|q| estimate_one(points, tree, q, options))
-        .collect();
+/// Estimates the covariance of every point of `points` (all-kNN, see
+/// [`map_neighbourhoods`]). Runs on the current rayon pool; the output does not depend
+/// on the thread count.
+pub fn estimate_covariances(points: &[[f32; 3]], options: &CovOptions) -> Covariances {
+    let k = options.k_correspondences_for_cov.min(points.len());
+    let r = options.max_distance_for_cov;
+    let estimates: Vec<PointEstimate> =
+        map_neighbourhoods(points, k, (r * r) as f32, |i, found| {
+            from_neighbours(
+                points.len(),
+                &points[i],
+                found.iter().map(|f| f.point),
+                found.len(),
+                options,
+            )
+        });
     let fallback_count = estimates.iter().filter(|e| e.is_none()).count();
     let planar: Vec<f64> = estimates.iter().flatten().map(|&(_, p)| p).collect();
     let mean_planarity =
@@ -139,21 +144,37 @@ pub fn estimate_covariances(
     }
 }
 
-/// Covariance of the neighbourhood of `query` among `points` (indexed by `tree`).
+/// Covariance of the neighbourhood of one `query` point among `points` (indexed by
+/// `tree`), for single lookups; [`estimate_covariances`] is faster for whole clouds.
 pub fn estimate_one(
     points: &[[f32; 3]],
     tree: &PointTree,
     query: &[f32; 3],
     options: &CovOptions,
 ) -> PointEstimate {
-    let n = points.len();
-    let k = NonZeroUsize::new(options.k_correspondences_for_cov.min(n))?;
-    if n < 3 {
-        return None;
-    }
+    let k = NonZeroUsize::new(options.k_correspondences_for_cov.min(points.len()))?;
     let r = options.max_distance_for_cov;
-    let neighbours = nearest_within_unsorted(tree, query, k, (r * r) as f32);
-    if neighbours.len() < options.min_correspondences_for_cov.min(k.get()) {
+    let found = nearest_within_unsorted(tree, query, k, (r * r) as f32);
+    from_neighbours(
+        points.len(),
+        query,
+        found.iter().map(|f| points[f.index as usize]),
+        found.len(),
+        options,
+    )
+}
+
+/// Steps 2-5 of ARCHITECTURE section 5 on the `found` neighbours (coordinates) of
+/// `query` in a cloud of `cloud_len` points.
+fn from_neighbours(
+    cloud_len: usize,
+    query: &[f32; 3],
+    neighbours: impl Iterator<Item = [f32; 3]> + Clone,
+    found: usize,
+    options: &CovOptions,
+) -> PointEstimate {
+    let k = options.k_correspondences_for_cov.min(cloud_len);
+    if cloud_len < 3 || found < options.min_correspondences_for_cov.min(k) {
         return None;
     }
     // One pass of moments about the query point: neighbours are within r of it, so
@@ -161,8 +182,8 @@ pub fn estimate_one(
     let q = to_vec3(query);
     let mut sum = Vector3::zeros();
     let mut m = [0.0f64; 6]; // xx xy xz yy yz zz
-    for nb in &neighbours {
-        let d = to_vec3(&points[nb.index as usize]) - q;
+    for p in neighbours.clone() {
+        let d = to_vec3(&p) - q;
         sum += d;
         m[0] += d.x * d.x;
         m[1] += d.x * d.y;
@@ -172,7 +193,7 @@ pub fn estimate_one(
         m[5] += d.z * d.z;
     }
     let moments = Matrix3::new(m[0], m[1], m[2], m[1], m[3], m[4], m[2], m[4], m[5]);
-    let count = neighbours.len() as f64;
+    let count = found as f64;
     let mean_offset = sum / count;
     let about_mean = moments / count - mean_offset * mean_offset.transpose();
     let scatter = match options.cov_center {
@@ -180,9 +201,7 @@ pub fn estimate_one(
         CovCenter::Query => moments / count,
     };
     if options.max_plane_deviation_for_cov > 0.0 {
-        let members = neighbours
-            .iter()
-            .map(|nb| to_vec3(&points[nb.index as usize]) - q);
+        let members = neighbours.map(|p| to_vec3(&p) - q);
         if !fits_plane(
             members,
             &mean_offset,

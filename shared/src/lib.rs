@@ -4,13 +4,11 @@
 //! ```
 //! use kfmap_shared::cloud::PointCloud;
 //! use kfmap_shared::cov::{estimate_covariances, CovOptions};
-//! use kfmap_shared::spatial::build_tree;
 //!
 //! // A 20 x 20 grid on the ground plane, 10 cm apart.
 //! let points: Vec<[f32; 3]> = (0..400).map(|i| [(i % 20) as f32 * 0.1, (i / 20) as f32 * 0.1, 0.0]).collect();
 //! let cloud = PointCloud::from_points(points);
-//! let tree = build_tree(&cloud.points).unwrap();
-//! let covs = estimate_covariances(&cloud.points, &tree, &CovOptions::default());
+//! let covs = estimate_covariances(&cloud.points, &CovOptions::default());
 //! // Planar neighbourhoods: the zz variance is the regularized 1e-3 m^2.
 //! assert!((covs.values[210][5] - 1e-3).abs() < 1e-6);
 //! ```
@@ -23,6 +21,7 @@ pub mod eigen;
 pub mod geometry;
 pub mod imu;
 pub mod io;
+pub mod neighbourhoods;
 pub mod options;
 pub mod sim;
 pub mod spatial;

@@ -45,7 +45,7 @@ pub fn summarize(cloud: &PointCloud, options: &CovOptions) -> Result<CloudSummar
     let tree = build_tree(&cloud.points)?;
     let tree_ms = started.elapsed().as_secs_f64() * 1e3;
     let started = Instant::now();
-    let covs = estimate_covariances(&cloud.points, &tree, options);
+    let covs = estimate_covariances(&cloud.points, options);
     let covariances_ms = started.elapsed().as_secs_f64() * 1e3;
 
     let volume = bbox.volume();

@@ -93,9 +93,14 @@ fn random_cloud(seed: u64, n: usize) -> Vec<[f32; 3]> {
 }
 
 fn assert_matches_brute_force(points: &[[f32; 3]], options: &CovOptions) {
-    let tree = build_tree(points).unwrap();
-    let got = estimate_covariances(points, &tree, options);
+    let got = estimate_covariances(points, options);
     let want = brute_force(points, options);
+    // The single-query path (kiddo) agrees with the whole-cloud path.
+    let tree = build_tree(points).unwrap();
+    for i in (0..points.len()).step_by(37) {
+        let one = estimate_one(points, &tree, &points[i], options).map_or(ISOTROPIC, |(c, _)| c);
+        assert_eq!(one, got.values[i], "point {i}");
+    }
     assert_eq!(got.values.len(), want.len());
     for (i, (g, w)) in got.values.iter().zip(&want).enumerate() {
         for j in 0..6 {
@@ -134,8 +139,7 @@ fn matches_brute_force_with_plane_deviation_gate() {
     let tree_points = random_cloud(3, 3000);
     assert_matches_brute_force(&tree_points, &options);
     // The clutter third of the cloud must actually trip the gate.
-    let tree = build_tree(&tree_points).unwrap();
-    assert!(estimate_covariances(&tree_points, &tree, &options).fallback_count > 100);
+    assert!(estimate_covariances(&tree_points, &options).fallback_count > 100);
 }
 
 #[test]
@@ -153,8 +157,7 @@ fn regularized_plane_has_eigenvalues_one_one_lambda() {
         })
         .collect();
     let options = CovOptions::default();
-    let tree = build_tree(&points).unwrap();
-    let covs = estimate_covariances(&points, &tree, &options);
+    let covs = estimate_covariances(&points, &options);
     assert_eq!(covs.fallback_count, 0);
     for c in &covs.values {
         let m = unpack_sym3(c);
@@ -173,8 +176,7 @@ fn eigenvalue_floor_lifts_a_line_neighbourhood() {
         lambda: -0.1,
         ..CovOptions::default()
     };
-    let tree = build_tree(&points).unwrap();
-    let covs = estimate_covariances(&points, &tree, &options);
+    let covs = estimate_covariances(&points, &options);
     for c in &covs.values {
         let e = sorted_symmetric_eigen(&unpack_sym3(c)).values;
         assert!(e.x > 0.0);
@@ -188,21 +190,18 @@ fn isotropic_fallback_when_too_few_neighbours_or_points() {
     // N < 3: identity, never zeros (MOLA wrote zeros here).
     for n in 1..3 {
         let points: Vec<[f32; 3]> = (0..n).map(|i| [i as f32 * 0.1, 0.0, 0.0]).collect();
-        let tree = build_tree(&points).unwrap();
-        let covs = estimate_covariances(&points, &tree, &options);
+        let covs = estimate_covariances(&points, &options);
         assert!(covs.values.iter().all(|c| *c == ISOTROPIC));
     }
     // Isolated points (2 m apart, r = 1 m): only the point itself is a neighbour.
     let sparse: Vec<[f32; 3]> = (0..20).map(|i| [i as f32 * 2.0, 0.0, 0.0]).collect();
-    let tree = build_tree(&sparse).unwrap();
-    let covs = estimate_covariances(&sparse, &tree, &options);
+    let covs = estimate_covariances(&sparse, &options);
     assert_eq!(covs.fallback_count, 20);
     assert!(covs.values.iter().all(|c| *c == ISOTROPIC));
     // All neighbours identical: zero scatter, fallback rather than a singular matrix.
     let same = vec![[1.0f32, 2.0, 3.0]; 10];
-    let tree = build_tree(&same).unwrap();
     assert!(
-        estimate_covariances(&same, &tree, &options)
+        estimate_covariances(&same, &options)
             .values
             .iter()
             .all(|c| *c == ISOTROPIC)
@@ -212,14 +211,13 @@ fn isotropic_fallback_when_too_few_neighbours_or_points() {
 #[test]
 fn output_does_not_depend_on_thread_count() {
     let points = random_cloud(4, 5000);
-    let tree = build_tree(&points).unwrap();
     let options = CovOptions::default();
     let one = rayon::ThreadPoolBuilder::new()
         .num_threads(1)
         .build()
         .unwrap();
-    let serial = one.install(|| estimate_covariances(&points, &tree, &options));
-    let parallel = estimate_covariances(&points, &tree, &options);
+    let serial = one.install(|| estimate_covariances(&points, &options));
+    let parallel = estimate_covariances(&points, &options);
     assert_eq!(serial, parallel);
 }
 
