@@ -14,8 +14,12 @@
 //! ```
 #![warn(missing_docs)]
 
+/// Identifier of a keyframe: monotonic, never reused.
+pub type KeyframeId = u64;
+
 pub mod cloud;
 pub mod cov;
+pub mod covis;
 pub mod datasets;
 pub mod eigen;
 pub mod geometry;
@@ -23,6 +27,7 @@ pub mod imu;
 pub mod io;
 pub mod neighbourhoods;
 pub mod options;
+pub mod select;
 pub mod sim;
 pub mod spatial;
 pub mod summary;

@@ -1,0 +1,318 @@
+//! Covisibility graph between keyframes, as ORB-SLAM2's (ARCHITECTURE section 7) but for
+//! point clouds and symmetric: two keyframes are covisible by the number of occupied
+//! voxels (map frame) they share. Also the spanning tree and the essential graph.
+
+use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
+
+use serde::{Deserialize, Serialize};
+
+use crate::KeyframeId;
+use crate::options::{InvalidOption, ensure};
+
+/// Options of the covisibility graph.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
+pub struct CovisOptions {
+    /// Voxel edge, metres (map frame).
+    pub voxel_size: f64,
+    /// Edges need at least this many shared voxels (else only the strongest is kept).
+    pub min_weight: u32,
+    /// Covisibility edges of the essential graph need at least this weight.
+    pub essential_min_weight: u32,
+}
+
+impl Default for CovisOptions {
+    fn default() -> Self {
+        Self {
+            voxel_size: 1.0,
+            min_weight: 15,
+            essential_min_weight: 100,
+        }
+    }
+}
+
+impl CovisOptions {
+    /// Checks every option; the error names the first bad one.
+    pub fn validate(&self) -> Result<(), InvalidOption> {
+        let v = self.voxel_size;
+        ensure(
+            v.is_finite() && v >= 0.01,
+            "covis-voxel-size",
+            v,
+            "a finite size >= 0.01 m",
+        )?;
+        ensure(
+            self.min_weight >= 1,
+            "covis-min-weight",
+            self.min_weight,
+            "an integer >= 1",
+        )
+    }
+}
+
+type Voxel = [i64; 3];
+
+/// The covisibility graph with its inverted voxel index and spanning tree.
+#[derive(Debug, Clone, Default)]
+pub struct CovisibilityGraph {
+    options: CovisOptions,
+    voxels: HashMap<KeyframeId, HashSet<Voxel>>,
+    index: HashMap<Voxel, BTreeSet<KeyframeId>>,
+    /// Symmetric: `edges[a][b] == edges[b][a]` for every kept edge.
+    edges: HashMap<KeyframeId, BTreeMap<KeyframeId, u32>>,
+    parent: HashMap<KeyframeId, KeyframeId>,
+    children: HashMap<KeyframeId, BTreeSet<KeyframeId>>,
+    /// Keyframes that joined the tree (a parent, or the first keyframe = root).
+    in_tree: HashSet<KeyframeId>,
+}
+
+impl CovisibilityGraph {
+    /// An empty graph; `options` must be valid.
+    pub fn new(options: CovisOptions) -> Self {
+        Self {
+            options,
+            ..Self::default()
+        }
+    }
+
+    /// The graph's options.
+    pub fn options(&self) -> &CovisOptions {
+        &self.options
+    }
+
+    /// Number of keyframes.
+    pub fn len(&self) -> usize {
+        self.voxels.len()
+    }
+
+    /// True with no keyframes.
+    pub fn is_empty(&self) -> bool {
+        self.voxels.is_empty()
+    }
+
+    fn voxel_of(&self, p: &[f64; 3]) -> Voxel {
+        p.map(|c| (c / self.options.voxel_size).floor() as i64)
+    }
+
+    /// Adds keyframe `id` (or replaces its points after a pose change) with its points
+    /// in the map frame, then updates its connections.
+    pub fn set_keyframe(&mut self, id: KeyframeId, map_points: impl IntoIterator<Item = [f64; 3]>) {
+        self.drop_voxels(id);
+        let set: HashSet<Voxel> = map_points.into_iter().map(|p| self.voxel_of(&p)).collect();
+        for v in &set {
+            self.index.entry(*v).or_default().insert(id);
+        }
+        self.voxels.insert(id, set);
+        if self.in_tree.is_empty() {
+            self.in_tree.insert(id); // The first keyframe is the root.
+        }
+        self.update_connections(id);
+    }
+
+    fn drop_voxels(&mut self, id: KeyframeId) {
+        for v in self.voxels.remove(&id).unwrap_or_default() {
+            if let Some(ids) = self.index.get_mut(&v) {
+                ids.remove(&id);
+                if ids.is_empty() {
+                    self.index.remove(&v);
+                }
+            }
+        }
+    }
+
+    /// Shared-voxel counts between `id` and every other keyframe sharing any voxel.
+    pub fn shared_voxels(&self, id: KeyframeId) -> BTreeMap<KeyframeId, u32> {
+        let mut counts = BTreeMap::new();
+        for v in self.voxels.get(&id).into_iter().flatten() {
+            for &other in &self.index[v] {
+                if other != id {
+                    *counts.entry(other).or_insert(0) += 1;
+                }
+            }
+        }
+        counts
+    }
+
+    /// Recomputes every edge of `id` from the voxel index: edges with weight >= the
+    /// threshold, or the single strongest when none qualifies; mirrored on both ends.
+    /// The first time `id` gets an edge to a keyframe of the spanning tree it joins the
+    /// tree under the strongest such neighbour.
+    pub fn update_connections(&mut self, id: KeyframeId) {
+        let counts = self.shared_voxels(id);
+        let mut kept: BTreeMap<KeyframeId, u32> = counts
+            .iter()
+            .filter(|&(_, &w)| w >= self.options.min_weight)
+            .map(|(&k, &w)| (k, w))
+            .collect();
+        if kept.is_empty()
+            && let Some((&k, &w)) = strongest(&counts)
+        {
+            kept.insert(k, w);
+        }
+        for (other, _) in self.edges.remove(&id).unwrap_or_default() {
+            if let Some(row) = self.edges.get_mut(&other) {
+                row.remove(&id);
+            }
+        }
+        for (&other, &w) in &kept {
+            self.edges.entry(other).or_default().insert(id, w);
+        }
+        if !self.in_tree.contains(&id) {
+            // Only under a keyframe already in the tree: an outsider has no subtree, so
+            // attaching it can never close a cycle.
+            let in_tree: BTreeMap<KeyframeId, u32> = kept
+                .iter()
+                .filter(|(k, _)| self.in_tree.contains(k))
+                .map(|(&k, &w)| (k, w))
+                .collect();
+            if let Some((&best, _)) = strongest(&in_tree) {
+                self.attach(id, best);
+            }
+        }
+        self.edges.insert(id, kept);
+    }
+
+    fn attach(&mut self, child: KeyframeId, parent: KeyframeId) {
+        self.parent.insert(child, parent);
+        self.children.entry(parent).or_default().insert(child);
+        self.in_tree.insert(child);
+    }
+
+    /// Removes keyframe `id`: its voxels, its edges on both ends, and its tree node;
+    /// its children are re-parented greedily (ORB-SLAM2 `SetBadFlag`): repeatedly the
+    /// child with the strongest edge to a candidate (the removed keyframe's parent,
+    /// then every re-attached child) joins that candidate; the rest join the removed
+    /// keyframe's parent (or become roots when it had none).
+    pub fn remove_keyframe(&mut self, id: KeyframeId) {
+        self.drop_voxels(id);
+        for (other, _) in self.edges.remove(&id).unwrap_or_default() {
+            if let Some(row) = self.edges.get_mut(&other) {
+                row.remove(&id);
+            }
+        }
+        let parent = self.parent.remove(&id);
+        if let Some(siblings) = parent.and_then(|p| self.children.get_mut(&p)) {
+            siblings.remove(&id);
+        }
+        self.in_tree.remove(&id);
+        let mut orphans: BTreeSet<KeyframeId> = self.children.remove(&id).unwrap_or_default();
+        for c in &orphans {
+            self.parent.remove(c);
+        }
+        let mut candidates: BTreeSet<KeyframeId> = parent.into_iter().collect();
+        loop {
+            // Strongest (child, candidate) edge; ties: lower child id, then lower candidate id.
+            let mut best: Option<(u32, KeyframeId, KeyframeId)> = None;
+            for &c in &orphans {
+                for (&n, &w) in self.edges.get(&c).into_iter().flatten() {
+                    if candidates.contains(&n) && best.is_none_or(|(bw, _, _)| w > bw) {
+                        best = Some((w, c, n));
+                    }
+                }
+            }
+            let Some((_, child, new_parent)) = best else {
+                break;
+            };
+            self.attach(child, new_parent);
+            orphans.remove(&child);
+            candidates.insert(child);
+        }
+        for c in orphans {
+            match parent {
+                Some(p) => self.attach(c, p),
+                None => {
+                    self.in_tree.insert(c); // Root removed: its unattached children become roots.
+                }
+            }
+        }
+    }
+
+    /// Edge weight between two keyframes (0 when not connected).
+    pub fn weight(&self, a: KeyframeId, b: KeyframeId) -> u32 {
+        self.edges
+            .get(&a)
+            .and_then(|row| row.get(&b))
+            .copied()
+            .unwrap_or(0)
+    }
+
+    /// Neighbours of `id` by weight, descending (ties: lower id first).
+    pub fn ordered_neighbours(&self, id: KeyframeId) -> Vec<(KeyframeId, u32)> {
+        let mut row: Vec<(KeyframeId, u32)> = self
+            .edges
+            .get(&id)
+            .into_iter()
+            .flatten()
+            .map(|(&k, &w)| (k, w))
+            .collect();
+        row.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
+        row
+    }
+
+    /// The `n` best covisible keyframes of `id`.
+    pub fn best_covisible(&self, id: KeyframeId, n: usize) -> Vec<KeyframeId> {
+        self.ordered_neighbours(id)
+            .into_iter()
+            .take(n)
+            .map(|(k, _)| k)
+            .collect()
+    }
+
+    /// Neighbours of `id` with weight >= `w`, strongest first (all of them when all
+    /// qualify).
+    pub fn covisible_by_weight(&self, id: KeyframeId, w: u32) -> Vec<KeyframeId> {
+        self.ordered_neighbours(id)
+            .into_iter()
+            .take_while(|&(_, weight)| weight >= w)
+            .map(|(k, _)| k)
+            .collect()
+    }
+
+    /// Parent of `id` in the spanning tree.
+    pub fn parent(&self, id: KeyframeId) -> Option<KeyframeId> {
+        self.parent.get(&id).copied()
+    }
+
+    /// Children of `id` in the spanning tree, ascending.
+    pub fn children(&self, id: KeyframeId) -> Vec<KeyframeId> {
+        self.children
+            .get(&id)
+            .map(|c| c.iter().copied().collect())
+            .unwrap_or_default()
+    }
+
+    /// Undirected edges `(a, b)`, `a < b`: the spanning tree plus covisibility edges
+    /// with weight >= `essential_min_weight`.
+    pub fn essential_graph(&self) -> BTreeSet<(KeyframeId, KeyframeId)> {
+        let ordered = |a: KeyframeId, b: KeyframeId| (a.min(b), a.max(b));
+        let mut out: BTreeSet<(KeyframeId, KeyframeId)> =
+            self.parent.iter().map(|(&c, &p)| ordered(c, p)).collect();
+        for (&a, row) in &self.edges {
+            out.extend(
+                row.iter()
+                    .filter(|&(_, &w)| w >= self.options.essential_min_weight)
+                    .map(|(&b, _)| ordered(a, b)),
+            );
+        }
+        out
+    }
+
+    /// Every stored undirected edge with its weight, `a < b`.
+    pub fn edges(&self) -> BTreeMap<(KeyframeId, KeyframeId), u32> {
+        let mut out = BTreeMap::new();
+        for (&a, row) in &self.edges {
+            for (&b, &w) in row {
+                out.insert((a.min(b), a.max(b)), w);
+            }
+        }
+        out
+    }
+}
+
+/// Highest weight; ties: lowest id.
+fn strongest(row: &BTreeMap<KeyframeId, u32>) -> Option<(&KeyframeId, &u32)> {
+    row.iter().max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0)))
+}
+
+#[cfg(test)]
+mod tests;
