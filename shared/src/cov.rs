@@ -259,4 +259,4 @@ fn fits_plane(
 }
 
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;

@@ -25,6 +25,7 @@ pub mod eigen;
 pub mod geometry;
 pub mod imu;
 pub mod io;
+pub mod map;
 pub mod neighbourhoods;
 pub mod options;
 pub mod select;

@@ -1,0 +1,343 @@
+//! The active set of a query: nearest-neighbour and cov2cov lookups, either in the
+//! merged submap (exact mode) or keyframe by keyframe (approximate mode).
+
+use std::num::NonZeroUsize;
+use std::sync::Arc;
+
+use kiddo::SquaredEuclidean;
+use nalgebra::{Matrix3, Point3, Vector3};
+use rayon::prelude::*;
+
+use super::{Keyframe, KeyframeMap, MapError};
+use crate::KeyframeId;
+use crate::cloud::PointCloud;
+use crate::cov::{CovOptions, estimate_covariances};
+use crate::geometry::{PackedSym3, Pose, pack_sym3, to_point, to_vec3, unpack_sym3};
+use crate::spatial::{PointTree, build_tree};
+
+/// The active keyframes' points concatenated in ascending id order, in the map frame,
+/// with a tree and covariances of their own (neighbours may come from any keyframe).
+#[derive(Debug)]
+pub struct MergedSubmap {
+    /// Keyframes merged, ascending.
+    pub ids: Vec<KeyframeId>,
+    /// Map-frame points.
+    pub points: Vec<[f32; 3]>,
+    /// Index into `ids` of each point's keyframe.
+    pub origin_keyframe: Vec<u32>,
+    /// Local index of each point in its keyframe.
+    pub origin_index: Vec<u32>,
+    /// Map-frame view directions (zero where a keyframe has none).
+    pub view_dirs: Vec<[f32; 3]>,
+    /// Covariances computed on the merged cloud, map frame.
+    pub covariances: Vec<PackedSym3>,
+    /// KD-tree over `points`.
+    pub tree: PointTree,
+}
+
+impl MergedSubmap {
+    /// Merges `keyframes` (ascending id).
+    pub fn build(
+        keyframes: &[&Keyframe],
+        cov: &CovOptions,
+    ) -> Result<Self, crate::spatial::TreeError> {
+        let total: usize = keyframes.iter().map(|k| k.cloud.len()).sum();
+        let mut m = Self {
+            ids: keyframes.iter().map(|k| k.id).collect(),
+            points: Vec::with_capacity(total),
+            origin_keyframe: Vec::with_capacity(total),
+            origin_index: Vec::with_capacity(total),
+            view_dirs: Vec::with_capacity(total),
+            covariances: Vec::new(),
+            tree: build_tree(&[[0.0; 3]])?,
+        };
+        for (slot, k) in keyframes.iter().enumerate() {
+            for (i, p) in k.cloud.points.iter().enumerate() {
+                m.points
+                    .push(to_point(&(k.pose * Point3::from(to_vec3(p))).coords));
+                m.origin_keyframe.push(slot as u32);
+                m.origin_index.push(i as u32);
+                let v = k
+                    .cloud
+                    .view_dirs
+                    .as_ref()
+                    .map_or([0.0; 3], |v| to_point(&(k.pose.rotation * to_vec3(&v[i]))));
+                m.view_dirs.push(v);
+            }
+        }
+        m.tree = build_tree(&m.points)?;
+        m.covariances = estimate_covariances(&m.points, cov).values;
+        Ok(m)
+    }
+}
+
+/// A map point found for a query: map frame, squared distance (m^2), origin.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MapHit {
+    /// The map point, map frame.
+    pub point: [f32; 3],
+    /// Squared distance to the query, m^2.
+    pub dist_sq: f32,
+    /// Keyframe holding the point.
+    pub keyframe: KeyframeId,
+    /// Index of the point in that keyframe.
+    pub local_index: u32,
+}
+
+/// One GICP correspondence: query point `query_index` paired with a map point.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Pairing {
+    /// Index of the scan point.
+    pub query_index: u32,
+    /// Keyframe of the map point.
+    pub keyframe: KeyframeId,
+    /// Index of the map point in its keyframe.
+    pub local_index: u32,
+    /// The map point, map frame.
+    pub map_point: [f32; 3],
+    /// Squared distance between the transformed scan point and the map point, m^2.
+    pub dist_sq: f32,
+    /// `(C_map + R C_query R^T)^-1`, packed, 1/m^2, map frame.
+    pub information: PackedSym3,
+}
+
+/// Orders hits by distance, then keyframe id, then local index (deterministic ties).
+fn hit_order(a: &MapHit, b: &MapHit) -> std::cmp::Ordering {
+    a.dist_sq
+        .total_cmp(&b.dist_sq)
+        .then(a.keyframe.cmp(&b.keyframe))
+        .then(a.local_index.cmp(&b.local_index))
+}
+
+/// The keyframes answering one query, with the merged submap in exact mode.
+pub struct ActiveSet<'a> {
+    map: &'a KeyframeMap,
+    ids: Vec<KeyframeId>,
+    merged: Option<Arc<MergedSubmap>>,
+}
+
+impl<'a> ActiveSet<'a> {
+    pub(super) fn new(
+        map: &'a KeyframeMap,
+        ids: Vec<KeyframeId>,
+        merged: Option<Arc<MergedSubmap>>,
+    ) -> Self {
+        Self { map, ids, merged }
+    }
+
+    /// Active keyframe ids, ascending.
+    pub fn ids(&self) -> &[KeyframeId] {
+        &self.ids
+    }
+
+    /// The merged submap (exact mode).
+    pub fn merged(&self) -> Option<&MergedSubmap> {
+        self.merged.as_deref()
+    }
+
+    fn keyframes(&self) -> impl Iterator<Item = &'a Keyframe> + '_ {
+        self.ids.iter().map(|id| &self.map.keyframes[id])
+    }
+
+    fn merged_hit(m: &MergedSubmap, item: u32, dist_sq: f32) -> MapHit {
+        let i = item as usize;
+        MapHit {
+            point: m.points[i],
+            dist_sq,
+            keyframe: m.ids[m.origin_keyframe[i] as usize],
+            local_index: m.origin_index[i],
+        }
+    }
+
+    /// The query (map frame) in a keyframe's local frame.
+    fn local_query(k: &Keyframe, p: &[f32; 3]) -> [f32; 3] {
+        to_point(&(k.pose.inverse() * Point3::from(to_vec3(p))).coords)
+    }
+
+    fn local_hit(k: &Keyframe, item: u32, dist_sq: f32) -> MapHit {
+        let local = k.cloud.points[item as usize];
+        MapHit {
+            point: to_point(&(k.pose * Point3::from(to_vec3(&local))).coords),
+            dist_sq,
+            keyframe: k.id,
+            local_index: item,
+        }
+    }
+
+    /// The nearest map point to `p` (map frame).
+    pub fn nearest_one(&self, p: &[f32; 3]) -> Option<MapHit> {
+        if let Some(m) = &self.merged {
+            let r = m
+                .tree
+                .query(p)
+                .nearest_one::<SquaredEuclidean<f32>>()
+                .execute();
+            return Some(Self::merged_hit(m, r.item, r.distance));
+        }
+        self.keyframes()
+            .map(|k| {
+                let r = k
+                    .tree
+                    .query(&Self::local_query(k, p))
+                    .nearest_one::<SquaredEuclidean<f32>>()
+                    .execute();
+                Self::local_hit(k, r.item, r.distance)
+            })
+            .min_by(hit_order)
+    }
+
+    /// The `k` nearest map points to `p`, nearest first.
+    pub fn nearest_k(&self, p: &[f32; 3], k: usize) -> Vec<MapHit> {
+        let Some(n) = NonZeroUsize::new(k) else {
+            return Vec::new();
+        };
+        let mut hits: Vec<MapHit> = match &self.merged {
+            Some(m) => m
+                .tree
+                .query(p)
+                .nearest_n::<SquaredEuclidean<f32>>(n)
+                .execute()
+                .into_iter()
+                .map(|r| Self::merged_hit(m, r.item, r.distance))
+                .collect(),
+            None => self
+                .keyframes()
+                .flat_map(|kf| {
+                    let q = Self::local_query(kf, p);
+                    kf.tree
+                        .query(&q)
+                        .nearest_n::<SquaredEuclidean<f32>>(n)
+                        .execute()
+                        .into_iter()
+                        .map(move |r| Self::local_hit(kf, r.item, r.distance))
+                })
+                .collect(),
+        };
+        hits.sort_by(hit_order);
+        hits.truncate(k);
+        hits
+    }
+
+    /// Every map point within `radius` metres of `p` (inclusive), nearest first.
+    pub fn within_radius(&self, p: &[f32; 3], radius: f64) -> Vec<MapHit> {
+        let r2 = (radius * radius) as f32;
+        let mut hits: Vec<MapHit> = match &self.merged {
+            Some(m) => m
+                .tree
+                .query(p)
+                .within::<SquaredEuclidean<f32>>(r2)
+                .execute()
+                .into_iter()
+                .map(|r| Self::merged_hit(m, r.item, r.distance))
+                .collect(),
+            None => self
+                .keyframes()
+                .flat_map(|kf| {
+                    let q = Self::local_query(kf, p);
+                    kf.tree
+                        .query(&q)
+                        .within::<SquaredEuclidean<f32>>(r2)
+                        .execute()
+                        .into_iter()
+                        .map(move |r| Self::local_hit(kf, r.item, r.distance))
+                })
+                .collect(),
+        };
+        hits.sort_by(hit_order);
+        hits
+    }
+
+    /// GICP correspondences for `scan` (sensor frame) at `pose` (`T_map_sensor`): for
+    /// each scan point its nearest map point within `max_pair_dist` metres, passing the
+    /// view-direction filter, with the information matrix `(C_map + R C_q R^T)^-1`.
+    /// Query covariances are estimated from the scan unless given. Sorted by query
+    /// index; the same for any thread count.
+    pub fn cov2cov(
+        &self,
+        scan: &PointCloud,
+        pose: &Pose,
+        max_pair_dist: f64,
+        query_covariances: Option<&[PackedSym3]>,
+    ) -> Result<Vec<Pairing>, MapError> {
+        scan.validate()?;
+        let estimated;
+        let covs: &[PackedSym3] = match query_covariances {
+            Some(c) if c.len() != scan.len() => {
+                return Err(MapError::CovarianceCount {
+                    given: c.len(),
+                    points: scan.len(),
+                });
+            }
+            Some(c) => c,
+            None => {
+                estimated = estimate_covariances(&scan.points, &self.map.options.covariance).values;
+                &estimated
+            }
+        };
+        let options = &self.map.options;
+        let max_sq = (max_pair_dist * max_pair_dist) as f32;
+        let cos_limit = options.max_view_angle_deg.to_radians().cos();
+        let filter = options.view_filter_active() && scan.view_dirs.is_some();
+        let rotation = pose.rotation.to_rotation_matrix().into_inner();
+        let pairings = (0..scan.len())
+            .into_par_iter()
+            .filter_map(|i| {
+                let p = to_point(&(pose * Point3::from(to_vec3(&scan.points[i]))).coords);
+                let (hit, map_cov, map_view) = self.nearest_with_attributes(&p)?;
+                if hit.dist_sq > max_sq {
+                    return None;
+                }
+                if filter {
+                    let vq = pose.rotation * to_vec3(&scan.view_dirs.as_ref()?[i]);
+                    // A missing vector (norm^2 < 0.25) never rejects.
+                    if vq.norm_squared() >= 0.25
+                        && map_view.norm_squared() >= 0.25
+                        && vq.dot(&map_view) < cos_limit
+                    {
+                        return None;
+                    }
+                }
+                let combined: Matrix3<f64> =
+                    map_cov + rotation * unpack_sym3(&covs[i]) * rotation.transpose();
+                let information = combined.try_inverse()?;
+                Some(Pairing {
+                    query_index: i as u32,
+                    keyframe: hit.keyframe,
+                    local_index: hit.local_index,
+                    map_point: hit.point,
+                    dist_sq: hit.dist_sq,
+                    information: pack_sym3(&information),
+                })
+            })
+            .collect();
+        Ok(pairings)
+    }
+
+    /// Nearest map point with its covariance and view direction, both in the map frame.
+    fn nearest_with_attributes(
+        &self,
+        p: &[f32; 3],
+    ) -> Option<(MapHit, Matrix3<f64>, Vector3<f64>)> {
+        if let Some(m) = &self.merged {
+            let r = m
+                .tree
+                .query(p)
+                .nearest_one::<SquaredEuclidean<f32>>()
+                .execute();
+            let i = r.item as usize;
+            return Some((
+                Self::merged_hit(m, r.item, r.distance),
+                unpack_sym3(&m.covariances[i]),
+                to_vec3(&m.view_dirs[i]),
+            ));
+        }
+        let hit = self.nearest_one(p)?;
+        let k = &self.map.keyframes[&hit.keyframe];
+        let rotation = k.pose.rotation.to_rotation_matrix().into_inner();
+        let local_cov = unpack_sym3(&k.covariances[hit.local_index as usize]);
+        let view = k.cloud.view_dirs.as_ref().map_or(Vector3::zeros(), |v| {
+            k.pose.rotation * to_vec3(&v[hit.local_index as usize])
+        });
+        Some((hit, rotation * local_cov * rotation.transpose(), view))
+    }
+}

@@ -1,0 +1,273 @@
+//! The keyframe map, as MOLA `KeyframePointCloudMap` (ARCHITECTURE section 6):
+//! keyframes with local trees and covariances, active-set selection, nearest-neighbour
+//! and cov2cov queries in exact (merged submap) or approximate (per-keyframe) mode,
+//! eviction, and a covisibility graph kept up to date.
+
+mod active;
+mod keyframe;
+mod options;
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+
+pub use active::{ActiveSet, MapHit, MergedSubmap, Pairing};
+pub use keyframe::{Keyframe, KeyframeDecider};
+pub use options::{ActiveSetMode, KeyframeMapOptions};
+
+use crate::KeyframeId;
+use crate::cloud::{CloudError, PointCloud};
+use crate::covis::CovisibilityGraph;
+use crate::geometry::{Pose, translation_distance};
+use crate::options::InvalidOption;
+use crate::select::{rank, select_active};
+use crate::spatial::TreeError;
+
+/// Why a map operation failed.
+#[derive(Debug, thiserror::Error)]
+pub enum MapError {
+    /// An option is out of range.
+    #[error(transparent)]
+    Options(#[from] InvalidOption),
+    /// No keyframe has this id (never existed, removed or evicted).
+    #[error("no keyframe with id {0}")]
+    UnknownKeyframe(KeyframeId),
+    /// The cloud is unusable (non-finite point, attribute lengths).
+    #[error("bad cloud: {0}")]
+    Cloud(#[from] CloudError),
+    /// The cloud is empty or could not be indexed.
+    #[error("bad cloud: {0}")]
+    Tree(#[from] TreeError),
+    /// The map has no keyframes to answer from.
+    #[error("the map has no keyframes")]
+    Empty,
+    /// Given query covariances do not match the scan.
+    #[error("{given} query covariances given for a scan of {points} points")]
+    CovarianceCount {
+        /// Covariances given.
+        given: usize,
+        /// Points in the scan.
+        points: usize,
+    },
+}
+
+/// A keyframe point-cloud map.
+#[derive(Debug, Clone)]
+pub struct KeyframeMap {
+    options: KeyframeMapOptions,
+    keyframes: BTreeMap<KeyframeId, Keyframe>,
+    next_id: KeyframeId,
+    covis: CovisibilityGraph,
+    evicted: Vec<KeyframeId>,
+    /// Exact mode: the merged submap of the last active set.
+    merged: Option<Arc<MergedSubmap>>,
+    merged_rebuilds: usize,
+}
+
+impl KeyframeMap {
+    /// An empty map with validated options.
+    pub fn new(options: KeyframeMapOptions) -> Result<Self, MapError> {
+        options.validate()?;
+        Ok(Self {
+            options,
+            keyframes: BTreeMap::new(),
+            next_id: 0,
+            covis: CovisibilityGraph::new(options.covisibility),
+            evicted: Vec::new(),
+            merged: None,
+            merged_rebuilds: 0,
+        })
+    }
+
+    /// The map's options.
+    pub fn options(&self) -> &KeyframeMapOptions {
+        &self.options
+    }
+
+    /// Number of keyframes.
+    pub fn len(&self) -> usize {
+        self.keyframes.len()
+    }
+
+    /// True with no keyframes.
+    pub fn is_empty(&self) -> bool {
+        self.keyframes.is_empty()
+    }
+
+    /// A keyframe by id.
+    pub fn keyframe(&self, id: KeyframeId) -> Option<&Keyframe> {
+        self.keyframes.get(&id)
+    }
+
+    /// All keyframes, ascending id.
+    pub fn keyframes(&self) -> impl Iterator<Item = &Keyframe> {
+        self.keyframes.values()
+    }
+
+    /// The covisibility graph.
+    pub fn covisibility(&self) -> &CovisibilityGraph {
+        &self.covis
+    }
+
+    /// Times a merged submap was built (exact mode), for cache checks.
+    pub fn merged_rebuilds(&self) -> usize {
+        self.merged_rebuilds
+    }
+
+    /// Inserts a keyframe: `cloud` in the keyframe-local frame (with optional local view
+    /// directions), `pose` = `T_map_keyframe`. Builds its tree and covariances; first
+    /// evicts keyframes farther than `remove_frames_farther_than` from `pose`.
+    pub fn insert(
+        &mut self,
+        cloud: PointCloud,
+        pose: Pose,
+        timestamp: f64,
+    ) -> Result<KeyframeId, MapError> {
+        cloud.validate()?;
+        let id = self.next_id;
+        let keyframe = Keyframe::build(id, pose, timestamp, cloud, &self.options.covariance)?;
+        if self.options.remove_frames_farther_than > 0.0 {
+            let far: Vec<KeyframeId> = self
+                .keyframes
+                .values()
+                .filter(|k| {
+                    translation_distance(&k.pose, &pose) > self.options.remove_frames_farther_than
+                })
+                .map(|k| k.id)
+                .collect();
+            for old in far {
+                self.remove(old)?;
+                self.evicted.push(old);
+            }
+        }
+        self.next_id += 1;
+        self.insert_built(keyframe);
+        Ok(id)
+    }
+
+    fn insert_built(&mut self, keyframe: Keyframe) {
+        self.covis.set_keyframe(keyframe.id, keyframe.map_points());
+        self.keyframes.insert(keyframe.id, keyframe);
+    }
+
+    /// Ids evicted since the last call.
+    pub fn drain_evicted(&mut self) -> Vec<KeyframeId> {
+        std::mem::take(&mut self.evicted)
+    }
+
+    fn invalidate(&mut self, id: KeyframeId) {
+        if self.merged.as_ref().is_some_and(|m| m.ids.contains(&id)) {
+            self.merged = None;
+        }
+    }
+
+    /// Moves a keyframe; only caches in the map frame are invalidated (local tree and
+    /// covariances stay).
+    pub fn set_pose(&mut self, id: KeyframeId, pose: Pose) -> Result<(), MapError> {
+        let keyframe = self
+            .keyframes
+            .get_mut(&id)
+            .ok_or(MapError::UnknownKeyframe(id))?;
+        keyframe.pose = pose;
+        let points: Vec<[f64; 3]> = keyframe.map_points().collect();
+        self.covis.set_keyframe(id, points);
+        self.invalidate(id);
+        Ok(())
+    }
+
+    /// Removes a keyframe.
+    pub fn remove(&mut self, id: KeyframeId) -> Result<Keyframe, MapError> {
+        let keyframe = self
+            .keyframes
+            .remove(&id)
+            .ok_or(MapError::UnknownKeyframe(id))?;
+        self.covis.remove_keyframe(id);
+        self.invalidate(id);
+        Ok(keyframe)
+    }
+
+    /// Left-multiplies every pose by `t` (`T_new_map = t * T_map`).
+    pub fn transform_all(&mut self, t: &Pose) {
+        let ids: Vec<KeyframeId> = self.keyframes.keys().copied().collect();
+        for id in ids {
+            let pose = t * self.keyframes[&id].pose;
+            self.set_pose(id, pose).expect("id listed above");
+        }
+        self.merged = None;
+    }
+
+    /// Copies every keyframe of `other` into this map with pose `t * pose` and fresh ids
+    /// (ascending in `other`'s order); returns the new ids.
+    pub fn merge(&mut self, other: &KeyframeMap, t: &Pose) -> Vec<KeyframeId> {
+        other
+            .keyframes
+            .values()
+            .map(|k| {
+                let mut copy = k.clone();
+                copy.id = self.next_id;
+                copy.pose = t * k.pose;
+                self.next_id += 1;
+                let id = copy.id;
+                self.insert_built(copy);
+                id
+            })
+            .collect()
+    }
+
+    /// The active keyframes for a query at `pose`, ascending id.
+    pub fn select(&self, pose: &Pose) -> Vec<KeyframeId> {
+        let poses: Vec<(KeyframeId, Pose)> =
+            self.keyframes.values().map(|k| (k.id, k.pose)).collect();
+        let mut ids = match self.options.active_set {
+            ActiveSetMode::Distance => select_active(&poses, pose, &self.options.selection),
+            ActiveSetMode::Covisibility => {
+                match rank(&poses, pose, &self.options.selection).first() {
+                    None => Vec::new(),
+                    Some(nearest) => {
+                        let more = self.options.selection.max_search_keyframes - 1;
+                        std::iter::once(nearest.id)
+                            .chain(self.covis.best_covisible(nearest.id, more))
+                            .collect()
+                    }
+                }
+            }
+        };
+        ids.sort_unstable();
+        ids
+    }
+
+    /// The active set for a query at `pose`: in exact mode its merged submap is built,
+    /// or reused when the set is unchanged.
+    pub fn activate(&mut self, pose: &Pose) -> Result<ActiveSet<'_>, MapError> {
+        let ids = self.select(pose);
+        self.activate_ids(ids)
+    }
+
+    /// The active set made of exactly `ids` (ascending, existing).
+    pub fn activate_ids(&mut self, mut ids: Vec<KeyframeId>) -> Result<ActiveSet<'_>, MapError> {
+        ids.sort_unstable();
+        ids.dedup();
+        if ids.is_empty() {
+            return Err(MapError::Empty);
+        }
+        if let Some(&missing) = ids.iter().find(|id| !self.keyframes.contains_key(id)) {
+            return Err(MapError::UnknownKeyframe(missing));
+        }
+        let merged = if self.options.approximate_cov {
+            None
+        } else {
+            if self.merged.as_ref().is_none_or(|m| m.ids != ids) {
+                let keyframes: Vec<&Keyframe> = ids.iter().map(|id| &self.keyframes[id]).collect();
+                self.merged = Some(Arc::new(MergedSubmap::build(
+                    &keyframes,
+                    &self.options.covariance,
+                )?));
+                self.merged_rebuilds += 1;
+            }
+            self.merged.clone()
+        };
+        Ok(ActiveSet::new(self, ids, merged))
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,90 @@
+//! `KeyframeMapOptions`: every option of ARCHITECTURE section 6 (MOLA
+//! `TCreationOptions` names and defaults), grouped by concern.
+
+use serde::{Deserialize, Serialize};
+
+use crate::cov::CovOptions;
+use crate::covis::CovisOptions;
+use crate::options::{InvalidOption, ensure};
+use crate::select::SelectionOptions;
+
+/// How the active keyframes are chosen.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ActiveSetMode {
+    /// Nearest by the translation + rotation metric, plus diverse slots.
+    Distance,
+    /// The nearest keyframe plus its best covisible neighbours.
+    Covisibility,
+}
+
+/// Options of a keyframe map.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
+pub struct KeyframeMapOptions {
+    /// Per-point covariances (k, min, max distance, lambda, centre, plane gate).
+    pub covariance: CovOptions,
+    /// Active-set size, diverse slots and the rotation weight of the metric.
+    pub selection: SelectionOptions,
+    /// Covisibility voxel size and thresholds.
+    pub covisibility: CovisOptions,
+    /// Active-set rule.
+    pub active_set: ActiveSetMode,
+    /// Reject pairings whose view directions differ by more than `max_view_angle_deg`.
+    pub use_view_direction_filter: bool,
+    /// Largest angle between query and map view directions, degrees (180 disables).
+    pub max_view_angle_deg: f64,
+    /// Store KD-trees in baked maps (else they are rebuilt on load).
+    pub serialize_kdtrees: bool,
+    /// Store covariances in baked maps (else they are recomputed on load).
+    pub serialize_covariances: bool,
+    /// Per-keyframe lookups without a merged submap (zero rebuild cost).
+    pub approximate_cov: bool,
+    /// Inserting at pose p first evicts keyframes farther than this (metres); 0 = off.
+    pub remove_frames_farther_than: f64,
+}
+
+impl Default for KeyframeMapOptions {
+    fn default() -> Self {
+        Self {
+            covariance: CovOptions::default(),
+            selection: SelectionOptions::default(),
+            covisibility: CovisOptions::default(),
+            active_set: ActiveSetMode::Distance,
+            use_view_direction_filter: true,
+            max_view_angle_deg: 120.0,
+            serialize_kdtrees: true,
+            serialize_covariances: true,
+            approximate_cov: false,
+            remove_frames_farther_than: 0.0,
+        }
+    }
+}
+
+impl KeyframeMapOptions {
+    /// Checks every option; the error names the first bad one.
+    pub fn validate(&self) -> Result<(), InvalidOption> {
+        self.covariance.validate()?;
+        self.selection.validate()?;
+        self.covisibility.validate()?;
+        let a = self.max_view_angle_deg;
+        ensure(
+            a.is_finite() && a > 0.0 && a <= 180.0,
+            "max-view-angle-deg",
+            a,
+            "more than 0 and at most 180 degrees",
+        )?;
+        let r = self.remove_frames_farther_than;
+        ensure(
+            r.is_finite() && r >= 0.0,
+            "remove-frames-farther-than",
+            r,
+            "a finite distance >= 0 m (0 = off)",
+        )
+    }
+
+    /// True when the view-direction filter can reject pairs at all.
+    pub fn view_filter_active(&self) -> bool {
+        self.use_view_direction_filter && self.max_view_angle_deg < 180.0
+    }
+}
