@@ -1,0 +1,149 @@
+//! Keyframe-map queries on real KITTI data: frames 0, 2 and 4 of sequence 00 as keyframes
+//! at their true poses, frame 3 downsampled to about 10 000 points as the query at its
+//! true pose, one thread. Run: `cargo bench -p kfmap-shared --bench map`.
+
+use criterion::{Criterion, Throughput, criterion_group, criterion_main};
+use kfmap_shared::cloud::PointCloud;
+use kfmap_shared::cov::estimate_covariances;
+use kfmap_shared::datasets::require_test_data;
+use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
+use kfmap_shared::map::{KeyframeMap, KeyframeMapOptions};
+use kiddo::SquaredEuclidean;
+
+fn build(
+    frames: &[PointCloud],
+    poses: &[kfmap_shared::geometry::Pose],
+    approximate: bool,
+) -> KeyframeMap {
+    let options = KeyframeMapOptions {
+        approximate_cov: approximate,
+        ..KeyframeMapOptions::default()
+    };
+    let mut map = KeyframeMap::new(options).expect("options");
+    for i in [0, 2, 4] {
+        map.insert(frames[i].clone(), poses[i], i as f64)
+            .expect("keyframe");
+    }
+    map
+}
+
+fn bench_map(c: &mut Criterion) {
+    let Some(dir) = require_test_data("kitti00", "map bench") else {
+        return;
+    };
+    let frames: Vec<PointCloud> = (0..5)
+        .map(|i| {
+            read_cloud(&dir.join(format!("{i:06}.bin")), &ReadOptions::default())
+                .expect("scan")
+                .cloud
+        })
+        .collect();
+    let poses = read_trajectory(&dir.join("poses_velo_kitti.txt"))
+        .expect("poses")
+        .poses;
+    // The smallest voxel giving at most ~10 000 points.
+    let query = (1..40)
+        .map(|k| frames[3].voxel_downsample(0.05 * k as f64).expect("voxel"))
+        .find(|c| c.len() <= 10_500)
+        .expect("downsample");
+    let query_covs =
+        estimate_covariances(&query.points, &KeyframeMapOptions::default().covariance).values;
+    let at = poses[3];
+    println!(
+        "query: {} points; keyframes: {} points each",
+        query.len(),
+        frames[0].len()
+    );
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .expect("pool");
+    let mut group = c.benchmark_group("kitti00");
+    group.sample_size(10);
+    group.throughput(Throughput::Elements(query.len() as u64));
+
+    let mut exact = build(&frames, &poses, false);
+    group.bench_function("exact_cov2cov_new_active_set", |b| {
+        b.iter(|| {
+            one.install(|| {
+                exact.set_pose(0, poses[0]).expect("pose"); // Invalidates the merged submap.
+                let active = exact.activate(&at).expect("active");
+                active
+                    .cov2cov(&query, &at, 1.0, Some(&query_covs))
+                    .expect("pairs")
+                    .len()
+            })
+        })
+    });
+    let active = exact.activate(&at).expect("active");
+    group.bench_function("exact_cov2cov_cached", |b| {
+        b.iter(|| {
+            one.install(|| {
+                active
+                    .cov2cov(&query, &at, 1.0, Some(&query_covs))
+                    .expect("pairs")
+                    .len()
+            })
+        })
+    });
+    group.bench_function("exact_cov2cov_cached_with_query_covariances", |b| {
+        b.iter(|| one.install(|| active.cov2cov(&query, &at, 1.0, None).expect("pairs").len()))
+    });
+    let moved: Vec<[f32; 3]> = query
+        .points
+        .iter()
+        .map(|p| {
+            let q = at * nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+            [q.x as f32, q.y as f32, q.z as f32]
+        })
+        .collect();
+    group.bench_function("exact_nearest_one", |b| {
+        b.iter(|| {
+            moved
+                .iter()
+                .map(|p| active.nearest_one(p).expect("hit").dist_sq)
+                .sum::<f32>()
+        })
+    });
+    let merged = active.merged().expect("exact mode");
+    group.bench_function("raw_kiddo_nearest_one", |b| {
+        b.iter(|| {
+            moved
+                .iter()
+                .map(|p| {
+                    merged
+                        .tree
+                        .query(p)
+                        .nearest_one::<SquaredEuclidean<f32>>()
+                        .execute()
+                        .distance
+                })
+                .sum::<f32>()
+        })
+    });
+
+    let mut approx = build(&frames, &poses, true);
+    let active = approx.activate(&at).expect("active");
+    group.bench_function("approximate_cov2cov", |b| {
+        b.iter(|| {
+            one.install(|| {
+                active
+                    .cov2cov(&query, &at, 1.0, Some(&query_covs))
+                    .expect("pairs")
+                    .len()
+            })
+        })
+    });
+    group.bench_function("approximate_nearest_one", |b| {
+        b.iter(|| {
+            moved
+                .iter()
+                .map(|p| active.nearest_one(p).expect("hit").dist_sq)
+                .sum::<f32>()
+        })
+    });
+    group.finish();
+}
+
+criterion_group!(benches, bench_map);
+criterion_main!(benches);
