@@ -372,6 +372,23 @@ mod tests {
     use rand::rngs::StdRng;
     use rand::{Rng, SeedableRng};
 
+    /// Oracle: the `k` nearest strictly within `r2` by a full scan, ties by index.
+    fn brute_knn(points: &[[f32; 3]], q: [f32; 3], k: usize, r2: f32) -> Vec<u32> {
+        let mut all: Vec<(f32, u32)> = points
+            .iter()
+            .enumerate()
+            .map(|(j, p)| {
+                (
+                    (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2),
+                    j as u32,
+                )
+            })
+            .filter(|&(d2, _)| d2 < r2)
+            .collect();
+        all.sort_by(|a, b| a.partial_cmp(b).unwrap());
+        all.iter().take(k).map(|&(_, j)| j).collect()
+    }
+
     #[test]
     fn matches_brute_force_including_ties_and_duplicates() {
         let mut rng = StdRng::seed_from_u64(5);
@@ -396,19 +413,7 @@ mod tests {
             });
             assert!(coords.iter().all(|&ok| ok));
             for (i, q) in points.iter().enumerate() {
-                let mut all: Vec<(f32, u32)> = points
-                    .iter()
-                    .enumerate()
-                    .map(|(j, p)| {
-                        (
-                            (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2),
-                            j as u32,
-                        )
-                    })
-                    .filter(|&(d2, _)| d2 < r2)
-                    .collect();
-                all.sort_by(|a, b| a.partial_cmp(b).unwrap());
-                let want: Vec<u32> = all.iter().take(k).map(|&(_, j)| j).collect();
+                let want = brute_knn(&points, *q, k, r2);
                 assert_eq!(got[i], want, "point {i}, k {k}");
             }
         }
@@ -431,20 +436,7 @@ mod tests {
             nb.iter().map(|n| n.index).collect::<Vec<u32>>()
         });
         for i in (0..points.len()).step_by(397) {
-            let q = points[i];
-            let mut all: Vec<(f32, u32)> = points
-                .iter()
-                .enumerate()
-                .map(|(j, p)| {
-                    (
-                        (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2),
-                        j as u32,
-                    )
-                })
-                .filter(|&(d2, _)| d2 < 1.0)
-                .collect();
-            all.sort_by(|a, b| a.partial_cmp(b).unwrap());
-            let want: Vec<u32> = all.iter().take(20).map(|&(_, j)| j).collect();
+            let want = brute_knn(&points, points[i], 20, 1.0);
             assert_eq!(got[i], want, "point {i}");
         }
     }

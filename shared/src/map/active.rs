@@ -186,34 +186,44 @@ impl<'a> ActiveSet<'a> {
             .min_by(hit_order)
     }
 
+    /// Runs `search` (returning `(item, squared distance)`) on the merged tree, or on
+    /// every active keyframe's tree with `p` moved into its frame; hits nearest first.
+    fn gather(
+        &self,
+        p: &[f32; 3],
+        search: impl Fn(&PointTree, &[f32; 3]) -> Vec<(u32, f32)>,
+    ) -> Vec<MapHit> {
+        let mut hits: Vec<MapHit> = match &self.merged {
+            Some(m) => search(&m.tree, p)
+                .into_iter()
+                .map(|(i, d)| Self::merged_hit(m, i, d))
+                .collect(),
+            None => self
+                .keyframes()
+                .flat_map(|kf| {
+                    search(&kf.tree, &Self::local_query(kf, p))
+                        .into_iter()
+                        .map(move |(i, d)| Self::local_hit(kf, i, d))
+                })
+                .collect(),
+        };
+        hits.sort_by(hit_order);
+        hits
+    }
+
     /// The `k` nearest map points to `p`, nearest first.
     pub fn nearest_k(&self, p: &[f32; 3], k: usize) -> Vec<MapHit> {
         let Some(n) = NonZeroUsize::new(k) else {
             return Vec::new();
         };
-        let mut hits: Vec<MapHit> = match &self.merged {
-            Some(m) => m
-                .tree
-                .query(p)
+        let mut hits = self.gather(p, |tree, q| {
+            tree.query(q)
                 .nearest_n::<SquaredEuclidean<f32>>(n)
                 .execute()
                 .into_iter()
-                .map(|r| Self::merged_hit(m, r.item, r.distance))
-                .collect(),
-            None => self
-                .keyframes()
-                .flat_map(|kf| {
-                    let q = Self::local_query(kf, p);
-                    kf.tree
-                        .query(&q)
-                        .nearest_n::<SquaredEuclidean<f32>>(n)
-                        .execute()
-                        .into_iter()
-                        .map(move |r| Self::local_hit(kf, r.item, r.distance))
-                })
-                .collect(),
-        };
-        hits.sort_by(hit_order);
+                .map(|r| (r.item, r.distance))
+                .collect()
+        });
         hits.truncate(k);
         hits
     }
@@ -221,30 +231,14 @@ impl<'a> ActiveSet<'a> {
     /// Every map point within `radius` metres of `p` (inclusive), nearest first.
     pub fn within_radius(&self, p: &[f32; 3], radius: f64) -> Vec<MapHit> {
         let r2 = (radius * radius) as f32;
-        let mut hits: Vec<MapHit> = match &self.merged {
-            Some(m) => m
-                .tree
-                .query(p)
+        self.gather(p, |tree, q| {
+            tree.query(q)
                 .within::<SquaredEuclidean<f32>>(r2)
                 .execute()
                 .into_iter()
-                .map(|r| Self::merged_hit(m, r.item, r.distance))
-                .collect(),
-            None => self
-                .keyframes()
-                .flat_map(|kf| {
-                    let q = Self::local_query(kf, p);
-                    kf.tree
-                        .query(&q)
-                        .within::<SquaredEuclidean<f32>>(r2)
-                        .execute()
-                        .into_iter()
-                        .map(move |r| Self::local_hit(kf, r.item, r.distance))
-                })
-                .collect(),
-        };
-        hits.sort_by(hit_order);
-        hits
+                .map(|r| (r.item, r.distance))
+                .collect()
+        })
     }
 
     /// GICP correspondences for `scan` (sensor frame) at `pose` (`T_map_sensor`): for
