@@ -211,6 +211,28 @@ impl<'a> ActiveSet<'a> {
         hits
     }
 
+    /// Approximate mode: the nearest point within `max_sq` (m^2, inclusive) over the
+    /// active keyframes; each tree search starts bounded by the gate or the best so far.
+    fn nearest_gated(&self, p: &[f32; 3], max_sq: f32) -> Option<MapHit> {
+        let mut best: Option<MapHit> = None;
+        for k in self.keyframes() {
+            let bound = best.map_or(max_sq, |b| b.dist_sq);
+            let found = k
+                .tree
+                .query(&Self::local_query(k, p))
+                .nearest_n::<SquaredEuclidean<f32>>(NonZeroUsize::MIN)
+                .within(bound)
+                .execute();
+            if let Some(r) = found.first() {
+                let hit = Self::local_hit(k, r.item, r.distance);
+                if best.is_none_or(|b| hit_order(&hit, &b).is_lt()) {
+                    best = Some(hit);
+                }
+            }
+        }
+        best
+    }
+
     /// The `k` nearest map points to `p`, nearest first.
     pub fn nearest_k(&self, p: &[f32; 3], k: usize) -> Vec<MapHit> {
         let Some(n) = NonZeroUsize::new(k) else {
@@ -277,7 +299,7 @@ impl<'a> ActiveSet<'a> {
             .into_par_iter()
             .filter_map(|i| {
                 let p = to_point(&(pose * Point3::from(to_vec3(&scan.points[i]))).coords);
-                let (hit, map_cov, map_view) = self.nearest_with_attributes(&p)?;
+                let (hit, map_cov, map_view) = self.nearest_with_attributes(&p, max_sq)?;
                 if hit.dist_sq > max_sq {
                     return None;
                 }
@@ -311,6 +333,7 @@ impl<'a> ActiveSet<'a> {
     fn nearest_with_attributes(
         &self,
         p: &[f32; 3],
+        max_sq: f32,
     ) -> Option<(MapHit, Matrix3<f64>, Vector3<f64>)> {
         if let Some(m) = &self.merged {
             let r = m
@@ -325,7 +348,7 @@ impl<'a> ActiveSet<'a> {
                 to_vec3(&m.view_dirs[i]),
             ));
         }
-        let hit = self.nearest_one(p)?;
+        let hit = self.nearest_gated(p, max_sq)?;
         let k = &self.map.keyframes[&hit.keyframe];
         let rotation = k.pose.rotation.to_rotation_matrix().into_inner();
         let local_cov = unpack_sym3(&k.covariances[hit.local_index as usize]);
