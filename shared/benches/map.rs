@@ -6,8 +6,9 @@ use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::cov::estimate_covariances;
 use kfmap_shared::datasets::require_test_data;
+use kfmap_shared::geometry::PackedSym3;
 use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
-use kfmap_shared::map::{KeyframeMap, KeyframeMapOptions};
+use kfmap_shared::map::{ActiveSet, KeyframeMap, KeyframeMapOptions};
 use kiddo::SquaredEuclidean;
 
 fn build(
@@ -75,20 +76,6 @@ fn bench_map(c: &mut Criterion) {
             })
         })
     });
-    let active = exact.activate(&at).expect("active");
-    group.bench_function("exact_cov2cov_cached", |b| {
-        b.iter(|| {
-            one.install(|| {
-                active
-                    .cov2cov(&query, &at, 1.0, Some(&query_covs))
-                    .expect("pairs")
-                    .len()
-            })
-        })
-    });
-    group.bench_function("exact_cov2cov_cached_with_query_covariances", |b| {
-        b.iter(|| one.install(|| active.cov2cov(&query, &at, 1.0, None).expect("pairs").len()))
-    });
     let moved: Vec<[f32; 3]> = query
         .points
         .iter()
@@ -97,14 +84,24 @@ fn bench_map(c: &mut Criterion) {
             [q.x as f32, q.y as f32, q.z as f32]
         })
         .collect();
-    group.bench_function("exact_nearest_one", |b| {
-        b.iter(|| {
-            moved
-                .iter()
-                .map(|p| active.nearest_one(p).expect("hit").dist_sq)
-                .sum::<f32>()
-        })
+    let pairs = |active: &ActiveSet, covs: Option<&[PackedSym3]>| {
+        one.install(|| active.cov2cov(&query, &at, 1.0, covs).expect("pairs").len())
+    };
+    let nearest = |active: &ActiveSet| {
+        moved
+            .iter()
+            .map(|p| active.nearest_one(p).expect("hit").dist_sq)
+            .sum::<f32>()
+    };
+
+    let active = exact.activate(&at).expect("active");
+    group.bench_function("exact_cov2cov_cached", |b| {
+        b.iter(|| pairs(&active, Some(&query_covs)))
     });
+    group.bench_function("exact_cov2cov_cached_estimating_query_covariances", |b| {
+        b.iter(|| pairs(&active, None))
+    });
+    group.bench_function("exact_nearest_one", |b| b.iter(|| nearest(&active)));
     let merged = active.merged().expect("exact mode");
     group.bench_function("raw_kiddo_nearest_one", |b| {
         b.iter(|| {
@@ -125,23 +122,9 @@ fn bench_map(c: &mut Criterion) {
     let mut approx = build(&frames, &poses, true);
     let active = approx.activate(&at).expect("active");
     group.bench_function("approximate_cov2cov", |b| {
-        b.iter(|| {
-            one.install(|| {
-                active
-                    .cov2cov(&query, &at, 1.0, Some(&query_covs))
-                    .expect("pairs")
-                    .len()
-            })
-        })
+        b.iter(|| pairs(&active, Some(&query_covs)))
     });
-    group.bench_function("approximate_nearest_one", |b| {
-        b.iter(|| {
-            moved
-                .iter()
-                .map(|p| active.nearest_one(p).expect("hit").dist_sq)
-                .sum::<f32>()
-        })
-    });
+    group.bench_function("approximate_nearest_one", |b| b.iter(|| nearest(&active)));
     group.finish();
 }
 

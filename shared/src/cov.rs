@@ -2,16 +2,13 @@
 //! `KeyframePointCloudMap` with its defects fixed: never a zero matrix, optional
 //! mean or query centring, plane regularization or eigenvalue flooring.
 
-use std::num::NonZeroUsize;
-
 use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::eigen::{smallest_eigenvector, sorted_symmetric_eigen, symmetric_eigenvalues};
 use crate::geometry::{PackedSym3, pack_sym3, to_vec3};
-use crate::neighbourhoods::map_neighbourhoods;
+use crate::neighbourhoods::{Found, map_neighbourhoods};
 use crate::options::{InvalidOption, ensure};
-use crate::spatial::{PointTree, nearest_within_unsorted};
 
 /// Where the neighbourhood scatter is centred.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -122,13 +119,7 @@ pub fn estimate_covariances(points: &[[f32; 3]], options: &CovOptions) -> Covari
     let r = options.max_distance_for_cov;
     let estimates: Vec<PointEstimate> =
         map_neighbourhoods(points, k, (r * r) as f32, |i, found| {
-            from_neighbours(
-                points.len(),
-                &points[i],
-                found.iter().map(|f| f.point),
-                found.len(),
-                options,
-            )
+            from_neighbours(points.len(), &points[i], found, options)
         });
     let fallback_count = estimates.iter().filter(|e| e.is_none()).count();
     let planar: Vec<f64> = estimates.iter().flatten().map(|&(_, p)| p).collect();
@@ -144,37 +135,16 @@ pub fn estimate_covariances(points: &[[f32; 3]], options: &CovOptions) -> Covari
     }
 }
 
-/// Covariance of the neighbourhood of one `query` point among `points` (indexed by
-/// `tree`), for single lookups; [`estimate_covariances`] is faster for whole clouds.
-pub fn estimate_one(
-    points: &[[f32; 3]],
-    tree: &PointTree,
-    query: &[f32; 3],
-    options: &CovOptions,
-) -> PointEstimate {
-    let k = NonZeroUsize::new(options.k_correspondences_for_cov.min(points.len()))?;
-    let r = options.max_distance_for_cov;
-    let found = nearest_within_unsorted(tree, query, k, (r * r) as f32);
-    from_neighbours(
-        points.len(),
-        query,
-        found.iter().map(|f| points[f.index as usize]),
-        found.len(),
-        options,
-    )
-}
-
-/// Steps 2-5 of ARCHITECTURE section 5 on the `found` neighbours (coordinates) of
-/// `query` in a cloud of `cloud_len` points.
+/// Steps 2-5 of ARCHITECTURE section 5 on the `neighbours` found for `query` in a
+/// cloud of `cloud_len` points.
 fn from_neighbours(
     cloud_len: usize,
     query: &[f32; 3],
-    neighbours: impl Iterator<Item = [f32; 3]> + Clone,
-    found: usize,
+    neighbours: &[Found],
     options: &CovOptions,
 ) -> PointEstimate {
     let k = options.k_correspondences_for_cov.min(cloud_len);
-    if cloud_len < 3 || found < options.min_correspondences_for_cov.min(k) {
+    if cloud_len < 3 || neighbours.len() < options.min_correspondences_for_cov.min(k) {
         return None;
     }
     // One pass of moments about the query point: neighbours are within r of it, so
@@ -182,8 +152,8 @@ fn from_neighbours(
     let q = to_vec3(query);
     let mut sum = Vector3::zeros();
     let mut m = [0.0f64; 6]; // xx xy xz yy yz zz
-    for p in neighbours.clone() {
-        let d = to_vec3(&p) - q;
+    for nb in neighbours {
+        let d = to_vec3(&nb.point) - q;
         sum += d;
         m[0] += d.x * d.x;
         m[1] += d.x * d.y;
@@ -193,7 +163,7 @@ fn from_neighbours(
         m[5] += d.z * d.z;
     }
     let moments = Matrix3::new(m[0], m[1], m[2], m[1], m[3], m[4], m[2], m[4], m[5]);
-    let count = found as f64;
+    let count = neighbours.len() as f64;
     let mean_offset = sum / count;
     let about_mean = moments / count - mean_offset * mean_offset.transpose();
     let scatter = match options.cov_center {
@@ -201,7 +171,7 @@ fn from_neighbours(
         CovCenter::Query => moments / count,
     };
     if options.max_plane_deviation_for_cov > 0.0 {
-        let members = neighbours.map(|p| to_vec3(&p) - q);
+        let members = neighbours.iter().map(|nb| to_vec3(&nb.point) - q);
         if !fits_plane(
             members,
             &mean_offset,

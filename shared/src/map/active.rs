@@ -42,32 +42,32 @@ impl MergedSubmap {
         cov: &CovOptions,
     ) -> Result<Self, crate::spatial::TreeError> {
         let total: usize = keyframes.iter().map(|k| k.cloud.len()).sum();
-        let mut m = Self {
-            ids: keyframes.iter().map(|k| k.id).collect(),
-            points: Vec::with_capacity(total),
-            origin_keyframe: Vec::with_capacity(total),
-            origin_index: Vec::with_capacity(total),
-            view_dirs: Vec::with_capacity(total),
-            covariances: Vec::new(),
-            tree: build_tree(&[[0.0; 3]])?,
-        };
+        let mut points = Vec::with_capacity(total);
+        let mut origin_keyframe = Vec::with_capacity(total);
+        let mut origin_index = Vec::with_capacity(total);
+        let mut view_dirs = Vec::with_capacity(total);
         for (slot, k) in keyframes.iter().enumerate() {
             for (i, p) in k.cloud.points.iter().enumerate() {
-                m.points
-                    .push(to_point(&(k.pose * Point3::from(to_vec3(p))).coords));
-                m.origin_keyframe.push(slot as u32);
-                m.origin_index.push(i as u32);
+                points.push(to_point(&(k.pose * Point3::from(to_vec3(p))).coords));
+                origin_keyframe.push(slot as u32);
+                origin_index.push(i as u32);
                 let v = k
                     .cloud
                     .view_dirs
                     .as_ref()
                     .map_or([0.0; 3], |v| to_point(&(k.pose.rotation * to_vec3(&v[i]))));
-                m.view_dirs.push(v);
+                view_dirs.push(v);
             }
         }
-        m.tree = build_tree(&m.points)?;
-        m.covariances = estimate_covariances(&m.points, cov).values;
-        Ok(m)
+        Ok(Self {
+            ids: keyframes.iter().map(|k| k.id).collect(),
+            tree: build_tree(&points)?,
+            covariances: estimate_covariances(&points, cov).values,
+            points,
+            origin_keyframe,
+            origin_index,
+            view_dirs,
+        })
     }
 }
 
@@ -139,6 +139,16 @@ impl<'a> ActiveSet<'a> {
         self.ids.iter().map(|id| &self.map.keyframes[id])
     }
 
+    /// Nearest point of the merged submap: its merged index and the hit.
+    fn merged_nearest(m: &MergedSubmap, p: &[f32; 3]) -> (usize, MapHit) {
+        let r = m
+            .tree
+            .query(p)
+            .nearest_one::<SquaredEuclidean<f32>>()
+            .execute();
+        (r.item as usize, Self::merged_hit(m, r.item, r.distance))
+    }
+
     fn merged_hit(m: &MergedSubmap, item: u32, dist_sq: f32) -> MapHit {
         let i = item as usize;
         MapHit {
@@ -167,12 +177,7 @@ impl<'a> ActiveSet<'a> {
     /// The nearest map point to `p` (map frame).
     pub fn nearest_one(&self, p: &[f32; 3]) -> Option<MapHit> {
         if let Some(m) = &self.merged {
-            let r = m
-                .tree
-                .query(p)
-                .nearest_one::<SquaredEuclidean<f32>>()
-                .execute();
-            return Some(Self::merged_hit(m, r.item, r.distance));
+            return Some(Self::merged_nearest(m, p).1);
         }
         self.keyframes()
             .map(|k| {
@@ -336,14 +341,9 @@ impl<'a> ActiveSet<'a> {
         max_sq: f32,
     ) -> Option<(MapHit, Matrix3<f64>, Vector3<f64>)> {
         if let Some(m) = &self.merged {
-            let r = m
-                .tree
-                .query(p)
-                .nearest_one::<SquaredEuclidean<f32>>()
-                .execute();
-            let i = r.item as usize;
+            let (i, hit) = Self::merged_nearest(m, p);
             return Some((
-                Self::merged_hit(m, r.item, r.distance),
+                hit,
                 unpack_sym3(&m.covariances[i]),
                 to_vec3(&m.view_dirs[i]),
             ));
