@@ -217,25 +217,10 @@ impl<'a> ActiveSet<'a> {
     }
 
     /// Approximate mode: the nearest point within `max_sq` (m^2, inclusive) over the
-    /// active keyframes; each tree search starts bounded by the gate or the best so far.
+    /// active keyframes. Unbounded `nearest_one` searches: kiddo's radius-bounded
+    /// search prunes no faster and allocates its result (`cargo bench --bench kdtree`).
     fn nearest_gated(&self, p: &[f32; 3], max_sq: f32) -> Option<MapHit> {
-        let mut best: Option<MapHit> = None;
-        for k in self.keyframes() {
-            let bound = best.map_or(max_sq, |b| b.dist_sq);
-            let found = k
-                .tree
-                .query(&Self::local_query(k, p))
-                .nearest_n::<SquaredEuclidean<f32>>(NonZeroUsize::MIN)
-                .within(bound)
-                .execute();
-            if let Some(r) = found.first() {
-                let hit = Self::local_hit(k, r.item, r.distance);
-                if best.is_none_or(|b| hit_order(&hit, &b).is_lt()) {
-                    best = Some(hit);
-                }
-            }
-        }
-        best
+        self.nearest_one(p).filter(|hit| hit.dist_sq <= max_sq)
     }
 
     /// The `k` nearest map points to `p`, nearest first.
