@@ -52,6 +52,19 @@ impl CovisOptions {
 
 type Voxel = [i64; 3];
 
+/// The graph's edges and spanning tree, without the voxel index (stored in baked maps).
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct CovisSnapshot {
+    /// Every keyframe of the graph, ascending.
+    pub keyframes: Vec<KeyframeId>,
+    /// Undirected edges `(a, b, weight)`, `a < b`, ascending.
+    pub edges: Vec<(KeyframeId, KeyframeId, u32)>,
+    /// Spanning tree `(child, parent)`, ascending.
+    pub parents: Vec<(KeyframeId, KeyframeId)>,
+    /// Keyframes that joined the spanning tree (roots included), ascending.
+    pub in_tree: Vec<KeyframeId>,
+}
+
 /// The covisibility graph with its inverted voxel index and spanning tree.
 #[derive(Debug, Clone, Default)]
 pub struct CovisibilityGraph {
@@ -82,12 +95,65 @@ impl CovisibilityGraph {
 
     /// Number of keyframes.
     pub fn len(&self) -> usize {
-        self.voxels.len()
+        self.edges.len()
     }
 
     /// True with no keyframes.
     pub fn is_empty(&self) -> bool {
-        self.voxels.is_empty()
+        self.edges.is_empty()
+    }
+
+    /// The graph without its voxel index: what a baked map stores.
+    pub fn snapshot(&self) -> CovisSnapshot {
+        let mut parents: Vec<(KeyframeId, KeyframeId)> =
+            self.parent.iter().map(|(&c, &p)| (c, p)).collect();
+        parents.sort_unstable();
+        let mut in_tree: Vec<KeyframeId> = self.in_tree.iter().copied().collect();
+        in_tree.sort_unstable();
+        let mut keyframes: Vec<KeyframeId> = self.edges.keys().copied().collect();
+        keyframes.sort_unstable();
+        CovisSnapshot {
+            keyframes,
+            edges: self
+                .edges()
+                .into_iter()
+                .map(|((a, b), w)| (a, b, w))
+                .collect(),
+            parents,
+            in_tree,
+        }
+    }
+
+    /// A graph with the edges and spanning tree of `snapshot` and no voxel index yet:
+    /// call [`restore_voxels`](Self::restore_voxels) for every keyframe before changing it.
+    pub fn from_snapshot(options: CovisOptions, snapshot: &CovisSnapshot) -> Self {
+        let mut graph = Self::new(options);
+        for &id in &snapshot.keyframes {
+            graph.edges.insert(id, BTreeMap::new());
+        }
+        for &(a, b, w) in &snapshot.edges {
+            graph.edges.entry(a).or_default().insert(b, w);
+            graph.edges.entry(b).or_default().insert(a, w);
+        }
+        for &(child, parent) in &snapshot.parents {
+            graph.attach(child, parent);
+        }
+        graph.in_tree.extend(snapshot.in_tree.iter().copied());
+        graph
+    }
+
+    /// Puts keyframe `id`'s voxels back into the index without touching its edges.
+    pub fn restore_voxels(
+        &mut self,
+        id: KeyframeId,
+        map_points: impl IntoIterator<Item = [f64; 3]>,
+    ) {
+        self.drop_voxels(id);
+        let set: HashSet<Voxel> = map_points.into_iter().map(|p| self.voxel_of(&p)).collect();
+        for v in &set {
+            self.index.entry(*v).or_default().insert(id);
+        }
+        self.voxels.insert(id, set);
     }
 
     fn voxel_of(&self, p: &[f64; 3]) -> Voxel {
@@ -97,12 +163,7 @@ impl CovisibilityGraph {
     /// Adds keyframe `id` (or replaces its points after a pose change) with its points
     /// in the map frame, then updates its connections.
     pub fn set_keyframe(&mut self, id: KeyframeId, map_points: impl IntoIterator<Item = [f64; 3]>) {
-        self.drop_voxels(id);
-        let set: HashSet<Voxel> = map_points.into_iter().map(|p| self.voxel_of(&p)).collect();
-        for v in &set {
-            self.index.entry(*v).or_default().insert(id);
-        }
-        self.voxels.insert(id, set);
+        self.restore_voxels(id, map_points);
         if self.in_tree.is_empty() {
             self.in_tree.insert(id); // The first keyframe is the root.
         }

@@ -17,6 +17,7 @@
 /// Identifier of a keyframe: monotonic, never reused.
 pub type KeyframeId = u64;
 
+pub mod archive;
 pub mod cloud;
 pub mod cov;
 pub mod covis;

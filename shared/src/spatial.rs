@@ -16,6 +16,65 @@ pub const LEAF_SIZE: usize = 16;
 /// kiddo's immutable layout (`ImmutableKdTree`) with flat leaves of [`LEAF_SIZE`].
 pub type PointTree = KdTree<f32, u32, Eytzinger, FlatVec<f32, u32, 3, LEAF_SIZE>, 3, LEAF_SIZE>;
 
+/// A [`PointTree`] read in place from a baked map (rkyv archive, memory-mapped).
+pub type ArchivedPointTree = rkyv::Archived<PointTree>;
+
+/// A tree on the heap or in a baked map: the queries every map algorithm uses, written
+/// once for both.
+#[derive(Clone, Copy)]
+pub enum TreeRef<'a> {
+    /// Built in this process.
+    Heap(&'a PointTree),
+    /// Read in place from a memory-mapped map file.
+    Archived(&'a ArchivedPointTree),
+}
+
+/// Runs the same kiddo query builder chain on either tree kind.
+macro_rules! on_tree {
+    ($tree:expr, $query:expr, |$q:ident| $chain:expr) => {
+        match $tree {
+            TreeRef::Heap(t) => {
+                let $q = t.query($query);
+                $chain
+            }
+            TreeRef::Archived(t) => {
+                let $q = t.query($query);
+                $chain
+            }
+        }
+    };
+}
+
+impl TreeRef<'_> {
+    /// The nearest point: `(index, squared distance)`.
+    pub fn nearest_one(self, query: &[f32; 3]) -> (u32, f32) {
+        on_tree!(self, query, |q| {
+            let r = q.nearest_one::<SquaredEuclidean<f32>>().execute();
+            (r.item, r.distance)
+        })
+    }
+
+    /// The `n` nearest points, nearest first: `(index, squared distance)`.
+    pub fn nearest_n(self, query: &[f32; 3], n: NonZeroUsize) -> Vec<(u32, f32)> {
+        on_tree!(self, query, |q| q
+            .nearest_n::<SquaredEuclidean<f32>>(n)
+            .execute()
+            .into_iter()
+            .map(|r| (r.item, r.distance))
+            .collect())
+    }
+
+    /// Every point with squared distance <= `radius_sq`, nearest first.
+    pub fn within(self, query: &[f32; 3], radius_sq: f32) -> Vec<(u32, f32)> {
+        on_tree!(self, query, |q| q
+            .within::<SquaredEuclidean<f32>>(radius_sq)
+            .execute()
+            .into_iter()
+            .map(|r| (r.item, r.distance))
+            .collect())
+    }
+}
+
 /// Why a tree could not be built.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum TreeError {

@@ -128,7 +128,7 @@ fn keyframe_map_stage(dataset: &Path, truth: &kfmap_shared::io::Trajectory) -> a
             map.insert(read(i)?, *pose, i as f64)?;
         }
     }
-    let points: usize = map.keyframes().map(|k| k.cloud.len()).sum();
+    let points = map.point_count();
     println!(
         "keyframe map: {} keyframes, {} points (0.1 m voxels), built in {:.0} ms",
         map.len(),

@@ -149,17 +149,7 @@ pub fn encode_cloud(cloud: &PointCloud, format: CloudFormat) -> Vec<u8> {
 /// rename. A crash mid-write never leaves a partial file under the final name.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
     use std::io::Write;
-    let dir = path
-        .parent()
-        .filter(|d| !d.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    let name = path
-        .file_name()
-        .ok_or_else(|| IoError::malformed(path, Location::File, "not a file path"))?;
-    let mut tmp_name = std::ffi::OsString::from(".");
-    tmp_name.push(name);
-    tmp_name.push(format!(".tmp{}", std::process::id()));
-    let tmp = dir.join(tmp_name);
+    let tmp = temp_path_beside(path)?;
     let result = (|| {
         let mut file = std::fs::File::create(&tmp)?;
         file.write_all(bytes)?;
@@ -170,6 +160,22 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
         let _ = std::fs::remove_file(&tmp);
         IoError::os(path, e)
     })
+}
+
+/// A hidden temporary name in `path`'s directory (same file system, so a rename onto
+/// `path` is atomic): `.NAME.tmpPID`.
+pub fn temp_path_beside(path: &Path) -> Result<std::path::PathBuf, IoError> {
+    let dir = path
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let name = path
+        .file_name()
+        .ok_or_else(|| IoError::malformed(path, Location::File, "not a file path"))?;
+    let mut tmp_name = std::ffi::OsString::from(".");
+    tmp_name.push(name);
+    tmp_name.push(format!(".tmp{}", std::process::id()));
+    Ok(dir.join(tmp_name))
 }
 
 /// Writes `cloud` to `path` in `format`, atomically.

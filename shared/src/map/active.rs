@@ -4,16 +4,16 @@
 use std::num::NonZeroUsize;
 use std::sync::Arc;
 
-use kiddo::SquaredEuclidean;
 use nalgebra::{Matrix3, Point3, Vector3};
 use rayon::prelude::*;
 
-use super::{Keyframe, KeyframeMap, MapError};
+use super::{Keyframe, KeyframeMapOptions, KeyframeView, MapError};
 use crate::KeyframeId;
+use crate::archive::ArchiveError;
 use crate::cloud::PointCloud;
 use crate::cov::{CovOptions, estimate_covariances};
 use crate::geometry::{PackedSym3, Pose, pack_sym3, to_point, to_vec3, unpack_sym3};
-use crate::spatial::{PointTree, build_tree};
+use crate::spatial::{PointTree, TreeRef, build_tree};
 
 /// The active keyframes' points concatenated in ascending id order, in the map frame,
 /// with a tree and covariances of their own (neighbours may come from any keyframe).
@@ -36,37 +36,61 @@ pub struct MergedSubmap {
 }
 
 impl MergedSubmap {
-    /// Merges `keyframes` (ascending id).
+    /// Merges the active keyframes (ascending id).
     pub fn build(
-        keyframes: &[&Keyframe],
+        frames: &[ActiveFrame<'_>],
         cov: &CovOptions,
     ) -> Result<Self, crate::spatial::TreeError> {
-        let total: usize = keyframes.iter().map(|k| k.cloud.len()).sum();
+        let total: usize = frames.iter().map(|f| f.view.points.len()).sum();
         let mut points = Vec::with_capacity(total);
         let mut origin_keyframe = Vec::with_capacity(total);
         let mut origin_index = Vec::with_capacity(total);
         let mut view_dirs = Vec::with_capacity(total);
-        for (slot, k) in keyframes.iter().enumerate() {
-            for (i, p) in k.cloud.points.iter().enumerate() {
-                points.push(to_point(&(k.pose * Point3::from(to_vec3(p))).coords));
+        for (slot, f) in frames.iter().enumerate() {
+            for (i, p) in f.view.points.iter().enumerate() {
+                points.push(to_point(&(f.pose * Point3::from(to_vec3(p))).coords));
                 origin_keyframe.push(slot as u32);
                 origin_index.push(i as u32);
-                let v = k
-                    .cloud
+                let v = f
+                    .view
                     .view_dirs
-                    .as_ref()
-                    .map_or([0.0; 3], |v| to_point(&(k.pose.rotation * to_vec3(&v[i]))));
+                    .map_or([0.0; 3], |v| to_point(&(f.pose.rotation * to_vec3(&v[i]))));
                 view_dirs.push(v);
             }
         }
         Ok(Self {
-            ids: keyframes.iter().map(|k| k.id).collect(),
+            ids: frames.iter().map(|f| f.id).collect(),
             tree: build_tree(&points)?,
             covariances: estimate_covariances(&points, cov).values,
             points,
             origin_keyframe,
             origin_index,
             view_dirs,
+        })
+    }
+}
+
+/// An active keyframe: its pose (and inverse) and its verified local data.
+#[derive(Clone, Copy)]
+pub struct ActiveFrame<'a> {
+    /// Keyframe id.
+    pub id: KeyframeId,
+    /// `T_map_keyframe`.
+    pub pose: Pose,
+    /// `T_keyframe_map`, to move queries into the keyframe.
+    local_from_map: Pose,
+    /// Local points, view directions, covariances and tree.
+    pub view: KeyframeView<'a>,
+}
+
+impl<'a> ActiveFrame<'a> {
+    /// Verifies a baked keyframe on its first use.
+    pub(super) fn new(k: &'a Keyframe) -> Result<Self, ArchiveError> {
+        Ok(Self {
+            id: k.id,
+            pose: k.pose,
+            local_from_map: k.pose.inverse(),
+            view: k.view()?,
         })
     }
 }
@@ -111,18 +135,25 @@ fn hit_order(a: &MapHit, b: &MapHit) -> std::cmp::Ordering {
 
 /// The keyframes answering one query, with the merged submap in exact mode.
 pub struct ActiveSet<'a> {
-    map: &'a KeyframeMap,
+    options: &'a KeyframeMapOptions,
+    frames: Vec<ActiveFrame<'a>>,
     ids: Vec<KeyframeId>,
     merged: Option<Arc<MergedSubmap>>,
 }
 
 impl<'a> ActiveSet<'a> {
     pub(super) fn new(
-        map: &'a KeyframeMap,
-        ids: Vec<KeyframeId>,
+        options: &'a KeyframeMapOptions,
+        frames: Vec<ActiveFrame<'a>>,
         merged: Option<Arc<MergedSubmap>>,
     ) -> Self {
-        Self { map, ids, merged }
+        let ids = frames.iter().map(|f| f.id).collect();
+        Self {
+            options,
+            frames,
+            ids,
+            merged,
+        }
     }
 
     /// Active keyframe ids, ascending.
@@ -135,18 +166,10 @@ impl<'a> ActiveSet<'a> {
         self.merged.as_deref()
     }
 
-    fn keyframes(&self) -> impl Iterator<Item = &'a Keyframe> + '_ {
-        self.ids.iter().map(|id| &self.map.keyframes[id])
-    }
-
     /// Nearest point of the merged submap: its merged index and the hit.
     fn merged_nearest(m: &MergedSubmap, p: &[f32; 3]) -> (usize, MapHit) {
-        let r = m
-            .tree
-            .query(p)
-            .nearest_one::<SquaredEuclidean<f32>>()
-            .execute();
-        (r.item as usize, Self::merged_hit(m, r.item, r.distance))
+        let (item, dist_sq) = TreeRef::Heap(&m.tree).nearest_one(p);
+        (item as usize, Self::merged_hit(m, item, dist_sq))
     }
 
     fn merged_hit(m: &MergedSubmap, item: u32, dist_sq: f32) -> MapHit {
@@ -160,16 +183,16 @@ impl<'a> ActiveSet<'a> {
     }
 
     /// The query (map frame) in a keyframe's local frame.
-    fn local_query(k: &Keyframe, p: &[f32; 3]) -> [f32; 3] {
-        to_point(&(k.pose.inverse() * Point3::from(to_vec3(p))).coords)
+    fn local_query(f: &ActiveFrame, p: &[f32; 3]) -> [f32; 3] {
+        to_point(&(f.local_from_map * Point3::from(to_vec3(p))).coords)
     }
 
-    fn local_hit(k: &Keyframe, item: u32, dist_sq: f32) -> MapHit {
-        let local = k.cloud.points[item as usize];
+    fn local_hit(f: &ActiveFrame, item: u32, dist_sq: f32) -> MapHit {
+        let local = f.view.points[item as usize];
         MapHit {
-            point: to_point(&(k.pose * Point3::from(to_vec3(&local))).coords),
+            point: to_point(&(f.pose * Point3::from(to_vec3(&local))).coords),
             dist_sq,
-            keyframe: k.id,
+            keyframe: f.id,
             local_index: item,
         }
     }
@@ -179,16 +202,20 @@ impl<'a> ActiveSet<'a> {
         if let Some(m) = &self.merged {
             return Some(Self::merged_nearest(m, p).1);
         }
-        self.keyframes()
-            .map(|k| {
-                let r = k
-                    .tree
-                    .query(&Self::local_query(k, p))
-                    .nearest_one::<SquaredEuclidean<f32>>()
-                    .execute();
-                Self::local_hit(k, r.item, r.distance)
+        self.nearest_in_frames(p).map(|(_, hit)| hit)
+    }
+
+    /// Approximate mode: the nearest point over the active keyframes, with its frame.
+    /// Unbounded `nearest_one` searches: kiddo's radius-bounded search prunes no faster
+    /// and allocates its result (`cargo bench --bench kdtree`).
+    fn nearest_in_frames(&self, p: &[f32; 3]) -> Option<(&ActiveFrame<'a>, MapHit)> {
+        self.frames
+            .iter()
+            .map(|f| {
+                let (item, dist_sq) = f.view.tree.nearest_one(&Self::local_query(f, p));
+                (f, Self::local_hit(f, item, dist_sq))
             })
-            .min_by(hit_order)
+            .min_by(|a, b| hit_order(&a.1, &b.1))
     }
 
     /// Runs `search` (returning `(item, squared distance)`) on the merged tree, or on
@@ -196,19 +223,20 @@ impl<'a> ActiveSet<'a> {
     fn gather(
         &self,
         p: &[f32; 3],
-        search: impl Fn(&PointTree, &[f32; 3]) -> Vec<(u32, f32)>,
+        search: impl Fn(TreeRef<'_>, &[f32; 3]) -> Vec<(u32, f32)>,
     ) -> Vec<MapHit> {
         let mut hits: Vec<MapHit> = match &self.merged {
-            Some(m) => search(&m.tree, p)
+            Some(m) => search(TreeRef::Heap(&m.tree), p)
                 .into_iter()
                 .map(|(i, d)| Self::merged_hit(m, i, d))
                 .collect(),
             None => self
-                .keyframes()
-                .flat_map(|kf| {
-                    search(&kf.tree, &Self::local_query(kf, p))
+                .frames
+                .iter()
+                .flat_map(|f| {
+                    search(f.view.tree, &Self::local_query(f, p))
                         .into_iter()
-                        .map(move |(i, d)| Self::local_hit(kf, i, d))
+                        .map(move |(i, d)| Self::local_hit(f, i, d))
                 })
                 .collect(),
         };
@@ -216,26 +244,12 @@ impl<'a> ActiveSet<'a> {
         hits
     }
 
-    /// Approximate mode: the nearest point within `max_sq` (m^2, inclusive) over the
-    /// active keyframes. Unbounded `nearest_one` searches: kiddo's radius-bounded
-    /// search prunes no faster and allocates its result (`cargo bench --bench kdtree`).
-    fn nearest_gated(&self, p: &[f32; 3], max_sq: f32) -> Option<MapHit> {
-        self.nearest_one(p).filter(|hit| hit.dist_sq <= max_sq)
-    }
-
     /// The `k` nearest map points to `p`, nearest first.
     pub fn nearest_k(&self, p: &[f32; 3], k: usize) -> Vec<MapHit> {
         let Some(n) = NonZeroUsize::new(k) else {
             return Vec::new();
         };
-        let mut hits = self.gather(p, |tree, q| {
-            tree.query(q)
-                .nearest_n::<SquaredEuclidean<f32>>(n)
-                .execute()
-                .into_iter()
-                .map(|r| (r.item, r.distance))
-                .collect()
-        });
+        let mut hits = self.gather(p, |tree, q| tree.nearest_n(q, n));
         hits.truncate(k);
         hits
     }
@@ -243,14 +257,7 @@ impl<'a> ActiveSet<'a> {
     /// Every map point within `radius` metres of `p` (inclusive), nearest first.
     pub fn within_radius(&self, p: &[f32; 3], radius: f64) -> Vec<MapHit> {
         let r2 = (radius * radius) as f32;
-        self.gather(p, |tree, q| {
-            tree.query(q)
-                .within::<SquaredEuclidean<f32>>(r2)
-                .execute()
-                .into_iter()
-                .map(|r| (r.item, r.distance))
-                .collect()
-        })
+        self.gather(p, |tree, q| tree.within(q, r2))
     }
 
     /// GICP correspondences for `scan` (sensor frame) at `pose` (`T_map_sensor`): for
@@ -276,11 +283,11 @@ impl<'a> ActiveSet<'a> {
             }
             Some(c) => c,
             None => {
-                estimated = estimate_covariances(&scan.points, &self.map.options.covariance).values;
+                estimated = estimate_covariances(&scan.points, &self.options.covariance).values;
                 &estimated
             }
         };
-        let options = &self.map.options;
+        let options = self.options;
         let max_sq = (max_pair_dist * max_pair_dist) as f32;
         let cos_limit = options.max_view_angle_deg.to_radians().cos();
         let filter = options.view_filter_active() && scan.view_dirs.is_some();
@@ -289,7 +296,7 @@ impl<'a> ActiveSet<'a> {
             .into_par_iter()
             .filter_map(|i| {
                 let p = to_point(&(pose * Point3::from(to_vec3(&scan.points[i]))).coords);
-                let (hit, map_cov, map_view) = self.nearest_with_attributes(&p, max_sq)?;
+                let (hit, map_cov, map_view) = self.nearest_with_attributes(&p)?;
                 if hit.dist_sq > max_sq {
                     return None;
                 }
@@ -323,7 +330,6 @@ impl<'a> ActiveSet<'a> {
     fn nearest_with_attributes(
         &self,
         p: &[f32; 3],
-        max_sq: f32,
     ) -> Option<(MapHit, Matrix3<f64>, Vector3<f64>)> {
         if let Some(m) = &self.merged {
             let (i, hit) = Self::merged_nearest(m, p);
@@ -333,12 +339,11 @@ impl<'a> ActiveSet<'a> {
                 to_vec3(&m.view_dirs[i]),
             ));
         }
-        let hit = self.nearest_gated(p, max_sq)?;
-        let k = &self.map.keyframes[&hit.keyframe];
-        let rotation = k.pose.rotation.to_rotation_matrix().into_inner();
-        let local_cov = unpack_sym3(&k.covariances[hit.local_index as usize]);
-        let view = k.cloud.view_dirs.as_ref().map_or(Vector3::zeros(), |v| {
-            k.pose.rotation * to_vec3(&v[hit.local_index as usize])
+        let (f, hit) = self.nearest_in_frames(p)?;
+        let rotation = f.pose.rotation.to_rotation_matrix().into_inner();
+        let local_cov = unpack_sym3(&f.view.covariances[hit.local_index as usize]);
+        let view = f.view.view_dirs.map_or(Vector3::zeros(), |v| {
+            f.pose.rotation * to_vec3(&v[hit.local_index as usize])
         });
         Some((hit, rotation * local_cov * rotation.transpose(), view))
     }

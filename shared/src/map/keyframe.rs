@@ -1,15 +1,17 @@
-//! One keyframe: local points, optional view directions, pose, timestamp, and the
-//! caches built at insertion (local bounding box, KD-tree, covariances).
+//! One keyframe: pose, timestamp and local bounding box, with its local points, optional
+//! view directions, KD-tree and covariances either built in this process (heap) or read
+//! in place from a baked map file (memory-mapped).
 
 use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 
 use crate::KeyframeId;
+use crate::archive::{ArchiveError, BakedKeyframe};
 use crate::cloud::{Aabb, PointCloud};
 use crate::cov::{CovOptions, estimate_covariances};
 use crate::geometry::{PackedSym3, Pose, rotation_distance, translation_distance};
-use crate::spatial::{PointTree, TreeError, build_tree};
+use crate::spatial::{PointTree, TreeError, TreeRef, build_tree};
 
 /// A keyframe of the map.
 #[derive(Debug, Clone)]
@@ -20,14 +22,42 @@ pub struct Keyframe {
     pub pose: Pose,
     /// Seconds.
     pub timestamp: f64,
-    /// Points in the keyframe-local frame (view directions local too).
-    pub cloud: PointCloud,
     /// Local bounding box.
     pub bbox: Aabb,
-    /// KD-tree over the local points (shared: trees are immutable, copies are cheap).
-    pub tree: Arc<PointTree>,
+    /// Shared: keyframe data is immutable, copies of a keyframe are cheap.
+    data: KeyframeData,
+}
+
+#[derive(Debug, Clone)]
+enum KeyframeData {
+    Heap(Arc<HeapKeyframe>),
+    Baked(Arc<BakedKeyframe>),
+}
+
+/// Keyframe data built in this process.
+#[derive(Debug)]
+pub struct HeapKeyframe {
+    /// Local points.
+    pub points: Vec<[f32; 3]>,
+    /// Local view directions (sensor to point, unit), if the scan had them.
+    pub view_dirs: Option<Vec<[f32; 3]>>,
     /// Local per-point covariances.
     pub covariances: Vec<PackedSym3>,
+    /// KD-tree over `points`.
+    pub tree: PointTree,
+}
+
+/// A keyframe's local data, wherever it lives: what every map algorithm reads.
+#[derive(Clone, Copy)]
+pub struct KeyframeView<'a> {
+    /// Local points.
+    pub points: &'a [[f32; 3]],
+    /// Local view directions, if any.
+    pub view_dirs: Option<&'a [[f32; 3]]>,
+    /// Local per-point covariances.
+    pub covariances: &'a [PackedSym3],
+    /// KD-tree over `points` (item = index).
+    pub tree: TreeRef<'a>,
 }
 
 impl Keyframe {
@@ -39,26 +69,106 @@ impl Keyframe {
         cloud: PointCloud,
         cov: &CovOptions,
     ) -> Result<Self, TreeError> {
-        let tree = Arc::new(build_tree(&cloud.points)?);
-        let bbox = cloud.bounding_box().ok_or(TreeError::Empty)?;
+        if cloud.is_empty() {
+            return Err(TreeError::Empty);
+        }
         let covariances = estimate_covariances(&cloud.points, cov).values;
+        Self::from_parts(id, pose, timestamp, cloud, covariances)
+    }
+
+    /// A keyframe from its parts, with covariances computed elsewhere (one per point);
+    /// its tree is built here.
+    pub fn from_parts(
+        id: KeyframeId,
+        pose: Pose,
+        timestamp: f64,
+        cloud: PointCloud,
+        covariances: Vec<PackedSym3>,
+    ) -> Result<Self, TreeError> {
+        if covariances.len() != cloud.len() {
+            return Err(TreeError::Construction(format!(
+                "{} covariances for {} points",
+                covariances.len(),
+                cloud.len()
+            )));
+        }
+        let tree = build_tree(&cloud.points)?;
+        let bbox = cloud.bounding_box().ok_or(TreeError::Empty)?;
+        let heap = HeapKeyframe {
+            points: cloud.points,
+            view_dirs: cloud.view_dirs,
+            covariances,
+            tree,
+        };
         Ok(Self {
             id,
             pose,
             timestamp,
-            cloud,
             bbox,
-            tree,
-            covariances,
+            data: KeyframeData::Heap(Arc::new(heap)),
         })
     }
 
+    /// A keyframe whose data stays in a baked map file.
+    pub(crate) fn baked(
+        id: KeyframeId,
+        pose: Pose,
+        timestamp: f64,
+        bbox: Aabb,
+        data: BakedKeyframe,
+    ) -> Self {
+        Self {
+            id,
+            pose,
+            timestamp,
+            bbox,
+            data: KeyframeData::Baked(Arc::new(data)),
+        }
+    }
+
+    /// Number of points (known without reading a baked keyframe's data).
+    pub fn len(&self) -> usize {
+        match &self.data {
+            KeyframeData::Heap(h) => h.points.len(),
+            KeyframeData::Baked(b) => b.len(),
+        }
+    }
+
+    /// True for a keyframe without points (never built: keyframes are non-empty).
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// True when the data is read from a baked map file.
+    pub fn is_baked(&self) -> bool {
+        matches!(self.data, KeyframeData::Baked(_))
+    }
+
+    /// The local data. A baked keyframe is verified (checksum, archive layout) the
+    /// first time, and its tree or covariances rebuilt if the file does not hold them.
+    pub fn view(&self) -> Result<KeyframeView<'_>, ArchiveError> {
+        match &self.data {
+            KeyframeData::Heap(h) => Ok(KeyframeView {
+                points: &h.points,
+                view_dirs: h.view_dirs.as_deref(),
+                covariances: &h.covariances,
+                tree: TreeRef::Heap(&h.tree),
+            }),
+            KeyframeData::Baked(b) => b.view(),
+        }
+    }
+
     /// Points in the map frame, f64.
-    pub fn map_points(&self) -> impl Iterator<Item = [f64; 3]> + '_ {
-        self.cloud.points.iter().map(|p| {
-            let q = self.pose * nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
-            [q.x, q.y, q.z]
-        })
+    pub fn map_points(&self) -> Result<Vec<[f64; 3]>, ArchiveError> {
+        Ok(self
+            .view()?
+            .points
+            .iter()
+            .map(|p| {
+                let q = self.pose * nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+                [q.x, q.y, q.z]
+            })
+            .collect())
     }
 }
 

@@ -10,11 +10,12 @@ mod options;
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
-pub use active::{ActiveSet, MapHit, MergedSubmap, Pairing};
-pub use keyframe::{Keyframe, KeyframeDecider};
+pub use active::{ActiveFrame, ActiveSet, MapHit, MergedSubmap, Pairing};
+pub use keyframe::{HeapKeyframe, Keyframe, KeyframeDecider, KeyframeView};
 pub use options::{ActiveSetMode, KeyframeMapOptions};
 
 use crate::KeyframeId;
+use crate::archive::ArchiveError;
 use crate::cloud::{CloudError, PointCloud};
 use crate::covis::CovisibilityGraph;
 use crate::geometry::{Pose, translation_distance};
@@ -37,6 +38,9 @@ pub enum MapError {
     /// The cloud is empty or could not be indexed.
     #[error("bad cloud: {0}")]
     Tree(#[from] TreeError),
+    /// A baked keyframe failed verification, or the map file is unusable.
+    #[error(transparent)]
+    Archive(#[from] ArchiveError),
     /// The map has no keyframes to answer from.
     #[error("the map has no keyframes")]
     Empty,
@@ -61,6 +65,9 @@ pub struct KeyframeMap {
     /// Exact mode: the merged submap of the last active set.
     merged: Option<Arc<MergedSubmap>>,
     merged_rebuilds: usize,
+    /// False for a map opened from a file until its first change: the covisibility
+    /// voxel index is rebuilt from the points only when a change needs it.
+    covis_index_ready: bool,
 }
 
 impl KeyframeMap {
@@ -75,7 +82,55 @@ impl KeyframeMap {
             evicted: Vec::new(),
             merged: None,
             merged_rebuilds: 0,
+            covis_index_ready: true,
         })
+    }
+
+    /// A map from loaded parts (a baked file): the covisibility graph has its edges and
+    /// spanning tree but no voxel index yet.
+    pub(crate) fn from_parts(
+        options: KeyframeMapOptions,
+        keyframes: Vec<Keyframe>,
+        next_id: KeyframeId,
+        covis: CovisibilityGraph,
+    ) -> Self {
+        Self {
+            options,
+            keyframes: keyframes.into_iter().map(|k| (k.id, k)).collect(),
+            next_id,
+            covis,
+            evicted: Vec::new(),
+            merged: None,
+            merged_rebuilds: 0,
+            covis_index_ready: false,
+        }
+    }
+
+    /// Id the next inserted keyframe gets.
+    pub fn next_id(&self) -> KeyframeId {
+        self.next_id
+    }
+
+    /// Switches between exact (merged submap) and approximate (per-keyframe) cov2cov.
+    pub fn set_approximate_cov(&mut self, approximate: bool) {
+        self.options.approximate_cov = approximate;
+        self.merged = None;
+    }
+
+    /// Total points over all keyframes.
+    pub fn point_count(&self) -> usize {
+        self.keyframes.values().map(Keyframe::len).sum()
+    }
+
+    /// Rebuilds the covisibility voxel index of a loaded map before its first change.
+    fn ensure_covis_index(&mut self) -> Result<(), MapError> {
+        if !self.covis_index_ready {
+            for k in self.keyframes.values() {
+                self.covis.restore_voxels(k.id, k.map_points()?);
+            }
+            self.covis_index_ready = true;
+        }
+        Ok(())
     }
 
     /// The map's options.
@@ -123,6 +178,7 @@ impl KeyframeMap {
         timestamp: f64,
     ) -> Result<KeyframeId, MapError> {
         cloud.validate()?;
+        self.ensure_covis_index()?;
         let id = self.next_id;
         let keyframe = Keyframe::build(id, pose, timestamp, cloud, &self.options.covariance)?;
         if self.options.remove_frames_farther_than > 0.0 {
@@ -140,13 +196,14 @@ impl KeyframeMap {
             }
         }
         self.next_id += 1;
-        self.insert_built(keyframe);
+        self.insert_built(keyframe)?;
         Ok(id)
     }
 
-    fn insert_built(&mut self, keyframe: Keyframe) {
-        self.covis.set_keyframe(keyframe.id, keyframe.map_points());
+    fn insert_built(&mut self, keyframe: Keyframe) -> Result<(), MapError> {
+        self.covis.set_keyframe(keyframe.id, keyframe.map_points()?);
         self.keyframes.insert(keyframe.id, keyframe);
+        Ok(())
     }
 
     /// Ids evicted since the last call.
@@ -163,12 +220,13 @@ impl KeyframeMap {
     /// Moves a keyframe; only caches in the map frame are invalidated (local tree and
     /// covariances stay).
     pub fn set_pose(&mut self, id: KeyframeId, pose: Pose) -> Result<(), MapError> {
+        self.ensure_covis_index()?;
         let keyframe = self
             .keyframes
             .get_mut(&id)
             .ok_or(MapError::UnknownKeyframe(id))?;
         keyframe.pose = pose;
-        let points: Vec<[f64; 3]> = keyframe.map_points().collect();
+        let points = keyframe.map_points()?;
         self.covis.set_keyframe(id, points);
         self.invalidate(id);
         Ok(())
@@ -176,6 +234,7 @@ impl KeyframeMap {
 
     /// Removes a keyframe.
     pub fn remove(&mut self, id: KeyframeId) -> Result<Keyframe, MapError> {
+        self.ensure_covis_index()?;
         let keyframe = self
             .keyframes
             .remove(&id)
@@ -186,31 +245,30 @@ impl KeyframeMap {
     }
 
     /// Left-multiplies every pose by `t` (`T_new_map = t * T_map`).
-    pub fn transform_all(&mut self, t: &Pose) {
+    pub fn transform_all(&mut self, t: &Pose) -> Result<(), MapError> {
         let ids: Vec<KeyframeId> = self.keyframes.keys().copied().collect();
         for id in ids {
             let pose = t * self.keyframes[&id].pose;
-            self.set_pose(id, pose).expect("id listed above");
+            self.set_pose(id, pose)?;
         }
         self.merged = None;
+        Ok(())
     }
 
     /// Copies every keyframe of `other` into this map with pose `t * pose` and fresh ids
     /// (ascending in `other`'s order); returns the new ids.
-    pub fn merge(&mut self, other: &KeyframeMap, t: &Pose) -> Vec<KeyframeId> {
-        other
-            .keyframes
-            .values()
-            .map(|k| {
-                let mut copy = k.clone();
-                copy.id = self.next_id;
-                copy.pose = t * k.pose;
-                self.next_id += 1;
-                let id = copy.id;
-                self.insert_built(copy);
-                id
-            })
-            .collect()
+    pub fn merge(&mut self, other: &KeyframeMap, t: &Pose) -> Result<Vec<KeyframeId>, MapError> {
+        self.ensure_covis_index()?;
+        let mut ids = Vec::with_capacity(other.len());
+        for k in other.keyframes.values() {
+            let mut copy = k.clone();
+            copy.id = self.next_id;
+            copy.pose = t * k.pose;
+            self.next_id += 1;
+            ids.push(copy.id);
+            self.insert_built(copy)?;
+        }
+        Ok(ids)
     }
 
     /// The active keyframes for a query at `pose`, ascending id.
@@ -252,22 +310,25 @@ impl KeyframeMap {
         if let Some(&missing) = ids.iter().find(|id| !self.keyframes.contains_key(id)) {
             return Err(MapError::UnknownKeyframe(missing));
         }
+        let frames = ids
+            .iter()
+            .map(|id| ActiveFrame::new(&self.keyframes[id]))
+            .collect::<Result<Vec<_>, _>>()?;
         let merged = if self.options.approximate_cov {
             None
         } else {
             if self.merged.as_ref().is_none_or(|m| m.ids != ids) {
-                let keyframes: Vec<&Keyframe> = ids.iter().map(|id| &self.keyframes[id]).collect();
                 self.merged = Some(Arc::new(MergedSubmap::build(
-                    &keyframes,
+                    &frames,
                     &self.options.covariance,
                 )?));
                 self.merged_rebuilds += 1;
             }
             self.merged.clone()
         };
-        Ok(ActiveSet::new(self, ids, merged))
+        Ok(ActiveSet::new(&self.options, frames, merged))
     }
 }
 
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;

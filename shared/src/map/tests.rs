@@ -63,7 +63,7 @@ fn linear_scan(
     for &id in ids {
         let k = map.keyframe(id).unwrap();
         let local_q = to_point(&(k.pose.inverse() * Point3::from(to_vec3(q))).coords);
-        for (i, p) in k.cloud.points.iter().enumerate() {
+        for (i, p) in k.view().unwrap().points.iter().enumerate() {
             let global = to_point(&(k.pose * Point3::from(to_vec3(p))).coords);
             let dist_sq = if approximate {
                 sq(p, &local_q)
@@ -128,7 +128,7 @@ fn brute_cov2cov(
     let mut origins = Vec::new();
     for &id in ids {
         let k = map.keyframe(id).unwrap();
-        for (i, p) in k.cloud.points.iter().enumerate() {
+        for (i, p) in k.view().unwrap().points.iter().enumerate() {
             points.push(to_point(&(k.pose * Point3::from(to_vec3(p))).coords));
             origins.push((id, i as u32));
         }
@@ -252,10 +252,10 @@ fn unchanged_active_set_rebuilds_nothing() {
     map.activate(&pose(0.1, 0.0, 0.0)).unwrap();
     assert_eq!(map.merged_rebuilds(), 2);
     // The local caches of a moved keyframe are kept (same tree object).
-    let before = std::sync::Arc::as_ptr(&map.keyframe(1).unwrap().tree);
+    let before = map.keyframe(1).unwrap().view().unwrap().points.as_ptr();
     map.set_pose(1, pose(2.2, 1.0, 0.4)).unwrap();
     assert_eq!(
-        std::sync::Arc::as_ptr(&map.keyframe(1).unwrap().tree),
+        map.keyframe(1).unwrap().view().unwrap().points.as_ptr(),
         before
     );
 }
@@ -373,12 +373,12 @@ fn transform_all_and_merge() {
     let map = random_map(9, false);
     let t = pose(5.0, -3.0, 1.0);
     let mut moved = map.clone();
-    moved.transform_all(&t);
+    moved.transform_all(&t).unwrap();
     for (a, b) in map.keyframes().zip(moved.keyframes()) {
         assert!(((t * a.pose).translation.vector - b.pose.translation.vector).norm() < 1e-12);
     }
     let mut merged = map.clone();
-    let new_ids = merged.merge(&map, &t);
+    let new_ids = merged.merge(&map, &t).unwrap();
     assert_eq!(new_ids, vec![4, 5, 6, 7]);
     assert_eq!(merged.len(), 8);
     assert!(

@@ -1,0 +1,88 @@
+//! The rkyv record types of a baked map: one archive per keyframe (its own checksum,
+//! verified on first use) and one index archive at the end of the file.
+
+use rkyv::with::{Inline, InlineAsBox, Map};
+use rkyv::{Archive, Deserialize, Serialize};
+
+use crate::geometry::PackedSym3;
+use crate::spatial::PointTree;
+
+/// One keyframe's local data, archived on its own at a 128-byte aligned offset.
+/// Written from borrowed data (no copy of points or tree); read as
+/// [`ArchivedKeyframeRecord`].
+#[derive(Archive, Serialize)]
+pub struct KeyframeRecord<'a> {
+    /// Keyframe id (repeated here so a misplaced segment is caught).
+    pub id: u64,
+    /// Local points.
+    #[rkyv(with = InlineAsBox)]
+    pub points: &'a [[f32; 3]],
+    /// Local view directions.
+    #[rkyv(with = Map<InlineAsBox>)]
+    pub view_dirs: Option<&'a [[f32; 3]]>,
+    /// Local covariances; `None` when the map was baked without them.
+    #[rkyv(with = Map<InlineAsBox>)]
+    pub covariances: Option<&'a [PackedSym3]>,
+    /// KD-tree over `points`; `None` when the map was baked without trees.
+    #[rkyv(with = Map<Inline>)]
+    pub tree: Option<&'a PointTree>,
+}
+
+/// Where a keyframe's segment is and what it holds.
+#[derive(Archive, Serialize, Deserialize, Debug, Clone, PartialEq)]
+pub struct KeyframeEntry {
+    /// Keyframe id.
+    pub id: u64,
+    /// Seconds.
+    pub timestamp: f64,
+    /// `T_map_keyframe` as x y z qx qy qz qw.
+    pub pose: [f64; 7],
+    /// Local bounding box, min then max.
+    pub bbox: [f32; 6],
+    /// Number of points.
+    pub points: u64,
+    /// Segment offset from the start of the payload (a multiple of 128).
+    pub offset: u64,
+    /// Segment length, bytes.
+    pub len: u64,
+    /// xxh3-64 of the segment bytes.
+    pub checksum: u64,
+    /// Bytes of points and view directions in the segment.
+    pub point_bytes: u64,
+    /// Bytes of covariances in the segment.
+    pub covariance_bytes: u64,
+    /// True when the segment holds view directions.
+    pub has_view_dirs: bool,
+}
+
+/// One keyframe's accelerometer statistics (the gravity pool).
+#[derive(Archive, Serialize, Deserialize, Debug, Clone, Copy, PartialEq)]
+pub struct GravityRecord {
+    /// Keyframe id.
+    pub keyframe: u64,
+    /// Mean specific force in the body frame, m/s^2.
+    pub mean_acc: [f64; 3],
+    /// Spread of the accelerometer norm, m/s^2.
+    pub std: f64,
+    /// Samples averaged.
+    pub samples: u64,
+}
+
+/// The map index: keyframe entries, covisibility graph, gravity pool.
+#[derive(Archive, Serialize, Deserialize, Debug, Clone, PartialEq, Default)]
+pub struct MapIndex {
+    /// Id the next inserted keyframe gets.
+    pub next_id: u64,
+    /// Keyframes, ascending id.
+    pub keyframes: Vec<KeyframeEntry>,
+    /// Covisibility: every keyframe of the graph.
+    pub covis_keyframes: Vec<u64>,
+    /// Covisibility edges `(a, b, weight)`, `a < b`.
+    pub covis_edges: Vec<(u64, u64, u32)>,
+    /// Spanning tree `(child, parent)`.
+    pub covis_parents: Vec<(u64, u64)>,
+    /// Keyframes in the spanning tree.
+    pub covis_in_tree: Vec<u64>,
+    /// Per-keyframe accelerometer statistics.
+    pub gravity_pool: Vec<GravityRecord>,
+}

@@ -1,0 +1,405 @@
+use std::path::{Path, PathBuf};
+
+use nalgebra::Vector3;
+use proptest::prelude::*;
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+
+use super::*;
+use crate::cloud::PointCloud;
+use crate::geometry::Pose;
+use crate::map::{KeyframeMap, KeyframeMapOptions, MapError};
+
+/// A scratch directory removed on drop; unique per test.
+pub(crate) struct Scratch(pub PathBuf);
+
+impl Scratch {
+    pub(crate) fn new(name: &str) -> Self {
+        let dir = std::env::temp_dir().join(format!("kfmap-archive-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        Self(dir)
+    }
+    fn file(&self, name: &str) -> PathBuf {
+        self.0.join(name)
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+fn pose(x: f64, y: f64, yaw: f64) -> Pose {
+    Pose::new(Vector3::new(x, y, 0.0), Vector3::new(0.0, 0.0, yaw))
+}
+
+/// Random keyframes near the origin; every other one carries view directions.
+fn cloud(rng: &mut StdRng, n: usize, with_view: bool) -> PointCloud {
+    let points: Vec<[f32; 3]> = (0..n)
+        .map(|_| {
+            [
+                rng.random_range(-5.0..5.0),
+                rng.random_range(-5.0..5.0),
+                rng.random_range(-1.0..1.0),
+            ]
+        })
+        .collect();
+    let mut c = PointCloud::from_points(points);
+    if with_view {
+        c.view_dirs = Some(
+            c.points
+                .iter()
+                .map(|p| {
+                    let n = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt().max(1e-3);
+                    [p[0] / n, p[1] / n, p[2] / n]
+                })
+                .collect(),
+        );
+    }
+    c
+}
+
+fn sample_map(options: KeyframeMapOptions) -> KeyframeMap {
+    let mut rng = StdRng::seed_from_u64(5);
+    let mut map = KeyframeMap::new(options).unwrap();
+    for (i, (x, y, yaw)) in [
+        (0.0, 0.0, 0.0),
+        (2.0, 1.0, 0.4),
+        (-1.5, 2.0, -0.7),
+        (1.0, -2.0, 2.0),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        map.insert(cloud(&mut rng, 1200, i % 2 == 0), pose(x, y, yaw), i as f64)
+            .unwrap();
+    }
+    map
+}
+
+fn baked(dir: &Scratch, map: &KeyframeMap) -> PathBuf {
+    let path = dir.file("map.kfmap");
+    save_map(map, &[], &path).unwrap();
+    path
+}
+
+/// Every query kind on both maps, at several poses: identical answers.
+fn assert_same_answers(heap: &mut KeyframeMap, file: &mut KeyframeMap) {
+    let mut rng = StdRng::seed_from_u64(11);
+    let scan = cloud(&mut rng, 700, true);
+    for at in [
+        pose(0.3, 0.2, 0.1),
+        pose(1.5, -1.0, 1.7),
+        pose(-1.0, 2.0, -0.5),
+    ] {
+        let a = heap.activate(&at).unwrap();
+        let b = file.activate(&at).unwrap();
+        assert_eq!(a.ids(), b.ids());
+        for _ in 0..300 {
+            let q = [
+                rng.random_range(-6.0..6.0),
+                rng.random_range(-6.0..6.0),
+                rng.random_range(-2.0..2.0),
+            ];
+            assert_eq!(a.nearest_one(&q), b.nearest_one(&q));
+            assert_eq!(a.nearest_k(&q, 9), b.nearest_k(&q, 9));
+            assert_eq!(a.within_radius(&q, 0.5), b.within_radius(&q, 0.5));
+        }
+        let pa = a.cov2cov(&scan, &at, 1.0, None).unwrap();
+        let pb = b.cov2cov(&scan, &at, 1.0, None).unwrap();
+        assert!(pa.len() > 300, "{} pairings", pa.len());
+        assert_eq!(pa, pb);
+    }
+}
+
+#[test]
+fn baked_and_heap_maps_answer_identically_in_both_modes() {
+    let dir = Scratch::new("identical");
+    for approximate in [true, false] {
+        let options = KeyframeMapOptions {
+            approximate_cov: approximate,
+            ..KeyframeMapOptions::default()
+        };
+        let mut heap = sample_map(options);
+        let path = baked(&dir, &heap);
+        let open = OpenOptions {
+            approximate_cov: approximate,
+            ..OpenOptions::default()
+        };
+        let mut file = open_map(&path, open).unwrap().map;
+        assert!(file.keyframes().all(|k| k.is_baked()));
+        assert_eq!(file.len(), 4);
+        assert_eq!(file.next_id(), 4);
+        for (a, b) in heap.keyframes().zip(file.keyframes()) {
+            assert_eq!(
+                (a.id, a.pose, a.timestamp, a.bbox),
+                (b.id, b.pose, b.timestamp, b.bbox)
+            );
+            let (va, vb) = (a.view().unwrap(), b.view().unwrap());
+            assert_eq!(va.points, vb.points);
+            assert_eq!(va.view_dirs, vb.view_dirs);
+            assert_eq!(va.covariances, vb.covariances);
+        }
+        assert_eq!(
+            heap.covisibility().snapshot(),
+            file.covisibility().snapshot()
+        );
+        assert_same_answers(&mut heap, &mut file);
+    }
+}
+
+#[test]
+fn trees_and_covariances_left_out_are_rebuilt_on_first_use() {
+    let dir = Scratch::new("rebuilt");
+    let options = KeyframeMapOptions {
+        serialize_kdtrees: false,
+        serialize_covariances: false,
+        ..KeyframeMapOptions::default()
+    };
+    let mut heap = sample_map(options);
+    let path = baked(&dir, &heap);
+    let full = sample_map(KeyframeMapOptions::default());
+    let full_path = dir.file("full.kfmap");
+    save_map(&full, &[], &full_path).unwrap();
+    let slim = std::fs::metadata(&path).unwrap().len();
+    let fat = std::fs::metadata(&full_path).unwrap().len();
+    assert!(slim * 2 < fat, "{slim} vs {fat} bytes");
+    let mut file = open_map(&path, OpenOptions::default()).unwrap().map;
+    heap.set_approximate_cov(true);
+    assert_same_answers(&mut heap, &mut file);
+}
+
+#[test]
+fn a_reopened_map_keeps_growing_like_the_original() {
+    let dir = Scratch::new("grow");
+    let mut heap = sample_map(KeyframeMapOptions::default());
+    let path = baked(&dir, &heap);
+    let mut file = open_map(&path, OpenOptions::default()).unwrap().map;
+    file.set_approximate_cov(false);
+    let mut rng = StdRng::seed_from_u64(3);
+    let extra = cloud(&mut rng, 900, false);
+    assert_eq!(
+        heap.insert(extra.clone(), pose(0.5, 0.5, 0.3), 9.0)
+            .unwrap(),
+        4
+    );
+    assert_eq!(file.insert(extra, pose(0.5, 0.5, 0.3), 9.0).unwrap(), 4);
+    file.set_pose(1, pose(2.5, 1.0, 0.4)).unwrap();
+    heap.set_pose(1, pose(2.5, 1.0, 0.4)).unwrap();
+    heap.remove(2).unwrap();
+    file.remove(2).unwrap();
+    assert_eq!(
+        heap.covisibility().snapshot(),
+        file.covisibility().snapshot()
+    );
+    assert_same_answers(&mut heap, &mut file);
+    // Saving a map whose keyframes come from a file rebuilds their trees: same answers.
+    let again = dir.file("again.kfmap");
+    save_map(&file, &[], &again).unwrap();
+    let mut reopened = open_map(
+        &again,
+        OpenOptions {
+            approximate_cov: false,
+            ..OpenOptions::default()
+        },
+    )
+    .unwrap()
+    .map;
+    assert_same_answers(&mut heap, &mut reopened);
+}
+
+#[test]
+fn gravity_pool_and_header_round_trip() {
+    let dir = Scratch::new("gravity");
+    let map = sample_map(KeyframeMapOptions::default());
+    let pool = [GravityRecord {
+        keyframe: 2,
+        mean_acc: [0.1, -0.2, 9.8],
+        std: 0.05,
+        samples: 40,
+    }];
+    let path = dir.file("g.kfmap");
+    let summary = save_map(&map, &pool, &path).unwrap();
+    assert_eq!(summary.bytes, std::fs::metadata(&path).unwrap().len());
+    assert_eq!(summary.points, 4800);
+    let opened = open_map(&path, OpenOptions::default()).unwrap();
+    assert_eq!(opened.index.gravity_pool, pool);
+    assert_eq!(opened.header.format_version, FORMAT_VERSION);
+    assert!(opened.header.options_toml.contains("max-view-angle-deg"));
+    opened.verify_payload().unwrap();
+    opened.verify_keyframes(|_| {}).unwrap();
+}
+
+fn open_err(path: &Path) -> ArchiveError {
+    match open_map(path, OpenOptions::default()) {
+        Ok(_) => panic!("{} opened", path.display()),
+        Err(e) => e,
+    }
+}
+
+#[test]
+fn bad_files_are_named_errors() {
+    let dir = Scratch::new("bad");
+    let path = baked(&dir, &sample_map(KeyframeMapOptions::default()));
+    let good = std::fs::read(&path).unwrap();
+    let write = |name: &str, bytes: &[u8]| {
+        let p = dir.file(name);
+        std::fs::write(&p, bytes).unwrap();
+        p
+    };
+
+    assert!(matches!(
+        open_err(&dir.file("missing.kfmap")),
+        ArchiveError::Io { .. }
+    ));
+    assert!(matches!(open_err(&dir.0), ArchiveError::NotAFile(_)));
+    assert!(matches!(
+        open_err(&write("empty", &[])),
+        ArchiveError::EmptyFile(_)
+    ));
+    let truncated = write("truncated", &good[..good.len() - 1000]);
+    assert!(matches!(
+        open_err(&truncated),
+        ArchiveError::Truncated { .. }
+    ));
+    let mut magic = good.clone();
+    magic[0] = b'X';
+    assert!(matches!(
+        open_err(&write("magic", &magic)),
+        ArchiveError::BadMagic
+    ));
+    let mut newer = good.clone();
+    newer[8] = 2;
+    assert!(matches!(
+        open_err(&write("newer", &newer)),
+        ArchiveError::NewerVersion {
+            found: 2,
+            supported: 1
+        }
+    ));
+    let mut wide = good.clone();
+    wide[13] = 8; // a 64-bit-pointer build's file
+    assert!(matches!(
+        open_err(&write("wide", &wide)),
+        ArchiveError::PointerWidth { found: 8, .. }
+    ));
+    let mut narrow = good.clone();
+    narrow[13] = 2;
+    assert!(matches!(
+        open_err(&write("narrow", &narrow)),
+        ArchiveError::PointerWidth { found: 2, .. }
+    ));
+    let mut header = good.clone();
+    header[100] ^= 0x01; // inside the options text
+    assert!(matches!(
+        open_err(&write("header", &header)),
+        ArchiveError::HeaderCorrupt
+    ));
+    let mut index = good.clone();
+    let at = index.len() - 20;
+    index[at] ^= 0x40;
+    assert!(matches!(
+        open_err(&write("index", &index)),
+        ArchiveError::IndexCorrupt(_)
+    ));
+    let mut trailing = good.clone();
+    trailing.extend_from_slice(b"junk");
+    assert!(matches!(
+        open_err(&write("trailing", &trailing)),
+        ArchiveError::IndexCorrupt(_)
+    ));
+
+    // A flipped byte in keyframe 0's points: the file opens (O(1)), the keyframe fails
+    // on first use, the others still answer, and both verifications catch it.
+    let mut payload = good.clone();
+    payload[HEADER_LEN + 200] ^= 0x20;
+    let p = write("payload", &payload);
+    let opened = open_map(&p, OpenOptions::default()).unwrap();
+    assert!(matches!(
+        opened.verify_payload(),
+        Err(ArchiveError::PayloadCorrupt)
+    ));
+    assert!(matches!(
+        opened.verify_keyframes(|_| {}),
+        Err(ArchiveError::KeyframeCorrupt { id: 0, .. })
+    ));
+    let mut map = opened.map;
+    assert!(matches!(
+        map.activate_ids(vec![0, 1]).err(),
+        Some(MapError::Archive(ArchiveError::KeyframeCorrupt {
+            id: 0,
+            ..
+        }))
+    ));
+    assert!(map.activate_ids(vec![1, 2]).is_ok());
+}
+
+#[test]
+fn an_abandoned_write_leaves_nothing_behind() {
+    let dir = Scratch::new("abandon");
+    let map = sample_map(KeyframeMapOptions::default());
+    let path = dir.file("map.kfmap");
+    std::fs::write(&path, b"previous map").unwrap();
+    {
+        let mut writer = MapWriter::create(&path, map.options()).unwrap();
+        writer.write_keyframe(map.keyframe(0).unwrap()).unwrap();
+        // Out-of-order ids are refused; dropping the writer abandons the file.
+        assert!(writer.write_keyframe(map.keyframe(0).unwrap()).is_err());
+    }
+    let names: Vec<_> = std::fs::read_dir(&dir.0)
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    assert_eq!(names, vec![std::ffi::OsString::from("map.kfmap")]);
+    assert_eq!(std::fs::read(&path).unwrap(), b"previous map");
+}
+
+/// A small valid map file, built once for the mutation property.
+fn small_file() -> &'static [u8] {
+    static BYTES: std::sync::OnceLock<Vec<u8>> = std::sync::OnceLock::new();
+    BYTES.get_or_init(|| {
+        let dir = Scratch::new("small");
+        let mut rng = StdRng::seed_from_u64(8);
+        let mut map = KeyframeMap::new(KeyframeMapOptions::default()).unwrap();
+        map.insert(cloud(&mut rng, 150, true), pose(0.0, 0.0, 0.0), 0.0)
+            .unwrap();
+        map.insert(cloud(&mut rng, 150, false), pose(1.5, 0.0, 0.5), 1.0)
+            .unwrap();
+        std::fs::read(baked(&dir, &map)).unwrap()
+    })
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+    /// Corrupted or cut files never panic: either a named error, or (when the damage
+    /// misses every checked byte, i.e. only padding) a map that answers.
+    #[test]
+    fn mutated_files_error_or_answer(flips in prop::collection::vec((any::<prop::sample::Index>(), 1u8..=255), 1..4),
+                                     cut in prop::option::of(any::<prop::sample::Index>()),
+                                     trust in any::<bool>()) {
+        let mut bytes = small_file().to_vec();
+        for (at, mask) in flips {
+            let i = at.index(bytes.len());
+            bytes[i] ^= mask;
+        }
+        if let Some(cut) = cut {
+            bytes.truncate(cut.index(bytes.len()));
+        }
+        static CASE: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+        let case = CASE.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let dir = Scratch::new(&format!("mutated-{case}"));
+        let path = dir.file("m.kfmap");
+        std::fs::write(&path, &bytes).unwrap();
+        if let Ok(opened) = open_map(&path, OpenOptions { trust, ..OpenOptions::default() }) {
+            let _ = opened.verify_keyframes(|_| {});
+            let mut map = opened.map;
+            for id in [0, 1] {
+                if let Ok(active) = map.activate_ids(vec![id]) {
+                    prop_assert!(active.nearest_one(&[0.0, 0.0, 0.0]).is_some());
+                }
+            }
+        }
+    }
+}

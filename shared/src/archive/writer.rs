@@ -1,0 +1,240 @@
+//! Writing a `.kfmap` file keyframe by keyframe (memory stays bounded by one keyframe),
+//! atomically: a temporary file beside the target, fsync, rename.
+
+use std::fs::File;
+use std::io::{BufWriter, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+
+use rkyv::rancor;
+use rkyv::util::AlignedVec;
+use xxhash_rust::xxh3::{Xxh3, xxh3_64};
+
+use super::ArchiveError;
+use super::header::{HEADER_LEN, Header, SEGMENT_ALIGN};
+use super::records::{GravityRecord, KeyframeEntry, KeyframeRecord, MapIndex};
+use crate::covis::CovisSnapshot;
+use crate::geometry::Pose;
+use crate::io::temp_path_beside;
+use crate::map::{Keyframe, KeyframeMap, KeyframeMapOptions};
+use crate::spatial::{TreeRef, build_tree};
+
+/// Points one keyframe segment may hold: its archive (about 70 bytes a point with tree
+/// and covariances) must stay well inside rkyv's 2 GiB relative-pointer reach.
+pub const MAX_KEYFRAME_POINTS: usize = 16 << 20;
+
+/// What a finished write produced.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct WriteSummary {
+    /// Keyframes written.
+    pub keyframes: usize,
+    /// Points written.
+    pub points: u64,
+    /// File size, bytes.
+    pub bytes: u64,
+}
+
+/// A map file being written. Dropping it before [`finish`](Self::finish) removes the
+/// temporary file: the target path is never left partial.
+pub struct MapWriter {
+    path: PathBuf,
+    tmp: PathBuf,
+    file: BufWriter<File>,
+    payload: Xxh3,
+    offset: u64,
+    options: KeyframeMapOptions,
+    index: MapIndex,
+    finished: bool,
+}
+
+impl MapWriter {
+    /// Starts writing a map with `options` to `path`.
+    pub fn create(path: &Path, options: &KeyframeMapOptions) -> Result<Self, ArchiveError> {
+        let tmp = temp_path_beside(path).map_err(|e| ArchiveError::Io {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        })?;
+        // Fails early when the options cannot fit in the header.
+        Header::new(options_toml(options)?).encode()?;
+        let file = File::create(&tmp).map_err(|e| ArchiveError::io(&tmp, &e))?;
+        let mut writer = Self {
+            path: path.to_path_buf(),
+            tmp,
+            file: BufWriter::with_capacity(1 << 20, file),
+            payload: Xxh3::new(),
+            offset: 0,
+            options: *options,
+            index: MapIndex::default(),
+            finished: false,
+        };
+        // Placeholder: the real header is written last, when the payload is known.
+        writer.write_raw(&[0u8; HEADER_LEN])?;
+        Ok(writer)
+    }
+
+    fn write_raw(&mut self, bytes: &[u8]) -> Result<(), ArchiveError> {
+        self.file
+            .write_all(bytes)
+            .map_err(|e| ArchiveError::io(&self.path, &e))
+    }
+
+    /// Appends payload bytes at the next multiple of `align`; returns their offset.
+    fn append(&mut self, bytes: &[u8], align: u64) -> Result<u64, ArchiveError> {
+        let pad = (align - self.offset % align) % align;
+        let zeros = vec![0u8; pad as usize];
+        self.write_raw(&zeros)?;
+        self.payload.update(&zeros);
+        let at = self.offset + pad;
+        self.write_raw(bytes)?;
+        self.payload.update(bytes);
+        self.offset = at + bytes.len() as u64;
+        Ok(at)
+    }
+
+    /// Appends one keyframe (ids must ascend); returns its segment's size in bytes.
+    pub fn write_keyframe(&mut self, keyframe: &Keyframe) -> Result<u64, ArchiveError> {
+        if keyframe.len() > MAX_KEYFRAME_POINTS {
+            return Err(ArchiveError::KeyframeTooLarge {
+                id: keyframe.id,
+                points: keyframe.len(),
+                max: MAX_KEYFRAME_POINTS,
+            });
+        }
+        if self
+            .index
+            .keyframes
+            .last()
+            .is_some_and(|k| k.id >= keyframe.id)
+        {
+            return Err(ArchiveError::Serialize(format!(
+                "keyframe {} out of order (ids must ascend)",
+                keyframe.id
+            )));
+        }
+        let view = keyframe.view()?;
+        let rebuilt;
+        let tree = match (self.options.serialize_kdtrees, view.tree) {
+            (false, _) => None,
+            (true, TreeRef::Heap(t)) => Some(t),
+            // A tree read from another file is rebuilt: archived trees cannot be re-serialized.
+            (true, TreeRef::Archived(_)) => {
+                rebuilt = build_tree(view.points).map_err(|e| {
+                    ArchiveError::Serialize(format!("keyframe {}: {e}", keyframe.id))
+                })?;
+                Some(&rebuilt)
+            }
+        };
+        let record = KeyframeRecord {
+            id: keyframe.id,
+            points: view.points,
+            view_dirs: view.view_dirs,
+            covariances: self
+                .options
+                .serialize_covariances
+                .then_some(view.covariances),
+            tree,
+        };
+        let bytes = rkyv::api::high::to_bytes_in::<_, rancor::Error>(
+            &record,
+            AlignedVec::<{ SEGMENT_ALIGN as usize }>::new(),
+        )
+        .map_err(|e| ArchiveError::Serialize(format!("keyframe {}: {e}", keyframe.id)))?;
+        let offset = self.append(&bytes, SEGMENT_ALIGN)?;
+        let n = keyframe.len() as u64;
+        let b = &keyframe.bbox;
+        self.index.keyframes.push(KeyframeEntry {
+            id: keyframe.id,
+            timestamp: keyframe.timestamp,
+            pose: pose_bits(&keyframe.pose),
+            bbox: [b.min[0], b.min[1], b.min[2], b.max[0], b.max[1], b.max[2]],
+            points: n,
+            offset,
+            len: bytes.len() as u64,
+            checksum: xxh3_64(&bytes),
+            point_bytes: 12 * n * if record.view_dirs.is_some() { 2 } else { 1 },
+            covariance_bytes: if record.covariances.is_some() {
+                24 * n
+            } else {
+                0
+            },
+            has_view_dirs: record.view_dirs.is_some(),
+        });
+        Ok(bytes.len() as u64)
+    }
+
+    /// Writes the index and the header, fsyncs and renames onto the target path.
+    pub fn finish(
+        mut self,
+        next_id: u64,
+        covis: &CovisSnapshot,
+        gravity_pool: &[GravityRecord],
+    ) -> Result<WriteSummary, ArchiveError> {
+        self.index.next_id = next_id;
+        self.index.covis_keyframes = covis.keyframes.clone();
+        self.index.covis_edges = covis.edges.clone();
+        self.index.covis_parents = covis.parents.clone();
+        self.index.covis_in_tree = covis.in_tree.clone();
+        self.index.gravity_pool = gravity_pool.to_vec();
+        let index = std::mem::take(&mut self.index);
+        let bytes = rkyv::to_bytes::<rancor::Error>(&index)
+            .map_err(|e| ArchiveError::Serialize(format!("map index: {e}")))?;
+        let index_offset = self.append(&bytes, SEGMENT_ALIGN)?;
+        let mut header = Header::new(options_toml(&self.options)?);
+        header.payload_len = self.offset;
+        header.payload_checksum = self.payload.digest();
+        header.index_offset = index_offset;
+        header.index_len = bytes.len() as u64;
+        header.index_checksum = xxh3_64(&bytes);
+        let header_bytes = header.encode()?;
+        let io = |e: std::io::Error| ArchiveError::io(&self.path, &e);
+        self.file.seek(SeekFrom::Start(0)).map_err(io)?;
+        self.file.write_all(&header_bytes).map_err(io)?;
+        self.file.flush().map_err(io)?;
+        self.file.get_ref().sync_all().map_err(io)?;
+        std::fs::rename(&self.tmp, &self.path).map_err(io)?;
+        if let Some(dir) = self.path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            // Persist the rename itself; not every platform can open a directory.
+            if let Ok(d) = File::open(dir) {
+                let _ = d.sync_all();
+            }
+        }
+        self.finished = true;
+        Ok(WriteSummary {
+            keyframes: index.keyframes.len(),
+            points: index.keyframes.iter().map(|k| k.points).sum(),
+            bytes: HEADER_LEN as u64 + self.offset,
+        })
+    }
+}
+
+impl Drop for MapWriter {
+    fn drop(&mut self) {
+        if !self.finished {
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+    }
+}
+
+/// x y z qx qy qz qw exactly as held (no re-normalization), so a reopened map answers
+/// bit-identically.
+fn pose_bits(p: &Pose) -> [f64; 7] {
+    let t = p.translation.vector;
+    let q = p.rotation.quaternion();
+    [t.x, t.y, t.z, q.i, q.j, q.k, q.w]
+}
+
+fn options_toml(options: &KeyframeMapOptions) -> Result<String, ArchiveError> {
+    toml::to_string(options).map_err(|e| ArchiveError::Serialize(format!("map options: {e}")))
+}
+
+/// Writes a whole map (keyframes, covisibility graph, `gravity_pool`) to `path`.
+pub fn save_map(
+    map: &KeyframeMap,
+    gravity_pool: &[GravityRecord],
+    path: &Path,
+) -> Result<WriteSummary, ArchiveError> {
+    let mut writer = MapWriter::create(path, map.options())?;
+    for keyframe in map.keyframes() {
+        writer.write_keyframe(keyframe)?;
+    }
+    writer.finish(map.next_id(), &map.covisibility().snapshot(), gravity_pool)
+}
