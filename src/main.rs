@@ -17,14 +17,21 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    Bake(commands::bake::Args),
+    Bench(commands::bench::Args),
+    Inspect(commands::inspect::Args),
     InspectCloud(commands::inspect_cloud::Args),
     Simulate(commands::simulate::Args),
     Demo(commands::demo::Args),
 }
 
 fn main() -> ExitCode {
+    let started = std::time::Instant::now(); // Cold-start figures count from here.
     let cli = Cli::parse(); // Usage errors exit with code 2 and a message from clap.
     let result = match cli.command {
+        Command::Bake(args) => commands::bake::run(args),
+        Command::Bench(args) => commands::bench::run(args, started),
+        Command::Inspect(args) => commands::inspect::run(args),
         Command::InspectCloud(args) => commands::inspect_cloud::run(args),
         Command::Simulate(args) => commands::simulate::run(args),
         Command::Demo(args) => commands::demo::run(args),

@@ -6,8 +6,11 @@ use std::path::{Path, PathBuf};
 
 use kfmap_shared::cloud::FilterOptions;
 use kfmap_shared::cov::CovOptions;
+use kfmap_shared::covis::CovisOptions;
 use kfmap_shared::io::BinLayout;
+use kfmap_shared::map::{ActiveSetMode, KeyframeDecider, KeyframeMapOptions};
 use kfmap_shared::options::{InvalidOption, ensure};
+use kfmap_shared::select::SelectionOptions;
 use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 
@@ -113,6 +116,92 @@ impl Default for InputSection {
     }
 }
 
+/// `[keyframes]` of `bake.toml`: when a scan becomes a keyframe, and its downsampling.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
+pub struct KeyframeSection {
+    /// New keyframe when the nearest one is strictly farther than this, metres.
+    pub min_translation: f64,
+    /// ... or strictly more than this away in rotation, degrees.
+    pub min_rotation_deg: f64,
+    /// Voxel grid applied to each keyframe's points, metres; 0 keeps every point.
+    pub voxel_size: f64,
+}
+
+impl Default for KeyframeSection {
+    fn default() -> Self {
+        let decider = KeyframeDecider::default();
+        Self {
+            min_translation: decider.min_translation,
+            min_rotation_deg: decider.min_rotation_deg,
+            voxel_size: 0.1,
+        }
+    }
+}
+
+impl KeyframeSection {
+    fn validate(&self) -> Result<(), InvalidOption> {
+        let t = self.min_translation;
+        ensure(
+            t.is_finite() && t >= 0.0,
+            "min-translation",
+            t,
+            "a finite distance >= 0 m",
+        )?;
+        let r = self.min_rotation_deg;
+        ensure(
+            r.is_finite() && r >= 0.0,
+            "min-rotation-deg",
+            r,
+            "a finite angle >= 0 degrees",
+        )?;
+        let v = self.voxel_size;
+        ensure(
+            v == 0.0 || (v.is_finite() && v >= 0.001),
+            "voxel-size",
+            v,
+            "0 (off) or a finite size >= 0.001 m",
+        )
+    }
+
+    /// The keyframe decider these thresholds define.
+    pub fn decider(&self) -> KeyframeDecider {
+        KeyframeDecider {
+            min_translation: self.min_translation,
+            min_rotation_deg: self.min_rotation_deg,
+        }
+    }
+}
+
+/// `[map]` of `bake.toml`: what the baked file holds and how it is queried.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
+pub struct MapSection {
+    /// Active-set rule.
+    pub active_set: ActiveSetMode,
+    /// Reject pairings whose view directions differ by more than the angle below.
+    pub use_view_direction_filter: bool,
+    /// Degrees; 180 disables the filter.
+    pub max_view_angle_deg: f64,
+    /// Store KD-trees (else rebuilt when a keyframe is first used).
+    pub serialize_kdtrees: bool,
+    /// Store covariances (else recomputed when a keyframe is first used).
+    pub serialize_covariances: bool,
+}
+
+impl Default for MapSection {
+    fn default() -> Self {
+        let o = KeyframeMapOptions::default();
+        Self {
+            active_set: o.active_set,
+            use_view_direction_filter: o.use_view_direction_filter,
+            max_view_angle_deg: o.max_view_angle_deg,
+            serialize_kdtrees: o.serialize_kdtrees,
+            serialize_covariances: o.serialize_covariances,
+        }
+    }
+}
+
 fn validate_filter(filter: &FilterOptions) -> Result<(), InvalidOption> {
     let r = filter.min_range;
     ensure(
@@ -145,6 +234,31 @@ pub struct BakeConfig {
     pub filter: FilterOptions,
     /// Per-point covariances baked into the map.
     pub covariance: CovOptions,
+    /// Keyframe creation and downsampling.
+    pub keyframes: KeyframeSection,
+    /// What the file holds; query options stored with the map.
+    pub map: MapSection,
+    /// Active-set selection stored with the map.
+    pub selection: SelectionOptions,
+    /// Covisibility graph.
+    pub covisibility: CovisOptions,
+}
+
+impl BakeConfig {
+    /// The options of the map this configuration bakes.
+    pub fn map_options(&self) -> KeyframeMapOptions {
+        KeyframeMapOptions {
+            covariance: self.covariance,
+            selection: self.selection,
+            covisibility: self.covisibility,
+            active_set: self.map.active_set,
+            use_view_direction_filter: self.map.use_view_direction_filter,
+            max_view_angle_deg: self.map.max_view_angle_deg,
+            serialize_kdtrees: self.map.serialize_kdtrees,
+            serialize_covariances: self.map.serialize_covariances,
+            ..KeyframeMapOptions::default()
+        }
+    }
 }
 
 /// A configuration file type: parsed from TOML, then validated section by section.
@@ -201,7 +315,17 @@ impl ConfigFile for BakeConfig {
 
     fn validate(&self) -> Result<(), (&'static str, InvalidOption)> {
         validate_filter(&self.filter).map_err(|e| ("filter", e))?;
-        self.covariance.validate().map_err(|e| ("covariance", e))
+        self.covariance.validate().map_err(|e| ("covariance", e))?;
+        self.keyframes.validate().map_err(|e| ("keyframes", e))?;
+        self.selection.validate().map_err(|e| ("selection", e))?;
+        self.covisibility
+            .validate()
+            .map_err(|e| ("covisibility", e))?;
+        let map = KeyframeMapOptions {
+            covariance: CovOptions::default(),
+            ..self.map_options()
+        };
+        map.validate().map_err(|e| ("map", e))
     }
 }
 

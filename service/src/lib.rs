@@ -1,5 +1,5 @@
-//! Server runtime of kfmap. For now: the server and bake configuration files, their
-//! defaults and validation. The request loop arrives with the map server.
+//! Server runtime of kfmap: the server and bake configuration files, and the baking
+//! pipeline (`kfmap bake`). The request loop arrives with the map server.
 //!
 //! ```
 //! let config = kfmap_service::config::ServerConfig::default();
@@ -7,4 +7,5 @@
 //! ```
 #![warn(missing_docs)]
 
+pub mod bake;
 pub mod config;

@@ -1,6 +1,9 @@
 //! One module per subcommand: its clap arguments and its `run`.
 
+pub mod bake;
+pub mod bench;
 pub mod demo;
+pub mod inspect;
 pub mod inspect_cloud;
 mod report;
 pub mod simulate;

@@ -41,6 +41,9 @@ pub enum MapError {
     /// A baked keyframe failed verification, or the map file is unusable.
     #[error(transparent)]
     Archive(#[from] ArchiveError),
+    /// A keyframe id below the next free id (ids are never reused).
+    #[error("keyframe id {0} is already used or below the next free id")]
+    IdTaken(KeyframeId),
     /// The map has no keyframes to answer from.
     #[error("the map has no keyframes")]
     Empty,
@@ -196,6 +199,19 @@ impl KeyframeMap {
             }
         }
         self.next_id += 1;
+        self.insert_built(keyframe)?;
+        Ok(id)
+    }
+
+    /// Adds a keyframe built elsewhere (e.g. [`Keyframe::from_parts`]), keeping its id,
+    /// which must be at least [`next_id`](Self::next_id). No eviction.
+    pub fn insert_keyframe(&mut self, keyframe: Keyframe) -> Result<KeyframeId, MapError> {
+        if keyframe.id < self.next_id {
+            return Err(MapError::IdTaken(keyframe.id));
+        }
+        self.ensure_covis_index()?;
+        let id = keyframe.id;
+        self.next_id = id + 1;
         self.insert_built(keyframe)?;
         Ok(id)
     }

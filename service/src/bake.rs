@@ -1,0 +1,255 @@
+//! `kfmap bake`: a scan sequence with poses -> one `.kfmap` file. Keyframes are chosen
+//! by the decider on the poses alone, then read, downsampled, indexed (tree +
+//! covariances, in parallel) and written a chunk at a time, so memory stays bounded by
+//! one chunk of keyframes plus the covisibility index, whatever the map's size.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use kfmap_shared::archive::{ArchiveError, MapWriter, WriteSummary};
+use kfmap_shared::cloud::PointCloud;
+use kfmap_shared::covis::CovisibilityGraph;
+use kfmap_shared::geometry::Pose;
+use kfmap_shared::io::{IoError, ReadOptions, read_cloud, read_trajectory};
+use kfmap_shared::map::{Keyframe, KeyframeMapOptions};
+use rayon::prelude::*;
+
+use crate::config::BakeConfig;
+
+/// Scan file extensions a dataset may hold.
+const SCAN_EXTENSIONS: [&str; 3] = ["pcd", "ply", "bin"];
+/// Pose files looked for in the dataset directory when `--poses` is not given.
+const POSE_FILES: [&str; 3] = ["poses_gt.txt", "poses.txt", "poses_velo_kitti.txt"];
+
+/// Why a bake failed.
+#[derive(Debug, thiserror::Error)]
+pub enum BakeError {
+    /// The dataset directory has no scans.
+    #[error("{0}: no scans (*.pcd, *.ply, *.bin) in it or in its scans/ folder")]
+    NoScans(PathBuf),
+    /// No pose file given or found.
+    #[error(
+        "{dir}: no poses; pass --poses FILE (TUM or KITTI) or put one of {tried} in the dataset"
+    )]
+    NoPoses {
+        /// The dataset.
+        dir: PathBuf,
+        /// Names looked for.
+        tried: String,
+    },
+    /// Poses and scans cannot be matched.
+    #[error(
+        "{poses}: {count} poses for {scans} scans; scans named by frame number need a pose per number, others exactly one pose each"
+    )]
+    PoseCount {
+        /// The pose file.
+        poses: PathBuf,
+        /// Poses in it.
+        count: usize,
+        /// Scans found.
+        scans: usize,
+    },
+    /// A scan or pose file could not be read.
+    #[error(transparent)]
+    Io(#[from] IoError),
+    /// A scan is unusable (empty after filtering and downsampling, ...).
+    #[error("{path}: {message}")]
+    Scan {
+        /// The scan.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+    /// The map file could not be written.
+    #[error(transparent)]
+    Archive(#[from] ArchiveError),
+}
+
+/// Where a bake reads from.
+#[derive(Debug, Clone)]
+pub struct BakeInput {
+    /// Dataset directory (simulator output, or scans + a pose file).
+    pub dataset: PathBuf,
+    /// Pose file; default: the first of `poses_gt.txt`, `poses.txt`,
+    /// `poses_velo_kitti.txt` in the dataset.
+    pub poses: Option<PathBuf>,
+}
+
+/// Progress of a bake, after each keyframe written.
+#[derive(Debug, Clone, Copy)]
+pub struct BakeProgress {
+    /// Keyframes written so far.
+    pub keyframes_done: usize,
+    /// Keyframes in total.
+    pub keyframes_total: usize,
+    /// Points written so far.
+    pub points_done: u64,
+}
+
+/// What a bake produced.
+#[derive(Debug, Clone, Copy)]
+pub struct BakeReport {
+    /// Scans in the dataset.
+    pub scans: usize,
+    /// The file written.
+    pub written: WriteSummary,
+    /// Wall time, seconds.
+    pub seconds: f64,
+}
+
+impl BakeReport {
+    /// Points baked per second.
+    pub fn points_per_second(&self) -> f64 {
+        self.written.points as f64 / self.seconds.max(1e-9)
+    }
+}
+
+/// Scan files of a dataset, sorted by name: `DIR/scans/` if it exists, else `DIR`.
+pub fn find_scans(dataset: &Path) -> Result<Vec<PathBuf>, BakeError> {
+    let dir = if dataset.join("scans").is_dir() {
+        dataset.join("scans")
+    } else {
+        dataset.to_path_buf()
+    };
+    let entries = std::fs::read_dir(&dir).map_err(|e| IoError::os(&dir, e))?;
+    let mut scans: Vec<PathBuf> = entries
+        .filter_map(Result::ok)
+        .map(|e| e.path())
+        .filter(|p| {
+            p.is_file()
+                && p.extension()
+                    .and_then(|e| e.to_str())
+                    .is_some_and(|e| SCAN_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
+        })
+        .collect();
+    scans.sort();
+    if scans.is_empty() {
+        return Err(BakeError::NoScans(dataset.to_path_buf()));
+    }
+    Ok(scans)
+}
+
+/// The pose of every scan: by frame number when every scan is named by one (KITTI
+/// `000123.bin`), else one pose per scan in order.
+fn scan_poses(input: &BakeInput, scans: &[PathBuf]) -> Result<(Vec<Pose>, Vec<f64>), BakeError> {
+    let path = match &input.poses {
+        Some(p) => p.clone(),
+        None => POSE_FILES
+            .iter()
+            .map(|name| input.dataset.join(name))
+            .find(|p| p.is_file())
+            .ok_or_else(|| BakeError::NoPoses {
+                dir: input.dataset.clone(),
+                tried: POSE_FILES.join(", "),
+            })?,
+    };
+    let trajectory = read_trajectory(&path)?;
+    let count_error = || BakeError::PoseCount {
+        poses: path.clone(),
+        count: trajectory.poses.len(),
+        scans: scans.len(),
+    };
+    let frames: Option<Vec<usize>> = scans
+        .iter()
+        .map(|s| s.file_stem()?.to_str()?.parse().ok())
+        .collect();
+    let indices: Vec<usize> = match frames {
+        Some(f) if trajectory.poses.len() != scans.len() => f,
+        _ if trajectory.poses.len() == scans.len() => (0..scans.len()).collect(),
+        _ => return Err(count_error()),
+    };
+    if indices.iter().any(|&i| i >= trajectory.poses.len()) {
+        return Err(count_error());
+    }
+    let poses = indices.iter().map(|&i| trajectory.poses[i]).collect();
+    let stamps = indices
+        .iter()
+        .map(|&i| trajectory.stamps.as_ref().map_or(i as f64, |s| s[i]))
+        .collect();
+    Ok((poses, stamps))
+}
+
+/// Reads, filters and downsamples one scan.
+fn load_scan(path: &Path, config: &BakeConfig) -> Result<PointCloud, BakeError> {
+    let sidecar = path.with_extension("bin.layout").is_file();
+    let options = ReadOptions {
+        bin_layout: (!sidecar).then_some(config.input.bin_layout),
+        filter: config.filter,
+    };
+    let cloud = read_cloud(path, &options)?.cloud;
+    let cloud = if config.keyframes.voxel_size > 0.0 {
+        cloud
+            .voxel_downsample(config.keyframes.voxel_size)
+            .map_err(|e| BakeError::Scan {
+                path: path.to_path_buf(),
+                message: e.to_string(),
+            })?
+    } else {
+        cloud
+    };
+    if cloud.is_empty() {
+        return Err(BakeError::Scan {
+            path: path.to_path_buf(),
+            message: "no valid points left after filtering".into(),
+        });
+    }
+    Ok(cloud)
+}
+
+/// Bakes `input` into `out` with `config`; `progress` is called after each keyframe.
+/// Runs on the current rayon pool.
+pub fn bake(
+    input: &BakeInput,
+    config: &BakeConfig,
+    out: &Path,
+    mut progress: impl FnMut(BakeProgress),
+) -> Result<BakeReport, BakeError> {
+    let started = Instant::now();
+    let scans = find_scans(&input.dataset)?;
+    let (poses, stamps) = scan_poses(input, &scans)?;
+    let decider = config.keyframes.decider();
+    let mut chosen: Vec<usize> = Vec::new();
+    for (i, pose) in poses.iter().enumerate() {
+        if decider.should_create(chosen.iter().map(|&c| &poses[c]), pose) {
+            chosen.push(i);
+        }
+    }
+    let options: KeyframeMapOptions = config.map_options();
+    let mut writer = MapWriter::create(out, &options)?;
+    let mut covis = CovisibilityGraph::new(options.covisibility);
+    let chunk = 2 * rayon::current_num_threads();
+    let mut done = BakeProgress {
+        keyframes_done: 0,
+        keyframes_total: chosen.len(),
+        points_done: 0,
+    };
+    for (chunk_index, batch) in chosen.chunks(chunk).enumerate() {
+        let keyframes: Vec<Keyframe> = batch
+            .par_iter()
+            .enumerate()
+            .map(|(j, &scan)| {
+                let cloud = load_scan(&scans[scan], config)?;
+                let id = (chunk_index * chunk + j) as u64;
+                Keyframe::build(id, poses[scan], stamps[scan], cloud, &options.covariance).map_err(
+                    |e| BakeError::Scan {
+                        path: scans[scan].clone(),
+                        message: e.to_string(),
+                    },
+                )
+            })
+            .collect::<Result<_, _>>()?;
+        for k in &keyframes {
+            covis.set_keyframe(k.id, k.map_points()?);
+            writer.write_keyframe(k)?;
+            done.keyframes_done += 1;
+            done.points_done += k.len() as u64;
+            progress(done);
+        }
+    }
+    let written = writer.finish(chosen.len() as u64, &covis.snapshot(), &[])?;
+    Ok(BakeReport {
+        scans: scans.len(),
+        written,
+        seconds: started.elapsed().as_secs_f64(),
+    })
+}

@@ -1,0 +1,184 @@
+//! `kfmap inspect`: what a `.kfmap` file holds, and whether every byte of it is sound.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use indicatif::{ProgressBar, ProgressStyle};
+use kfmap_shared::archive::{OpenOptions, OpenedMap, open_map};
+use serde_json::json;
+
+/// Describe a baked map: header, options, keyframes, points, size breakdown, bounding
+/// box, covisibility statistics and gravity pool.
+///
+/// Opening reads only the header and the index. --verify also checks the whole-file
+/// checksum and every keyframe (its checksum, archive layout and KD-tree: each point
+/// must find itself); use it after copying a map to a robot.
+///
+/// Exit code 2 with a message naming the problem for a missing, truncated, corrupt,
+/// wrong-version or wrong-endianness file.
+///
+/// Examples:
+///   kfmap inspect campus.kfmap
+///   kfmap inspect campus.kfmap --verify --json
+#[derive(clap::Args)]
+#[command(verbatim_doc_comment)]
+pub struct Args {
+    /// The map file.
+    map: PathBuf,
+    /// Check the file checksum and every keyframe, including its tree.
+    #[arg(long)]
+    verify: bool,
+    /// Print one JSON object.
+    #[arg(long)]
+    json: bool,
+}
+
+/// Sizes by kind, bytes.
+struct Breakdown {
+    points: u64,
+    covariances: u64,
+    trees_and_overhead: u64,
+    index: u64,
+}
+
+fn breakdown(m: &OpenedMap) -> Breakdown {
+    let entries = &m.index.keyframes;
+    let points: u64 = entries.iter().map(|k| k.point_bytes).sum();
+    let covariances: u64 = entries.iter().map(|k| k.covariance_bytes).sum();
+    let segments: u64 = entries.iter().map(|k| k.len).sum();
+    Breakdown {
+        points,
+        covariances,
+        trees_and_overhead: segments - points - covariances,
+        index: m.header.index_len,
+    }
+}
+
+/// Runs the subcommand.
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let started = Instant::now();
+    let opened = open_map(&args.map, OpenOptions::default())?;
+    let open_ms = started.elapsed().as_secs_f64() * 1e3;
+    let mut verify_ms = None;
+    if args.verify {
+        let started = Instant::now();
+        opened.verify_payload()?;
+        let bar = if args.json {
+            ProgressBar::hidden()
+        } else {
+            ProgressBar::new(opened.map.len() as u64)
+        };
+        bar.set_style(
+            ProgressStyle::with_template("verifying [{bar:40}] {pos}/{len} keyframes, eta {eta}")
+                .expect("template")
+                .progress_chars("=> "),
+        );
+        opened.verify_keyframes(|done| bar.set_position(done as u64))?;
+        bar.finish_and_clear();
+        verify_ms = Some(started.elapsed().as_secs_f64() * 1e3);
+    }
+    let index = &opened.index;
+    let points: u64 = index.keyframes.iter().map(|k| k.points).sum();
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for k in opened.map.keyframes() {
+        for corner in 0..8 {
+            let b = &k.bbox;
+            let local = nalgebra::Point3::new(
+                if corner & 1 == 0 { b.min[0] } else { b.max[0] } as f64,
+                if corner & 2 == 0 { b.min[1] } else { b.max[1] } as f64,
+                if corner & 4 == 0 { b.min[2] } else { b.max[2] } as f64,
+            );
+            let p = k.pose * local;
+            for a in 0..3 {
+                lo[a] = lo[a].min(p[a]);
+                hi[a] = hi[a].max(p[a]);
+            }
+        }
+    }
+    let sizes = breakdown(&opened);
+    let covis = opened.map.covisibility();
+    let edges = covis.edges();
+    let mean_degree = 2.0 * edges.len() as f64 / covis.len().max(1) as f64;
+    let essential = covis.essential_graph().len();
+    let pool = &index.gravity_pool;
+    let pool_spread = if pool.is_empty() {
+        None
+    } else {
+        Some(pool.iter().map(|g| g.std).sum::<f64>() / pool.len() as f64)
+    };
+    let h = &opened.header;
+    if args.json {
+        println!(
+            "{}",
+            json!({
+                "map": args.map,
+                "format_version": h.format_version,
+                "creator": h.creator,
+                "pointer_width": h.pointer_width,
+                "keyframes": opened.map.len(),
+                "points": points,
+                "bytes": opened.file_len(),
+                "bytes_points": sizes.points,
+                "bytes_covariances": sizes.covariances,
+                "bytes_trees_and_overhead": sizes.trees_and_overhead,
+                "bytes_index": sizes.index,
+                "bbox_min": lo,
+                "bbox_max": hi,
+                "covisibility_edges": edges.len(),
+                "covisibility_mean_degree": mean_degree,
+                "essential_graph_edges": essential,
+                "gravity_pool": pool.len(),
+                "gravity_pool_mean_std": pool_spread,
+                "options": toml::from_str::<toml::Value>(&h.options_toml).ok(),
+                "open_ms": open_ms,
+                "verified": args.verify,
+                "verify_ms": verify_ms,
+            })
+        );
+        return Ok(());
+    }
+    let mb = |b: u64| b as f64 / 1e6;
+    println!(
+        "{} (format {}, written by {})",
+        args.map.display(),
+        h.format_version,
+        h.creator
+    );
+    println!(
+        "  {} keyframes, {} points, {:.1} MB: points {:.1}, covariances {:.1}, trees + overhead {:.1}, index {:.3}",
+        opened.map.len(),
+        points,
+        mb(opened.file_len()),
+        mb(sizes.points),
+        mb(sizes.covariances),
+        mb(sizes.trees_and_overhead),
+        mb(sizes.index)
+    );
+    println!(
+        "  bounds [{:.1}, {:.1}, {:.1}] .. [{:.1}, {:.1}, {:.1}] m",
+        lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]
+    );
+    println!(
+        "  covisibility: {} edges, mean degree {:.1}, essential graph {} edges",
+        edges.len(),
+        mean_degree,
+        essential
+    );
+    match pool_spread {
+        Some(s) => println!(
+            "  gravity pool: {} keyframes, mean accelerometer spread {s:.3} m/s^2",
+            pool.len()
+        ),
+        None => println!("  gravity pool: empty"),
+    }
+    println!("  options:");
+    for line in h.options_toml.lines().filter(|l| !l.is_empty()) {
+        println!("    {line}");
+    }
+    match verify_ms {
+        Some(ms) => println!("  verified: checksum and every keyframe's tree ({ms:.0} ms)"),
+        None => println!("  opened in {open_ms:.2} ms (pass --verify to check every byte)"),
+    }
+    Ok(())
+}
