@@ -27,6 +27,10 @@ enum Command {
 
 fn main() -> ExitCode {
     let started = std::time::Instant::now(); // Cold-start figures count from here.
+    tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        .with_max_level(tracing::Level::INFO)
+        .init();
     let cli = Cli::parse(); // Usage errors exit with code 2 and a message from clap.
     let result = match cli.command {
         Command::Bake(args) => commands::bake::run(args),

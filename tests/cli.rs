@@ -148,7 +148,10 @@ fn demo_simulates_and_uses_a_courtyard_without_data() {
     assert!(
         text.contains("50 scans")
             && text.contains("scans/000010.pcd")
-            && text.contains("no real scan"),
+            && text.contains("no real scan")
+            && text.contains("reopened by mmap")
+            && text.contains("approximate mode")
+            && text.contains("exact mode"),
         "{text}"
     );
 }
@@ -237,7 +240,14 @@ fn demo_runs_on_real_data() {
 
 #[test]
 fn every_subcommand_help_has_an_example() {
-    for sub in ["inspect-cloud", "simulate", "demo"] {
+    for sub in [
+        "inspect-cloud",
+        "simulate",
+        "demo",
+        "bake",
+        "inspect",
+        "bench",
+    ] {
         let out = kfmap(&[sub, "--help"]);
         assert!(out.status.success());
         assert!(
@@ -245,4 +255,184 @@ fn every_subcommand_help_has_an_example() {
             "{sub}"
         );
     }
+}
+
+/// A small simulated dataset, shared by the bake tests of one process.
+fn simulated(test: &str) -> PathBuf {
+    let dir = temp_dir(test).join("sim");
+    let out = kfmap(&[
+        "simulate",
+        "--preset",
+        "courtyard",
+        "--seconds",
+        "3",
+        "--beams",
+        "16",
+        "--out",
+        dir.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    dir
+}
+
+#[test]
+fn bake_then_inspect_a_simulated_dataset() {
+    use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
+    use kfmap_shared::map::KeyframeDecider;
+    let sim = simulated("bake");
+    let map = sim.parent().unwrap().join("court.kfmap");
+    let baked = json(&kfmap(&[
+        "bake",
+        "--dataset",
+        sim.to_str().unwrap(),
+        "--out",
+        map.to_str().unwrap(),
+        "--json",
+    ]));
+    // Oracle: the decider on the true poses, each chosen scan downsampled at 0.1 m.
+    let poses = read_trajectory(&sim.join("poses_gt.txt")).unwrap().poses;
+    let decider = KeyframeDecider::default();
+    let mut chosen: Vec<usize> = Vec::new();
+    for (i, p) in poses.iter().enumerate() {
+        if decider.should_create(chosen.iter().map(|&c| &poses[c]), p) {
+            chosen.push(i);
+        }
+    }
+    let points: usize = chosen
+        .iter()
+        .map(|i| {
+            read_cloud(
+                &sim.join(format!("scans/{i:06}.pcd")),
+                &ReadOptions::default(),
+            )
+            .unwrap()
+            .cloud
+            .voxel_downsample(0.1)
+            .unwrap()
+            .len()
+        })
+        .sum();
+    assert_eq!(baked["keyframes"], chosen.len());
+    assert_eq!(baked["points"], points);
+    assert_eq!(baked["scans"], poses.len());
+    let size = std::fs::metadata(&map).unwrap().len();
+    assert_eq!(baked["bytes"], size);
+
+    let inspected = json(&kfmap(&[
+        "inspect",
+        map.to_str().unwrap(),
+        "--verify",
+        "--json",
+    ]));
+    assert_eq!(inspected["format_version"], 1);
+    assert_eq!(inspected["keyframes"], chosen.len());
+    assert_eq!(inspected["points"], points);
+    assert_eq!(inspected["bytes"], size);
+    assert_eq!(inspected["verified"], true);
+    let parts = [
+        "bytes_points",
+        "bytes_covariances",
+        "bytes_trees_and_overhead",
+        "bytes_index",
+    ];
+    let sum: u64 = parts.iter().map(|k| inspected[k].as_u64().unwrap()).sum();
+    assert!(
+        sum <= size && sum + 4096 + 128 * chosen.len() as u64 >= size,
+        "{sum} vs {size}"
+    );
+    // 12 bytes a point for positions and 12 for view directions; 24 for covariances.
+    assert_eq!(inspected["bytes_points"], 24 * points);
+    assert_eq!(inspected["bytes_covariances"], 24 * points);
+
+    // Refuses to overwrite without --force; replaces with it.
+    let again = kfmap(&[
+        "bake",
+        "--dataset",
+        sim.to_str().unwrap(),
+        "--out",
+        map.to_str().unwrap(),
+    ]);
+    assert_eq!(again.status.code(), Some(2));
+    assert!(stderr(&again).contains("--force"), "{}", stderr(&again));
+    let _ = std::fs::remove_dir_all(sim.parent().unwrap());
+}
+
+#[test]
+fn bad_maps_and_datasets_exit_2_naming_the_problem() {
+    let sim = simulated("badmap");
+    let dir = sim.parent().unwrap().to_path_buf();
+    let map = dir.join("m.kfmap");
+    let out = kfmap(&[
+        "bake",
+        "--dataset",
+        sim.to_str().unwrap(),
+        "--out",
+        map.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let good = std::fs::read(&map).unwrap();
+    let write = |name: &str, bytes: &[u8]| {
+        let p = dir.join(name);
+        std::fs::write(&p, bytes).unwrap();
+        p.to_str().unwrap().to_owned()
+    };
+    let mut flipped = good.clone();
+    flipped[40] ^= 1;
+    let mut corrupt_keyframe = good.clone();
+    corrupt_keyframe[4096 + 64] ^= 1;
+    let cases: Vec<(String, &str)> = vec![
+        (
+            dir.join("missing.kfmap").to_str().unwrap().to_owned(),
+            "No such file",
+        ),
+        (dir.to_str().unwrap().to_owned(), "not a regular file"),
+        (write("empty.kfmap", &[]), "empty file"),
+        (write("short.kfmap", &good[..good.len() / 2]), "truncated"),
+        (write("flipped.kfmap", &flipped), "header is corrupt"),
+        (write("text.kfmap", b"# .PCD v0.7\n"), "bad magic"),
+    ];
+    for (path, message) in cases {
+        let out = kfmap(&["inspect", &path]);
+        assert_eq!(out.status.code(), Some(2), "{path}");
+        assert!(stderr(&out).contains(message), "{path}: {}", stderr(&out));
+    }
+    // A damaged keyframe opens (only the header and index are read) but fails --verify.
+    let damaged = write("damaged.kfmap", &corrupt_keyframe);
+    assert!(kfmap(&["inspect", &damaged]).status.success());
+    let out = kfmap(&["inspect", &damaged, "--verify"]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(stderr(&out).contains("corrupt"), "{}", stderr(&out));
+
+    // Datasets: no poses, and poses that do not match the scans.
+    std::fs::rename(sim.join("poses_gt.txt"), dir.join("poses.tum")).unwrap();
+    let out = kfmap(&[
+        "bake",
+        "--dataset",
+        sim.to_str().unwrap(),
+        "--out",
+        dir.join("x.kfmap").to_str().unwrap(),
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(stderr(&out).contains("no poses"), "{}", stderr(&out));
+    let tum = std::fs::read_to_string(dir.join("poses.tum")).unwrap();
+    let short: String = tum.lines().take(5).map(|l| format!("{l}\n")).collect();
+    let poses = write("short.tum", short.as_bytes());
+    let out = kfmap(&[
+        "bake",
+        "--dataset",
+        sim.to_str().unwrap(),
+        "--poses",
+        &poses,
+        "--out",
+        dir.join("x.kfmap").to_str().unwrap(),
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(
+        stderr(&out).contains("poses for 30 scans"),
+        "{}",
+        stderr(&out)
+    );
+    assert!(!dir.join("x.kfmap").exists());
+    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -3,6 +3,7 @@
 //! true pose, one thread. Run: `cargo bench -p kfmap-shared --bench map`.
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
+use kfmap_shared::archive::{OpenOptions, open_map, save_map};
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::cov::estimate_covariances;
 use kfmap_shared::datasets::require_test_data;
@@ -125,7 +126,20 @@ fn bench_map(c: &mut Criterion) {
         b.iter(|| pairs(&active, Some(&query_covs)))
     });
     group.bench_function("approximate_nearest_one", |b| b.iter(|| nearest(&active)));
+
+    // The same map baked to a file and memory-mapped: queries read it in place.
+    let path = std::env::temp_dir().join(format!("kfmap-map-bench-{}.kfmap", std::process::id()));
+    save_map(&approx, &[], &path).expect("bake");
+    let mut baked = open_map(&path, OpenOptions::default()).expect("open").map;
+    let active = baked.activate(&at).expect("active");
+    group.bench_function("baked_approximate_cov2cov", |b| {
+        b.iter(|| pairs(&active, Some(&query_covs)))
+    });
+    group.bench_function("baked_approximate_nearest_one", |b| {
+        b.iter(|| nearest(&active))
+    });
     group.finish();
+    let _ = std::fs::remove_file(&path);
 }
 
 criterion_group!(benches, bench_map);

@@ -47,6 +47,7 @@ macro_rules! on_tree {
 
 impl TreeRef<'_> {
     /// The nearest point: `(index, squared distance)`.
+    #[inline]
     pub fn nearest_one(self, query: &[f32; 3]) -> (u32, f32) {
         on_tree!(self, query, |q| {
             let r = q.nearest_one::<SquaredEuclidean<f32>>().execute();

@@ -22,7 +22,7 @@ use serde_json::json;
 /// complete: an interrupted bake never leaves a partial map. Memory stays bounded by a
 /// few keyframes at a time, whatever the map's size.
 ///
-/// Examples:
+/// Example:
 ///   kfmap simulate --preset campus --seconds 60 --out /tmp/campus
 ///   kfmap bake --dataset /tmp/campus --out campus.kfmap
 ///   kfmap bake --dataset ../shared/data/kitti00 --out kitti.kfmap --threads 2

@@ -1,17 +1,18 @@
 //! `kfmap demo`: the main job on built-in defaults. It simulates a small courtyard
 //! (LiDAR + IMU with ground truth), loads a simulated scan back through the readers,
-//! downsamples it and estimates its covariances; with the real data beside the
-//! checkout it does the same on a real Velodyne scan. Baking, serving and localizing
-//! join it as they land.
+//! downsamples it and estimates its covariances, bakes a map file and reopens it by
+//! mmap; with the real data beside the checkout it analyzes a real Velodyne scan too.
+//! Serving and localizing join it as they land.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::Context;
+use kfmap_service::bake::{BakeInput, bake};
 use kfmap_service::config::BakeConfig;
+use kfmap_shared::archive::{OpenOptions, open_map};
 use kfmap_shared::datasets::shared_data_dir;
 use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
-use kfmap_shared::map::{KeyframeDecider, KeyframeMap, KeyframeMapOptions};
 use kfmap_shared::sim::{LidarParams, Preset, SimConfig, write_dataset};
 use kfmap_shared::summary::summarize;
 
@@ -22,8 +23,9 @@ use super::report::print_summary;
 /// 1. Simulates 5 s of a 32-beam LiDAR and an IMU driving around the courtyard preset
 ///    (into a temporary folder, or --out DIR to keep it).
 /// 2. Reads a simulated scan back, downsamples it, estimates per-point covariances.
-///    Builds a keyframe map from the simulated scans at their true poses and pairs the
-///    last scan against it (cov2cov), printing pairing statistics.
+///    Bakes the simulated scans at their true poses into a .kfmap file (keyframes, trees,
+///    covariances, covisibility), reopens it by mmap and pairs the last scan against it
+///    (cov2cov, approximate and exact mode), printing pairing statistics.
 /// 3. When ../shared/data is beside the checkout (or $KFMAP_DATA_DIR names it), does the
 ///    same on a real Velodyne HDL-64E scan (kitti00/000000.bin), or on --scan FILE.
 ///
@@ -91,7 +93,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         truth.poses.len()
     );
     analyze(&dataset.join("scans/000010.pcd"), &config)?;
-    keyframe_map_stage(&dataset, &truth)?;
+    baked_map_stage(&dataset, &truth)?;
 
     let real = args.scan.or_else(|| {
         shared_data_dir()
@@ -104,53 +106,62 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             println!("(no real scan: put the shared data beside the checkout or pass --scan FILE)")
         }
     }
-    println!("done: bake, serve and localize join this demo as they land (see README).");
+    println!("done: serve and localize join this demo as they land (see README).");
     Ok(())
 }
 
-/// Builds a keyframe map from the simulated scans at their true poses (a keyframe every
-/// metre or 30 degrees) and pairs the last scan against it.
-fn keyframe_map_stage(dataset: &Path, truth: &kfmap_shared::io::Trajectory) -> anyhow::Result<()> {
-    let decider = KeyframeDecider::default();
-    let mut map = KeyframeMap::new(KeyframeMapOptions::default())?;
-    let started = Instant::now();
-    let read = |i: usize| -> anyhow::Result<kfmap_shared::cloud::PointCloud> {
-        let cloud = read_cloud(
-            &dataset.join(format!("scans/{i:06}.pcd")),
-            &ReadOptions::default(),
-        )?
-        .cloud;
-        Ok(cloud.voxel_downsample(0.1)?)
+/// Bakes the simulated scans (at their true poses) into a map file, reopens it by mmap
+/// and pairs the last scan against it (cov2cov), in approximate and exact mode.
+fn baked_map_stage(dataset: &Path, truth: &kfmap_shared::io::Trajectory) -> anyhow::Result<()> {
+    let config = BakeConfig::default();
+    let map_path = dataset.join("courtyard.kfmap");
+    let input = BakeInput {
+        dataset: dataset.to_path_buf(),
+        poses: None,
     };
-    let last = truth.poses.len() - 1;
-    for (i, pose) in truth.poses.iter().enumerate().take(last) {
-        if decider.should_create(map.keyframes().map(|k| &k.pose), pose) {
-            map.insert(read(i)?, *pose, i as f64)?;
-        }
-    }
-    let points = map.point_count();
+    let report = bake(&input, &config, &map_path, |_| {})?;
     println!(
-        "keyframe map: {} keyframes, {} points (0.1 m voxels), built in {:.0} ms",
-        map.len(),
-        points,
-        started.elapsed().as_secs_f64() * 1e3
+        "baked {}: {} keyframes, {} points ({} m voxels), {:.1} MB in {:.2} s ({:.2} M points/s)",
+        map_path.display(),
+        report.written.keyframes,
+        report.written.points,
+        config.keyframes.voxel_size,
+        report.written.bytes as f64 / 1e6,
+        report.seconds,
+        report.points_per_second() / 1e6
     );
-    let scan = read(last)?.voxel_downsample(0.5)?;
-    let at = truth.poses[last];
     let started = Instant::now();
-    let active = map.activate(&at)?;
-    let pairs = active.cov2cov(&scan, &at, 1.0, None)?;
-    let mean =
-        pairs.iter().map(|p| (p.dist_sq as f64).sqrt()).sum::<f64>() / pairs.len().max(1) as f64;
+    let mut map = open_map(&map_path, OpenOptions::default())?.map;
     println!(
-        "  scan {last} ({} points at 0.5 m) vs active keyframes {:?}: {} pairings ({:.1} %), mean distance {:.3} m, {:.1} ms (exact mode, new active set)",
-        scan.len(),
-        active.ids(),
-        pairs.len(),
-        100.0 * pairs.len() as f64 / scan.len() as f64,
-        mean,
+        "  reopened by mmap in {:.2} ms (no tree or covariance rebuilt)",
         started.elapsed().as_secs_f64() * 1e3
     );
+    let last = truth.poses.len() - 1;
+    let scan = read_cloud(
+        &dataset.join(format!("scans/{last:06}.pcd")),
+        &ReadOptions::default(),
+    )?
+    .cloud
+    .voxel_downsample(0.5)?;
+    let at = truth.poses[last];
+    for approximate in [true, false] {
+        map.set_approximate_cov(approximate);
+        let started = Instant::now();
+        let active = map.activate(&at)?;
+        let pairs = active.cov2cov(&scan, &at, 1.0, None)?;
+        let mean = pairs.iter().map(|p| (p.dist_sq as f64).sqrt()).sum::<f64>()
+            / pairs.len().max(1) as f64;
+        println!(
+            "  scan {last} ({} points at 0.5 m) vs keyframes {:?}, {} mode: {} pairings ({:.1} %), mean distance {:.3} m, {:.1} ms",
+            scan.len(),
+            active.ids(),
+            if approximate { "approximate" } else { "exact" },
+            pairs.len(),
+            100.0 * pairs.len() as f64 / scan.len() as f64,
+            mean,
+            started.elapsed().as_secs_f64() * 1e3
+        );
+    }
     Ok(())
 }
 

@@ -17,7 +17,7 @@ use serde_json::json;
 /// Exit code 2 with a message naming the problem for a missing, truncated, corrupt,
 /// wrong-version or wrong-endianness file.
 ///
-/// Examples:
+/// Example:
 ///   kfmap inspect campus.kfmap
 ///   kfmap inspect campus.kfmap --verify --json
 #[derive(clap::Args)]

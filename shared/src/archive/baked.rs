@@ -94,7 +94,7 @@ impl OpenedMap {
 pub struct BakedKeyframe {
     file: Arc<Mmap>,
     start: usize,
-    len: usize,
+    byte_len: usize,
     checksum: u64,
     id: KeyframeId,
     points: usize,
@@ -114,7 +114,7 @@ impl std::fmt::Debug for BakedKeyframe {
         f.debug_struct("BakedKeyframe")
             .field("id", &self.id)
             .field("points", &self.points)
-            .field("bytes", &self.len)
+            .field("bytes", &self.byte_len)
             .field("verified", &self.prepared.get().map(Result::is_ok))
             .finish()
     }
@@ -139,7 +139,7 @@ impl BakedKeyframe {
     }
 
     fn bytes(&self) -> &[u8] {
-        &self.file[self.start..self.start + self.len]
+        &self.file[self.start..self.start + self.byte_len]
     }
 
     fn corrupt(&self, reason: impl Into<String>) -> ArchiveError {
@@ -346,7 +346,7 @@ pub fn open_map(path: &Path, options: OpenOptions) -> Result<OpenedMap, ArchiveE
             let data = BakedKeyframe {
                 file: Arc::clone(&mmap),
                 start: HEADER_LEN + e.offset as usize,
-                len: e.len as usize,
+                byte_len: e.len as usize,
                 checksum: e.checksum,
                 id: e.id,
                 points: e.points as usize,

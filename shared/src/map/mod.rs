@@ -334,6 +334,10 @@ impl KeyframeMap {
             None
         } else {
             if self.merged.as_ref().is_none_or(|m| m.ids != ids) {
+                if frames.iter().any(|f| self.keyframes[&f.id].is_baked()) {
+                    // Baked maps serve approximate mode without rebuilds; say what this costs.
+                    tracing::info!(keyframes = ?ids, "exact mode: building the merged submap (tree + covariances) of a new active set");
+                }
                 self.merged = Some(Arc::new(MergedSubmap::build(
                     &frames,
                     &self.options.covariance,
