@@ -69,8 +69,9 @@ pub struct CovisSnapshot {
 #[derive(Debug, Clone, Default)]
 pub struct CovisibilityGraph {
     options: CovisOptions,
-    voxels: HashMap<KeyframeId, HashSet<Voxel>>,
-    index: HashMap<Voxel, BTreeSet<KeyframeId>>,
+    voxels: HashMap<KeyframeId, Vec<Voxel>>,
+    /// Keyframes occupying each voxel, ascending (a Vec: most voxels hold a few ids).
+    index: HashMap<Voxel, Vec<KeyframeId>>,
     /// Symmetric: `edges[a][b] == edges[b][a]` for every kept edge.
     edges: HashMap<KeyframeId, BTreeMap<KeyframeId, u32>>,
     parent: HashMap<KeyframeId, KeyframeId>,
@@ -149,9 +150,15 @@ impl CovisibilityGraph {
         map_points: impl IntoIterator<Item = [f64; 3]>,
     ) {
         self.drop_voxels(id);
-        let set: HashSet<Voxel> = map_points.into_iter().map(|p| self.voxel_of(&p)).collect();
+        let mut set: Vec<Voxel> = map_points.into_iter().map(|p| self.voxel_of(&p)).collect();
+        set.sort_unstable();
+        set.dedup();
+        set.shrink_to_fit();
         for v in &set {
-            self.index.entry(*v).or_default().insert(id);
+            let ids = self.index.entry(*v).or_default();
+            if let Err(at) = ids.binary_search(&id) {
+                ids.insert(at, id);
+            }
         }
         self.voxels.insert(id, set);
     }
@@ -173,7 +180,7 @@ impl CovisibilityGraph {
     fn drop_voxels(&mut self, id: KeyframeId) {
         for v in self.voxels.remove(&id).unwrap_or_default() {
             if let Some(ids) = self.index.get_mut(&v) {
-                ids.remove(&id);
+                ids.retain(|&k| k != id);
                 if ids.is_empty() {
                     self.index.remove(&v);
                 }
