@@ -11,6 +11,8 @@ import time
 import numpy as np
 import small_gicp
 
+from small_gicp_cov import median_ms  # same folder
+
 KITTI = pathlib.Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "kitti00"
 
 
@@ -26,15 +28,6 @@ def poses():
         m[:3, :] = r.reshape(3, 4)
         out.append(m)
     return out
-
-
-def median_ms(fn, repeats=15):
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append((time.perf_counter() - t0) * 1e3)
-    return float(np.median(times))
 
 
 def morton(points):
