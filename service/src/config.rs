@@ -321,11 +321,8 @@ impl ConfigFile for BakeConfig {
         self.covisibility
             .validate()
             .map_err(|e| ("covisibility", e))?;
-        let map = KeyframeMapOptions {
-            covariance: CovOptions::default(),
-            ..self.map_options()
-        };
-        map.validate().map_err(|e| ("map", e))
+        // The sections above passed, so what can still fail here is a [map] key.
+        self.map_options().validate().map_err(|e| ("map", e))
     }
 }
 

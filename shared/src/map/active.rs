@@ -79,6 +79,8 @@ pub struct ActiveFrame<'a> {
     pub pose: Pose,
     /// `T_keyframe_map`, to move queries into the keyframe.
     local_from_map: Pose,
+    /// Rotation of `pose` as a matrix, for rotating covariances and view directions.
+    rotation: Matrix3<f64>,
     /// Local points, view directions, covariances and tree.
     pub view: KeyframeView<'a>,
 }
@@ -90,6 +92,7 @@ impl<'a> ActiveFrame<'a> {
             id: k.id,
             pose: k.pose,
             local_from_map: k.pose.inverse(),
+            rotation: k.pose.rotation.to_rotation_matrix().into_inner(),
             view: k.view()?,
         })
     }
@@ -340,11 +343,10 @@ impl<'a> ActiveSet<'a> {
             ));
         }
         let (f, hit) = self.nearest_in_frames(p)?;
-        let rotation = f.pose.rotation.to_rotation_matrix().into_inner();
         let local_cov = unpack_sym3(&f.view.covariances[hit.local_index as usize]);
         let view = f.view.view_dirs.map_or(Vector3::zeros(), |v| {
-            f.pose.rotation * to_vec3(&v[hit.local_index as usize])
+            f.rotation * to_vec3(&v[hit.local_index as usize])
         });
-        Some((hit, rotation * local_cov * rotation.transpose(), view))
+        Some((hit, f.rotation * local_cov * f.rotation.transpose(), view))
     }
 }
