@@ -1,5 +1,6 @@
-//! Why kiddo queries are slower than small_gicp's / nanoflann's, on KITTI 00 frame 0
-//! (tree) and frame 1 moved into frame 0 (queries), one thread, plain loops.
+//! The map's KD-tree against kiddo 6.3 (its best layout: flat leaves of 16) and the
+//! small_gicp anchor, on KITTI 00 frame 0 (tree) and frame 1 moved into frame 0 by the
+//! true poses (queries), one thread, plain loops.
 //! Run: `cargo bench -p kfmap-shared --bench kdtree`; the small_gicp anchor is
 //! `tools/anchors/small_gicp_knn.py`.
 
@@ -8,35 +9,13 @@ use std::num::NonZeroUsize;
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use kfmap_shared::datasets::require_test_data;
 use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
-use kfmap_shared::spatial::{PointTree, build_tree, morton_order};
+use kfmap_shared::spatial::{LEAF_SIZE, build_tree_with_leaf, morton_order};
+use kiddo::Eytzinger;
+use kiddo::SquaredEuclidean;
 use kiddo::kd_tree::KdTree;
-use kiddo::leaf_strategy::{FlatVec, VecOfArenas};
-use kiddo::{Donnelly, Eytzinger, SquaredEuclidean};
-use rayon::prelude::*;
+use kiddo::leaf_strategy::FlatVec;
 
-type Arenas16 = KdTree<f32, u32, Eytzinger, VecOfArenas<f32, u32, 3, 16>, 3, 16>;
-type Arenas32 = KdTree<f32, u32, Eytzinger, VecOfArenas<f32, u32, 3, 32>, 3, 32>;
-type Flat16 = KdTree<f32, u32, Eytzinger, FlatVec<f32, u32, 3, 16>, 3, 16>;
-type Flat8 = KdTree<f32, u32, Eytzinger, FlatVec<f32, u32, 3, 8>, 3, 8>;
-type Flat32 = KdTree<f32, u32, Eytzinger, FlatVec<f32, u32, 3, 32>, 3, 32>;
-type DonnellyFlat16 = KdTree<f32, u32, Donnelly<3>, FlatVec<f32, u32, 3, 16>, 3, 16>;
-type Donnelly8 = KdTree<f32, u32, Donnelly<3>, VecOfArenas<f32, u32, 3, 8>, 3, 8>;
-
-/// Sum of 1-NN squared distances (keeps the optimizer honest).
-macro_rules! nn_sum {
-    ($tree:expr, $queries:expr) => {
-        $queries
-            .iter()
-            .map(|q| {
-                $tree
-                    .query(q)
-                    .nearest_one::<SquaredEuclidean<f32>>()
-                    .execute()
-                    .distance
-            })
-            .sum::<f32>()
-    };
-}
+type KiddoFlat16 = KdTree<f32, u32, Eytzinger, FlatVec<f32, u32, 3, 16>, 3, 16>;
 
 fn bench_kdtree(c: &mut Criterion) {
     let Some(dir) = require_test_data("kitti00", "kdtree bench") else {
@@ -64,82 +43,75 @@ fn bench_kdtree(c: &mut Criterion) {
         .iter()
         .map(|&i| queries[i as usize])
         .collect();
-    let tree: PointTree = build_tree(&target).expect("tree");
     let k20 = NonZeroUsize::new(20).expect("k");
-
-    let mut group = c.benchmark_group("kitti00_frame0_vs_frame1");
-    group.sample_size(10);
-    group.bench_function("build_leaf8_arenas", |b| {
-        b.iter(|| build_tree(&target).expect("tree").size())
-    });
-    group.bench_function("build_flat16", |b| {
-        b.iter(|| Flat16::new_from_slice(&target).expect("tree").size())
-    });
-    group.throughput(Throughput::Elements(queries.len() as u64));
-    group.bench_function("nn_leaf8_scan_order", |b| b.iter(|| nn_sum!(tree, queries)));
-    group.bench_function("nn_leaf8_morton_order", |b| {
-        b.iter(|| nn_sum!(tree, sorted))
-    });
-    group.bench_function("morton_sort_itself", |b| {
-        b.iter(|| morton_order(&queries).len())
-    });
-    group.bench_function("nn_leaf8_gated_1m_nearest_n", |b| {
-        b.iter(|| {
-            sorted
-                .iter()
-                .map(|q| {
-                    tree.query(q)
-                        .nearest_n::<SquaredEuclidean<f32>>(NonZeroUsize::MIN)
-                        .within(1.0)
-                        .execute()
-                        .len()
-                })
-                .sum::<usize>()
-        })
-    });
+    // Rayon's global pool would build on two threads; the comparison is single-threaded.
     let one = rayon::ThreadPoolBuilder::new()
         .num_threads(1)
         .build()
         .expect("pool");
-    group.bench_function("nn_leaf8_morton_in_1_thread_rayon_pool", |b| {
-        b.iter(|| {
-            one.install(|| {
-                sorted
-                    .par_iter()
-                    .map(|q| {
-                        tree.query(q)
-                            .nearest_one::<SquaredEuclidean<f32>>()
-                            .execute()
-                            .distance
-                    })
-                    .sum::<f32>()
-            })
-        })
+
+    let mut group = c.benchmark_group("kitti00_frame0_vs_frame1");
+    group.sample_size(10);
+    for leaf in [8, LEAF_SIZE, 32] {
+        group.bench_function(format!("build_leaf{leaf}"), |b| {
+            b.iter(|| one.install(|| build_tree_with_leaf(&target, leaf).expect("tree").len()))
+        });
+    }
+    group.bench_function("build_kiddo_flat16", |b| {
+        b.iter(|| KiddoFlat16::new_from_slice(&target).expect("tree").size())
     });
-    let arenas16 = Arenas16::new_from_slice(&target).expect("tree");
-    let arenas32 = Arenas32::new_from_slice(&target).expect("tree");
-    let flat16 = Flat16::new_from_slice(&target).expect("tree");
-    let donnelly8 = Donnelly8::new_from_slice(&target).expect("tree");
-    group.bench_function("nn_leaf16_morton", |b| b.iter(|| nn_sum!(arenas16, sorted)));
-    group.bench_function("nn_leaf32_morton", |b| b.iter(|| nn_sum!(arenas32, sorted)));
-    group.bench_function("nn_flat16_morton", |b| b.iter(|| nn_sum!(flat16, sorted)));
-    let flat8 = Flat8::new_from_slice(&target).expect("tree");
-    let flat32 = Flat32::new_from_slice(&target).expect("tree");
-    let donnelly_flat16 = DonnellyFlat16::new_from_slice(&target).expect("tree");
-    group.bench_function("nn_flat8_morton", |b| b.iter(|| nn_sum!(flat8, sorted)));
-    group.bench_function("nn_flat32_morton", |b| b.iter(|| nn_sum!(flat32, sorted)));
-    group.bench_function("nn_flat16_scan_order", |b| {
-        b.iter(|| nn_sum!(flat16, queries))
-    });
-    group.bench_function("nn_donnelly_flat16_morton", |b| {
-        b.iter(|| nn_sum!(donnelly_flat16, sorted))
-    });
-    group.bench_function("k20_flat16_scan_order", |b| {
+
+    group.throughput(Throughput::Elements(queries.len() as u64));
+    for leaf in [8, LEAF_SIZE, 32] {
+        let tree = build_tree_with_leaf(&target, leaf).expect("tree");
+        let tree = tree.view();
+        let nn = |qs: &[[f32; 3]]| qs.iter().map(|q| tree.nearest_one(q).1).sum::<f32>();
+        group.bench_function(format!("nn_leaf{leaf}_scan_order"), |b| {
+            b.iter(|| nn(&queries))
+        });
+        if leaf == LEAF_SIZE {
+            group.bench_function(format!("nn_leaf{leaf}_morton_order"), |b| {
+                b.iter(|| nn(&sorted))
+            });
+            group.bench_function(format!("nn_leaf{leaf}_gated_1m"), |b| {
+                b.iter(|| {
+                    queries
+                        .iter()
+                        .filter_map(|q| tree.nearest_one_within(q, 1.0))
+                        .count()
+                })
+            });
+            group.bench_function(format!("k20_leaf{leaf}_scan_order"), |b| {
+                b.iter(|| {
+                    queries
+                        .iter()
+                        .map(|q| tree.nearest_n(q, k20).len())
+                        .sum::<usize>()
+                })
+            });
+        }
+    }
+    let kiddo = KiddoFlat16::new_from_slice(&target).expect("tree");
+    group.bench_function("nn_kiddo_flat16_scan_order", |b| {
         b.iter(|| {
             queries
                 .iter()
                 .map(|q| {
-                    flat16
+                    kiddo
+                        .query(q)
+                        .nearest_one::<SquaredEuclidean<f32>>()
+                        .execute()
+                        .distance
+                })
+                .sum::<f32>()
+        })
+    });
+    group.bench_function("k20_kiddo_flat16_scan_order", |b| {
+        b.iter(|| {
+            queries
+                .iter()
+                .map(|q| {
+                    kiddo
                         .query(q)
                         .nearest_n::<SquaredEuclidean<f32>>(k20)
                         .unsorted()
@@ -149,24 +121,6 @@ fn bench_kdtree(c: &mut Criterion) {
                 .sum::<usize>()
         })
     });
-    group.bench_function("nn_donnelly8_morton", |b| {
-        b.iter(|| nn_sum!(donnelly8, sorted))
-    });
-
-    let knn = |queries: &[[f32; 3]]| {
-        queries
-            .iter()
-            .map(|q| {
-                tree.query(q)
-                    .nearest_n::<SquaredEuclidean<f32>>(k20)
-                    .unsorted()
-                    .execute()
-                    .len()
-            })
-            .sum::<usize>()
-    };
-    group.bench_function("k20_leaf8_scan_order", |b| b.iter(|| knn(&queries)));
-    group.bench_function("k20_leaf8_morton_order", |b| b.iter(|| knn(&sorted)));
     group.finish();
 }
 

@@ -10,7 +10,11 @@ use kfmap_shared::datasets::require_test_data;
 use kfmap_shared::geometry::PackedSym3;
 use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
 use kfmap_shared::map::{ActiveSet, KeyframeMap, KeyframeMapOptions};
-use kiddo::SquaredEuclidean;
+use kiddo::kd_tree::KdTree;
+use kiddo::leaf_strategy::FlatVec;
+use kiddo::{Eytzinger, SquaredEuclidean};
+
+type KiddoFlat16 = KdTree<f32, u32, Eytzinger, FlatVec<f32, u32, 3, 16>, 3, 16>;
 
 fn build(
     frames: &[PointCloud],
@@ -104,13 +108,18 @@ fn bench_map(c: &mut Criterion) {
     });
     group.bench_function("exact_nearest_one", |b| b.iter(|| nearest(&active)));
     let merged = active.merged().expect("exact mode");
+    group.bench_function("raw_tree_nearest_one", |b| {
+        let tree = merged.tree.view();
+        b.iter(|| moved.iter().map(|p| tree.nearest_one(p).1).sum::<f32>())
+    });
+    // The same merged points in kiddo 6.3 (flat leaves of 16), for reference.
+    let kiddo = KiddoFlat16::new_from_slice(&merged.points).expect("tree");
     group.bench_function("raw_kiddo_nearest_one", |b| {
         b.iter(|| {
             moved
                 .iter()
                 .map(|p| {
-                    merged
-                        .tree
+                    kiddo
                         .query(p)
                         .nearest_one::<SquaredEuclidean<f32>>()
                         .execute()

@@ -2,10 +2,12 @@
 //! query pattern of covariance estimation. Queries are answered a leaf at a time: the
 //! points of a small subtree share one bottom-up search (own subtree first, then the
 //! siblings of its ancestors until every search ball fits). On small_gicp/target.ply it
-//! is about 10 % faster than one kiddo query per point. kiddo stays the tree for single
-//! queries and for baked maps.
+//! is about 10 % faster than one kiddo query per point; [`crate::spatial::PointTree`]
+//! answers single queries and is the tree baked maps hold.
 
 use rayon::prelude::*;
+
+use crate::spatial::build::{BoxNode, BoxTree};
 
 /// One neighbour of a query: its index in the input, squared distance (m^2) and
 /// coordinates.
@@ -24,16 +26,6 @@ const LEAF: usize = 8;
 /// Queries sharing one traversal: the points of the largest subtree of at most this many.
 const GROUP: usize = 16;
 
-struct Node {
-    min: [f32; 3],
-    max: [f32; 3],
-    /// Range of the node's points in the permuted arrays.
-    start: u32,
-    end: u32,
-    /// Index of the second child; the first child follows the node. 0 for leaves.
-    right: u32,
-}
-
 /// A balanced kd-tree over a permuted copy of the points (median split, widest axis).
 struct Index {
     points: Vec<[f32; 3]>,
@@ -42,29 +34,12 @@ struct Index {
     ys: Vec<f32>,
     zs: Vec<f32>,
     original: Vec<u32>,
-    nodes: Vec<Node>,
-}
-
-fn bounds(items: &[(u32, [f32; 3])]) -> ([f32; 3], [f32; 3]) {
-    let mut min = [f32::INFINITY; 3];
-    let mut max = [f32::NEG_INFINITY; 3];
-    for (_, p) in items {
-        for a in 0..3 {
-            min[a] = min[a].min(p[a]);
-            max[a] = max[a].max(p[a]);
-        }
-    }
-    (min, max)
+    nodes: Vec<BoxNode>,
 }
 
 impl Index {
     fn new(points: &[[f32; 3]]) -> Self {
-        let mut order: Vec<(u32, [f32; 3])> = points
-            .iter()
-            .enumerate()
-            .map(|(i, p)| (i as u32, *p))
-            .collect();
-        let nodes = build(&mut order, 0);
+        let BoxTree { nodes, order } = BoxTree::build(points, LEAF);
         Self {
             points: order.iter().map(|o| o.1).collect(),
             xs: order.iter().map(|o| o.1[0]).collect(),
@@ -76,52 +51,9 @@ impl Index {
     }
 }
 
-/// Subtrees larger than this are built on two threads.
-const PARALLEL_BUILD: usize = 8192;
-
-/// Builds the subtree over `items` (whose first point has global slot `offset`) in
-/// depth-first order; `right` links are relative to the returned vector's start.
-fn build(items: &mut [(u32, [f32; 3])], offset: usize) -> Vec<Node> {
-    let (min, max) = bounds(items);
-    let mut nodes = vec![Node {
-        min,
-        max,
-        start: offset as u32,
-        end: (offset + items.len()) as u32,
-        right: 0,
-    }];
-    if items.len() <= LEAF {
-        return nodes;
-    }
-    let axis = (0..3)
-        .max_by(|&a, &b| (max[a] - min[a]).total_cmp(&(max[b] - min[b])))
-        .unwrap_or(0);
-    let mid = items.len() / 2;
-    items.select_nth_unstable_by(mid, |a, b| {
-        a.1[axis].total_cmp(&b.1[axis]).then(a.0.cmp(&b.0))
-    });
-    let (left, right) = items.split_at_mut(mid);
-    let (left_nodes, right_nodes) = if mid >= PARALLEL_BUILD {
-        rayon::join(|| build(left, offset), || build(right, offset + mid))
-    } else {
-        (build(left, offset), build(right, offset + mid))
-    };
-    let shift = |base: usize, mut n: Node| {
-        if n.right != 0 {
-            n.right += base as u32;
-        }
-        n
-    };
-    let right_start = 1 + left_nodes.len();
-    nodes[0].right = right_start as u32;
-    nodes.extend(left_nodes.into_iter().map(|n| shift(1, n)));
-    nodes.extend(right_nodes.into_iter().map(|n| shift(right_start, n)));
-    nodes
-}
-
 /// Squared distance between two boxes (0 when they overlap).
 #[inline(always)]
-fn box_box_dist_sq(a: &Node, bmin: &[f32; 3], bmax: &[f32; 3]) -> f32 {
+fn box_box_dist_sq(a: &BoxNode, bmin: &[f32; 3], bmax: &[f32; 3]) -> f32 {
     let gx = (bmin[0] - a.max[0]).max(a.min[0] - bmax[0]).max(0.0);
     let gy = (bmin[1] - a.max[1]).max(a.min[1] - bmax[1]).max(0.0);
     let gz = (bmin[2] - a.max[2]).max(a.min[2] - bmax[2]).max(0.0);
@@ -222,7 +154,7 @@ fn query_groups(index: &Index) -> Vec<(usize, Vec<usize>)> {
 
 /// True when every query's search ball lies inside `node`'s box: nothing outside the
 /// node can then improve any query.
-fn balls_inside(node: &Node, queries: &[[f32; 3]], best: &[Best]) -> bool {
+fn balls_inside(node: &BoxNode, queries: &[[f32; 3]], best: &[Best]) -> bool {
     queries.iter().zip(best).all(|(q, b)| {
         (0..3).all(|a| {
             let (lo, hi) = (q[a] - node.min[a], node.max[a] - q[a]);

@@ -8,7 +8,7 @@ use serde::Serialize;
 
 use crate::cloud::PointCloud;
 use crate::cov::{CovOptions, estimate_covariances};
-use crate::spatial::{TreeError, build_tree, nearest_within_unsorted};
+use crate::spatial::{TreeError, build_tree};
 
 /// Statistics of a cloud and of its per-point covariances.
 #[derive(Debug, Clone, Serialize)]
@@ -56,13 +56,11 @@ pub fn summarize(cloud: &PointCloud, options: &CovOptions) -> Result<CloudSummar
         .iter()
         .step_by(stride)
         .filter_map(|q| {
-            let found = nearest_within_unsorted(&tree, q, two, f32::INFINITY);
-            // The farther of the two is the nearest other point (the nearer is q itself).
-            found
-                .iter()
-                .map(|n| n.dist_sq)
-                .reduce(f32::max)
-                .filter(|_| found.len() == 2)
+            // The second is the nearest other point (the first is q itself).
+            tree.view()
+                .nearest_n(q, two)
+                .get(1)
+                .map(|&(_, dist_sq)| dist_sq)
         })
         .map(|d2| (d2 as f64).sqrt())
         .collect();

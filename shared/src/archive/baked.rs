@@ -8,12 +8,12 @@ use std::sync::{Arc, OnceLock};
 use memmap2::Mmap;
 use nalgebra::{Quaternion, Translation3, UnitQuaternion};
 use rkyv::rancor;
-use rkyv::rend::f32_le;
+use rkyv::rend::{f32_le, u32_le};
 use xxhash_rust::xxh3::xxh3_64;
 
 use super::ArchiveError;
 use super::header::{HEADER_LEN, Header, SEGMENT_ALIGN};
-use super::records::{ArchivedKeyframeRecord, KeyframeEntry, MapIndex};
+use super::records::{ArchivedKeyframeRecord, ArchivedTreeRecord, KeyframeEntry, MapIndex};
 use super::writer::MAX_KEYFRAME_POINTS;
 use crate::KeyframeId;
 use crate::cloud::Aabb;
@@ -21,7 +21,7 @@ use crate::cov::{CovOptions, estimate_covariances};
 use crate::covis::{CovisSnapshot, CovisibilityGraph};
 use crate::geometry::{PackedSym3, Pose};
 use crate::map::{Keyframe, KeyframeMap, KeyframeMapOptions, KeyframeView};
-use crate::spatial::{PointTree, TreeRef, build_tree};
+use crate::spatial::{NodeWords, PointTree, TreeRef, build_tree};
 
 /// How to open a map file.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -120,11 +120,40 @@ impl std::fmt::Debug for BakedKeyframe {
     }
 }
 
-/// `f32_le` holds the little-endian bits of an `f32` in 4 bytes, 4-aligned; this crate
-/// only builds on little-endian targets, where those bits are the native `f32`.
-fn native<const N: usize>(v: &[[f32_le; N]]) -> &[[f32; N]] {
-    // SAFETY: same size, alignment and bit pattern (see above).
-    unsafe { std::slice::from_raw_parts(v.as_ptr().cast::<[f32; N]>(), v.len()) }
+/// An archived type holding exactly the bits of a native one.
+///
+/// # Safety
+/// Same size, alignment and bit pattern: rend's `*_le` types hold the little-endian
+/// bits in 4 aligned bytes, and this crate only builds on little-endian targets.
+unsafe trait SameBits {
+    type Native;
+}
+// SAFETY: see the trait.
+unsafe impl SameBits for f32_le {
+    type Native = f32;
+}
+// SAFETY: see the trait.
+unsafe impl SameBits for u32_le {
+    type Native = u32;
+}
+// SAFETY: arrays of same-bits elements have the same layout.
+unsafe impl<T: SameBits, const N: usize> SameBits for [T; N] {
+    type Native = [T::Native; N];
+}
+
+/// An archived slice read as native values, in place.
+fn native<T: SameBits>(v: &[T]) -> &[T::Native] {
+    const {
+        assert!(size_of::<T>() == size_of::<T::Native>());
+        assert!(align_of::<T>() == align_of::<T::Native>());
+    }
+    // SAFETY: same size, alignment and bit pattern (`SameBits`).
+    unsafe { std::slice::from_raw_parts(v.as_ptr().cast::<T::Native>(), v.len()) }
+}
+
+/// An archived tree's arrays, not yet checked.
+fn tree_parts<'f>(t: &'f ArchivedTreeRecord<'_>) -> (&'f [NodeWords], &'f [[f32; 3]], &'f [u32]) {
+    (native(&t.nodes), native(&t.points), native(&t.items))
 }
 
 impl BakedKeyframe {
@@ -172,11 +201,19 @@ impl BakedKeyframe {
                 .covariances
                 .as_ref()
                 .is_some_and(|c| bad_len(c.len()))
-            || record.tree.as_ref().is_some_and(|t| bad_len(t.size()))
+            || record
+                .tree
+                .as_ref()
+                .is_some_and(|t| bad_len(t.points.len()))
         {
             return Err(self.corrupt("attribute lengths differ from the point count"));
         }
         let points = native(&record.points);
+        if let Some(t) = record.tree.as_ref() {
+            let (nodes, tree_points, items) = tree_parts(t);
+            TreeRef::from_parts(nodes, tree_points, items)
+                .map_err(|e| self.corrupt(e.to_string()))?;
+        }
         Ok(Rebuilt {
             tree: match record.tree.as_ref() {
                 Some(_) => None,
@@ -205,8 +242,11 @@ impl BakedKeyframe {
             (None, None) => unreachable!("prepare() rebuilds missing covariances"),
         };
         let tree = match (record.tree.as_ref(), &rebuilt.tree) {
-            (Some(t), _) => TreeRef::Archived(t),
-            (None, Some(t)) => TreeRef::Heap(t),
+            (Some(t), _) => {
+                let (nodes, points, items) = tree_parts(t);
+                TreeRef::from_checked_parts(nodes, points, items)
+            }
+            (None, Some(t)) => t.view(),
             (None, None) => unreachable!("prepare() rebuilds a missing tree"),
         };
         Ok(KeyframeView {

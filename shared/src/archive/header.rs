@@ -8,11 +8,11 @@ use super::ArchiveError;
 /// File magic: the `\r\n` catches files mangled by text-mode transfers.
 pub const MAGIC: [u8; 8] = *b"KFMAP\x00\r\n";
 /// Format version this build writes and reads.
-pub const FORMAT_VERSION: u32 = 1;
+pub const FORMAT_VERSION: u32 = 2;
 /// Header size; the payload starts here (page aligned, so 128-byte aligned in a map).
 pub const HEADER_LEN: usize = 4096;
-/// Keyframe segments start at multiples of this from the payload start (what kiddo's
-/// archived tree needs).
+/// Keyframe segments start at multiples of this from the payload start (cache-line
+/// aligned; rkyv needs the archive's own alignment, at most 16 here).
 pub const SEGMENT_ALIGN: u64 = 128;
 /// Endianness code of little-endian archives (rkyv's `little_endian`).
 pub const LITTLE_ENDIAN: u8 = 1;
@@ -185,10 +185,10 @@ mod tests {
         assert_eq!(Header::decode(&bytes).unwrap(), h);
 
         let mut newer = bytes.clone();
-        newer[8..12].copy_from_slice(&2u32.to_le_bytes());
+        newer[8..12].copy_from_slice(&(FORMAT_VERSION + 1).to_le_bytes());
         assert!(matches!(
             Header::decode(&newer),
-            Err(ArchiveError::NewerVersion { found: 2, .. })
+            Err(ArchiveError::NewerVersion { found, .. }) if found == FORMAT_VERSION + 1
         ));
         let mut big = bytes.clone();
         big[12] = BIG_ENDIAN;

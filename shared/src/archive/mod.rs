@@ -4,7 +4,7 @@
 //! Layout: a fixed 4096-byte [`Header`] (magic, format version, endianness, pointer
 //! width, payload length and xxh3 checksum, index location and checksum, the map's
 //! creation options as TOML), then the payload: one rkyv archive per keyframe (points,
-//! view directions, covariances, kiddo tree) at 128-byte aligned offsets, each with its
+//! view directions, covariances, KD-tree) at 128-byte aligned offsets, each with its
 //! own checksum, and last an index archive ([`MapIndex`]: keyframe entries, covisibility
 //! graph, gravity pool). Segmenting keeps every rkyv archive far below the 2 GiB reach of
 //! 32-bit relative pointers while the file itself may be any size (offsets are u64).

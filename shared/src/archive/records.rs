@@ -1,11 +1,11 @@
 //! The rkyv record types of a baked map: one archive per keyframe (its own checksum,
 //! verified on first use) and one index archive at the end of the file.
 
-use rkyv::with::{Inline, InlineAsBox, Map};
+use rkyv::with::{InlineAsBox, Map};
 use rkyv::{Archive, Deserialize, Serialize};
 
 use crate::geometry::PackedSym3;
-use crate::spatial::PointTree;
+use crate::spatial::{NodeWords, TreeRef};
 
 /// One keyframe's local data, archived on its own at a 128-byte aligned offset.
 /// Written from borrowed data (no copy of points or tree); read as
@@ -24,8 +24,32 @@ pub struct KeyframeRecord<'a> {
     #[rkyv(with = Map<InlineAsBox>)]
     pub covariances: Option<&'a [PackedSym3]>,
     /// KD-tree over `points`; `None` when the map was baked without trees.
-    #[rkyv(with = Map<Inline>)]
-    pub tree: Option<&'a PointTree>,
+    pub tree: Option<TreeRecord<'a>>,
+}
+
+/// A KD-tree's three arrays (see [`crate::spatial::NodeWords`]), archived as they are
+/// so the reader searches them in place.
+#[derive(Archive, Serialize)]
+pub struct TreeRecord<'a> {
+    /// Nodes in depth-first order.
+    #[rkyv(with = InlineAsBox)]
+    pub nodes: &'a [NodeWords],
+    /// Points in leaf order.
+    #[rkyv(with = InlineAsBox)]
+    pub points: &'a [[f32; 3]],
+    /// The keyframe point index of each leaf-ordered point.
+    #[rkyv(with = InlineAsBox)]
+    pub items: &'a [u32],
+}
+
+impl<'a> From<TreeRef<'a>> for TreeRecord<'a> {
+    fn from(tree: TreeRef<'a>) -> Self {
+        Self {
+            nodes: tree.nodes(),
+            points: tree.points(),
+            items: tree.items(),
+        }
+    }
 }
 
 /// Where a keyframe's segment is and what it holds.

@@ -271,12 +271,22 @@ fn bad_files_are_named_errors() {
         ArchiveError::BadMagic
     ));
     let mut newer = good.clone();
-    newer[8] = 2;
+    newer[8] = 3;
     assert!(matches!(
         open_err(&write("newer", &newer)),
         ArchiveError::NewerVersion {
-            found: 2,
-            supported: 1
+            found: 3,
+            supported: 2
+        }
+    ));
+    // Version 1 held kiddo trees: such a map must be baked again.
+    let mut older = good.clone();
+    older[8] = 1;
+    assert!(matches!(
+        open_err(&write("older", &older)),
+        ArchiveError::OldVersion {
+            found: 1,
+            supported: 2
         }
     ));
     let mut wide = good.clone();

@@ -16,7 +16,6 @@ use crate::covis::CovisSnapshot;
 use crate::geometry::Pose;
 use crate::io::temp_path_beside;
 use crate::map::{Keyframe, KeyframeMap, KeyframeMapOptions};
-use crate::spatial::{TreeRef, build_tree};
 
 /// Points one keyframe segment may hold: its archive (about 70 bytes a point with tree
 /// and covariances) must stay well inside rkyv's 2 GiB relative-pointer reach.
@@ -111,18 +110,7 @@ impl MapWriter {
             )));
         }
         let view = keyframe.view()?;
-        let rebuilt;
-        let tree = match (self.options.serialize_kdtrees, view.tree) {
-            (false, _) => None,
-            (true, TreeRef::Heap(t)) => Some(t),
-            // A tree read from another file is rebuilt: archived trees cannot be re-serialized.
-            (true, TreeRef::Archived(_)) => {
-                rebuilt = build_tree(view.points).map_err(|e| {
-                    ArchiveError::Serialize(format!("keyframe {}: {e}", keyframe.id))
-                })?;
-                Some(&rebuilt)
-            }
-        };
+        let tree = self.options.serialize_kdtrees.then(|| view.tree.into());
         let record = KeyframeRecord {
             id: keyframe.id,
             points: view.points,

@@ -76,6 +76,16 @@ impl Aabb {
     pub fn volume(&self) -> f64 {
         self.extent().iter().map(|&e| e as f64).product()
     }
+
+    /// Squared distance from `p` to the box (0 inside), m^2.
+    pub fn dist_sq(&self, p: &[f32; 3]) -> f32 {
+        (0..3)
+            .map(|a| {
+                let gap = (self.min[a] - p[a]).max(p[a] - self.max[a]).max(0.0);
+                gap * gap
+            })
+            .sum()
+    }
 }
 
 impl PointCloud {

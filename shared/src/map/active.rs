@@ -10,7 +10,7 @@ use rayon::prelude::*;
 use super::{Keyframe, KeyframeMapOptions, KeyframeView, MapError};
 use crate::KeyframeId;
 use crate::archive::ArchiveError;
-use crate::cloud::PointCloud;
+use crate::cloud::{Aabb, PointCloud};
 use crate::cov::{CovOptions, estimate_covariances};
 use crate::geometry::{PackedSym3, Pose, pack_sym3, to_point, to_vec3, unpack_sym3};
 use crate::spatial::{PointTree, TreeRef, build_tree};
@@ -81,6 +81,8 @@ pub struct ActiveFrame<'a> {
     local_from_map: Pose,
     /// Rotation of `pose` as a matrix, for rotating covariances and view directions.
     rotation: Matrix3<f64>,
+    /// Local bounding box.
+    bbox: Aabb,
     /// Local points, view directions, covariances and tree.
     pub view: KeyframeView<'a>,
 }
@@ -93,6 +95,7 @@ impl<'a> ActiveFrame<'a> {
             pose: k.pose,
             local_from_map: k.pose.inverse(),
             rotation: k.pose.rotation.to_rotation_matrix().into_inner(),
+            bbox: k.bbox,
             view: k.view()?,
         })
     }
@@ -169,10 +172,11 @@ impl<'a> ActiveSet<'a> {
         self.merged.as_deref()
     }
 
-    /// Nearest point of the merged submap: its merged index and the hit.
-    fn merged_nearest(m: &MergedSubmap, p: &[f32; 3]) -> (usize, MapHit) {
-        let (item, dist_sq) = TreeRef::Heap(&m.tree).nearest_one(p);
-        (item as usize, Self::merged_hit(m, item, dist_sq))
+    /// Nearest point of the merged submap within `max_dist_sq` (inclusive): its merged
+    /// index and the hit.
+    fn merged_nearest(m: &MergedSubmap, p: &[f32; 3], max_dist_sq: f32) -> Option<(usize, MapHit)> {
+        let (item, dist_sq) = m.tree.view().nearest_one_within(p, max_dist_sq)?;
+        Some((item as usize, Self::merged_hit(m, item, dist_sq)))
     }
 
     fn merged_hit(m: &MergedSubmap, item: u32, dist_sq: f32) -> MapHit {
@@ -202,23 +206,49 @@ impl<'a> ActiveSet<'a> {
 
     /// The nearest map point to `p` (map frame).
     pub fn nearest_one(&self, p: &[f32; 3]) -> Option<MapHit> {
-        if let Some(m) = &self.merged {
-            return Some(Self::merged_nearest(m, p).1);
+        match &self.merged {
+            Some(m) => Self::merged_nearest(m, p, f32::INFINITY).map(|(_, hit)| hit),
+            None => self.nearest_in_frames(p, f32::INFINITY).map(|(_, hit)| hit),
         }
-        self.nearest_in_frames(p).map(|(_, hit)| hit)
     }
 
-    /// Approximate mode: the nearest point over the active keyframes, with its frame.
-    /// Unbounded `nearest_one` searches: kiddo's radius-bounded search prunes no faster
-    /// and allocates its result (`cargo bench --bench kdtree`).
-    fn nearest_in_frames(&self, p: &[f32; 3]) -> Option<(&ActiveFrame<'a>, MapHit)> {
-        self.frames
-            .iter()
-            .map(|f| {
-                let (item, dist_sq) = f.view.tree.nearest_one(&Self::local_query(f, p));
-                (f, Self::local_hit(f, item, dist_sq))
-            })
-            .min_by(|a, b| hit_order(&a.1, &b.1))
+    /// Approximate mode: the nearest point over the active keyframes within
+    /// `max_dist_sq`, with its frame. The keyframe taken nearest to `p` is searched
+    /// first; each later search is bounded by the best hit so far and skipped when the
+    /// keyframe's box is farther than that (ties still resolve by [`hit_order`]).
+    fn nearest_in_frames(
+        &self,
+        p: &[f32; 3],
+        max_dist_sq: f32,
+    ) -> Option<(&ActiveFrame<'a>, MapHit)> {
+        // Scans are densest near the sensor: the keyframe taken nearest to `p` likely
+        // holds its nearest point.
+        let origin_dist_sq =
+            |f: &ActiveFrame| (f.pose.translation.vector - to_vec3(p)).norm_squared();
+        let first = (0..self.frames.len()).min_by(|&a, &b| {
+            origin_dist_sq(&self.frames[a]).total_cmp(&origin_dist_sq(&self.frames[b]))
+        })?;
+        let order = std::iter::once(first).chain((0..self.frames.len()).filter(|&i| i != first));
+        let mut best: Option<(&ActiveFrame<'a>, MapHit)> = None;
+        let mut bound = max_dist_sq;
+        for f in order.map(|i| &self.frames[i]) {
+            let query = Self::local_query(f, p);
+            if f.bbox.dist_sq(&query) > bound {
+                continue;
+            }
+            let Some((item, dist_sq)) = f.view.tree.nearest_one_within(&query, bound) else {
+                continue;
+            };
+            let hit = Self::local_hit(f, item, dist_sq);
+            if best
+                .as_ref()
+                .is_none_or(|(_, b)| hit_order(&hit, b).is_lt())
+            {
+                bound = dist_sq;
+                best = Some((f, hit));
+            }
+        }
+        best
     }
 
     /// Runs `search` (returning `(item, squared distance)`) on the merged tree, or on
@@ -229,7 +259,7 @@ impl<'a> ActiveSet<'a> {
         search: impl Fn(TreeRef<'_>, &[f32; 3]) -> Vec<(u32, f32)>,
     ) -> Vec<MapHit> {
         let mut hits: Vec<MapHit> = match &self.merged {
-            Some(m) => search(TreeRef::Heap(&m.tree), p)
+            Some(m) => search(m.tree.view(), p)
                 .into_iter()
                 .map(|(i, d)| Self::merged_hit(m, i, d))
                 .collect(),
@@ -299,10 +329,7 @@ impl<'a> ActiveSet<'a> {
             .into_par_iter()
             .filter_map(|i| {
                 let p = to_point(&(pose * Point3::from(to_vec3(&scan.points[i]))).coords);
-                let (hit, map_cov, map_view) = self.nearest_with_attributes(&p)?;
-                if hit.dist_sq > max_sq {
-                    return None;
-                }
+                let (hit, map_cov, map_view) = self.nearest_with_attributes(&p, max_sq)?;
                 if filter {
                     let vq = pose.rotation * to_vec3(&scan.view_dirs.as_ref()?[i]);
                     // A missing vector (norm^2 < 0.25) never rejects.
@@ -329,20 +356,22 @@ impl<'a> ActiveSet<'a> {
         Ok(pairings)
     }
 
-    /// Nearest map point with its covariance and view direction, both in the map frame.
+    /// Nearest map point within `max_dist_sq` (inclusive) with its covariance and view
+    /// direction, both in the map frame.
     fn nearest_with_attributes(
         &self,
         p: &[f32; 3],
+        max_dist_sq: f32,
     ) -> Option<(MapHit, Matrix3<f64>, Vector3<f64>)> {
         if let Some(m) = &self.merged {
-            let (i, hit) = Self::merged_nearest(m, p);
+            let (i, hit) = Self::merged_nearest(m, p, max_dist_sq)?;
             return Some((
                 hit,
                 unpack_sym3(&m.covariances[i]),
                 to_vec3(&m.view_dirs[i]),
             ));
         }
-        let (f, hit) = self.nearest_in_frames(p)?;
+        let (f, hit) = self.nearest_in_frames(p, max_dist_sq)?;
         let local_cov = unpack_sym3(&f.view.covariances[hit.local_index as usize]);
         let view = f.view.view_dirs.map_or(Vector3::zeros(), |v| {
             f.rotation * to_vec3(&v[hit.local_index as usize])

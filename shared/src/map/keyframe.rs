@@ -86,7 +86,7 @@ impl Keyframe {
         covariances: Vec<PackedSym3>,
     ) -> Result<Self, TreeError> {
         if covariances.len() != cloud.len() {
-            return Err(TreeError::Construction(format!(
+            return Err(TreeError::MismatchedParts(format!(
                 "{} covariances for {} points",
                 covariances.len(),
                 cloud.len()
@@ -152,7 +152,7 @@ impl Keyframe {
                 points: &h.points,
                 view_dirs: h.view_dirs.as_deref(),
                 covariances: &h.covariances,
-                tree: TreeRef::Heap(&h.tree),
+                tree: h.tree.view(),
             }),
             KeyframeData::Baked(b) => b.view(),
         }

@@ -1,0 +1,172 @@
+use std::num::NonZeroUsize;
+
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+
+use super::*;
+
+/// Random points, an integer-spaced grid (many exact distance ties) and duplicates.
+fn awkward_cloud(seed: u64) -> Vec<[f32; 3]> {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let mut points: Vec<[f32; 3]> = (0..3000)
+        .map(|_| {
+            [
+                rng.random_range(-5.0..5.0),
+                rng.random_range(-5.0..5.0),
+                rng.random_range(-1.0..1.0),
+            ]
+        })
+        .collect();
+    points.extend((0..600).map(|i| [(i % 30) as f32 * 0.25, (i / 30) as f32 * 0.25, 2.0]));
+    points.extend(std::iter::repeat_n([1.0, 1.0, 1.0], 40));
+    points
+}
+
+/// Oracle: every point by a full scan, sorted by (squared distance, index).
+fn brute(points: &[[f32; 3]], q: &[f32; 3]) -> Vec<(u32, f32)> {
+    let mut all: Vec<(u32, f32)> = points
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let d = (p[0] - q[0]) * (p[0] - q[0])
+                + (p[1] - q[1]) * (p[1] - q[1])
+                + (p[2] - q[2]) * (p[2] - q[2]);
+            (i as u32, d)
+        })
+        .collect();
+    all.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
+    all
+}
+
+fn queries(points: &[[f32; 3]], seed: u64) -> Vec<[f32; 3]> {
+    let mut rng = StdRng::seed_from_u64(seed);
+    // Points themselves, grid nodes between points (ties) and random spots, some far out.
+    let mut q: Vec<[f32; 3]> = points.iter().step_by(37).copied().collect();
+    q.extend((0..100).map(|i| [(i % 10) as f32 * 0.5 + 0.125, (i / 10) as f32 * 0.5, 2.0]));
+    q.extend((0..300).map(|_| {
+        [
+            rng.random_range(-9.0..9.0),
+            rng.random_range(-9.0..9.0),
+            rng.random_range(-4.0..4.0),
+        ]
+    }));
+    q
+}
+
+#[test]
+fn searches_match_a_full_scan_including_ties() {
+    let points = awkward_cloud(3);
+    for leaf in [1, 4, 16, 33] {
+        let tree = build_tree_with_leaf(&points, leaf).unwrap();
+        let tree = tree.view();
+        for q in queries(&points, 4) {
+            let want = brute(&points, &q);
+            assert_eq!(tree.nearest_one(&q), want[0], "leaf {leaf}, query {q:?}");
+            for k in [1, 7, 20] {
+                let k_nz = NonZeroUsize::new(k).unwrap();
+                assert_eq!(tree.nearest_n(&q, k_nz), want[..k].to_vec(), "k {k}");
+            }
+            for r2 in [0.01f32, 0.25, 2.0] {
+                let inside: Vec<_> = want.iter().copied().filter(|h| h.1 <= r2).collect();
+                assert_eq!(tree.within(&q, r2), inside, "radius^2 {r2}");
+            }
+        }
+    }
+}
+
+#[test]
+fn bounded_nearest_is_inclusive_and_can_find_nothing() {
+    let points = [[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [3.0, 0.0, 0.0]];
+    let tree = build_tree(&points).unwrap();
+    let tree = tree.view();
+    assert_eq!(
+        tree.nearest_one_within(&[1.0, 0.0, 0.0], 0.25),
+        Some((1, 0.25))
+    );
+    assert_eq!(tree.nearest_one_within(&[1.0, 0.0, 0.0], 0.2499), None);
+    // Two points tie at 0.25: the smaller item wins.
+    assert_eq!(tree.nearest_one(&[0.25, 0.0, 0.0]), (0, 0.0625));
+    let many = awkward_cloud(9);
+    let big = build_tree(&many).unwrap();
+    for q in queries(&many, 10) {
+        let want = brute(&many, &q)[0];
+        for bound in [want.1 * 0.5, want.1, want.1 * 2.0] {
+            let expected = (want.1 <= bound).then_some(want);
+            assert_eq!(big.view().nearest_one_within(&q, bound), expected);
+        }
+    }
+}
+
+#[test]
+fn refuses_empty_and_non_finite_input() {
+    assert_eq!(build_tree(&[]).unwrap_err(), TreeError::Empty);
+    assert_eq!(
+        build_tree(&[[0.0; 3], [f32::NAN, 0.0, 0.0]]).unwrap_err(),
+        TreeError::NonFinite(1)
+    );
+}
+
+#[test]
+fn the_same_tree_for_any_thread_count() {
+    let points = awkward_cloud(5);
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap();
+    let a = one.install(|| build_tree(&points).unwrap());
+    let b = build_tree(&points).unwrap();
+    assert_eq!(a.nodes, b.nodes);
+    assert_eq!(a.items, b.items);
+}
+
+#[test]
+fn stored_arrays_are_checked_before_searching() {
+    let points = awkward_cloud(7);
+    let tree = build_tree(&points).unwrap();
+    let (nodes, pts, items) = (tree.nodes.clone(), tree.points.clone(), tree.items.clone());
+    assert!(TreeRef::from_parts(&nodes, &pts, &items).is_ok());
+
+    let malformed = |nodes: &[NodeWords], items: &[u32]| {
+        matches!(
+            TreeRef::from_parts(nodes, &pts, items),
+            Err(TreeError::Malformed(_))
+        )
+    };
+    let mut repeated = items.clone();
+    repeated[1] = repeated[0];
+    assert!(malformed(&nodes, &repeated));
+    assert!(malformed(&nodes, &items[1..]));
+    let mut out_of_range = items.clone();
+    out_of_range[0] = points.len() as u32;
+    assert!(malformed(&nodes, &out_of_range));
+
+    let leaf = nodes.iter().position(|n| n[0] == LEAF_TAG).unwrap();
+    let split = 0;
+    let edits: [(usize, usize, u32); 5] = [
+        (split, 0, 3),                  // axis 3
+        (split, 1, nodes.len() as u32), // right child beyond the end
+        (split, 1, 1),                  // right child is the left child
+        (leaf, 2, points.len() as u32 + 5),
+        (split, 2, f32::NAN.to_bits()),
+    ];
+    for (node, word, value) in edits {
+        let mut bad = nodes.clone();
+        bad[node][word] = value;
+        assert!(malformed(&bad, &items), "node {node} word {word} = {value}");
+    }
+    assert!(malformed(&nodes[..nodes.len() - 1], &items));
+    // A caterpillar of 50 splits (a leaf left, the next split right) is well formed
+    // but nests deeper than any balanced tree.
+    let mut chain: Vec<NodeWords> = Vec::new();
+    for i in 0..50u32 {
+        chain.push([0, 2 * i + 2, 0, 0]);
+        chain.push([LEAF_TAG, i, i + 1, 0]);
+    }
+    chain.push([LEAF_TAG, 50, 51, 0]);
+    let line = [[0.0f32; 3]; 51];
+    let ids: Vec<u32> = (0..51).collect();
+    assert!(matches!(
+        TreeRef::from_parts(&chain, &line, &ids),
+        Err(TreeError::Malformed(why)) if why.contains("deeper")
+    ));
+}
