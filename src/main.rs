@@ -23,6 +23,7 @@ enum Command {
     InspectCloud(commands::inspect_cloud::Args),
     Simulate(commands::simulate::Args),
     Demo(commands::demo::Args),
+    Gravity(commands::gravity::Args),
 }
 
 fn main() -> ExitCode {
@@ -39,6 +40,7 @@ fn main() -> ExitCode {
         Command::InspectCloud(args) => commands::inspect_cloud::run(args),
         Command::Simulate(args) => commands::simulate::run(args),
         Command::Demo(args) => commands::demo::run(args),
+        Command::Gravity(args) => commands::gravity::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -15,11 +15,10 @@ use kfmap_shared::map::{Keyframe, KeyframeMapOptions};
 use rayon::prelude::*;
 
 use crate::config::BakeConfig;
+use crate::gravity::{POSE_FILES, find_in};
 
 /// Scan file extensions a dataset may hold.
 const SCAN_EXTENSIONS: [&str; 3] = ["pcd", "ply", "bin"];
-/// Pose files looked for in the dataset directory when `--poses` is not given.
-const POSE_FILES: [&str; 3] = ["poses_gt.txt", "poses.txt", "poses_velo_kitti.txt"];
 
 /// Why a bake failed.
 #[derive(Debug, thiserror::Error)]
@@ -134,11 +133,7 @@ pub fn find_scans(dataset: &Path) -> Result<Vec<PathBuf>, BakeError> {
 fn scan_poses(input: &BakeInput, scans: &[PathBuf]) -> Result<(Vec<Pose>, Vec<f64>), BakeError> {
     let path = match &input.poses {
         Some(p) => p.clone(),
-        None => POSE_FILES
-            .iter()
-            .map(|name| input.dataset.join(name))
-            .find(|p| p.is_file())
-            .ok_or_else(|| BakeError::NoPoses {
+        None => find_in(&input.dataset, &POSE_FILES).ok_or_else(|| BakeError::NoPoses {
                 dir: input.dataset.clone(),
                 tried: POSE_FILES.join(", "),
             })?,

@@ -7,6 +7,7 @@ use std::path::{Path, PathBuf};
 use kfmap_shared::cloud::FilterOptions;
 use kfmap_shared::cov::CovOptions;
 use kfmap_shared::covis::CovisOptions;
+use kfmap_shared::gravity::GravityParams;
 use kfmap_shared::io::BinLayout;
 use kfmap_shared::map::{ActiveSetMode, KeyframeDecider, KeyframeMapOptions};
 use kfmap_shared::options::{InvalidOption, ensure};
@@ -187,6 +188,9 @@ pub struct MapSection {
     pub serialize_kdtrees: bool,
     /// Store covariances (else recomputed when a keyframe is first used).
     pub serialize_covariances: bool,
+    /// Rotate every keyframe pose by the gravity correction (IMU log needed) so the
+    /// map has +Z up.
+    pub align_gravity: bool,
 }
 
 impl Default for MapSection {
@@ -198,6 +202,7 @@ impl Default for MapSection {
             max_view_angle_deg: o.max_view_angle_deg,
             serialize_kdtrees: o.serialize_kdtrees,
             serialize_covariances: o.serialize_covariances,
+            align_gravity: true,
         }
     }
 }
@@ -242,6 +247,8 @@ pub struct BakeConfig {
     pub selection: SelectionOptions,
     /// Covisibility graph.
     pub covisibility: CovisOptions,
+    /// Gravity from the dataset's IMU log.
+    pub gravity: GravityParams,
 }
 
 impl BakeConfig {
@@ -321,6 +328,7 @@ impl ConfigFile for BakeConfig {
         self.covisibility
             .validate()
             .map_err(|e| ("covisibility", e))?;
+        self.gravity.validate().map_err(|e| ("gravity", e))?;
         // The sections above passed, so what can still fail here is a [map] key.
         self.map_options().validate().map_err(|e| ("map", e))
     }

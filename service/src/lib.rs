@@ -9,3 +9,4 @@
 
 pub mod bake;
 pub mod config;
+pub mod gravity;

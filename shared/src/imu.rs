@@ -1,4 +1,5 @@
-//! IMU samples and the `imu.csv` file (`t,ax,ay,az,gx,gy,gz`: seconds, m/s^2, rad/s).
+//! IMU samples and the `imu.csv` file (`t,ax,ay,az,gx,gy,gz`: seconds, m/s^2, rad/s;
+//! whitespace-separated logs with the same columns read too).
 
 use std::fmt::Write as _;
 use std::path::Path;
@@ -45,8 +46,14 @@ pub fn parse_imu_csv(path: &Path, text: &str) -> Result<Vec<ImuSample>, IoError>
             continue;
         }
         let bad = |reason: String| IoError::malformed(path, Location::Line(k + 1), reason);
-        let v: Vec<f64> = line
-            .split(',')
+        // `imu.csv` is comma-separated; plain-text logs (t ax ay az wx wy wz) use spaces.
+        let words: Vec<&str> = if line.contains(',') {
+            line.split(',').collect()
+        } else {
+            line.split_whitespace().collect()
+        };
+        let v: Vec<f64> = words
+            .iter()
             .map(|w| {
                 w.trim()
                     .parse::<f64>()
@@ -99,5 +106,10 @@ mod tests {
             err.contains("line 2") && err.contains("expected 7"),
             "{err}"
         );
+        let spaced = "0.5 0.1 -0.2 9.81 0.0 0.0 -0.5\n";
+        let back = parse_imu_csv(Path::new("imu.txt"), spaced).unwrap();
+        assert_eq!(back[0].acc, [0.1, -0.2, 9.81]);
+        let err = parse_imu_csv(Path::new("imu.txt"), "0 1 2 nan 4 5 6\n").unwrap_err();
+        assert!(err.to_string().contains("not finite"), "{err}");
     }
 }

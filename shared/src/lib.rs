@@ -24,6 +24,7 @@ pub mod covis;
 pub mod datasets;
 pub mod eigen;
 pub mod geometry;
+pub mod gravity;
 pub mod imu;
 pub mod io;
 pub mod map;

@@ -3,6 +3,7 @@
 pub mod bake;
 pub mod bench;
 pub mod demo;
+pub mod gravity;
 pub mod inspect;
 pub mod inspect_cloud;
 mod report;

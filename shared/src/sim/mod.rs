@@ -13,7 +13,7 @@ mod bvh;
 mod dataset;
 mod imu;
 mod lidar;
-mod noise;
+pub(crate) mod noise;
 mod presets;
 mod scene;
 mod shapes;

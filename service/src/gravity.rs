@@ -1,0 +1,234 @@
+//! Gravity from a dataset (`kfmap gravity`, and `kfmap bake` when the dataset has an
+//! IMU log): keyframe windows of the IMU stream pooled by the aligner, with and without
+//! motion compensation.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use kfmap_shared::KeyframeId;
+use kfmap_shared::geometry::Pose;
+use kfmap_shared::gravity::{
+    GravityAligner, GravityCorrection, GravityParams, KeyframeStamp, MotionModel, PoolFill,
+    fill_pool,
+};
+use kfmap_shared::imu::{ImuSample, read_imu_csv};
+use kfmap_shared::io::{IoError, Trajectory, read_trajectory};
+use kfmap_shared::options::InvalidOption;
+
+/// IMU logs looked for in a dataset folder, in order.
+pub const IMU_FILES: [&str; 2] = ["imu.csv", "imu.txt"];
+/// Pose files looked for in a dataset folder, in order.
+pub const POSE_FILES: [&str; 4] = [
+    "poses_gt.txt",
+    "poses.txt",
+    "traj.txt",
+    "poses_velo_kitti.txt",
+];
+
+/// Why gravity could not be estimated from a dataset.
+#[derive(Debug, thiserror::Error)]
+pub enum GravityError {
+    /// No file of the kind needed.
+    #[error("{dir}: no {what}; pass --{flag} FILE or put one of {tried} in the dataset")]
+    Missing {
+        /// The dataset.
+        dir: PathBuf,
+        /// "IMU log" or "poses".
+        what: &'static str,
+        /// The command-line flag naming it.
+        flag: &'static str,
+        /// File names looked for.
+        tried: String,
+    },
+    /// Poses without timestamps (KITTI) cannot be matched to IMU samples.
+    #[error("{0}: poses have no timestamps (KITTI format); gravity needs TUM poses (t x y z qx qy qz qw)")]
+    NoStamps(PathBuf),
+    /// The IMU log has no samples.
+    #[error("{0}: no IMU samples")]
+    NoImu(PathBuf),
+    /// No IMU sample falls inside the trajectory's time span.
+    #[error(
+        "{imu}: IMU samples span {imu_span}, poses span {pose_span}: they do not overlap (different clocks?)"
+    )]
+    NoOverlap {
+        /// The IMU log.
+        imu: PathBuf,
+        /// Its time span.
+        imu_span: String,
+        /// The pose file's time span.
+        pose_span: String,
+    },
+    /// A file could not be read.
+    #[error(transparent)]
+    Io(#[from] IoError),
+    /// A parameter is out of range.
+    #[error(transparent)]
+    Invalid(#[from] InvalidOption),
+}
+
+/// The first of `names` present in `dir`.
+pub fn find_in(dir: &Path, names: &[&str]) -> Option<PathBuf> {
+    names.iter().map(|n| dir.join(n)).find(|p| p.is_file())
+}
+
+/// Where `kfmap gravity` reads from and how it picks keyframes.
+#[derive(Debug, Clone)]
+pub struct GravityInput {
+    /// IMU log (`imu.csv`, or whitespace-separated `t ax ay az wx wy wz`).
+    pub imu: PathBuf,
+    /// TUM poses `T_map_body` on the IMU's clock.
+    pub poses: PathBuf,
+    /// A pose becomes a keyframe once this many seconds passed since the last one.
+    pub keyframe_interval: f64,
+}
+
+impl GravityInput {
+    /// Files found in a dataset folder, unless given.
+    pub fn in_dataset(
+        dataset: &Path,
+        imu: Option<PathBuf>,
+        poses: Option<PathBuf>,
+        keyframe_interval: f64,
+    ) -> Result<Self, GravityError> {
+        let missing = |what, flag, names: &[&str]| GravityError::Missing {
+            dir: dataset.to_path_buf(),
+            what,
+            flag,
+            tried: names.join(", "),
+        };
+        Ok(Self {
+            imu: match imu {
+                Some(p) => p,
+                None => find_in(dataset, &IMU_FILES)
+                    .ok_or_else(|| missing("IMU log", "imu", &IMU_FILES))?,
+            },
+            poses: match poses {
+                Some(p) => p,
+                None => find_in(dataset, &POSE_FILES)
+                    .ok_or_else(|| missing("poses", "poses", &POSE_FILES))?,
+            },
+            keyframe_interval,
+        })
+    }
+}
+
+/// Global corrections with and without motion compensation, and per-keyframe ones.
+#[derive(Debug, Clone)]
+pub struct GravityReport {
+    /// Poses read.
+    pub poses: usize,
+    /// IMU samples read.
+    pub imu_samples: usize,
+    /// How the pool was filled (with the configured compensation).
+    pub fill: PoolFill,
+    /// The configured estimate (`None`: fewer pooled keyframes than `min-keyframes`).
+    pub correction: Option<GravityCorrection>,
+    /// The estimate without motion compensation, for comparison.
+    pub uncompensated: Option<GravityCorrection>,
+    /// Per-keyframe corrections (keyframe id = pose index), when asked for.
+    pub per_keyframe: BTreeMap<KeyframeId, GravityCorrection>,
+    /// Keyframe times, by id.
+    pub keyframe_times: BTreeMap<KeyframeId, f64>,
+}
+
+/// Per-keyframe corrections to compute: window half width and members needed.
+#[derive(Debug, Clone, Copy)]
+pub struct PerKeyframe {
+    /// Keyframes on each side of the one corrected.
+    pub half_width: usize,
+    /// Members the window needs.
+    pub min_pool: usize,
+}
+
+/// Keyframes from timestamped poses: the first pose, then each pose at least
+/// `interval` seconds after the previous keyframe. Ids are pose indices.
+pub fn keyframes_every(stamps: &[f64], poses: &[Pose], interval: f64) -> Vec<KeyframeStamp> {
+    let mut chosen: Vec<KeyframeStamp> = Vec::new();
+    for (i, (&t, pose)) in stamps.iter().zip(poses).enumerate() {
+        if chosen.last().is_none_or(|last| t - last.t >= interval) {
+            chosen.push(KeyframeStamp {
+                id: i as KeyframeId,
+                t,
+                pose: *pose,
+            });
+        }
+    }
+    chosen
+}
+
+/// Reads IMU samples, refusing an empty log.
+pub fn read_imu(path: &Path) -> Result<Vec<ImuSample>, GravityError> {
+    let imu = read_imu_csv(path)?;
+    if imu.is_empty() {
+        return Err(GravityError::NoImu(path.to_path_buf()));
+    }
+    Ok(imu)
+}
+
+/// Pose timestamps, refusing files without them.
+pub fn pose_stamps<'t>(path: &Path, trajectory: &'t Trajectory) -> Result<&'t [f64], GravityError> {
+    trajectory
+        .stamps
+        .as_deref()
+        .ok_or_else(|| GravityError::NoStamps(path.to_path_buf()))
+}
+
+/// Checks that the IMU log and the poses share a clock (their spans overlap).
+pub fn check_overlap(imu_path: &Path, imu: &[ImuSample], stamps: &[f64]) -> Result<(), GravityError> {
+    let span = |t: &mut dyn Iterator<Item = f64>| {
+        t.fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
+            (lo.min(v), hi.max(v))
+        })
+    };
+    let (i0, i1) = span(&mut imu.iter().map(|s| s.t));
+    let (p0, p1) = span(&mut stamps.iter().copied());
+    if i1 < p0 || p1 < i0 {
+        return Err(GravityError::NoOverlap {
+            imu: imu_path.to_path_buf(),
+            imu_span: format!("{i0:.3}..{i1:.3} s"),
+            pose_span: format!("{p0:.3}..{p1:.3} s"),
+        });
+    }
+    Ok(())
+}
+
+/// Estimates gravity over a dataset's IMU log and poses.
+pub fn estimate_dataset_gravity(
+    input: &GravityInput,
+    params: &GravityParams,
+    per_keyframe: Option<PerKeyframe>,
+) -> Result<GravityReport, GravityError> {
+    params.validate()?;
+    let trajectory = read_trajectory(&input.poses)?;
+    let stamps = pose_stamps(&input.poses, &trajectory)?;
+    let imu = read_imu(&input.imu)?;
+    check_overlap(&input.imu, &imu, stamps)?;
+    let keyframes = keyframes_every(stamps, &trajectory.poses, input.keyframe_interval);
+    let motion = MotionModel::new(stamps.iter().copied().zip(trajectory.poses.iter().copied()));
+    let poses: BTreeMap<KeyframeId, Pose> = keyframes.iter().map(|k| (k.id, k.pose)).collect();
+    let pooled = |compensate: bool| -> Result<(GravityAligner, PoolFill), GravityError> {
+        let mut aligner = GravityAligner::new(GravityParams {
+            motion_compensation: compensate,
+            ..*params
+        })?;
+        let fill = fill_pool(&mut aligner, &keyframes, &imu, motion.as_ref());
+        Ok((aligner, fill))
+    };
+    let (aligner, fill) = pooled(params.motion_compensation)?;
+    let uncompensated = match params.motion_compensation {
+        true => pooled(false)?.0.estimate_global_correction(&poses),
+        false => None,
+    };
+    let per_keyframe = per_keyframe.map_or_else(BTreeMap::new, |p| {
+        aligner.estimate_per_kf_correction(&poses, p.half_width, p.min_pool)
+    });
+    Ok(GravityReport {
+        poses: trajectory.poses.len(),
+        imu_samples: imu.len(),
+        fill,
+        correction: aligner.estimate_global_correction(&poses),
+        uncompensated,
+        per_keyframe,
+        keyframe_times: keyframes.iter().map(|k| (k.id, k.t)).collect(),
+    })
+}

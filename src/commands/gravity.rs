@@ -1,0 +1,191 @@
+//! `kfmap gravity`: the gravity direction of a dataset's trajectory from its IMU log.
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use kfmap_service::config::{BakeConfig, ConfigFile};
+use kfmap_service::gravity::{GravityInput, PerKeyframe, estimate_dataset_gravity};
+use kfmap_shared::gravity::GravityCorrection;
+use serde_json::{Value, json};
+
+/// Estimate gravity in a trajectory's frame from its IMU log: every --keyframe-interval
+/// seconds a pose becomes a keyframe, the accelerometer samples since the previous one
+/// are averaged, and a robust (Huber IRLS) mean of those averages, rotated into the
+/// trajectory frame, gives gravity. Prints the gravity vector, the correction (roll and
+/// pitch, yaw 0) that makes the frame +Z up, and the pool's health: members, inliers,
+/// and the spread of the per-keyframe directions in m/s^2 and degrees.
+///
+/// Motion compensation (on unless --no-motion-compensation): on a moving platform the
+/// accelerometer also feels its own acceleration. Each sample is rotated by the
+/// trajectory's attitude at its time and the acceleration implied by the positions
+/// (velocity change over the window) is subtracted before pooling. The uncompensated
+/// estimate is printed beside it.
+///
+/// Inputs: --dataset DIR finds DIR/imu.csv (or imu.txt) and the first of
+/// DIR/poses_gt.txt, poses.txt, traj.txt; --imu and --poses override either. Poses are
+/// TUM (t x y z qx qy qz qw, T_map_body, on the IMU's clock); the IMU log is
+/// `t,ax,ay,az,gx,gy,gz` (m/s^2, rad/s, body frame) or the same columns space-separated.
+/// Aligner options come from the [gravity] section of a bake.toml (--config).
+///
+/// Examples:
+///   kfmap simulate --preset courtyard --seconds 30 --tilt-deg 2,-3 --out /tmp/tilted
+///   kfmap gravity --dataset /tmp/tilted
+///   kfmap gravity --dataset ../shared/data/imu_real --per-keyframe --json
+#[derive(clap::Args)]
+#[command(verbatim_doc_comment)]
+pub struct Args {
+    /// Dataset folder holding the IMU log and the poses.
+    #[arg(long, required_unless_present_all = ["imu", "poses"])]
+    dataset: Option<PathBuf>,
+    /// IMU log; default: found in the dataset folder.
+    #[arg(long)]
+    imu: Option<PathBuf>,
+    /// TUM pose file; default: found in the dataset folder.
+    #[arg(long)]
+    poses: Option<PathBuf>,
+    /// Seconds between keyframes.
+    #[arg(long, default_value_t = 1.0, value_parser = positive_seconds)]
+    keyframe_interval: f64,
+    /// bake.toml whose [gravity] section sets the aligner (defaults otherwise).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Pool raw accelerometer means (MOLA's behaviour).
+    #[arg(long)]
+    no_motion_compensation: bool,
+    /// Also print a correction per keyframe from its neighbours.
+    #[arg(long)]
+    per_keyframe: bool,
+    /// Keyframes on each side in a per-keyframe window.
+    #[arg(long, default_value_t = 5)]
+    half_width: usize,
+    /// Members a per-keyframe window needs.
+    #[arg(long, default_value_t = 3)]
+    min_pool_per_kf: usize,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    json: bool,
+}
+
+fn positive_seconds(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
+        _ => Err(format!("'{s}' is not a positive number of seconds")),
+    }
+}
+
+/// Runs the subcommand.
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let mut params = BakeConfig::load(args.config.as_deref())?.gravity;
+    if args.no_motion_compensation {
+        params.motion_compensation = false;
+    }
+    let input = GravityInput::in_dataset(
+        args.dataset.as_deref().unwrap_or(std::path::Path::new(".")),
+        args.imu,
+        args.poses,
+        args.keyframe_interval,
+    )?;
+    let per_keyframe = args.per_keyframe.then_some(PerKeyframe {
+        half_width: args.half_width,
+        min_pool: args.min_pool_per_kf,
+    });
+    let report = estimate_dataset_gravity(&input, &params, per_keyframe)
+        .with_context(|| format!("gravity from {}", input.imu.display()))?;
+    let Some(correction) = report.correction else {
+        anyhow::bail!(
+            "only {} keyframes have IMU samples; the estimate needs min-keyframes = {} \
+             (record longer, or lower --keyframe-interval)",
+            report.fill.with_samples,
+            params.min_keyframes
+        );
+    };
+    if args.json {
+        let per_kf: Vec<Value> = report
+            .per_keyframe
+            .iter()
+            .map(|(id, c)| {
+                json!({ "keyframe": id, "t": report.keyframe_times[id], "roll_deg": c.roll_deg(),
+                        "pitch_deg": c.pitch_deg(), "members": c.estimate.health.members })
+            })
+            .collect();
+        let out = json!({
+            "imu": input.imu, "poses": input.poses, "pose_count": report.poses,
+            "imu_samples": report.imu_samples, "pool": report.fill,
+            "motion_compensation": params.motion_compensation,
+            "gravity": correction_json(&correction),
+            "roll_deg": correction.roll_deg(), "pitch_deg": correction.pitch_deg(),
+            "members": correction.estimate.health.members,
+            "uncompensated": report.uncompensated.as_ref().map(correction_json),
+            "per_keyframe": per_kf,
+        });
+        println!("{}", serde_json::to_string_pretty(&out)?);
+        return Ok(());
+    }
+    println!(
+        "{} poses, {} IMU samples; {} keyframes every {} s, {} with samples ({} motion-compensated)",
+        report.poses,
+        report.imu_samples,
+        report.fill.keyframes,
+        args.keyframe_interval,
+        report.fill.with_samples,
+        report.fill.compensated
+    );
+    let label = if params.motion_compensation {
+        "motion-compensated"
+    } else {
+        "raw accelerometer means"
+    };
+    print_correction(label, &correction);
+    if let Some(raw) = &report.uncompensated {
+        print_correction("without motion compensation", raw);
+        println!(
+            "  compensated vs raw direction: {:.3} deg apart",
+            correction.estimate.g.angle(&raw.estimate.g).to_degrees()
+        );
+    }
+    if !report.per_keyframe.is_empty() {
+        println!("per keyframe (half width {}):", args.half_width);
+        println!("  {:>8} {:>12} {:>9} {:>9} {:>7}", "keyframe", "t (s)", "roll", "pitch", "members");
+        for (id, c) in &report.per_keyframe {
+            println!(
+                "  {id:>8} {:>12.3} {:>8.3}° {:>8.3}° {:>7}",
+                report.keyframe_times[id],
+                c.roll_deg(),
+                c.pitch_deg(),
+                c.estimate.health.members
+            );
+        }
+    }
+    Ok(())
+}
+
+fn correction_json(c: &GravityCorrection) -> Value {
+    let g = c.estimate.g;
+    json!({
+        "vector": [g.x, g.y, g.z], "norm": g.norm(),
+        "roll_deg": c.roll_deg(), "pitch_deg": c.pitch_deg(), "yaw_deg": c.yaw().to_degrees(),
+        "health": c.estimate.health,
+    })
+}
+
+fn print_correction(label: &str, c: &GravityCorrection) {
+    let g = c.estimate.g;
+    let h = &c.estimate.health;
+    println!("{label}:");
+    println!(
+        "  gravity (trajectory frame): [{:.4}, {:.4}, {:.4}] m/s^2, |g| = {:.4}",
+        g.x,
+        g.y,
+        g.z,
+        g.norm()
+    );
+    println!(
+        "  correction to +Z up: roll {:.3}°, pitch {:.3}° (yaw 0)",
+        c.roll_deg(),
+        c.pitch_deg()
+    );
+    println!(
+        "  pool: {} members, {} within the Huber threshold, effective weight {:.1}, spread {:.3} m/s^2 / {:.3}°",
+        h.members, h.inliers, h.effective_weight, h.spread_mps2, h.spread_deg
+    );
+}
