@@ -146,7 +146,9 @@ fn demo_simulates_and_uses_a_courtyard_without_data() {
     assert!(out.status.success(), "{}", stderr(&out));
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(
-        text.contains("50 scans")
+        text.contains("100 scans")
+            && text.contains("recovered roll")
+            && text.contains("map levelled")
             && text.contains("scans/000010.pcd")
             && text.contains("no real scan")
             && text.contains("reopened by mmap")
@@ -435,4 +437,98 @@ fn bad_maps_and_datasets_exit_2_naming_the_problem() {
     );
     assert!(!dir.join("x.kfmap").exists());
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn gravity_and_bake_recover_a_tilted_world() {
+    use kfmap_shared::archive::{OpenOptions, open_map};
+    use kfmap_shared::io::read_trajectory;
+    use nalgebra::Rotation3;
+    let dir = temp_dir("gravity").join("sim");
+    let out = kfmap(&[
+        "simulate",
+        "--preset",
+        "courtyard",
+        "--seconds",
+        "12",
+        "--beams",
+        "16",
+        "--tilt-deg",
+        "2,-3",
+        "--no-noise",
+        "--out",
+        dir.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    // With noise and bias off only the motion model limits the estimate.
+    let g = json(&kfmap(&[
+        "gravity",
+        "--dataset",
+        dir.to_str().unwrap(),
+        "--json",
+    ]));
+    let (roll, pitch) = (
+        g["roll_deg"].as_f64().unwrap(),
+        g["pitch_deg"].as_f64().unwrap(),
+    );
+    assert!(
+        (roll - 2.0).abs() < 0.02 && (pitch + 3.0).abs() < 0.02,
+        "{roll} {pitch}"
+    );
+    assert_eq!(g["members"], 12);
+    assert_eq!(g["gravity"]["yaw_deg"], 0.0);
+
+    let map = dir.parent().unwrap().join("tilted.kfmap");
+    let baked = json(&kfmap(&[
+        "bake",
+        "--dataset",
+        dir.to_str().unwrap(),
+        "--out",
+        map.to_str().unwrap(),
+        "--json",
+    ]));
+    assert_eq!(baked["gravity"]["applied"], true);
+    // Oracle: every baked pose is the true pose rotated by R_world_map = Ry(-3) Rx(2).
+    let world_from_map = Rotation3::from_euler_angles(2f64.to_radians(), -3f64.to_radians(), 0.0);
+    let truth = read_trajectory(&dir.join("poses_gt.txt")).unwrap();
+    let opened = open_map(&map, OpenOptions::default()).unwrap();
+    assert_eq!(opened.index.gravity_pool.len(), opened.map.len());
+    for k in opened.map.keyframes() {
+        let scan = truth
+            .stamps
+            .as_ref()
+            .unwrap()
+            .iter()
+            .position(|&t| t == k.timestamp)
+            .unwrap();
+        let applied = k.pose.rotation.to_rotation_matrix()
+            * truth.poses[scan].rotation.to_rotation_matrix().inverse();
+        let off = (applied * world_from_map.inverse()).angle().to_degrees();
+        assert!(off < 0.02, "keyframe {}: {off} deg", k.id);
+        let moved =
+            k.pose.translation.vector - world_from_map * truth.poses[scan].translation.vector;
+        assert!(moved.norm() < 0.01, "keyframe {}: {moved:?}", k.id);
+    }
+
+    // An IMU log on another clock is refused by name.
+    let csv = std::fs::read_to_string(dir.join("imu.csv")).unwrap();
+    let shifted: String = csv
+        .lines()
+        .map(|l| match l.split_once(',') {
+            Some((t, rest)) if !l.starts_with('t') => {
+                format!("{},{rest}\n", t.parse::<f64>().unwrap() + 1000.0)
+            }
+            _ => format!("{l}\n"),
+        })
+        .collect();
+    std::fs::write(dir.join("imu.csv"), shifted).unwrap();
+    let refused = kfmap(&["gravity", "--dataset", dir.to_str().unwrap()]);
+    assert_eq!(refused.status.code(), Some(2));
+    assert!(
+        stderr(&refused).contains("do not overlap"),
+        "{}",
+        stderr(&refused)
+    );
+    let _ = std::fs::remove_dir_all(dir.parent().unwrap());
 }

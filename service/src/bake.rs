@@ -6,6 +6,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use kfmap_shared::KeyframeId;
 use kfmap_shared::archive::{ArchiveError, MapWriter, WriteSummary};
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::covis::CovisibilityGraph;
@@ -15,7 +16,7 @@ use kfmap_shared::map::{Keyframe, KeyframeMapOptions};
 use rayon::prelude::*;
 
 use crate::config::BakeConfig;
-use crate::gravity::{POSE_FILES, find_in};
+use crate::gravity::{BakeGravity, GravityError, POSE_FILES, bake_gravity, find_in};
 
 /// Scan file extensions a dataset may hold.
 const SCAN_EXTENSIONS: [&str; 3] = ["pcd", "ply", "bin"];
@@ -62,6 +63,9 @@ pub enum BakeError {
     /// The map file could not be written.
     #[error(transparent)]
     Archive(#[from] ArchiveError),
+    /// The dataset's IMU log could not be used.
+    #[error(transparent)]
+    Gravity(#[from] GravityError),
 }
 
 /// Where a bake reads from.
@@ -86,10 +90,12 @@ pub struct BakeProgress {
 }
 
 /// What a bake produced.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub struct BakeReport {
     /// Scans in the dataset.
     pub scans: usize,
+    /// The gravity stage, when the dataset has an IMU log.
+    pub gravity: Option<BakeGravity>,
     /// The file written.
     pub written: WriteSummary,
     /// Wall time, seconds.
@@ -128,15 +134,23 @@ pub fn find_scans(dataset: &Path) -> Result<Vec<PathBuf>, BakeError> {
     Ok(scans)
 }
 
+/// Every scan's pose and time (the pose index when the file has no timestamps).
+struct ScanPoses {
+    poses: Vec<Pose>,
+    stamps: Vec<f64>,
+    /// True when the stamps come from the pose file.
+    stamped: bool,
+}
+
 /// The pose of every scan: by frame number when every scan is named by one (KITTI
 /// `000123.bin`), else one pose per scan in order.
-fn scan_poses(input: &BakeInput, scans: &[PathBuf]) -> Result<(Vec<Pose>, Vec<f64>), BakeError> {
+fn scan_poses(input: &BakeInput, scans: &[PathBuf]) -> Result<ScanPoses, BakeError> {
     let path = match &input.poses {
         Some(p) => p.clone(),
         None => find_in(&input.dataset, &POSE_FILES).ok_or_else(|| BakeError::NoPoses {
-                dir: input.dataset.clone(),
-                tried: POSE_FILES.join(", "),
-            })?,
+            dir: input.dataset.clone(),
+            tried: POSE_FILES.join(", "),
+        })?,
     };
     let trajectory = read_trajectory(&path)?;
     let count_error = || BakeError::PoseCount {
@@ -161,7 +175,11 @@ fn scan_poses(input: &BakeInput, scans: &[PathBuf]) -> Result<(Vec<Pose>, Vec<f6
         .iter()
         .map(|&i| trajectory.stamps.as_ref().map_or(i as f64, |s| s[i]))
         .collect();
-    Ok((poses, stamps))
+    Ok(ScanPoses {
+        poses,
+        stamps,
+        stamped: trajectory.stamps.is_some(),
+    })
 }
 
 /// Reads, filters and downsamples one scan.
@@ -201,12 +219,36 @@ pub fn bake(
 ) -> Result<BakeReport, BakeError> {
     let started = Instant::now();
     let scans = find_scans(&input.dataset)?;
-    let (poses, stamps) = scan_poses(input, &scans)?;
+    let ScanPoses {
+        mut poses,
+        stamps,
+        stamped,
+    } = scan_poses(input, &scans)?;
     let decider = config.keyframes.decider();
     let mut chosen: Vec<usize> = Vec::new();
     for (i, pose) in poses.iter().enumerate() {
         if decider.should_create(chosen.iter().map(|&c| &poses[c]), pose) {
             chosen.push(i);
+        }
+    }
+    let keyframe_scans: Vec<(KeyframeId, usize)> = chosen
+        .iter()
+        .enumerate()
+        .map(|(id, &scan)| (id as KeyframeId, scan))
+        .collect();
+    let mut gravity = bake_gravity(
+        &input.dataset,
+        &config.gravity,
+        &poses,
+        stamped.then_some(&stamps),
+        &keyframe_scans,
+    )?;
+    if let Some(g) = gravity.as_mut().filter(|_| config.map.align_gravity) {
+        if let Some(c) = &g.correction {
+            // Rotating about the map origin keeps every relative pose.
+            let align = Pose::from_parts(Default::default(), c.rotation.into());
+            poses.iter_mut().for_each(|p| *p = align * *p);
+            g.applied = true;
         }
     }
     let options: KeyframeMapOptions = config.map_options();
@@ -241,9 +283,11 @@ pub fn bake(
             progress(done);
         }
     }
-    let written = writer.finish(chosen.len() as u64, &covis.snapshot(), &[])?;
+    let pool = gravity.as_ref().map_or(&[][..], |g| &g.pool[..]);
+    let written = writer.finish(chosen.len() as u64, &covis.snapshot(), pool)?;
     Ok(BakeReport {
         scans: scans.len(),
+        gravity,
         written,
         seconds: started.elapsed().as_secs_f64(),
     })

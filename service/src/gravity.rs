@@ -6,6 +6,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use kfmap_shared::KeyframeId;
+use kfmap_shared::archive::GravityRecord;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::gravity::{
     GravityAligner, GravityCorrection, GravityParams, KeyframeStamp, MotionModel, PoolFill,
@@ -41,7 +42,9 @@ pub enum GravityError {
         tried: String,
     },
     /// Poses without timestamps (KITTI) cannot be matched to IMU samples.
-    #[error("{0}: poses have no timestamps (KITTI format); gravity needs TUM poses (t x y z qx qy qz qw)")]
+    #[error(
+        "{0}: poses have no timestamps (KITTI format); gravity needs TUM poses (t x y z qx qy qz qw)"
+    )]
     NoStamps(PathBuf),
     /// The IMU log has no samples.
     #[error("{0}: no IMU samples")]
@@ -174,7 +177,11 @@ pub fn pose_stamps<'t>(path: &Path, trajectory: &'t Trajectory) -> Result<&'t [f
 }
 
 /// Checks that the IMU log and the poses share a clock (their spans overlap).
-pub fn check_overlap(imu_path: &Path, imu: &[ImuSample], stamps: &[f64]) -> Result<(), GravityError> {
+pub fn check_overlap(
+    imu_path: &Path,
+    imu: &[ImuSample],
+    stamps: &[f64],
+) -> Result<(), GravityError> {
     let span = |t: &mut dyn Iterator<Item = f64>| {
         t.fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
             (lo.min(v), hi.max(v))
@@ -231,4 +238,67 @@ pub fn estimate_dataset_gravity(
         per_keyframe,
         keyframe_times: keyframes.iter().map(|k| (k.id, k.t)).collect(),
     })
+}
+
+/// What a bake did with the dataset's IMU log.
+#[derive(Debug, Clone)]
+pub struct BakeGravity {
+    /// The IMU log read.
+    pub imu: PathBuf,
+    /// How the pool was filled.
+    pub fill: PoolFill,
+    /// The global correction (`None`: too few keyframes with samples).
+    pub correction: Option<GravityCorrection>,
+    /// True when the keyframe poses were rotated by the correction.
+    pub applied: bool,
+    /// The pool as stored in the map.
+    pub pool: Vec<GravityRecord>,
+}
+
+/// The gravity stage of a bake: pools the IMU windows of the chosen keyframes (`ids`
+/// and `keyframe_scans` in step: keyframe id, index of its scan), with motion taken
+/// from every scan's pose and stamp. `Ok(None)` without an IMU log; poses without
+/// timestamps are an error then, since the windows cannot be cut.
+pub fn bake_gravity(
+    dataset: &Path,
+    params: &GravityParams,
+    scan_poses: &[Pose],
+    scan_stamps: Option<&[f64]>,
+    keyframe_scans: &[(KeyframeId, usize)],
+) -> Result<Option<BakeGravity>, GravityError> {
+    let Some(imu_path) = find_in(dataset, &IMU_FILES) else {
+        return Ok(None);
+    };
+    let stamps = scan_stamps.ok_or_else(|| GravityError::NoStamps(dataset.to_path_buf()))?;
+    let imu = read_imu(&imu_path)?;
+    check_overlap(&imu_path, &imu, stamps)?;
+    let keyframes: Vec<KeyframeStamp> = keyframe_scans
+        .iter()
+        .map(|&(id, scan)| KeyframeStamp {
+            id,
+            t: stamps[scan],
+            pose: scan_poses[scan],
+        })
+        .collect();
+    let motion = MotionModel::new(stamps.iter().copied().zip(scan_poses.iter().copied()));
+    let mut aligner = GravityAligner::new(*params)?;
+    let fill = fill_pool(&mut aligner, &keyframes, &imu, motion.as_ref());
+    let poses: BTreeMap<KeyframeId, Pose> = keyframes.iter().map(|k| (k.id, k.pose)).collect();
+    let pool = aligner
+        .samples()
+        .iter()
+        .map(|(&id, s)| GravityRecord {
+            keyframe: id,
+            mean_acc: s.a_body.into(),
+            std: s.a_std,
+            samples: s.n as u64,
+        })
+        .collect();
+    Ok(Some(BakeGravity {
+        imu: imu_path,
+        fill,
+        correction: aligner.estimate_global_correction(&poses),
+        applied: false,
+        pool,
+    }))
 }

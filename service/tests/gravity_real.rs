@@ -34,7 +34,10 @@ fn real_imu_gravity_matches_the_mean_over_quiet_keyframes() {
             .map(|s| Vector3::from(s.acc))
             .collect();
         let mean = window.iter().sum::<Vector3<f64>>() / window.len() as f64;
-        let spread = (window.iter().map(|a| (a.norm() - mean.norm()).powi(2)).sum::<f64>()
+        let spread = (window
+            .iter()
+            .map(|a| (a.norm() - mean.norm()).powi(2))
+            .sum::<f64>()
             / window.len() as f64)
             .sqrt();
         if spread < 0.2 {

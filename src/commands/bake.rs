@@ -6,6 +6,7 @@ use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
 use kfmap_service::bake::{BakeInput, bake};
 use kfmap_service::config::{BakeConfig, ConfigFile};
+use kfmap_service::gravity::BakeGravity;
 use serde_json::json;
 
 /// Bake a map: choose keyframes from a scan sequence with poses, build each keyframe's
@@ -14,9 +15,14 @@ use serde_json::json;
 ///
 /// The dataset is a folder of scans (*.pcd, *.ply, *.bin; in DIR/scans/ or DIR itself,
 /// sorted by name) with poses T_map_sensor: --poses FILE (TUM or KITTI), else the first
-/// of DIR/poses_gt.txt, DIR/poses.txt, DIR/poses_velo_kitti.txt. Scans named by frame
+/// of DIR/poses_gt.txt, poses.txt, traj.txt, poses_velo_kitti.txt. Scans named by frame
 /// number (000042.bin) take pose 42; otherwise one pose per scan, in order. `kfmap
 /// simulate` writes datasets in this layout.
+///
+/// Gravity: with an IMU log in the dataset (DIR/imu.csv or imu.txt, on the poses' clock;
+/// TUM poses needed), each keyframe's accelerometer window joins the map's gravity pool
+/// (motion-compensated, see `kfmap gravity --help`) and, with [map] align-gravity = true,
+/// every pose is rotated by the estimated roll and pitch so the map has +Z up.
 ///
 /// The file is written beside MAP.kfmap under a temporary name and renamed when
 /// complete: an interrupted bake never leaves a partial map. Memory stays bounded by a
@@ -87,6 +93,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     })?;
     bar.finish_and_clear();
     let w = report.written;
+    let gravity = report.gravity.as_ref().map(|g| {
+        let c = g.correction.as_ref();
+        json!({
+            "imu": g.imu, "keyframes_with_samples": g.fill.with_samples,
+            "compensated": g.fill.compensated, "applied": g.applied,
+            "roll_deg": c.map(|c| c.roll_deg()), "pitch_deg": c.map(|c| c.pitch_deg()),
+            "members": c.map(|c| c.estimate.health.members),
+            "spread_deg": c.map(|c| c.estimate.health.spread_deg),
+        })
+    });
     if args.json {
         println!(
             "{}",
@@ -99,6 +115,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 "seconds": report.seconds,
                 "points_per_second": report.points_per_second(),
                 "threads": pool.current_num_threads(),
+                "gravity": gravity,
             })
         );
     } else {
@@ -113,6 +130,32 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             report.points_per_second() / 1e6,
             pool.current_num_threads()
         );
+        if let Some(g) = &report.gravity {
+            print_gravity(g);
+        }
     }
     Ok(())
+}
+
+fn print_gravity(g: &BakeGravity) {
+    match &g.correction {
+        Some(c) => println!(
+            "  gravity from {}: roll {:.3}°, pitch {:.3}° over {} keyframes (spread {:.3}°); {}",
+            g.imu.display(),
+            c.roll_deg(),
+            c.pitch_deg(),
+            c.estimate.health.members,
+            c.estimate.health.spread_deg,
+            if g.applied {
+                "poses rotated to +Z up"
+            } else {
+                "poses kept ([map] align-gravity = false)"
+            }
+        ),
+        None => println!(
+            "  gravity from {}: only {} keyframes with samples, too few for an estimate; poses kept",
+            g.imu.display(),
+            g.fill.with_samples
+        ),
+    }
 }

@@ -12,6 +12,7 @@ use kfmap_service::bake::{BakeInput, bake};
 use kfmap_service::config::BakeConfig;
 use kfmap_shared::archive::{OpenOptions, open_map};
 use kfmap_shared::datasets::shared_data_dir;
+use kfmap_shared::geometry::Pose;
 use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
 use kfmap_shared::sim::{LidarParams, Preset, SimConfig, write_dataset};
 use kfmap_shared::summary::summarize;
@@ -20,12 +21,14 @@ use super::report::print_summary;
 
 /// Run the kfmap pipeline end to end on built-in defaults.
 ///
-/// 1. Simulates 5 s of a 32-beam LiDAR and an IMU driving around the courtyard preset
-///    (into a temporary folder, or --out DIR to keep it).
+/// 1. Simulates 10 s of a 32-beam LiDAR and an IMU driving around the courtyard preset,
+///    in a world tilted by roll 2 deg and pitch -3 deg against the map frame (into a
+///    temporary folder, or --out DIR to keep it).
 /// 2. Reads a simulated scan back, downsamples it, estimates per-point covariances.
 ///    Bakes the simulated scans at their true poses into a .kfmap file (keyframes, trees,
-///    covariances, covisibility), reopens it by mmap and pairs the last scan against it
-///    (cov2cov, approximate and exact mode), printing pairing statistics.
+///    covariances, covisibility, gravity pool), levelling the map by the gravity the IMU
+///    shows (recovered tilt printed next to the true one), reopens it by mmap and pairs
+///    the last scan against it (cov2cov, approximate and exact mode).
 /// 3. When ../shared/data is beside the checkout (or $KFMAP_DATA_DIR names it), does the
 ///    same on a real Velodyne HDL-64E scan (kitti00/000000.bin), or on --scan FILE.
 ///
@@ -40,6 +43,10 @@ pub struct Args {
     #[arg(long)]
     scan: Option<PathBuf>,
 }
+
+/// Tilt of the simulated world against the map frame, roll and pitch in degrees: the
+/// bake recovers it from the IMU.
+const DEMO_TILT_DEG: [f64; 2] = [2.0, -3.0];
 
 /// Removes the temporary dataset folder when the demo ends, however it ends.
 struct TempDir(PathBuf);
@@ -63,7 +70,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
     let sim = SimConfig {
         preset: Preset::Courtyard,
-        seconds: 5.0,
+        seconds: 10.0,
+        tilt_deg: DEMO_TILT_DEG,
         lidar: LidarParams {
             beams: 32,
             ..LidarParams::default()
@@ -78,7 +86,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         dataset.display()
     );
     let started = Instant::now();
-    let summary = write_dataset(sim, &dataset, false, &|_, _| {})?;
+    let summary = write_dataset(sim.clone(), &dataset, false, &|_, _| {})?;
     println!(
         "  {} scans, {} points, {} IMU samples, {:.1} m driven in {:.2} s",
         summary.scans,
@@ -93,7 +101,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         truth.poses.len()
     );
     analyze(&dataset.join("scans/000010.pcd"), &config)?;
-    baked_map_stage(&dataset, &truth)?;
+    baked_map_stage(&dataset, &truth, &sim)?;
 
     let real = args.scan.or_else(|| {
         shared_data_dir()
@@ -112,7 +120,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
 /// Bakes the simulated scans (at their true poses) into a map file, reopens it by mmap
 /// and pairs the last scan against it (cov2cov), in approximate and exact mode.
-fn baked_map_stage(dataset: &Path, truth: &kfmap_shared::io::Trajectory) -> anyhow::Result<()> {
+fn baked_map_stage(
+    dataset: &Path,
+    truth: &kfmap_shared::io::Trajectory,
+    sim: &SimConfig,
+) -> anyhow::Result<()> {
     let config = BakeConfig::default();
     let map_path = dataset.join("courtyard.kfmap");
     let input = BakeInput {
@@ -130,6 +142,22 @@ fn baked_map_stage(dataset: &Path, truth: &kfmap_shared::io::Trajectory) -> anyh
         report.seconds,
         report.points_per_second() / 1e6
     );
+    // The baked poses are levelled: the query pose gets the same rotation.
+    let mut level = Pose::identity();
+    match report.gravity.as_ref().and_then(|g| g.correction.as_ref()) {
+        Some(c) => {
+            println!(
+                "  gravity: recovered roll {:.2}°, pitch {:.2}° (simulated tilt {:.2}°, {:.2}°) from {} keyframes' IMU windows; map levelled",
+                c.roll_deg(),
+                c.pitch_deg(),
+                sim.tilt_deg[0],
+                sim.tilt_deg[1],
+                c.estimate.health.members
+            );
+            level = Pose::from_parts(Default::default(), c.rotation.into());
+        }
+        None => println!("  gravity: too few keyframes with IMU samples for an estimate"),
+    }
     let started = Instant::now();
     let mut map = open_map(&map_path, OpenOptions::default())?.map;
     println!(
@@ -143,7 +171,7 @@ fn baked_map_stage(dataset: &Path, truth: &kfmap_shared::io::Trajectory) -> anyh
     )?
     .cloud
     .voxel_downsample(0.5)?;
-    let at = truth.poses[last];
+    let at = level * truth.poses[last];
     for approximate in [true, false] {
         map.set_approximate_cov(approximate);
         let started = Instant::now();

@@ -145,7 +145,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     if !report.per_keyframe.is_empty() {
         println!("per keyframe (half width {}):", args.half_width);
-        println!("  {:>8} {:>12} {:>9} {:>9} {:>7}", "keyframe", "t (s)", "roll", "pitch", "members");
+        println!(
+            "  {:>8} {:>12} {:>9} {:>9} {:>7}",
+            "keyframe", "t (s)", "roll", "pitch", "members"
+        );
         for (id, c) in &report.per_keyframe {
             println!(
                 "  {id:>8} {:>12.3} {:>8.3}° {:>8.3}° {:>7}",

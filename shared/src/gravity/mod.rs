@@ -315,7 +315,8 @@ impl GravityAligner {
             .enumerate()
             .filter(|(_, id)| self.has(**id))
             .filter_map(|(k, &id)| {
-                let window = &ids[k.saturating_sub(half_width)..(k + half_width + 1).min(ids.len())];
+                let window =
+                    &ids[k.saturating_sub(half_width)..(k + half_width + 1).min(ids.len())];
                 let estimate =
                     self.estimate_gravity_vector_over_window(poses, window, min_pool_per_kf)?;
                 Some((id, self.correction(estimate)))
@@ -390,7 +391,12 @@ fn health(members: &[Member], w: &[f64], g: &Vector3<f64>, huber: f64) -> PoolHe
     let total: f64 = w.iter().sum();
     let heaviest = members.iter().map(|m| m.seed).fold(0.0, f64::max);
     let mean_sq = |f: &dyn Fn(&Member) -> f64| {
-        members.iter().zip(w).map(|(m, wi)| wi * f(m).powi(2)).sum::<f64>() / total
+        members
+            .iter()
+            .zip(w)
+            .map(|(m, wi)| wi * f(m).powi(2))
+            .sum::<f64>()
+            / total
     };
     PoolHealth {
         members: members.len(),

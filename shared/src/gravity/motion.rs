@@ -19,10 +19,8 @@ impl MotionModel {
     /// From `(time, pose)` pairs in any order; repeated times keep the first pose.
     /// `None` with fewer than two distinct finite times.
     pub fn new(poses: impl IntoIterator<Item = (f64, Pose)>) -> Option<Self> {
-        let mut samples: Vec<(f64, Pose)> = poses
-            .into_iter()
-            .filter(|(t, _)| t.is_finite())
-            .collect();
+        let mut samples: Vec<(f64, Pose)> =
+            poses.into_iter().filter(|(t, _)| t.is_finite()).collect();
         samples.sort_by(|a, b| a.0.total_cmp(&b.0));
         samples.dedup_by(|later, earlier| later.0 == earlier.0);
         if samples.len() < 2 {
