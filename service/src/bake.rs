@@ -243,13 +243,13 @@ pub fn bake(
         stamped.then_some(&stamps),
         &keyframe_scans,
     )?;
-    if let Some(g) = gravity.as_mut().filter(|_| config.map.align_gravity) {
-        if let Some(c) = &g.correction {
-            // Rotating about the map origin keeps every relative pose.
-            let align = Pose::from_parts(Default::default(), c.rotation.into());
-            poses.iter_mut().for_each(|p| *p = align * *p);
-            g.applied = true;
-        }
+    if let Some(g) = gravity.as_mut().filter(|_| config.map.align_gravity)
+        && let Some(c) = &g.correction
+    {
+        // Rotating about the map origin keeps every relative pose.
+        let align = Pose::from_parts(Default::default(), c.rotation.into());
+        poses.iter_mut().for_each(|p| *p = align * *p);
+        g.applied = true;
     }
     let options: KeyframeMapOptions = config.map_options();
     let mut writer = MapWriter::create(out, &options)?;

@@ -315,7 +315,10 @@ fn courtyard_errors(seconds: f64, compensate: bool) -> CourtyardErrors {
     .unwrap();
     let fill = fill_pool(&mut aligner, &keyframes, &imu, Some(&motion));
     assert_eq!(fill.with_samples, keyframes.len());
-    assert_eq!(fill.compensated, if compensate { keyframes.len() } else { 0 });
+    assert_eq!(
+        fill.compensated,
+        if compensate { keyframes.len() } else { 0 }
+    );
     let e = aligner.estimate_gravity_vector(&poses).unwrap();
     let per_kf = aligner.estimate_per_kf_correction(&poses, 2, 3);
     let mean_sq = per_kf
