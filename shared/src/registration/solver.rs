@@ -1,0 +1,143 @@
+//! One Gauss-Newton / Levenberg-Marquardt pose solver over correspondences with
+//! information matrices: GICP, point-to-point and point-to-plane ICP, and the map
+//! server's localization all reduce to it.
+
+use nalgebra::{Matrix3, Matrix6, SymmetricEigen, Vector3, Vector6};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::RobustKernel;
+use crate::geometry::Pose;
+
+/// One residual `r = target - T source` weighted by `information` (`r^T W r`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Correspondence {
+    /// The source point, source frame.
+    pub source: Vector3<f64>,
+    /// The matched target point, target frame.
+    pub target: Vector3<f64>,
+    /// `W`, e.g. `(C_t + R C_s R^T)^-1` for GICP.
+    pub information: Matrix3<f64>,
+}
+
+/// The normal equations of one linearization, with the weighted cost.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Linearized {
+    /// `sum J^T w W J` (6x6; rotation first, then translation).
+    pub hessian: Matrix6<f64>,
+    /// `sum J^T w W r`.
+    pub gradient: Vector6<f64>,
+    /// `sum w r^T W r`.
+    pub cost: f64,
+    /// Correspondences summed.
+    pub count: usize,
+}
+
+impl Linearized {
+    fn zero() -> Self {
+        Self {
+            hessian: Matrix6::zeros(),
+            gradient: Vector6::zeros(),
+            cost: 0.0,
+            count: 0,
+        }
+    }
+
+    fn add(mut self, other: &Self) -> Self {
+        self.hessian += other.hessian;
+        self.gradient += other.gradient;
+        self.cost += other.cost;
+        self.count += other.count;
+        self
+    }
+}
+
+/// Correspondences summed per parallel task: fixed, so the floating-point sum is the
+/// same for any thread count.
+const CHUNK: usize = 512;
+
+/// Linearizes at `pose` with the right perturbation `T exp(d)`, `d = (omega, v)`:
+/// `d(T s)/d(d) = R [-[s]x, I]`, so `J = [R [s]x, -R]` for `r = t - T s`.
+pub fn linearize(
+    correspondences: &[Correspondence],
+    pose: &Pose,
+    kernel: &RobustKernel,
+) -> Linearized {
+    let rotation = pose.rotation.to_rotation_matrix().into_inner();
+    let partial: Vec<Linearized> = correspondences
+        .par_chunks(CHUNK)
+        .map(|chunk| {
+            let mut sum = Linearized::zero();
+            for c in chunk {
+                let moved = rotation * c.source + pose.translation.vector;
+                let r = c.target - moved;
+                let e2 = r.dot(&(c.information * r));
+                let w = kernel.weight(e2);
+                let mut j = nalgebra::Matrix3x6::zeros();
+                j.fixed_view_mut::<3, 3>(0, 0)
+                    .copy_from(&(rotation * c.source.cross_matrix()));
+                j.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-rotation));
+                let jt_w = j.transpose() * (c.information * w);
+                sum.hessian += jt_w * j;
+                sum.gradient += jt_w * r;
+                sum.cost += w * e2;
+                sum.count += 1;
+            }
+            sum
+        })
+        .collect();
+    partial.iter().fold(Linearized::zero(), |a, b| a.add(b))
+}
+
+/// The step method.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Optimizer {
+    /// Plain Gauss-Newton steps.
+    GaussNewton,
+    /// Damped steps (`H + lambda I`), accepted only when the cost drops.
+    LevenbergMarquardt,
+}
+
+/// The pose update `T exp(d)` (rotation by `omega`, then translation `v` in the body).
+pub fn retract(pose: &Pose, step: &Vector6<f64>) -> Pose {
+    let omega = Vector3::new(step[0], step[1], step[2]);
+    let v = Vector3::new(step[3], step[4], step[5]);
+    pose * Pose::new(v, omega)
+}
+
+/// Solves `(H + lambda I) d = -g`; `None` when singular.
+pub fn solve_step(lin: &Linearized, lambda: f64) -> Option<Vector6<f64>> {
+    let damped = lin.hessian + Matrix6::identity() * lambda;
+    damped.cholesky().map(|c| c.solve(&(-lin.gradient)))
+}
+
+/// How well the Hessian constrains each block: the smallest over the largest
+/// eigenvalue of its rotation and translation 3x3 blocks (1 = isotropic, near 0 = a
+/// direction the scene does not constrain, e.g. along a corridor).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Constraint {
+    /// Rotation block min/max eigenvalue ratio.
+    pub rotation_ratio: f64,
+    /// Translation block min/max eigenvalue ratio.
+    pub translation_ratio: f64,
+}
+
+impl Constraint {
+    /// Of a 6x6 Hessian (rotation first).
+    pub fn of(hessian: &Matrix6<f64>) -> Self {
+        let ratio = |m: Matrix3<f64>| {
+            let e = SymmetricEigen::new(m).eigenvalues;
+            let max = e.max();
+            if max > 0.0 {
+                (e.min() / max).max(0.0)
+            } else {
+                0.0
+            }
+        };
+        Self {
+            rotation_ratio: ratio(hessian.fixed_view::<3, 3>(0, 0).into_owned()),
+            translation_ratio: ratio(hessian.fixed_view::<3, 3>(3, 3).into_owned()),
+        }
+    }
+}
