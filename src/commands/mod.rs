@@ -6,5 +6,6 @@ pub mod demo;
 pub mod gravity;
 pub mod inspect;
 pub mod inspect_cloud;
+pub mod register;
 mod report;
 pub mod simulate;

@@ -49,7 +49,9 @@ def main():
         (t, t_tree), (s, _) = pre()
         result = small_gicp.align(t, s, t_tree, num_threads=threads)
         cm, deg = error(result.T_target_source, truth)
-        print(f"{threads} thread(s): preprocess {median_ms(pre):.2f} ms, "
+        raw = small_gicp.align(target, source, downsampling_resolution=0.25, num_threads=threads)
+        raw_cm, raw_deg = error(raw.T_target_source, truth)
+        print(f"{threads} thread(s): from raw clouds {raw_cm:.3f} cm, {raw_deg:.4f} deg; preprocess {median_ms(pre):.2f} ms, "
               f"gicp {median_ms(lambda: small_gicp.align(t, s, t_tree, num_threads=threads)):.2f} ms, "
               f"whole {median_ms(lambda: small_gicp.align(target, source, downsampling_resolution=0.25, num_threads=threads)):.2f} ms; "
               f"{cm:.2f} cm, {deg:.3f} deg from T_target_source.txt, {len(t.points())} / {len(s.points())} points")
