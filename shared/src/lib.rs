@@ -30,6 +30,7 @@ pub mod io;
 pub mod map;
 pub mod neighbourhoods;
 pub mod options;
+pub mod pose_graph;
 pub mod registration;
 pub mod select;
 pub mod sim;

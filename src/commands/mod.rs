@@ -6,6 +6,7 @@ pub mod demo;
 pub mod gravity;
 pub mod inspect;
 pub mod inspect_cloud;
+pub mod optimize_graph;
 pub mod register;
 mod report;
 pub mod simulate;

@@ -43,6 +43,24 @@ impl RobustKernel {
         }
     }
 
+    /// The robust cost of a residual whose squared length is `e2` (`e2` itself for
+    /// least squares; `weight` is its derivative).
+    pub fn rho(&self, e2: f64) -> f64 {
+        match *self {
+            Self::None => e2,
+            Self::Huber { delta } => {
+                let e = e2.sqrt();
+                if e <= delta {
+                    e2
+                } else {
+                    2.0 * delta * e - delta * delta
+                }
+            }
+            Self::Cauchy { delta } => delta * delta * (1.0 + e2 / (delta * delta)).ln(),
+            Self::GemanMcClure { delta } => delta * delta * e2 / (delta * delta + e2),
+        }
+    }
+
     /// The kernel's scale, if it has one.
     pub fn delta(&self) -> Option<f64> {
         match *self {
