@@ -28,6 +28,7 @@ pub mod gravity;
 pub mod imu;
 pub mod io;
 pub mod map;
+pub mod mapping;
 pub mod neighbourhoods;
 pub mod options;
 pub mod pose_graph;

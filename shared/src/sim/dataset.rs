@@ -131,6 +131,13 @@ impl Simulation {
         &self.site
     }
 
+    /// Ground-truth `T_map_sensor` at the start of sweep `index` (no ray casting).
+    pub fn scan_pose(&self, index: usize) -> Pose {
+        self.site
+            .trajectory
+            .pose(index as f64 / self.config.lidar.rate_hz)
+    }
+
     /// Sweep number `index` (each has its own noise stream: any order, same bytes).
     pub fn scan(&self, index: usize) -> SimScan {
         let stamp = index as f64 / self.config.lidar.rate_hz;

@@ -1,0 +1,315 @@
+//! The registration framework (ARCHITECTURE section 9, after PCL's design): algorithms
+//! apart from data. Clouds are never moved; only their poses change.
+
+use nalgebra::{Matrix6, Vector6};
+
+use crate::covis::{CovisOptions, CovisibilityGraph};
+use crate::geometry::Pose;
+use crate::pose_graph::{GraphError, GraphParams, GraphReport, PoseEdge, PoseGraph};
+use crate::registration::{
+    PreparedCloud, RegistrationError, RegistrationParams, RegistrationResult, RobustKernel, align,
+};
+
+/// Index of a cloud added to a [`GlobalRegistration`].
+pub type CloudId = usize;
+
+/// Why a global registration step failed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum GlobalError {
+    /// A cloud id that was never added.
+    #[error("cloud {0} is unknown")]
+    UnknownCloud(CloudId),
+    /// Pairwise registration failed.
+    #[error(transparent)]
+    Registration(#[from] RegistrationError),
+    /// The pose graph could not be optimized.
+    #[error(transparent)]
+    Graph(#[from] GraphError),
+}
+
+/// Aligns a source cloud onto a target cloud.
+pub trait PairwiseRegistration: Sync {
+    /// `T_target_source` from `initial`.
+    fn register(
+        &self,
+        target: &PreparedCloud,
+        source: &PreparedCloud,
+        initial: &Pose,
+    ) -> Result<RegistrationResult, RegistrationError>;
+}
+
+impl PairwiseRegistration for RegistrationParams {
+    fn register(
+        &self,
+        target: &PreparedCloud,
+        source: &PreparedCloud,
+        initial: &Pose,
+    ) -> Result<RegistrationResult, RegistrationError> {
+        align(target, source, initial, self)
+    }
+}
+
+/// Finds and verifies loop closures among posed clouds.
+pub trait LoopDetection {
+    /// Candidate pairs `(older, newer)` at the current poses.
+    fn candidates(&self, poses: &[Pose]) -> Vec<(CloudId, CloudId)>;
+    /// `T_older_newer` when the pair really overlaps, else `None`.
+    fn verify(&self, older: &PreparedCloud, newer: &PreparedCloud, guess: &Pose) -> Option<Pose>;
+}
+
+/// Optimizes a pose graph in place.
+pub trait GraphOptimizer {
+    /// Moves the graph's poses to minimize its error.
+    fn optimize(&self, graph: &mut PoseGraph) -> Result<GraphReport, GraphError>;
+}
+
+impl GraphOptimizer for GraphParams {
+    fn optimize(&self, graph: &mut PoseGraph) -> Result<GraphReport, GraphError> {
+        graph.optimize(self)
+    }
+}
+
+/// Registers a set of clouds into one frame.
+pub trait GlobalRegistration {
+    /// Adds a cloud with an optional pose guess (map frame); returns its id.
+    fn add_cloud(
+        &mut self,
+        cloud: PreparedCloud,
+        pose_guess: Option<Pose>,
+    ) -> Result<CloudId, GlobalError>;
+    /// `T_to_from`: maps points of cloud `from` into cloud `to`'s frame.
+    fn transform(&self, from: CloudId, to: CloudId) -> Result<Pose, GlobalError>;
+    /// Refines every pose (loops, optimization); returns what it did.
+    fn compute(&mut self) -> Result<GlobalReport, GlobalError>;
+}
+
+/// What [`GlobalRegistration::compute`] did.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GlobalReport {
+    /// Loop candidates examined.
+    pub loops_found: usize,
+    /// Loops verified and added as edges, `(older, newer)`.
+    pub loops_accepted: Vec<(CloudId, CloudId)>,
+    /// The pose-graph optimization.
+    pub graph: GraphReport,
+}
+
+/// Loop candidates by distance: poses closer than `max_distance` but at least
+/// `min_separation` clouds apart in sequence; once a loop is accepted for a cloud, the
+/// covisible neighbours of its partner are skipped (their constraint would repeat it).
+/// Verified by a coarse-to-fine registration and fitness gates.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DistanceLoopDetection {
+    /// Metres between the two poses, at most.
+    pub max_distance: f64,
+    /// Clouds apart in sequence, at least.
+    pub min_separation: usize,
+    /// Fine registration (its voxel size, distances).
+    pub registration: RegistrationParams,
+    /// Share of the newer cloud's points that must find a partner.
+    pub min_inlier_ratio: f64,
+    /// RMS correspondence distance at most, metres.
+    pub max_rmse: f64,
+}
+
+impl Default for DistanceLoopDetection {
+    fn default() -> Self {
+        Self {
+            max_distance: 10.0,
+            min_separation: 30,
+            registration: RegistrationParams {
+                voxel_size: 0.5,
+                ..RegistrationParams::default()
+            },
+            min_inlier_ratio: 0.6,
+            max_rmse: 0.3,
+        }
+    }
+}
+
+impl LoopDetection for DistanceLoopDetection {
+    fn candidates(&self, poses: &[Pose]) -> Vec<(CloudId, CloudId)> {
+        let mut pairs = Vec::new();
+        for (newer, pn) in poses.iter().enumerate() {
+            let older_end = newer.saturating_sub(self.min_separation);
+            let best = (0..older_end)
+                .map(|older| {
+                    let d = (poses[older].translation.vector - pn.translation.vector).norm();
+                    (d, older)
+                })
+                .filter(|(d, _)| *d < self.max_distance)
+                .min_by(|a, b| a.0.total_cmp(&b.0));
+            if let Some((_, older)) = best {
+                pairs.push((older, newer));
+            }
+        }
+        pairs
+    }
+
+    fn verify(&self, older: &PreparedCloud, newer: &PreparedCloud, guess: &Pose) -> Option<Pose> {
+        // Coarse first: drift can be metres, beyond the fine correspondence distance.
+        let coarse = RegistrationParams {
+            max_correspondence_distance: self.max_distance.min(5.0),
+            max_iterations: 30,
+            kernel: RobustKernel::Cauchy { delta: 1.0 },
+            ..self.registration
+        };
+        let rough = align(older, newer, guess, &coarse).ok()?;
+        let fine = align(older, newer, &rough.pose, &self.registration).ok()?;
+        let good = fine.converged
+            && !fine.degenerate
+            && fine.fitness.inlier_ratio >= self.min_inlier_ratio
+            && fine.fitness.rmse <= self.max_rmse;
+        good.then_some(fine.pose)
+    }
+}
+
+/// Sequential registration (each cloud against the previous one, from the guessed
+/// relative pose), loop detection, and pose-graph optimization.
+pub struct PairwiseGlobalRegistration<P, L, G> {
+    /// Consecutive-cloud registration.
+    pub pairwise: P,
+    /// Loop closure.
+    pub loops: L,
+    /// Graph optimization.
+    pub optimizer: G,
+    /// Information of consecutive and loop edges over `(omega, v)`.
+    pub edge_information: Matrix6<f64>,
+    /// Kernel of loop edges.
+    pub loop_kernel: RobustKernel,
+    /// Register consecutive clouds; when false, consecutive edges take the relative
+    /// pose of the guesses (e.g. scan-to-map odometry, better than keyframe-to-keyframe).
+    pub register_consecutive: bool,
+    clouds: Vec<PreparedCloud>,
+    guesses: Vec<Option<Pose>>,
+    poses: Vec<Pose>,
+    edges: Vec<PoseEdge>,
+}
+
+impl<P: PairwiseRegistration, L: LoopDetection, G: GraphOptimizer>
+    PairwiseGlobalRegistration<P, L, G>
+{
+    /// An empty registration; edges weigh 1 cm / 0.5 deg standard deviations.
+    pub fn new(pairwise: P, loops: L, optimizer: G) -> Self {
+        let (sigma_r, sigma_t) = (0.5f64.to_radians(), 0.01);
+        let information = Matrix6::from_diagonal(&Vector6::new(
+            1.0 / (sigma_r * sigma_r),
+            1.0 / (sigma_r * sigma_r),
+            1.0 / (sigma_r * sigma_r),
+            1.0 / (sigma_t * sigma_t),
+            1.0 / (sigma_t * sigma_t),
+            1.0 / (sigma_t * sigma_t),
+        ));
+        Self {
+            pairwise,
+            loops,
+            optimizer,
+            edge_information: information,
+            loop_kernel: RobustKernel::Cauchy { delta: 1.0 },
+            register_consecutive: true,
+            clouds: Vec::new(),
+            guesses: Vec::new(),
+            poses: Vec::new(),
+            edges: Vec::new(),
+        }
+    }
+
+    /// Current poses, by cloud id.
+    pub fn poses(&self) -> &[Pose] {
+        &self.poses
+    }
+}
+
+impl<P: PairwiseRegistration, L: LoopDetection, G: GraphOptimizer> GlobalRegistration
+    for PairwiseGlobalRegistration<P, L, G>
+{
+    fn add_cloud(
+        &mut self,
+        cloud: PreparedCloud,
+        pose_guess: Option<Pose>,
+    ) -> Result<CloudId, GlobalError> {
+        let id = self.clouds.len();
+        let pose = match (id, self.poses.last(), self.guesses.last()) {
+            (0, _, _) => pose_guess.unwrap_or_else(Pose::identity),
+            (_, Some(prev), previous_guess) => {
+                // The guessed motion since the previous cloud, else none.
+                let relative = match (previous_guess, pose_guess) {
+                    (Some(Some(a)), Some(b)) => a.inverse() * b,
+                    _ => Pose::identity(),
+                };
+                let measured = if self.register_consecutive || pose_guess.is_none() {
+                    self.pairwise
+                        .register(&self.clouds[id - 1], &cloud, &relative)?
+                        .pose
+                } else {
+                    relative
+                };
+                self.edges.push(PoseEdge::new(
+                    (id - 1) as u64,
+                    id as u64,
+                    measured,
+                    self.edge_information,
+                ));
+                prev * measured
+            }
+            _ => unreachable!("poses and clouds grow together"),
+        };
+        self.clouds.push(cloud);
+        self.guesses.push(pose_guess);
+        self.poses.push(pose);
+        Ok(id)
+    }
+
+    fn transform(&self, from: CloudId, to: CloudId) -> Result<Pose, GlobalError> {
+        let pose = |id: CloudId| self.poses.get(id).ok_or(GlobalError::UnknownCloud(id));
+        Ok(pose(to)?.inverse() * pose(from)?)
+    }
+
+    fn compute(&mut self) -> Result<GlobalReport, GlobalError> {
+        let candidates = self.loops.candidates(&self.poses);
+        let mut covis = CovisibilityGraph::new(CovisOptions::default());
+        for (id, (cloud, pose)) in self.clouds.iter().zip(&self.poses).enumerate() {
+            let points = cloud.points.iter().map(|p| {
+                let q = pose * nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+                [q.x, q.y, q.z]
+            });
+            covis.set_keyframe(id as u64, points);
+        }
+        let mut accepted: Vec<(CloudId, CloudId)> = Vec::new();
+        for &(older, newer) in &candidates {
+            // A loop already joins this place: its partner's covisible neighbours repeat it.
+            let repeats = accepted.iter().any(|&(o, n)| {
+                newer.abs_diff(n) < 5 && (o == older || covis.weight(o as u64, older as u64) > 0)
+            });
+            if repeats {
+                continue;
+            }
+            let guess = self.poses[older].inverse() * self.poses[newer];
+            if let Some(t) = self
+                .loops
+                .verify(&self.clouds[older], &self.clouds[newer], &guess)
+            {
+                let mut edge = PoseEdge::new(older as u64, newer as u64, t, self.edge_information);
+                edge.kernel = self.loop_kernel;
+                self.edges.push(edge);
+                accepted.push((older, newer));
+            }
+        }
+        let mut graph = PoseGraph::default();
+        for (id, pose) in self.poses.iter().enumerate() {
+            graph.add_pose(id as u64, *pose)?;
+        }
+        for edge in &self.edges {
+            graph.add_edge(*edge)?;
+        }
+        let report = self.optimizer.optimize(&mut graph)?;
+        for (id, pose) in self.poses.iter_mut().enumerate() {
+            *pose = *graph.pose(id as u64).expect("every cloud is a vertex");
+        }
+        Ok(GlobalReport {
+            loops_found: candidates.len(),
+            loops_accepted: accepted,
+            graph: report,
+        })
+    }
+}

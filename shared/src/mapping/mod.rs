@@ -1,0 +1,157 @@
+//! Map building from raw scans (ARCHITECTURE section 9): scan-to-local-map odometry,
+//! keyframes, keyframe-to-keyframe registration, distance loop detection verified by
+//! GICP, pose-graph optimization; every scan's pose follows its keyframe.
+
+mod framework;
+mod odometry;
+#[cfg(test)]
+mod tests;
+
+use nalgebra::{Matrix3, Vector3};
+
+use crate::cloud::PointCloud;
+use crate::geometry::Pose;
+use crate::map::KeyframeDecider;
+use crate::pose_graph::{GraphParams, GraphReport};
+use crate::registration::{PreparedCloud, RegistrationError};
+pub use framework::{
+    CloudId, DistanceLoopDetection, GlobalError, GlobalRegistration, GlobalReport, GraphOptimizer,
+    LoopDetection, PairwiseGlobalRegistration, PairwiseRegistration,
+};
+pub use odometry::{Odometry, OdometryParams, OdometryStep};
+
+/// Map-building settings.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct BuildParams {
+    /// Scan-to-local-map odometry.
+    pub odometry: OdometryParams,
+    /// Which scans become graph keyframes (on odometry poses).
+    pub keyframes: KeyframeDecider,
+    /// Loop closure.
+    pub loops: DistanceLoopDetection,
+    /// Pose-graph optimization.
+    pub graph: GraphParams,
+}
+
+/// What map building produced.
+#[derive(Debug, Clone)]
+pub struct BuiltTrajectory {
+    /// Every scan's pose after loop closure (`T_map_scan`, map = first scan's frame).
+    pub poses: Vec<Pose>,
+    /// Every scan's pose from odometry alone.
+    pub odometry: Vec<Pose>,
+    /// Scans chosen as graph keyframes.
+    pub keyframe_scans: Vec<usize>,
+    /// Loop candidates and the accepted loops (keyframe indices).
+    pub loops_found: usize,
+    /// Accepted loops `(older, newer)`, keyframe indices.
+    pub loops_accepted: Vec<(usize, usize)>,
+    /// The pose-graph optimization.
+    pub graph: GraphReport,
+}
+
+/// Which stage is running, for progress reports.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stage {
+    /// Odometry over the scans (done, total).
+    Odometry(usize, usize),
+    /// Keyframe-to-keyframe registration (done, total).
+    Keyframes(usize, usize),
+    /// Loop detection and optimization.
+    Optimizing,
+}
+
+/// Builds a consistent trajectory for `scans` (sensor frames, in order; `load(i)` reads
+/// scan `i` of `count`).
+pub fn build_trajectory<E: From<RegistrationError> + From<GlobalError>>(
+    count: usize,
+    mut load: impl FnMut(usize) -> Result<PointCloud, E>,
+    params: &BuildParams,
+    mut progress: impl FnMut(Stage),
+) -> Result<BuiltTrajectory, E> {
+    let mut odometry = Odometry::new(params.odometry);
+    let mut odometry_poses = Vec::with_capacity(count);
+    let mut keyframe_scans: Vec<usize> = Vec::new();
+    let mut keyframe_clouds = Vec::new();
+    for i in 0..count {
+        let scan = load(i)?;
+        let step = odometry.push(&scan)?;
+        if params.keyframes.should_create(
+            keyframe_scans.iter().map(|&k| &odometry_poses[k]),
+            &step.pose,
+        ) {
+            keyframe_scans.push(i);
+            keyframe_clouds.push(PreparedCloud::new(
+                &scan,
+                &params.loops.registration,
+                "keyframe",
+            )?);
+        }
+        odometry_poses.push(step.pose);
+        progress(Stage::Odometry(i + 1, count));
+    }
+    let mut global =
+        PairwiseGlobalRegistration::new(params.loops.registration, params.loops, params.graph);
+    // Scan-to-map odometry beats keyframe-to-keyframe registration: on the campus lap
+    // re-registering consecutive keyframes left 0.72 m ATE after closure, odometry 0.12 m.
+    global.register_consecutive = false;
+    let total = keyframe_clouds.len();
+    for (k, cloud) in keyframe_clouds.into_iter().enumerate() {
+        global.add_cloud(cloud, Some(odometry_poses[keyframe_scans[k]]))?;
+        progress(Stage::Keyframes(k + 1, total));
+    }
+    progress(Stage::Optimizing);
+    let report = global.compute()?;
+    // Each scan keeps its odometry offset from the latest keyframe at or before it.
+    let mut poses = Vec::with_capacity(count);
+    let mut k = 0;
+    for (i, odom) in odometry_poses.iter().enumerate() {
+        while k + 1 < keyframe_scans.len() && keyframe_scans[k + 1] <= i {
+            k += 1;
+        }
+        let anchor = keyframe_scans[k];
+        poses.push(global.poses()[k] * odometry_poses[anchor].inverse() * odom);
+    }
+    Ok(BuiltTrajectory {
+        poses,
+        odometry: odometry_poses,
+        keyframe_scans,
+        loops_found: report.loops_found,
+        loops_accepted: report.loops_accepted,
+        graph: report.graph,
+    })
+}
+
+/// Absolute trajectory error: RMS position difference after the rigid alignment
+/// (Umeyama/Horn, no scale) of `estimate` onto `truth`, metres.
+pub fn absolute_trajectory_error(estimate: &[Pose], truth: &[Pose]) -> f64 {
+    let n = estimate.len().min(truth.len());
+    if n == 0 {
+        return 0.0;
+    }
+    let p: Vec<Vector3<f64>> = estimate[..n].iter().map(|x| x.translation.vector).collect();
+    let q: Vec<Vector3<f64>> = truth[..n].iter().map(|x| x.translation.vector).collect();
+    let (mp, mq) = (
+        p.iter().sum::<Vector3<f64>>() / n as f64,
+        q.iter().sum::<Vector3<f64>>() / n as f64,
+    );
+    let cross: Matrix3<f64> = p
+        .iter()
+        .zip(&q)
+        .map(|(a, b)| (b - mq) * (a - mp).transpose())
+        .sum();
+    let svd = cross.svd(true, true);
+    let (u, v_t) = (svd.u.expect("u"), svd.v_t.expect("v_t"));
+    let mut d = Matrix3::identity();
+    if (u * v_t).determinant() < 0.0 {
+        d[(2, 2)] = -1.0;
+    }
+    let r = u * d * v_t;
+    let t = mq - r * mp;
+    let sum_sq: f64 = p
+        .iter()
+        .zip(&q)
+        .map(|(a, b)| (r * a + t - b).norm_squared())
+        .sum();
+    (sum_sq / n as f64).sqrt()
+}
