@@ -148,6 +148,7 @@ fn demo_simulates_and_uses_a_courtyard_without_data() {
     assert!(
         text.contains("100 scans")
             && text.contains("recovered roll")
+            && text.contains("poses built from the raw scans")
             && text.contains("map levelled")
             && text.contains("scans/000010.pcd")
             && text.contains("no real scan")
@@ -406,17 +407,23 @@ fn bad_maps_and_datasets_exit_2_naming_the_problem() {
     assert_eq!(out.status.code(), Some(2));
     assert!(stderr(&out).contains("corrupt"), "{}", stderr(&out));
 
-    // Datasets: no poses, and poses that do not match the scans.
+    // Datasets: without poses they are built from the scans (no timestamps: no gravity);
+    // poses that do not match the scans are refused.
     std::fs::rename(sim.join("poses_gt.txt"), dir.join("poses.tum")).unwrap();
-    let out = kfmap(&[
+    let built = json(&kfmap(&[
         "bake",
         "--dataset",
         sim.to_str().unwrap(),
         "--out",
-        dir.join("x.kfmap").to_str().unwrap(),
-    ]);
-    assert_eq!(out.status.code(), Some(2));
-    assert!(stderr(&out).contains("no poses"), "{}", stderr(&out));
+        dir.join("built.kfmap").to_str().unwrap(),
+        "--json",
+    ]));
+    assert!(
+        built["mapping"]["keyframes"].as_u64().unwrap() >= 1,
+        "{built}"
+    );
+    assert!(built["mapping"]["ate_m"].is_null());
+    assert!(built["gravity"].is_null());
     let tum = std::fs::read_to_string(dir.join("poses.tum")).unwrap();
     let short: String = tum.lines().take(5).map(|l| format!("{l}\n")).collect();
     let poses = write("short.tum", short.as_bytes());

@@ -15,6 +15,11 @@ use kfmap_shared::io::{IoError, ReadOptions, read_cloud, read_trajectory};
 use kfmap_shared::map::{Keyframe, KeyframeMapOptions};
 use rayon::prelude::*;
 
+use kfmap_shared::mapping::{
+    BuildParams, GlobalError, Stage, absolute_trajectory_error, build_trajectory,
+};
+use kfmap_shared::registration::RegistrationError;
+
 use crate::config::BakeConfig;
 use crate::gravity::{BakeGravity, GravityError, POSE_FILES, bake_gravity, find_in};
 
@@ -27,16 +32,6 @@ pub enum BakeError {
     /// The dataset directory has no scans.
     #[error("{0}: no scans (*.pcd, *.ply, *.bin) in it or in its scans/ folder")]
     NoScans(PathBuf),
-    /// No pose file given or found.
-    #[error(
-        "{dir}: no poses; pass --poses FILE (TUM or KITTI) or put one of {tried} in the dataset"
-    )]
-    NoPoses {
-        /// The dataset.
-        dir: PathBuf,
-        /// Names looked for.
-        tried: String,
-    },
     /// Poses and scans cannot be matched.
     #[error(
         "{poses}: {count} poses for {scans} scans; scans named by frame number need a pose per number, others exactly one pose each"
@@ -66,6 +61,12 @@ pub enum BakeError {
     /// The dataset's IMU log could not be used.
     #[error(transparent)]
     Gravity(#[from] GravityError),
+    /// Building poses from the scans failed (registration).
+    #[error("building poses from the scans: {0}")]
+    Registration(#[from] RegistrationError),
+    /// Building poses from the scans failed (loops, graph).
+    #[error("building poses from the scans: {0}")]
+    Mapping(#[from] GlobalError),
 }
 
 /// Where a bake reads from.
@@ -73,20 +74,57 @@ pub enum BakeError {
 pub struct BakeInput {
     /// Dataset directory (simulator output, or scans + a pose file).
     pub dataset: PathBuf,
-    /// Pose file; default: the first of `poses_gt.txt`, `poses.txt`,
-    /// `poses_velo_kitti.txt` in the dataset.
+    /// Pose file; default: the first of [`POSE_FILES`] in the dataset.
     pub poses: Option<PathBuf>,
+    /// Build the poses from the scans (odometry, loops, pose graph) even when a pose
+    /// file exists; it then serves as ground truth for the ATE. Without any pose file
+    /// the poses are always built.
+    pub build_poses: bool,
 }
 
-/// Progress of a bake, after each keyframe written.
+/// Which part of a bake is running.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BakeStage {
+    /// Odometry over the scans (building poses).
+    Odometry,
+    /// Keyframe-to-keyframe edges (building poses).
+    Keyframes,
+    /// Loop detection and pose-graph optimization (building poses).
+    Optimizing,
+    /// Keyframes indexed and written.
+    Writing,
+}
+
+/// Progress of a bake.
 #[derive(Debug, Clone, Copy)]
 pub struct BakeProgress {
-    /// Keyframes written so far.
-    pub keyframes_done: usize,
-    /// Keyframes in total.
-    pub keyframes_total: usize,
+    /// The stage.
+    pub stage: BakeStage,
+    /// Items of the stage done (scans, keyframes).
+    pub done: usize,
+    /// Items of the stage in total.
+    pub total: usize,
     /// Points written so far.
     pub points_done: u64,
+}
+
+/// What building the poses from the scans did.
+#[derive(Debug, Clone)]
+pub struct MappingSummary {
+    /// Graph keyframes.
+    pub keyframes: usize,
+    /// Loop candidates examined.
+    pub loops_found: usize,
+    /// Loops verified and added.
+    pub loops_accepted: usize,
+    /// Pose-graph error before and after optimization.
+    pub graph_error: (f64, f64),
+    /// Every scan's built pose (`T_map_scan`, map = the first scan's frame).
+    pub poses: Vec<Pose>,
+    /// Keyframe ATE against the dataset's pose file, metres, when there is one.
+    pub ate: Option<f64>,
+    /// The same for odometry alone.
+    pub ate_odometry: Option<f64>,
 }
 
 /// What a bake produced.
@@ -94,6 +132,8 @@ pub struct BakeProgress {
 pub struct BakeReport {
     /// Scans in the dataset.
     pub scans: usize,
+    /// Pose building, when the poses came from the scans.
+    pub mapping: Option<MappingSummary>,
     /// The gravity stage, when the dataset has an IMU log.
     pub gravity: Option<BakeGravity>,
     /// The file written.
@@ -135,6 +175,7 @@ pub fn find_scans(dataset: &Path) -> Result<Vec<PathBuf>, BakeError> {
 }
 
 /// Every scan's pose and time (the pose index when the file has no timestamps).
+#[derive(Debug, Clone)]
 struct ScanPoses {
     poses: Vec<Pose>,
     stamps: Vec<f64>,
@@ -144,14 +185,8 @@ struct ScanPoses {
 
 /// The pose of every scan: by frame number when every scan is named by one (KITTI
 /// `000123.bin`), else one pose per scan in order.
-fn scan_poses(input: &BakeInput, scans: &[PathBuf]) -> Result<ScanPoses, BakeError> {
-    let path = match &input.poses {
-        Some(p) => p.clone(),
-        None => find_in(&input.dataset, &POSE_FILES).ok_or_else(|| BakeError::NoPoses {
-            dir: input.dataset.clone(),
-            tried: POSE_FILES.join(", "),
-        })?,
-    };
+fn scan_poses(path: &Path, scans: &[PathBuf]) -> Result<ScanPoses, BakeError> {
+    let path = path.to_path_buf();
     let trajectory = read_trajectory(&path)?;
     let count_error = || BakeError::PoseCount {
         poses: path.clone(),
@@ -182,14 +217,69 @@ fn scan_poses(input: &BakeInput, scans: &[PathBuf]) -> Result<ScanPoses, BakeErr
     })
 }
 
-/// Reads, filters and downsamples one scan.
-fn load_scan(path: &Path, config: &BakeConfig) -> Result<PointCloud, BakeError> {
+/// Reads and filters one scan.
+fn load_raw_scan(path: &Path, config: &BakeConfig) -> Result<PointCloud, BakeError> {
     let sidecar = path.with_extension("bin.layout").is_file();
     let options = ReadOptions {
         bin_layout: (!sidecar).then_some(config.input.bin_layout),
         filter: config.filter,
     };
-    let cloud = read_cloud(path, &options)?.cloud;
+    Ok(read_cloud(path, &options)?.cloud)
+}
+
+/// Poses built from the scans; `truth` (a pose file) gives stamps and the ATE.
+fn build_poses(
+    scans: &[PathBuf],
+    config: &BakeConfig,
+    truth: Option<&ScanPoses>,
+    progress: &mut impl FnMut(BakeProgress),
+) -> Result<(ScanPoses, MappingSummary), BakeError> {
+    let report = |stage, done, total| BakeProgress {
+        stage,
+        done,
+        total,
+        points_done: 0,
+    };
+    let built = build_trajectory::<BakeError>(
+        scans.len(),
+        |i| load_raw_scan(&scans[i], config),
+        &BuildParams::default(),
+        |stage| {
+            progress(match stage {
+                Stage::Odometry(d, t) => report(BakeStage::Odometry, d, t),
+                Stage::Keyframes(d, t) => report(BakeStage::Keyframes, d, t),
+                Stage::Optimizing => report(BakeStage::Optimizing, 0, 1),
+            })
+        },
+    )?;
+    let at_keyframes =
+        |poses: &[Pose]| -> Vec<Pose> { built.keyframe_scans.iter().map(|&i| poses[i]).collect() };
+    let ate = |poses: &[Pose]| {
+        truth.map(|t| absolute_trajectory_error(&at_keyframes(poses), &at_keyframes(&t.poses)))
+    };
+    let summary = MappingSummary {
+        keyframes: built.keyframe_scans.len(),
+        loops_found: built.loops_found,
+        loops_accepted: built.loops_accepted.len(),
+        graph_error: (built.graph.initial_error, built.graph.final_error),
+        ate: ate(&built.poses),
+        ate_odometry: ate(&built.odometry),
+        poses: built.poses.clone(),
+    };
+    let poses = ScanPoses {
+        poses: built.poses,
+        stamps: truth.map_or_else(
+            || (0..scans.len()).map(|i| i as f64).collect(),
+            |t| t.stamps.clone(),
+        ),
+        stamped: truth.is_some_and(|t| t.stamped),
+    };
+    Ok((poses, summary))
+}
+
+/// Reads, filters and downsamples one scan.
+fn load_scan(path: &Path, config: &BakeConfig) -> Result<PointCloud, BakeError> {
+    let cloud = load_raw_scan(path, config)?;
     let cloud = if config.keyframes.voxel_size > 0.0 {
         cloud
             .voxel_downsample(config.keyframes.voxel_size)
@@ -219,11 +309,23 @@ pub fn bake(
 ) -> Result<BakeReport, BakeError> {
     let started = Instant::now();
     let scans = find_scans(&input.dataset)?;
+    let pose_file = input
+        .poses
+        .clone()
+        .or_else(|| find_in(&input.dataset, &POSE_FILES));
+    let (scan_poses, mapping) = match pose_file {
+        Some(path) if !input.build_poses => (scan_poses(&path, &scans)?, None),
+        truth => {
+            let truth = truth.map(|p| scan_poses(&p, &scans)).transpose()?;
+            let (built, summary) = build_poses(&scans, config, truth.as_ref(), &mut progress)?;
+            (built, Some(summary))
+        }
+    };
     let ScanPoses {
         mut poses,
         stamps,
         stamped,
-    } = scan_poses(input, &scans)?;
+    } = scan_poses;
     let decider = config.keyframes.decider();
     let mut chosen: Vec<usize> = Vec::new();
     for (i, pose) in poses.iter().enumerate() {
@@ -256,8 +358,9 @@ pub fn bake(
     let mut covis = CovisibilityGraph::new(options.covisibility);
     let chunk = 2 * rayon::current_num_threads();
     let mut done = BakeProgress {
-        keyframes_done: 0,
-        keyframes_total: chosen.len(),
+        stage: BakeStage::Writing,
+        done: 0,
+        total: chosen.len(),
         points_done: 0,
     };
     for (chunk_index, batch) in chosen.chunks(chunk).enumerate() {
@@ -278,7 +381,7 @@ pub fn bake(
         for k in &keyframes {
             covis.set_keyframe(k.id, k.map_points()?);
             writer.write_keyframe(k)?;
-            done.keyframes_done += 1;
+            done.done += 1;
             done.points_done += k.len() as u64;
             progress(done);
         }
@@ -287,6 +390,7 @@ pub fn bake(
     let written = writer.finish(chosen.len() as u64, &covis.snapshot(), pool)?;
     Ok(BakeReport {
         scans: scans.len(),
+        mapping,
         gravity,
         written,
         seconds: started.elapsed().as_secs_f64(),

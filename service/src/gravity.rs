@@ -257,8 +257,8 @@ pub struct BakeGravity {
 
 /// The gravity stage of a bake: pools the IMU windows of the chosen keyframes (`ids`
 /// and `keyframe_scans` in step: keyframe id, index of its scan), with motion taken
-/// from every scan's pose and stamp. `Ok(None)` without an IMU log; poses without
-/// timestamps are an error then, since the windows cannot be cut.
+/// from every scan's pose and stamp. `Ok(None)` without an IMU log, or (with a warning)
+/// when the poses have no timestamps to cut its windows with.
 pub fn bake_gravity(
     dataset: &Path,
     params: &GravityParams,
@@ -269,7 +269,13 @@ pub fn bake_gravity(
     let Some(imu_path) = find_in(dataset, &IMU_FILES) else {
         return Ok(None);
     };
-    let stamps = scan_stamps.ok_or_else(|| GravityError::NoStamps(dataset.to_path_buf()))?;
+    let Some(stamps) = scan_stamps else {
+        tracing::warn!(
+            "{}: the poses have no timestamps, so its IMU windows cannot be cut; the map is baked without gravity",
+            imu_path.display()
+        );
+        return Ok(None);
+    };
     let imu = read_imu(&imu_path)?;
     check_overlap(&imu_path, &imu, stamps)?;
     let keyframes: Vec<KeyframeStamp> = keyframe_scans

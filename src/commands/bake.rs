@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
-use kfmap_service::bake::{BakeInput, bake};
+use kfmap_service::bake::{BakeInput, BakeStage, MappingSummary, bake};
 use kfmap_service::config::{BakeConfig, ConfigFile};
 use kfmap_service::gravity::BakeGravity;
 use serde_json::json;
@@ -24,6 +24,12 @@ use serde_json::json;
 /// (motion-compensated, see `kfmap gravity --help`) and, with [map] align-gravity = true,
 /// every pose is rotated by the estimated roll and pitch so the map has +Z up.
 ///
+/// Without a pose file (or with --build-poses) the poses are built from the scans:
+/// scan-to-local-map GICP odometry, keyframes, loop candidates by distance verified by
+/// GICP, and a pose-graph optimization; a progress bar follows each stage and the
+/// summary gives loops found/accepted, the graph error and, when a pose file exists,
+/// the keyframe ATE against it.
+///
 /// The file is written beside MAP.kfmap under a temporary name and renamed when
 /// complete: an interrupted bake never leaves a partial map. Memory stays bounded by a
 /// few keyframes at a time, whatever the map's size.
@@ -41,6 +47,10 @@ pub struct Args {
     /// Pose file (TUM or KITTI); default: found in the dataset folder.
     #[arg(long)]
     poses: Option<PathBuf>,
+    /// Build the poses from the scans even when a pose file exists (it then serves as
+    /// ground truth for the printed ATE).
+    #[arg(long)]
+    build_poses: bool,
     /// Output map file (conventionally *.kfmap).
     #[arg(long)]
     out: PathBuf,
@@ -82,13 +92,19 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let input = BakeInput {
         dataset: args.dataset.clone(),
         poses: args.poses.clone(),
+        build_poses: args.build_poses,
     };
     let report = pool.install(|| {
         bake(&input, &config, &args.out, |p| {
-            bar.set_length(p.keyframes_total as u64);
-            bar.set_position(p.keyframes_done as u64);
+            bar.set_length(p.total as u64);
+            bar.set_position(p.done as u64);
             let rate = p.points_done as f64 / started.elapsed().as_secs_f64().max(1e-9);
-            bar.set_message(format!("{:.2} M points/s", rate / 1e6));
+            bar.set_message(match p.stage {
+                BakeStage::Odometry => "odometry (scans)".to_string(),
+                BakeStage::Keyframes => "pose-graph keyframes".to_string(),
+                BakeStage::Optimizing => "loop closure and pose-graph optimization".to_string(),
+                BakeStage::Writing => format!("writing keyframes, {:.2} M points/s", rate / 1e6),
+            });
         })
     })?;
     bar.finish_and_clear();
@@ -116,6 +132,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 "points_per_second": report.points_per_second(),
                 "threads": pool.current_num_threads(),
                 "gravity": gravity,
+                "mapping": report.mapping.as_ref().map(|m| json!({
+                    "keyframes": m.keyframes, "loops_found": m.loops_found,
+                    "loops_accepted": m.loops_accepted, "graph_error_initial": m.graph_error.0,
+                    "graph_error_final": m.graph_error.1, "ate_m": m.ate,
+                    "ate_odometry_m": m.ate_odometry,
+                })),
             })
         );
     } else {
@@ -130,6 +152,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             report.points_per_second() / 1e6,
             pool.current_num_threads()
         );
+        if let Some(m) = &report.mapping {
+            print_mapping(m);
+        }
         if let Some(g) = &report.gravity {
             print_gravity(g);
         }
@@ -157,5 +182,18 @@ fn print_gravity(g: &BakeGravity) {
             g.imu.display(),
             g.fill.with_samples
         ),
+    }
+}
+
+fn print_mapping(m: &MappingSummary) {
+    println!(
+        "  poses built from the scans: {} graph keyframes, loops {} found / {} accepted, graph error {:.3} -> {:.3}",
+        m.keyframes, m.loops_found, m.loops_accepted, m.graph_error.0, m.graph_error.1
+    );
+    if let (Some(ate), Some(odometry)) = (m.ate, m.ate_odometry) {
+        println!(
+            "  keyframe ATE against the pose file: {:.3} m (odometry alone {:.3} m)",
+            ate, odometry
+        );
     }
 }
