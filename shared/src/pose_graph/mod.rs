@@ -12,7 +12,7 @@
 //! let mut graph = PoseGraph::default();
 //! let step = Pose::translation(1.0, 0.0, 0.0);
 //! for id in 0..3 {
-//!     graph.add_pose(id, Pose::translation(0.9 * id as f64, 0.1, 0.0)).unwrap();
+//!     graph.add_pose(id, Pose::translation(0.9 * id as f64, 0.1 * id as f64, 0.0)).unwrap();
 //! }
 //! for id in 0..2 {
 //!     graph.add_edge(PoseEdge::new(id, id + 1, step, Matrix6::identity())).unwrap();
