@@ -241,7 +241,8 @@ impl PoseGraph {
                 let r = self.residual(e);
                 0.5 * e.kernel.rho(r.dot(&(e.information * r)))
             })
-            .sum()
+            .sum::<f64>()
+            + 0.0 // An empty float sum is -0.0.
     }
 
     fn residual(&self, e: &PoseEdge) -> nalgebra::Vector6<f64> {
