@@ -28,12 +28,14 @@ impl fmt::Display for Location {
 #[derive(Debug, thiserror::Error)]
 pub enum IoError {
     /// The operating system refused (missing file, permissions, full disk).
-    #[error("{}: {source}", path.display())]
+    // Not a `source` field: the message already says it, and error chains would
+    // repeat it.
+    #[error("{}: {cause}", path.display())]
     Os {
         /// The file.
         path: PathBuf,
         /// What the OS said.
-        source: std::io::Error,
+        cause: std::io::Error,
     },
     /// The content is not what its format requires.
     #[error("{}: {location}: {reason}", path.display())]
@@ -71,7 +73,7 @@ impl IoError {
     pub fn os(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
         IoError::Os {
             path: path.into(),
-            source,
+            cause: source,
         }
     }
 }
