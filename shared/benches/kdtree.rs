@@ -8,6 +8,7 @@ use std::num::NonZeroUsize;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use kfmap_shared::datasets::require_test_data;
+use kfmap_shared::geometry::{to_point, transform_point};
 use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
 use kfmap_shared::spatial::{LEAF_SIZE, build_tree_with_leaf, morton_order};
 use kiddo::Eytzinger;
@@ -34,10 +35,7 @@ fn bench_kdtree(c: &mut Criterion) {
     let relative = poses[0].inverse() * poses[1];
     let queries: Vec<[f32; 3]> = read(1)
         .iter()
-        .map(|p| {
-            let q = relative * nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
-            [q.x as f32, q.y as f32, q.z as f32]
-        })
+        .map(|p| to_point(&transform_point(&relative, p)))
         .collect();
     let sorted: Vec<[f32; 3]> = morton_order(&queries)
         .iter()

@@ -7,7 +7,7 @@ use kfmap_shared::archive::{OpenOptions, open_map, save_map};
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::cov::estimate_covariances;
 use kfmap_shared::datasets::require_test_data;
-use kfmap_shared::geometry::PackedSym3;
+use kfmap_shared::geometry::{PackedSym3, to_point, transform_point};
 use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
 use kfmap_shared::map::{ActiveSet, KeyframeMap, KeyframeMapOptions};
 use kiddo::kd_tree::KdTree;
@@ -84,10 +84,7 @@ fn bench_map(c: &mut Criterion) {
     let moved: Vec<[f32; 3]> = query
         .points
         .iter()
-        .map(|p| {
-            let q = at * nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
-            [q.x as f32, q.y as f32, q.z as f32]
-        })
+        .map(|p| to_point(&transform_point(&at, p)))
         .collect();
     let pairs = |active: &ActiveSet, covs: Option<&[PackedSym3]>| {
         one.install(|| active.cov2cov(&query, &at, 1.0, covs).expect("pairs").len())

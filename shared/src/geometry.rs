@@ -101,6 +101,11 @@ pub fn to_point(v: &Vector3<f64>) -> [f32; 3] {
     [v.x as f32, v.y as f32, v.z as f32]
 }
 
+/// A stored `f32` point moved by `pose`, in f64.
+pub fn transform_point(pose: &Pose, p: &[f32; 3]) -> Vector3<f64> {
+    pose.rotation * to_vec3(p) + pose.translation.vector
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

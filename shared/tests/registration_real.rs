@@ -3,9 +3,9 @@
 
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::datasets::require_test_data;
-use kfmap_shared::geometry::Pose;
+use kfmap_shared::geometry::{Pose, transform_point};
 use kfmap_shared::io::{BinLayout, ReadOptions, read_cloud, read_trajectory};
-use kfmap_shared::registration::{RegistrationParams, register};
+use kfmap_shared::registration::{RegistrationParams, RegistrationResult, register};
 use nalgebra::{Matrix4, UnitQuaternion, Vector3};
 
 fn read(path: &std::path::Path, layout: Option<BinLayout>) -> PointCloud {
@@ -43,6 +43,15 @@ fn graph_poses(text: &str) -> Vec<Pose> {
         .collect()
 }
 
+/// Registration with the default settings.
+fn register_default(
+    target: &PointCloud,
+    source: &PointCloud,
+    initial: &Pose,
+) -> RegistrationResult {
+    register(target, source, initial, &RegistrationParams::default()).unwrap()
+}
+
 #[test]
 fn kitti07_keyframes_agree_with_their_optimized_poses() {
     let Some(dir) = require_test_data("kitti07", "registration_real") else {
@@ -54,13 +63,7 @@ fn kitti07_keyframes_agree_with_their_optimized_poses() {
         .collect();
     for i in 0..4 {
         let truth = poses[i].inverse() * poses[i + 1];
-        let result = register(
-            &clouds[i],
-            &clouds[i + 1],
-            &truth,
-            &RegistrationParams::default(),
-        )
-        .unwrap();
+        let result = register_default(&clouds[i], &clouds[i + 1], &truth);
         let (t, r) = difference(&result.pose, &truth);
         println!(
             "kitti07 {i}-{}: {:.2} cm, {:.3} deg from graph.txt, {} iterations, inliers {:.2}",
@@ -97,13 +100,7 @@ fn kitti00_pairs_land_no_farther_from_ground_truth_than_small_gicp() {
         .collect();
     for (i, (cm, deg)) in anchor.iter().enumerate() {
         let gt = truth[i].inverse() * truth[i + 1];
-        let result = register(
-            &scans[i],
-            &scans[i + 1],
-            &Pose::identity(),
-            &RegistrationParams::default(),
-        )
-        .unwrap();
+        let result = register_default(&scans[i], &scans[i + 1], &Pose::identity());
         let (t, r) = difference(&result.pose, &gt);
         println!(
             "kitti00 {i}-{}: {:.3} cm, {:.4} deg from ground truth (small_gicp {cm} cm, {deg} deg), {} iterations",
@@ -144,7 +141,7 @@ fn a_known_transform_of_a_real_scan_is_recovered() {
             .points
             .iter()
             .map(|p| {
-                let q = inverse * nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+                let q = transform_point(&inverse, p);
                 [
                     (q.x + noise()) as f32,
                     (q.y + noise()) as f32,
@@ -153,13 +150,7 @@ fn a_known_transform_of_a_real_scan_is_recovered() {
             })
             .collect(),
     );
-    let result = register(
-        &target,
-        &source,
-        &Pose::identity(),
-        &RegistrationParams::default(),
-    )
-    .unwrap();
+    let result = register_default(&target, &source, &Pose::identity());
     let (t, r) = difference(&result.pose, &known);
     println!("known transform: {:.2} cm, {:.4} deg off", t * 100.0, r);
     assert!(t < 0.01 && r < 0.05, "{t} m {r} deg");
@@ -236,13 +227,7 @@ fn a_featureless_corridor_is_reported_degenerate() {
             .map(|p| [p[0] - 0.3, p[1], p[2]])
             .collect(),
     );
-    let result = register(
-        &corridor,
-        &shifted,
-        &Pose::identity(),
-        &RegistrationParams::default(),
-    )
-    .unwrap();
+    let result = register_default(&corridor, &shifted, &Pose::identity());
     println!("corridor: {:?}", result.constraint);
     assert!(result.degenerate, "{:?}", result.constraint);
     assert!(result.constraint.translation_ratio < 1e-2);
@@ -250,7 +235,7 @@ fn a_featureless_corridor_is_reported_degenerate() {
     let Some((target, source, truth)) = small_gicp_pair() else {
         return;
     };
-    let real = register(&target, &source, &truth, &RegistrationParams::default()).unwrap();
+    let real = register_default(&target, &source, &truth);
     println!("small_gicp pair: {:?}", real.constraint);
     assert!(!real.degenerate, "{:?}", real.constraint);
 }
@@ -260,13 +245,7 @@ fn the_small_gicp_pair_lands_as_close_to_its_reference_as_small_gicp() {
     let Some((target, source, truth)) = small_gicp_pair() else {
         return;
     };
-    let result = register(
-        &target,
-        &source,
-        &Pose::identity(),
-        &RegistrationParams::default(),
-    )
-    .unwrap();
+    let result = register_default(&target, &source, &Pose::identity());
     let (t, r) = difference(&result.pose, &truth);
     // small_gicp 1.0.1 `align` from the raw clouds, 0.25 m voxels: 0.706 cm, 0.3327 deg
     // (tools/anchors/small_gicp_reg.py; f32 vs f64 margin of 0.05 mm / 0.005 deg).

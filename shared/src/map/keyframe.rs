@@ -10,7 +10,7 @@ use crate::KeyframeId;
 use crate::archive::{ArchiveError, BakedKeyframe};
 use crate::cloud::{Aabb, PointCloud};
 use crate::cov::{CovOptions, estimate_covariances};
-use crate::geometry::{PackedSym3, Pose, rotation_distance, translation_distance};
+use crate::geometry::{PackedSym3, Pose, rotation_distance, transform_point, translation_distance};
 use crate::spatial::{PointTree, TreeError, TreeRef, build_tree};
 
 /// A keyframe of the map.
@@ -164,10 +164,7 @@ impl Keyframe {
             .view()?
             .points
             .iter()
-            .map(|p| {
-                let q = self.pose * nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
-                [q.x, q.y, q.z]
-            })
+            .map(|p| transform_point(&self.pose, p).into())
             .collect())
     }
 }

@@ -4,7 +4,7 @@
 use nalgebra::{Matrix6, Vector6};
 
 use crate::covis::{CovisOptions, CovisibilityGraph};
-use crate::geometry::Pose;
+use crate::geometry::{Pose, transform_point};
 use crate::pose_graph::{GraphError, GraphParams, GraphReport, PoseEdge, PoseGraph};
 use crate::registration::{
     PreparedCloud, RegistrationError, RegistrationParams, RegistrationResult, RobustKernel, align,
@@ -269,10 +269,7 @@ impl<P: PairwiseRegistration, L: LoopDetection, G: GraphOptimizer> GlobalRegistr
         let candidates = self.loops.candidates(&self.poses);
         let mut covis = CovisibilityGraph::new(CovisOptions::default());
         for (id, (cloud, pose)) in self.clouds.iter().zip(&self.poses).enumerate() {
-            let points = cloud.points.iter().map(|p| {
-                let q = pose * nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
-                [q.x, q.y, q.z]
-            });
+            let points = cloud.points.iter().map(|p| transform_point(pose, p).into());
             covis.set_keyframe(id as u64, points);
         }
         let mut accepted: Vec<(CloudId, CloudId)> = Vec::new();

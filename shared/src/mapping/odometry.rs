@@ -4,7 +4,7 @@
 use std::collections::VecDeque;
 
 use crate::cloud::PointCloud;
-use crate::geometry::Pose;
+use crate::geometry::{Pose, to_point, transform_point};
 use crate::map::KeyframeDecider;
 use crate::registration::{
     PreparedCloud, RegistrationError, RegistrationParams, RegistrationResult, align,
@@ -92,10 +92,7 @@ impl Odometry {
             let moved: Vec<[f32; 3]> = prepared
                 .points
                 .iter()
-                .map(|p| {
-                    let q = pose * nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
-                    [q.x as f32, q.y as f32, q.z as f32]
-                })
+                .map(|p| to_point(&transform_point(&pose, p)))
                 .collect();
             self.keyframes.push_back((pose, moved));
             while self.keyframes.len() > self.params.local_map_keyframes {
