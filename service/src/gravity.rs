@@ -176,19 +176,21 @@ pub fn pose_stamps<'t>(path: &Path, trajectory: &'t Trajectory) -> Result<&'t [f
         .ok_or_else(|| GravityError::NoStamps(path.to_path_buf()))
 }
 
+/// Smallest and largest of `values`.
+fn span(values: impl Iterator<Item = f64>) -> (f64, f64) {
+    values.fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
+        (lo.min(v), hi.max(v))
+    })
+}
+
 /// Checks that the IMU log and the poses share a clock (their spans overlap).
 pub fn check_overlap(
     imu_path: &Path,
     imu: &[ImuSample],
     stamps: &[f64],
 ) -> Result<(), GravityError> {
-    let span = |t: &mut dyn Iterator<Item = f64>| {
-        t.fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
-            (lo.min(v), hi.max(v))
-        })
-    };
-    let (i0, i1) = span(&mut imu.iter().map(|s| s.t));
-    let (p0, p1) = span(&mut stamps.iter().copied());
+    let (i0, i1) = span(imu.iter().map(|s| s.t));
+    let (p0, p1) = span(stamps.iter().copied());
     if i1 < p0 || p1 < i0 {
         return Err(GravityError::NoOverlap {
             imu: imu_path.to_path_buf(),

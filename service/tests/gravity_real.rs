@@ -26,13 +26,17 @@ fn real_imu_gravity_matches_the_mean_over_quiet_keyframes() {
     let trajectory = read_trajectory(&input.poses).unwrap();
     let stamps = trajectory.stamps.unwrap();
     let mut sum = Vector3::zeros();
-    let mut quiet = 0;
+    let (mut quiet, mut with_samples) = (0, 0);
     for k in (10..stamps.len()).step_by(10) {
         let window: Vec<Vector3<f64>> = imu
             .iter()
             .filter(|s| s.t > stamps[k - 10] && s.t <= stamps[k])
             .map(|s| Vector3::from(s.acc))
             .collect();
+        if window.is_empty() {
+            continue;
+        }
+        with_samples += 1;
         let mean = window.iter().sum::<Vector3<f64>>() / window.len() as f64;
         let spread = (window
             .iter()
@@ -63,7 +67,10 @@ fn real_imu_gravity_matches_the_mean_over_quiet_keyframes() {
     assert!(quiet >= 100, "{quiet} quiet keyframes");
     assert!(off(&raw.estimate.g) < 0.5);
     assert!(off(&compensated.estimate.g) < 0.5);
-    assert_eq!(raw.estimate.health.members, 237);
+    // The first keyframe's window ends before the IMU log starts (0.31 s later); every
+    // other keyframe pools what the oracle found.
+    assert!(imu[0].t > stamps[0]);
+    assert_eq!(raw.estimate.health.members, with_samples);
     // Compensation must not spread the pool; on this run it tightens it.
     assert!(compensated.estimate.health.spread_deg < raw.estimate.health.spread_deg);
 }

@@ -3,7 +3,7 @@
 
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::datasets::require_test_data;
-use kfmap_shared::geometry::{Pose, transform_point};
+use kfmap_shared::geometry::{Pose, pose_from_xyz_quat, transform_point};
 use kfmap_shared::io::{BinLayout, ReadOptions, read_cloud, read_trajectory};
 use kfmap_shared::registration::{RegistrationParams, RegistrationResult, register};
 use nalgebra::{Matrix4, UnitQuaternion, Vector3};
@@ -34,11 +34,7 @@ fn graph_poses(text: &str) -> Vec<Pose> {
                 .skip(1)
                 .map(|w| w.parse().unwrap())
                 .collect();
-            let q = nalgebra::Quaternion::new(v[6], v[3], v[4], v[5]);
-            Pose::from_parts(
-                Vector3::new(v[0], v[1], v[2]).into(),
-                UnitQuaternion::from_quaternion(q),
-            )
+            pose_from_xyz_quat(v.try_into().unwrap()).unwrap()
         })
         .collect()
 }

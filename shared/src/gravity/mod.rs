@@ -192,9 +192,6 @@ fn rotation_from_roll_pitch(roll: f64, pitch: f64) -> Rotation3<f64> {
     Rotation3::from_matrix_unchecked(m)
 }
 
-/// Why an aligner could not be made.
-pub type GravityError = InvalidOption;
-
 /// The per-keyframe accelerometer pool and the robust estimates over it.
 #[derive(Debug, Clone)]
 pub struct GravityAligner {
@@ -210,7 +207,7 @@ struct Member {
 
 impl GravityAligner {
     /// An empty pool; the parameters are validated.
-    pub fn new(params: GravityParams) -> Result<Self, GravityError> {
+    pub fn new(params: GravityParams) -> Result<Self, InvalidOption> {
         params.validate()?;
         Ok(Self {
             params,

@@ -99,22 +99,21 @@ pub fn compensated_sample(
     pose: &Pose,
     motion: &MotionModel,
 ) -> Option<KfAccSample> {
-    let covered: Vec<_> = window
+    // Each finite sample the trajectory covers, rotated into the map at its time.
+    let in_map: Vec<(f64, Vector3<f64>)> = window
         .samples()
         .iter()
-        .filter(|s| s.acc.iter().all(|a| a.is_finite()) && motion.rotation(s.t).is_some())
-        .copied()
+        .filter(|s| s.acc.iter().all(|a| a.is_finite()))
+        .filter_map(|s| Some((s.t, motion.rotation(s.t)? * Vector3::from(s.acc))))
         .collect();
-    let raw = KfAccSample::from_window(&ImuWindow::new(covered.clone()))?;
-    let t_kf = covered.last()?.t;
+    let t_kf = in_map.last()?.0;
     let platform = motion.mean_acceleration(t_prev.max(motion.start()), t_kf)?;
-    let in_map = covered
-        .iter()
-        .filter_map(|s| Some(motion.rotation(s.t)? * Vector3::from(s.acc)))
-        .sum::<Vector3<f64>>()
-        / covered.len() as f64;
+    let mean = in_map.iter().map(|(_, a)| a).sum::<Vector3<f64>>() / in_map.len() as f64;
+    // The magnitude spread (shakiness) is the window's, as without compensation.
+    let raw = KfAccSample::from_window(window)?;
     Some(KfAccSample {
-        a_body: pose.rotation.inverse() * (in_map - platform),
+        a_body: pose.rotation.inverse() * (mean - platform),
+        n: in_map.len(),
         ..raw
     })
 }

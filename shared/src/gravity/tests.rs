@@ -130,9 +130,9 @@ fn a_window_is_half_open_and_its_statistics_are_as_specified() {
             gyro: [0.0; 3],
         })
         .collect();
-    let w = ImuWindow::cut(&stream, 0.2, 0.5);
-    let times: Vec<f64> = w.samples().iter().map(|s| s.t).collect();
-    assert_eq!(times, vec![0.30000000000000004, 0.4, 0.5]);
+    // (0.2, 0.5] holds samples 3, 4 and 5 (t = 0.3, 0.4, 0.5), not 2.
+    let w = ImuWindow::cut(&stream, stream[2].t, stream[5].t);
+    assert_eq!(w.samples(), &stream[3..6]);
     assert!(ImuWindow::cut(&stream, 0.5, 0.5).is_empty());
     // Magnitudes 9 and 11 about a mean of 10: population std 1.
     let all = KfAccSample::from_window(&ImuWindow::new(stream.clone())).unwrap();

@@ -10,6 +10,9 @@ use crate::registration::{
     PreparedCloud, RegistrationError, RegistrationParams, RegistrationResult, RobustKernel, align,
 };
 
+/// Clouds this close in sequence to an accepted loop's newer end share its loop.
+const LOOP_NEIGHBOURHOOD: usize = 5;
+
 /// Index of a cloud added to a [`GlobalRegistration`].
 pub type CloudId = usize;
 
@@ -104,7 +107,7 @@ pub struct DistanceLoopDetection {
     pub max_distance: f64,
     /// Clouds apart in sequence, at least.
     pub min_separation: usize,
-    /// Fine registration (its voxel size, distances).
+    /// Fine registration (distances, iterations; clouds come prepared).
     pub registration: RegistrationParams,
     /// Share of the newer cloud's points that must find a partner.
     pub min_inlier_ratio: f64,
@@ -117,10 +120,7 @@ impl Default for DistanceLoopDetection {
         Self {
             max_distance: 10.0,
             min_separation: 30,
-            registration: RegistrationParams {
-                voxel_size: 0.5,
-                ..RegistrationParams::default()
-            },
+            registration: RegistrationParams::default(),
             min_inlier_ratio: 0.6,
             max_rmse: 0.3,
         }
@@ -276,7 +276,8 @@ impl<P: PairwiseRegistration, L: LoopDetection, G: GraphOptimizer> GlobalRegistr
         for &(older, newer) in &candidates {
             // A loop already joins this place: its partner's covisible neighbours repeat it.
             let repeats = accepted.iter().any(|&(o, n)| {
-                newer.abs_diff(n) < 5 && (o == older || covis.weight(o as u64, older as u64) > 0)
+                newer.abs_diff(n) < LOOP_NEIGHBOURHOOD
+                    && (o == older || covis.weight(o as u64, older as u64) > 0)
             });
             if repeats {
                 continue;

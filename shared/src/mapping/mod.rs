@@ -13,7 +13,7 @@ use crate::cloud::PointCloud;
 use crate::geometry::Pose;
 use crate::map::KeyframeDecider;
 use crate::pose_graph::{GraphParams, GraphReport};
-use crate::registration::{PreparedCloud, RegistrationError};
+use crate::registration::RegistrationError;
 pub use framework::{
     CloudId, DistanceLoopDetection, GlobalError, GlobalRegistration, GlobalReport, GraphOptimizer,
     LoopDetection, PairwiseGlobalRegistration, PairwiseRegistration,
@@ -81,11 +81,8 @@ pub fn build_trajectory<E: From<RegistrationError> + From<GlobalError>>(
             &step.pose,
         ) {
             keyframe_scans.push(i);
-            keyframe_clouds.push(PreparedCloud::new(
-                &scan,
-                &params.loops.registration,
-                "keyframe",
-            )?);
+            // The odometry's preparation of the scan serves the loop search too.
+            keyframe_clouds.push(step.prepared);
         }
         odometry_poses.push(step.pose);
         progress(Stage::Odometry(i + 1, count));

@@ -51,12 +51,13 @@ pub struct Odometry {
 }
 
 /// One odometry step.
-#[derive(Debug, Clone, Copy)]
 pub struct OdometryStep {
     /// `T_odom_scan`.
     pub pose: Pose,
     /// The registration against the local map (`None` for the first scan).
     pub registration: Option<RegistrationResult>,
+    /// The scan as registered (downsampled, covariances, tree), for callers that keep it.
+    pub prepared: PreparedCloud,
 }
 
 impl Odometry {
@@ -80,8 +81,7 @@ impl Odometry {
                 // courtyard and campus the extrapolated guess let GICP settle a little past
                 // the true pose each step, the error fed the next guess and odometry
                 // diverged within 4 s; from the last pose it stayed within 2 mm.
-                let guess = last;
-                let result = align(map, &prepared, &guess, reg)?;
+                let result = align(map, &prepared, &last, reg)?;
                 (result.pose, Some(result))
             }
             _ => (Pose::identity(), None),
@@ -107,6 +107,10 @@ impl Odometry {
                 .collect();
             self.local_map = Some(PreparedCloud::from_points(merged, reg, "local map")?);
         }
-        Ok(OdometryStep { pose, registration })
+        Ok(OdometryStep {
+            pose,
+            registration,
+            prepared,
+        })
     }
 }

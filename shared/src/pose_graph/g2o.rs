@@ -5,10 +5,10 @@
 use std::fmt::Write as _;
 use std::path::Path;
 
-use nalgebra::{Matrix6, Quaternion, UnitQuaternion, Vector3};
+use nalgebra::Matrix6;
 
 use super::{GraphError, PoseEdge, PoseGraph, VertexId};
-use crate::geometry::Pose;
+use crate::geometry::{Pose, pose_from_xyz_quat, pose_to_xyz_quat};
 use crate::io::{IoError, Location, write_atomic};
 
 /// Why a g2o file could not be used.
@@ -32,14 +32,6 @@ pub enum G2oError {
 /// Swaps the translation and rotation blocks (g2o `(t, q)` <-> kfmap `(omega, v)`).
 fn swap_blocks(m: &Matrix6<f64>) -> Matrix6<f64> {
     Matrix6::from_fn(|r, c| m[((r + 3) % 6, (c + 3) % 6)])
-}
-
-fn pose_from(v: &[f64]) -> Pose {
-    let q = Quaternion::new(v[6], v[3], v[4], v[5]);
-    Pose::from_parts(
-        Vector3::new(v[0], v[1], v[2]).into(),
-        UnitQuaternion::from_quaternion(q),
-    )
 }
 
 /// Reads a g2o file of SE(3) vertices and edges; the first vertex (or the `FIX`ed one)
@@ -78,6 +70,10 @@ pub fn read_g2o(path: &Path) -> Result<(PoseGraph, Option<VertexId>), G2oError> 
                 })
                 .collect()
         };
+        let pose = |v: &[f64]| -> Result<Pose, IoError> {
+            let xyz_quat: [f64; 7] = v.try_into().expect("seven values");
+            pose_from_xyz_quat(xyz_quat).ok_or_else(|| bad("the quaternion is zero".into()))
+        };
         let id = |v: f64| -> Result<VertexId, IoError> {
             if v >= 0.0 && v.fract() == 0.0 && v < 9.0e15 {
                 Ok(v as VertexId)
@@ -89,7 +85,7 @@ pub fn read_g2o(path: &Path) -> Result<(PoseGraph, Option<VertexId>), G2oError> 
             "VERTEX_SE3:QUAT" => {
                 let v = numbers(8)?;
                 graph
-                    .add_pose(id(v[0])?, pose_from(&v[1..]))
+                    .add_pose(id(v[0])?, pose(&v[1..])?)
                     .map_err(graph_error)?;
             }
             "EDGE_SE3:QUAT" => {
@@ -103,12 +99,7 @@ pub fn read_g2o(path: &Path) -> Result<(PoseGraph, Option<VertexId>), G2oError> 
                         info[(c, r)] = x;
                     }
                 }
-                let edge = PoseEdge::new(
-                    id(v[0])?,
-                    id(v[1])?,
-                    pose_from(&v[2..9]),
-                    swap_blocks(&info),
-                );
+                let edge = PoseEdge::new(id(v[0])?, id(v[1])?, pose(&v[2..9])?, swap_blocks(&info));
                 graph.add_edge(edge).map_err(graph_error)?;
             }
             "FIX" => fixed = Some(id(numbers(1)?[0])?),
@@ -124,12 +115,11 @@ pub fn read_g2o(path: &Path) -> Result<(PoseGraph, Option<VertexId>), G2oError> 
 }
 
 fn push_pose(out: &mut String, pose: &Pose) {
-    let t = pose.translation.vector;
-    let q = pose.rotation.quaternion();
+    let v = pose_to_xyz_quat(pose);
     let _ = write!(
         out,
         "{:.9} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9}",
-        t.x, t.y, t.z, q.i, q.j, q.k, q.w
+        v[0], v[1], v[2], v[3], v[4], v[5], v[6]
     );
 }
 

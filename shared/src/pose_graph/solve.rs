@@ -234,20 +234,17 @@ pub(super) fn optimize(
                 Pattern::add_block(values, starts, &block);
             }
         }
-        let undamped: Vec<f64> = pattern.matrix.val().to_vec();
+        // Levenberg-Marquardt retries a rejected step with more damping: it keeps the
+        // undamped values and the poses to go back to; Gauss-Newton needs neither.
+        let damped = params.optimizer == Optimizer::LevenbergMarquardt;
+        let undamped = damped.then(|| pattern.matrix.val().to_vec());
         let mut accepted = false;
-        for _ in 0..if params.optimizer == Optimizer::LevenbergMarquardt {
-            10
-        } else {
-            1
-        } {
-            let values = pattern.matrix.val_mut();
-            values.copy_from_slice(&undamped);
-            if params.optimizer == Optimizer::LevenbergMarquardt {
-                for starts in &pattern.diagonal {
-                    for &start in starts {
-                        values[start] += lambda;
-                    }
+        for _ in 0..if damped { 10 } else { 1 } {
+            if let Some(undamped) = &undamped {
+                let values = pattern.matrix.val_mut();
+                values.copy_from_slice(undamped);
+                for &start in pattern.diagonal.iter().flatten() {
+                    values[start] += lambda;
                 }
             }
             let llt = symbolic
@@ -268,7 +265,7 @@ pub(super) fn optimize(
                 Par::Seq,
                 MemStack::new(&mut memory),
             );
-            let before = graph.poses.clone();
+            let before = damped.then(|| graph.poses.clone());
             for (i, slot) in slots.iter().enumerate() {
                 if let Some(s) = slot {
                     let d = Vector6::from_fn(|r, _| step[(s * 6 + r, 0)]);
@@ -276,7 +273,7 @@ pub(super) fn optimize(
                 }
             }
             let new_error = graph.error();
-            if params.optimizer == Optimizer::GaussNewton || new_error <= error {
+            if !damped || new_error <= error {
                 lambda = (lambda / 10.0).max(1e-12);
                 accepted = true;
                 let decrease = (error - new_error) / error.max(f64::MIN_POSITIVE);
@@ -287,7 +284,7 @@ pub(super) fn optimize(
                 }
                 break;
             }
-            graph.poses = before;
+            graph.poses = before.expect("kept when damped");
             lambda *= 10.0;
         }
         if !accepted || report.converged {

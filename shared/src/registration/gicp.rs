@@ -10,7 +10,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::RobustKernel;
-use super::solver::{Constraint, Correspondence, Optimizer, linearize, retract, solve_step};
+use super::solver::{Constraint, Correspondence, Optimizer, cost, linearize, retract, solve_step};
 use crate::cloud::PointCloud;
 use crate::cov::{CovOptions, estimate_covariances};
 use crate::geometry::{PackedSym3, Pose, to_vec3, unpack_sym3};
@@ -349,13 +349,12 @@ pub fn align(
                 // Damp until the cost over these correspondences drops.
                 let mut accepted = None;
                 for _ in 0..10 {
-                    if let Some(step) = solve_step(&lin, lambda) {
-                        let cost = linearize(&pairs, &retract(&pose, &step), &params.kernel).cost;
-                        if cost <= lin.cost {
-                            lambda = (lambda / 10.0).max(1e-10);
-                            accepted = Some(step);
-                            break;
-                        }
+                    if let Some(step) = solve_step(&lin, lambda)
+                        && cost(&pairs, &retract(&pose, &step), &params.kernel) <= lin.cost
+                    {
+                        lambda = (lambda / 10.0).max(1e-10);
+                        accepted = Some(step);
+                        break;
                     }
                     lambda *= 10.0;
                 }

@@ -69,9 +69,7 @@ pub fn linearize(
         .map(|chunk| {
             let mut sum = Linearized::zero();
             for c in chunk {
-                let moved = rotation * c.source + pose.translation.vector;
-                let r = c.target - moved;
-                let e2 = r.dot(&(c.information * r));
+                let (r, e2) = residual(c, &rotation, pose);
                 let w = kernel.weight(e2);
                 let mut j = nalgebra::Matrix3x6::zeros();
                 j.fixed_view_mut::<3, 3>(0, 0)
@@ -87,6 +85,32 @@ pub fn linearize(
         })
         .collect();
     partial.iter().fold(Linearized::zero(), |a, b| a.add(b))
+}
+
+/// `r = t - T s` and its squared Mahalanobis length.
+#[inline]
+fn residual(c: &Correspondence, rotation: &Matrix3<f64>, pose: &Pose) -> (Vector3<f64>, f64) {
+    let r = c.target - (rotation * c.source + pose.translation.vector);
+    (r, r.dot(&(c.information * r)))
+}
+
+/// The weighted cost `linearize` would report at `pose`, without the derivatives (for
+/// accepting or rejecting a damped step).
+pub fn cost(correspondences: &[Correspondence], pose: &Pose, kernel: &RobustKernel) -> f64 {
+    let rotation = pose.rotation.to_rotation_matrix().into_inner();
+    let partial: Vec<f64> = correspondences
+        .par_chunks(CHUNK)
+        .map(|chunk| {
+            chunk
+                .iter()
+                .map(|c| {
+                    let e2 = residual(c, &rotation, pose).1;
+                    kernel.weight(e2) * e2
+                })
+                .sum()
+        })
+        .collect();
+    partial.iter().sum()
 }
 
 /// The step method.
