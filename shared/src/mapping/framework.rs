@@ -4,7 +4,7 @@
 use nalgebra::{Matrix6, Vector6};
 
 use crate::covis::{CovisOptions, CovisibilityGraph};
-use crate::geometry::{Pose, transform_point};
+use crate::geometry::{Pose, to_point, transform_point};
 use crate::pose_graph::{GraphError, GraphParams, GraphReport, PoseEdge, PoseGraph};
 use crate::registration::{
     PreparedCloud, RegistrationError, RegistrationParams, RegistrationResult, RobustKernel, align,
@@ -180,6 +180,9 @@ pub struct PairwiseGlobalRegistration<P, L, G> {
     /// Register consecutive clouds; when false, consecutive edges take the relative
     /// pose of the guesses (e.g. scan-to-map odometry, better than keyframe-to-keyframe).
     pub register_consecutive: bool,
+    /// A loop's newer cloud is verified against the older cloud merged with this many
+    /// sequence neighbours on each side (0: the older cloud alone).
+    pub loop_submap_neighbours: usize,
     clouds: Vec<PreparedCloud>,
     guesses: Vec<Option<Pose>>,
     poses: Vec<Pose>,
@@ -207,6 +210,7 @@ impl<P: PairwiseRegistration, L: LoopDetection, G: GraphOptimizer>
             edge_information: information,
             loop_kernel: RobustKernel::Cauchy { delta: 1.0 },
             register_consecutive: true,
+            loop_submap_neighbours: 5,
             clouds: Vec::new(),
             guesses: Vec::new(),
             poses: Vec::new(),
@@ -217,6 +221,25 @@ impl<P: PairwiseRegistration, L: LoopDetection, G: GraphOptimizer>
     /// Current poses, by cloud id.
     pub fn poses(&self) -> &[Pose] {
         &self.poses
+    }
+
+    /// Cloud `centre` merged with its sequence neighbours, in `centre`'s frame: one
+    /// sparse scan against another gave 0.4-0.5 m RMSE and no accepted loop on the
+    /// simulated campus.
+    fn loop_submap(&self, centre: CloudId) -> Result<PreparedCloud, RegistrationError> {
+        let n = self.loop_submap_neighbours;
+        let range = centre.saturating_sub(n)..(centre + n + 1).min(self.clouds.len());
+        let to_centre = self.poses[centre].inverse();
+        let points = range
+            .flat_map(|id| {
+                let pose = to_centre * self.poses[id];
+                self.clouds[id]
+                    .points
+                    .iter()
+                    .map(move |p| to_point(&transform_point(&pose, p)))
+            })
+            .collect();
+        PreparedCloud::from_points(points, &RegistrationParams::default(), "loop submap")
     }
 }
 
@@ -283,10 +306,8 @@ impl<P: PairwiseRegistration, L: LoopDetection, G: GraphOptimizer> GlobalRegistr
                 continue;
             }
             let guess = self.poses[older].inverse() * self.poses[newer];
-            if let Some(t) = self
-                .loops
-                .verify(&self.clouds[older], &self.clouds[newer], &guess)
-            {
+            let submap = self.loop_submap(older)?;
+            if let Some(t) = self.loops.verify(&submap, &self.clouds[newer], &guess) {
                 let mut edge = PoseEdge::new(older as u64, newer as u64, t, self.edge_information);
                 edge.kernel = self.loop_kernel;
                 self.edges.push(edge);

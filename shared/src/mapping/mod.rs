@@ -76,8 +76,10 @@ pub fn build_trajectory<E: From<RegistrationError> + From<GlobalError>>(
     for i in 0..count {
         let scan = load(i)?;
         let step = odometry.push(&scan)?;
+        // Against the last keyframe only: a revisit must still get graph vertices, or
+        // its scans hang off one keyframe's pose for the rest of the run.
         if params.keyframes.should_create(
-            keyframe_scans.iter().map(|&k| &odometry_poses[k]),
+            keyframe_scans.last().map(|&k| &odometry_poses[k]),
             &step.pose,
         ) {
             keyframe_scans.push(i);

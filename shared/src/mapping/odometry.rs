@@ -32,11 +32,13 @@ impl Default for OdometryParams {
                 max_iterations: 30,
                 ..RegistrationParams::default()
             },
+            // About 40 m of map: 8 keyframes 1 m apart left 43.5 cm keyframe ATE on the
+            // simulated campus lap, 20 keyframes 2 m apart 2.2 cm (odometry alone).
             local_map_decider: KeyframeDecider {
-                min_translation: 1.0,
+                min_translation: 2.0,
                 min_rotation_deg: 15.0,
             },
-            local_map_keyframes: 8,
+            local_map_keyframes: 20,
         }
     }
 }

@@ -10,7 +10,9 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::RobustKernel;
-use super::solver::{Constraint, Correspondence, Optimizer, cost, linearize, retract, solve_step};
+use super::solver::{
+    Constraint, Correspondence, Linearized, Optimizer, cost, linearize, retract, solve_step,
+};
 use crate::cloud::PointCloud;
 use crate::cov::{CovOptions, estimate_covariances};
 use crate::geometry::{PackedSym3, Pose, to_vec3, unpack_sym3};
@@ -289,11 +291,11 @@ pub fn correspondences(
     let rotation = pose.rotation.to_rotation_matrix().into_inner();
     let normals = (params.metric == Metric::PointToPlane).then(|| target.normals());
     let tree = target.tree.view();
-    let found: Vec<Option<Correspondence>> = source
+    source
         .points
         .par_iter()
         .enumerate()
-        .map(|(i, p)| {
+        .filter_map(|(i, p)| {
             let s = to_vec3(p);
             let moved = rotation * s + pose.translation.vector;
             let query = [moved.x as f32, moved.y as f32, moved.z as f32];
@@ -317,8 +319,7 @@ pub fn correspondences(
                 information,
             })
         })
-        .collect();
-    found.into_iter().flatten().collect()
+        .collect()
 }
 
 /// Registers `source` onto `target` from `initial` (`T_target_source`).
@@ -336,6 +337,9 @@ pub fn align(
     let mut lambda = 1e-4;
     let mut converged = false;
     let mut iterations = 0;
+    // The last linearization and the pose it was taken at: its Hessian and pairs are
+    // the result's (as small_gicp), so no extra correspondence search after the loop.
+    let mut last: Option<(Vec<Correspondence>, Linearized, Pose)> = None;
     while iterations < params.max_iterations && !converged {
         iterations += 1;
         let pairs = correspondences(target, source, &pose, params);
@@ -361,6 +365,7 @@ pub fn align(
                 accepted
             }
         };
+        last = Some((pairs, lin, pose));
         let Some(step) = step else {
             break;
         };
@@ -370,15 +375,13 @@ pub fn align(
         converged =
             rotation_step < params.rotation_eps && translation_step < params.translation_eps;
     }
-    let pairs = correspondences(target, source, &pose, params);
-    if pairs.is_empty() {
-        return Err(no_pairs());
-    }
-    let lin = linearize(&pairs, &pose, &params.kernel);
-    let rotation = pose.rotation.to_rotation_matrix().into_inner();
+    let (pairs, lin, linearized_at) = last.expect("max-iterations >= 1 was validated");
+    let rotation = linearized_at.rotation.to_rotation_matrix().into_inner();
     let mean_sq = pairs
         .iter()
-        .map(|c| (c.target - (rotation * c.source + pose.translation.vector)).norm_squared())
+        .map(|c| {
+            (c.target - (rotation * c.source + linearized_at.translation.vector)).norm_squared()
+        })
         .sum::<f64>()
         / pairs.len() as f64;
     let constraint = Constraint::of(&lin.hessian);

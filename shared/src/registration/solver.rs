@@ -67,24 +67,46 @@ pub fn linearize(
     let partial: Vec<Linearized> = correspondences
         .par_chunks(CHUNK)
         .map(|chunk| {
+            // Summed with `J' = [[R s]x, -I]` (`J = J' diag(R, R)`): the rotation is
+            // applied once to the sums below instead of to every term.
             let mut sum = Linearized::zero();
             for c in chunk {
-                let (r, e2) = residual(c, &rotation, pose);
+                let rotated = rotation * c.source;
+                let r = c.target - (rotated + pose.translation.vector);
+                let weighted_r = c.information * r;
+                let e2 = r.dot(&weighted_r);
                 let w = kernel.weight(e2);
-                let mut j = nalgebra::Matrix3x6::zeros();
-                j.fixed_view_mut::<3, 3>(0, 0)
-                    .copy_from(&(rotation * c.source.cross_matrix()));
-                j.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-rotation));
-                let jt_w = j.transpose() * (c.information * w);
-                sum.hessian += jt_w * j;
-                sum.gradient += jt_w * r;
+                let info = c.information * w;
+                let qx = rotated.cross_matrix();
+                let qx_t_info = qx.transpose() * info;
+                let mut h = sum.hessian.fixed_view_mut::<3, 3>(0, 0);
+                h += qx_t_info * qx;
+                let mut h = sum.hessian.fixed_view_mut::<3, 3>(0, 3);
+                h -= qx_t_info;
+                let mut h = sum.hessian.fixed_view_mut::<3, 3>(3, 3);
+                h += info;
+                let mut g = sum.gradient.fixed_rows_mut::<3>(0);
+                g += qx_t_info * r;
+                let mut g = sum.gradient.fixed_rows_mut::<3>(3);
+                g -= weighted_r * w;
                 sum.cost += w * e2;
                 sum.count += 1;
             }
             sum
         })
         .collect();
-    partial.iter().fold(Linearized::zero(), |a, b| a.add(b))
+    let mut total = partial.iter().fold(Linearized::zero(), |a, b| a.add(b));
+    let top_right = total.hessian.fixed_view::<3, 3>(0, 3).into_owned();
+    total
+        .hessian
+        .fixed_view_mut::<3, 3>(3, 0)
+        .copy_from(&top_right.transpose());
+    let mut rotate = Matrix6::zeros();
+    rotate.fixed_view_mut::<3, 3>(0, 0).copy_from(&rotation);
+    rotate.fixed_view_mut::<3, 3>(3, 3).copy_from(&rotation);
+    total.hessian = rotate.transpose() * total.hessian * rotate;
+    total.gradient = rotate.transpose() * total.gradient;
+    total
 }
 
 /// `r = t - T s` and its squared Mahalanobis length.
