@@ -26,13 +26,21 @@ enum Command {
     Simulate(commands::simulate::Args),
     Demo(commands::demo::Args),
     Gravity(commands::gravity::Args),
+    Localize(commands::localize::Args),
+    Serve(commands::serve::Args),
+    Status(commands::status::Args),
 }
 
 fn main() -> ExitCode {
     let started = std::time::Instant::now(); // Cold-start figures count from here.
+    // KFMAP_LOG=debug|info|warn|error (default info); debug logs every server request.
+    let level = std::env::var("KFMAP_LOG")
+        .ok()
+        .and_then(|l| l.parse().ok())
+        .unwrap_or(tracing::Level::INFO);
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
-        .with_max_level(tracing::Level::INFO)
+        .with_max_level(level)
         .init();
     let cli = Cli::parse(); // Usage errors exit with code 2 and a message from clap.
     let result = match cli.command {
@@ -45,6 +53,9 @@ fn main() -> ExitCode {
         Command::Simulate(args) => commands::simulate::run(args),
         Command::Demo(args) => commands::demo::run(args),
         Command::Gravity(args) => commands::gravity::run(args),
+        Command::Localize(args) => commands::localize::run(args),
+        Command::Serve(args) => commands::serve::run(args),
+        Command::Status(args) => commands::status::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

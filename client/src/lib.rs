@@ -1,6 +1,233 @@
-//! Client library of kfmap: connecting to a map server over iceoryx2, querying
-//! nearest neighbours and cov2cov correspondences, localizing, publishing IMU windows.
+//! Client library of kfmap: connect to the server of a map over iceoryx2 shared memory
+//! and ask for nearest neighbours, cov2cov pairings, a solved pose or a gravity
+//! correction. Every call has a timeout; after a timeout the next call reconnects, so
+//! a restarted server is found again.
 //!
-//! The protocol and the client arrive with the map-server issue; this crate exists now
-//! so that the workspace layout (ARCHITECTURE section 2) is in place from the start.
+//! ```no_run
+//! use kfmap_client::{Client, ClientOptions};
+//! use kfmap_shared::geometry::Pose;
+//!
+//! let mut client = Client::connect("site", ClientOptions::default())?;
+//! let scan = vec![[1.0f32, 0.0, 0.0]; 1000];
+//! let found = client.nearest(&scan, &Pose::identity(), 1)?;
+//! println!("{} map points, status {:?}", found.len(), client.status()?.sessions);
+//! # Ok::<(), kfmap_client::ClientError>(())
+//! ```
 #![warn(missing_docs)]
+
+mod connection;
+mod error;
+mod localize;
+
+pub use connection::{ClientOptions, Connection, Response};
+pub use error::ClientError;
+pub use localize::{LocalizeOptions, Localized};
+
+use kfmap_shared::KeyframeId;
+use kfmap_shared::geometry::Pose;
+use kfmap_shared::imu::ImuSample;
+use kfmap_shared::protocol::{
+    Cov2CovMode, KIND_SLOTS, RequestHeader, RequestKind, ScanPayload, WirePairing, imu_payload,
+    pose_to_wire,
+};
+
+/// Cov2cov pairings and the keyframes they came from.
+#[derive(Debug, Clone)]
+pub struct Cov2CovAnswer {
+    /// One pairing per matched scan point, sorted by query index.
+    pub pairings: Vec<WirePairing>,
+    /// Active keyframe ids.
+    pub active: Vec<KeyframeId>,
+}
+
+/// A gravity correction from the session's IMU pool.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GravityAnswer {
+    /// Keyframes pooled so far.
+    pub members: u32,
+    /// Gravity estimate, map frame, m/s^2 (`None` while too few keyframes are pooled).
+    pub gravity: Option<[f64; 3]>,
+    /// Roll and pitch of the correction, radians.
+    pub roll_pitch: [f64; 2],
+    /// The correction as a quaternion (qx qy qz qw).
+    pub correction: [f64; 4],
+}
+
+/// The server's counters.
+#[derive(Debug, Clone)]
+pub struct StatusReport {
+    /// Map name.
+    pub map_name: String,
+    /// Map file.
+    pub map_path: String,
+    /// Keyframes.
+    pub keyframes: u64,
+    /// Points.
+    pub points: u64,
+    /// Seconds since the server started.
+    pub uptime_s: f64,
+    /// Open client sessions.
+    pub sessions: u32,
+    /// `(kind, answered, p50 us, p99 us)` for every kind with requests.
+    pub kinds: Vec<(RequestKind, u64, f32, f32)>,
+}
+
+/// A client of one map server.
+pub struct Client {
+    connection: Connection,
+}
+
+fn header(kind: RequestKind, pose: &Pose) -> RequestHeader {
+    RequestHeader {
+        kind: kind as u32,
+        pose: pose_to_wire(pose),
+        ..Default::default()
+    }
+}
+
+impl Client {
+    /// Connects to the server of `map_name`.
+    pub fn connect(map_name: &str, options: ClientOptions) -> Result<Self, ClientError> {
+        Ok(Self {
+            connection: Connection::connect(map_name, options)?,
+        })
+    }
+
+    /// The raw connection (custom requests, tests).
+    pub fn connection(&mut self) -> &mut Connection {
+        &mut self.connection
+    }
+
+    fn scan_call(
+        &mut self,
+        mut header: RequestHeader,
+        scan: &ScanPayload,
+    ) -> Result<Response, ClientError> {
+        header.point_count = scan.points.len() as u32;
+        self.connection
+            .call(header, scan.float_len(), |h, out| scan.write(h, out))
+    }
+
+    /// The `k` nearest map points of each scan point (sensor frame, moved by `pose`).
+    pub fn nearest(
+        &mut self,
+        points: &[[f32; 3]],
+        pose: &Pose,
+        k: u32,
+    ) -> Result<Vec<WirePairing>, ClientError> {
+        let h = RequestHeader {
+            k,
+            ..header(RequestKind::Nearest, pose)
+        };
+        Ok(self.scan_call(h, &plain(points))?.pairings)
+    }
+
+    /// Every map point within `radius` metres of each scan point.
+    pub fn radius(
+        &mut self,
+        points: &[[f32; 3]],
+        pose: &Pose,
+        radius: f32,
+    ) -> Result<Vec<WirePairing>, ClientError> {
+        let h = RequestHeader {
+            radius,
+            ..header(RequestKind::Radius, pose)
+        };
+        Ok(self.scan_call(h, &plain(points))?.pairings)
+    }
+
+    /// GICP pairings of `scan` at `pose` within `max_pair_dist` metres.
+    pub fn cov2cov(
+        &mut self,
+        scan: &ScanPayload,
+        pose: &Pose,
+        max_pair_dist: f32,
+        mode: Cov2CovMode,
+    ) -> Result<Cov2CovAnswer, ClientError> {
+        let h = RequestHeader {
+            max_pair_dist,
+            mode: mode as u32,
+            ..header(RequestKind::Cov2Cov, pose)
+        };
+        let r = self.scan_call(h, scan)?;
+        Ok(Cov2CovAnswer {
+            active: r.header.active[..r.header.active_len as usize].to_vec(),
+            pairings: r.pairings,
+        })
+    }
+
+    /// Adds an IMU window for keyframe (or scan) `id` taken at `pose` to this session's
+    /// gravity pool and returns the current correction.
+    pub fn push_imu_window(
+        &mut self,
+        id: KeyframeId,
+        pose: &Pose,
+        samples: &[ImuSample],
+    ) -> Result<GravityAnswer, ClientError> {
+        let t0 = samples.first().map_or(0.0, |s| s.t);
+        let payload = imu_payload(samples, t0);
+        let h = RequestHeader {
+            keyframe_or_scan_id: id,
+            imu_t0: t0,
+            point_count: samples.len() as u32,
+            ..header(RequestKind::ImuWindow, pose)
+        };
+        let r = self
+            .connection
+            .call(h, payload.len(), |_, out| out.copy_from_slice(&payload))?;
+        let h = r.header;
+        Ok(GravityAnswer {
+            members: h.gravity_members,
+            gravity: (h.has_gravity == 1).then_some(h.gravity),
+            roll_pitch: h.roll_pitch,
+            correction: h.correction,
+        })
+    }
+
+    /// The server's counters.
+    pub fn status(&mut self) -> Result<StatusReport, ClientError> {
+        let r =
+            self.connection
+                .call(header(RequestKind::Status, &Pose::identity()), 0, |_, _| {})?;
+        let h = r.header;
+        let kinds = RequestKind::ALL
+            .into_iter()
+            .filter(|k| (*k as usize) < KIND_SLOTS && h.counts[*k as usize] > 0)
+            .map(|k| {
+                let i = k as usize;
+                (k, h.counts[i], h.p50_us[i], h.p99_us[i])
+            })
+            .collect();
+        Ok(StatusReport {
+            map_name: h.map_name(),
+            map_path: h.message(),
+            keyframes: h.map_keyframes,
+            points: h.map_points,
+            uptime_s: h.uptime_s,
+            sessions: h.sessions,
+            kinds,
+        })
+    }
+
+    /// Asks the server to reopen its map file; returns its message.
+    pub fn reload(&mut self) -> Result<String, ClientError> {
+        let r =
+            self.connection
+                .call(header(RequestKind::Reload, &Pose::identity()), 0, |_, _| {})?;
+        Ok(r.header.message())
+    }
+
+    /// A round trip with no work: the server answers one element per point.
+    pub fn echo(&mut self, points: &[[f32; 3]]) -> Result<usize, ClientError> {
+        let h = header(RequestKind::Echo, &Pose::identity());
+        Ok(self.scan_call(h, &plain(points))?.pairings.len())
+    }
+}
+
+fn plain(points: &[[f32; 3]]) -> ScanPayload<'_> {
+    ScanPayload {
+        points,
+        view_dirs: None,
+        covariances: None,
+    }
+}

@@ -174,13 +174,23 @@ pub fn find_scans(dataset: &Path) -> Result<Vec<PathBuf>, BakeError> {
     Ok(scans)
 }
 
+/// Every scan's pose and time from the dataset's pose file (the first of
+/// [`POSE_FILES`]), or `None` when it has none.
+pub fn dataset_poses(dataset: &Path, scans: &[PathBuf]) -> Result<Option<ScanPoses>, BakeError> {
+    find_in(dataset, &POSE_FILES)
+        .map(|path| scan_poses(&path, scans))
+        .transpose()
+}
+
 /// Every scan's pose and time (the pose index when the file has no timestamps).
 #[derive(Debug, Clone)]
-struct ScanPoses {
-    poses: Vec<Pose>,
-    stamps: Vec<f64>,
+pub struct ScanPoses {
+    /// `T_map_scan` of each scan.
+    pub poses: Vec<Pose>,
+    /// Each scan's time, seconds.
+    pub stamps: Vec<f64>,
     /// True when the stamps come from the pose file.
-    stamped: bool,
+    pub stamped: bool,
 }
 
 /// The pose of every scan: by frame number when every scan is named by one (KITTI
@@ -217,8 +227,8 @@ fn scan_poses(path: &Path, scans: &[PathBuf]) -> Result<ScanPoses, BakeError> {
     })
 }
 
-/// Reads and filters one scan.
-fn load_raw_scan(path: &Path, config: &BakeConfig) -> Result<PointCloud, BakeError> {
+/// Reads one scan and drops invalid returns (the bake configuration's filter).
+pub fn load_raw_scan(path: &Path, config: &BakeConfig) -> Result<PointCloud, BakeError> {
     let sidecar = path.with_extension("bin.layout").is_file();
     let options = ReadOptions {
         bin_layout: (!sidecar).then_some(config.input.bin_layout),

@@ -1,5 +1,5 @@
 //! Server runtime of kfmap: the server and bake configuration files, and the baking
-//! pipeline (`kfmap bake`). The request loop arrives with the map server.
+//! pipeline (`kfmap bake`), and the map server (`kfmap serve`).
 //!
 //! ```
 //! let config = kfmap_service::config::ServerConfig::default();
@@ -10,3 +10,4 @@
 pub mod bake;
 pub mod config;
 pub mod gravity;
+pub mod server;

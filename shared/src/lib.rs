@@ -32,6 +32,7 @@ pub mod mapping;
 pub mod neighbourhoods;
 pub mod options;
 pub mod pose_graph;
+pub mod protocol;
 pub mod registration;
 pub mod select;
 pub mod sim;

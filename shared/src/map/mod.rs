@@ -317,7 +317,45 @@ impl KeyframeMap {
     }
 
     /// The active set made of exactly `ids` (ascending, existing).
-    pub fn activate_ids(&mut self, mut ids: Vec<KeyframeId>) -> Result<ActiveSet<'_>, MapError> {
+    pub fn activate_ids(&mut self, ids: Vec<KeyframeId>) -> Result<ActiveSet<'_>, MapError> {
+        let exact = !self.options.approximate_cov;
+        let mut cache = self.merged.take();
+        let rebuilt = self.prepare_active(&ids, &mut cache, exact);
+        self.merged = cache.clone();
+        if rebuilt? {
+            self.merged_rebuilds += 1;
+        }
+        self.activate_cached(ids, &mut cache, exact)
+    }
+
+    /// As [`Self::activate_ids`] on a shared map: the merged submap (exact mode) is
+    /// cached by the caller, one cache per map-server client session.
+    pub fn activate_cached(
+        &self,
+        mut ids: Vec<KeyframeId>,
+        cache: &mut Option<Arc<MergedSubmap>>,
+        exact: bool,
+    ) -> Result<ActiveSet<'_>, MapError> {
+        ids.sort_unstable();
+        ids.dedup();
+        self.prepare_active(&ids, cache, exact)?;
+        let frames = ids
+            .iter()
+            .map(|id| ActiveFrame::new(&self.keyframes[id]))
+            .collect::<Result<Vec<_>, _>>()?;
+        let merged = if exact { cache.clone() } else { None };
+        Ok(ActiveSet::new(&self.options, frames, merged))
+    }
+
+    /// Checks `ids` (sorted) and, in exact mode, (re)builds `cache` when it holds another
+    /// set; true when it was rebuilt.
+    fn prepare_active(
+        &self,
+        ids: &[KeyframeId],
+        cache: &mut Option<Arc<MergedSubmap>>,
+        exact: bool,
+    ) -> Result<bool, MapError> {
+        let mut ids = ids.to_vec();
         ids.sort_unstable();
         ids.dedup();
         if ids.is_empty() {
@@ -326,27 +364,22 @@ impl KeyframeMap {
         if let Some(&missing) = ids.iter().find(|id| !self.keyframes.contains_key(id)) {
             return Err(MapError::UnknownKeyframe(missing));
         }
+        if !exact || cache.as_ref().is_some_and(|m| m.ids == ids) {
+            return Ok(false);
+        }
         let frames = ids
             .iter()
             .map(|id| ActiveFrame::new(&self.keyframes[id]))
             .collect::<Result<Vec<_>, _>>()?;
-        let merged = if self.options.approximate_cov {
-            None
-        } else {
-            if self.merged.as_ref().is_none_or(|m| m.ids != ids) {
-                if frames.iter().any(|f| self.keyframes[&f.id].is_baked()) {
-                    // Baked maps serve approximate mode without rebuilds; say what this costs.
-                    tracing::info!(keyframes = ?ids, "exact mode: building the merged submap (tree + covariances) of a new active set");
-                }
-                self.merged = Some(Arc::new(MergedSubmap::build(
-                    &frames,
-                    &self.options.covariance,
-                )?));
-                self.merged_rebuilds += 1;
-            }
-            self.merged.clone()
-        };
-        Ok(ActiveSet::new(&self.options, frames, merged))
+        if frames.iter().any(|f| self.keyframes[&f.id].is_baked()) {
+            // Baked maps serve approximate mode without rebuilds; say what this costs.
+            tracing::info!(keyframes = ?ids, "exact mode: building the merged submap (tree + covariances) of a new active set");
+        }
+        *cache = Some(Arc::new(MergedSubmap::build(
+            &frames,
+            &self.options.covariance,
+        )?));
+        Ok(true)
     }
 }
 

@@ -154,3 +154,20 @@ pub fn absolute_trajectory_error(estimate: &[Pose], truth: &[Pose]) -> f64 {
         .sum();
     (sum_sq / n as f64).sqrt()
 }
+
+/// Relative pose error over consecutive poses: RMS translation error of each step's
+/// motion `T_i^-1 T_{i+1}` against the truth's, metres.
+pub fn relative_pose_error(estimate: &[Pose], truth: &[Pose]) -> f64 {
+    let n = estimate.len().min(truth.len());
+    if n < 2 {
+        return 0.0;
+    }
+    let sum_sq: f64 = (0..n - 1)
+        .map(|i| {
+            let e = estimate[i].inverse() * estimate[i + 1];
+            let t = truth[i].inverse() * truth[i + 1];
+            (e.inverse() * t).translation.vector.norm_squared()
+        })
+        .sum();
+    (sum_sq / (n - 1) as f64).sqrt()
+}

@@ -109,3 +109,14 @@ fn campus_lap_from_raw_scans() {
         f.drift_odometry
     );
 }
+
+#[test]
+fn relative_pose_error_of_a_stretched_straight_line() {
+    // Closed form: every 1 m step is estimated as 1.1 m, so each step is 0.1 m off.
+    let at = |x: f64| Pose::translation(x, 0.0, 0.0);
+    let truth: Vec<Pose> = (0..10).map(|i| at(i as f64)).collect();
+    let estimate: Vec<Pose> = (0..10).map(|i| at(1.1 * i as f64)).collect();
+    assert!((relative_pose_error(&estimate, &truth) - 0.1).abs() < 1e-12);
+    assert_eq!(relative_pose_error(&truth, &truth), 0.0);
+    assert_eq!(relative_pose_error(&truth[..1], &truth[..1]), 0.0);
+}

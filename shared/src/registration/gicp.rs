@@ -329,7 +329,22 @@ pub fn align(
     initial: &Pose,
     params: &RegistrationParams,
 ) -> Result<RegistrationResult, RegistrationError> {
-    params.validate()?;
+    solve_pose(initial, params, source.len(), |pose| {
+        Ok(correspondences(target, source, pose, params))
+    })
+}
+
+/// The registration loop over any source of correspondences: `pairs_at(pose)` gives
+/// the pairings at a pose (e.g. a local tree, or a map server's cov2cov answer), and
+/// the pose is iterated from `initial` until the update is small. `source_len` is the
+/// number of source points, for the inlier ratio.
+pub fn solve_pose<E: From<RegistrationError>>(
+    initial: &Pose,
+    params: &RegistrationParams,
+    source_len: usize,
+    mut pairs_at: impl FnMut(&Pose) -> Result<Vec<Correspondence>, E>,
+) -> Result<RegistrationResult, E> {
+    params.validate().map_err(RegistrationError::from)?;
     let no_pairs = || RegistrationError::NoCorrespondences {
         max_distance: params.max_correspondence_distance,
     };
@@ -342,9 +357,9 @@ pub fn align(
     let mut last: Option<(Vec<Correspondence>, Linearized, Pose)> = None;
     while iterations < params.max_iterations && !converged {
         iterations += 1;
-        let pairs = correspondences(target, source, &pose, params);
+        let pairs = pairs_at(&pose)?;
         if pairs.is_empty() {
-            return Err(no_pairs());
+            return Err(no_pairs().into());
         }
         let lin = linearize(&pairs, &pose, &params.kernel);
         let step = match params.optimizer {
@@ -389,7 +404,7 @@ pub fn align(
         pose,
         hessian: lin.hessian,
         fitness: Fitness {
-            inlier_ratio: pairs.len() as f64 / source.len() as f64,
+            inlier_ratio: pairs.len() as f64 / source_len.max(1) as f64,
             rmse: mean_sq.sqrt(),
         },
         iterations,

@@ -28,7 +28,7 @@ mod tests;
 
 pub use gicp::{
     Fitness, Metric, PreparedCloud, RegistrationError, RegistrationParams, RegistrationResult,
-    align, correspondences, register,
+    align, correspondences, register, solve_pose,
 };
 pub use kernel::RobustKernel;
 pub use solver::{

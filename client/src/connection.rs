@@ -1,0 +1,226 @@
+//! The connection to a map server: iceoryx2 ports, one request at a time with a
+//! timeout, and reconnection after a timeout (a killed server never tells its clients,
+//! so a timeout is when dead nodes are cleaned up and the ports rebuilt).
+
+use std::time::{Duration, Instant};
+
+use iceoryx2::node::Node;
+use iceoryx2::port::client::Client as RpcClient;
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::prelude::PortFactory;
+use kfmap_shared::protocol::transport::{
+    ALLOCATION, INITIAL_SLICE_LEN, Transport, TransportError, create_node, iceoryx_config, iox,
+    open_request_event, open_response_event, open_rpc,
+};
+use kfmap_shared::protocol::{
+    PROTOCOL_VERSION, RequestHeader, ResponseHeader, StatusCode, WirePairing,
+};
+
+use crate::error::ClientError;
+
+/// How to connect.
+#[derive(Debug, Clone)]
+pub struct ClientOptions {
+    /// iceoryx2 prefix; must equal the server's.
+    pub iceoryx_prefix: Option<String>,
+    /// Longest wait for one answer.
+    pub timeout: Duration,
+    /// Poll for the answer instead of sleeping on the event (lower latency).
+    pub spin: bool,
+}
+
+impl Default for ClientOptions {
+    fn default() -> Self {
+        Self {
+            iceoryx_prefix: None,
+            timeout: Duration::from_secs(5),
+            spin: false,
+        }
+    }
+}
+
+/// A response copied out of shared memory.
+#[derive(Debug, Clone)]
+pub struct Response {
+    /// The server's header (status already checked: `Ok`).
+    pub header: ResponseHeader,
+    /// Pairings.
+    pub pairings: Vec<WirePairing>,
+}
+
+type Port = RpcClient<Transport, [f32], RequestHeader, [WirePairing], ResponseHeader>;
+
+struct Ports {
+    rpc: Port,
+    requests: Notifier<Transport>,
+    responses: Listener<Transport>,
+}
+
+/// A connection to the server of one map.
+pub struct Connection {
+    node: Node<Transport>,
+    map_name: String,
+    options: ClientOptions,
+    ports: Option<Ports>,
+    client_node: [u64; 2],
+    next_request_id: u64,
+}
+
+impl Connection {
+    /// Connects to the server of `map_name`; fails with `NoServer` when none runs.
+    pub fn connect(map_name: &str, options: ClientOptions) -> Result<Self, ClientError> {
+        let config = iceoryx_config(options.iceoryx_prefix.as_deref())?;
+        let node = create_node(&config, "kfmap-client")?;
+        let id = node.id().value();
+        let mut connection = Self {
+            node,
+            map_name: map_name.to_string(),
+            options,
+            ports: None,
+            client_node: [(id >> 64) as u64, id as u64],
+            next_request_id: 1,
+        };
+        connection.ports()?;
+        if !connection.server_present()? {
+            return Err(ClientError::NoServer(map_name.to_string()));
+        }
+        Ok(connection)
+    }
+
+    /// The map name.
+    pub fn map_name(&self) -> &str {
+        &self.map_name
+    }
+
+    /// The per-call timeout.
+    pub fn timeout(&self) -> Duration {
+        self.options.timeout
+    }
+
+    fn ports(&mut self) -> Result<&Ports, TransportError> {
+        if self.ports.is_none() {
+            let rpc = open_rpc(&self.node, &self.map_name)?
+                .client_builder()
+                .initial_max_slice_len(INITIAL_SLICE_LEN)
+                .allocation_strategy(ALLOCATION)
+                .create()
+                .map_err(iox("create the client port"))?;
+            let requests = open_request_event(&self.node, &self.map_name)?
+                .notifier_builder()
+                .create()
+                .map_err(iox("create the request notifier"))?;
+            let responses = open_response_event(&self.node, &self.map_name)?
+                .listener_builder()
+                .create()
+                .map_err(iox("create the response listener"))?;
+            self.ports = Some(Ports {
+                rpc,
+                requests,
+                responses,
+            });
+        }
+        Ok(self.ports.as_ref().expect("set above"))
+    }
+
+    /// True when a server is attached to the map's service.
+    pub fn server_present(&mut self) -> Result<bool, ClientError> {
+        let rpc = open_rpc(&self.node, &self.map_name)?;
+        Ok(rpc.dynamic_config().number_of_servers() > 0)
+    }
+
+    /// Sends one request (`fill` writes `len` payload floats) and waits for its answer.
+    /// Error statuses become `ClientError::Rejected`.
+    pub fn call(
+        &mut self,
+        mut header: RequestHeader,
+        len: usize,
+        fill: impl FnOnce(&mut RequestHeader, &mut [f32]),
+    ) -> Result<Response, ClientError> {
+        header.version = PROTOCOL_VERSION;
+        self.call_raw(header, len, fill)
+    }
+
+    /// As [`Self::call`] without setting the protocol version (for tests of version
+    /// checks).
+    pub fn call_raw(
+        &mut self,
+        mut header: RequestHeader,
+        len: usize,
+        fill: impl FnOnce(&mut RequestHeader, &mut [f32]),
+    ) -> Result<Response, ClientError> {
+        header.client_node = self.client_node;
+        header.request_id = self.next_request_id;
+        self.next_request_id += 1;
+        let timeout = self.options.timeout;
+        let spin = self.options.spin;
+        let ports = self.ports()?;
+        let mut request = ports
+            .rpc
+            .loan_slice_uninit(len)
+            .map_err(|e| ClientError::Transport(iox("loan a request")(e)))?;
+        let payload: &mut [f32] = {
+            let uninit = request.payload_mut();
+            for v in uninit.iter_mut() {
+                v.write(0.0);
+            }
+            // SAFETY: every element was just initialized.
+            unsafe { &mut *(uninit as *mut [std::mem::MaybeUninit<f32>] as *mut [f32]) }
+        };
+        fill(&mut header, payload);
+        *request.user_header_mut() = header;
+        // SAFETY: the payload was initialized above.
+        let request = unsafe { request.assume_init() };
+        let pending = request
+            .send()
+            .map_err(|e| ClientError::Transport(iox("send a request")(e)))?;
+        let _ = ports.requests.notify();
+        let deadline = Instant::now() + timeout;
+        loop {
+            match pending.receive() {
+                Ok(Some(response)) => {
+                    let answer = Response {
+                        header: *response.user_header(),
+                        pairings: response.payload().to_vec(),
+                    };
+                    return check_status(answer);
+                }
+                Ok(None) => {}
+                Err(e) => return Err(ClientError::Transport(iox("receive a response")(e))),
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                break;
+            }
+            if spin {
+                std::hint::spin_loop();
+            } else {
+                let wait = (deadline - now).min(Duration::from_millis(50));
+                let _ = ports.responses.timed_wait(|_| {}, wait);
+            }
+        }
+        drop(pending);
+        self.reconnect();
+        Err(ClientError::Timeout {
+            map_name: self.map_name.clone(),
+            waited: timeout,
+        })
+    }
+
+    /// Cleans up dead nodes (e.g. a killed server) and rebuilds the ports on next use.
+    pub fn reconnect(&mut self) {
+        self.ports = None;
+        self.node.try_cleanup_dead_nodes();
+    }
+}
+
+fn check_status(answer: Response) -> Result<Response, ClientError> {
+    match StatusCode::from_code(answer.header.status) {
+        StatusCode::Ok => Ok(answer),
+        status => Err(ClientError::Rejected {
+            status,
+            message: answer.header.message(),
+            detail: answer.header.detail,
+        }),
+    }
+}

@@ -1,0 +1,420 @@
+//! What the server answers to one request: pure computation on the shared map and the
+//! client's session, no transport. The same function serves the IPC loop and the
+//! in-process tests that check the IPC answers bit for bit.
+
+use std::time::Instant;
+
+use kfmap_shared::cloud::PointCloud;
+use kfmap_shared::cov::{CovOptions, estimate_covariances};
+use kfmap_shared::geometry::{Pose, to_point, transform_point};
+use kfmap_shared::gravity::ImuWindow;
+use kfmap_shared::map::{ActiveSet, MapError};
+use kfmap_shared::protocol::{
+    Cov2CovMode, DecodedScan, Rejection, RequestHeader, RequestKind, ResponseHeader, StatusCode,
+    WirePairing, check_version, correspondences_from_wire, decode_imu, decode_scan,
+    localize_registration, pose_from_wire, pose_to_wire,
+};
+use kfmap_shared::registration::{RegistrationError, RegistrationParams, solve_pose};
+use nalgebra::Matrix6;
+use rayon::prelude::*;
+
+use super::session::Session;
+use super::state::ServedMap;
+
+/// Largest `k` of a `Nearest` request.
+pub const MAX_K: u32 = 64;
+/// Largest radius of a `Radius` request, metres.
+pub const MAX_RADIUS: f32 = 20.0;
+/// Largest pairing distance of `Cov2Cov` / `Localize`, metres.
+pub const MAX_PAIR_DIST: f32 = 50.0;
+/// Most iterations of a `Localize` request.
+pub const MAX_ITERATIONS: u32 = 100;
+/// Most pairings one `Radius` answer may hold.
+pub const MAX_RADIUS_PAIRINGS: usize = 1 << 22;
+
+/// Request limits from `server.toml`.
+#[derive(Debug, Clone, Copy)]
+pub struct Limits {
+    /// Points per scan, at most.
+    pub max_points: usize,
+    /// Covariances estimated for scans sent without them.
+    pub scan_covariance: CovOptions,
+}
+
+/// A response: header and pairings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Answer {
+    /// Status, timings, pose, gravity.
+    pub header: ResponseHeader,
+    /// Map points found.
+    pub pairings: Vec<WirePairing>,
+}
+
+impl Answer {
+    /// An error answer.
+    pub fn rejected(request_id: u64, rejection: &Rejection) -> Self {
+        let mut header = ResponseHeader {
+            request_id,
+            status: rejection.status as u32,
+            detail: rejection.detail,
+            ..Default::default()
+        };
+        header.set_message(&rejection.message);
+        Self {
+            header,
+            pairings: Vec::new(),
+        }
+    }
+}
+
+/// Answers one request on `map` within the client's `session`. Status requests are
+/// answered by the caller (they need the server's counters).
+pub fn answer(
+    map: &ServedMap,
+    session: &mut Session,
+    request: &RequestHeader,
+    payload: &[f32],
+    limits: &Limits,
+) -> Answer {
+    let started = Instant::now();
+    let mut answer = match compute(map, session, request, payload, limits) {
+        Ok(answer) => answer,
+        Err(rejection) => Answer::rejected(request.request_id, &rejection),
+    };
+    answer.header.request_id = request.request_id;
+    answer.header.server_us = started.elapsed().as_secs_f64() * 1e6;
+    answer
+}
+
+fn bad(message: impl Into<String>) -> Rejection {
+    Rejection::new(StatusCode::BadRequest, message)
+}
+
+fn compute(
+    map: &ServedMap,
+    session: &mut Session,
+    request: &RequestHeader,
+    payload: &[f32],
+    limits: &Limits,
+) -> Result<Answer, Rejection> {
+    check_version(request)?;
+    let kind = RequestKind::from_code(request.kind).ok_or_else(|| Rejection {
+        status: StatusCode::UnknownKind,
+        message: format!("request kind {} is not known to this server", request.kind),
+        detail: request.kind as u64,
+    })?;
+    let pose = pose_from_wire(&request.pose).ok_or_else(|| {
+        bad("the pose guess is not finite or its quaternion is not of unit length")
+    })?;
+    session.follow(map.generation);
+    match kind {
+        RequestKind::Echo => Ok(echo(request, payload, limits)?),
+        RequestKind::ImuWindow => imu_window(session, request, payload, &pose),
+        RequestKind::Status | RequestKind::Reload => Err(Rejection::new(
+            StatusCode::Internal,
+            "status and reload requests are answered by the server loop",
+        )),
+        _ => {
+            let scan = decode_scan(request, payload, limits.max_points)?;
+            match kind {
+                RequestKind::Nearest => nearest(map, session, request, &scan, &pose),
+                RequestKind::Radius => radius(map, session, request, &scan, &pose),
+                RequestKind::Cov2Cov => {
+                    let exact = exact_mode(map, request.mode)?;
+                    let covs = scan_covariances(&scan, limits);
+                    let (pairings, active) = cov2cov(
+                        map,
+                        session,
+                        &scan,
+                        &covs,
+                        &pose,
+                        request.max_pair_dist,
+                        exact,
+                    )?;
+                    Ok(with_active(pairings, &active))
+                }
+                _ => localize(map, session, request, &scan, &pose, limits),
+            }
+        }
+    }
+}
+
+/// A no-work answer of the request's size (round-trip measurements).
+fn echo(request: &RequestHeader, payload: &[f32], limits: &Limits) -> Result<Answer, Rejection> {
+    let n = (request.point_count as usize).min(payload.len() / 3);
+    if n > limits.max_points {
+        return Err(Rejection::new(
+            StatusCode::TooManyPoints,
+            format!("{n} points; at most {}", limits.max_points),
+        ));
+    }
+    let pairings = payload
+        .as_chunks::<3>()
+        .0
+        .iter()
+        .take(n)
+        .enumerate()
+        .map(|(i, p)| WirePairing {
+            query: i as u32,
+            point: *p,
+            ..Default::default()
+        })
+        .collect();
+    Ok(Answer {
+        header: ResponseHeader::default(),
+        pairings,
+    })
+}
+
+fn with_active(pairings: Vec<WirePairing>, active: &[u64]) -> Answer {
+    let mut header = ResponseHeader::default();
+    let used = active.len().min(header.active.len());
+    header.active[..used].copy_from_slice(&active[..used]);
+    header.active_len = used as u32;
+    Answer { header, pairings }
+}
+
+fn map_error(e: MapError) -> Rejection {
+    Rejection::new(StatusCode::Internal, format!("map: {e}"))
+}
+
+fn exact_mode(map: &ServedMap, mode: u32) -> Result<bool, Rejection> {
+    match Cov2CovMode::from_code(mode) {
+        Some(Cov2CovMode::MapDefault) => Ok(!map.map.options().approximate_cov),
+        Some(Cov2CovMode::Approximate) => Ok(false),
+        Some(Cov2CovMode::Exact) => Ok(true),
+        None => Err(bad(format!(
+            "cov2cov mode {mode} is unknown (0 map default, 1 approximate, 2 exact)"
+        ))),
+    }
+}
+
+/// The active set for a query at `pose`, with the session's merged-submap cache.
+fn activate<'m>(
+    map: &'m ServedMap,
+    session: &mut Session,
+    pose: &Pose,
+    exact: bool,
+) -> Result<ActiveSet<'m>, Rejection> {
+    let ids = map.map.select(pose);
+    if ids.is_empty() {
+        return Err(Rejection::new(
+            StatusCode::MapNotLoaded,
+            "the map has no keyframes",
+        ));
+    }
+    map.map
+        .activate_cached(ids, &mut session.merged, exact)
+        .map_err(map_error)
+}
+
+fn to_map_frame(pose: &Pose, p: &[f32; 3]) -> [f32; 3] {
+    to_point(&transform_point(pose, p))
+}
+
+fn hits_to_wire(query: usize, hits: &[kfmap_shared::map::MapHit]) -> Vec<WirePairing> {
+    hits.iter()
+        .map(|h| WirePairing {
+            query: query as u32,
+            local_index: h.local_index,
+            keyframe: h.keyframe,
+            point: h.point,
+            dist_sq: h.dist_sq,
+            information: [0.0; 6],
+        })
+        .collect()
+}
+
+fn nearest(
+    map: &ServedMap,
+    session: &mut Session,
+    request: &RequestHeader,
+    scan: &DecodedScan,
+    pose: &Pose,
+) -> Result<Answer, Rejection> {
+    if !(1..=MAX_K).contains(&request.k) {
+        return Err(bad(format!("k = {} must be within 1..={MAX_K}", request.k)));
+    }
+    let active = activate(map, session, pose, false)?;
+    let pairings: Vec<WirePairing> = scan
+        .points
+        .par_iter()
+        .enumerate()
+        .flat_map_iter(|(i, p)| {
+            hits_to_wire(
+                i,
+                &active.nearest_k(&to_map_frame(pose, p), request.k as usize),
+            )
+        })
+        .collect();
+    Ok(with_active(pairings, active.ids()))
+}
+
+fn radius(
+    map: &ServedMap,
+    session: &mut Session,
+    request: &RequestHeader,
+    scan: &DecodedScan,
+    pose: &Pose,
+) -> Result<Answer, Rejection> {
+    let r = request.radius;
+    if !(r.is_finite() && r > 0.0 && r <= MAX_RADIUS) {
+        return Err(bad(format!(
+            "radius {r} m must be within (0, {MAX_RADIUS}]"
+        )));
+    }
+    let active = activate(map, session, pose, false)?;
+    let pairings: Vec<WirePairing> = scan
+        .points
+        .par_iter()
+        .enumerate()
+        .flat_map_iter(|(i, p)| {
+            hits_to_wire(i, &active.within_radius(&to_map_frame(pose, p), r as f64))
+        })
+        .collect();
+    if pairings.len() > MAX_RADIUS_PAIRINGS {
+        return Err(bad(format!(
+            "the radius answer holds {} pairings, more than {MAX_RADIUS_PAIRINGS}; use a smaller radius or fewer points",
+            pairings.len()
+        )));
+    }
+    Ok(with_active(pairings, active.ids()))
+}
+
+/// The scan's covariances: the client's, or estimated with the server's options.
+fn scan_covariances(scan: &DecodedScan, limits: &Limits) -> Vec<[f32; 6]> {
+    match scan.covariances {
+        Some(c) => c.to_vec(),
+        None => estimate_covariances(scan.points, &limits.scan_covariance).values,
+    }
+}
+
+/// Cov2cov pairings at `pose` and the active keyframes used.
+fn cov2cov(
+    map: &ServedMap,
+    session: &mut Session,
+    scan: &DecodedScan,
+    covariances: &[[f32; 6]],
+    pose: &Pose,
+    max_pair_dist: f32,
+    exact: bool,
+) -> Result<(Vec<WirePairing>, Vec<u64>), Rejection> {
+    if !(max_pair_dist.is_finite() && max_pair_dist > 0.0 && max_pair_dist <= MAX_PAIR_DIST) {
+        return Err(bad(format!(
+            "max_pair_dist {max_pair_dist} m must be within (0, {MAX_PAIR_DIST}]"
+        )));
+    }
+    let active = activate(map, session, pose, exact)?;
+    let cloud = PointCloud {
+        points: scan.points.to_vec(),
+        view_dirs: scan.view_dirs.map(<[_]>::to_vec),
+        intensity: None,
+        time: None,
+    };
+    let pairings = active
+        .cov2cov(&cloud, pose, max_pair_dist as f64, Some(covariances))
+        .map_err(map_error)?;
+    Ok((
+        pairings.iter().map(WirePairing::from).collect(),
+        active.ids().to_vec(),
+    ))
+}
+
+/// The registration settings of a `Localize` request.
+pub fn localize_params(request: &RequestHeader) -> Result<RegistrationParams, Rejection> {
+    let (d, n) = (request.max_pair_dist, request.max_iterations);
+    if !(d.is_finite() && d > 0.0 && d <= MAX_PAIR_DIST) {
+        return Err(bad(format!(
+            "max_pair_dist {d} m must be within (0, {MAX_PAIR_DIST}]"
+        )));
+    }
+    if !(1..=MAX_ITERATIONS).contains(&n) {
+        return Err(bad(format!(
+            "max_iterations {n} must be within 1..={MAX_ITERATIONS}"
+        )));
+    }
+    Ok(localize_registration(d, n))
+}
+
+/// Server-side GICP: the same loop a client runs over cov2cov answers.
+fn localize(
+    map: &ServedMap,
+    session: &mut Session,
+    request: &RequestHeader,
+    scan: &DecodedScan,
+    pose: &Pose,
+    limits: &Limits,
+) -> Result<Answer, Rejection> {
+    let params = localize_params(request)?;
+    let exact = exact_mode(map, request.mode)?;
+    let covs = scan_covariances(scan, limits);
+    let mut active = Vec::new();
+    let result = solve_pose(pose, &params, scan.points.len(), |at| {
+        let (pairings, ids) = cov2cov(map, session, scan, &covs, at, request.max_pair_dist, exact)
+            .map_err(LocalizeError::Rejected)?;
+        active = ids;
+        Ok::<_, LocalizeError>(correspondences_from_wire(&pairings, scan.points))
+    })
+    .map_err(|e| match e {
+        LocalizeError::Rejected(r) => r,
+        LocalizeError::Registration(e) => bad(format!("localization: {e}")),
+    })?;
+    let mut answer = with_active(Vec::new(), &active);
+    let h = &mut answer.header;
+    h.pose = pose_to_wire(&result.pose);
+    h.covariance = pose_covariance(&result.hessian);
+    h.fitness = [result.fitness.inlier_ratio, result.fitness.rmse];
+    h.iterations = result.iterations as u32;
+    h.converged = result.converged as u32;
+    Ok(answer)
+}
+
+/// The pose covariance, the inverse Hessian (zeros when singular), row-major.
+pub fn pose_covariance(hessian: &Matrix6<f64>) -> [f64; 36] {
+    let inverse = hessian.try_inverse().unwrap_or_else(Matrix6::zeros);
+    std::array::from_fn(|i| inverse[(i / 6, i % 6)])
+}
+
+enum LocalizeError {
+    Rejected(Rejection),
+    Registration(RegistrationError),
+}
+
+impl From<RegistrationError> for LocalizeError {
+    fn from(e: RegistrationError) -> Self {
+        Self::Registration(e)
+    }
+}
+
+fn imu_window(
+    session: &mut Session,
+    request: &RequestHeader,
+    payload: &[f32],
+    pose: &Pose,
+) -> Result<Answer, Rejection> {
+    const MAX_IMU_SAMPLES: usize = 1 << 16;
+    let samples = decode_imu(request, payload, MAX_IMU_SAMPLES)?;
+    let id = request.keyframe_or_scan_id;
+    session
+        .gravity
+        .on_new_keyframe(id, &ImuWindow::new(samples));
+    session.gravity_poses.insert(id, *pose);
+    let mut answer = with_active(Vec::new(), &[]);
+    let h = &mut answer.header;
+    h.gravity_members = session.gravity.size() as u32;
+    if let Some(c) = session
+        .gravity
+        .estimate_global_correction(&session.gravity_poses)
+    {
+        let q = nalgebra::UnitQuaternion::from_rotation_matrix(&c.rotation);
+        h.has_gravity = 1;
+        h.gravity = to_vec3_f64(&c.estimate.g);
+        h.roll_pitch = [c.roll, c.pitch];
+        h.correction = [q.i, q.j, q.k, q.w];
+    }
+    Ok(answer)
+}
+
+fn to_vec3_f64(v: &nalgebra::Vector3<f64>) -> [f64; 3] {
+    [v.x, v.y, v.z]
+}

@@ -1,0 +1,310 @@
+//! `kfmap serve`: one process owns a baked map and answers clients over iceoryx2
+//! (ARCHITECTURE sections 1 and 11). The main thread waits on a WaitSet (or spins) and
+//! queues requests per client; a worker pool answers them round-robin; a client that
+//! dies loses its session; SIGINT/SIGTERM end the loop gracefully; SIGHUP or a
+//! `Reload` request swaps in a new map file.
+
+pub mod answer;
+mod queue;
+pub mod session;
+pub mod state;
+mod stats;
+mod workers;
+
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use iceoryx2::node::{Node, NodeView};
+use iceoryx2::prelude::{CallbackProgression, NodeState, PortFactory, WaitSetBuilder};
+use iceoryx2::waitset::WaitSetRunResult;
+use kfmap_shared::archive::ArchiveError;
+use kfmap_shared::protocol::transport::{
+    ALLOCATION, INITIAL_SLICE_LEN, Transport, TransportError, create_node, iceoryx_config, iox,
+    open_request_event, open_response_event, open_rpc,
+};
+use tracing::{info, warn};
+
+use crate::config::ServerConfig;
+use answer::Limits;
+use queue::FairQueue;
+use session::Sessions;
+pub use state::{MapSlot, ServedMap};
+pub use stats::{KindFigures, Stats};
+use workers::{Job, WorkerContext};
+
+/// Free space `/dev/shm` must have at start: iceoryx2 writes into shared memory that
+/// the kernel backs lazily, and a full tmpfs kills the writer with SIGBUS.
+pub const MIN_SHM_FREE_BYTES: u64 = 64 << 20;
+/// How often dead clients are looked for and reload signals checked.
+const HOUSEKEEPING: Duration = Duration::from_millis(250);
+
+/// How to serve.
+#[derive(Debug, Clone)]
+pub struct ServeOptions {
+    /// The baked map file.
+    pub map_path: PathBuf,
+    /// Name in the service names `kfmap/<map-name>/...`.
+    pub map_name: String,
+    /// `server.toml`.
+    pub config: ServerConfig,
+    /// iceoryx2 prefix of every shared-memory name (separates deployments and tests).
+    pub iceoryx_prefix: Option<String>,
+    /// Poll instead of sleeping on events: lower latency, one core busy.
+    pub spin: bool,
+    /// Skip bytechecks of keyframe archives (checksums still verified).
+    pub trust: bool,
+}
+
+/// Why the server could not start or stopped with an error.
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    /// The map file could not be opened.
+    #[error("{}: {source}", path.display())]
+    Map {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        source: ArchiveError,
+    },
+    /// Another server already serves this map name.
+    #[error(
+        "another kfmap server already serves map {0:?} (a request would reach both); stop it or pick another --map-name"
+    )]
+    AlreadyServed(String),
+    /// `/dev/shm` is too small.
+    #[error(
+        "/dev/shm has {free_mib} MiB free; kfmap serve needs at least {need_mib} MiB (in a container, raise --shm-size)"
+    )]
+    SharedMemoryTooSmall {
+        /// Free MiB.
+        free_mib: u64,
+        /// Needed MiB.
+        need_mib: u64,
+    },
+    /// iceoryx2 setup failed.
+    #[error(transparent)]
+    Transport(#[from] TransportError),
+}
+
+/// What a server reports when it is ready.
+#[derive(Debug, Clone)]
+pub struct ServeInfo {
+    /// Map name in service names.
+    pub map_name: String,
+    /// Keyframes in the map.
+    pub keyframes: usize,
+    /// Points in the map.
+    pub points: usize,
+    /// Worker threads.
+    pub workers: usize,
+    /// Milliseconds from start to ready.
+    pub startup_ms: f64,
+}
+
+/// What a server did, returned on shutdown.
+#[derive(Debug, Clone)]
+pub struct ServeSummary {
+    /// Requests answered, by kind code.
+    pub figures: Vec<KindFigures>,
+    /// Requests refused at shutdown, never started.
+    pub refused_at_shutdown: usize,
+    /// Seconds served.
+    pub uptime_s: f64,
+}
+
+/// Checks that `/dev/shm` (when present) has [`MIN_SHM_FREE_BYTES`] free.
+pub fn check_shared_memory() -> Result<(), ServeError> {
+    let Some(free) = free_bytes(Path::new("/dev/shm")) else {
+        return Ok(());
+    };
+    if free < MIN_SHM_FREE_BYTES {
+        return Err(ServeError::SharedMemoryTooSmall {
+            free_mib: free >> 20,
+            need_mib: MIN_SHM_FREE_BYTES >> 20,
+        });
+    }
+    Ok(())
+}
+
+fn free_bytes(dir: &Path) -> Option<u64> {
+    use std::os::unix::ffi::OsStrExt;
+    let path = std::ffi::CString::new(dir.as_os_str().as_bytes()).ok()?;
+    let mut stat: libc::statvfs = unsafe { std::mem::zeroed() };
+    // SAFETY: a valid C string and a zeroed out-parameter of the right type.
+    let rc = unsafe { libc::statvfs(path.as_ptr(), &mut stat) };
+    (rc == 0).then(|| stat.f_bavail as u64 * stat.f_frsize as u64)
+}
+
+/// Ids of the live iceoryx2 nodes under `config`; dead nodes' resources are removed.
+fn live_nodes(node: &Node<Transport>, config: &iceoryx2::config::Config) -> HashSet<u128> {
+    node.try_cleanup_dead_nodes();
+    let mut alive = HashSet::new();
+    let listed = Node::<Transport>::list(config, |state| {
+        if let NodeState::Alive(view) = state {
+            alive.insert(view.id().value());
+        }
+        CallbackProgression::Continue
+    });
+    if let Err(e) = listed {
+        warn!(error = ?e, "could not list iceoryx2 nodes; sessions are kept");
+    }
+    alive
+}
+
+/// Runs the server until SIGINT/SIGTERM (or `stop` is set). `ready` is called once
+/// the services are up.
+pub fn serve(
+    options: &ServeOptions,
+    stop: &AtomicBool,
+    ready: impl FnOnce(&ServeInfo),
+) -> Result<ServeSummary, ServeError> {
+    let started = Instant::now();
+    check_shared_memory()?;
+    let map =
+        ServedMap::open(&options.map_path, options.trust, 0).map_err(|source| ServeError::Map {
+            path: options.map_path.clone(),
+            source,
+        })?;
+    let slot = MapSlot::new(map);
+    let config = iceoryx_config(options.iceoryx_prefix.as_deref())?;
+    let node = create_node(&config, "kfmap-server")?;
+    // A server killed earlier leaves its port behind; free it before counting servers.
+    node.try_cleanup_dead_nodes();
+    let rpc = open_rpc(&node, &options.map_name)?;
+    if rpc.dynamic_config().number_of_servers() > 0 {
+        return Err(ServeError::AlreadyServed(options.map_name.clone()));
+    }
+    let server = rpc
+        .server_builder()
+        .initial_max_slice_len(INITIAL_SLICE_LEN)
+        .allocation_strategy(ALLOCATION)
+        .create()
+        .map_err(|_| ServeError::AlreadyServed(options.map_name.clone()))?;
+    let listener = open_request_event(&node, &options.map_name)?
+        .listener_builder()
+        .create()
+        .map_err(iox("create the request listener"))?;
+    let notifier = open_response_event(&node, &options.map_name)?
+        .notifier_builder()
+        .create()
+        .map_err(iox("create the response notifier"))?;
+    let hangup = Arc::new(AtomicBool::new(false));
+    if let Err(e) = signal_hook::flag::register(signal_hook::consts::SIGHUP, hangup.clone()) {
+        warn!(error = %e, "SIGHUP reload is unavailable");
+    }
+
+    let workers = match options.config.server.worker_threads {
+        0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
+        n => n,
+    };
+    let queue: FairQueue<Job> = FairQueue::default();
+    let context = WorkerContext {
+        slot: &slot,
+        sessions: &Sessions::default(),
+        stats: &Stats::default(),
+        limits: Limits {
+            max_points: options.config.server.max_points_per_request,
+            scan_covariance: options.config.covariance,
+        },
+        notifier: &notifier,
+        map_name: &options.map_name,
+        started,
+        trust: options.trust,
+    };
+    let current = slot.current();
+    let info_line = ServeInfo {
+        map_name: options.map_name.clone(),
+        keyframes: current.keyframes,
+        points: current.points,
+        workers,
+        startup_ms: started.elapsed().as_secs_f64() * 1e3,
+    };
+    drop(current);
+    info!(map = %options.map_name, keyframes = info_line.keyframes, points = info_line.points, workers, "serving");
+    ready(&info_line);
+
+    let refused = std::thread::scope(|scope| -> Result<usize, ServeError> {
+        for _ in 0..workers {
+            scope.spawn(|| {
+                while let Some(job) = queue.pop() {
+                    context.handle(job);
+                }
+            });
+        }
+        let mut last_housekeeping = Instant::now();
+        let housekeeping = || {
+            let alive = live_nodes(&node, &config);
+            let dropped = context.sessions.retain_alive(&alive);
+            if dropped > 0 {
+                info!(dropped, "sessions of dead clients reclaimed");
+            }
+            if hangup.swap(false, Ordering::Relaxed) {
+                // The outcome is logged; the old map stays on failure.
+                let _ = context.reload();
+            }
+        };
+        let drain = || {
+            while let Ok(Some(request)) = server.receive() {
+                let client = session::client_of(request.user_header().client_node);
+                queue.push(client, Job::new(request));
+            }
+        };
+        if options.spin {
+            while !stop.load(Ordering::Relaxed) && node.wait(Duration::ZERO).is_ok() {
+                drain();
+                if last_housekeeping.elapsed() >= HOUSEKEEPING {
+                    housekeeping();
+                    last_housekeeping = Instant::now();
+                }
+                std::hint::spin_loop();
+            }
+        } else {
+            let waitset = WaitSetBuilder::new()
+                .create::<Transport>()
+                .map_err(iox("create the WaitSet"))?;
+            let requests = waitset
+                .attach_notification(&listener)
+                .map_err(iox("attach the request listener"))?;
+            let tick = waitset
+                .attach_interval(HOUSEKEEPING)
+                .map_err(iox("attach the housekeeping interval"))?;
+            loop {
+                let result = waitset.wait_and_process_once(|id| {
+                    if id.has_event_from(&requests) {
+                        let _ = listener.try_wait(|_| {});
+                    }
+                    if id.has_event_from(&tick) {
+                        housekeeping();
+                    }
+                    CallbackProgression::Continue
+                });
+                // Always look: a notification may carry several requests, or none.
+                drain();
+                match result {
+                    Ok(WaitSetRunResult::AllEventsHandled) if !stop.load(Ordering::Relaxed) => {}
+                    Ok(_) => break,
+                    Err(e) => {
+                        warn!(error = ?e, "WaitSet failed; shutting down");
+                        break;
+                    }
+                }
+            }
+        }
+        info!("shutting down: refusing queued requests, finishing those in flight");
+        let left = queue.close();
+        let refused = left.len();
+        for job in left {
+            context.refuse_shutting_down(job);
+        }
+        Ok(refused)
+    })?;
+    let figures = context.stats.figures().to_vec();
+    Ok(ServeSummary {
+        figures,
+        refused_at_shutdown: refused,
+        uptime_s: started.elapsed().as_secs_f64(),
+    })
+}

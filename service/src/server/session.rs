@@ -1,0 +1,84 @@
+//! Per-client state: each client's active-set cache and gravity pool are its own.
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::{Arc, Mutex};
+
+use kfmap_shared::KeyframeId;
+use kfmap_shared::geometry::Pose;
+use kfmap_shared::gravity::{GravityAligner, GravityParams};
+use kfmap_shared::map::MergedSubmap;
+
+/// One client's state.
+pub struct Session {
+    /// Exact mode: the merged submap of this client's last active set.
+    pub merged: Option<Arc<MergedSubmap>>,
+    /// Accelerometer pool of this client's IMU windows.
+    pub gravity: GravityAligner,
+    /// Pose of each pooled keyframe or scan, map frame.
+    pub gravity_poses: BTreeMap<KeyframeId, Pose>,
+    /// Map generation the cache belongs to.
+    generation: u64,
+}
+
+impl Session {
+    /// A fresh session on map `generation`.
+    pub fn new(generation: u64) -> Self {
+        Self {
+            merged: None,
+            gravity: GravityAligner::new(GravityParams::default())
+                .expect("default gravity parameters are valid"),
+            gravity_poses: BTreeMap::new(),
+            generation,
+        }
+    }
+
+    /// Drops the merged-submap cache when the map was reloaded since it was built.
+    pub fn follow(&mut self, generation: u64) {
+        if generation != self.generation {
+            self.merged = None;
+            self.generation = generation;
+        }
+    }
+}
+
+/// Sessions by client node id.
+#[derive(Default)]
+pub struct Sessions {
+    by_client: Mutex<HashMap<u128, Arc<Mutex<Session>>>>,
+}
+
+impl Sessions {
+    /// The session of `client`, created on first use.
+    pub fn get(&self, client: u128, generation: u64) -> Arc<Mutex<Session>> {
+        let mut map = self.by_client.lock().unwrap_or_else(|e| e.into_inner());
+        map.entry(client)
+            .or_insert_with(|| Arc::new(Mutex::new(Session::new(generation))))
+            .clone()
+    }
+
+    /// Drops the sessions of clients not in `alive`; returns how many were dropped.
+    pub fn retain_alive(&self, alive: &std::collections::HashSet<u128>) -> usize {
+        let mut map = self.by_client.lock().unwrap_or_else(|e| e.into_inner());
+        let before = map.len();
+        map.retain(|client, _| alive.contains(client));
+        before - map.len()
+    }
+
+    /// Open sessions.
+    pub fn len(&self) -> usize {
+        self.by_client
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .len()
+    }
+
+    /// True without sessions.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// The client node id carried in a request header.
+pub fn client_of(words: [u64; 2]) -> u128 {
+    (words[0] as u128) << 64 | words[1] as u128
+}

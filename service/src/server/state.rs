@@ -1,0 +1,75 @@
+//! The served map and its atomic replacement on reload: requests in flight keep the
+//! map they started with (an `Arc`), new requests get the new one.
+
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, RwLock};
+
+use kfmap_shared::archive::{ArchiveError, OpenOptions, open_map};
+use kfmap_shared::map::KeyframeMap;
+
+/// A loaded map.
+pub struct ServedMap {
+    /// The map, reading keyframes from the memory-mapped file.
+    pub map: KeyframeMap,
+    /// The file it came from.
+    pub path: PathBuf,
+    /// Counts loads: 0 for the first map, +1 per reload.
+    pub generation: u64,
+    /// Keyframes in the map.
+    pub keyframes: usize,
+    /// Points in the map.
+    pub points: usize,
+}
+
+impl ServedMap {
+    /// Memory-maps `path`; nothing is rebuilt.
+    pub fn open(path: &Path, trust: bool, generation: u64) -> Result<Self, ArchiveError> {
+        let opened = open_map(
+            path,
+            OpenOptions {
+                trust,
+                approximate_cov: true,
+            },
+        )?;
+        let map = opened.map;
+        Ok(Self {
+            keyframes: map.len(),
+            points: map.point_count(),
+            map,
+            path: path.to_path_buf(),
+            generation,
+        })
+    }
+}
+
+/// The current map, swapped atomically on reload.
+pub struct MapSlot {
+    current: RwLock<Arc<ServedMap>>,
+}
+
+impl MapSlot {
+    /// A slot holding `map`.
+    pub fn new(map: ServedMap) -> Self {
+        Self {
+            current: RwLock::new(Arc::new(map)),
+        }
+    }
+
+    /// The map new requests use.
+    pub fn current(&self) -> Arc<ServedMap> {
+        self.current
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone()
+    }
+
+    /// Opens `path` (the current file when `None`) and switches to it; on failure the
+    /// current map stays.
+    pub fn reload(&self, path: Option<&Path>, trust: bool) -> Result<Arc<ServedMap>, ArchiveError> {
+        let old = self.current();
+        let path = path.unwrap_or(&old.path);
+        let new = Arc::new(ServedMap::open(path, trust, old.generation + 1)?);
+        *self.current.write().unwrap_or_else(|e| e.into_inner()) = new.clone();
+        Ok(new)
+    }
+}

@@ -1,0 +1,219 @@
+//! The worker side: answer one request, send the response, release the request, then
+//! wake the clients (in that order: a client woken before the request is released can
+//! find its slot still taken and stall).
+
+use std::panic::AssertUnwindSafe;
+use std::time::Instant;
+
+use iceoryx2::active_request::ActiveRequest;
+use iceoryx2::port::notifier::Notifier;
+use kfmap_shared::protocol::transport::Transport;
+use kfmap_shared::protocol::{
+    Rejection, RequestHeader, RequestKind, ResponseHeader, StatusCode, WirePairing, check_version,
+    write_text,
+};
+use tracing::{debug, info, warn};
+
+use super::answer::{Answer, Limits, answer};
+use super::session::{Sessions, client_of};
+use super::state::MapSlot;
+use super::stats::Stats;
+
+/// A received request and when it arrived.
+pub struct Job {
+    request: ActiveRequest<Transport, [f32], RequestHeader, [WirePairing], ResponseHeader>,
+    received: Instant,
+}
+
+impl Job {
+    /// Wraps a request received now.
+    pub fn new(
+        request: ActiveRequest<Transport, [f32], RequestHeader, [WirePairing], ResponseHeader>,
+    ) -> Self {
+        Self {
+            request,
+            received: Instant::now(),
+        }
+    }
+}
+
+/// What every worker shares.
+pub struct WorkerContext<'a> {
+    /// The map.
+    pub slot: &'a MapSlot,
+    /// Client sessions.
+    pub sessions: &'a Sessions,
+    /// Counters.
+    pub stats: &'a Stats,
+    /// Request limits.
+    pub limits: Limits,
+    /// Wakes clients after a response.
+    pub notifier: &'a Notifier<Transport>,
+    /// Served map name.
+    pub map_name: &'a str,
+    /// Server start.
+    pub started: Instant,
+    /// Open reloaded maps without bytechecks.
+    pub trust: bool,
+}
+
+impl WorkerContext<'_> {
+    /// Answers `job` and wakes the clients.
+    pub fn handle(&self, job: Job) {
+        let header = *job.request.user_header();
+        let computed = std::panic::catch_unwind(AssertUnwindSafe(|| {
+            self.compute(&header, job.request.payload())
+        }));
+        let answer = computed.unwrap_or_else(|_| {
+            Answer::rejected(
+                header.request_id,
+                &Rejection::new(
+                    StatusCode::Internal,
+                    "internal error while answering; see the server log",
+                ),
+            )
+        });
+        let status = answer.header.status;
+        self.respond(job, &header, &answer);
+        debug!(
+            kind = header.kind,
+            points = header.point_count,
+            pairings = answer.pairings.len(),
+            status,
+            server_us = answer.header.server_us,
+            "answered"
+        );
+    }
+
+    fn compute(&self, header: &RequestHeader, payload: &[f32]) -> Answer {
+        match RequestKind::from_code(header.kind) {
+            Some(RequestKind::Status) => self.status(header),
+            Some(RequestKind::Reload) => self.reload_answer(header),
+            _ => {
+                let map = self.slot.current();
+                let session = self
+                    .sessions
+                    .get(client_of(header.client_node), map.generation);
+                let mut session = session.lock().unwrap_or_else(|e| e.into_inner());
+                answer(&map, &mut session, header, payload, &self.limits)
+            }
+        }
+    }
+
+    /// Sends `answer`, releases the request, records the latency, wakes the clients.
+    fn respond(&self, job: Job, header: &RequestHeader, answer: &Answer) {
+        let Job { request, received } = job;
+        if let Err(e) = send(&request, answer) {
+            warn!(error = %e, "could not send a response; sending the error instead");
+            let error = Answer::rejected(
+                header.request_id,
+                &Rejection::new(
+                    StatusCode::Internal,
+                    format!("the answer could not be sent: {e}"),
+                ),
+            );
+            let _ = send(&request, &error);
+        }
+        drop(request);
+        self.stats
+            .record(header.kind, received.elapsed().as_secs_f64() as f32 * 1e6);
+        let _ = self.notifier.notify();
+    }
+
+    /// Answers a request that was queued but never started when shutting down.
+    pub fn refuse_shutting_down(&self, job: Job) {
+        let header = *job.request.user_header();
+        let answer = Answer::rejected(
+            header.request_id,
+            &Rejection::new(
+                StatusCode::ShuttingDown,
+                "the server is shutting down; the request was not started",
+            ),
+        );
+        self.respond(job, &header, &answer);
+    }
+
+    fn status(&self, request: &RequestHeader) -> Answer {
+        if let Err(rejection) = check_version(request) {
+            return Answer::rejected(request.request_id, &rejection);
+        }
+        let map = self.slot.current();
+        let mut h = ResponseHeader {
+            request_id: request.request_id,
+            map_keyframes: map.keyframes as u64,
+            map_points: map.points as u64,
+            uptime_s: self.started.elapsed().as_secs_f64(),
+            sessions: self.sessions.len() as u32,
+            ..Default::default()
+        };
+        for (slot, f) in self.stats.figures().iter().enumerate() {
+            h.counts[slot] = f.count;
+            h.p50_us[slot] = f.p50_us;
+            h.p99_us[slot] = f.p99_us;
+        }
+        h.map_name_len = write_text(&mut h.map_name, self.map_name);
+        h.set_message(&map.path.display().to_string());
+        Answer {
+            header: h,
+            pairings: Vec::new(),
+        }
+    }
+
+    fn reload_answer(&self, request: &RequestHeader) -> Answer {
+        if let Err(rejection) = check_version(request) {
+            return Answer::rejected(request.request_id, &rejection);
+        }
+        match self.reload() {
+            Ok(message) => {
+                let mut header = ResponseHeader {
+                    request_id: request.request_id,
+                    ..Default::default()
+                };
+                header.set_message(&message);
+                Answer {
+                    header,
+                    pairings: Vec::new(),
+                }
+            }
+            Err(message) => Answer::rejected(
+                request.request_id,
+                &Rejection::new(StatusCode::Internal, message),
+            ),
+        }
+    }
+
+    /// Reopens the map file and switches to it.
+    pub fn reload(&self) -> Result<String, String> {
+        match self.slot.reload(None, self.trust) {
+            Ok(map) => {
+                let message = format!(
+                    "reloaded {} (generation {}, {} keyframes, {} points)",
+                    map.path.display(),
+                    map.generation,
+                    map.keyframes,
+                    map.points
+                );
+                info!("{message}");
+                Ok(message)
+            }
+            Err(e) => {
+                let message = format!("reload failed, still serving the previous map: {e}");
+                warn!("{message}");
+                Err(message)
+            }
+        }
+    }
+}
+
+/// Loans a response of the answer's size, fills it and sends it.
+fn send(
+    request: &ActiveRequest<Transport, [f32], RequestHeader, [WirePairing], ResponseHeader>,
+    answer: &Answer,
+) -> Result<(), String> {
+    let mut response = request
+        .loan_slice_uninit(answer.pairings.len())
+        .map_err(|e| format!("{e:?}"))?;
+    *response.user_header_mut() = answer.header;
+    let response = response.write_from_slice(&answer.pairings);
+    response.send().map_err(|e| format!("{e:?}"))
+}

@@ -1,0 +1,124 @@
+//! The iceoryx2 services of a map, built the same way by server and clients (the
+//! first process to arrive creates them with these settings).
+
+use iceoryx2::config::Config;
+use iceoryx2::node::Node;
+use iceoryx2::prelude::{
+    AllocationStrategy, FileName, NodeBuilder, SemanticString, ServiceName, ipc_threadsafe,
+};
+use iceoryx2::service::port_factory::event::PortFactory as EventFactory;
+use iceoryx2::service::port_factory::request_response::PortFactory as RpcFactory;
+
+use super::wire::{RequestHeader, ResponseHeader, WirePairing};
+use super::{request_event_name, response_event_name, rpc_service_name};
+
+/// The iceoryx2 service variant of kfmap: thread-safe ports, so a worker pool can
+/// answer requests; it interoperates with plain `ipc` clients.
+pub type Transport = ipc_threadsafe::Service;
+
+/// The request-response service of a map.
+pub type Rpc = RpcFactory<Transport, [f32], RequestHeader, [WirePairing], ResponseHeader>;
+
+/// An event service of a map.
+pub type Event = EventFactory<Transport>;
+
+/// Clients (processes, ports) a map's services admit.
+pub const MAX_CLIENTS: usize = 64;
+/// Slice length reserved for a first request or response; larger ones grow the
+/// segment once (power-of-two reallocation).
+pub const INITIAL_SLICE_LEN: usize = 16 * 1024;
+
+/// Why the services could not be set up.
+#[derive(Debug, thiserror::Error)]
+pub enum TransportError {
+    /// The iceoryx2 prefix is not a valid file name.
+    #[error("iceoryx2 prefix {0:?} is not a valid file name (letters, digits, '-', '_', '.')")]
+    BadPrefix(String),
+    /// The map name makes an invalid service name.
+    #[error("map name {0:?} cannot be used in an iceoryx2 service name")]
+    BadMapName(String),
+    /// iceoryx2 refused.
+    #[error("iceoryx2: {what}: {message}")]
+    Iceoryx {
+        /// The step that failed.
+        what: &'static str,
+        /// iceoryx2's error.
+        message: String,
+    },
+}
+
+/// Wraps an iceoryx2 error with the step that failed.
+pub fn iox<E: std::fmt::Debug>(what: &'static str) -> impl FnOnce(E) -> TransportError {
+    move |e| TransportError::Iceoryx {
+        what,
+        message: format!("{e:?}"),
+    }
+}
+
+/// iceoryx2's configuration with an optional prefix for every shared-memory name, so
+/// parallel tests and deployments never see each other.
+pub fn iceoryx_config(prefix: Option<&str>) -> Result<Config, TransportError> {
+    let mut config = Config::default();
+    if let Some(prefix) = prefix {
+        config.global.prefix = FileName::new(prefix.as_bytes())
+            .map_err(|_| TransportError::BadPrefix(prefix.to_string()))?;
+    }
+    Ok(config)
+}
+
+/// A node under `config`.
+pub fn create_node(config: &Config, name: &str) -> Result<Node<Transport>, TransportError> {
+    let name = name
+        .try_into()
+        .map_err(|_| TransportError::BadMapName(name.to_string()))?;
+    NodeBuilder::new()
+        .config(config)
+        .name(&name)
+        .create::<Transport>()
+        .map_err(iox("create node"))
+}
+
+fn service_name(name: &str, map_name: &str) -> Result<ServiceName, TransportError> {
+    ServiceName::new(name).map_err(|_| TransportError::BadMapName(map_name.to_string()))
+}
+
+/// Opens or creates the map's request-response service.
+pub fn open_rpc(node: &Node<Transport>, map_name: &str) -> Result<Rpc, TransportError> {
+    node.service_builder(&service_name(&rpc_service_name(map_name), map_name)?)
+        .request_response::<[f32], [WirePairing]>()
+        .request_user_header::<RequestHeader>()
+        .response_user_header::<ResponseHeader>()
+        .max_servers(1)
+        .max_clients(MAX_CLIENTS)
+        .max_nodes(MAX_CLIENTS + 2)
+        .max_active_requests_per_client(4)
+        .max_response_buffer_size(4)
+        .open_or_create()
+        .map_err(iox("open the request-response service"))
+}
+
+/// Opens or creates the event service clients signal after a request.
+pub fn open_request_event(node: &Node<Transport>, map_name: &str) -> Result<Event, TransportError> {
+    open_event(node, &request_event_name(map_name), map_name)
+}
+
+/// Opens or creates the event service the server signals after a response.
+pub fn open_response_event(
+    node: &Node<Transport>,
+    map_name: &str,
+) -> Result<Event, TransportError> {
+    open_event(node, &response_event_name(map_name), map_name)
+}
+
+fn open_event(node: &Node<Transport>, name: &str, map_name: &str) -> Result<Event, TransportError> {
+    node.service_builder(&service_name(name, map_name)?)
+        .event()
+        .max_listeners(MAX_CLIENTS + 2)
+        .max_notifiers(MAX_CLIENTS + 2)
+        .max_nodes(MAX_CLIENTS + 2)
+        .open_or_create()
+        .map_err(iox("open an event service"))
+}
+
+/// The allocation strategy of both directions.
+pub const ALLOCATION: AllocationStrategy = AllocationStrategy::PowerOfTwo;

@@ -1,0 +1,233 @@
+//! The `#[repr(C)]` types on the wire. Layouts and type names are stable within a
+//! protocol version, so clients built on iceoryx2's C, C++ or Python bindings can speak
+//! the protocol (ARCHITECTURE section 11).
+
+use iceoryx2::prelude::ZeroCopySend;
+
+/// Bytes of a response's status message (UTF-8, zero padded).
+pub const MESSAGE_LEN: usize = 240;
+/// Request kinds counted in a status report (index = kind code).
+pub const KIND_SLOTS: usize = 10;
+/// Bytes of the map name in a status report.
+pub const NAME_LEN: usize = 64;
+
+/// Header of every request. The payload is `[f32]`: for scan requests `3 n` point
+/// coordinates (sensor frame, metres), then `3 n` view directions when
+/// `flags & FLAG_VIEW_DIRS`, then `6 n` packed covariances (xx xy xz yy yz zz, m^2) when
+/// `flags & FLAG_COVARIANCES`; for IMU windows `7 n` values per sample (seconds after
+/// `imu_t0`, specific force xyz m/s^2, angular rate xyz rad/s).
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("kfmap::RequestHeader")]
+pub struct RequestHeader {
+    /// [`super::PROTOCOL_VERSION`] of the sender.
+    pub version: u32,
+    /// [`super::RequestKind`] code.
+    pub kind: u32,
+    /// Chosen by the client, echoed in the response.
+    pub request_id: u64,
+    /// The client's iceoryx2 node id (high word first): its session (active set, gravity
+    /// pool) lives until that node is gone.
+    pub client_node: [u64; 2],
+    /// Pose guess `T_map_sensor`: x, y, z (metres), qx, qy, qz, qw.
+    pub pose: [f64; 7],
+    /// Points (or IMU samples) in the payload.
+    pub point_count: u32,
+    /// `FLAG_*` bits: which optional arrays follow the points.
+    pub flags: u32,
+    /// Neighbours per point (`Nearest`).
+    pub k: u32,
+    /// [`super::Cov2CovMode`] code (`Cov2Cov`, `Localize`).
+    pub mode: u32,
+    /// Search radius, metres (`Radius`).
+    pub radius: f32,
+    /// Largest pairing distance, metres (`Cov2Cov`, `Localize`).
+    pub max_pair_dist: f32,
+    /// Iterations at most (`Localize`).
+    pub max_iterations: u32,
+    /// Reserved, zero.
+    pub reserved: u32,
+    /// Keyframe or scan the IMU window belongs to (`ImuWindow`).
+    pub keyframe_or_scan_id: u64,
+    /// Time origin of the IMU samples, seconds (`ImuWindow`).
+    pub imu_t0: f64,
+}
+
+/// View directions follow the points.
+pub const FLAG_VIEW_DIRS: u32 = 1;
+/// Packed covariances follow the points (and view directions).
+pub const FLAG_COVARIANCES: u32 = 2;
+
+impl Default for RequestHeader {
+    fn default() -> Self {
+        Self {
+            version: super::PROTOCOL_VERSION,
+            kind: 0,
+            request_id: 0,
+            client_node: [0; 2],
+            pose: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+            point_count: 0,
+            flags: 0,
+            k: 1,
+            mode: 0,
+            radius: 0.0,
+            max_pair_dist: 0.0,
+            max_iterations: 0,
+            reserved: 0,
+            keyframe_or_scan_id: 0,
+            imu_t0: 0.0,
+        }
+    }
+}
+
+/// One answer element: a map point found for query point `query`. Nearest and radius
+/// answers leave `information` zero; cov2cov answers carry `(C_map + R C_q R^T)^-1`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("kfmap::WirePairing")]
+pub struct WirePairing {
+    /// Index of the query point in the request.
+    pub query: u32,
+    /// Local index of the map point in its keyframe.
+    pub local_index: u32,
+    /// Keyframe holding the map point.
+    pub keyframe: u64,
+    /// The map point, map frame, metres.
+    pub point: [f32; 3],
+    /// Squared distance to the (moved) query point, m^2.
+    pub dist_sq: f32,
+    /// Packed information matrix (xx xy xz yy yz zz), 1/m^2, map frame.
+    pub information: [f32; 6],
+}
+
+/// Header of every response; the payload is `[WirePairing]`.
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("kfmap::ResponseHeader")]
+pub struct ResponseHeader {
+    /// [`super::PROTOCOL_VERSION`] of the server.
+    pub version: u32,
+    /// [`super::StatusCode`] code.
+    pub status: u32,
+    /// The request's id.
+    pub request_id: u64,
+    /// Error detail, e.g. the index of the first non-finite point.
+    pub detail: u64,
+    /// Bytes used in `message`.
+    pub message_len: u32,
+    /// Active keyframes used (first `active_len` of `active`).
+    pub active_len: u32,
+    /// Active keyframe ids.
+    pub active: [u64; 16],
+    /// Server compute time, microseconds.
+    pub server_us: f64,
+    /// `Localize`: solved `T_map_sensor` (x y z qx qy qz qw).
+    pub pose: [f64; 7],
+    /// `Localize`: 6x6 pose covariance (rotation first), row-major; inverse Hessian.
+    pub covariance: [f64; 36],
+    /// `Localize`: inlier ratio and RMSE (metres).
+    pub fitness: [f64; 2],
+    /// `Localize`: iterations run; 1 in `converged` when converged.
+    pub iterations: u32,
+    /// See `iterations`.
+    pub converged: u32,
+    /// `ImuWindow`: 1 when a correction is available.
+    pub has_gravity: u32,
+    /// `ImuWindow`: keyframes pooled in this session.
+    pub gravity_members: u32,
+    /// `ImuWindow`: gravity estimate in the map frame, m/s^2.
+    pub gravity: [f64; 3],
+    /// `ImuWindow`: roll and pitch of the correction, radians.
+    pub roll_pitch: [f64; 2],
+    /// `ImuWindow`: correction rotation (qx qy qz qw).
+    pub correction: [f64; 4],
+    /// `Status`: keyframes and points of the map.
+    pub map_keyframes: u64,
+    /// See `map_keyframes`.
+    pub map_points: u64,
+    /// `Status`: seconds since the server started.
+    pub uptime_s: f64,
+    /// `Status`: requests answered per kind code.
+    pub counts: [u64; KIND_SLOTS],
+    /// `Status`: median latency per kind, microseconds.
+    pub p50_us: [f32; KIND_SLOTS],
+    /// `Status`: 99th percentile latency per kind, microseconds.
+    pub p99_us: [f32; KIND_SLOTS],
+    /// `Status`: open sessions.
+    pub sessions: u32,
+    /// `Status`: bytes used in `map_name`.
+    pub map_name_len: u32,
+    /// `Status`: the served map's name.
+    pub map_name: [u8; NAME_LEN],
+    /// Status message (UTF-8).
+    pub message: [u8; MESSAGE_LEN],
+}
+
+impl Default for ResponseHeader {
+    fn default() -> Self {
+        Self {
+            version: super::PROTOCOL_VERSION,
+            status: 0,
+            request_id: 0,
+            detail: 0,
+            message_len: 0,
+            active_len: 0,
+            active: [0; 16],
+            server_us: 0.0,
+            pose: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+            covariance: [0.0; 36],
+            fitness: [0.0; 2],
+            iterations: 0,
+            converged: 0,
+            has_gravity: 0,
+            gravity_members: 0,
+            gravity: [0.0; 3],
+            roll_pitch: [0.0; 2],
+            correction: [0.0, 0.0, 0.0, 1.0],
+            map_keyframes: 0,
+            map_points: 0,
+            uptime_s: 0.0,
+            counts: [0; KIND_SLOTS],
+            p50_us: [0.0; KIND_SLOTS],
+            p99_us: [0.0; KIND_SLOTS],
+            sessions: 0,
+            map_name_len: 0,
+            map_name: [0; NAME_LEN],
+            message: [0; MESSAGE_LEN],
+        }
+    }
+}
+
+/// Copies `text` into a fixed buffer, cut at a character boundary; returns bytes used.
+pub fn write_text<const N: usize>(buffer: &mut [u8; N], text: &str) -> u32 {
+    let mut end = text.len().min(N);
+    while !text.is_char_boundary(end) {
+        end -= 1;
+    }
+    buffer[..end].copy_from_slice(&text.as_bytes()[..end]);
+    buffer[end..].fill(0);
+    end as u32
+}
+
+/// The text in a fixed buffer (lossy on invalid UTF-8 from a foreign client).
+pub fn read_text(buffer: &[u8], len: u32) -> String {
+    let len = (len as usize).min(buffer.len());
+    String::from_utf8_lossy(&buffer[..len]).into_owned()
+}
+
+impl ResponseHeader {
+    /// The status message.
+    pub fn message(&self) -> String {
+        read_text(&self.message, self.message_len)
+    }
+
+    /// The map name of a status report.
+    pub fn map_name(&self) -> String {
+        read_text(&self.map_name, self.map_name_len)
+    }
+
+    /// Sets the status message.
+    pub fn set_message(&mut self, text: &str) {
+        self.message_len = write_text(&mut self.message, text);
+    }
+}

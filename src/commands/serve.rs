@@ -1,0 +1,108 @@
+//! `kfmap serve`: serve a baked map to local clients over iceoryx2.
+
+use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+
+use anyhow::Context;
+use kfmap_service::config::{ConfigFile, ServerConfig};
+use kfmap_service::server::{ServeOptions, serve};
+use kfmap_shared::protocol::RequestKind;
+
+/// Serve a baked map (`kfmap bake`) to client processes on this host over iceoryx2
+/// zero-copy shared memory, until SIGINT or SIGTERM.
+///
+/// The map file is memory-mapped: nothing is rebuilt, the first answer comes in
+/// milliseconds. Services are named kfmap/<map-name>/{rpc,request-ready,response-ready};
+/// clients (`kfmap localize`, `kfmap query`, `kfmap status`, the kfmap-client library)
+/// find the server by that name. One server per map name: a second one refuses to
+/// start. Requests are answered by a worker pool, clients taking turns; each client has
+/// its own session (active keyframes, gravity pool), reclaimed when it dies.
+///
+/// SIGHUP (or `kfmap status --reload`) reopens the map file and switches to it
+/// atomically; requests in flight finish on the old map. On SIGINT/SIGTERM queued
+/// requests get a "shutting down" status, those in flight finish, and the shared-memory
+/// resources are removed. Set KFMAP_LOG=debug for one log line per request with its
+/// timing.
+///
+/// Examples:
+///   kfmap serve --map site.kfmap
+///   kfmap serve --map site.kfmap --map-name site --config config/server.toml --spin
+#[derive(clap::Args)]
+#[command(verbatim_doc_comment)]
+pub struct Args {
+    /// The baked map file.
+    #[arg(long)]
+    map: PathBuf,
+    /// Name clients connect to; default: the map file's stem (or server.toml's map-name).
+    #[arg(long)]
+    map_name: Option<String>,
+    /// server.toml (defaults: config/server.toml as shipped).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Poll for requests instead of sleeping on events: lower latency, one core busy.
+    #[arg(long)]
+    spin: bool,
+    /// Skip bytechecks of keyframe archives on first use (checksums are still verified).
+    #[arg(long)]
+    trust: bool,
+    /// iceoryx2 prefix of every shared-memory name; clients must use the same.
+    #[arg(long)]
+    iceoryx_prefix: Option<String>,
+}
+
+/// The map name: the flag, else the config's, else the file stem.
+fn map_name(args: &Args, config: &ServerConfig) -> anyhow::Result<String> {
+    if let Some(name) = &args.map_name {
+        return Ok(name.clone());
+    }
+    if !config.server.map_name.is_empty() {
+        return Ok(config.server.map_name.clone());
+    }
+    args.map
+        .file_stem()
+        .and_then(|s| s.to_str())
+        .map(str::to_string)
+        .with_context(|| {
+            format!(
+                "{}: no file stem to name the map; pass --map-name",
+                args.map.display()
+            )
+        })
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let config = ServerConfig::load(args.config.as_deref())?;
+    let options = ServeOptions {
+        map_name: map_name(&args, &config)?,
+        map_path: args.map.clone(),
+        config,
+        iceoryx_prefix: args.iceoryx_prefix.clone(),
+        spin: args.spin,
+        trust: args.trust,
+    };
+    let stop = AtomicBool::new(false);
+    let summary = serve(&options, &stop, |info| {
+        // One line on stdout when ready: scripts and tests wait for it.
+        println!(
+            "ready: serving map {} ({} keyframes, {} points) with {} workers, started in {:.1} ms",
+            info.map_name, info.keyframes, info.points, info.workers, info.startup_ms
+        );
+    })?;
+    eprintln!(
+        "stopped after {:.1} s; {} queued requests refused at shutdown",
+        summary.uptime_s, summary.refused_at_shutdown
+    );
+    for kind in RequestKind::ALL {
+        let f = summary.figures[kind as usize];
+        if f.count > 0 {
+            eprintln!(
+                "  {:<10} {:>8} requests, p50 {:.0} us, p99 {:.0} us",
+                kind.name(),
+                f.count,
+                f.p50_us,
+                f.p99_us
+            );
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,79 @@
+//! `kfmap status`: a running server's counters (and `--reload`).
+
+use std::time::Duration;
+
+use kfmap_client::{Client, ClientOptions};
+use serde_json::json;
+
+/// Show a running server's map, uptime, sessions and per-kind request counts with
+/// median and 99th percentile latency; `--reload` asks it to reopen its map file.
+///
+/// Examples:
+///   kfmap status --map-name site
+///   kfmap status --map-name site --json
+///   kfmap status --map-name site --reload
+#[derive(clap::Args)]
+#[command(verbatim_doc_comment)]
+pub struct Args {
+    /// The served map's name.
+    #[arg(long)]
+    map_name: String,
+    /// Ask the server to reopen its map file first.
+    #[arg(long)]
+    reload: bool,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+    /// Seconds to wait for the answer.
+    #[arg(long, default_value_t = 5.0)]
+    timeout: f64,
+    /// iceoryx2 prefix (the server's).
+    #[arg(long)]
+    iceoryx_prefix: Option<String>,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let mut client = Client::connect(
+        &args.map_name,
+        ClientOptions {
+            iceoryx_prefix: args.iceoryx_prefix,
+            timeout: Duration::from_secs_f64(args.timeout.max(0.001)),
+            spin: false,
+        },
+    )?;
+    if args.reload {
+        eprintln!("{}", client.reload()?);
+    }
+    let s = client.status()?;
+    if args.json {
+        let kinds: serde_json::Map<String, serde_json::Value> = s
+            .kinds
+            .iter()
+            .map(|(k, n, p50, p99)| {
+                (
+                    k.name().to_string(),
+                    json!({"count": n, "p50_us": p50, "p99_us": p99}),
+                )
+            })
+            .collect();
+        let out = json!({
+            "map_name": s.map_name, "map_path": s.map_path, "keyframes": s.keyframes,
+            "points": s.points, "uptime_s": s.uptime_s, "sessions": s.sessions,
+            "requests": kinds,
+        });
+        println!("{}", serde_json::to_string_pretty(&out)?);
+        return Ok(());
+    }
+    println!(
+        "map {} ({}): {} keyframes, {} points",
+        s.map_name, s.map_path, s.keyframes, s.points
+    );
+    println!("uptime {:.1} s, {} client sessions", s.uptime_s, s.sessions);
+    for (kind, count, p50, p99) in &s.kinds {
+        println!(
+            "  {:<10} {count:>8} requests, p50 {p50:.0} us, p99 {p99:.0} us",
+            kind.name()
+        );
+    }
+    Ok(())
+}
