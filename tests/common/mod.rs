@@ -1,0 +1,201 @@
+//! Harness of the multi-process tests: a `kfmap serve` child with its own iceoryx2
+//! prefix, removed with its shared-memory files when dropped (also after a kill).
+
+#![allow(dead_code)]
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::sync::mpsc;
+use std::time::Duration;
+
+use kfmap_shared::archive::save_map;
+use kfmap_shared::cloud::PointCloud;
+use kfmap_shared::geometry::Pose;
+use kfmap_shared::map::{KeyframeMap, KeyframeMapOptions};
+
+/// The kfmap binary.
+pub fn kfmap_bin() -> &'static str {
+    env!("CARGO_BIN_EXE_kfmap")
+}
+
+/// Runs kfmap to completion.
+pub fn kfmap(args: &[&str]) -> Output {
+    Command::new(kfmap_bin())
+        .args(args)
+        .output()
+        .expect("run kfmap")
+}
+
+/// A fresh temporary directory for one test.
+pub fn temp_dir(test: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("kfmap-e2e-{test}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// An iceoryx2 prefix no other test (or test run) uses.
+pub fn unique_prefix(test: &str) -> String {
+    format!("kfmt_{test}_{}_", std::process::id())
+}
+
+/// Removes every shared-memory file of `prefix` (what a killed process leaves).
+pub fn remove_shared_memory(prefix: &str) {
+    if let Ok(entries) = std::fs::read_dir("/dev/shm") {
+        for e in entries.flatten() {
+            if e.file_name().to_string_lossy().starts_with(prefix) {
+                let _ = std::fs::remove_file(e.path());
+            }
+        }
+    }
+}
+
+/// Owns one test's iceoryx2 prefix: its files are removed at drop.
+pub struct Prefix(pub String);
+
+impl Prefix {
+    /// A new prefix for `test`, clean of leftovers.
+    pub fn new(test: &str) -> Self {
+        let p = unique_prefix(test);
+        remove_shared_memory(&p);
+        Self(p)
+    }
+}
+
+impl Drop for Prefix {
+    fn drop(&mut self) {
+        remove_shared_memory(&self.0);
+    }
+}
+
+/// A running `kfmap serve`.
+pub struct Server {
+    pub child: Child,
+    pub ready_line: String,
+    stderr: Option<std::thread::JoinHandle<String>>,
+}
+
+impl Server {
+    /// Starts `kfmap serve --map MAP --map-name NAME --iceoryx-prefix PREFIX [extra]` and
+    /// waits for its ready line.
+    pub fn start(map: &Path, name: &str, prefix: &str, extra: &[&str]) -> Self {
+        let mut child = Command::new(kfmap_bin())
+            .args(["serve", "--map", map.to_str().unwrap(), "--map-name", name])
+            .args(["--iceoryx-prefix", prefix])
+            .args(extra)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("spawn kfmap serve");
+        let stdout = child.stdout.take().unwrap();
+        let stderr = child.stderr.take().unwrap();
+        let (tx, rx) = mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                let _ = tx.send(line);
+            }
+        });
+        let stderr = std::thread::spawn(move || {
+            let mut all = String::new();
+            for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+                all.push_str(&line);
+                all.push('\n');
+            }
+            all
+        });
+        let ready_line = match rx.recv_timeout(Duration::from_secs(60)) {
+            Ok(line) => line,
+            Err(_) => {
+                let _ = child.kill();
+                let _ = child.wait();
+                panic!(
+                    "server never got ready: {}",
+                    stderr.join().unwrap_or_default()
+                );
+            }
+        };
+        assert!(ready_line.starts_with("ready:"), "{ready_line}");
+        Self {
+            child,
+            ready_line,
+            stderr: Some(stderr),
+        }
+    }
+
+    /// Sends SIGTERM and returns the exit status and stderr.
+    pub fn stop(mut self) -> (std::process::ExitStatus, String) {
+        signal(&self.child, libc::SIGTERM);
+        let status = self.child.wait().unwrap();
+        let err = self.stderr.take().unwrap().join().unwrap_or_default();
+        (status, err)
+    }
+
+    /// SIGKILL, no cleanup.
+    pub fn kill(mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Sends `sig` to `child`.
+pub fn signal(child: &Child, sig: i32) {
+    // SAFETY: plain kill(2) on our own child's pid.
+    unsafe {
+        libc::kill(child.id() as i32, sig);
+    }
+}
+
+/// Bakes a map of `keyframes` (local clouds at `T_map_keyframe` poses), each
+/// downsampled at `voxel` metres, with the shipped map options.
+pub fn bake_map(path: &Path, keyframes: &[(PointCloud, Pose)], voxel: f64) {
+    let mut map = KeyframeMap::new(KeyframeMapOptions::default()).unwrap();
+    for (i, (cloud, pose)) in keyframes.iter().enumerate() {
+        let cloud = if voxel > 0.0 {
+            cloud.voxel_downsample(voxel).unwrap()
+        } else {
+            cloud.clone()
+        };
+        map.insert(cloud, *pose, i as f64).unwrap();
+    }
+    save_map(&map, &[], path).unwrap();
+}
+
+/// A simulated dataset written by `kfmap simulate`.
+pub fn simulate(dir: &Path, preset: &str, seconds: &str, beams: &str, extra: &[&str]) {
+    let out = Command::new(kfmap_bin())
+        .args(["simulate", "--preset", preset, "--seconds", seconds])
+        .args(["--beams", beams, "--out", dir.to_str().unwrap()])
+        .args(extra)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// `kfmap bake --dataset DIR --out MAP` (poses from the dataset).
+pub fn bake_dataset(dataset: &Path, map: &Path) {
+    let out = kfmap(&[
+        "bake",
+        "--dataset",
+        dataset.to_str().unwrap(),
+        "--out",
+        map.to_str().unwrap(),
+        "--force",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}

@@ -1,0 +1,430 @@
+//! End-to-end tests of the map server: `kfmap serve` and clients as real processes over
+//! iceoryx2, each test under its own iceoryx2 prefix (removed at teardown).
+
+mod common;
+
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use common::{Prefix, Server, bake_dataset, kfmap, kfmap_bin, simulate, temp_dir};
+use kfmap_client::{Client, ClientError, ClientOptions, LocalizeOptions};
+use kfmap_service::bake::{dataset_poses, find_scans, load_raw_scan};
+use kfmap_service::config::BakeConfig;
+use kfmap_service::server::ServedMap;
+use kfmap_service::server::answer::{Limits, answer};
+use kfmap_service::server::session::Session;
+use kfmap_shared::cloud::PointCloud;
+use kfmap_shared::cov::CovOptions;
+use kfmap_shared::geometry::Pose;
+use kfmap_shared::protocol::{
+    Cov2CovMode, PROTOCOL_VERSION, RequestHeader, RequestKind, ScanPayload, StatusCode,
+    WirePairing, pose_to_wire,
+};
+
+fn options(prefix: &Prefix) -> ClientOptions {
+    ClientOptions {
+        iceoryx_prefix: Some(prefix.0.clone()),
+        timeout: Duration::from_secs(20),
+        spin: false,
+    }
+}
+
+/// A 3 s courtyard run (16 beams) and its baked map.
+fn courtyard(test: &str) -> (std::path::PathBuf, std::path::PathBuf) {
+    let dir = temp_dir(test);
+    let data = dir.join("sim");
+    simulate(&data, "courtyard", "3", "16", &[]);
+    let map = dir.join("court.kfmap");
+    bake_dataset(&data, &map);
+    (data, map)
+}
+
+/// Scan `i` of a dataset as sent by `kfmap localize` (0.25 m voxels), and its true pose.
+fn scan(data: &Path, i: usize) -> (PointCloud, Pose) {
+    let scans = find_scans(data).unwrap();
+    let truth = dataset_poses(data, &scans).unwrap().unwrap();
+    let cloud = load_raw_scan(&scans[i], &BakeConfig::default())
+        .unwrap()
+        .voxel_downsample(0.25)
+        .unwrap();
+    (cloud, truth.poses[i])
+}
+
+fn in_process(map: &ServedMap, header: &RequestHeader, scan: &ScanPayload) -> Vec<WirePairing> {
+    let mut h = *header;
+    let payload = scan.encode(&mut h);
+    let limits = Limits {
+        max_points: 1 << 20,
+        scan_covariance: CovOptions::default(),
+    };
+    let a = answer(map, &mut Session::new(0), &h, &payload, &limits);
+    assert_eq!(a.header.status, 0, "{}", a.header.message());
+    a.pairings
+}
+
+#[test]
+fn ipc_answers_equal_in_process_answers_bit_for_bit() {
+    let prefix = Prefix::new("bits");
+    let (data, map_path) = courtyard("bits");
+    let _server = Server::start(&map_path, "court", &prefix.0, &[]);
+    let mut client = Client::connect("court", options(&prefix)).unwrap();
+    let served = ServedMap::open(&map_path, false, 0).unwrap();
+    let (cloud, truth) = scan(&data, 17);
+    let guess = truth * Pose::translation(0.05, -0.03, 0.02);
+    let plain = ScanPayload {
+        points: &cloud.points,
+        view_dirs: None,
+        covariances: None,
+    };
+    let base = RequestHeader {
+        pose: pose_to_wire(&guess),
+        ..Default::default()
+    };
+
+    let ipc = client.nearest(&cloud.points, &guess, 3).unwrap();
+    let local = in_process(
+        &served,
+        &RequestHeader {
+            kind: RequestKind::Nearest as u32,
+            k: 3,
+            ..base
+        },
+        &plain,
+    );
+    assert_eq!(ipc.len(), 3 * cloud.len());
+    assert_eq!(ipc, local);
+
+    let ipc = client.radius(&cloud.points, &guess, 0.4).unwrap();
+    let local = in_process(
+        &served,
+        &RequestHeader {
+            kind: RequestKind::Radius as u32,
+            radius: 0.4,
+            ..base
+        },
+        &plain,
+    );
+    assert!(!ipc.is_empty());
+    assert_eq!(ipc, local);
+
+    for mode in [Cov2CovMode::Approximate, Cov2CovMode::Exact] {
+        let ipc = client.cov2cov(&plain, &guess, 1.0, mode).unwrap();
+        let local = in_process(
+            &served,
+            &RequestHeader {
+                kind: RequestKind::Cov2Cov as u32,
+                max_pair_dist: 1.0,
+                mode: mode as u32,
+                ..base
+            },
+            &plain,
+        );
+        assert!(ipc.pairings.len() > cloud.len() / 2, "{mode:?}");
+        assert_eq!(ipc.pairings, local, "{mode:?}");
+        assert!(!ipc.active.is_empty());
+    }
+}
+
+#[test]
+fn client_and_server_side_localization_agree() {
+    let prefix = Prefix::new("agree");
+    let (data, map_path) = courtyard("agree");
+    let _server = Server::start(&map_path, "court", &prefix.0, &[]);
+    let mut client = Client::connect("court", options(&prefix)).unwrap();
+    let (cloud, truth) = scan(&data, 12);
+    let guess = truth * Pose::new([0.3, -0.2, 0.05].into(), [0.0, 0.0, 0.03].into());
+    let scan = ScanPayload {
+        points: &cloud.points,
+        view_dirs: None,
+        covariances: None,
+    };
+    let opts = LocalizeOptions::default();
+    let server = client.localize(&scan, &guess, &opts).unwrap();
+    let local = client.localize_client_side(&scan, &guess, &opts).unwrap();
+    // Same loop, same pairings; poses differ only by the wire's rounding of the guess.
+    let gap = server.pose.inverse() * local.pose;
+    assert!(gap.translation.vector.norm() < 1e-6, "{gap}");
+    assert!(gap.rotation.angle().to_degrees() < 1e-6, "{gap}");
+    assert_eq!(server.iterations, local.iterations);
+    let error = (truth.inverse() * server.pose).translation.vector.norm();
+    assert!(error < 0.02, "{error} m from the true pose");
+    assert!(server.converged && server.inlier_ratio > 0.5);
+}
+
+#[test]
+fn bad_requests_get_a_named_error_and_change_nothing() {
+    let prefix = Prefix::new("garbage");
+    let (data, map_path) = courtyard("garbage");
+    let dir = map_path.parent().unwrap();
+    let config = dir.join("server.toml");
+    std::fs::write(&config, "[server]\nmax-points-per-request = 5000\n").unwrap();
+    let _server = Server::start(
+        &map_path,
+        "court",
+        &prefix.0,
+        &["--config", config.to_str().unwrap()],
+    );
+    let mut client = Client::connect("court", options(&prefix)).unwrap();
+    let (cloud, truth) = scan(&data, 5);
+    let before = client.nearest(&cloud.points[..1000], &truth, 1).unwrap();
+
+    let mut nan = cloud.points[..1000].to_vec();
+    nan[321][1] = f32::NAN;
+    let e = client.nearest(&nan, &truth, 1).unwrap_err();
+    assert_eq!(e.status(), Some(StatusCode::NonFinitePoint));
+    assert!(e.to_string().contains("point 321"), "{e}");
+
+    let e = client.nearest(&[], &truth, 1).unwrap_err();
+    assert_eq!(e.status(), Some(StatusCode::EmptyScan));
+
+    let big = vec![[1.0f32, 2.0, 3.0]; 5001];
+    let e = client.nearest(&big, &truth, 1).unwrap_err();
+    assert_eq!(e.status(), Some(StatusCode::TooManyPoints));
+    assert!(e.to_string().contains("5000"), "{e}");
+
+    let e = client.nearest(&cloud.points[..10], &truth, 0).unwrap_err();
+    assert_eq!(e.status(), Some(StatusCode::BadRequest));
+
+    let header = RequestHeader {
+        version: PROTOCOL_VERSION + 7,
+        kind: RequestKind::Nearest as u32,
+        ..Default::default()
+    };
+    let e = client
+        .connection()
+        .call_raw(header, 3, |h, out| {
+            h.point_count = 1;
+            out.copy_from_slice(&[0.0, 0.0, 0.0]);
+        })
+        .unwrap_err();
+    assert_eq!(e.status(), Some(StatusCode::VersionMismatch));
+    assert!(e.to_string().contains("protocol"), "{e}");
+
+    let header = RequestHeader {
+        kind: 42,
+        ..Default::default()
+    };
+    let e = client.connection().call(header, 0, |_, _| {}).unwrap_err();
+    assert_eq!(e.status(), Some(StatusCode::UnknownKind));
+
+    // A payload shorter than its header says.
+    let header = RequestHeader {
+        kind: RequestKind::Nearest as u32,
+        k: 1,
+        ..Default::default()
+    };
+    let e = client
+        .connection()
+        .call(header, 6, |h, _| h.point_count = 100)
+        .unwrap_err();
+    assert_eq!(e.status(), Some(StatusCode::BadRequest));
+
+    let after = client.nearest(&cloud.points[..1000], &truth, 1).unwrap();
+    assert_eq!(before, after);
+}
+
+/// Localizes a dataset with `kfmap localize --json`, writing the trajectory to `out`.
+fn localize_process(
+    name: &str,
+    data: &Path,
+    prefix: &str,
+    out: &Path,
+    extra: &[&str],
+) -> std::process::Child {
+    std::process::Command::new(kfmap_bin())
+        .args([
+            "localize",
+            "--map-name",
+            name,
+            "--dataset",
+            data.to_str().unwrap(),
+        ])
+        .args(["--rate", "0", "--json", "--iceoryx-prefix", prefix])
+        .args(["--out", out.to_str().unwrap()])
+        .args(extra)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+fn summary(child: std::process::Child) -> serde_json::Value {
+    let out = child.wait_with_output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+#[test]
+fn four_client_processes_at_once_get_their_own_answers() {
+    let prefix = Prefix::new("four");
+    let (data, map_path) = courtyard("four");
+    let dir = map_path.parent().unwrap().to_path_buf();
+    let _server = Server::start(&map_path, "court", &prefix.0, &[]);
+    // Oracle: one client alone.
+    let alone = dir.join("alone.tum");
+    let reference = summary(localize_process("court", &data, &prefix.0, &alone, &[]));
+    assert_eq!(reference["failed"], 0);
+    assert!(reference["ate_m"].as_f64().unwrap() < 0.02, "{reference}");
+    let children: Vec<_> = (0..4)
+        .map(|i| {
+            let side: &[&str] = if i % 2 == 0 { &[] } else { &["--server-side"] };
+            let out = dir.join(format!("client{i}.tum"));
+            (
+                out.clone(),
+                localize_process("court", &data, &prefix.0, &out, side),
+            )
+        })
+        .collect();
+    let expected = std::fs::read(&alone).unwrap();
+    for (out, child) in children {
+        let s = summary(child);
+        assert_eq!(s["failed"], 0, "{s}");
+        // Same answers as alone, to the last digit: no cross-talk between sessions.
+        assert_eq!(std::fs::read(&out).unwrap(), expected, "{}", out.display());
+    }
+}
+
+fn sessions(client: &mut Client) -> u32 {
+    client.status().unwrap().sessions
+}
+
+#[test]
+fn a_killed_client_is_reclaimed_and_others_keep_being_served() {
+    let prefix = Prefix::new("killc");
+    let (data, map_path) = courtyard("killc");
+    let dir = map_path.parent().unwrap().to_path_buf();
+    let _server = Server::start(&map_path, "court", &prefix.0, &[]);
+    let mut watcher = Client::connect("court", options(&prefix)).unwrap();
+    let mut victim = localize_process("court", &data, &prefix.0, &dir.join("v.tum"), &[]);
+    // Kill it while it has a session (mid-run, most likely mid-request).
+    let started = Instant::now();
+    while sessions(&mut watcher) == 0 {
+        assert!(
+            started.elapsed() < Duration::from_secs(30),
+            "victim never connected"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    victim.kill().unwrap();
+    victim.wait().unwrap();
+    let started = Instant::now();
+    while sessions(&mut watcher) > 0 {
+        assert!(
+            started.elapsed() < Duration::from_secs(10),
+            "session never reclaimed"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let (cloud, truth) = scan(&data, 3);
+    assert_eq!(
+        watcher.nearest(&cloud.points, &truth, 1).unwrap().len(),
+        cloud.len()
+    );
+}
+
+#[test]
+fn a_killed_and_restarted_server_is_found_again() {
+    let prefix = Prefix::new("kills");
+    let (data, map_path) = courtyard("kills");
+    let server = Server::start(&map_path, "court", &prefix.0, &[]);
+    let mut client = Client::connect(
+        "court",
+        ClientOptions {
+            timeout: Duration::from_millis(1500),
+            ..options(&prefix)
+        },
+    )
+    .unwrap();
+    let (cloud, truth) = scan(&data, 8);
+    let first = client.nearest(&cloud.points, &truth, 1).unwrap();
+    server.kill();
+    let e = client.nearest(&cloud.points, &truth, 1).unwrap_err();
+    assert!(matches!(e, ClientError::Timeout { .. }), "{e}");
+    // The dead server's port is cleaned up by whoever comes next.
+    let _again = Server::start(&map_path, "court", &prefix.0, &[]);
+    let second = client.nearest(&cloud.points, &truth, 1).unwrap();
+    assert_eq!(first, second);
+}
+
+#[test]
+fn a_second_server_for_the_same_map_name_refuses_to_start() {
+    let prefix = Prefix::new("twice");
+    let (_, map_path) = courtyard("twice");
+    let server = Server::start(&map_path, "court", &prefix.0, &[]);
+    let out = kfmap(&[
+        "serve",
+        "--map",
+        map_path.to_str().unwrap(),
+        "--map-name",
+        "court",
+        "--iceoryx-prefix",
+        &prefix.0,
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("already serves map \"court\""), "{err}");
+    let (status, log) = server.stop();
+    assert!(status.success(), "{log}");
+    assert!(log.contains("stopped after"), "{log}");
+}
+
+#[test]
+fn status_and_reload_report_the_map_and_the_counters() {
+    let prefix = Prefix::new("status");
+    let (data, map_path) = courtyard("status");
+    let _server = Server::start(&map_path, "court", &prefix.0, &[]);
+    let mut client = Client::connect("court", options(&prefix)).unwrap();
+    let (cloud, truth) = scan(&data, 2);
+    for _ in 0..3 {
+        client.nearest(&cloud.points, &truth, 1).unwrap();
+    }
+    let served = ServedMap::open(&map_path, false, 0).unwrap();
+    let out = kfmap(&[
+        "status",
+        "--map-name",
+        "court",
+        "--json",
+        "--iceoryx-prefix",
+        &prefix.0,
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let s: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(s["keyframes"], served.keyframes);
+    assert_eq!(s["points"], served.points);
+    assert_eq!(s["requests"]["nearest"]["count"], 3);
+    assert!(s["requests"]["nearest"]["p99_us"].as_f64().unwrap() > 0.0);
+    let message = client.reload().unwrap();
+    assert!(message.contains("generation 1"), "{message}");
+    // A file that is no map replaces the map (atomically, as bake writes): the reload
+    // fails by name and the old map keeps answering from its own mapping.
+    let junk = map_path.with_extension("junk");
+    std::fs::write(&junk, b"not a map").unwrap();
+    std::fs::rename(&junk, &map_path).unwrap();
+    let e = client.reload().unwrap_err();
+    assert_eq!(e.status(), Some(StatusCode::Internal));
+    assert!(
+        e.to_string().contains("still serving the previous map"),
+        "{e}"
+    );
+    let out = kfmap(&[
+        "status",
+        "--map-name",
+        "nobody",
+        "--iceoryx-prefix",
+        &prefix.0,
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("no kfmap server serves map"));
+    assert_eq!(
+        client.nearest(&cloud.points, &truth, 1).unwrap().len(),
+        cloud.len()
+    );
+}
