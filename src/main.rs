@@ -27,6 +27,7 @@ enum Command {
     Demo(commands::demo::Args),
     Gravity(commands::gravity::Args),
     Localize(commands::localize::Args),
+    Query(commands::query::Args),
     Serve(commands::serve::Args),
     Status(commands::status::Args),
 }
@@ -54,6 +55,7 @@ fn main() -> ExitCode {
         Command::Demo(args) => commands::demo::run(args),
         Command::Gravity(args) => commands::gravity::run(args),
         Command::Localize(args) => commands::localize::run(args),
+        Command::Query(args) => commands::query::run(args),
         Command::Serve(args) => commands::serve::run(args),
         Command::Status(args) => commands::status::run(args),
     };

@@ -9,6 +9,7 @@ pub mod inspect_cloud;
 pub mod localize;
 pub mod optimize_graph;
 mod pose_arg;
+pub mod query;
 pub mod register;
 mod report;
 pub mod serve;

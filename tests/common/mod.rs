@@ -11,6 +11,7 @@ use std::time::Duration;
 
 use kfmap_shared::archive::save_map;
 use kfmap_shared::cloud::PointCloud;
+use kfmap_shared::cov::CovOptions;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::map::{KeyframeMap, KeyframeMapOptions};
 
@@ -156,7 +157,21 @@ pub fn signal(child: &Child, sig: i32) {
 /// Bakes a map of `keyframes` (local clouds at `T_map_keyframe` poses), each
 /// downsampled at `voxel` metres, with the shipped map options.
 pub fn bake_map(path: &Path, keyframes: &[(PointCloud, Pose)], voxel: f64) {
-    let mut map = KeyframeMap::new(KeyframeMapOptions::default()).unwrap();
+    bake_map_with(path, keyframes, voxel, CovOptions::default());
+}
+
+/// As [`bake_map`] with other covariance options.
+pub fn bake_map_with(
+    path: &Path,
+    keyframes: &[(PointCloud, Pose)],
+    voxel: f64,
+    covariance: CovOptions,
+) {
+    let options = KeyframeMapOptions {
+        covariance,
+        ..KeyframeMapOptions::default()
+    };
+    let mut map = KeyframeMap::new(options).unwrap();
     for (i, (cloud, pose)) in keyframes.iter().enumerate() {
         let cloud = if voxel > 0.0 {
             cloud.voxel_downsample(voxel).unwrap()
