@@ -13,8 +13,10 @@ use kfmap_shared::protocol::transport::{
     ALLOCATION, INITIAL_SLICE_LEN, Transport, TransportError, create_node, iceoryx_config, iox,
     open_request_event, open_response_event, open_rpc,
 };
+use std::mem::MaybeUninit;
+
 use kfmap_shared::protocol::{
-    PROTOCOL_VERSION, RequestHeader, ResponseHeader, StatusCode, WirePairing,
+    PROTOCOL_VERSION, RequestHeader, ResponseHeader, ScanPayload, StatusCode, WirePairing,
 };
 
 use crate::error::ClientError;
@@ -129,8 +131,8 @@ impl Connection {
         Ok(rpc.dynamic_config().number_of_servers() > 0)
     }
 
-    /// Sends one request (`fill` writes `len` payload floats) and waits for its answer.
-    /// Error statuses become `ClientError::Rejected`.
+    /// Sends one request (`fill` writes the `len` payload floats, zeroed first) and
+    /// waits for its answer. Error statuses become `ClientError::Rejected`.
     pub fn call(
         &mut self,
         mut header: RequestHeader,
@@ -145,9 +147,38 @@ impl Connection {
     /// checks).
     pub fn call_raw(
         &mut self,
-        mut header: RequestHeader,
+        header: RequestHeader,
         len: usize,
         fill: impl FnOnce(&mut RequestHeader, &mut [f32]),
+    ) -> Result<Response, ClientError> {
+        self.send_and_wait(header, len, |h, payload| {
+            payload.fill(MaybeUninit::new(0.0));
+            // SAFETY: every element was just initialized.
+            let floats = unsafe { &mut *(payload as *mut [MaybeUninit<f32>] as *mut [f32]) };
+            fill(h, floats);
+        })
+    }
+
+    /// Sends a scan request, written straight into shared memory.
+    pub fn call_scan(
+        &mut self,
+        mut header: RequestHeader,
+        scan: &ScanPayload,
+    ) -> Result<Response, ClientError> {
+        scan.check_lengths().map_err(ClientError::Invalid)?;
+        header.version = PROTOCOL_VERSION;
+        // `write` initializes exactly `float_len` floats: the whole loan.
+        self.send_and_wait(header, scan.float_len(), |h, payload| {
+            scan.write(h, payload)
+        })
+    }
+
+    /// Loans `len` floats, lets `init` initialize all of them, sends, waits.
+    fn send_and_wait(
+        &mut self,
+        mut header: RequestHeader,
+        len: usize,
+        init: impl FnOnce(&mut RequestHeader, &mut [MaybeUninit<f32>]),
     ) -> Result<Response, ClientError> {
         header.client_node = self.client_node;
         header.request_id = self.next_request_id;
@@ -159,17 +190,9 @@ impl Connection {
             .rpc
             .loan_slice_uninit(len)
             .map_err(|e| ClientError::Transport(iox("loan a request")(e)))?;
-        let payload: &mut [f32] = {
-            let uninit = request.payload_mut();
-            for v in uninit.iter_mut() {
-                v.write(0.0);
-            }
-            // SAFETY: every element was just initialized.
-            unsafe { &mut *(uninit as *mut [std::mem::MaybeUninit<f32>] as *mut [f32]) }
-        };
-        fill(&mut header, payload);
+        init(&mut header, request.payload_mut());
         *request.user_header_mut() = header;
-        // SAFETY: the payload was initialized above.
+        // SAFETY: `init` initialized every float (both callers guarantee it).
         let request = unsafe { request.assume_init() };
         let pending = request
             .send()

@@ -104,8 +104,7 @@ impl Client {
         scan: &ScanPayload,
     ) -> Result<Response, ClientError> {
         header.point_count = scan.points.len() as u32;
-        self.connection
-            .call(header, scan.float_len(), |h, out| scan.write(h, out))
+        self.connection.call_scan(header, scan)
     }
 
     /// The `k` nearest map points of each scan point (sensor frame, moved by `pose`).
@@ -217,10 +216,10 @@ impl Client {
         Ok(r.header.message())
     }
 
-    /// A round trip with no work: the server answers one element per point.
-    pub fn echo(&mut self, points: &[[f32; 3]]) -> Result<usize, ClientError> {
+    /// A round trip with no work: the server answers with the number of points it got.
+    pub fn echo(&mut self, points: &[[f32; 3]]) -> Result<u64, ClientError> {
         let h = header(RequestKind::Echo, &Pose::identity());
-        Ok(self.scan_call(h, &plain(points))?.pairings.len())
+        Ok(self.scan_call(h, &plain(points))?.header.detail)
     }
 }
 

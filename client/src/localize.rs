@@ -68,9 +68,7 @@ impl Client {
             point_count: scan.points.len() as u32,
             ..Default::default()
         };
-        let r = self
-            .connection()
-            .call(header, scan.float_len(), |h, out| scan.write(h, out))?;
+        let r = self.connection().call_scan(header, scan)?;
         let h = r.header;
         let pose = pose_from_wire(&h.pose)
             .ok_or_else(|| ClientError::Invalid("the server sent an invalid pose".into()))?;

@@ -18,7 +18,8 @@ use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 use serde_json::json;
 
-/// Benchmarks. `load`: cold start of a baked map against rebuilding it.
+/// Benchmarks. `load`: cold start of a baked map against rebuilding it. `ipc`: the map
+/// server's round trips and throughput.
 ///
 /// `kfmap bench load` generates a map (default 500 keyframes x 40 000 points, about
 /// 1.3 GB, under --dir), then measures: the time from starting a fresh `kfmap` process
@@ -27,13 +28,28 @@ use serde_json::json;
 /// as a map without baked caches must do); bake throughput on 1 and 2 threads; and
 /// query throughput on the archived map against the same map on the heap.
 ///
-/// Example: kfmap bench load --dir /var/tmp/kfmap-bench
+/// `kfmap bench ipc` bakes a small synthetic map (12 keyframes x 40 000 points),
+/// starts `kfmap serve` on it as a child process and measures: echo round trips (no
+/// compute) of 1k, 10k and 100k points, median and p99; cov2cov of a 10k-point scan
+/// over IPC against the same call in process; and cov2cov throughput of one client
+/// against four client processes at once (scans/s, p99). --spin makes server and
+/// client poll instead of sleeping on events.
+///
+/// Examples:
+///   kfmap bench load --dir /var/tmp/kfmap-bench
+///   kfmap bench ipc --spin --json
 #[derive(clap::Args)]
 #[command(verbatim_doc_comment)]
 pub struct Args {
-    /// What to measure: load.
-    #[arg(value_parser = ["load"])]
+    /// What to measure: load or ipc.
+    #[arg(value_parser = ["load", "ipc"])]
     what: String,
+    /// ipc: server and client poll instead of waiting on events.
+    #[arg(long)]
+    spin: bool,
+    /// Internal (ipc): run as one throughput client of the server under this prefix.
+    #[arg(long, hide = true)]
+    worker_of: Option<String>,
     /// Keyframes of the generated map.
     #[arg(long, default_value_t = 500)]
     keyframes: usize,
@@ -55,7 +71,7 @@ pub struct Args {
 }
 
 /// A synthetic scan: ground, two walls and scattered posts around the keyframe.
-fn synthetic_cloud(seed: u64, n: usize) -> PointCloud {
+pub(super) fn synthetic_cloud(seed: u64, n: usize) -> PointCloud {
     let mut rng = SmallRng::seed_from_u64(seed);
     let points = (0..n)
         .map(|i| match i % 10 {
@@ -82,7 +98,7 @@ fn synthetic_cloud(seed: u64, n: usize) -> PointCloud {
     PointCloud::from_points(points)
 }
 
-fn keyframe_pose(i: usize) -> Pose {
+pub(super) fn keyframe_pose(i: usize) -> Pose {
     Pose::new(
         Vector3::new(2.0 * i as f64, 0.0, 0.0),
         Vector3::new(0.0, 0.0, 0.05 * (i % 7) as f64),
@@ -169,11 +185,19 @@ pub fn run(args: Args, process_start: Instant) -> anyhow::Result<()> {
     if let Some(path) = &args.probe {
         return probe(path, process_start);
     }
+    if let Some(prefix) = &args.worker_of {
+        return super::bench_ipc::worker(prefix, 5.0);
+    }
     if args.keyframes < 2 || args.points < 100 {
         bail!("--keyframes must be at least 2 and --points at least 100");
     }
     let dir = args.dir.clone().unwrap_or_else(std::env::temp_dir);
     std::fs::create_dir_all(&dir).with_context(|| dir.display().to_string())?;
+    if args.what == "ipc" {
+        return super::bench_ipc::run(&dir, args.spin, args.json, |map| {
+            bake_synthetic(map, 12, 40_000, &ProgressBar::hidden()).map(|_| ())
+        });
+    }
     let path = dir.join(format!("kfmap-bench-{}.kfmap", std::process::id()));
     let small = dir.join(format!("kfmap-bench-{}-small.kfmap", std::process::id()));
     let result = measure(&args, &path, &small);

@@ -2,6 +2,7 @@
 
 pub mod bake;
 pub mod bench;
+mod bench_ipc;
 pub mod demo;
 pub mod gravity;
 pub mod inspect;

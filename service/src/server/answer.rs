@@ -108,7 +108,7 @@ fn compute(
     })?;
     session.follow(map.generation);
     match kind {
-        RequestKind::Echo => Ok(echo(request, payload, limits)?),
+        RequestKind::Echo => echo(request, payload, limits),
         RequestKind::ImuWindow => imu_window(session, request, payload, &pose),
         RequestKind::Status | RequestKind::Reload => Err(Rejection::new(
             StatusCode::Internal,
@@ -139,7 +139,7 @@ fn compute(
     }
 }
 
-/// A no-work answer of the request's size (round-trip measurements).
+/// A no-work answer: the header only, `detail` = points received (round trips).
 fn echo(request: &RequestHeader, payload: &[f32], limits: &Limits) -> Result<Answer, Rejection> {
     let n = (request.point_count as usize).min(payload.len() / 3);
     if n > limits.max_points {
@@ -148,21 +148,12 @@ fn echo(request: &RequestHeader, payload: &[f32], limits: &Limits) -> Result<Ans
             format!("{n} points; at most {}", limits.max_points),
         ));
     }
-    let pairings = payload
-        .as_chunks::<3>()
-        .0
-        .iter()
-        .take(n)
-        .enumerate()
-        .map(|(i, p)| WirePairing {
-            query: i as u32,
-            point: *p,
-            ..Default::default()
-        })
-        .collect();
     Ok(Answer {
-        header: ResponseHeader::default(),
-        pairings,
+        header: ResponseHeader {
+            detail: n as u64,
+            ..Default::default()
+        },
+        pairings: Vec::new(),
     })
 }
 

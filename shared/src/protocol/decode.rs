@@ -1,6 +1,8 @@
 //! The payload layout: encoding on the client, checking and decoding on the server.
 //! Nothing here trusts the header; every length and value is checked.
 
+use std::mem::MaybeUninit;
+
 use super::wire::{FLAG_COVARIANCES, FLAG_VIEW_DIRS, RequestHeader, WirePairing};
 use super::{IMU_SAMPLE_FLOATS, PROTOCOL_VERSION, StatusCode};
 use crate::geometry::{PackedSym3, to_vec3, unpack_sym3};
@@ -43,20 +45,40 @@ pub struct ScanPayload<'a> {
 }
 
 impl ScanPayload<'_> {
-    /// Floats the payload takes.
+    /// Floats the payload takes (each array by its own length).
     pub fn float_len(&self) -> usize {
-        let n = self.points.len();
-        3 * n + self.view_dirs.map_or(0, |_| 3 * n) + self.covariances.map_or(0, |_| 6 * n)
+        3 * self.points.len()
+            + self.view_dirs.map_or(0, |v| 3 * v.len())
+            + self.covariances.map_or(0, |c| 6 * c.len())
     }
 
-    /// Sets the header's count and flags, and writes the payload into `out` (which must
-    /// hold [`Self::float_len`] floats), e.g. a loaned shared-memory slice.
-    pub fn write(&self, header: &mut RequestHeader, out: &mut [f32]) {
+    /// A message when the optional arrays do not have one entry per point.
+    pub fn check_lengths(&self) -> Result<(), String> {
+        let n = self.points.len();
+        let mismatch = |what: &str, len: usize| {
+            (len != n).then(|| format!("{len} {what} for {n} points; give one per point"))
+        };
+        match (
+            self.view_dirs
+                .and_then(|v| mismatch("view directions", v.len())),
+            self.covariances
+                .and_then(|c| mismatch("covariances", c.len())),
+        ) {
+            (Some(m), _) | (None, Some(m)) => Err(m),
+            (None, None) => Ok(()),
+        }
+    }
+
+    /// Sets the header's count and flags, and writes exactly [`Self::float_len`] floats
+    /// to the front of `out`, e.g. a loaned shared-memory slice.
+    pub fn write(&self, header: &mut RequestHeader, out: &mut [MaybeUninit<f32>]) {
         header.point_count = self.points.len() as u32;
         header.flags = 0;
         let mut at = 0;
         let mut put = |values: &[f32]| {
-            out[at..at + values.len()].copy_from_slice(values);
+            for (dst, &v) in out[at..at + values.len()].iter_mut().zip(values) {
+                dst.write(v);
+            }
             at += values.len();
         };
         put(self.points.as_flattened());
@@ -72,9 +94,12 @@ impl ScanPayload<'_> {
 
     /// [`Self::write`] into a new vector.
     pub fn encode(&self, header: &mut RequestHeader) -> Vec<f32> {
-        let mut out = vec![0.0; self.float_len()];
+        let mut out = vec![MaybeUninit::uninit(); self.float_len()];
         self.write(header, &mut out);
-        out
+        out.into_iter()
+            // SAFETY: `write` initialized every element (float_len of them).
+            .map(|v| unsafe { v.assume_init() })
+            .collect()
     }
 }
 

@@ -1,0 +1,260 @@
+//! `kfmap bench ipc`: round trips, cov2cov overhead and multi-client throughput of a
+//! real `kfmap serve` child process.
+
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, bail};
+use indicatif::ProgressBar;
+use kfmap_client::{Client, ClientOptions};
+use kfmap_service::server::ServedMap;
+use kfmap_service::server::answer::{Limits, answer};
+use kfmap_service::server::session::Session;
+use kfmap_shared::cov::CovOptions;
+use kfmap_shared::geometry::Pose;
+use kfmap_shared::protocol::{Cov2CovMode, RequestHeader, RequestKind, ScanPayload, pose_to_wire};
+use serde_json::json;
+
+use super::bench::{keyframe_pose, synthetic_cloud};
+
+/// Median and 99th percentile of microsecond samples.
+fn p50_p99(mut v: Vec<f64>) -> (f64, f64) {
+    v.sort_by(f64::total_cmp);
+    let at = |q: f64| v[((q * v.len() as f64).ceil() as usize).clamp(1, v.len()) - 1];
+    (at(0.5), at(0.99))
+}
+
+/// The server child, killed when dropped.
+struct ServerChild(Child);
+
+impl Drop for ServerChild {
+    fn drop(&mut self) {
+        // SAFETY: kill(2) on our own child; SIGTERM lets it remove its resources.
+        unsafe {
+            libc::kill(self.0.id() as i32, libc::SIGTERM);
+        }
+        let _ = self.0.wait();
+    }
+}
+
+fn start_server(map: &Path, prefix: &str, spin: bool) -> anyhow::Result<ServerChild> {
+    let exe = std::env::current_exe()?;
+    let mut cmd = Command::new(exe);
+    cmd.args(["serve", "--map"]).arg(map);
+    cmd.args(["--map-name", "bench", "--iceoryx-prefix", prefix]);
+    if spin {
+        cmd.arg("--spin");
+    }
+    let mut child = cmd
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .context("start kfmap serve")?;
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().context("server stdout")?).read_line(&mut line)?;
+    if !line.starts_with("ready:") {
+        let _ = child.kill();
+        bail!("the server did not start: {line:?}");
+    }
+    Ok(ServerChild(child))
+}
+
+fn client(prefix: &str, spin: bool) -> anyhow::Result<Client> {
+    Ok(Client::connect(
+        "bench",
+        ClientOptions {
+            iceoryx_prefix: Some(prefix.to_string()),
+            timeout: Duration::from_secs(30),
+            spin,
+        },
+    )?)
+}
+
+/// A 10k-point scan near the middle keyframe, in that keyframe's frame.
+fn scan_10k() -> (Vec<[f32; 3]>, Pose) {
+    let cloud = synthetic_cloud(1234, 10_000);
+    (cloud.points, keyframe_pose(5))
+}
+
+/// Cov2cov requests of the 10k scan for `seconds`; latencies in microseconds.
+fn hammer(client: &mut Client, seconds: f64) -> anyhow::Result<Vec<f64>> {
+    let (points, pose) = scan_10k();
+    let scan = ScanPayload {
+        points: &points,
+        view_dirs: None,
+        covariances: None,
+    };
+    let covs = kfmap_shared::cov::estimate_covariances(&points, &CovOptions::default()).values;
+    let scan = ScanPayload {
+        covariances: Some(&covs),
+        ..scan
+    };
+    let header = RequestHeader {
+        kind: RequestKind::Cov2Cov as u32,
+        pose: pose_to_wire(&pose),
+        max_pair_dist: 1.0,
+        mode: Cov2CovMode::Approximate as u32,
+        ..Default::default()
+    };
+    let mut latencies = Vec::new();
+    let mut server = Vec::new();
+    let started = Instant::now();
+    while started.elapsed().as_secs_f64() < seconds {
+        let t = Instant::now();
+        let r = client.connection().call_scan(header, &scan)?;
+        latencies.push(t.elapsed().as_secs_f64() * 1e6);
+        server.push(r.header.server_us);
+    }
+    if std::env::var("KFMAP_BENCH_DEBUG").is_ok() {
+        eprintln!("server compute p50 {:.0} us", p50_p99(server).0);
+    }
+    Ok(latencies)
+}
+
+/// Hidden worker mode: one of the throughput clients.
+pub fn worker(prefix: &str, seconds: f64) -> anyhow::Result<()> {
+    let mut c = client(prefix, false)?;
+    let latencies = hammer(&mut c, seconds)?;
+    println!("{}", serde_json::to_string(&latencies)?);
+    Ok(())
+}
+
+/// Runs the IPC benchmarks against a synthetic map in `dir`.
+pub fn run(
+    dir: &Path,
+    spin: bool,
+    json_out: bool,
+    bake: impl FnOnce(&Path) -> anyhow::Result<()>,
+) -> anyhow::Result<()> {
+    let map = dir.join(format!("kfmap-bench-ipc-{}.kfmap", std::process::id()));
+    bake(&map)?;
+    let prefix = format!("kfbench{}_", std::process::id());
+    let result = measure(&map, &prefix, spin, json_out);
+    let _ = std::fs::remove_file(&map);
+    result
+}
+
+fn measure(map: &Path, prefix: &str, spin: bool, json_out: bool) -> anyhow::Result<()> {
+    let bar = if json_out {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new_spinner()
+    };
+    let server = start_server(map, prefix, spin)?;
+    let mut c = client(prefix, spin)?;
+
+    let mut echo = Vec::new();
+    for n in [1_000usize, 10_000, 100_000] {
+        bar.set_message(format!("echo round trips, {n} points"));
+        let points = synthetic_cloud(7, n).points;
+        let reps = if n >= 100_000 { 200 } else { 1000 };
+        for _ in 0..20 {
+            c.echo(&points)?;
+        }
+        let mut v = Vec::with_capacity(reps);
+        for _ in 0..reps {
+            let t = Instant::now();
+            c.echo(&points)?;
+            v.push(t.elapsed().as_secs_f64() * 1e6);
+        }
+        echo.push((n, p50_p99(v)));
+    }
+
+    bar.set_message("cov2cov over IPC vs in process");
+    let ipc = p50_p99(hammer(&mut c, 3.0)?);
+    let served = ServedMap::open(map, false, 0)?;
+    let (points, pose) = scan_10k();
+    let covs = kfmap_shared::cov::estimate_covariances(&points, &CovOptions::default()).values;
+    let mut header = RequestHeader {
+        kind: RequestKind::Cov2Cov as u32,
+        pose: pose_to_wire(&pose),
+        max_pair_dist: 1.0,
+        mode: Cov2CovMode::Approximate as u32,
+        ..Default::default()
+    };
+    let payload = ScanPayload {
+        points: &points,
+        view_dirs: None,
+        covariances: Some(&covs),
+    }
+    .encode(&mut header);
+    let limits = Limits {
+        max_points: 1 << 20,
+        scan_covariance: CovOptions::default(),
+    };
+    let mut session = Session::new(0);
+    let mut local = Vec::new();
+    let started = Instant::now();
+    while started.elapsed().as_secs_f64() < 3.0 {
+        let t = Instant::now();
+        let a = answer(&served, &mut session, &header, &payload, &limits);
+        std::hint::black_box(a);
+        local.push(t.elapsed().as_secs_f64() * 1e6);
+    }
+    let local = p50_p99(local);
+
+    bar.set_message("throughput: 1 client, then 4 client processes");
+    let one = hammer(&mut c, 5.0)?;
+    let one_rate = one.len() as f64 / 5.0;
+    let one_p99 = p50_p99(one).1;
+    let exe = std::env::current_exe()?;
+    let workers: Vec<Child> = (0..4)
+        .map(|_| {
+            Command::new(&exe)
+                .args(["bench", "ipc", "--worker-of", prefix])
+                .stdout(Stdio::piped())
+                .stderr(Stdio::inherit())
+                .spawn()
+        })
+        .collect::<Result<_, _>>()?;
+    let mut all = Vec::new();
+    for w in workers {
+        let out = w.wait_with_output()?;
+        if !out.status.success() {
+            bail!("a throughput client failed");
+        }
+        let v: Vec<f64> = serde_json::from_slice(&out.stdout)?;
+        all.extend(v);
+    }
+    let four_rate = all.len() as f64 / 5.0;
+    let four_p99 = p50_p99(all).1;
+    bar.finish_and_clear();
+    drop(server);
+
+    let overhead = (ipc.0 / local.0 - 1.0) * 100.0;
+    if json_out {
+        let echo_json: Vec<_> = echo
+            .iter()
+            .map(|(n, (p50, p99))| json!({"points": n, "p50_us": p50, "p99_us": p99}))
+            .collect();
+        let out = json!({
+            "spin": spin,
+            "echo": echo_json,
+            "cov2cov_10k": {"ipc_p50_us": ipc.0, "ipc_p99_us": ipc.1, "in_process_p50_us": local.0,
+                "in_process_p99_us": local.1, "overhead_percent": overhead},
+            "throughput_10k_cov2cov": {"one_client_scans_per_s": one_rate, "one_client_p99_us": one_p99,
+                "four_clients_scans_per_s": four_rate, "four_clients_p99_us": four_p99},
+        });
+        println!("{}", serde_json::to_string_pretty(&out)?);
+        return Ok(());
+    }
+    println!(
+        "IPC round trips ({}):",
+        if spin { "spinning" } else { "event waiting" }
+    );
+    for (n, (p50, p99)) in &echo {
+        println!("  echo {n:>6} points: median {p50:>8.1} us, p99 {p99:>8.1} us");
+    }
+    println!(
+        "cov2cov, 10k-point scan: IPC median {:.0} us (p99 {:.0}), in process {:.0} us (p99 {:.0}): overhead {overhead:.1} %",
+        ipc.0, ipc.1, local.0, local.1
+    );
+    println!(
+        "throughput, 10k-point cov2cov: 1 client {one_rate:.1} scans/s (p99 {:.1} ms), 4 client processes {four_rate:.1} scans/s (p99 {:.1} ms)",
+        one_p99 / 1e3,
+        four_p99 / 1e3
+    );
+    Ok(())
+}
