@@ -138,12 +138,28 @@ fn bad_input_exits_2_with_a_message_naming_the_problem() {
 
 #[test]
 fn demo_simulates_and_uses_a_courtyard_without_data() {
-    let out = Command::new(env!("CARGO_BIN_EXE_kfmap"))
+    let child = Command::new(env!("CARGO_BIN_EXE_kfmap"))
         .arg("demo")
         .env("KFMAP_DATA_DIR", "/nonexistent")
-        .output()
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
         .expect("run kfmap");
+    let pid = child.id();
+    let out = child.wait_with_output().unwrap();
     assert!(out.status.success(), "{}", stderr(&out));
+    // The demo's server stopped and its shared memory is gone.
+    let leftovers = std::fs::read_dir("/dev/shm")
+        .map(|d| {
+            d.flatten()
+                .filter(|e| {
+                    let name = e.file_name().to_string_lossy().into_owned();
+                    name.starts_with(&format!("kfdemo{pid}_"))
+                })
+                .count()
+        })
+        .unwrap_or(0);
+    assert_eq!(leftovers, 0);
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(
         text.contains("100 scans")
@@ -154,9 +170,20 @@ fn demo_simulates_and_uses_a_courtyard_without_data() {
             && text.contains("no real scan")
             && text.contains("reopened by mmap")
             && text.contains("approximate mode")
-            && text.contains("exact mode"),
+            && text.contains("exact mode")
+            && text.contains("kfmap serve (child process")
+            && text.contains("0 failed")
+            && text.contains("shared memory removed"),
         "{text}"
     );
+    // The second drive localized over IPC against the map built from the first.
+    let ate: f64 = text
+        .split("ATE ")
+        .nth(2)
+        .and_then(|rest| rest.split(' ').next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("no localization ATE in {text}"));
+    assert!(ate < 0.05, "{ate}");
 }
 
 #[test]
@@ -250,11 +277,19 @@ fn every_subcommand_help_has_an_example() {
         "bake",
         "inspect",
         "bench",
+        "register",
+        "optimize-graph",
+        "gravity",
+        "serve",
+        "localize",
+        "query",
+        "status",
     ] {
         let out = kfmap(&[sub, "--help"]);
         assert!(out.status.success());
+        let text = String::from_utf8_lossy(&out.stdout);
         assert!(
-            String::from_utf8_lossy(&out.stdout).contains("Example:"),
+            text.contains("Example:") || text.contains("Examples:"),
             "{sub}"
         );
     }
