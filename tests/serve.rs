@@ -428,3 +428,97 @@ fn status_and_reload_report_the_map_and_the_counters() {
         cloud.len()
     );
 }
+
+#[test]
+fn query_prints_and_writes_every_answer() {
+    use kfmap_shared::io::{CloudFormat, PcdData, write_cloud};
+    let prefix = Prefix::new("query");
+    let (data, map_path) = courtyard("query");
+    let _server = Server::start(&map_path, "court", &prefix.0, &[]);
+    let (cloud, truth) = scan(&data, 9);
+    // The query file holds the scan already moved into the map frame (identity pose).
+    let moved: Vec<[f32; 3]> = cloud
+        .points
+        .iter()
+        .take(2000)
+        .map(|p| {
+            kfmap_shared::geometry::to_point(&kfmap_shared::geometry::transform_point(&truth, p))
+        })
+        .collect();
+    let file = map_path.with_file_name("query.pcd");
+    write_cloud(
+        &file,
+        &PointCloud::from_points(moved.clone()),
+        CloudFormat::Pcd(PcdData::Binary),
+    )
+    .unwrap();
+    let csv = map_path.with_file_name("answers.csv");
+    let out = kfmap(&[
+        "query",
+        "--map-name",
+        "court",
+        "--points",
+        file.to_str().unwrap(),
+        "--k",
+        "2",
+        "--out",
+        csv.to_str().unwrap(),
+        "--json",
+        "--iceoryx-prefix",
+        &prefix.0,
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let s: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(s["points"], 2000);
+    assert_eq!(s["answers"], 4000);
+    // Oracle: the library over IPC with the same points at the identity pose.
+    let mut client = Client::connect("court", options(&prefix)).unwrap();
+    let direct = client.nearest(&moved, &Pose::identity(), 2).unwrap();
+    let text = std::fs::read_to_string(&csv).unwrap();
+    let rows: Vec<&str> = text.lines().skip(1).collect();
+    assert_eq!(rows.len(), direct.len());
+    for (row, p) in rows.iter().zip(&direct) {
+        let cols: Vec<&str> = row.split(',').collect();
+        assert_eq!(cols[0].parse::<u32>().unwrap(), p.query);
+        assert_eq!(cols[1].parse::<u64>().unwrap(), p.keyframe);
+        assert_eq!(cols[6].parse::<f32>().unwrap(), p.dist_sq);
+    }
+}
+
+#[test]
+fn sighup_reloads_the_map_and_sigterm_stops_cleanly() {
+    let prefix = Prefix::new("hup");
+    let (data, map_path) = courtyard("hup");
+    let server = Server::start(&map_path, "court", &prefix.0, &[]);
+    let mut client = Client::connect("court", options(&prefix)).unwrap();
+    let (cloud, truth) = scan(&data, 4);
+    let before = client.nearest(&cloud.points, &truth, 1).unwrap();
+    common::signal(&server.child, libc::SIGHUP);
+    // The reload happens on the next housekeeping tick (250 ms).
+    std::thread::sleep(Duration::from_millis(800));
+    let after = client.nearest(&cloud.points, &truth, 1).unwrap();
+    assert_eq!(before, after);
+    let (status, log) = server.stop();
+    assert!(status.success(), "{log}");
+    assert!(
+        log.contains("reloaded") && log.contains("generation 1"),
+        "{log}"
+    );
+    assert!(
+        log.contains("nearest") && log.contains("2 requests"),
+        "{log}"
+    );
+    // With the client gone too, only iceoryx2's per-prefix management segment is left.
+    drop(client);
+    let left: Vec<String> = std::fs::read_dir("/dev/shm")
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with(&prefix.0))
+        .collect();
+    assert!(left.iter().all(|n| n.ends_with("global_mgmt")), "{left:?}");
+}

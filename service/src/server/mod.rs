@@ -292,6 +292,10 @@ pub fn serve(
                 drain();
                 match result {
                     Ok(WaitSetRunResult::AllEventsHandled) if !stop.load(Ordering::Relaxed) => {}
+                    // A SIGHUP also interrupts the wait; it asks for a reload, not an exit.
+                    Ok(WaitSetRunResult::Interrupt) if hangup.load(Ordering::Relaxed) => {
+                        housekeeping();
+                    }
                     Ok(_) => break,
                     Err(e) => {
                         warn!(error = ?e, "WaitSet failed; shutting down");
