@@ -522,3 +522,73 @@ fn sighup_reloads_the_map_and_sigterm_stops_cleanly() {
         .collect();
     assert!(left.iter().all(|n| n.ends_with("global_mgmt")), "{left:?}");
 }
+
+#[test]
+fn sigterm_answers_queued_requests_with_shutting_down() {
+    let prefix = Prefix::new("term");
+    let (data, map_path) = courtyard("term");
+    let config = map_path.with_file_name("one-worker.toml");
+    std::fs::write(&config, "[server]\nworker-threads = 1\n").unwrap();
+    let server = Server::start(
+        &map_path,
+        "court",
+        &prefix.0,
+        &["--config", config.to_str().unwrap()],
+    );
+    let (_, truth) = scan(&data, 6);
+    // Heavy requests (every raw point, four times over, jittered) from three clients on
+    // one worker: one runs, two wait in the queue.
+    let raw = load_raw_scan(&find_scans(&data).unwrap()[6], &BakeConfig::default()).unwrap();
+    let points: Vec<[f32; 3]> = (0..4)
+        .flat_map(|k| {
+            raw.points
+                .iter()
+                .map(move |p| [p[0] + 0.01 * k as f32, p[1], p[2]])
+        })
+        .collect();
+    let cloud = PointCloud::from_points(points);
+    let guess = truth * Pose::translation(0.3, 0.0, 0.0);
+    let heavy = LocalizeOptions {
+        max_iterations: 100,
+        max_pair_dist: 5.0,
+        mode: Cov2CovMode::Exact,
+    };
+    // Connected first, so the signal below can only meet requests sent or running.
+    let clients: Vec<Client> = (0..3)
+        .map(|_| Client::connect("court", options(&prefix)).unwrap())
+        .collect();
+    let results: Vec<_> = std::thread::scope(|scope| {
+        let handles: Vec<_> = clients
+            .into_iter()
+            .map(|mut c| {
+                let cloud = &cloud;
+                scope.spawn(move || {
+                    let scan = ScanPayload {
+                        points: &cloud.points,
+                        view_dirs: None,
+                        covariances: None,
+                    };
+                    c.localize(&scan, &guess, &heavy).map(|_| ())
+                })
+            })
+            .collect();
+        std::thread::sleep(Duration::from_millis(150));
+        common::signal(&server.child, libc::SIGTERM);
+        handles.into_iter().map(|h| h.join().unwrap()).collect()
+    });
+    let refused = results
+        .iter()
+        .filter(|r| matches!(r, Err(e) if e.status() == Some(StatusCode::ShuttingDown)))
+        .count();
+    // Every request got an answer (no timeout): finished, or refused by name.
+    for r in &results {
+        assert!(
+            r.is_ok() || refused > 0 && matches!(r, Err(e) if e.status().is_some()),
+            "{r:?}"
+        );
+    }
+    assert!(refused >= 1, "{results:?}");
+    let (status, log) = server.stop();
+    assert!(status.success(), "{log}");
+    assert!(log.contains("queued requests refused at shutdown"), "{log}");
+}
