@@ -6,7 +6,7 @@ mod common;
 use std::path::Path;
 use std::process::{Command, Stdio};
 
-use common::{Prefix, Server, kfmap_bin, simulate, temp_dir};
+use common::{Prefix, Server, bake_dataset, kfmap_bin, simulate, temp_dir};
 use kfmap_service::bake::{dataset_poses, find_scans};
 use kfmap_service::gravity::read_imu;
 use kfmap_shared::geometry::Pose;
@@ -44,23 +44,9 @@ fn campus_run_localizes_against_the_map_of_another_run() {
     simulate(&mapped, "campus", "10", "64", &[]);
     simulate(&replayed, "campus", "10", "64", &["--lidar-rate", "7"]);
     let map = dir.join("campus.kfmap");
-    // Keep the simulator's frame, so the replayed run's poses are map poses.
-    let config = dir.join("bake.toml");
-    std::fs::write(&config, "[map]\nalign-gravity = false\n").unwrap();
-    let out = common::kfmap(&[
-        "bake",
-        "--dataset",
-        mapped.to_str().unwrap(),
-        "--out",
-        map.to_str().unwrap(),
-        "--config",
-        config.to_str().unwrap(),
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    // Shipped settings: the map is levelled by the IMU's gravity, and `kfmap localize`
+    // moves the replayed run's ground truth into that frame (T_map_input from Status).
+    bake_dataset(&mapped, &map);
     let prefix = Prefix::new("campus");
     let _server = Server::start(&map, "campus", &prefix.0, &[]);
     let (client_tum, server_tum) = (dir.join("client.tum"), dir.join("server.tum"));

@@ -28,7 +28,7 @@ use kfmap_shared::geometry::Pose;
 use kfmap_shared::imu::ImuSample;
 use kfmap_shared::protocol::{
     Cov2CovMode, KIND_SLOTS, RequestHeader, RequestKind, ScanPayload, WirePairing, imu_payload,
-    pose_to_wire,
+    pose_from_wire, pose_to_wire,
 };
 
 /// Cov2cov pairings and the keyframes they came from.
@@ -70,6 +70,9 @@ pub struct StatusReport {
     pub sessions: u32,
     /// `(kind, answered, p50 us, p99 us)` for every kind with requests.
     pub kinds: Vec<(RequestKind, u64, f32, f32)>,
+    /// `T_map_input`: how bake moved the dataset's poses into the map frame; apply it to
+    /// poses of the baked dataset (e.g. its ground truth) to get map poses.
+    pub map_from_input: Pose,
 }
 
 /// A client of one map server.
@@ -205,6 +208,7 @@ impl Client {
             uptime_s: h.uptime_s,
             sessions: h.sessions,
             kinds,
+            map_from_input: pose_from_wire(&h.pose).unwrap_or_else(Pose::identity),
         })
     }
 

@@ -355,16 +355,18 @@ pub fn bake(
         stamped.then_some(&stamps),
         &keyframe_scans,
     )?;
+    let mut map_from_input = Pose::identity();
     if let Some(g) = gravity.as_mut().filter(|_| config.map.align_gravity)
         && let Some(c) = &g.correction
     {
         // Rotating about the map origin keeps every relative pose.
-        let align = Pose::from_parts(Default::default(), c.rotation.into());
-        poses.iter_mut().for_each(|p| *p = align * *p);
+        map_from_input = Pose::from_parts(Default::default(), c.rotation.into());
+        poses.iter_mut().for_each(|p| *p = map_from_input * *p);
         g.applied = true;
     }
     let options: KeyframeMapOptions = config.map_options();
     let mut writer = MapWriter::create(out, &options)?;
+    writer.set_map_from_input(&map_from_input);
     let mut covis = CovisibilityGraph::new(options.covisibility);
     let chunk = 2 * rayon::current_num_threads();
     let mut done = BakeProgress {

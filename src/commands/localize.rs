@@ -18,7 +18,9 @@ use serde_json::json;
 
 /// Replay a dataset's scans (and IMU) against a running `kfmap serve` and localize
 /// every scan, each starting from the previous scan's pose (the first from
-/// --initial, else the dataset's first ground-truth pose, else identity).
+/// --initial, in the map frame, else the dataset's first ground-truth pose, else
+/// identity). Ground truth is taken to be in the frame of the dataset the map was
+/// baked from; the rotation bake applied (gravity levelling) is read from the server.
 ///
 /// Scans are read (PCD, PLY, KITTI .bin), invalid returns dropped, downsampled with
 /// --voxel and sent over iceoryx2 shared memory. By default this process runs the GICP
@@ -124,11 +126,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         Some(t) if t.stamped && !args.no_imu => imu_windows(&args.dataset, &stamps)?,
         _ => None,
     };
-    let initial = match (&args.initial, &truth) {
-        (Some(text), _) => super::pose_arg::parse_pose(text)?,
-        (None, Some(t)) => t.poses[0],
-        (None, None) => Pose::identity(),
-    };
     let mut client = Client::connect(
         &args.map_name,
         ClientOptions {
@@ -137,6 +134,17 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             spin: false,
         },
     )?;
+    // Ground truth is in the baked dataset's frame; the map may be levelled from it.
+    let map_from_input = client.status()?.map_from_input;
+    let truth = truth.map(|mut t| {
+        t.poses.iter_mut().for_each(|p| *p = map_from_input * *p);
+        t
+    });
+    let initial = match (&args.initial, &truth) {
+        (Some(text), _) => super::pose_arg::parse_pose(text)?,
+        (None, Some(t)) => t.poses[0],
+        (None, None) => Pose::identity(),
+    };
     let options = LocalizeOptions {
         max_iterations: args.max_iterations,
         max_pair_dist: args.max_pair_dist,

@@ -19,6 +19,8 @@ pub struct ServedMap {
     pub keyframes: usize,
     /// Points in the map.
     pub points: usize,
+    /// `T_map_input`: how bake moved the input poses into the map frame.
+    pub map_from_input: [f64; 7],
 }
 
 impl ServedMap {
@@ -33,6 +35,7 @@ impl ServedMap {
         )?;
         let map = opened.map;
         Ok(Self {
+            map_from_input: opened.index.map_from_input,
             keyframes: map.len(),
             points: map.point_count(),
             map,

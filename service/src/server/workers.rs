@@ -144,6 +144,7 @@ impl WorkerContext<'_> {
             map_points: map.points as u64,
             uptime_s: self.started.elapsed().as_secs_f64(),
             sessions: self.sessions.len() as u32,
+            pose: map.map_from_input,
             ..Default::default()
         };
         for (slot, f) in self.stats.figures().iter().enumerate() {

@@ -109,4 +109,7 @@ pub struct MapIndex {
     pub covis_in_tree: Vec<u64>,
     /// Per-keyframe accelerometer statistics.
     pub gravity_pool: Vec<GravityRecord>,
+    /// `T_map_input` (x y z qx qy qz qw): how bake moved the input poses into the map
+    /// frame (the gravity levelling); identity when it kept them.
+    pub map_from_input: [f64; 7],
 }

@@ -12,8 +12,11 @@ use xxhash_rust::xxh3::{Xxh3, xxh3_64};
 use super::ArchiveError;
 use super::header::{HEADER_LEN, Header, SEGMENT_ALIGN};
 use super::records::{GravityRecord, KeyframeEntry, KeyframeRecord, MapIndex};
+
+/// The identity pose as stored.
+const IDENTITY: [f64; 7] = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0];
 use crate::covis::CovisSnapshot;
-use crate::geometry::Pose;
+use crate::geometry::{Pose, pose_to_xyz_quat};
 use crate::io::temp_path_beside;
 use crate::map::{Keyframe, KeyframeMap, KeyframeMapOptions};
 
@@ -62,7 +65,10 @@ impl MapWriter {
             payload: Xxh3::new(),
             offset: 0,
             options: *options,
-            index: MapIndex::default(),
+            index: MapIndex {
+                map_from_input: IDENTITY,
+                ..MapIndex::default()
+            },
             finished: false,
         };
         // Placeholder: the real header is written last, when the payload is known.
@@ -147,6 +153,11 @@ impl MapWriter {
             has_view_dirs: record.view_dirs.is_some(),
         });
         Ok(bytes.len() as u64)
+    }
+
+    /// Records `T_map_input`: how the input poses were moved into the map frame.
+    pub fn set_map_from_input(&mut self, pose: &Pose) {
+        self.index.map_from_input = pose_to_xyz_quat(pose);
     }
 
     /// Writes the index and the header, fsyncs and renames onto the target path.

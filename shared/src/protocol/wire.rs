@@ -121,7 +121,8 @@ pub struct ResponseHeader {
     pub active: [u64; 16],
     /// Server compute time, microseconds.
     pub server_us: f64,
-    /// `Localize`: solved `T_map_sensor` (x y z qx qy qz qw).
+    /// `Localize`: solved `T_map_sensor` (x y z qx qy qz qw). `Status`: `T_map_input`,
+    /// how bake moved the input poses into the map frame (gravity levelling).
     pub pose: [f64; 7],
     /// `Localize`: 6x6 pose covariance (rotation first), row-major; inverse Hessian.
     pub covariance: [f64; 36],
