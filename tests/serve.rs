@@ -6,7 +6,7 @@ mod common;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use common::{Prefix, Server, bake_dataset, kfmap, kfmap_bin, simulate, temp_dir};
+use common::{Prefix, Server, TestDir, bake_dataset, kfmap, kfmap_bin, simulate, temp_dir};
 use kfmap_client::{Client, ClientError, ClientOptions, LocalizeOptions};
 use kfmap_service::bake::{dataset_poses, find_scans, load_raw_scan};
 use kfmap_service::config::BakeConfig;
@@ -29,14 +29,14 @@ fn options(prefix: &Prefix) -> ClientOptions {
     }
 }
 
-/// A 3 s courtyard run (16 beams) and its baked map.
-fn courtyard(test: &str) -> (std::path::PathBuf, std::path::PathBuf) {
+/// A 3 s courtyard run (16 beams) and its baked map; both go with the directory.
+fn courtyard(test: &str) -> (TestDir, std::path::PathBuf, std::path::PathBuf) {
     let dir = temp_dir(test);
     let data = dir.join("sim");
     simulate(&data, "courtyard", "3", "16", &[]);
     let map = dir.join("court.kfmap");
     bake_dataset(&data, &map);
-    (data, map)
+    (dir, data, map)
 }
 
 /// Scan `i` of a dataset as sent by `kfmap localize` (0.25 m voxels), and its true pose.
@@ -65,7 +65,7 @@ fn in_process(map: &ServedMap, header: &RequestHeader, scan: &ScanPayload) -> Ve
 #[test]
 fn ipc_answers_equal_in_process_answers_bit_for_bit() {
     let prefix = Prefix::new("bits");
-    let (data, map_path) = courtyard("bits");
+    let (_dir, data, map_path) = courtyard("bits");
     let _server = Server::start(&map_path, "court", &prefix.0, &[]);
     let mut client = Client::connect("court", options(&prefix)).unwrap();
     let served = ServedMap::open(&map_path, false, 0).unwrap();
@@ -128,7 +128,7 @@ fn ipc_answers_equal_in_process_answers_bit_for_bit() {
 #[test]
 fn client_and_server_side_localization_agree() {
     let prefix = Prefix::new("agree");
-    let (data, map_path) = courtyard("agree");
+    let (_dir, data, map_path) = courtyard("agree");
     let _server = Server::start(&map_path, "court", &prefix.0, &[]);
     let mut client = Client::connect("court", options(&prefix)).unwrap();
     let (cloud, truth) = scan(&data, 12);
@@ -154,7 +154,7 @@ fn client_and_server_side_localization_agree() {
 #[test]
 fn bad_requests_get_a_named_error_and_change_nothing() {
     let prefix = Prefix::new("garbage");
-    let (data, map_path) = courtyard("garbage");
+    let (_dir, data, map_path) = courtyard("garbage");
     let dir = map_path.parent().unwrap();
     let config = dir.join("server.toml");
     std::fs::write(&config, "[server]\nmax-points-per-request = 5000\n").unwrap();
@@ -261,7 +261,7 @@ fn summary(child: std::process::Child) -> serde_json::Value {
 #[test]
 fn four_client_processes_at_once_get_their_own_answers() {
     let prefix = Prefix::new("four");
-    let (data, map_path) = courtyard("four");
+    let (_dir, data, map_path) = courtyard("four");
     let dir = map_path.parent().unwrap().to_path_buf();
     let _server = Server::start(&map_path, "court", &prefix.0, &[]);
     // Oracle: one client alone.
@@ -295,7 +295,7 @@ fn sessions(client: &mut Client) -> u32 {
 #[test]
 fn a_killed_client_is_reclaimed_and_others_keep_being_served() {
     let prefix = Prefix::new("killc");
-    let (data, map_path) = courtyard("killc");
+    let (_dir, data, map_path) = courtyard("killc");
     let dir = map_path.parent().unwrap().to_path_buf();
     let _server = Server::start(&map_path, "court", &prefix.0, &[]);
     let mut watcher = Client::connect("court", options(&prefix)).unwrap();
@@ -329,7 +329,7 @@ fn a_killed_client_is_reclaimed_and_others_keep_being_served() {
 #[test]
 fn a_killed_and_restarted_server_is_found_again() {
     let prefix = Prefix::new("kills");
-    let (data, map_path) = courtyard("kills");
+    let (_dir, data, map_path) = courtyard("kills");
     let server = Server::start(&map_path, "court", &prefix.0, &[]);
     let mut client = Client::connect(
         "court",
@@ -353,7 +353,7 @@ fn a_killed_and_restarted_server_is_found_again() {
 #[test]
 fn a_second_server_for_the_same_map_name_refuses_to_start() {
     let prefix = Prefix::new("twice");
-    let (_, map_path) = courtyard("twice");
+    let (_dir, _, map_path) = courtyard("twice");
     let server = Server::start(&map_path, "court", &prefix.0, &[]);
     let out = kfmap(&[
         "serve",
@@ -375,7 +375,7 @@ fn a_second_server_for_the_same_map_name_refuses_to_start() {
 #[test]
 fn status_and_reload_report_the_map_and_the_counters() {
     let prefix = Prefix::new("status");
-    let (data, map_path) = courtyard("status");
+    let (_dir, data, map_path) = courtyard("status");
     let _server = Server::start(&map_path, "court", &prefix.0, &[]);
     let mut client = Client::connect("court", options(&prefix)).unwrap();
     let (cloud, truth) = scan(&data, 2);
@@ -433,7 +433,7 @@ fn status_and_reload_report_the_map_and_the_counters() {
 fn query_prints_and_writes_every_answer() {
     use kfmap_shared::io::{CloudFormat, PcdData, write_cloud};
     let prefix = Prefix::new("query");
-    let (data, map_path) = courtyard("query");
+    let (_dir, data, map_path) = courtyard("query");
     let _server = Server::start(&map_path, "court", &prefix.0, &[]);
     let (cloud, truth) = scan(&data, 9);
     // The query file holds the scan already moved into the map frame (identity pose).
@@ -492,7 +492,7 @@ fn query_prints_and_writes_every_answer() {
 #[test]
 fn sighup_reloads_the_map_and_sigterm_stops_cleanly() {
     let prefix = Prefix::new("hup");
-    let (data, map_path) = courtyard("hup");
+    let (_dir, data, map_path) = courtyard("hup");
     let server = Server::start(&map_path, "court", &prefix.0, &[]);
     let mut client = Client::connect("court", options(&prefix)).unwrap();
     let (cloud, truth) = scan(&data, 4);
@@ -526,7 +526,7 @@ fn sighup_reloads_the_map_and_sigterm_stops_cleanly() {
 #[test]
 fn sigterm_answers_queued_requests_with_shutting_down() {
     let prefix = Prefix::new("term");
-    let (data, map_path) = courtyard("term");
+    let (_dir, data, map_path) = courtyard("term");
     let config = map_path.with_file_name("one-worker.toml");
     std::fs::write(&config, "[server]\nworker-threads = 1\n").unwrap();
     let server = Server::start(

@@ -14,6 +14,7 @@ use kfmap_service::server::answer::{Limits, answer};
 use kfmap_service::server::session::Session;
 use kfmap_shared::cov::CovOptions;
 use kfmap_shared::geometry::Pose;
+use kfmap_shared::protocol::transport::{iceoryx_config, remove_prefix_files};
 use kfmap_shared::protocol::{Cov2CovMode, RequestHeader, RequestKind, ScanPayload, pose_to_wire};
 use serde_json::json;
 
@@ -26,8 +27,8 @@ fn p50_p99(mut v: Vec<f64>) -> (f64, f64) {
     (at(0.5), at(0.99))
 }
 
-/// The server child, killed when dropped.
-struct ServerChild(Child);
+/// The server child: stopped, and every iceoryx2 file of its prefix removed, on drop.
+struct ServerChild(Child, String);
 
 impl Drop for ServerChild {
     fn drop(&mut self) {
@@ -36,6 +37,9 @@ impl Drop for ServerChild {
             libc::kill(self.0.id() as i32, libc::SIGTERM);
         }
         let _ = self.0.wait();
+        if let Ok(config) = iceoryx_config(Some(&self.1)) {
+            remove_prefix_files(&config, &self.1);
+        }
     }
 }
 
@@ -58,7 +62,7 @@ fn start_server(map: &Path, prefix: &str, spin: bool) -> anyhow::Result<ServerCh
         let _ = child.kill();
         bail!("the server did not start: {line:?}");
     }
-    Ok(ServerChild(child))
+    Ok(ServerChild(child, prefix.to_string()))
 }
 
 fn client(prefix: &str, spin: bool) -> anyhow::Result<Client> {
@@ -221,6 +225,7 @@ fn measure(map: &Path, prefix: &str, spin: bool, json_out: bool) -> anyhow::Resu
     let four_rate = all.len() as f64 / 5.0;
     let four_p99 = p50_p99(all).1;
     bar.finish_and_clear();
+    drop(c);
     drop(server);
 
     let overhead = (ipc.0 / local.0 - 1.0) * 100.0;

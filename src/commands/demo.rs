@@ -16,6 +16,7 @@ use kfmap_shared::datasets::shared_data_dir;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::gravity::roll_pitch_from_gravity;
 use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
+use kfmap_shared::protocol::transport::{iceoryx_config, remove_prefix_files};
 use kfmap_shared::sim::{LidarParams, Preset, SimConfig, gravity_in_map, write_dataset};
 use kfmap_shared::summary::summarize;
 
@@ -235,12 +236,8 @@ impl Drop for ServerChild {
             libc::kill(self.child.id() as i32, libc::SIGTERM);
         }
         let _ = self.child.wait();
-        if let Ok(entries) = std::fs::read_dir("/dev/shm") {
-            for e in entries.flatten() {
-                if e.file_name().to_string_lossy().starts_with(&self.prefix) {
-                    let _ = std::fs::remove_file(e.path());
-                }
-            }
+        if let Ok(config) = iceoryx_config(Some(&self.prefix)) {
+            remove_prefix_files(&config, &self.prefix);
         }
     }
 }

@@ -14,6 +14,7 @@ use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::cov::CovOptions;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::map::{KeyframeMap, KeyframeMapOptions};
+use kfmap_shared::protocol::transport::{iceoryx_config, remove_prefix_files};
 
 /// The kfmap binary.
 pub fn kfmap_bin() -> &'static str {
@@ -28,12 +29,28 @@ pub fn kfmap(args: &[&str]) -> Output {
         .expect("run kfmap")
 }
 
+/// A test's temporary directory, removed with everything in it when dropped.
+pub struct TestDir(PathBuf);
+
+impl std::ops::Deref for TestDir {
+    type Target = Path;
+    fn deref(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for TestDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
 /// A fresh temporary directory for one test.
-pub fn temp_dir(test: &str) -> PathBuf {
+pub fn temp_dir(test: &str) -> TestDir {
     let dir = std::env::temp_dir().join(format!("kfmap-e2e-{test}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
-    dir
+    TestDir(dir)
 }
 
 /// An iceoryx2 prefix no other test (or test run) uses.
@@ -41,15 +58,10 @@ pub fn unique_prefix(test: &str) -> String {
     format!("kfmt_{test}_{}_", std::process::id())
 }
 
-/// Removes every shared-memory file of `prefix` (what a killed process leaves).
+/// Removes every iceoryx2 file of `prefix` (what a killed process leaves).
 pub fn remove_shared_memory(prefix: &str) {
-    if let Ok(entries) = std::fs::read_dir("/dev/shm") {
-        for e in entries.flatten() {
-            if e.file_name().to_string_lossy().starts_with(prefix) {
-                let _ = std::fs::remove_file(e.path());
-            }
-        }
-    }
+    let config = iceoryx_config(Some(prefix)).expect("valid prefix");
+    remove_prefix_files(&config, prefix);
 }
 
 /// Owns one test's iceoryx2 prefix: its files are removed at drop.
