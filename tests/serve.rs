@@ -592,3 +592,20 @@ fn sigterm_answers_queued_requests_with_shutting_down() {
     assert!(status.success(), "{log}");
     assert!(log.contains("queued requests refused at shutdown"), "{log}");
 }
+
+#[test]
+fn serve_names_a_bad_map_file_once_and_exits_2() {
+    let dir = temp_dir("badmap");
+    let junk = dir.join("junk.kfmap");
+    std::fs::write(&junk, b"definitely not a map").unwrap();
+    for (path, expected) in [
+        (junk.to_str().unwrap(), "not a kfmap map file"),
+        ("/nonexistent/site.kfmap", "No such file"),
+    ] {
+        let out = kfmap(&["serve", "--map", path, "--iceoryx-prefix", "kfmt_badmap_"]);
+        assert_eq!(out.status.code(), Some(2));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(expected), "{err}");
+        assert_eq!(err.matches(path).count(), 1, "{err}");
+    }
+}

@@ -63,12 +63,12 @@ pub struct ServeOptions {
 #[derive(Debug, thiserror::Error)]
 pub enum ServeError {
     /// The map file could not be opened.
-    #[error("{}: {source}", path.display())]
+    #[error("{}", named(path, error))]
     Map {
         /// The file.
         path: PathBuf,
         /// Why.
-        source: ArchiveError,
+        error: ArchiveError,
     },
     /// Another server already serves this map name.
     #[error(
@@ -88,6 +88,17 @@ pub enum ServeError {
     /// iceoryx2 setup failed.
     #[error(transparent)]
     Transport(#[from] TransportError),
+}
+
+/// `error` with the file named once (some archive errors name it already).
+fn named(path: &Path, error: &ArchiveError) -> String {
+    let text = error.to_string();
+    let shown = path.display().to_string();
+    if text.contains(&shown) {
+        text
+    } else {
+        format!("{shown}: {text}")
+    }
 }
 
 /// What a server reports when it is ready.
@@ -165,9 +176,9 @@ pub fn serve(
     let started = Instant::now();
     check_shared_memory()?;
     let map =
-        ServedMap::open(&options.map_path, options.trust, 0).map_err(|source| ServeError::Map {
+        ServedMap::open(&options.map_path, options.trust, 0).map_err(|error| ServeError::Map {
             path: options.map_path.clone(),
-            source,
+            error,
         })?;
     let slot = MapSlot::new(map);
     let config = iceoryx_config(options.iceoryx_prefix.as_deref())?;
