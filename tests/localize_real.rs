@@ -10,8 +10,8 @@ use common::{Prefix, Server, bake_map, bake_map_with, temp_dir};
 use kfmap_client::{Client, ClientOptions, LocalizeOptions, Localized};
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::cov::CovOptions;
-use kfmap_shared::datasets::require_test_data;
-use kfmap_shared::geometry::{Pose, pose_from_xyz_quat};
+use kfmap_shared::datasets::{read_keyframe_graph, require_test_data};
+use kfmap_shared::geometry::Pose;
 use kfmap_shared::io::{BinLayout, ReadOptions, read_cloud, read_trajectory};
 use kfmap_shared::protocol::{Cov2CovMode, ScanPayload};
 use nalgebra::{UnitQuaternion, Vector3};
@@ -79,19 +79,7 @@ fn kitti07_held_out_keyframes_localize_over_ipc() {
     else {
         return;
     };
-    let poses: Vec<Pose> = std::fs::read_to_string(dir.join("graph.txt"))
-        .unwrap()
-        .lines()
-        .filter(|l| l.starts_with('v'))
-        .map(|l| {
-            let v: Vec<f64> = l
-                .split_whitespace()
-                .skip(1)
-                .map(|w| w.parse().unwrap())
-                .collect();
-            pose_from_xyz_quat(v.try_into().unwrap()).unwrap()
-        })
-        .collect();
+    let poses = read_keyframe_graph(&dir.join("graph.txt")).unwrap();
     let clouds: Vec<PointCloud> = (0..5)
         .map(|i| read_bin(&dir.join(format!("keyframe_{i}.bin")), BinLayout::Xyz))
         .collect();

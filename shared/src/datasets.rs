@@ -42,3 +42,32 @@ pub fn require_test_data(relative: &str, test: &str) -> Option<PathBuf> {
     }
     found
 }
+
+/// The keyframe poses of a `graph.txt` (gtsam_points' dump, as in `kitti07/`): one
+/// `vN x y z qx qy qz qw` line per keyframe, in file order; other lines are ignored.
+pub fn read_keyframe_graph(
+    path: &std::path::Path,
+) -> Result<Vec<crate::geometry::Pose>, crate::io::IoError> {
+    let text = std::fs::read_to_string(path).map_err(|e| crate::io::IoError::os(path, e))?;
+    text.lines()
+        .enumerate()
+        .filter(|(_, l)| l.starts_with('v'))
+        .map(|(n, l)| {
+            let bad = |why: &str| {
+                crate::io::IoError::malformed(path, crate::io::Location::Line(n + 1), why)
+            };
+            let values: Vec<f64> = l
+                .split_whitespace()
+                .skip(1)
+                .map(|w| {
+                    w.parse()
+                        .map_err(|_| bad(&format!("'{w}' is not a number")))
+                })
+                .collect::<Result<_, _>>()?;
+            let values: [f64; 7] = values
+                .try_into()
+                .map_err(|_| bad("expected vN x y z qx qy qz qw"))?;
+            crate::geometry::pose_from_xyz_quat(values).ok_or_else(|| bad("invalid pose"))
+        })
+        .collect()
+}

@@ -2,8 +2,8 @@
 //! against small_gicp 1.0.1's figures on the same pairs (`tools/anchors/small_gicp_reg.py`).
 
 use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::datasets::require_test_data;
-use kfmap_shared::geometry::{Pose, pose_from_xyz_quat, transform_point};
+use kfmap_shared::datasets::{read_keyframe_graph, require_test_data};
+use kfmap_shared::geometry::{Pose, transform_point};
 use kfmap_shared::io::{BinLayout, ReadOptions, read_cloud, read_trajectory};
 use kfmap_shared::registration::{RegistrationParams, RegistrationResult, register};
 use nalgebra::{Matrix4, UnitQuaternion, Vector3};
@@ -24,21 +24,6 @@ fn difference(a: &Pose, b: &Pose) -> (f64, f64) {
     (d.translation.vector.norm(), d.rotation.angle().to_degrees())
 }
 
-/// `vN x y z qx qy qz qw` lines.
-fn graph_poses(text: &str) -> Vec<Pose> {
-    text.lines()
-        .filter(|l| l.starts_with('v'))
-        .map(|l| {
-            let v: Vec<f64> = l
-                .split_whitespace()
-                .skip(1)
-                .map(|w| w.parse().unwrap())
-                .collect();
-            pose_from_xyz_quat(v.try_into().unwrap()).unwrap()
-        })
-        .collect()
-}
-
 /// Registration with the default settings.
 fn register_default(
     target: &PointCloud,
@@ -53,7 +38,7 @@ fn kitti07_keyframes_agree_with_their_optimized_poses() {
     let Some(dir) = require_test_data("kitti07", "registration_real") else {
         return;
     };
-    let poses = graph_poses(&std::fs::read_to_string(dir.join("graph.txt")).unwrap());
+    let poses = read_keyframe_graph(&dir.join("graph.txt")).unwrap();
     let clouds: Vec<PointCloud> = (0..5)
         .map(|i| read(&dir.join(format!("keyframe_{i}.bin")), Some(BinLayout::Xyz)))
         .collect();

@@ -5,7 +5,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
-use kfmap_client::{Client, ClientOptions, GravityAnswer, LocalizeOptions, Localized};
+use kfmap_client::{GravityAnswer, LocalizeOptions, Localized};
 use kfmap_service::bake::{dataset_poses, find_scans, load_raw_scan};
 use kfmap_service::config::BakeConfig;
 use kfmap_service::gravity::{IMU_FILES, find_in, read_imu};
@@ -15,6 +15,8 @@ use kfmap_shared::io::{Trajectory, format_tum, write_atomic};
 use kfmap_shared::mapping::{absolute_trajectory_error, relative_pose_error};
 use kfmap_shared::protocol::{Cov2CovMode, ScanPayload};
 use serde_json::json;
+
+use super::connect_arg::ConnectArgs;
 
 /// Replay a dataset's scans (and IMU) against a running `kfmap serve` and localize
 /// every scan, each starting from the previous scan's pose (the first from
@@ -37,9 +39,8 @@ use serde_json::json;
 #[derive(clap::Args)]
 #[command(verbatim_doc_comment)]
 pub struct Args {
-    /// The served map's name.
-    #[arg(long)]
-    map_name: String,
+    #[command(flatten)]
+    server: ConnectArgs,
     /// Dataset directory (scans/ or scan files, optional pose file and IMU log).
     #[arg(long)]
     dataset: PathBuf,
@@ -64,18 +65,12 @@ pub struct Args {
     /// Iterations per scan at most.
     #[arg(long, default_value_t = 30)]
     max_iterations: u32,
-    /// Seconds to wait for each answer.
-    #[arg(long, default_value_t = 5.0)]
-    timeout: f64,
     /// Do not send IMU windows even when the dataset has an IMU log.
     #[arg(long)]
     no_imu: bool,
     /// Print a JSON summary (scans, ate_m, rpe_m, p50_ms, p99_ms, failed, ...).
     #[arg(long)]
     json: bool,
-    /// iceoryx2 prefix (the server's).
-    #[arg(long)]
-    iceoryx_prefix: Option<String>,
 }
 
 /// Per-scan IMU windows: samples between the previous scan's time and this one's.
@@ -126,14 +121,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         Some(t) if t.stamped && !args.no_imu => imu_windows(&args.dataset, &stamps)?,
         _ => None,
     };
-    let mut client = Client::connect(
-        &args.map_name,
-        ClientOptions {
-            iceoryx_prefix: args.iceoryx_prefix.clone(),
-            timeout: Duration::from_secs_f64(args.timeout.max(0.001)),
-            spin: false,
-        },
-    )?;
+    let mut client = args.server.connect()?;
     // Ground truth is in the baked dataset's frame; the map may be levelled from it.
     let map_from_input = client.status()?.map_from_input;
     let truth = truth.map(|mut t| {
@@ -254,7 +242,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     println!(
         "{} scans localized against map {} ({}), {failed} failed",
         scans.len(),
-        args.map_name,
+        args.server.map_name,
         if args.server_side {
             "server-side GICP"
         } else {

@@ -2,14 +2,15 @@
 
 use std::io::Write;
 use std::path::PathBuf;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use anyhow::Context;
-use kfmap_client::{Client, ClientOptions};
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::io::{ReadOptions, read_cloud};
 use kfmap_shared::protocol::{Cov2CovMode, ScanPayload, WirePairing};
 use serde_json::json;
+
+use super::connect_arg::ConnectArgs;
 
 /// Send the points of a cloud file (sensor frame) at a pose to a running server and
 /// print what it found: per point the map point, its keyframe and squared distance
@@ -22,9 +23,8 @@ use serde_json::json;
 #[derive(clap::Args)]
 #[command(verbatim_doc_comment)]
 pub struct Args {
-    /// The served map's name.
-    #[arg(long)]
-    map_name: String,
+    #[command(flatten)]
+    server: ConnectArgs,
     /// Cloud file with the query points (PCD, PLY, KITTI .bin, raw xyz .bin).
     #[arg(long)]
     points: PathBuf,
@@ -52,12 +52,6 @@ pub struct Args {
     /// Print a JSON summary.
     #[arg(long)]
     json: bool,
-    /// Seconds to wait for the answer.
-    #[arg(long, default_value_t = 5.0)]
-    timeout: f64,
-    /// iceoryx2 prefix (the server's).
-    #[arg(long)]
-    iceoryx_prefix: Option<String>,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -93,14 +87,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         Some(text) => super::pose_arg::parse_pose(text)?,
         None => Pose::identity(),
     };
-    let mut client = Client::connect(
-        &args.map_name,
-        ClientOptions {
-            iceoryx_prefix: args.iceoryx_prefix.clone(),
-            timeout: Duration::from_secs_f64(args.timeout.max(0.001)),
-            spin: false,
-        },
-    )?;
+    let mut client = args.server.connect()?;
     let started = Instant::now();
     let pairings = match args.kind {
         KindArg::Nearest => client.nearest(&cloud.points, &pose, args.k)?,

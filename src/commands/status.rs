@@ -1,9 +1,8 @@
 //! `kfmap status`: a running server's counters (and `--reload`).
 
-use std::time::Duration;
-
-use kfmap_client::{Client, ClientOptions};
 use serde_json::json;
+
+use super::connect_arg::ConnectArgs;
 
 /// Show a running server's map, uptime, sessions and per-kind request counts with
 /// median and 99th percentile latency; `--reload` asks it to reopen its map file.
@@ -15,32 +14,18 @@ use serde_json::json;
 #[derive(clap::Args)]
 #[command(verbatim_doc_comment)]
 pub struct Args {
-    /// The served map's name.
-    #[arg(long)]
-    map_name: String,
+    #[command(flatten)]
+    server: ConnectArgs,
     /// Ask the server to reopen its map file first.
     #[arg(long)]
     reload: bool,
     /// Print JSON.
     #[arg(long)]
     json: bool,
-    /// Seconds to wait for the answer.
-    #[arg(long, default_value_t = 5.0)]
-    timeout: f64,
-    /// iceoryx2 prefix (the server's).
-    #[arg(long)]
-    iceoryx_prefix: Option<String>,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let mut client = Client::connect(
-        &args.map_name,
-        ClientOptions {
-            iceoryx_prefix: args.iceoryx_prefix,
-            timeout: Duration::from_secs_f64(args.timeout.max(0.001)),
-            spin: false,
-        },
-    )?;
+    let mut client = args.server.connect()?;
     if args.reload {
         eprintln!("{}", client.reload()?);
     }

@@ -8,7 +8,7 @@ use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::cov::{CovOptions, estimate_covariances};
 use kfmap_shared::geometry::{Pose, to_point, transform_point};
 use kfmap_shared::gravity::ImuWindow;
-use kfmap_shared::map::{ActiveSet, MapError};
+use kfmap_shared::map::{ActiveSet, MapError, MapHit};
 use kfmap_shared::protocol::{
     Cov2CovMode, DecodedScan, Rejection, RequestHeader, RequestKind, ResponseHeader, StatusCode,
     WirePairing, check_version, correspondences_from_wire, decode_imu, decode_scan,
@@ -203,17 +203,34 @@ fn to_map_frame(pose: &Pose, p: &[f32; 3]) -> [f32; 3] {
     to_point(&transform_point(pose, p))
 }
 
-fn hits_to_wire(query: usize, hits: &[kfmap_shared::map::MapHit]) -> Vec<WirePairing> {
-    hits.iter()
-        .map(|h| WirePairing {
-            query: query as u32,
-            local_index: h.local_index,
-            keyframe: h.keyframe,
-            point: h.point,
-            dist_sq: h.dist_sq,
-            information: [0.0; 6],
+/// Every scan point moved by `pose` and searched by `search` in the active set: the
+/// hits as pairings without information, in query order.
+fn search_each(
+    map: &ServedMap,
+    session: &mut Session,
+    scan: &DecodedScan,
+    pose: &Pose,
+    search: impl Fn(&ActiveSet, &[f32; 3]) -> Vec<MapHit> + Sync,
+) -> Result<Answer, Rejection> {
+    let active = activate(map, session, pose, false)?;
+    let pairings: Vec<WirePairing> = scan
+        .points
+        .par_iter()
+        .enumerate()
+        .flat_map_iter(|(i, p)| {
+            search(&active, &to_map_frame(pose, p))
+                .into_iter()
+                .map(move |h| WirePairing {
+                    query: i as u32,
+                    local_index: h.local_index,
+                    keyframe: h.keyframe,
+                    point: h.point,
+                    dist_sq: h.dist_sq,
+                    information: [0.0; 6],
+                })
         })
-        .collect()
+        .collect();
+    Ok(with_active(pairings, active.ids()))
 }
 
 fn nearest(
@@ -223,22 +240,13 @@ fn nearest(
     scan: &DecodedScan,
     pose: &Pose,
 ) -> Result<Answer, Rejection> {
-    if !(1..=MAX_K).contains(&request.k) {
-        return Err(bad(format!("k = {} must be within 1..={MAX_K}", request.k)));
+    let k = request.k;
+    if !(1..=MAX_K).contains(&k) {
+        return Err(bad(format!("k = {k} must be within 1..={MAX_K}")));
     }
-    let active = activate(map, session, pose, false)?;
-    let pairings: Vec<WirePairing> = scan
-        .points
-        .par_iter()
-        .enumerate()
-        .flat_map_iter(|(i, p)| {
-            hits_to_wire(
-                i,
-                &active.nearest_k(&to_map_frame(pose, p), request.k as usize),
-            )
-        })
-        .collect();
-    Ok(with_active(pairings, active.ids()))
+    search_each(map, session, scan, pose, |active, p| {
+        active.nearest_k(p, k as usize)
+    })
 }
 
 fn radius(
@@ -254,22 +262,16 @@ fn radius(
             "radius {r} m must be within (0, {MAX_RADIUS}]"
         )));
     }
-    let active = activate(map, session, pose, false)?;
-    let pairings: Vec<WirePairing> = scan
-        .points
-        .par_iter()
-        .enumerate()
-        .flat_map_iter(|(i, p)| {
-            hits_to_wire(i, &active.within_radius(&to_map_frame(pose, p), r as f64))
-        })
-        .collect();
-    if pairings.len() > MAX_RADIUS_PAIRINGS {
+    let answer = search_each(map, session, scan, pose, |active, p| {
+        active.within_radius(p, r as f64)
+    })?;
+    if answer.pairings.len() > MAX_RADIUS_PAIRINGS {
         return Err(bad(format!(
             "the radius answer holds {} pairings, more than {MAX_RADIUS_PAIRINGS}; use a smaller radius or fewer points",
-            pairings.len()
+            answer.pairings.len()
         )));
     }
-    Ok(with_active(pairings, active.ids()))
+    Ok(answer)
 }
 
 /// The scan's covariances: the client's, or estimated with the server's options.
@@ -399,13 +401,9 @@ fn imu_window(
     {
         let q = nalgebra::UnitQuaternion::from_rotation_matrix(&c.rotation);
         h.has_gravity = 1;
-        h.gravity = to_vec3_f64(&c.estimate.g);
+        h.gravity = c.estimate.g.into();
         h.roll_pitch = [c.roll, c.pitch];
         h.correction = [q.i, q.j, q.k, q.w];
     }
     Ok(answer)
-}
-
-fn to_vec3_f64(v: &nalgebra::Vector3<f64>) -> [f64; 3] {
-    [v.x, v.y, v.z]
 }
