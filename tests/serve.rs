@@ -6,6 +6,8 @@ mod common;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
+use std::path::PathBuf;
+
 use common::{Prefix, Server, TestDir, bake_dataset, kfmap, kfmap_bin, simulate, temp_dir};
 use kfmap_client::{Client, ClientError, ClientOptions, LocalizeOptions};
 use kfmap_service::bake::{dataset_poses, find_scans, load_raw_scan};
@@ -29,14 +31,39 @@ fn options(prefix: &Prefix) -> ClientOptions {
     }
 }
 
-/// A 3 s courtyard run (16 beams) and its baked map; both go with the directory.
-fn courtyard(test: &str) -> (TestDir, std::path::PathBuf, std::path::PathBuf) {
+/// One test's site: a 3 s courtyard run (16 beams), its baked map and an iceoryx2
+/// prefix, all removed when dropped.
+struct Site {
+    prefix: Prefix,
+    data: PathBuf,
+    map: PathBuf,
+    _dir: TestDir,
+}
+
+/// A site and a `kfmap serve` on its map (`server_toml`: a server.toml body, or "").
+/// Bind as `let (site, server)`: the server is dropped (killed) before the site.
+fn served(test: &str, server_toml: &str) -> (Site, Server) {
+    let prefix = Prefix::new(test);
     let dir = temp_dir(test);
     let data = dir.join("sim");
     simulate(&data, "courtyard", "3", "16", &[]);
     let map = dir.join("court.kfmap");
     bake_dataset(&data, &map);
-    (dir, data, map)
+    let config = dir.join("server.toml");
+    std::fs::write(&config, server_toml).unwrap();
+    let server = Server::start(
+        &map,
+        "court",
+        &prefix.0,
+        &["--config", config.to_str().unwrap()],
+    );
+    let site = Site {
+        prefix,
+        data,
+        map,
+        _dir: dir,
+    };
+    (site, server)
 }
 
 /// Scan `i` of a dataset as sent by `kfmap localize` (0.25 m voxels), and its true pose.
@@ -64,12 +91,11 @@ fn in_process(map: &ServedMap, header: &RequestHeader, scan: &ScanPayload) -> Ve
 
 #[test]
 fn ipc_answers_equal_in_process_answers_bit_for_bit() {
-    let prefix = Prefix::new("bits");
-    let (_dir, data, map_path) = courtyard("bits");
-    let _server = Server::start(&map_path, "court", &prefix.0, &[]);
-    let mut client = Client::connect("court", options(&prefix)).unwrap();
-    let served = ServedMap::open(&map_path, false, 0).unwrap();
-    let (cloud, truth) = scan(&data, 17);
+    let (site, _server) = served("bits", "");
+    let (data, map_path, prefix) = (&site.data, &site.map, &site.prefix);
+    let mut client = Client::connect("court", options(prefix)).unwrap();
+    let served = ServedMap::open(map_path, false, 0).unwrap();
+    let (cloud, truth) = scan(data, 17);
     let guess = truth * Pose::translation(0.05, -0.03, 0.02);
     let plain = ScanPayload {
         points: &cloud.points,
@@ -127,11 +153,10 @@ fn ipc_answers_equal_in_process_answers_bit_for_bit() {
 
 #[test]
 fn client_and_server_side_localization_agree() {
-    let prefix = Prefix::new("agree");
-    let (_dir, data, map_path) = courtyard("agree");
-    let _server = Server::start(&map_path, "court", &prefix.0, &[]);
-    let mut client = Client::connect("court", options(&prefix)).unwrap();
-    let (cloud, truth) = scan(&data, 12);
+    let (site, _server) = served("agree", "");
+    let (data, prefix) = (&site.data, &site.prefix);
+    let mut client = Client::connect("court", options(prefix)).unwrap();
+    let (cloud, truth) = scan(data, 12);
     let guess = truth * Pose::new([0.3, -0.2, 0.05].into(), [0.0, 0.0, 0.03].into());
     let scan = ScanPayload {
         points: &cloud.points,
@@ -153,19 +178,10 @@ fn client_and_server_side_localization_agree() {
 
 #[test]
 fn bad_requests_get_a_named_error_and_change_nothing() {
-    let prefix = Prefix::new("garbage");
-    let (_dir, data, map_path) = courtyard("garbage");
-    let dir = map_path.parent().unwrap();
-    let config = dir.join("server.toml");
-    std::fs::write(&config, "[server]\nmax-points-per-request = 5000\n").unwrap();
-    let _server = Server::start(
-        &map_path,
-        "court",
-        &prefix.0,
-        &["--config", config.to_str().unwrap()],
-    );
-    let mut client = Client::connect("court", options(&prefix)).unwrap();
-    let (cloud, truth) = scan(&data, 5);
+    let (site, _server) = served("garbage", "[server]\nmax-points-per-request = 5000\n");
+    let (data, prefix) = (&site.data, &site.prefix);
+    let mut client = Client::connect("court", options(prefix)).unwrap();
+    let (cloud, truth) = scan(data, 5);
     let before = client.nearest(&cloud.points[..1000], &truth, 1).unwrap();
 
     let mut nan = cloud.points[..1000].to_vec();
@@ -260,13 +276,12 @@ fn summary(child: std::process::Child) -> serde_json::Value {
 
 #[test]
 fn four_client_processes_at_once_get_their_own_answers() {
-    let prefix = Prefix::new("four");
-    let (_dir, data, map_path) = courtyard("four");
-    let dir = map_path.parent().unwrap().to_path_buf();
-    let _server = Server::start(&map_path, "court", &prefix.0, &[]);
+    let (site, _server) = served("four", "");
+    let (data, prefix) = (&site.data, &site.prefix);
+    let dir = site.map.parent().unwrap().to_path_buf();
     // Oracle: one client alone.
     let alone = dir.join("alone.tum");
-    let reference = summary(localize_process("court", &data, &prefix.0, &alone, &[]));
+    let reference = summary(localize_process("court", data, &prefix.0, &alone, &[]));
     assert_eq!(reference["failed"], 0);
     assert!(reference["ate_m"].as_f64().unwrap() < 0.02, "{reference}");
     let children: Vec<_> = (0..4)
@@ -275,7 +290,7 @@ fn four_client_processes_at_once_get_their_own_answers() {
             let out = dir.join(format!("client{i}.tum"));
             (
                 out.clone(),
-                localize_process("court", &data, &prefix.0, &out, side),
+                localize_process("court", data, &prefix.0, &out, side),
             )
         })
         .collect();
@@ -294,15 +309,17 @@ fn sessions(client: &mut Client) -> u32 {
 
 #[test]
 fn a_killed_client_is_reclaimed_and_others_keep_being_served() {
-    let prefix = Prefix::new("killc");
-    let (_dir, data, map_path) = courtyard("killc");
-    let dir = map_path.parent().unwrap().to_path_buf();
-    let _server = Server::start(&map_path, "court", &prefix.0, &[]);
-    let mut watcher = Client::connect("court", options(&prefix)).unwrap();
-    let mut victim = localize_process("court", &data, &prefix.0, &dir.join("v.tum"), &[]);
+    let (site, _server) = served("killc", "");
+    let (data, prefix) = (&site.data, &site.prefix);
+    let dir = site.map.parent().unwrap().to_path_buf();
+    let mut watcher = Client::connect("court", options(prefix)).unwrap();
+    let (cloud, truth) = scan(data, 3);
+    let before = watcher.nearest(&cloud.points, &truth, 1).unwrap();
+    assert_eq!(sessions(&mut watcher), 1);
+    let mut victim = localize_process("court", data, &prefix.0, &dir.join("v.tum"), &[]);
     // Kill it while it has a session (mid-run, most likely mid-request).
     let started = Instant::now();
-    while sessions(&mut watcher) == 0 {
+    while sessions(&mut watcher) < 2 {
         assert!(
             started.elapsed() < Duration::from_secs(30),
             "victim never connected"
@@ -312,49 +329,44 @@ fn a_killed_client_is_reclaimed_and_others_keep_being_served() {
     victim.kill().unwrap();
     victim.wait().unwrap();
     let started = Instant::now();
-    while sessions(&mut watcher) > 0 {
+    while sessions(&mut watcher) > 1 {
         assert!(
             started.elapsed() < Duration::from_secs(10),
             "session never reclaimed"
         );
         std::thread::sleep(Duration::from_millis(50));
     }
-    let (cloud, truth) = scan(&data, 3);
-    assert_eq!(
-        watcher.nearest(&cloud.points, &truth, 1).unwrap().len(),
-        cloud.len()
-    );
+    // The watcher's session survived and answers as before.
+    assert_eq!(watcher.nearest(&cloud.points, &truth, 1).unwrap(), before);
 }
 
 #[test]
 fn a_killed_and_restarted_server_is_found_again() {
-    let prefix = Prefix::new("kills");
-    let (_dir, data, map_path) = courtyard("kills");
-    let server = Server::start(&map_path, "court", &prefix.0, &[]);
+    let (site, server) = served("kills", "");
+    let (data, map_path, prefix) = (&site.data, &site.map, &site.prefix);
     let mut client = Client::connect(
         "court",
         ClientOptions {
             timeout: Duration::from_millis(1500),
-            ..options(&prefix)
+            ..options(prefix)
         },
     )
     .unwrap();
-    let (cloud, truth) = scan(&data, 8);
+    let (cloud, truth) = scan(data, 8);
     let first = client.nearest(&cloud.points, &truth, 1).unwrap();
     server.kill();
     let e = client.nearest(&cloud.points, &truth, 1).unwrap_err();
     assert!(matches!(e, ClientError::Timeout { .. }), "{e}");
     // The dead server's port is cleaned up by whoever comes next.
-    let _again = Server::start(&map_path, "court", &prefix.0, &[]);
+    let _again = Server::start(map_path, "court", &prefix.0, &[]);
     let second = client.nearest(&cloud.points, &truth, 1).unwrap();
     assert_eq!(first, second);
 }
 
 #[test]
 fn a_second_server_for_the_same_map_name_refuses_to_start() {
-    let prefix = Prefix::new("twice");
-    let (_dir, _, map_path) = courtyard("twice");
-    let server = Server::start(&map_path, "court", &prefix.0, &[]);
+    let (site, server) = served("twice", "");
+    let (map_path, prefix) = (&site.map, &site.prefix);
     let out = kfmap(&[
         "serve",
         "--map",
@@ -374,15 +386,17 @@ fn a_second_server_for_the_same_map_name_refuses_to_start() {
 
 #[test]
 fn status_and_reload_report_the_map_and_the_counters() {
-    let prefix = Prefix::new("status");
-    let (_dir, data, map_path) = courtyard("status");
-    let _server = Server::start(&map_path, "court", &prefix.0, &[]);
-    let mut client = Client::connect("court", options(&prefix)).unwrap();
-    let (cloud, truth) = scan(&data, 2);
-    for _ in 0..3 {
+    let (site, _server) = served("status", "");
+    let (data, map_path, prefix) = (&site.data, &site.map, &site.prefix);
+    let mut client = Client::connect("court", options(prefix)).unwrap();
+    let (cloud, truth) = scan(data, 2);
+    let before = client.nearest(&cloud.points, &truth, 1).unwrap();
+    for _ in 0..2 {
         client.nearest(&cloud.points, &truth, 1).unwrap();
     }
-    let served = ServedMap::open(&map_path, false, 0).unwrap();
+    // Oracle for the map's size: `kfmap inspect`, another reader of the file.
+    let inspected = kfmap(&["inspect", map_path.to_str().unwrap(), "--json"]);
+    let inspected: serde_json::Value = serde_json::from_slice(&inspected.stdout).unwrap();
     let out = kfmap(&[
         "status",
         "--map-name",
@@ -397,8 +411,8 @@ fn status_and_reload_report_the_map_and_the_counters() {
         String::from_utf8_lossy(&out.stderr)
     );
     let s: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-    assert_eq!(s["keyframes"], served.keyframes);
-    assert_eq!(s["points"], served.points);
+    assert_eq!(s["keyframes"], inspected["keyframes"]);
+    assert_eq!(s["points"], inspected["points"]);
     assert_eq!(s["requests"]["nearest"]["count"], 3);
     assert!(s["requests"]["nearest"]["p99_us"].as_f64().unwrap() > 0.0);
     let message = client.reload().unwrap();
@@ -407,7 +421,7 @@ fn status_and_reload_report_the_map_and_the_counters() {
     // fails by name and the old map keeps answering from its own mapping.
     let junk = map_path.with_extension("junk");
     std::fs::write(&junk, b"not a map").unwrap();
-    std::fs::rename(&junk, &map_path).unwrap();
+    std::fs::rename(&junk, map_path).unwrap();
     let e = client.reload().unwrap_err();
     assert_eq!(e.status(), Some(StatusCode::Internal));
     assert!(
@@ -423,19 +437,15 @@ fn status_and_reload_report_the_map_and_the_counters() {
     ]);
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("no kfmap server serves map"));
-    assert_eq!(
-        client.nearest(&cloud.points, &truth, 1).unwrap().len(),
-        cloud.len()
-    );
+    assert_eq!(client.nearest(&cloud.points, &truth, 1).unwrap(), before);
 }
 
 #[test]
 fn query_prints_and_writes_every_answer() {
     use kfmap_shared::io::{CloudFormat, PcdData, write_cloud};
-    let prefix = Prefix::new("query");
-    let (_dir, data, map_path) = courtyard("query");
-    let _server = Server::start(&map_path, "court", &prefix.0, &[]);
-    let (cloud, truth) = scan(&data, 9);
+    let (site, _server) = served("query", "");
+    let (data, map_path, prefix) = (&site.data, &site.map, &site.prefix);
+    let (cloud, truth) = scan(data, 9);
     // The query file holds the scan already moved into the map frame (identity pose).
     let moved: Vec<[f32; 3]> = cloud
         .points
@@ -476,7 +486,7 @@ fn query_prints_and_writes_every_answer() {
     assert_eq!(s["points"], 2000);
     assert_eq!(s["answers"], 4000);
     // Oracle: the library over IPC with the same points at the identity pose.
-    let mut client = Client::connect("court", options(&prefix)).unwrap();
+    let mut client = Client::connect("court", options(prefix)).unwrap();
     let direct = client.nearest(&moved, &Pose::identity(), 2).unwrap();
     let text = std::fs::read_to_string(&csv).unwrap();
     let rows: Vec<&str> = text.lines().skip(1).collect();
@@ -491,11 +501,10 @@ fn query_prints_and_writes_every_answer() {
 
 #[test]
 fn sighup_reloads_the_map_and_sigterm_stops_cleanly() {
-    let prefix = Prefix::new("hup");
-    let (_dir, data, map_path) = courtyard("hup");
-    let server = Server::start(&map_path, "court", &prefix.0, &[]);
-    let mut client = Client::connect("court", options(&prefix)).unwrap();
-    let (cloud, truth) = scan(&data, 4);
+    let (site, server) = served("hup", "");
+    let (data, prefix) = (&site.data, &site.prefix);
+    let mut client = Client::connect("court", options(prefix)).unwrap();
+    let (cloud, truth) = scan(data, 4);
     let before = client.nearest(&cloud.points, &truth, 1).unwrap();
     common::signal(&server.child, libc::SIGHUP);
     // The reload happens on the next housekeeping tick (250 ms).
@@ -525,20 +534,12 @@ fn sighup_reloads_the_map_and_sigterm_stops_cleanly() {
 
 #[test]
 fn sigterm_answers_queued_requests_with_shutting_down() {
-    let prefix = Prefix::new("term");
-    let (_dir, data, map_path) = courtyard("term");
-    let config = map_path.with_file_name("one-worker.toml");
-    std::fs::write(&config, "[server]\nworker-threads = 1\n").unwrap();
-    let server = Server::start(
-        &map_path,
-        "court",
-        &prefix.0,
-        &["--config", config.to_str().unwrap()],
-    );
-    let (_, truth) = scan(&data, 6);
+    let (site, server) = served("term", "[server]\nworker-threads = 1\n");
+    let (data, prefix) = (&site.data, &site.prefix);
+    let (_, truth) = scan(data, 6);
     // Heavy requests (every raw point, four times over, jittered) from three clients on
     // one worker: one runs, two wait in the queue.
-    let raw = load_raw_scan(&find_scans(&data).unwrap()[6], &BakeConfig::default()).unwrap();
+    let raw = load_raw_scan(&find_scans(data).unwrap()[6], &BakeConfig::default()).unwrap();
     let points: Vec<[f32; 3]> = (0..4)
         .flat_map(|k| {
             raw.points
@@ -555,7 +556,7 @@ fn sigterm_answers_queued_requests_with_shutting_down() {
     };
     // Connected first, so the signal below can only meet requests sent or running.
     let clients: Vec<Client> = (0..3)
-        .map(|_| Client::connect("court", options(&prefix)).unwrap())
+        .map(|_| Client::connect("court", options(prefix)).unwrap())
         .collect();
     let results: Vec<_> = std::thread::scope(|scope| {
         let handles: Vec<_> = clients

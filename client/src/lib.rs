@@ -101,15 +101,6 @@ impl Client {
         &mut self.connection
     }
 
-    fn scan_call(
-        &mut self,
-        mut header: RequestHeader,
-        scan: &ScanPayload,
-    ) -> Result<Response, ClientError> {
-        header.point_count = scan.points.len() as u32;
-        self.connection.call_scan(header, scan)
-    }
-
     /// The `k` nearest map points of each scan point (sensor frame, moved by `pose`).
     pub fn nearest(
         &mut self,
@@ -121,7 +112,7 @@ impl Client {
             k,
             ..header(RequestKind::Nearest, pose)
         };
-        Ok(self.scan_call(h, &plain(points))?.pairings)
+        Ok(self.connection.call_scan(h, &plain(points))?.pairings)
     }
 
     /// Every map point within `radius` metres of each scan point.
@@ -135,7 +126,7 @@ impl Client {
             radius,
             ..header(RequestKind::Radius, pose)
         };
-        Ok(self.scan_call(h, &plain(points))?.pairings)
+        Ok(self.connection.call_scan(h, &plain(points))?.pairings)
     }
 
     /// GICP pairings of `scan` at `pose` within `max_pair_dist` metres.
@@ -151,7 +142,7 @@ impl Client {
             mode: mode as u32,
             ..header(RequestKind::Cov2Cov, pose)
         };
-        let r = self.scan_call(h, scan)?;
+        let r = self.connection.call_scan(h, scan)?;
         Ok(Cov2CovAnswer {
             active: r.header.active[..r.header.active_len as usize].to_vec(),
             pairings: r.pairings,
@@ -223,7 +214,7 @@ impl Client {
     /// A round trip with no work: the server answers with the number of points it got.
     pub fn echo(&mut self, points: &[[f32; 3]]) -> Result<u64, ClientError> {
         let h = header(RequestKind::Echo, &Pose::identity());
-        Ok(self.scan_call(h, &plain(points))?.header.detail)
+        Ok(self.connection.call_scan(h, &plain(points))?.header.detail)
     }
 }
 

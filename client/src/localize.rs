@@ -65,7 +65,6 @@ impl Client {
             max_iterations: options.max_iterations,
             max_pair_dist: options.max_pair_dist,
             mode: options.mode as u32,
-            point_count: scan.points.len() as u32,
             ..Default::default()
         };
         let r = self.connection().call_scan(header, scan)?;

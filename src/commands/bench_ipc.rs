@@ -9,9 +9,9 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, bail};
 use indicatif::ProgressBar;
 use kfmap_client::{Client, ClientOptions};
-use kfmap_service::server::ServedMap;
 use kfmap_service::server::answer::{Limits, answer};
 use kfmap_service::server::session::Session;
+use kfmap_service::server::{ServedMap, percentile};
 use kfmap_shared::cov::CovOptions;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::protocol::transport::{iceoryx_config, remove_prefix_files};
@@ -23,8 +23,7 @@ use super::bench::{keyframe_pose, synthetic_cloud};
 /// Median and 99th percentile of microsecond samples.
 fn p50_p99(mut v: Vec<f64>) -> (f64, f64) {
     v.sort_by(f64::total_cmp);
-    let at = |q: f64| v[((q * v.len() as f64).ceil() as usize).clamp(1, v.len()) - 1];
-    (at(0.5), at(0.99))
+    (percentile(&v, 0.5), percentile(&v, 0.99))
 }
 
 /// The server child: stopped, and every iceoryx2 file of its prefix removed, on drop.

@@ -9,8 +9,9 @@ use kfmap_client::{GravityAnswer, LocalizeOptions, Localized};
 use kfmap_service::bake::{dataset_poses, find_scans, load_raw_scan};
 use kfmap_service::config::BakeConfig;
 use kfmap_service::gravity::{IMU_FILES, find_in, read_imu};
+use kfmap_service::server::percentile;
 use kfmap_shared::geometry::Pose;
-use kfmap_shared::imu::ImuSample;
+use kfmap_shared::gravity::ImuWindow;
 use kfmap_shared::io::{Trajectory, format_tum, write_atomic};
 use kfmap_shared::mapping::{absolute_trajectory_error, relative_pose_error};
 use kfmap_shared::protocol::{Cov2CovMode, ScanPayload};
@@ -73,36 +74,25 @@ pub struct Args {
     json: bool,
 }
 
-/// Per-scan IMU windows: samples between the previous scan's time and this one's.
-fn imu_windows(dataset: &Path, stamps: &[f64]) -> anyhow::Result<Option<Vec<Vec<ImuSample>>>> {
+/// Per-scan IMU windows: samples in `(previous scan's time, this scan's time]`.
+fn imu_windows(dataset: &Path, stamps: &[f64]) -> anyhow::Result<Option<Vec<ImuWindow>>> {
     let Some(path) = find_in(dataset, &IMU_FILES) else {
         return Ok(None);
     };
-    let samples = read_imu(&path)?;
-    let mut windows = Vec::with_capacity(stamps.len());
-    for (i, &t) in stamps.iter().enumerate() {
-        let start = if i == 0 {
-            f64::NEG_INFINITY
-        } else {
-            stamps[i - 1]
-        };
-        windows.push(
-            samples
-                .iter()
-                .filter(|s| s.t > start && s.t <= t)
-                .copied()
-                .collect(),
-        );
-    }
+    let stream = ImuWindow::new(read_imu(&path)?);
+    let windows = stamps
+        .iter()
+        .enumerate()
+        .map(|(i, &t)| {
+            let start = if i == 0 {
+                f64::NEG_INFINITY
+            } else {
+                stamps[i - 1]
+            };
+            ImuWindow::cut(stream.samples(), start, t)
+        })
+        .collect();
     Ok(Some(windows))
-}
-
-fn percentile_ms(sorted: &[f64], q: f64) -> f64 {
-    if sorted.is_empty() {
-        return 0.0;
-    }
-    let rank = ((q * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len());
-    sorted[rank - 1]
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -189,7 +179,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
         poses.push(guess);
         if let Some(w) = windows.as_ref().map(|w| &w[i]).filter(|w| !w.is_empty()) {
-            match client.push_imu_window(i as u64, &guess, w) {
+            match client.push_imu_window(i as u64, &guess, w.samples()) {
                 Ok(g) => gravity = Some(g),
                 Err(e) => bar.suspend(|| eprintln!("IMU window of scan {i}: {e}")),
             }
@@ -210,7 +200,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     let mut sorted = latencies.clone();
     sorted.sort_by(f64::total_cmp);
-    let (p50, p99) = (percentile_ms(&sorted, 0.5), percentile_ms(&sorted, 0.99));
+    let (p50, p99) = (percentile(&sorted, 0.5), percentile(&sorted, 0.99));
     let errors = truth.as_ref().map(|t| {
         (
             absolute_trajectory_error(&poses, &t.poses),

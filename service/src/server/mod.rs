@@ -33,7 +33,7 @@ use answer::Limits;
 use queue::FairQueue;
 use session::Sessions;
 pub use state::{MapSlot, ServedMap};
-pub use stats::{KindFigures, Stats};
+pub use stats::{KindFigures, Stats, percentile};
 use workers::{Job, WorkerContext};
 
 /// Free space `/dev/shm` must have at start: iceoryx2 writes into shared memory that

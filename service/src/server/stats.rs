@@ -61,10 +61,10 @@ impl Stats {
     }
 }
 
-/// Nearest-rank percentile of sorted values (0 when empty).
-pub fn percentile(sorted: &[f32], q: f64) -> f32 {
+/// Nearest-rank percentile of sorted values (zero when empty).
+pub fn percentile<T: Copy + Default>(sorted: &[T], q: f64) -> T {
     if sorted.is_empty() {
-        return 0.0;
+        return T::default();
     }
     let rank = ((q * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len());
     sorted[rank - 1]
@@ -79,7 +79,7 @@ mod tests {
         let v: Vec<f32> = (1..=100).map(|x| x as f32).collect();
         assert_eq!(percentile(&v, 0.5), 50.0);
         assert_eq!(percentile(&v, 0.99), 99.0);
-        assert_eq!(percentile(&[], 0.5), 0.0);
+        assert_eq!(percentile::<f32>(&[], 0.5), 0.0);
         let s = Stats::default();
         for x in 1..=10 {
             s.record(3, x as f32);

@@ -320,11 +320,17 @@ impl KeyframeMap {
     pub fn activate_ids(&mut self, ids: Vec<KeyframeId>) -> Result<ActiveSet<'_>, MapError> {
         let exact = !self.options.approximate_cov;
         let mut cache = self.merged.take();
-        let rebuilt = self.prepare_active(&ids, &mut cache, exact);
-        self.merged = cache.clone();
-        if rebuilt? {
+        let before = cache.clone();
+        // A first pass refreshes the map's own cache; the set it returns is dropped so
+        // the cache and the counter can be stored.
+        let refreshed = self
+            .activate_cached(ids.clone(), &mut cache, exact)
+            .map(drop);
+        if !same_submap(&before, &cache) {
             self.merged_rebuilds += 1;
         }
+        self.merged = cache.clone();
+        refreshed?;
         self.activate_cached(ids, &mut cache, exact)
     }
 
@@ -338,48 +344,39 @@ impl KeyframeMap {
     ) -> Result<ActiveSet<'_>, MapError> {
         ids.sort_unstable();
         ids.dedup();
-        self.prepare_active(&ids, cache, exact)?;
-        let frames = ids
-            .iter()
-            .map(|id| ActiveFrame::new(&self.keyframes[id]))
-            .collect::<Result<Vec<_>, _>>()?;
-        let merged = if exact { cache.clone() } else { None };
-        Ok(ActiveSet::new(&self.options, frames, merged))
-    }
-
-    /// Checks `ids` (sorted) and, in exact mode, (re)builds `cache` when it holds another
-    /// set; true when it was rebuilt.
-    fn prepare_active(
-        &self,
-        ids: &[KeyframeId],
-        cache: &mut Option<Arc<MergedSubmap>>,
-        exact: bool,
-    ) -> Result<bool, MapError> {
-        let mut ids = ids.to_vec();
-        ids.sort_unstable();
-        ids.dedup();
         if ids.is_empty() {
             return Err(MapError::Empty);
         }
         if let Some(&missing) = ids.iter().find(|id| !self.keyframes.contains_key(id)) {
             return Err(MapError::UnknownKeyframe(missing));
         }
-        if !exact || cache.as_ref().is_some_and(|m| m.ids == ids) {
-            return Ok(false);
-        }
         let frames = ids
             .iter()
             .map(|id| ActiveFrame::new(&self.keyframes[id]))
             .collect::<Result<Vec<_>, _>>()?;
-        if frames.iter().any(|f| self.keyframes[&f.id].is_baked()) {
-            // Baked maps serve approximate mode without rebuilds; say what this costs.
-            tracing::info!(keyframes = ?ids, "exact mode: building the merged submap (tree + covariances) of a new active set");
+        if !exact {
+            return Ok(ActiveSet::new(&self.options, frames, None));
         }
-        *cache = Some(Arc::new(MergedSubmap::build(
-            &frames,
-            &self.options.covariance,
-        )?));
-        Ok(true)
+        if cache.as_ref().is_none_or(|m| m.ids != ids) {
+            if frames.iter().any(|f| self.keyframes[&f.id].is_baked()) {
+                // Baked maps serve approximate mode without rebuilds; say what this costs.
+                tracing::info!(keyframes = ?ids, "exact mode: building the merged submap (tree + covariances) of a new active set");
+            }
+            *cache = Some(Arc::new(MergedSubmap::build(
+                &frames,
+                &self.options.covariance,
+            )?));
+        }
+        Ok(ActiveSet::new(&self.options, frames, cache.clone()))
+    }
+}
+
+/// True when both caches hold the same submap (or both none).
+fn same_submap(a: &Option<Arc<MergedSubmap>>, b: &Option<Arc<MergedSubmap>>) -> bool {
+    match (a, b) {
+        (Some(a), Some(b)) => Arc::ptr_eq(a, b),
+        (None, None) => true,
+        _ => false,
     }
 }
 
