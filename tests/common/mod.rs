@@ -11,7 +11,6 @@ use std::time::Duration;
 
 use kfmap_shared::archive::save_map;
 use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::cov::CovOptions;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::map::{KeyframeMap, KeyframeMapOptions};
 use kfmap_shared::protocol::transport::{iceoryx_config, remove_prefix_files};
@@ -169,20 +168,16 @@ pub fn signal(child: &Child, sig: i32) {
 /// Bakes a map of `keyframes` (local clouds at `T_map_keyframe` poses), each
 /// downsampled at `voxel` metres, with the shipped map options.
 pub fn bake_map(path: &Path, keyframes: &[(PointCloud, Pose)], voxel: f64) {
-    bake_map_with(path, keyframes, voxel, CovOptions::default());
+    bake_map_with(path, keyframes, voxel, KeyframeMapOptions::default());
 }
 
-/// As [`bake_map`] with other covariance options.
+/// As [`bake_map`] with other map options.
 pub fn bake_map_with(
     path: &Path,
     keyframes: &[(PointCloud, Pose)],
     voxel: f64,
-    covariance: CovOptions,
+    options: KeyframeMapOptions,
 ) {
-    let options = KeyframeMapOptions {
-        covariance,
-        ..KeyframeMapOptions::default()
-    };
     let mut map = KeyframeMap::new(options).unwrap();
     for (i, (cloud, pose)) in keyframes.iter().enumerate() {
         let cloud = if voxel > 0.0 {
