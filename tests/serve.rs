@@ -86,7 +86,7 @@ fn in_process(map: &ServedMap, header: &RequestHeader, scan: &ScanPayload) -> Ve
     };
     let a = answer(map, &mut Session::new(0), &h, &payload, &limits);
     assert_eq!(a.header.status, 0, "{}", a.header.message());
-    a.pairings
+    a.pairings.into_wire()
 }
 
 #[test]

@@ -151,35 +151,52 @@ impl Connection {
         len: usize,
         fill: impl FnOnce(&mut RequestHeader, &mut [f32]),
     ) -> Result<Response, ClientError> {
-        self.send_and_wait(header, len, |h, payload| {
+        let init = |h: &mut RequestHeader, payload: &mut [MaybeUninit<f32>]| {
             payload.fill(MaybeUninit::new(0.0));
             // SAFETY: every element was just initialized.
             let floats = unsafe { &mut *(payload as *mut [MaybeUninit<f32>] as *mut [f32]) };
             fill(h, floats);
-        })
+        };
+        self.send_and_wait(header, len, init, copy_out)
     }
 
     /// Sends a scan request, written straight into shared memory.
     pub fn call_scan(
         &mut self,
-        mut header: RequestHeader,
+        header: RequestHeader,
         scan: &ScanPayload,
     ) -> Result<Response, ClientError> {
+        self.call_scan_with(header, scan, copy_out)
+    }
+
+    /// As [`Self::call_scan`], but `read` sees the answer in place in shared memory
+    /// (status already checked: `Ok`), so large answers need not be copied.
+    pub fn call_scan_with<R>(
+        &mut self,
+        mut header: RequestHeader,
+        scan: &ScanPayload,
+        read: impl FnOnce(&ResponseHeader, &[WirePairing]) -> R,
+    ) -> Result<R, ClientError> {
         scan.check_lengths().map_err(ClientError::Invalid)?;
         header.version = PROTOCOL_VERSION;
         // `write` initializes exactly `float_len` floats: the whole loan.
-        self.send_and_wait(header, scan.float_len(), |h, payload| {
-            scan.write(h, payload)
-        })
+        self.send_and_wait(
+            header,
+            scan.float_len(),
+            |h, payload| scan.write(h, payload),
+            read,
+        )
     }
 
-    /// Loans `len` floats, lets `init` initialize all of them, sends, waits.
-    fn send_and_wait(
+    /// Loans `len` floats, lets `init` initialize all of them, sends, waits, and hands
+    /// an `Ok` answer to `read`.
+    fn send_and_wait<R>(
         &mut self,
         mut header: RequestHeader,
         len: usize,
         init: impl FnOnce(&mut RequestHeader, &mut [MaybeUninit<f32>]),
-    ) -> Result<Response, ClientError> {
+        read: impl FnOnce(&ResponseHeader, &[WirePairing]) -> R,
+    ) -> Result<R, ClientError> {
         header.client_node = self.client_node;
         header.request_id = self.next_request_id;
         self.next_request_id += 1;
@@ -202,11 +219,9 @@ impl Connection {
         loop {
             match pending.receive() {
                 Ok(Some(response)) => {
-                    let answer = Response {
-                        header: *response.user_header(),
-                        pairings: response.payload().to_vec(),
-                    };
-                    return check_status(answer);
+                    let header = response.user_header();
+                    check_status(header)?;
+                    return Ok(read(header, response.payload()));
                 }
                 Ok(None) => {}
                 Err(e) => return Err(ClientError::Transport(iox("receive a response")(e))),
@@ -237,13 +252,21 @@ impl Connection {
     }
 }
 
-fn check_status(answer: Response) -> Result<Response, ClientError> {
-    match StatusCode::from_code(answer.header.status) {
-        StatusCode::Ok => Ok(answer),
+fn check_status(header: &ResponseHeader) -> Result<(), ClientError> {
+    match StatusCode::from_code(header.status) {
+        StatusCode::Ok => Ok(()),
         status => Err(ClientError::Rejected {
             status,
-            message: answer.header.message(),
-            detail: answer.header.detail,
+            message: header.message(),
+            detail: header.detail,
         }),
+    }
+}
+
+/// Copies an answer out of shared memory.
+fn copy_out(header: &ResponseHeader, pairings: &[WirePairing]) -> Response {
+    Response {
+        header: *header,
+        pairings: pairings.to_vec(),
     }
 }

@@ -137,15 +137,31 @@ impl Client {
         max_pair_dist: f32,
         mode: Cov2CovMode,
     ) -> Result<Cov2CovAnswer, ClientError> {
+        self.cov2cov_with(scan, pose, max_pair_dist, mode, |active, pairings| {
+            Cov2CovAnswer {
+                active: active.to_vec(),
+                pairings: pairings.to_vec(),
+            }
+        })
+    }
+
+    /// As [`Self::cov2cov`], but `read` gets the active keyframe ids and the pairings
+    /// in place in shared memory (zero-copy).
+    pub fn cov2cov_with<R>(
+        &mut self,
+        scan: &ScanPayload,
+        pose: &Pose,
+        max_pair_dist: f32,
+        mode: Cov2CovMode,
+        read: impl FnOnce(&[u64], &[WirePairing]) -> R,
+    ) -> Result<R, ClientError> {
         let h = RequestHeader {
             max_pair_dist,
             mode: mode as u32,
             ..header(RequestKind::Cov2Cov, pose)
         };
-        let r = self.connection.call_scan(h, scan)?;
-        Ok(Cov2CovAnswer {
-            active: r.header.active[..r.header.active_len as usize].to_vec(),
-            pairings: r.pairings,
+        self.connection.call_scan_with(h, scan, |header, pairings| {
+            read(&header.active[..header.active_len as usize], pairings)
         })
     }
 

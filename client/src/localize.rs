@@ -104,8 +104,13 @@ impl Client {
             ..*scan
         };
         let result = solve_pose(guess, &params, scan.points.len(), |pose| {
-            let answer = self.cov2cov(&with_covs, pose, options.max_pair_dist, options.mode)?;
-            Ok::<_, ClientError>(correspondences_from_wire(&answer.pairings, scan.points))
+            self.cov2cov_with(
+                &with_covs,
+                pose,
+                options.max_pair_dist,
+                options.mode,
+                |_, pairings| correspondences_from_wire(pairings, scan.points),
+            )
         })?;
         Ok(Localized {
             pose: result.pose,

@@ -13,7 +13,6 @@ use kfmap_service::server::answer::{Limits, answer};
 use kfmap_service::server::session::Session;
 use kfmap_service::server::{ServedMap, percentile};
 use kfmap_shared::cov::CovOptions;
-use kfmap_shared::geometry::Pose;
 use kfmap_shared::protocol::transport::{iceoryx_config, remove_prefix_files};
 use kfmap_shared::protocol::{Cov2CovMode, RequestHeader, RequestKind, ScanPayload, pose_to_wire};
 use serde_json::json;
@@ -75,45 +74,96 @@ fn client(prefix: &str, spin: bool) -> anyhow::Result<Client> {
     )?)
 }
 
-/// A 10k-point scan near the middle keyframe, in that keyframe's frame.
-fn scan_10k() -> (Vec<[f32; 3]>, Pose) {
-    let cloud = synthetic_cloud(1234, 10_000);
-    (cloud.points, keyframe_pose(5))
+/// The benchmark's request: a 10k-point scan near the middle keyframe (in that
+/// keyframe's frame) with its covariances, approximate cov2cov within 1 m.
+struct Cov2CovRequest {
+    header: RequestHeader,
+    points: Vec<[f32; 3]>,
+    covariances: Vec<[f32; 6]>,
 }
 
-/// Cov2cov requests of the 10k scan for `seconds`; latencies in microseconds.
+impl Cov2CovRequest {
+    fn new() -> Self {
+        let points = synthetic_cloud(1234, 10_000).points;
+        let covariances =
+            kfmap_shared::cov::estimate_covariances(&points, &CovOptions::default()).values;
+        let header = RequestHeader {
+            kind: RequestKind::Cov2Cov as u32,
+            pose: pose_to_wire(&keyframe_pose(5)),
+            max_pair_dist: 1.0,
+            mode: Cov2CovMode::Approximate as u32,
+            ..Default::default()
+        };
+        Self {
+            header,
+            points,
+            covariances,
+        }
+    }
+
+    fn scan(&self) -> ScanPayload<'_> {
+        ScanPayload {
+            points: &self.points,
+            view_dirs: None,
+            covariances: Some(&self.covariances),
+        }
+    }
+
+    /// One round trip, the client reading the pairings in place: (round trip, the
+    /// server's own compute time), microseconds.
+    fn over_ipc(&self, client: &mut Client) -> anyhow::Result<(f64, f64)> {
+        let t = Instant::now();
+        let (server_us, pairings) =
+            client
+                .connection()
+                .call_scan_with(self.header, &self.scan(), |h, p| (h.server_us, p.len()))?;
+        std::hint::black_box(pairings);
+        Ok((t.elapsed().as_secs_f64() * 1e6, server_us))
+    }
+}
+
+/// Cov2cov requests for `seconds`; latencies in microseconds.
 fn hammer(client: &mut Client, seconds: f64) -> anyhow::Result<Vec<f64>> {
-    let (points, pose) = scan_10k();
-    let scan = ScanPayload {
-        points: &points,
-        view_dirs: None,
-        covariances: None,
-    };
-    let covs = kfmap_shared::cov::estimate_covariances(&points, &CovOptions::default()).values;
-    let scan = ScanPayload {
-        covariances: Some(&covs),
-        ..scan
-    };
-    let header = RequestHeader {
-        kind: RequestKind::Cov2Cov as u32,
-        pose: pose_to_wire(&pose),
-        max_pair_dist: 1.0,
-        mode: Cov2CovMode::Approximate as u32,
-        ..Default::default()
-    };
+    let request = Cov2CovRequest::new();
     let mut latencies = Vec::new();
-    let mut server = Vec::new();
     let started = Instant::now();
     while started.elapsed().as_secs_f64() < seconds {
-        let t = Instant::now();
-        let r = client.connection().call_scan(header, &scan)?;
-        latencies.push(t.elapsed().as_secs_f64() * 1e6);
-        server.push(r.header.server_us);
-    }
-    if std::env::var("KFMAP_BENCH_DEBUG").is_ok() {
-        eprintln!("server compute p50 {:.0} us", p50_p99(server).0);
+        latencies.push(request.over_ipc(client)?.0);
     }
     Ok(latencies)
+}
+
+/// The same cov2cov request over IPC and through the server's `answer` in this
+/// process, alternated call by call for `seconds` so that drift in machine speed
+/// touches both alike; microseconds (IPC round trips, the server's compute within
+/// them, in process).
+fn ipc_against_in_process(
+    client: &mut Client,
+    map: &Path,
+    seconds: f64,
+) -> anyhow::Result<(Vec<f64>, Vec<f64>, Vec<f64>)> {
+    let request = Cov2CovRequest::new();
+    let served = ServedMap::open(map, false, 0)?;
+    let mut header = request.header;
+    let payload = request.scan().encode(&mut header);
+    let limits = Limits {
+        max_points: 1 << 20,
+        scan_covariance: CovOptions::default(),
+    };
+    let mut session = Session::new(0);
+    let (mut ipc, mut server, mut local) = (Vec::new(), Vec::new(), Vec::new());
+    let started = Instant::now();
+    while started.elapsed().as_secs_f64() < seconds {
+        let (round_trip, server_us) = request.over_ipc(client)?;
+        ipc.push(round_trip);
+        server.push(server_us);
+        let t = Instant::now();
+        // The same answer the IPC client reads: pairings in the wire layout.
+        let answered = answer(&served, &mut session, &header, &payload, &limits);
+        std::hint::black_box(answered.pairings.into_wire());
+        local.push(t.elapsed().as_secs_f64() * 1e6);
+    }
+    Ok((ipc, server, local))
 }
 
 /// Hidden worker mode: one of the throughput clients.
@@ -165,38 +215,10 @@ fn measure(map: &Path, prefix: &str, spin: bool, json_out: bool) -> anyhow::Resu
         echo.push((n, p50_p99(v)));
     }
 
-    bar.set_message("cov2cov over IPC vs in process");
-    let ipc = p50_p99(hammer(&mut c, 3.0)?);
-    let served = ServedMap::open(map, false, 0)?;
-    let (points, pose) = scan_10k();
-    let covs = kfmap_shared::cov::estimate_covariances(&points, &CovOptions::default()).values;
-    let mut header = RequestHeader {
-        kind: RequestKind::Cov2Cov as u32,
-        pose: pose_to_wire(&pose),
-        max_pair_dist: 1.0,
-        mode: Cov2CovMode::Approximate as u32,
-        ..Default::default()
-    };
-    let payload = ScanPayload {
-        points: &points,
-        view_dirs: None,
-        covariances: Some(&covs),
-    }
-    .encode(&mut header);
-    let limits = Limits {
-        max_points: 1 << 20,
-        scan_covariance: CovOptions::default(),
-    };
-    let mut session = Session::new(0);
-    let mut local = Vec::new();
-    let started = Instant::now();
-    while started.elapsed().as_secs_f64() < 3.0 {
-        let t = Instant::now();
-        let a = answer(&served, &mut session, &header, &payload, &limits);
-        std::hint::black_box(a);
-        local.push(t.elapsed().as_secs_f64() * 1e6);
-    }
-    let local = p50_p99(local);
+    bar.set_message("cov2cov over IPC vs in process, alternated");
+    let (ipc, server_compute, local) = ipc_against_in_process(&mut c, map, 6.0)?;
+    let (ipc, local) = (p50_p99(ipc), p50_p99(local));
+    let server_compute = p50_p99(server_compute).0;
 
     bar.set_message("throughput: 1 client, then 4 client processes");
     let one = hammer(&mut c, 5.0)?;
@@ -237,7 +259,8 @@ fn measure(map: &Path, prefix: &str, spin: bool, json_out: bool) -> anyhow::Resu
             "spin": spin,
             "echo": echo_json,
             "cov2cov_10k": {"ipc_p50_us": ipc.0, "ipc_p99_us": ipc.1, "in_process_p50_us": local.0,
-                "in_process_p99_us": local.1, "overhead_percent": overhead},
+                "in_process_p99_us": local.1, "server_compute_p50_us": server_compute,
+                "overhead_percent": overhead},
             "throughput_10k_cov2cov": {"one_client_scans_per_s": one_rate, "one_client_p99_us": one_p99,
                 "four_clients_scans_per_s": four_rate, "four_clients_p99_us": four_p99},
         });
@@ -252,7 +275,7 @@ fn measure(map: &Path, prefix: &str, spin: bool, json_out: bool) -> anyhow::Resu
         println!("  echo {n:>6} points: median {p50:>8.1} us, p99 {p99:>8.1} us");
     }
     println!(
-        "cov2cov, 10k-point scan: IPC median {:.0} us (p99 {:.0}), in process {:.0} us (p99 {:.0}): overhead {overhead:.1} %",
+        "cov2cov, 10k-point scan: IPC median {:.0} us (p99 {:.0}; the server's compute {server_compute:.0}), in process {:.0} us (p99 {:.0}): overhead {overhead:.1} %",
         ipc.0, ipc.1, local.0, local.1
     );
     println!(

@@ -2,13 +2,14 @@
 //! client's session, no transport. The same function serves the IPC loop and the
 //! in-process tests that check the IPC answers bit for bit.
 
+use std::mem::MaybeUninit;
 use std::time::Instant;
 
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::cov::{CovOptions, estimate_covariances};
 use kfmap_shared::geometry::{Pose, to_point, transform_point};
 use kfmap_shared::gravity::ImuWindow;
-use kfmap_shared::map::{ActiveSet, MapError, MapHit};
+use kfmap_shared::map::{ActiveSet, MapError, MapHit, Pairing};
 use kfmap_shared::protocol::{
     Cov2CovMode, DecodedScan, Rejection, RequestHeader, RequestKind, ResponseHeader, StatusCode,
     WirePairing, check_version, correspondences_from_wire, decode_imu, decode_scan,
@@ -47,7 +48,63 @@ pub struct Answer {
     /// Status, timings, pose, gravity.
     pub header: ResponseHeader,
     /// Map points found.
-    pub pairings: Vec<WirePairing>,
+    pub pairings: AnswerPairings,
+}
+
+/// The pairings of an answer. Cov2cov pairings stay as the map returns them until they
+/// are written out, so the server converts them straight into shared memory.
+#[derive(Debug, Clone, PartialEq)]
+pub enum AnswerPairings {
+    /// Already in the wire layout (nearest, radius).
+    Wire(Vec<WirePairing>),
+    /// Cov2cov pairings from the map.
+    Cov2Cov(Vec<Pairing>),
+}
+
+impl Default for AnswerPairings {
+    fn default() -> Self {
+        Self::Wire(Vec::new())
+    }
+}
+
+impl AnswerPairings {
+    /// Number of pairings.
+    pub fn len(&self) -> usize {
+        match self {
+            Self::Wire(v) => v.len(),
+            Self::Cov2Cov(v) => v.len(),
+        }
+    }
+
+    /// True without pairings.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Writes every pairing, in the wire layout, into `out` (exactly [`Self::len`] long).
+    pub fn write(&self, out: &mut [MaybeUninit<WirePairing>]) {
+        assert_eq!(
+            out.len(),
+            self.len(),
+            "the response was loaned for another count"
+        );
+        match self {
+            Self::Wire(v) => out.par_iter_mut().zip(v.par_iter()).for_each(|(slot, p)| {
+                slot.write(*p);
+            }),
+            Self::Cov2Cov(v) => out.par_iter_mut().zip(v.par_iter()).for_each(|(slot, p)| {
+                slot.write(WirePairing::from(p));
+            }),
+        }
+    }
+
+    /// The pairings in the wire layout.
+    pub fn into_wire(self) -> Vec<WirePairing> {
+        match self {
+            Self::Wire(v) => v,
+            Self::Cov2Cov(v) => v.par_iter().map(WirePairing::from).collect(),
+        }
+    }
 }
 
 impl Answer {
@@ -62,7 +119,7 @@ impl Answer {
         header.set_message(&rejection.message);
         Self {
             header,
-            pairings: Vec::new(),
+            pairings: AnswerPairings::default(),
         }
     }
 }
@@ -131,7 +188,7 @@ fn compute(
                         request.max_pair_dist,
                         exact,
                     )?;
-                    Ok(with_active(pairings, &active))
+                    Ok(with_active(AnswerPairings::Cov2Cov(pairings), &active))
                 }
                 _ => localize(map, session, request, &scan, &pose, limits),
             }
@@ -153,11 +210,11 @@ fn echo(request: &RequestHeader, payload: &[f32], limits: &Limits) -> Result<Ans
             detail: n as u64,
             ..Default::default()
         },
-        pairings: Vec::new(),
+        pairings: AnswerPairings::default(),
     })
 }
 
-fn with_active(pairings: Vec<WirePairing>, active: &[u64]) -> Answer {
+fn with_active(pairings: AnswerPairings, active: &[u64]) -> Answer {
     let mut header = ResponseHeader::default();
     let used = active.len().min(header.active.len());
     header.active[..used].copy_from_slice(&active[..used]);
@@ -230,7 +287,7 @@ fn search_each(
                 })
         })
         .collect();
-    Ok(with_active(pairings, active.ids()))
+    Ok(with_active(AnswerPairings::Wire(pairings), active.ids()))
 }
 
 fn nearest(
@@ -291,7 +348,7 @@ fn cov2cov(
     pose: &Pose,
     max_pair_dist: f32,
     exact: bool,
-) -> Result<(Vec<WirePairing>, Vec<u64>), Rejection> {
+) -> Result<(Vec<Pairing>, Vec<u64>), Rejection> {
     if !(max_pair_dist.is_finite() && max_pair_dist > 0.0 && max_pair_dist <= MAX_PAIR_DIST) {
         return Err(bad(format!(
             "max_pair_dist {max_pair_dist} m must be within (0, {MAX_PAIR_DIST}]"
@@ -307,10 +364,7 @@ fn cov2cov(
     let pairings = active
         .cov2cov(&cloud, pose, max_pair_dist as f64, Some(covariances))
         .map_err(map_error)?;
-    Ok((
-        pairings.iter().map(WirePairing::from).collect(),
-        active.ids().to_vec(),
-    ))
+    Ok((pairings, active.ids().to_vec()))
 }
 
 /// The registration settings of a `Localize` request.
@@ -346,13 +400,15 @@ fn localize(
         let (pairings, ids) = cov2cov(map, session, scan, &covs, at, request.max_pair_dist, exact)
             .map_err(LocalizeError::Rejected)?;
         active = ids;
-        Ok::<_, LocalizeError>(correspondences_from_wire(&pairings, scan.points))
+        // Through the wire layout, exactly as a client-side solver sees the pairings.
+        let wire = AnswerPairings::Cov2Cov(pairings).into_wire();
+        Ok::<_, LocalizeError>(correspondences_from_wire(&wire, scan.points))
     })
     .map_err(|e| match e {
         LocalizeError::Rejected(r) => r,
         LocalizeError::Registration(e) => bad(format!("localization: {e}")),
     })?;
-    let mut answer = with_active(Vec::new(), &active);
+    let mut answer = with_active(AnswerPairings::default(), &active);
     let h = &mut answer.header;
     h.pose = pose_to_wire(&result.pose);
     h.covariance = pose_covariance(&result.hessian);
@@ -392,7 +448,7 @@ fn imu_window(
         .gravity
         .on_new_keyframe(id, &ImuWindow::new(samples));
     session.gravity_poses.insert(id, *pose);
-    let mut answer = with_active(Vec::new(), &[]);
+    let mut answer = with_active(AnswerPairings::default(), &[]);
     let h = &mut answer.header;
     h.gravity_members = session.gravity.size() as u32;
     if let Some(c) = session

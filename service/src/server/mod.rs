@@ -166,6 +166,19 @@ fn live_nodes(node: &Node<Transport>, config: &iceoryx2::config::Config) -> Hash
     alive
 }
 
+/// Every request allocates and frees buffers of about the same size (decoded scan,
+/// pairings); glibc would hand large ones back to the kernel each time and fault them
+/// in again on the next request. Keep them in the process instead.
+fn keep_freed_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only changes allocator thresholds; called before any worker runs.
+    unsafe {
+        const LARGE: libc::c_int = 32 << 20; // glibc's ceiling for the mmap threshold
+        libc::mallopt(libc::M_MMAP_THRESHOLD, LARGE);
+        libc::mallopt(libc::M_TRIM_THRESHOLD, LARGE);
+    }
+}
+
 /// Runs the server until SIGINT/SIGTERM (or `stop` is set). `ready` is called once
 /// the services are up.
 pub fn serve(
@@ -175,6 +188,7 @@ pub fn serve(
 ) -> Result<ServeSummary, ServeError> {
     let started = Instant::now();
     check_shared_memory()?;
+    keep_freed_memory();
     let map =
         ServedMap::open(&options.map_path, options.trust, 0).map_err(|error| ServeError::Map {
             path: options.map_path.clone(),

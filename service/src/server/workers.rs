@@ -14,7 +14,7 @@ use kfmap_shared::protocol::{
 };
 use tracing::{debug, info, warn};
 
-use super::answer::{Answer, Limits, answer};
+use super::answer::{Answer, AnswerPairings, Limits, answer};
 use super::session::{Sessions, client_of};
 use super::state::MapSlot;
 use super::stats::Stats;
@@ -156,7 +156,7 @@ impl WorkerContext<'_> {
         h.set_message(&map.path.display().to_string());
         Answer {
             header: h,
-            pairings: Vec::new(),
+            pairings: AnswerPairings::default(),
         }
     }
 
@@ -173,7 +173,7 @@ impl WorkerContext<'_> {
                 header.set_message(&message);
                 Answer {
                     header,
-                    pairings: Vec::new(),
+                    pairings: AnswerPairings::default(),
                 }
             }
             Err(message) => Answer::rejected(
@@ -206,7 +206,8 @@ impl WorkerContext<'_> {
     }
 }
 
-/// Loans a response of the answer's size, fills it and sends it.
+/// Loans a response of the answer's size, writes the pairings straight into it (no
+/// intermediate buffer) and sends it.
 fn send(
     request: &ActiveRequest<Transport, [f32], RequestHeader, [WirePairing], ResponseHeader>,
     answer: &Answer,
@@ -215,6 +216,8 @@ fn send(
         .loan_slice_uninit(answer.pairings.len())
         .map_err(|e| format!("{e:?}"))?;
     *response.user_header_mut() = answer.header;
-    let response = response.write_from_slice(&answer.pairings);
+    answer.pairings.write(response.payload_mut());
+    // SAFETY: `write` initialized every element of the loan (it checks the count).
+    let response = unsafe { response.assume_init() };
     response.send().map_err(|e| format!("{e:?}"))
 }
