@@ -107,7 +107,7 @@ fn kitti07_held_out_keyframes_localize_over_ipc() {
             .map(|i| (clouds[i].clone(), poses[i]))
             .collect();
         let map = work.join(format!("without{held_out}.kfmap"));
-        bake_map_with(&map, &keyframes, 0.1, two_nearest.clone());
+        bake_map_with(&map, &keyframes, 0.1, two_nearest);
         let name = format!("kitti07-{held_out}");
         let _server = Server::start(&map, &name, &prefix.0, &[]);
         let mut client = client(&prefix, &name);
