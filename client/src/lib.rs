@@ -68,6 +68,8 @@ pub struct StatusReport {
     pub uptime_s: f64,
     /// Open client sessions.
     pub sessions: u32,
+    /// Requests being answered right now, this status request not counted.
+    pub in_flight: u32,
     /// `(kind, answered, p50 us, p99 us)` for every kind with requests.
     pub kinds: Vec<(RequestKind, u64, f32, f32)>,
     /// `T_map_input`: how bake moved the dataset's poses into the map frame; apply it to
@@ -214,6 +216,7 @@ impl Client {
             points: h.map_points,
             uptime_s: h.uptime_s,
             sessions: h.sessions,
+            in_flight: h.in_flight,
             kinds,
             map_from_input: pose_from_wire(&h.pose).unwrap_or_else(Pose::identity),
         })

@@ -43,7 +43,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .collect();
         let out = json!({
             "map_name": s.map_name, "map_path": s.map_path, "keyframes": s.keyframes,
-            "points": s.points, "uptime_s": s.uptime_s, "sessions": s.sessions,
+            "points": s.points, "uptime_s": s.uptime_s, "sessions": s.sessions, "in_flight": s.in_flight,
             "requests": kinds,
         });
         println!("{}", serde_json::to_string_pretty(&out)?);
@@ -53,7 +53,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         "map {} ({}): {} keyframes, {} points",
         s.map_name, s.map_path, s.keyframes, s.points
     );
-    println!("uptime {:.1} s, {} client sessions", s.uptime_s, s.sessions);
+    println!(
+        "uptime {:.1} s, {} client sessions, {} requests being answered",
+        s.uptime_s, s.sessions, s.in_flight
+    );
     for (kind, count, p50, p99) in &s.kinds {
         println!(
             "  {:<10} {count:>8} requests, p50 {p50:.0} us, p99 {p99:.0} us",

@@ -1,6 +1,7 @@
 //! Request counters and latency percentiles per request kind.
 
 use std::sync::Mutex;
+use std::sync::atomic::{AtomicU32, Ordering};
 
 use kfmap_shared::protocol::KIND_SLOTS;
 
@@ -18,6 +19,7 @@ struct Kind {
 #[derive(Default)]
 pub struct Stats {
     kinds: Mutex<[Kind; KIND_SLOTS]>,
+    in_flight: AtomicU32,
 }
 
 /// A snapshot: requests answered, median and 99th percentile latency (microseconds).
@@ -32,6 +34,21 @@ pub struct KindFigures {
 }
 
 impl Stats {
+    /// A worker took a request.
+    pub fn started(&self) {
+        self.in_flight.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// A worker sent its answer.
+    pub fn finished(&self) {
+        self.in_flight.fetch_sub(1, Ordering::Relaxed);
+    }
+
+    /// Requests taken by workers and not yet answered.
+    pub fn in_flight(&self) -> u32 {
+        self.in_flight.load(Ordering::Relaxed)
+    }
+
     /// Records one answered request of kind code `kind` that took `latency_us`.
     pub fn record(&self, kind: u32, latency_us: f32) {
         let slot = (kind as usize).min(KIND_SLOTS - 1);

@@ -60,6 +60,7 @@ pub struct WorkerContext<'a> {
 impl WorkerContext<'_> {
     /// Answers `job` and wakes the clients.
     pub fn handle(&self, job: Job) {
+        self.stats.started();
         let header = *job.request.user_header();
         let computed = std::panic::catch_unwind(AssertUnwindSafe(|| {
             self.compute(&header, job.request.payload())
@@ -75,6 +76,7 @@ impl WorkerContext<'_> {
         });
         let status = answer.header.status;
         self.respond(job, &header, &answer);
+        self.stats.finished();
         debug!(
             kind = header.kind,
             points = header.point_count,
@@ -144,6 +146,8 @@ impl WorkerContext<'_> {
             map_points: map.points as u64,
             uptime_s: self.started.elapsed().as_secs_f64(),
             sessions: self.sessions.len() as u32,
+            // Less this status request itself.
+            in_flight: self.stats.in_flight().saturating_sub(1),
             pose: map.map_from_input,
             ..Default::default()
         };

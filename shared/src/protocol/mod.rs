@@ -30,7 +30,7 @@ use crate::geometry::{Pose, pose_from_xyz_quat, pose_to_xyz_quat};
 use crate::registration::RegistrationParams;
 
 /// Version of this protocol; a peer of another version gets `VersionMismatch`.
-pub const PROTOCOL_VERSION: u32 = 1;
+pub const PROTOCOL_VERSION: u32 = 2;
 /// Default limit on points per request.
 pub const DEFAULT_MAX_POINTS: usize = 1 << 20;
 /// Floats per IMU sample in an `ImuWindow` payload.

@@ -156,6 +156,8 @@ pub struct ResponseHeader {
     pub p99_us: [f32; KIND_SLOTS],
     /// `Status`: open sessions.
     pub sessions: u32,
+    /// `Status`: requests being answered right now (taken by a worker, not yet sent).
+    pub in_flight: u32,
     /// `Status`: bytes used in `map_name`.
     pub map_name_len: u32,
     /// `Status`: the served map's name.
@@ -192,6 +194,7 @@ impl Default for ResponseHeader {
             p50_us: [0.0; KIND_SLOTS],
             p99_us: [0.0; KIND_SLOTS],
             sessions: 0,
+            in_flight: 0,
             map_name_len: 0,
             map_name: [0; NAME_LEN],
             message: [0; MESSAGE_LEN],
