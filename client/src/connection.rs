@@ -21,6 +21,10 @@ use kfmap_shared::protocol::{
 
 use crate::error::ClientError;
 
+/// A response is polled for this long before the client sleeps on the event: quick
+/// answers then need no wake-up (tens of microseconds on virtual machines).
+const POLL_BEFORE_SLEEP: Duration = Duration::from_micros(50);
+
 /// How to connect.
 #[derive(Debug, Clone)]
 pub struct ClientOptions {
@@ -215,7 +219,8 @@ impl Connection {
             .send()
             .map_err(|e| ClientError::Transport(iox("send a request")(e)))?;
         let _ = ports.requests.notify();
-        let deadline = Instant::now() + timeout;
+        let sent = Instant::now();
+        let deadline = sent + timeout;
         loop {
             match pending.receive() {
                 Ok(Some(response)) => {
@@ -232,6 +237,9 @@ impl Connection {
             }
             if spin {
                 std::hint::spin_loop();
+            } else if now - sent < POLL_BEFORE_SLEEP {
+                // Yield, not spin: the server may share this core.
+                std::thread::yield_now();
             } else {
                 let wait = (deadline - now).min(Duration::from_millis(50));
                 let _ = ports.responses.timed_wait(|_| {}, wait);

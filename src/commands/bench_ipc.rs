@@ -166,6 +166,26 @@ fn ipc_against_in_process(
     Ok((ipc, server, local))
 }
 
+/// Pause between isolated echo requests: long enough for both sides to fall asleep.
+const ISOLATION: Duration = Duration::from_millis(2);
+
+/// Median and p99 of `reps` echo round trips of `points`, `pause` apart.
+fn echo_round_trips(
+    client: &mut Client,
+    points: &[[f32; 3]],
+    reps: usize,
+    pause: Duration,
+) -> anyhow::Result<(f64, f64)> {
+    let mut v = Vec::with_capacity(reps);
+    for _ in 0..reps {
+        std::thread::sleep(pause);
+        let t = Instant::now();
+        client.echo(points)?;
+        v.push(t.elapsed().as_secs_f64() * 1e6);
+    }
+    Ok(p50_p99(v))
+}
+
 /// Hidden worker mode: one of the throughput clients.
 pub fn worker(prefix: &str, seconds: f64) -> anyhow::Result<()> {
     let mut c = client(prefix, false)?;
@@ -206,13 +226,9 @@ fn measure(map: &Path, prefix: &str, spin: bool, json_out: bool) -> anyhow::Resu
         for _ in 0..20 {
             c.echo(&points)?;
         }
-        let mut v = Vec::with_capacity(reps);
-        for _ in 0..reps {
-            let t = Instant::now();
-            c.echo(&points)?;
-            v.push(t.elapsed().as_secs_f64() * 1e6);
-        }
-        echo.push((n, p50_p99(v)));
+        let back_to_back = echo_round_trips(&mut c, &points, reps, Duration::ZERO)?;
+        let isolated = echo_round_trips(&mut c, &points, 200, ISOLATION)?;
+        echo.push((n, back_to_back, isolated));
     }
 
     bar.set_message("cov2cov over IPC vs in process, alternated");
@@ -253,7 +269,10 @@ fn measure(map: &Path, prefix: &str, spin: bool, json_out: bool) -> anyhow::Resu
     if json_out {
         let echo_json: Vec<_> = echo
             .iter()
-            .map(|(n, (p50, p99))| json!({"points": n, "p50_us": p50, "p99_us": p99}))
+            .map(|(n, (p50, p99), (iso_p50, iso_p99))| {
+                json!({"points": n, "p50_us": p50, "p99_us": p99,
+                    "isolated_p50_us": iso_p50, "isolated_p99_us": iso_p99})
+            })
             .collect();
         let out = json!({
             "spin": spin,
@@ -271,8 +290,11 @@ fn measure(map: &Path, prefix: &str, spin: bool, json_out: bool) -> anyhow::Resu
         "IPC round trips ({}):",
         if spin { "spinning" } else { "event waiting" }
     );
-    for (n, (p50, p99)) in &echo {
-        println!("  echo {n:>6} points: median {p50:>8.1} us, p99 {p99:>8.1} us");
+    for (n, (p50, p99), (iso_p50, iso_p99)) in &echo {
+        println!(
+            "  echo {n:>6} points: back to back median {p50:>7.1} us, p99 {p99:>7.1} us; isolated ({} ms apart) median {iso_p50:>7.1} us, p99 {iso_p99:>7.1} us",
+            ISOLATION.as_millis()
+        );
     }
     println!(
         "cov2cov, 10k-point scan: IPC median {:.0} us (p99 {:.0}; the server's compute {server_compute:.0}), in process {:.0} us (p99 {:.0}): overhead {overhead:.1} %",
