@@ -1,24 +1,14 @@
 //! End-to-end tests of the `kfmap` binary: real processes, real files, exit codes.
 
+mod common;
+
 use std::path::PathBuf;
 use std::process::{Command, Output};
 
+use common::{TestDir, kfmap, temp_dir};
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::datasets::require_test_data;
 use kfmap_shared::io::{CloudFormat, PcdData, write_cloud};
-
-fn kfmap(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_kfmap"))
-        .args(args)
-        .output()
-        .expect("run kfmap")
-}
-
-fn temp_dir(test: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("kfmap-cli-{test}-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
 
 fn stderr(out: &Output) -> String {
     String::from_utf8_lossy(&out.stderr).into_owned()
@@ -36,7 +26,8 @@ fn inspect_cloud_json_on_a_written_pcd() {
         .map(|i| [1.0 + (i % 30) as f32 * 0.2, (i / 30) as f32 * 0.2, 0.0])
         .collect();
     points.extend([[0.0; 3]; 5]);
-    let path = temp_dir("grid").join("grid.pcd");
+    let dir = temp_dir("grid");
+    let path = dir.join("grid.pcd");
     write_cloud(
         &path,
         &PointCloud::from_points(points),
@@ -138,7 +129,7 @@ fn bad_input_exits_2_with_a_message_naming_the_problem() {
 
 #[test]
 fn demo_simulates_and_uses_a_courtyard_without_data() {
-    let child = Command::new(env!("CARGO_BIN_EXE_kfmap"))
+    let child = Command::new(common::kfmap_bin())
         .arg("demo")
         .env("KFMAP_DATA_DIR", "/nonexistent")
         .stdout(std::process::Stdio::piped())
@@ -188,7 +179,8 @@ fn demo_simulates_and_uses_a_courtyard_without_data() {
 
 #[test]
 fn simulate_writes_a_readable_dataset() {
-    let dir = temp_dir("simulate").join("out");
+    let tmp = temp_dir("simulate");
+    let dir = tmp.join("out");
     let out = kfmap(&[
         "simulate",
         "--preset",
@@ -295,9 +287,10 @@ fn every_subcommand_help_has_an_example() {
     }
 }
 
-/// A small simulated dataset, shared by the bake tests of one process.
-fn simulated(test: &str) -> PathBuf {
-    let dir = temp_dir(test).join("sim");
+/// A small simulated dataset in a test directory (removed when the first is dropped).
+fn simulated(test: &str) -> (TestDir, PathBuf) {
+    let tmp = temp_dir(test);
+    let dir = tmp.join("sim");
     let out = kfmap(&[
         "simulate",
         "--preset",
@@ -311,14 +304,14 @@ fn simulated(test: &str) -> PathBuf {
         "--json",
     ]);
     assert!(out.status.success(), "{}", stderr(&out));
-    dir
+    (tmp, dir)
 }
 
 #[test]
 fn bake_then_inspect_a_simulated_dataset() {
     use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
     use kfmap_shared::map::KeyframeDecider;
-    let sim = simulated("bake");
+    let (_tmp, sim) = simulated("bake");
     let map = sim.parent().unwrap().join("court.kfmap");
     let baked = json(&kfmap(&[
         "bake",
@@ -398,7 +391,7 @@ fn bake_then_inspect_a_simulated_dataset() {
 
 #[test]
 fn bad_maps_and_datasets_exit_2_naming_the_problem() {
-    let sim = simulated("badmap");
+    let (_tmp, sim) = simulated("badmap");
     let dir = sim.parent().unwrap().to_path_buf();
     let map = dir.join("m.kfmap");
     let out = kfmap(&[
@@ -486,7 +479,8 @@ fn gravity_and_bake_recover_a_tilted_world() {
     use kfmap_shared::archive::{OpenOptions, open_map};
     use kfmap_shared::io::read_trajectory;
     use nalgebra::Rotation3;
-    let dir = temp_dir("gravity").join("sim");
+    let tmp = temp_dir("gravity");
+    let dir = tmp.join("sim");
     let out = kfmap(&[
         "simulate",
         "--preset",
