@@ -12,7 +12,7 @@ use kfmap_shared::gravity::ImuWindow;
 use kfmap_shared::map::{ActiveSet, MapError, MapHit, Pairing};
 use kfmap_shared::protocol::{
     Cov2CovMode, DecodedScan, Rejection, RequestHeader, RequestKind, ResponseHeader, StatusCode,
-    WirePairing, check_version, correspondences_from_wire, decode_imu, decode_scan,
+    WirePairing, check_version, correspondences_from_pairings, decode_imu, decode_scan,
     localize_registration, pose_from_wire, pose_to_wire,
 };
 use kfmap_shared::registration::{RegistrationError, RegistrationParams, solve_pose};
@@ -400,9 +400,7 @@ fn localize(
         let (pairings, ids) = cov2cov(map, session, scan, &covs, at, request.max_pair_dist, exact)
             .map_err(LocalizeError::Rejected)?;
         active = ids;
-        // Through the wire layout, exactly as a client-side solver sees the pairings.
-        let wire = AnswerPairings::Cov2Cov(pairings).into_wire();
-        Ok::<_, LocalizeError>(correspondences_from_wire(&wire, scan.points))
+        Ok::<_, LocalizeError>(correspondences_from_pairings(&pairings, scan.points))
     })
     .map_err(|e| match e {
         LocalizeError::Rejected(r) => r,

@@ -266,15 +266,33 @@ pub fn correspondences_from_wire(
 ) -> Vec<Correspondence> {
     pairings
         .iter()
-        .filter_map(|p| {
-            let source = scan.get(p.query as usize)?;
-            Some(Correspondence {
-                source: to_vec3(source),
-                target: to_vec3(&p.point),
-                information: unpack_sym3(&p.information),
-            })
-        })
+        .filter_map(|p| correspondence(scan, p.query, &p.point, &p.information))
         .collect()
+}
+
+/// As [`correspondences_from_wire`] for pairings straight from the map: the same
+/// values, bit for bit (the wire layout copies these fields unchanged).
+pub fn correspondences_from_pairings(
+    pairings: &[Pairing],
+    scan: &[[f32; 3]],
+) -> Vec<Correspondence> {
+    pairings
+        .iter()
+        .filter_map(|p| correspondence(scan, p.query_index, &p.map_point, &p.information))
+        .collect()
+}
+
+fn correspondence(
+    scan: &[[f32; 3]],
+    query: u32,
+    map_point: &[f32; 3],
+    information: &PackedSym3,
+) -> Option<Correspondence> {
+    Some(Correspondence {
+        source: to_vec3(scan.get(query as usize)?),
+        target: to_vec3(map_point),
+        information: unpack_sym3(information),
+    })
 }
 
 impl From<&Pairing> for WirePairing {

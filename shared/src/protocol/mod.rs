@@ -18,8 +18,8 @@ pub mod transport;
 mod wire;
 
 pub use decode::{
-    DecodedScan, Rejection, ScanPayload, check_version, correspondences_from_wire, decode_imu,
-    decode_scan, imu_payload,
+    DecodedScan, Rejection, ScanPayload, check_version, correspondences_from_pairings,
+    correspondences_from_wire, decode_imu, decode_scan, imu_payload,
 };
 pub use wire::{
     FLAG_COVARIANCES, FLAG_VIEW_DIRS, KIND_SLOTS, MESSAGE_LEN, NAME_LEN, RequestHeader,
