@@ -222,11 +222,19 @@ impl Connection {
         let sent = Instant::now();
         let deadline = sent + timeout;
         loop {
+            // Read before asking whether the server is still there: it lets go of the
+            // request right after answering.
+            let gone = !pending.is_connected();
             match pending.receive() {
                 Ok(Some(response)) => {
                     let header = response.user_header();
                     check_status(header)?;
                     return Ok(read(header, response.payload()));
+                }
+                Ok(None) if gone => {
+                    drop(pending);
+                    self.reconnect();
+                    return Err(ClientError::Disconnected(self.map_name.clone()));
                 }
                 Ok(None) => {}
                 Err(e) => return Err(ClientError::Transport(iox("receive a response")(e))),

@@ -27,6 +27,12 @@ pub enum ClientError {
         /// The timeout.
         waited: Duration,
     },
+    /// The server stopped (or was replaced) after the request was sent, without answering
+    /// it; the connection is rebuilt for the next call.
+    #[error(
+        "the server of map {0:?} stopped before answering (shut down or restarted); the next call reconnects"
+    )]
+    Disconnected(String),
     /// The server answered with an error status.
     #[error("server refused the request ({status:?}): {message}")]
     Rejected {

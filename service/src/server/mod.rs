@@ -350,6 +350,8 @@ pub fn serve(
             }
         }
         info!("shutting down: refusing queued requests, finishing those in flight");
+        // Requests that arrived since the last look are refused by name too.
+        let _ = drain();
         let left = queue.close();
         let refused = left.len();
         for job in left {
