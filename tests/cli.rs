@@ -5,18 +5,13 @@ mod common;
 use std::path::PathBuf;
 use std::process::{Command, Output};
 
-use common::{TestDir, kfmap, temp_dir};
+use common::{TestDir, json, kfmap, temp_dir};
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::datasets::require_test_data;
 use kfmap_shared::io::{CloudFormat, PcdData, write_cloud};
 
 fn stderr(out: &Output) -> String {
     String::from_utf8_lossy(&out.stderr).into_owned()
-}
-
-fn json(out: &Output) -> serde_json::Value {
-    assert!(out.status.success(), "kfmap failed: {}", stderr(out));
-    serde_json::from_slice(&out.stdout).expect("stdout is one JSON object")
 }
 
 #[test]

@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 
 use std::path::PathBuf;
 
-use common::{Prefix, Server, TestDir, bake_dataset, kfmap, kfmap_bin, simulate, temp_dir};
+use common::{Prefix, Server, TestDir, bake_dataset, json, kfmap, kfmap_bin, simulate, temp_dir};
 use kfmap_client::{Client, ClientError, ClientOptions, LocalizeOptions};
 use kfmap_service::bake::{dataset_poses, find_scans, load_raw_scan};
 use kfmap_service::config::BakeConfig;
@@ -265,13 +265,7 @@ fn localize_process(
 }
 
 fn summary(child: std::process::Child) -> serde_json::Value {
-    let out = child.wait_with_output().unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    serde_json::from_slice(&out.stdout).unwrap()
+    json(&child.wait_with_output().unwrap())
 }
 
 #[test]
@@ -462,12 +456,7 @@ fn status_and_reload_report_the_map_and_the_counters() {
         "--iceoryx-prefix",
         &prefix.0,
     ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let s: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let s = json(&out);
     assert_eq!(s["keyframes"], inspected["keyframes"]);
     assert_eq!(s["points"], inspected["points"]);
     assert_eq!(s["requests"]["nearest"]["count"], 3);
@@ -534,12 +523,7 @@ fn query_prints_and_writes_every_answer() {
         "--iceoryx-prefix",
         &prefix.0,
     ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let s: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let s = json(&out);
     assert_eq!(s["points"], 2000);
     assert_eq!(s["answers"], 4000);
     // Oracle: the library over IPC with the same points at the identity pose.

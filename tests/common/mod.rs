@@ -20,6 +20,16 @@ pub fn kfmap_bin() -> &'static str {
     env!("CARGO_BIN_EXE_kfmap")
 }
 
+/// The JSON object a successful kfmap run printed (its stderr shown on failure).
+pub fn json(out: &Output) -> serde_json::Value {
+    assert!(
+        out.status.success(),
+        "kfmap failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).expect("stdout is one JSON object")
+}
+
 /// Runs kfmap to completion.
 pub fn kfmap(args: &[&str]) -> Output {
     Command::new(kfmap_bin())

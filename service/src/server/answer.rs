@@ -182,7 +182,7 @@ fn compute(
                     let (pairings, active) = cov2cov(
                         map,
                         session,
-                        &scan,
+                        &scan_cloud(&scan),
                         &covs,
                         &pose,
                         request.max_pair_dist,
@@ -339,11 +339,21 @@ fn scan_covariances(scan: &DecodedScan, limits: &Limits) -> Vec<[f32; 6]> {
     }
 }
 
+/// The scan as the map takes it, built once per request (`Localize` iterates on it).
+fn scan_cloud(scan: &DecodedScan) -> PointCloud {
+    PointCloud {
+        points: scan.points.to_vec(),
+        view_dirs: scan.view_dirs.map(<[_]>::to_vec),
+        intensity: None,
+        time: None,
+    }
+}
+
 /// Cov2cov pairings at `pose` and the active keyframes used.
 fn cov2cov(
     map: &ServedMap,
     session: &mut Session,
-    scan: &DecodedScan,
+    cloud: &PointCloud,
     covariances: &[[f32; 6]],
     pose: &Pose,
     max_pair_dist: f32,
@@ -355,14 +365,8 @@ fn cov2cov(
         )));
     }
     let active = activate(map, session, pose, exact)?;
-    let cloud = PointCloud {
-        points: scan.points.to_vec(),
-        view_dirs: scan.view_dirs.map(<[_]>::to_vec),
-        intensity: None,
-        time: None,
-    };
     let pairings = active
-        .cov2cov(&cloud, pose, max_pair_dist as f64, Some(covariances))
+        .cov2cov(cloud, pose, max_pair_dist as f64, Some(covariances))
         .map_err(map_error)?;
     Ok((pairings, active.ids().to_vec()))
 }
@@ -395,10 +399,19 @@ fn localize(
     let params = localize_params(request)?;
     let exact = exact_mode(map, request.mode)?;
     let covs = scan_covariances(scan, limits);
+    let cloud = scan_cloud(scan);
     let mut active = Vec::new();
     let result = solve_pose(pose, &params, scan.points.len(), |at| {
-        let (pairings, ids) = cov2cov(map, session, scan, &covs, at, request.max_pair_dist, exact)
-            .map_err(LocalizeError::Rejected)?;
+        let (pairings, ids) = cov2cov(
+            map,
+            session,
+            &cloud,
+            &covs,
+            at,
+            request.max_pair_dist,
+            exact,
+        )
+        .map_err(LocalizeError::Rejected)?;
         active = ids;
         Ok::<_, LocalizeError>(correspondences_from_pairings(&pairings, scan.points))
     })
