@@ -282,6 +282,85 @@ fn every_subcommand_help_has_an_example() {
     }
 }
 
+/// `fuse-overlapping-keyframes`: the exact-mode submap of a baked map equals the
+/// voxelization of its keyframes' raw scans merged in the map frame (brute force).
+#[test]
+fn a_fused_bake_serves_the_voxelization_of_the_merged_scans() {
+    use kfmap_shared::archive::{OpenOptions, open_map};
+    use kfmap_shared::geometry::transform_point;
+    use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
+    use kfmap_shared::map::KeyframeDecider;
+    use std::collections::BTreeMap;
+    let (_tmp, sim) = simulated("fused");
+    let config = sim.parent().unwrap().join("bake.toml");
+    std::fs::write(&config, "[map]\nfuse-overlapping-keyframes = true\n").unwrap();
+    let path = sim.parent().unwrap().join("fused.kfmap");
+    let (sim_arg, path_arg) = (sim.to_str().unwrap(), path.to_str().unwrap());
+    let config_arg = config.to_str().unwrap();
+    json(&kfmap(&[
+        "bake",
+        "--dataset",
+        sim_arg,
+        "--out",
+        path_arg,
+        "--config",
+        config_arg,
+        "--json",
+    ]));
+    let open = OpenOptions {
+        approximate_cov: false,
+        ..OpenOptions::default()
+    };
+    let mut map = open_map(&path, open).unwrap().map;
+    let voxel = 0.1; // the shipped [keyframes] voxel-size
+    assert_eq!(map.options().fuse_voxel_size, voxel);
+    // The scan behind each keyframe: the decider on the dataset's poses, as bake runs it.
+    let poses = read_trajectory(&sim.join("poses_gt.txt")).unwrap().poses;
+    let decider = KeyframeDecider::default();
+    let mut chosen: Vec<usize> = Vec::new();
+    for (i, p) in poses.iter().enumerate() {
+        if decider.should_create(chosen.iter().map(|&c| &poses[c]), p) {
+            chosen.push(i);
+        }
+    }
+    let raw = |id: u64| {
+        let scan = sim.join(format!("scans/{:06}.pcd", chosen[id as usize]));
+        read_cloud(&scan, &ReadOptions::default()).unwrap().cloud
+    };
+    for k in map.keyframes() {
+        let weights = k.view().unwrap().weights.expect("weights baked");
+        let counted: u64 = weights.iter().map(|&w| u64::from(w)).sum();
+        assert_eq!(counted, raw(k.id).len() as u64, "keyframe {}", k.id);
+    }
+    let at = map.keyframes().nth(1).unwrap().pose;
+    let active = map.activate(&at).unwrap();
+    let ids = active.ids().to_vec();
+    assert!(ids.len() > 1, "{ids:?}");
+    let mut groups: BTreeMap<[i64; 3], ([f64; 3], usize)> = BTreeMap::new();
+    for &id in &ids {
+        let pose = map.keyframe(id).unwrap().pose;
+        for p in &raw(id).points {
+            let q = transform_point(&pose, p);
+            let key = q.map(|c| (c / voxel).floor() as i64);
+            let entry = groups.entry([key.x, key.y, key.z]).or_default();
+            (0..3).for_each(|a| entry.0[a] += q[a]);
+            entry.1 += 1;
+        }
+    }
+    let active = map.activate(&at).unwrap();
+    let merged = active.merged().unwrap();
+    assert_eq!(merged.points.len(), groups.len());
+    for (got, (sum, n)) in merged.points.iter().zip(groups.values()) {
+        for a in 0..3 {
+            let want = sum[a] / *n as f64;
+            assert!(
+                (got[a] as f64 - want).abs() < 1e-4,
+                "{got:?} vs {sum:?} / {n}"
+            );
+        }
+    }
+}
+
 /// A small simulated dataset in a test directory (removed when the first is dropped).
 fn simulated(test: &str) -> (TestDir, PathBuf) {
     let tmp = temp_dir(test);
@@ -351,7 +430,7 @@ fn bake_then_inspect_a_simulated_dataset() {
         "--verify",
         "--json",
     ]));
-    assert_eq!(inspected["format_version"], 3);
+    assert_eq!(inspected["format_version"], 4);
     assert_eq!(inspected["keyframes"], chosen.len());
     assert_eq!(inspected["points"], points);
     assert_eq!(inspected["bytes"], size);

@@ -136,10 +136,13 @@ fn kitti07_held_out_keyframes_localize_over_ipc() {
 /// from the previous frame's true pose. small_gicp 1.0.1 (0.25 m voxels, k = 20
 /// without a radius limit, against frames 0, 2, 4 merged, 20 iterations) lands 14, 41
 /// and 40 cm (0.09, 0.19, 0.35 deg) from ground truth on these unskewed scans; the
-/// issue's target is no worse, frame by frame. With the same settings (exact mode =
-/// the merged submap) kfmap lands 15.5, 41.3 and 37.2 cm (0.083, 0.189, 0.318 deg):
-/// frame 1 is NOT within the target (1.5 cm worse). With the shipped 1 m covariance
-/// radius: 15.5, 44.1, 61.7 cm. The bounds guard the measured figures.
+/// issue's target is no worse, frame by frame (its figures are rounded: 0.5 cm and
+/// 0.005 deg of slack). small_gicp voxelizes the merged raw scans; a map of keyframes
+/// each voxelized on its own stacks their surfaces where they overlap (73 k points
+/// instead of 53 k), and lands 15.5, 41.3, 37.2 cm. So the map fuses overlapping
+/// keyframes (`fuse_voxel_size`, bake's `fuse-overlapping-keyframes`): keyframes
+/// voxelized on the map's grid with their counts, fused in exact mode into exactly the
+/// voxelization of the merged scans: 14.3, 41.2, 37.4 cm (0.085, 0.187, 0.348 deg).
 #[test]
 fn kitti00_frames_localize_no_worse_than_small_gicp() {
     let Some(dir) = require_test_data(
@@ -166,6 +169,7 @@ fn kitti00_frames_localize_no_worse_than_small_gicp() {
         0.25,
         KeyframeMapOptions {
             covariance: unlimited,
+            fuse_voxel_size: 0.25,
             ..KeyframeMapOptions::default()
         },
     );
@@ -182,13 +186,9 @@ fn kitti00_frames_localize_no_worse_than_small_gicp() {
         &["--config", config.to_str().unwrap()],
     );
     let mut client = client(&prefix, "kitti00");
-    // (frame, small_gicp m, small_gicp deg, bound m guarding the measured figure)
-    let small_gicp = [
-        (1, 0.14, 0.09, 0.16),
-        (3, 0.41, 0.19, 0.415),
-        (5, 0.40, 0.35, 0.40),
-    ];
-    for (frame, cm_bound, deg_bound, guard) in small_gicp {
+    // (frame, small_gicp m, small_gicp deg)
+    let small_gicp = [(1, 0.14, 0.09), (3, 0.41, 0.19), (5, 0.40, 0.35)];
+    for (frame, m_bound, deg_bound) in small_gicp {
         let found = localize(
             &mut client,
             &cloud(frame),
@@ -201,11 +201,10 @@ fn kitti00_frames_localize_no_worse_than_small_gicp() {
             "kitti00 frame {frame}: {:.1} cm, {:.3} deg from ground truth (small_gicp {:.0} cm, {:.2} deg)",
             t * 100.0,
             r,
-            cm_bound * 100.0,
+            m_bound * 100.0,
             deg_bound
         );
-        assert!(t <= guard, "frame {frame}: {t} m");
-        // small_gicp's figures are rounded to 0.01 deg.
+        assert!(t <= m_bound + 0.005, "frame {frame}: {t} m");
         assert!(r <= deg_bound + 0.005, "frame {frame}: {r} deg");
     }
 }

@@ -287,18 +287,26 @@ fn build_poses(
     Ok((poses, summary))
 }
 
-/// Reads, filters and downsamples one scan.
-fn load_scan(path: &Path, config: &BakeConfig) -> Result<PointCloud, BakeError> {
+/// Reads, filters and downsamples one scan taken at `pose` (map frame): on the map's
+/// voxel grid, with each point's raw count, when keyframes are fused.
+fn load_scan(
+    path: &Path,
+    config: &BakeConfig,
+    pose: &Pose,
+) -> Result<(PointCloud, Option<Vec<u32>>), BakeError> {
     let cloud = load_raw_scan(path, config)?;
-    let cloud = if config.keyframes.voxel_size > 0.0 {
-        cloud
-            .voxel_downsample(config.keyframes.voxel_size)
+    let voxel = config.keyframes.voxel_size;
+    let fused = config.map.fuse_overlapping_keyframes;
+    let (cloud, weights) = if voxel > 0.0 {
+        let v = cloud
+            .voxelize(voxel, fused.then_some(pose))
             .map_err(|e| BakeError::Scan {
                 path: path.to_path_buf(),
                 message: e.to_string(),
-            })?
+            })?;
+        (v.cloud, fused.then_some(v.counts))
     } else {
-        cloud
+        (cloud, None)
     };
     if cloud.is_empty() {
         return Err(BakeError::Scan {
@@ -306,7 +314,7 @@ fn load_scan(path: &Path, config: &BakeConfig) -> Result<PointCloud, BakeError> 
             message: "no valid points left after filtering".into(),
         });
     }
-    Ok(cloud)
+    Ok((cloud, weights))
 }
 
 /// Bakes `input` into `out` with `config`; `progress` is called after each keyframe.
@@ -380,14 +388,14 @@ pub fn bake(
             .par_iter()
             .enumerate()
             .map(|(j, &scan)| {
-                let cloud = load_scan(&scans[scan], config)?;
+                let (cloud, weights) = load_scan(&scans[scan], config, &poses[scan])?;
                 let id = (chunk_index * chunk + j) as u64;
-                Keyframe::build(id, poses[scan], stamps[scan], cloud, &options.covariance).map_err(
-                    |e| BakeError::Scan {
+                let (pose, stamp) = (poses[scan], stamps[scan]);
+                Keyframe::build_weighted(id, pose, stamp, cloud, weights, &options.covariance)
+                    .map_err(|e| BakeError::Scan {
                         path: scans[scan].clone(),
                         message: e.to_string(),
-                    },
-                )
+                    })
             })
             .collect::<Result<_, _>>()?;
         for k in &keyframes {

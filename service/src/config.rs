@@ -191,6 +191,10 @@ pub struct MapSection {
     /// Rotate every keyframe pose by the gravity correction (IMU log needed) so the
     /// map has +Z up.
     pub align_gravity: bool,
+    /// Voxelize keyframes on the map frame's grid and keep each point's raw count, so
+    /// exact mode fuses keyframes that see the same place into the voxelization of
+    /// their merged scans (no doubled surfaces where keyframes overlap).
+    pub fuse_overlapping_keyframes: bool,
 }
 
 impl Default for MapSection {
@@ -203,6 +207,7 @@ impl Default for MapSection {
             serialize_kdtrees: o.serialize_kdtrees,
             serialize_covariances: o.serialize_covariances,
             align_gravity: true,
+            fuse_overlapping_keyframes: false,
         }
     }
 }
@@ -263,6 +268,11 @@ impl BakeConfig {
             max_view_angle_deg: self.map.max_view_angle_deg,
             serialize_kdtrees: self.map.serialize_kdtrees,
             serialize_covariances: self.map.serialize_covariances,
+            fuse_voxel_size: if self.map.fuse_overlapping_keyframes {
+                self.keyframes.voxel_size
+            } else {
+                0.0
+            },
             ..KeyframeMapOptions::default()
         }
     }
@@ -330,6 +340,13 @@ impl ConfigFile for BakeConfig {
             .map_err(|e| ("covisibility", e))?;
         self.gravity.validate().map_err(|e| ("gravity", e))?;
         // The sections above passed, so what can still fail here is a [map] key.
+        ensure(
+            !self.map.fuse_overlapping_keyframes || self.keyframes.voxel_size > 0.0,
+            "fuse-overlapping-keyframes",
+            true,
+            "false when [keyframes] voxel-size is 0 (fusion needs the voxel grid)",
+        )
+        .map_err(|e| ("map", e))?;
         self.map_options().validate().map_err(|e| ("map", e))
     }
 }
@@ -405,6 +422,16 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(err.contains("xyzrgb") && err.contains("xyzi"), "{err}");
+        let err = BakeConfig::from_toml(
+            "[keyframes]\nvoxel-size = 0\n[map]\nfuse-overlapping-keyframes = true\n",
+            Path::new("b.toml"),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            err.contains("[map]") && err.contains("fuse-overlapping-keyframes"),
+            "{err}"
+        );
     }
 
     #[test]

@@ -12,7 +12,7 @@ use std::time::Duration;
 use kfmap_shared::archive::save_map;
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::geometry::Pose;
-use kfmap_shared::map::{KeyframeMap, KeyframeMapOptions};
+use kfmap_shared::map::{Keyframe, KeyframeMap, KeyframeMapOptions};
 use kfmap_shared::protocol::transport::{iceoryx_config, remove_prefix_files};
 
 /// The kfmap binary.
@@ -181,7 +181,8 @@ pub fn bake_map(path: &Path, keyframes: &[(PointCloud, Pose)], voxel: f64) {
     bake_map_with(path, keyframes, voxel, KeyframeMapOptions::default());
 }
 
-/// As [`bake_map`] with other map options.
+/// As [`bake_map`] with other map options. With `fuse_voxel_size` set, keyframes are
+/// voxelized on the map's grid with their counts, as `kfmap bake` does when fusing.
 pub fn bake_map_with(
     path: &Path,
     keyframes: &[(PointCloud, Pose)],
@@ -189,13 +190,18 @@ pub fn bake_map_with(
     options: KeyframeMapOptions,
 ) {
     let mut map = KeyframeMap::new(options).unwrap();
+    let fused = options.fuse_voxel_size > 0.0;
     for (i, (cloud, pose)) in keyframes.iter().enumerate() {
-        let cloud = if voxel > 0.0 {
-            cloud.voxel_downsample(voxel).unwrap()
+        let (cloud, weights) = if voxel > 0.0 {
+            let v = cloud.voxelize(voxel, fused.then_some(pose)).unwrap();
+            (v.cloud, fused.then_some(v.counts))
         } else {
-            cloud.clone()
+            (cloud.clone(), None)
         };
-        map.insert(cloud, *pose, i as f64).unwrap();
+        let id = i as u64;
+        let keyframe =
+            Keyframe::build_weighted(id, *pose, i as f64, cloud, weights, &options.covariance);
+        map.insert_keyframe(keyframe.unwrap()).unwrap();
     }
     save_map(&map, &[], path).unwrap();
 }

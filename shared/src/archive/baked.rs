@@ -20,7 +20,7 @@ use crate::cloud::Aabb;
 use crate::cov::{CovOptions, estimate_covariances};
 use crate::covis::{CovisSnapshot, CovisibilityGraph};
 use crate::geometry::{PackedSym3, Pose};
-use crate::map::{Keyframe, KeyframeMap, KeyframeMapOptions, KeyframeView};
+use crate::map::{Keyframe, KeyframeMap, KeyframeMapOptions, KeyframeView, weights_problem};
 use crate::spatial::{NodeWords, PointTree, TreeRef, build_tree};
 
 /// How to open a map file.
@@ -208,6 +208,13 @@ impl BakedKeyframe {
         {
             return Err(self.corrupt("attribute lengths differ from the point count"));
         }
+        if let Some(problem) = record
+            .weights
+            .as_ref()
+            .and_then(|w| weights_problem(native(w), n))
+        {
+            return Err(self.corrupt(problem));
+        }
         let points = native(&record.points);
         if let Some(t) = record.tree.as_ref() {
             let (nodes, tree_points, items) = tree_parts(t);
@@ -253,6 +260,7 @@ impl BakedKeyframe {
             points: native(&record.points),
             view_dirs: record.view_dirs.as_ref().map(|v| native(v)),
             covariances,
+            weights: record.weights.as_ref().map(|w| native(w)),
             tree,
         })
     }

@@ -23,6 +23,9 @@ pub struct KeyframeRecord<'a> {
     /// Local covariances; `None` when the map was baked without them.
     #[rkyv(with = Map<InlineAsBox>)]
     pub covariances: Option<&'a [PackedSym3]>,
+    /// Raw points each point stands for (voxel counts), when bake recorded them.
+    #[rkyv(with = Map<InlineAsBox>)]
+    pub weights: Option<&'a [u32]>,
     /// KD-tree over `points`; `None` when the map was baked without trees.
     pub tree: Option<TreeRecord<'a>>,
 }
@@ -71,7 +74,7 @@ pub struct KeyframeEntry {
     pub len: u64,
     /// xxh3-64 of the segment bytes.
     pub checksum: u64,
-    /// Bytes of points and view directions in the segment.
+    /// Bytes of points, view directions and weights in the segment.
     pub point_bytes: u64,
     /// Bytes of covariances in the segment.
     pub covariance_bytes: u64,

@@ -8,7 +8,7 @@ use rand::{Rng, SeedableRng};
 use super::*;
 use crate::cloud::PointCloud;
 use crate::geometry::Pose;
-use crate::map::{KeyframeMap, KeyframeMapOptions, MapError};
+use crate::map::{Keyframe, KeyframeMap, KeyframeMapOptions, MapError};
 
 /// A scratch directory removed on drop; unique per test.
 pub(crate) struct Scratch(pub PathBuf);
@@ -148,6 +148,51 @@ fn baked_and_heap_maps_answer_identically_in_both_modes() {
         );
         assert_same_answers(&mut heap, &mut file);
     }
+}
+
+#[test]
+fn weighted_keyframes_and_their_fusion_survive_baking() {
+    let dir = Scratch::new("weighted");
+    let voxel = 0.4;
+    let options = KeyframeMapOptions {
+        fuse_voxel_size: voxel,
+        ..KeyframeMapOptions::default()
+    };
+    let mut rng = StdRng::seed_from_u64(8);
+    let mut heap = KeyframeMap::new(options).unwrap();
+    for (i, at) in [
+        pose(0.0, 0.0, 0.0),
+        pose(1.0, 0.5, 0.3),
+        pose(-0.5, 1.0, -0.4),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let v = cloud(&mut rng, 3000, i % 2 == 0)
+            .voxelize(voxel, Some(&at))
+            .unwrap();
+        let cov = &options.covariance;
+        let k = Keyframe::build_weighted(i as u64, at, 0.0, v.cloud, Some(v.counts), cov);
+        heap.insert_keyframe(k.unwrap()).unwrap();
+    }
+    let path = baked(&dir, &heap);
+    let open = OpenOptions {
+        approximate_cov: false,
+        ..OpenOptions::default()
+    };
+    let mut file = open_map(&path, open).unwrap().map;
+    assert_eq!(file.options().fuse_voxel_size, voxel);
+    for (a, b) in heap.keyframes().zip(file.keyframes()) {
+        let (wa, wb) = (a.view().unwrap().weights, b.view().unwrap().weights);
+        assert!(wa.is_some());
+        assert_eq!(wa, wb);
+    }
+    assert_same_answers(&mut heap, &mut file);
+    // Overlapping keyframes fused: fewer merged points than keyframe points.
+    let at = pose(0.2, 0.3, 0.0);
+    let merged = file.activate(&at).unwrap().merged().unwrap().points.len();
+    let stacked: usize = file.keyframes().map(|k| k.len()).sum();
+    assert!(merged < stacked, "{merged} of {stacked}");
 }
 
 #[test]

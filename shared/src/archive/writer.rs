@@ -125,6 +125,7 @@ impl MapWriter {
                 .options
                 .serialize_covariances
                 .then_some(view.covariances),
+            weights: view.weights,
             tree,
         };
         let bytes = rkyv::api::high::to_bytes_in::<_, rancor::Error>(
@@ -144,7 +145,8 @@ impl MapWriter {
             offset,
             len: bytes.len() as u64,
             checksum: xxh3_64(&bytes),
-            point_bytes: 12 * n * if record.view_dirs.is_some() { 2 } else { 1 },
+            point_bytes: 12 * n * if record.view_dirs.is_some() { 2 } else { 1 }
+                + if record.weights.is_some() { 4 * n } else { 0 },
             covariance_bytes: if record.covariances.is_some() {
                 24 * n
             } else {

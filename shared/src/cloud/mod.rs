@@ -4,6 +4,8 @@ mod filter;
 mod voxel;
 
 pub use filter::{FilterOptions, FilterReport};
+pub use voxel::Voxelized;
+pub(crate) use voxel::{grid_position, unit_or_zero, voxel_groups};
 
 /// Why a cloud is not usable as it is.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

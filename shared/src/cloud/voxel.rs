@@ -3,20 +3,73 @@
 use rayon::prelude::*;
 
 use super::{CloudError, PointCloud};
+use crate::geometry::{Pose, transform_point};
 
 /// Cells per axis that fit in a packed key (21 bits each, x in the high bits).
 const MAX_CELLS: i64 = 1 << 21;
 
-fn cell(c: f32, inv_size: f64) -> i64 {
+fn cell(c: f64, inv_size: f64) -> i64 {
     // `as i64` saturates, so far-away points cannot overflow.
-    (c as f64 * inv_size).floor() as i64
+    (c * inv_size).floor() as i64
 }
 
-/// Packs the cell of `p`, relative to the cell `origin`, into one sortable u64 whose
-/// order equals the lexicographic order of (x, y, z) cells.
-fn packed_key(p: &[f32; 3], inv_size: f64, origin: &[i64; 3]) -> u64 {
-    let rel = |axis: usize| (cell(p[axis], inv_size) - origin[axis]) as u64;
+/// Packs a cell, relative to the cell `origin`, into one sortable u64 whose order
+/// equals the lexicographic order of (x, y, z) cells.
+fn packed_key(cell: &[i64; 3], origin: &[i64; 3]) -> u64 {
+    let rel = |axis: usize| (cell[axis] - origin[axis]) as u64;
     rel(0) << 42 | rel(1) << 21 | rel(2)
+}
+
+/// Where point `p` falls on the grid of the frame `grid_from_points` maps it into
+/// (`None` = its own frame), or `None` for a non-finite point.
+pub(crate) fn grid_position(p: &[f32; 3], grid_from_points: Option<&Pose>) -> Option<[f64; 3]> {
+    let finite = p.iter().all(|c| c.is_finite());
+    finite.then(|| match grid_from_points {
+        None => p.map(f64::from),
+        Some(pose) => transform_point(pose, p).into(),
+    })
+}
+
+/// Point indices `0..n` grouped by voxel (edge `voxel_size` metres, grid aligned with
+/// the origin), each at `position(i)` (`None` skips it): `(voxel key, index)` sorted by
+/// key, then index. Slice it with `chunk_by` on the key.
+pub(crate) fn voxel_groups(
+    n: usize,
+    voxel_size: f64,
+    position: impl Fn(usize) -> Option<[f64; 3]> + Sync,
+) -> Result<Vec<(u64, u32)>, CloudError> {
+    if !(voxel_size.is_finite() && voxel_size > 0.0) {
+        return Err(CloudError::BadVoxelSize(voxel_size));
+    }
+    let inv_size = 1.0 / voxel_size;
+    let cells: Vec<(u32, [i64; 3])> = (0..n)
+        .into_par_iter()
+        .filter_map(|i| Some((i as u32, position(i)?.map(|c| cell(c, inv_size)))))
+        .collect();
+    if cells.is_empty() {
+        return Ok(Vec::new());
+    }
+    let fold = |f: fn(i64, i64) -> i64, init: i64| {
+        cells.iter().fold([init; 3], |acc, (_, c)| {
+            std::array::from_fn(|axis| f(acc[axis], c[axis]))
+        })
+    };
+    let (low, high) = (fold(i64::min, i64::MAX), fold(i64::max, i64::MIN));
+    let widest = (0..3)
+        .map(|axis| high[axis].saturating_sub(low[axis]).saturating_add(1))
+        .max();
+    if let Some(widest) = widest.filter(|&n| n > MAX_CELLS) {
+        return Err(CloudError::VoxelGridTooFine {
+            voxel_size,
+            cells: widest,
+        });
+    }
+    let mut keyed: Vec<(u64, u32)> = cells
+        .par_iter()
+        .map(|(i, c)| (packed_key(c, &low), *i))
+        .collect();
+    keyed.par_sort_unstable();
+    Ok(keyed)
 }
 
 fn mean_of<const N: usize>(values: impl Iterator<Item = [f32; N]>) -> [f64; N] {
@@ -31,57 +84,61 @@ fn mean_of<const N: usize>(values: impl Iterator<Item = [f32; N]>) -> [f64; N] {
     sum.map(|s| s / n.max(1) as f64)
 }
 
+/// A mean of directions, re-normalized; opposing directions cancel to "missing" (zero)
+/// rather than noise.
+pub(crate) fn unit_or_zero(m: [f64; 3]) -> [f32; 3] {
+    let norm = m.iter().map(|c| c * c).sum::<f64>().sqrt();
+    if norm > 1e-6 {
+        m.map(|c| (c / norm) as f32)
+    } else {
+        [0.0; 3]
+    }
+}
+
+/// A downsampled cloud and how many input points each of its points stands for.
+#[derive(Debug, Clone)]
+pub struct Voxelized {
+    /// One centroid per occupied voxel, sorted by voxel key.
+    pub cloud: PointCloud,
+    /// Input points averaged into each centroid (>= 1).
+    pub counts: Vec<u32>,
+}
+
 impl PointCloud {
     /// Replaces the points of each occupied voxel (edge `voxel_size` metres, grid
     /// aligned with the origin) by their centroid. Attributes are averaged the same way;
     /// averaged view directions are re-normalized. Output is sorted by voxel key, so it
     /// does not depend on thread count. Non-finite points are skipped.
     pub fn voxel_downsample(&self, voxel_size: f64) -> Result<PointCloud, CloudError> {
-        if !(voxel_size.is_finite() && voxel_size > 0.0) {
-            return Err(CloudError::BadVoxelSize(voxel_size));
-        }
-        let inv_size = 1.0 / voxel_size;
-        let Some(bbox) = self.bounding_box() else {
-            return Ok(self.select(&[]));
-        };
-        let origin = bbox.min.map(|c| cell(c, inv_size));
-        let cells =
-            std::array::from_fn::<i64, 3, _>(|i| cell(bbox.max[i], inv_size) - origin[i] + 1);
-        if cells.iter().any(|&n| n > MAX_CELLS) {
-            return Err(CloudError::VoxelGridTooFine {
-                voxel_size,
-                cells: cells.into_iter().max().unwrap_or(0),
-            });
-        }
-        let mut keyed: Vec<(u64, u32)> = self
-            .points
-            .par_iter()
-            .enumerate()
-            .filter(|(_, p)| p.iter().all(|c| c.is_finite()))
-            .map(|(i, p)| (packed_key(p, inv_size, &origin), i as u32))
-            .collect();
-        keyed.par_sort_unstable();
+        Ok(self.voxelize(voxel_size, None)?.cloud)
+    }
 
+    /// As [`PointCloud::voxel_downsample`], on the grid of another frame when
+    /// `grid_from_cloud` is given (e.g. a keyframe voxelized on the map's grid, so that
+    /// keyframes seeing the same place share voxels); centroids stay in the cloud's own
+    /// frame. Also returns each centroid's point count.
+    pub fn voxelize(
+        &self,
+        voxel_size: f64,
+        grid_from_cloud: Option<&Pose>,
+    ) -> Result<Voxelized, CloudError> {
+        let keyed = voxel_groups(self.len(), voxel_size, |i| {
+            grid_position(&self.points[i], grid_from_cloud)
+        })?;
         let mut out = PointCloud {
             points: Vec::new(),
             view_dirs: self.view_dirs.as_ref().map(|_| Vec::new()),
             intensity: self.intensity.as_ref().map(|_| Vec::new()),
             time: self.time.as_ref().map(|_| Vec::new()),
         };
+        let mut counts = Vec::new();
         for group in keyed.chunk_by(|a, b| a.0 == b.0) {
             let members = || group.iter().map(|&(_, i)| i as usize);
             let centroid = mean_of(members().map(|i| self.points[i]));
             out.points.push(centroid.map(|c| c as f32));
+            counts.push(group.len() as u32);
             if let (Some(src), Some(dst)) = (&self.view_dirs, &mut out.view_dirs) {
-                let m = mean_of(members().map(|i| src[i]));
-                let norm = m.iter().map(|c| c * c).sum::<f64>().sqrt();
-                // Opposing directions cancel: store "missing" (zero) rather than noise.
-                let unit = if norm > 1e-6 {
-                    m.map(|c| (c / norm) as f32)
-                } else {
-                    [0.0; 3]
-                };
-                dst.push(unit);
+                dst.push(unit_or_zero(mean_of(members().map(|i| src[i]))));
             }
             if let (Some(src), Some(dst)) = (&self.intensity, &mut out.intensity) {
                 dst.push(mean_of(members().map(|i| [src[i]]))[0] as f32);
@@ -90,7 +147,7 @@ impl PointCloud {
                 dst.push(mean_of(members().map(|i| [src[i]]))[0] as f32);
             }
         }
-        Ok(out)
+        Ok(Voxelized { cloud: out, counts })
     }
 }
 
@@ -122,6 +179,43 @@ mod tests {
         let down = cloud.voxel_downsample(size).unwrap();
         assert_eq!(down.len(), groups.len());
         for (got, members) in down.points.iter().zip(groups.values()) {
+            for axis in 0..3 {
+                let want =
+                    members.iter().map(|p| p[axis] as f64).sum::<f64>() / members.len() as f64;
+                assert!((got[axis] as f64 - want).abs() < 1e-5);
+            }
+        }
+    }
+
+    #[test]
+    fn voxelizes_on_another_frames_grid_with_counts() {
+        // Oracle: group by the voxel of each point moved into the grid frame; the
+        // centroid stays in the cloud's own frame.
+        let points: Vec<[f32; 3]> = (0..3000)
+            .map(|i| {
+                let t = i as f32 * 0.53;
+                [t.cos() * 6.0, (t * 1.3).sin() * 3.0, (t * 0.07).cos()]
+            })
+            .collect();
+        let grid_from_cloud = Pose::new(
+            nalgebra::Vector3::new(0.31, -0.17, 0.05),
+            nalgebra::Vector3::new(0.02, -0.01, 0.6),
+        );
+        let size = 0.4;
+        let mut groups: BTreeMap<[i64; 3], Vec<[f32; 3]>> = BTreeMap::new();
+        for p in &points {
+            let q: [f64; 3] = transform_point(&grid_from_cloud, p).into();
+            groups
+                .entry(q.map(|c| (c / size).floor() as i64))
+                .or_default()
+                .push(*p);
+        }
+        let v = PointCloud::from_points(points)
+            .voxelize(size, Some(&grid_from_cloud))
+            .unwrap();
+        assert_eq!(v.cloud.len(), groups.len());
+        for ((got, count), members) in v.cloud.points.iter().zip(&v.counts).zip(groups.values()) {
+            assert_eq!(*count as usize, members.len());
             for axis in 0..3 {
                 let want =
                     members.iter().map(|p| p[axis] as f64).sum::<f64>() / members.len() as f64;

@@ -10,13 +10,15 @@ use rayon::prelude::*;
 use super::{Keyframe, KeyframeMapOptions, KeyframeView, MapError};
 use crate::KeyframeId;
 use crate::archive::ArchiveError;
-use crate::cloud::{Aabb, PointCloud};
-use crate::cov::{CovOptions, estimate_covariances};
+use crate::cloud::{Aabb, CloudError, PointCloud, grid_position, unit_or_zero, voxel_groups};
+use crate::cov::estimate_covariances;
 use crate::geometry::{PackedSym3, Pose, pack_sym3, to_point, to_vec3, unpack_sym3};
 use crate::spatial::{PointTree, TreeRef, build_tree};
 
 /// The active keyframes' points concatenated in ascending id order, in the map frame,
 /// with a tree and covariances of their own (neighbours may come from any keyframe).
+/// With `fuse_voxel_size` set, points of several keyframes in one map-frame voxel are
+/// first fused into one (see [`MergedSubmap::build`]).
 #[derive(Debug)]
 pub struct MergedSubmap {
     /// Keyframes merged, ascending.
@@ -35,37 +37,92 @@ pub struct MergedSubmap {
     pub tree: PointTree,
 }
 
-impl MergedSubmap {
-    /// Merges the active keyframes (ascending id).
-    pub fn build(
-        frames: &[ActiveFrame<'_>],
-        cov: &CovOptions,
-    ) -> Result<Self, crate::spatial::TreeError> {
-        let total: usize = frames.iter().map(|f| f.view.points.len()).sum();
-        let mut points = Vec::with_capacity(total);
-        let mut origin_keyframe = Vec::with_capacity(total);
-        let mut origin_index = Vec::with_capacity(total);
-        let mut view_dirs = Vec::with_capacity(total);
+/// The concatenated points before their tree and covariances: one entry per point.
+#[derive(Default)]
+struct Concatenated {
+    points: Vec<[f32; 3]>,
+    origin_keyframe: Vec<u32>,
+    origin_index: Vec<u32>,
+    view_dirs: Vec<[f32; 3]>,
+    weights: Vec<u32>,
+}
+
+impl Concatenated {
+    fn of(frames: &[ActiveFrame<'_>]) -> Self {
+        let mut all = Self::default();
         for (slot, f) in frames.iter().enumerate() {
             for (i, p) in f.view.points.iter().enumerate() {
-                points.push(to_point(&(f.pose * Point3::from(to_vec3(p))).coords));
-                origin_keyframe.push(slot as u32);
-                origin_index.push(i as u32);
+                all.points
+                    .push(to_point(&(f.pose * Point3::from(to_vec3(p))).coords));
+                all.origin_keyframe.push(slot as u32);
+                all.origin_index.push(i as u32);
                 let v = f
                     .view
                     .view_dirs
                     .map_or([0.0; 3], |v| to_point(&(f.pose.rotation * to_vec3(&v[i]))));
-                view_dirs.push(v);
+                all.view_dirs.push(v);
+                all.weights.push(f.view.weights.map_or(1, |w| w[i]));
             }
+        }
+        all
+    }
+
+    /// One point per occupied map-frame voxel: the weighted centroid of its points (so
+    /// keyframes voxelized on the same grid, with their voxel counts as weights, fuse
+    /// into exactly the voxelization of their merged raw scans). The fused point keeps
+    /// the origin of its heaviest member (ties: the first) and the weighted mean view
+    /// direction.
+    fn fused(self, frames: &[ActiveFrame<'_>], voxel_size: f64) -> Result<Self, CloudError> {
+        // Keyed from the local points exactly as bake keyed them, not from the f32 map
+        // points, so a point on a voxel boundary cannot change voxel.
+        let groups = voxel_groups(self.points.len(), voxel_size, |i| {
+            let f = &frames[self.origin_keyframe[i] as usize];
+            grid_position(&f.view.points[self.origin_index[i] as usize], Some(&f.pose))
+        })?;
+        let mut out = Self::default();
+        for group in groups.chunk_by(|a, b| a.0 == b.0) {
+            let members = || group.iter().map(|&(_, i)| i as usize);
+            let weight = |i: usize| f64::from(self.weights[i]);
+            let total: f64 = members().map(weight).sum();
+            let weighted_mean = |values: &[[f32; 3]]| {
+                members().fold([0.0f64; 3], |acc, i| {
+                    std::array::from_fn(|a| acc[a] + weight(i) * f64::from(values[i][a]))
+                })
+            };
+            let heaviest = members()
+                .max_by(|&a, &b| self.weights[a].cmp(&self.weights[b]).then(b.cmp(&a)))
+                .expect("a voxel group is never empty");
+            out.points
+                .push(weighted_mean(&self.points).map(|c| (c / total) as f32));
+            out.origin_keyframe.push(self.origin_keyframe[heaviest]);
+            out.origin_index.push(self.origin_index[heaviest]);
+            out.view_dirs
+                .push(unit_or_zero(weighted_mean(&self.view_dirs)));
+            out.weights.push(total.min(f64::from(u32::MAX)) as u32);
+        }
+        Ok(out)
+    }
+}
+
+impl MergedSubmap {
+    /// Merges the active keyframes (ascending id); fuses overlapping points when the
+    /// map's `fuse_voxel_size` is set.
+    pub fn build(
+        frames: &[ActiveFrame<'_>],
+        options: &KeyframeMapOptions,
+    ) -> Result<Self, MapError> {
+        let mut all = Concatenated::of(frames);
+        if options.fuse_voxel_size > 0.0 {
+            all = all.fused(frames, options.fuse_voxel_size)?;
         }
         Ok(Self {
             ids: frames.iter().map(|f| f.id).collect(),
-            tree: build_tree(&points)?,
-            covariances: estimate_covariances(&points, cov).values,
-            points,
-            origin_keyframe,
-            origin_index,
-            view_dirs,
+            tree: build_tree(&all.points)?,
+            covariances: estimate_covariances(&all.points, &options.covariance).values,
+            points: all.points,
+            origin_keyframe: all.origin_keyframe,
+            origin_index: all.origin_index,
+            view_dirs: all.view_dirs,
         })
     }
 }

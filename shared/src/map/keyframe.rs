@@ -43,6 +43,8 @@ pub struct HeapKeyframe {
     pub view_dirs: Option<Vec<[f32; 3]>>,
     /// Local per-point covariances.
     pub covariances: Vec<PackedSym3>,
+    /// Raw points each point stands for (voxel counts), if known.
+    pub weights: Option<Vec<u32>>,
     /// KD-tree over `points`.
     pub tree: PointTree,
 }
@@ -56,6 +58,8 @@ pub struct KeyframeView<'a> {
     pub view_dirs: Option<&'a [[f32; 3]]>,
     /// Local per-point covariances.
     pub covariances: &'a [PackedSym3],
+    /// Raw points each point stands for, if known (else 1 each).
+    pub weights: Option<&'a [u32]>,
     /// KD-tree over `points` (item = index).
     pub tree: TreeRef<'a>,
 }
@@ -69,11 +73,30 @@ impl Keyframe {
         cloud: PointCloud,
         cov: &CovOptions,
     ) -> Result<Self, TreeError> {
+        Self::build_weighted(id, pose, timestamp, cloud, None, cov)
+    }
+
+    /// As [`Keyframe::build`], with how many raw points each point stands for (the
+    /// voxel counts of [`PointCloud::voxelize`]; each >= 1), which exact mode's fusion
+    /// of overlapping keyframes weighs by.
+    pub fn build_weighted(
+        id: KeyframeId,
+        pose: Pose,
+        timestamp: f64,
+        cloud: PointCloud,
+        weights: Option<Vec<u32>>,
+        cov: &CovOptions,
+    ) -> Result<Self, TreeError> {
         if cloud.is_empty() {
             return Err(TreeError::Empty);
         }
+        if let Some(w) = &weights
+            && let Some(problem) = weights_problem(w, cloud.len())
+        {
+            return Err(TreeError::MismatchedParts(problem));
+        }
         let covariances = estimate_covariances(&cloud.points, cov).values;
-        Self::from_parts(id, pose, timestamp, cloud, covariances)
+        Self::assemble(id, pose, timestamp, cloud, covariances, weights)
     }
 
     /// A keyframe from its parts, with covariances computed elsewhere (one per point);
@@ -84,6 +107,17 @@ impl Keyframe {
         timestamp: f64,
         cloud: PointCloud,
         covariances: Vec<PackedSym3>,
+    ) -> Result<Self, TreeError> {
+        Self::assemble(id, pose, timestamp, cloud, covariances, None)
+    }
+
+    fn assemble(
+        id: KeyframeId,
+        pose: Pose,
+        timestamp: f64,
+        cloud: PointCloud,
+        covariances: Vec<PackedSym3>,
+        weights: Option<Vec<u32>>,
     ) -> Result<Self, TreeError> {
         if covariances.len() != cloud.len() {
             return Err(TreeError::MismatchedParts(format!(
@@ -98,6 +132,7 @@ impl Keyframe {
             points: cloud.points,
             view_dirs: cloud.view_dirs,
             covariances,
+            weights,
             tree,
         };
         Ok(Self {
@@ -152,6 +187,7 @@ impl Keyframe {
                 points: &h.points,
                 view_dirs: h.view_dirs.as_deref(),
                 covariances: &h.covariances,
+                weights: h.weights.as_deref(),
                 tree: h.tree.view(),
             }),
             KeyframeData::Baked(b) => b.view(),
@@ -166,6 +202,18 @@ impl Keyframe {
             .iter()
             .map(|p| transform_point(&self.pose, p).into())
             .collect())
+    }
+}
+
+/// What is wrong with per-point weights for `points` points, if anything.
+pub(crate) fn weights_problem(weights: &[u32], points: usize) -> Option<String> {
+    if weights.len() != points {
+        Some(format!("{} weights for {points} points", weights.len()))
+    } else {
+        weights
+            .iter()
+            .position(|&w| w == 0)
+            .map(|i| format!("point {i} has weight 0 (each stands for >= 1 raw point)"))
     }
 }
 

@@ -11,6 +11,7 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 
 pub use active::{ActiveFrame, ActiveSet, MapHit, MergedSubmap, Pairing};
+pub(crate) use keyframe::weights_problem;
 pub use keyframe::{HeapKeyframe, Keyframe, KeyframeDecider, KeyframeView};
 pub use options::{ActiveSetMode, KeyframeMapOptions};
 
@@ -362,10 +363,7 @@ impl KeyframeMap {
                 // Baked maps serve approximate mode without rebuilds; say what this costs.
                 tracing::info!(keyframes = ?ids, "exact mode: building the merged submap (tree + covariances) of a new active set");
             }
-            *cache = Some(Arc::new(MergedSubmap::build(
-                &frames,
-                &self.options.covariance,
-            )?));
+            *cache = Some(Arc::new(MergedSubmap::build(&frames, &self.options)?));
         }
         Ok(ActiveSet::new(&self.options, frames, cache.clone()))
     }

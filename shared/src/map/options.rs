@@ -42,6 +42,10 @@ pub struct KeyframeMapOptions {
     pub approximate_cov: bool,
     /// Inserting at pose p first evicts keyframes farther than this (metres); 0 = off.
     pub remove_frames_farther_than: f64,
+    /// Exact mode: fuse the merged submap's points that share a map-frame voxel of this
+    /// edge (metres) into their centroid weighted by the keyframes' point weights; 0 =
+    /// off (plain concatenation, ARCHITECTURE section 6).
+    pub fuse_voxel_size: f64,
 }
 
 impl Default for KeyframeMapOptions {
@@ -57,6 +61,7 @@ impl Default for KeyframeMapOptions {
             serialize_covariances: true,
             approximate_cov: false,
             remove_frames_farther_than: 0.0,
+            fuse_voxel_size: 0.0,
         }
     }
 }
@@ -80,6 +85,13 @@ impl KeyframeMapOptions {
             "remove-frames-farther-than",
             r,
             "a finite distance >= 0 m (0 = off)",
+        )?;
+        let f = self.fuse_voxel_size;
+        ensure(
+            f.is_finite() && f >= 0.0,
+            "fuse-voxel-size",
+            f,
+            "a finite voxel edge >= 0 m (0 = off)",
         )
     }
 

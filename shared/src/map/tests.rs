@@ -448,4 +448,87 @@ fn bad_input_is_an_error_not_a_panic() {
     assert!(
         matches!(KeyframeMap::new(bad), Err(MapError::Options(e)) if e.option == "max-view-angle-deg")
     );
+    let bad = KeyframeMapOptions {
+        fuse_voxel_size: -0.1,
+        ..KeyframeMapOptions::default()
+    };
+    assert!(
+        matches!(KeyframeMap::new(bad), Err(MapError::Options(e)) if e.option == "fuse-voxel-size")
+    );
+    let cov = crate::cov::CovOptions::default();
+    for (weights, named) in [
+        (vec![1, 2], "2 weights for 3 points"),
+        (vec![1, 0, 4], "point 1 has weight 0"),
+    ] {
+        let built = Keyframe::build_weighted(
+            9,
+            Pose::identity(),
+            0.0,
+            wall(1.0).select(&[0, 1, 2]),
+            Some(weights),
+            &cov,
+        );
+        assert!(matches!(built, Err(TreeError::MismatchedParts(m)) if m.contains(named)));
+    }
+}
+
+#[test]
+fn fused_exact_submap_is_the_voxelization_of_the_merged_raw_clouds() {
+    let mut rng = StdRng::seed_from_u64(11);
+    let voxel = 0.5;
+    let poses = [
+        pose(0.0, 0.0, 0.0),
+        pose(1.0, 0.5, 0.3),
+        pose(-0.5, 1.0, -0.4),
+    ];
+    let raw: Vec<PointCloud> = poses.iter().map(|_| random_cloud(&mut rng, 4000)).collect();
+    let options = KeyframeMapOptions {
+        fuse_voxel_size: voxel,
+        ..KeyframeMapOptions::default()
+    };
+    let mut map = KeyframeMap::new(options).unwrap();
+    for (i, (cloud, at)) in raw.iter().zip(&poses).enumerate() {
+        let v = cloud.voxelize(voxel, Some(at)).unwrap();
+        assert_eq!(v.counts.iter().sum::<u32>() as usize, cloud.len());
+        let k = Keyframe::build_weighted(
+            i as u64,
+            *at,
+            0.0,
+            v.cloud,
+            Some(v.counts),
+            &options.covariance,
+        );
+        map.insert_keyframe(k.unwrap()).unwrap();
+    }
+    // Oracle: every raw point in the map frame, grouped by voxel, averaged in f64.
+    let mut groups: std::collections::BTreeMap<[i64; 3], (Vector3<f64>, usize)> =
+        Default::default();
+    for (cloud, at) in raw.iter().zip(&poses) {
+        for p in &cloud.points {
+            let q = at * Point3::from(to_vec3(p));
+            let key = q.coords.map(|c| (c / voxel).floor() as i64);
+            let entry = groups.entry([key.x, key.y, key.z]).or_default();
+            entry.0 += q.coords;
+            entry.1 += 1;
+        }
+    }
+    let locals: Vec<Vec<[f32; 3]>> = (0..3)
+        .map(|id| map.keyframe(id).unwrap().view().unwrap().points.to_vec())
+        .collect();
+    let active = map.activate(&pose(0.2, 0.3, 0.0)).unwrap();
+    assert_eq!(active.ids(), &[0, 1, 2]);
+    let merged = active.merged().unwrap();
+    assert_eq!(merged.points.len(), groups.len());
+    for (i, (got, (sum, n))) in merged.points.iter().zip(groups.values()).enumerate() {
+        let want = sum / *n as f64;
+        assert!(
+            (to_vec3(got) - want).norm() < 1e-5,
+            "voxel {i}: {got:?} vs {want}"
+        );
+        // The fused point names a keyframe point of the same voxel.
+        let slot = merged.origin_keyframe[i] as usize;
+        let local = locals[slot][merged.origin_index[i] as usize];
+        let origin = poses[slot] * Point3::from(to_vec3(&local));
+        assert!(origin.coords.map(|c| (c / voxel).floor()) == want.map(|c| (c / voxel).floor()));
+    }
 }
