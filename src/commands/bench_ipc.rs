@@ -79,14 +79,17 @@ fn client(prefix: &str, spin: bool) -> anyhow::Result<Client> {
 struct Cov2CovRequest {
     header: RequestHeader,
     points: Vec<[f32; 3]>,
-    covariances: Vec<[f32; 6]>,
+    /// Sent by the client (as its GICP iterations do), or `None`: the default call,
+    /// the server estimates them from the scan.
+    covariances: Option<Vec<[f32; 6]>>,
 }
 
 impl Cov2CovRequest {
-    fn new() -> Self {
+    fn new(client_covariances: bool) -> Self {
         let points = synthetic_cloud(1234, 10_000).points;
-        let covariances =
-            kfmap_shared::cov::estimate_covariances(&points, &CovOptions::default()).values;
+        let covariances = client_covariances.then(|| {
+            kfmap_shared::cov::estimate_covariances(&points, &CovOptions::default()).values
+        });
         let header = RequestHeader {
             kind: RequestKind::Cov2Cov as u32,
             pose: pose_to_wire(&keyframe_pose(5)),
@@ -105,7 +108,7 @@ impl Cov2CovRequest {
         ScanPayload {
             points: &self.points,
             view_dirs: None,
-            covariances: Some(&self.covariances),
+            covariances: self.covariances.as_deref(),
         }
     }
 
@@ -124,7 +127,7 @@ impl Cov2CovRequest {
 
 /// Cov2cov requests for `seconds`; latencies in microseconds.
 fn hammer(client: &mut Client, seconds: f64) -> anyhow::Result<Vec<f64>> {
-    let request = Cov2CovRequest::new();
+    let request = Cov2CovRequest::new(true);
     let mut latencies = Vec::new();
     let started = Instant::now();
     while started.elapsed().as_secs_f64() < seconds {
@@ -141,8 +144,9 @@ fn ipc_against_in_process(
     client: &mut Client,
     map: &Path,
     seconds: f64,
-) -> anyhow::Result<(Vec<f64>, Vec<f64>, Vec<f64>)> {
-    let request = Cov2CovRequest::new();
+    client_covariances: bool,
+) -> anyhow::Result<Overhead> {
+    let request = Cov2CovRequest::new(client_covariances);
     let served = ServedMap::open(map, false, 0)?;
     let mut header = request.header;
     let payload = request.scan().encode(&mut header);
@@ -163,7 +167,42 @@ fn ipc_against_in_process(
         std::hint::black_box(answered.pairings.into_wire());
         local.push(t.elapsed().as_secs_f64() * 1e6);
     }
-    Ok((ipc, server, local))
+    Ok(Overhead {
+        ipc: p50_p99(ipc),
+        server_compute: p50_p99(server).0,
+        local: p50_p99(local),
+    })
+}
+
+/// Cov2cov over IPC against the same call in process: medians and p99, microseconds.
+struct Overhead {
+    ipc: (f64, f64),
+    server_compute: f64,
+    local: (f64, f64),
+}
+
+impl Overhead {
+    fn percent(&self) -> f64 {
+        (self.ipc.0 / self.local.0 - 1.0) * 100.0
+    }
+
+    fn json(&self) -> serde_json::Value {
+        json!({"ipc_p50_us": self.ipc.0, "ipc_p99_us": self.ipc.1,
+            "in_process_p50_us": self.local.0, "in_process_p99_us": self.local.1,
+            "server_compute_p50_us": self.server_compute, "overhead_percent": self.percent()})
+    }
+
+    fn line(&self, what: &str) -> String {
+        format!(
+            "cov2cov, 10k-point scan, {what}: IPC median {:.0} us (p99 {:.0}; the server's compute {:.0}), in process {:.0} us (p99 {:.0}): overhead {:.1} %",
+            self.ipc.0,
+            self.ipc.1,
+            self.server_compute,
+            self.local.0,
+            self.local.1,
+            self.percent()
+        )
+    }
 }
 
 /// Pause between isolated echo requests: long enough for both sides to fall asleep.
@@ -232,9 +271,8 @@ fn measure(map: &Path, prefix: &str, spin: bool, json_out: bool) -> anyhow::Resu
     }
 
     bar.set_message("cov2cov over IPC vs in process, alternated");
-    let (ipc, server_compute, local) = ipc_against_in_process(&mut c, map, 6.0)?;
-    let (ipc, local) = (p50_p99(ipc), p50_p99(local));
-    let server_compute = p50_p99(server_compute).0;
+    let sent = ipc_against_in_process(&mut c, map, 6.0, true)?;
+    let estimated = ipc_against_in_process(&mut c, map, 6.0, false)?;
 
     bar.set_message("throughput: 1 client, then 4 client processes");
     let one = hammer(&mut c, 5.0)?;
@@ -265,7 +303,6 @@ fn measure(map: &Path, prefix: &str, spin: bool, json_out: bool) -> anyhow::Resu
     drop(c);
     drop(server);
 
-    let overhead = (ipc.0 / local.0 - 1.0) * 100.0;
     if json_out {
         let echo_json: Vec<_> = echo
             .iter()
@@ -277,9 +314,8 @@ fn measure(map: &Path, prefix: &str, spin: bool, json_out: bool) -> anyhow::Resu
         let out = json!({
             "spin": spin,
             "echo": echo_json,
-            "cov2cov_10k": {"ipc_p50_us": ipc.0, "ipc_p99_us": ipc.1, "in_process_p50_us": local.0,
-                "in_process_p99_us": local.1, "server_compute_p50_us": server_compute,
-                "overhead_percent": overhead},
+            "cov2cov_10k": sent.json(),
+            "cov2cov_10k_server_covariances": estimated.json(),
             "throughput_10k_cov2cov": {"one_client_scans_per_s": one_rate, "one_client_p99_us": one_p99,
                 "four_clients_scans_per_s": four_rate, "four_clients_p99_us": four_p99},
         });
@@ -296,9 +332,10 @@ fn measure(map: &Path, prefix: &str, spin: bool, json_out: bool) -> anyhow::Resu
             ISOLATION.as_millis()
         );
     }
+    println!("{}", sent.line("client-sent covariances"));
     println!(
-        "cov2cov, 10k-point scan: IPC median {:.0} us (p99 {:.0}; the server's compute {server_compute:.0}), in process {:.0} us (p99 {:.0}): overhead {overhead:.1} %",
-        ipc.0, ipc.1, local.0, local.1
+        "{}",
+        estimated.line("the default call (the server estimates covariances)")
     );
     println!(
         "throughput, 10k-point cov2cov: 1 client {one_rate:.1} scans/s (p99 {:.1} ms), 4 client processes {four_rate:.1} scans/s (p99 {:.1} ms)",

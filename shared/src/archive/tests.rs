@@ -316,21 +316,22 @@ fn bad_files_are_named_errors() {
         ArchiveError::BadMagic
     ));
     let mut newer = good.clone();
-    newer[8] = 4;
+    newer[8] = 5;
     assert!(matches!(
         open_err(&write("newer", &newer)),
         ArchiveError::NewerVersion {
-            found: 4,
-            supported: 3
+            found: 5,
+            supported: 4
         }
     ));
-    // Version 1 held kiddo trees, version 2 no T_map_input: such maps are baked again.
-    for old in [1u8, 2] {
+    // Version 1 held kiddo trees, version 2 no T_map_input, version 3 no point weights:
+    // such maps are baked again.
+    for old in [1u8, 2, 3] {
         let mut older = good.clone();
         older[8] = old;
         assert!(matches!(
             open_err(&write("older", &older)),
-            ArchiveError::OldVersion { found, supported: 3 } if found == old as u32
+            ArchiveError::OldVersion { found, supported: 4 } if found == old as u32
         ));
     }
     let mut wide = good.clone();
