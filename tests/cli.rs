@@ -288,8 +288,7 @@ fn every_subcommand_help_has_an_example() {
 fn a_fused_bake_serves_the_voxelization_of_the_merged_scans() {
     use kfmap_shared::archive::{OpenOptions, open_map};
     use kfmap_shared::geometry::transform_point;
-    use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
-    use kfmap_shared::map::KeyframeDecider;
+    use kfmap_shared::io::{ReadOptions, read_cloud};
     use std::collections::BTreeMap;
     let (_tmp, sim) = simulated("fused");
     let config = sim.parent().unwrap().join("bake.toml");
@@ -314,15 +313,7 @@ fn a_fused_bake_serves_the_voxelization_of_the_merged_scans() {
     let mut map = open_map(&path, open).unwrap().map;
     let voxel = 0.1; // the shipped [keyframes] voxel-size
     assert_eq!(map.options().fuse_voxel_size, voxel);
-    // The scan behind each keyframe: the decider on the dataset's poses, as bake runs it.
-    let poses = read_trajectory(&sim.join("poses_gt.txt")).unwrap().poses;
-    let decider = KeyframeDecider::default();
-    let mut chosen: Vec<usize> = Vec::new();
-    for (i, p) in poses.iter().enumerate() {
-        if decider.should_create(chosen.iter().map(|&c| &poses[c]), p) {
-            chosen.push(i);
-        }
-    }
+    let chosen = keyframe_scans(&sim);
     let raw = |id: u64| {
         let scan = sim.join(format!("scans/{:06}.pcd", chosen[id as usize]));
         read_cloud(&scan, &ReadOptions::default()).unwrap().cloud
@@ -361,6 +352,24 @@ fn a_fused_bake_serves_the_voxelization_of_the_merged_scans() {
     }
 }
 
+/// The scan behind each keyframe `kfmap bake` makes of a dataset: the keyframe decider on
+/// its poses, as bake runs it.
+fn keyframe_scans(dataset: &std::path::Path) -> Vec<usize> {
+    use kfmap_shared::io::read_trajectory;
+    use kfmap_shared::map::KeyframeDecider;
+    let poses = read_trajectory(&dataset.join("poses_gt.txt"))
+        .unwrap()
+        .poses;
+    let decider = KeyframeDecider::default();
+    let mut chosen: Vec<usize> = Vec::new();
+    for (i, p) in poses.iter().enumerate() {
+        if decider.should_create(chosen.iter().map(|&c| &poses[c]), p) {
+            chosen.push(i);
+        }
+    }
+    chosen
+}
+
 /// A small simulated dataset in a test directory (removed when the first is dropped).
 fn simulated(test: &str) -> (TestDir, PathBuf) {
     let tmp = temp_dir(test);
@@ -384,7 +393,6 @@ fn simulated(test: &str) -> (TestDir, PathBuf) {
 #[test]
 fn bake_then_inspect_a_simulated_dataset() {
     use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
-    use kfmap_shared::map::KeyframeDecider;
     let (_tmp, sim) = simulated("bake");
     let map = sim.parent().unwrap().join("court.kfmap");
     let baked = json(&kfmap(&[
@@ -396,14 +404,8 @@ fn bake_then_inspect_a_simulated_dataset() {
         "--json",
     ]));
     // Oracle: the decider on the true poses, each chosen scan downsampled at 0.1 m.
+    let chosen = keyframe_scans(&sim);
     let poses = read_trajectory(&sim.join("poses_gt.txt")).unwrap().poses;
-    let decider = KeyframeDecider::default();
-    let mut chosen: Vec<usize> = Vec::new();
-    for (i, p) in poses.iter().enumerate() {
-        if decider.should_create(chosen.iter().map(|&c| &poses[c]), p) {
-            chosen.push(i);
-        }
-    }
     let points: usize = chosen
         .iter()
         .map(|i| {

@@ -42,19 +42,21 @@ pub(crate) fn voxel_groups(
         return Err(CloudError::BadVoxelSize(voxel_size));
     }
     let inv_size = 1.0 / voxel_size;
-    let cells: Vec<(u32, [i64; 3])> = (0..n)
+    let cell_of = |i: usize| Some(position(i)?.map(|c| cell(c, inv_size)));
+    // The occupied cells' range: keys are packed relative to its low corner.
+    let bounds = (0..n)
         .into_par_iter()
-        .filter_map(|i| Some((i as u32, position(i)?.map(|c| cell(c, inv_size)))))
-        .collect();
-    if cells.is_empty() {
+        .filter_map(cell_of)
+        .map(|c| (c, c))
+        .reduce_with(|(low, high), (a, b)| {
+            (
+                std::array::from_fn(|k| low[k].min(a[k])),
+                std::array::from_fn(|k| high[k].max(b[k])),
+            )
+        });
+    let Some((low, high)) = bounds else {
         return Ok(Vec::new());
-    }
-    let fold = |f: fn(i64, i64) -> i64, init: i64| {
-        cells.iter().fold([init; 3], |acc, (_, c)| {
-            std::array::from_fn(|axis| f(acc[axis], c[axis]))
-        })
     };
-    let (low, high) = (fold(i64::min, i64::MAX), fold(i64::max, i64::MIN));
     let widest = (0..3)
         .map(|axis| high[axis].saturating_sub(low[axis]).saturating_add(1))
         .max();
@@ -64,9 +66,9 @@ pub(crate) fn voxel_groups(
             cells: widest,
         });
     }
-    let mut keyed: Vec<(u64, u32)> = cells
-        .par_iter()
-        .map(|(i, c)| (packed_key(c, &low), *i))
+    let mut keyed: Vec<(u64, u32)> = (0..n)
+        .into_par_iter()
+        .filter_map(|i| Some((packed_key(&cell_of(i)?, &low), i as u32)))
         .collect();
     keyed.par_sort_unstable();
     Ok(keyed)
