@@ -34,6 +34,8 @@ pub mod options;
 pub mod pose_graph;
 pub mod protocol;
 pub mod registration;
+#[cfg(test)]
+mod scratch;
 pub mod select;
 pub mod sim;
 pub mod spatial;

@@ -9,27 +9,7 @@ use super::*;
 use crate::cloud::PointCloud;
 use crate::geometry::Pose;
 use crate::map::{Keyframe, KeyframeMap, KeyframeMapOptions, MapError};
-
-/// A scratch directory removed on drop; unique per test.
-pub(crate) struct Scratch(pub PathBuf);
-
-impl Scratch {
-    pub(crate) fn new(name: &str) -> Self {
-        let dir = std::env::temp_dir().join(format!("kfmap-archive-{name}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).unwrap();
-        Self(dir)
-    }
-    fn file(&self, name: &str) -> PathBuf {
-        self.0.join(name)
-    }
-}
-
-impl Drop for Scratch {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
+use crate::scratch::Scratch;
 
 fn pose(x: f64, y: f64, yaw: f64) -> Pose {
     Pose::new(Vector3::new(x, y, 0.0), Vector3::new(0.0, 0.0, yaw))
@@ -116,7 +96,7 @@ fn assert_same_answers(heap: &mut KeyframeMap, file: &mut KeyframeMap) {
 
 #[test]
 fn baked_and_heap_maps_answer_identically_in_both_modes() {
-    let dir = Scratch::new("identical");
+    let dir = Scratch::new("archive-identical");
     for approximate in [true, false] {
         let options = KeyframeMapOptions {
             approximate_cov: approximate,
@@ -152,7 +132,7 @@ fn baked_and_heap_maps_answer_identically_in_both_modes() {
 
 #[test]
 fn weighted_keyframes_and_their_fusion_survive_baking() {
-    let dir = Scratch::new("weighted");
+    let dir = Scratch::new("archive-weighted");
     let voxel = 0.4;
     let options = KeyframeMapOptions {
         fuse_voxel_size: voxel,
@@ -197,7 +177,7 @@ fn weighted_keyframes_and_their_fusion_survive_baking() {
 
 #[test]
 fn trees_and_covariances_left_out_are_rebuilt_on_first_use() {
-    let dir = Scratch::new("rebuilt");
+    let dir = Scratch::new("archive-rebuilt");
     let options = KeyframeMapOptions {
         serialize_kdtrees: false,
         serialize_covariances: false,
@@ -218,7 +198,7 @@ fn trees_and_covariances_left_out_are_rebuilt_on_first_use() {
 
 #[test]
 fn a_reopened_map_keeps_growing_like_the_original() {
-    let dir = Scratch::new("grow");
+    let dir = Scratch::new("archive-grow");
     let mut heap = sample_map(KeyframeMapOptions::default());
     let path = baked(&dir, &heap);
     let mut file = open_map(&path, OpenOptions::default()).unwrap().map;
@@ -257,7 +237,7 @@ fn a_reopened_map_keeps_growing_like_the_original() {
 
 #[test]
 fn gravity_pool_and_header_round_trip() {
-    let dir = Scratch::new("gravity");
+    let dir = Scratch::new("archive-gravity");
     let map = sample_map(KeyframeMapOptions::default());
     let pool = [GravityRecord {
         keyframe: 2,
@@ -286,7 +266,7 @@ fn open_err(path: &Path) -> ArchiveError {
 
 #[test]
 fn bad_files_are_named_errors() {
-    let dir = Scratch::new("bad");
+    let dir = Scratch::new("archive-bad");
     let path = baked(&dir, &sample_map(KeyframeMapOptions::default()));
     let good = std::fs::read(&path).unwrap();
     let write = |name: &str, bytes: &[u8]| {
@@ -393,7 +373,7 @@ fn bad_files_are_named_errors() {
 
 #[test]
 fn an_abandoned_write_leaves_nothing_behind() {
-    let dir = Scratch::new("abandon");
+    let dir = Scratch::new("archive-abandon");
     let map = sample_map(KeyframeMapOptions::default());
     let path = dir.file("map.kfmap");
     std::fs::write(&path, b"previous map").unwrap();
@@ -415,7 +395,7 @@ fn an_abandoned_write_leaves_nothing_behind() {
 fn small_file() -> &'static [u8] {
     static BYTES: std::sync::OnceLock<Vec<u8>> = std::sync::OnceLock::new();
     BYTES.get_or_init(|| {
-        let dir = Scratch::new("small");
+        let dir = Scratch::new("archive-small");
         let mut rng = StdRng::seed_from_u64(8);
         let mut map = KeyframeMap::new(KeyframeMapOptions::default()).unwrap();
         map.insert(cloud(&mut rng, 150, true), pose(0.0, 0.0, 0.0), 0.0)

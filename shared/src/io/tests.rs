@@ -1,4 +1,5 @@
 use super::*;
+use crate::scratch::Scratch;
 
 fn sample_cloud(with_attributes: bool) -> PointCloud {
     let points: Vec<[f32; 3]> = (0..500)
@@ -26,14 +27,9 @@ fn sample_cloud(with_attributes: bool) -> PointCloud {
     cloud
 }
 
-fn temp_path(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("kfmap-io-test-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir.join(name)
-}
-
 #[test]
 fn every_writer_round_trips_through_its_reader() {
+    let dir = Scratch::new("io-round-trip");
     let formats = [
         (CloudFormat::Pcd(PcdData::Ascii), "a.pcd", true),
         (CloudFormat::Pcd(PcdData::Binary), "b.pcd", true),
@@ -52,7 +48,7 @@ fn every_writer_round_trips_through_its_reader() {
     };
     for (format, name, attrs) in formats {
         let cloud = sample_cloud(attrs);
-        let path = temp_path(name);
+        let path = dir.file(name);
         write_cloud(&path, &cloud, format).unwrap();
         let back = read_cloud(&path, &options).unwrap();
         assert_eq!(back.format, format);
@@ -62,7 +58,7 @@ fn every_writer_round_trips_through_its_reader() {
     }
     let mut kitti = sample_cloud(false);
     kitti.intensity = Some((0..kitti.len()).map(|i| i as f32 * 0.5).collect());
-    let path = temp_path("k.bin");
+    let path = dir.file("k.bin");
     write_cloud(&path, &kitti, CloudFormat::Bin(BinLayout::Xyzi)).unwrap();
     assert_eq!(
         read_cloud(&path, &ReadOptions::default()).unwrap().cloud,
@@ -72,10 +68,11 @@ fn every_writer_round_trips_through_its_reader() {
 
 #[test]
 fn sidecar_selects_the_bin_layout() {
+    let dir = Scratch::new("io-sidecar");
     let cloud = sample_cloud(false);
-    let path = temp_path("side.bin");
+    let path = dir.file("side.bin");
     std::fs::write(&path, write_bin(&cloud, BinLayout::Xyz)).unwrap();
-    std::fs::write(temp_path("side.bin.layout"), "xyz\n").unwrap();
+    std::fs::write(dir.file("side.bin.layout"), "xyz\n").unwrap();
     let back = read_cloud(&path, &ReadOptions::default()).unwrap();
     assert_eq!(back.format, CloudFormat::Bin(BinLayout::Xyz));
     assert_eq!(back.cloud.points, cloud.points);
@@ -83,6 +80,7 @@ fn sidecar_selects_the_bin_layout() {
 
 #[test]
 fn truncated_and_malformed_files_are_errors_naming_the_place() {
+    let dir = Scratch::new("io-malformed");
     let cloud = sample_cloud(true);
     let cases: Vec<(&str, Vec<u8>, &str)> = vec![
         ("trunc.pcd", { let b = write_pcd(&cloud, PcdData::Binary); b[..b.len() - 7].to_vec() }, "truncated"),
@@ -97,14 +95,14 @@ fn truncated_and_malformed_files_are_errors_naming_the_place() {
         ("liar.pcd", b"FIELDS x y z\nPOINTS 1000000000000000\nDATA binary\n\0\0\0\0".to_vec(), "truncated"),
     ];
     for (name, bytes, expect) in cases {
-        let path = temp_path(name);
+        let path = dir.file(name);
         std::fs::write(&path, &bytes).unwrap();
         let err = read_cloud(&path, &ReadOptions::default())
             .unwrap_err()
             .to_string();
         assert!(err.contains(name) && err.contains(expect), "{name}: {err}");
     }
-    let err = read_cloud(&temp_path("missing.pcd"), &ReadOptions::default())
+    let err = read_cloud(&dir.file("missing.pcd"), &ReadOptions::default())
         .unwrap_err()
         .to_string();
     assert!(err.contains("missing.pcd"), "{err}");
@@ -133,10 +131,11 @@ fn pcd_reader_handles_mixed_types_counts_and_field_order() {
 
 #[test]
 fn filter_is_applied_on_load_and_reported() {
+    let dir = Scratch::new("io-filter");
     let mut cloud = sample_cloud(false);
     cloud.points[3] = [0.0; 3];
     cloud.points[7] = [0.01, 0.0, 0.0];
-    let path = temp_path("filtered.pcd");
+    let path = dir.file("filtered.pcd");
     write_cloud(&path, &cloud, CloudFormat::Pcd(PcdData::Binary)).unwrap();
     let loaded = read_cloud(&path, &ReadOptions::default()).unwrap();
     let report = loaded.filter.unwrap();

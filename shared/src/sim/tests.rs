@@ -2,6 +2,7 @@ use nalgebra::{Point3, UnitQuaternion, Vector3};
 
 use super::*;
 use crate::io::{ReadOptions, read_cloud};
+use crate::scratch::Scratch;
 
 fn ray(origin: Vector3<f64>, dir: Vector3<f64>) -> Ray {
     Ray {
@@ -172,12 +173,6 @@ fn static_accelerometer_reads_the_tilted_gravity() {
     assert!((config.gravity_map().norm() - GRAVITY).abs() < 1e-12);
 }
 
-fn temp_dir(name: &str) -> std::path::PathBuf {
-    let dir = std::env::temp_dir().join(format!("kfmap-sim-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    dir
-}
-
 fn all_files(dir: &std::path::Path) -> Vec<(String, Vec<u8>)> {
     let mut out = Vec::new();
     for sub in ["", "scans"] {
@@ -207,7 +202,8 @@ fn same_seed_gives_byte_identical_datasets() {
         },
         ..SimConfig::default()
     };
-    let (a, b, c) = (temp_dir("det-a"), temp_dir("det-b"), temp_dir("det-c"));
+    let scratch = Scratch::new("sim-deterministic");
+    let (a, b, c) = (scratch.file("a"), scratch.file("b"), scratch.file("c"));
     let quiet = |_: usize, _: usize| {};
     write_dataset(config.clone(), &a, false, &quiet).unwrap();
     // Built on one thread the second time: the bytes must not depend on scheduling.
@@ -247,7 +243,8 @@ fn raw_scans_read_back_with_view_directions_toward_the_sensor() {
     }
     .without_noise();
     config.lidar.deskew = false;
-    let dir = temp_dir("raw");
+    let scratch = Scratch::new("sim-raw");
+    let dir = scratch.file("raw");
     write_dataset(config, &dir, false, &|_, _| {}).unwrap();
     let loaded = read_cloud(&dir.join("scans/000001.pcd"), &ReadOptions::default()).unwrap();
     let cloud = loaded.cloud;
