@@ -12,7 +12,9 @@ use crate::KeyframeId;
 use crate::archive::ArchiveError;
 use crate::cloud::{Aabb, CloudError, PointCloud, grid_position, unit_or_zero, voxel_groups};
 use crate::cov::estimate_covariances;
-use crate::geometry::{PackedSym3, Pose, pack_sym3, to_point, to_vec3, unpack_sym3};
+use crate::geometry::{
+    PackedSym3, Pose, pack_sym3, to_point, to_vec3, transform_point, unpack_sym3,
+};
 use crate::spatial::{PointTree, TreeRef, build_tree};
 
 /// The active keyframes' points concatenated in ascending id order, in the map frame,
@@ -52,8 +54,8 @@ impl Concatenated {
         let mut all = Self::default();
         for (slot, f) in frames.iter().enumerate() {
             for (i, p) in f.view.points.iter().enumerate() {
-                all.points
-                    .push(to_point(&(f.pose * Point3::from(to_vec3(p))).coords));
+                // The same arithmetic as `grid_position`, which fusion keys by.
+                all.points.push(to_point(&transform_point(&f.pose, p)));
                 all.origin_keyframe.push(slot as u32);
                 all.origin_index.push(i as u32);
                 let v = f
