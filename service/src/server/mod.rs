@@ -1,10 +1,11 @@
 //! `kfmap serve`: one process owns a baked map and answers clients over iceoryx2
-//! (ARCHITECTURE sections 1 and 11). The main thread waits on a WaitSet (or spins) and
-//! queues requests per client; a worker pool answers them round-robin; a client that
-//! dies loses its session; SIGINT/SIGTERM end the loop gracefully; SIGHUP or a
-//! `Reload` request swaps in a new map file.
+//! (ARCHITECTURE sections 1 and 11). A worker pool takes turns waiting for requests
+//! (or spinning) and queues them per client; the workers answer them round-robin; the
+//! main thread reclaims the sessions of clients that died, ends the loop gracefully on
+//! SIGINT/SIGTERM, and swaps in a new map file on SIGHUP (or a `Reload` request).
 
 pub mod answer;
+mod leader;
 mod queue;
 pub mod session;
 pub mod state;
@@ -21,7 +22,6 @@ use iceoryx2::node::{Node, NodeView};
 use iceoryx2::prelude::{CallbackProgression, NodeState, PortFactory, WaitSetBuilder};
 use iceoryx2::waitset::WaitSetRunResult;
 use kfmap_shared::archive::ArchiveError;
-use kfmap_shared::protocol::RequestKind;
 use kfmap_shared::protocol::transport::{
     ALLOCATION, INITIAL_SLICE_LEN, Transport, TransportError, create_node, iceoryx_config, iox,
     open_request_event, open_response_event, open_rpc,
@@ -30,6 +30,7 @@ use tracing::{info, warn};
 
 use crate::config::ServerConfig;
 use answer::Limits;
+use leader::Requests;
 use queue::FairQueue;
 use session::Sessions;
 pub use state::{MapSlot, ServedMap};
@@ -41,10 +42,6 @@ use workers::{Job, WorkerContext};
 pub const MIN_SHM_FREE_BYTES: u64 = 64 << 20;
 /// How often dead clients are looked for and reload signals checked.
 const HOUSEKEEPING: Duration = Duration::from_millis(250);
-/// After a request the receiving thread keeps polling this long before it sleeps again:
-/// a client sending back to back is then served without a wake-up (tens of
-/// microseconds on virtual machines).
-const POLL_AFTER_REQUEST: Duration = Duration::from_micros(50);
 
 /// How to serve.
 #[derive(Debug, Clone)]
@@ -221,6 +218,10 @@ pub fn serve(
         .notifier_builder()
         .create()
         .map_err(iox("create the response notifier"))?;
+    let wake_leader = open_request_event(&node, &options.map_name)?
+        .notifier_builder()
+        .create()
+        .map_err(iox("create the shutdown notifier"))?;
     let hangup = Arc::new(AtomicBool::new(false));
     if let Err(e) = signal_hook::flag::register(signal_hook::consts::SIGHUP, hangup.clone()) {
         warn!(error = %e, "SIGHUP reload is unavailable");
@@ -256,15 +257,15 @@ pub fn serve(
     info!(map = %options.map_name, keyframes = info_line.keyframes, points = info_line.points, workers, "serving");
     ready(&info_line);
 
+    let requests = Requests {
+        server: &server,
+        listener: &listener,
+        spin: options.spin,
+    };
     let refused = std::thread::scope(|scope| -> Result<usize, ServeError> {
         for _ in 0..workers {
-            scope.spawn(|| {
-                while let Some(job) = queue.pop() {
-                    context.handle(job);
-                }
-            });
+            scope.spawn(|| leader::work(&context, &queue, &requests));
         }
-        let mut last_housekeeping = Instant::now();
         let housekeeping = || {
             let alive = live_nodes(&node, &config);
             let dropped = context.sessions.retain_alive(&alive);
@@ -276,89 +277,44 @@ pub fn serve(
                 let _ = context.reload();
             }
         };
-        let drain = || {
-            let mut received = 0;
-            while let Ok(Some(request)) = server.receive() {
-                received += 1;
-                let header = request.user_header();
-                if header.kind == RequestKind::Echo as u32 {
-                    // No work to schedule: answered here, it measures the transport alone.
-                    context.handle(Job::new(request));
-                    continue;
-                }
-                let client = session::client_of(header.client_node);
-                queue.push(client, Job::new(request));
-            }
-            received
-        };
-        let drain_and_poll = || {
-            let mut last = Instant::now();
-            if drain() == 0 {
-                return;
-            }
-            while last.elapsed() < POLL_AFTER_REQUEST {
-                if drain() > 0 {
-                    last = Instant::now();
-                }
-                // Yield, not spin: the client may share this core.
-                std::thread::yield_now();
-            }
-        };
-        if options.spin {
-            while !stop.load(Ordering::Relaxed) && node.wait(Duration::ZERO).is_ok() {
-                let _ = drain();
-                if last_housekeeping.elapsed() >= HOUSEKEEPING {
+        let waitset = WaitSetBuilder::new()
+            .create::<Transport>()
+            .map_err(iox("create the WaitSet"))?;
+        let tick = waitset
+            .attach_interval(HOUSEKEEPING)
+            .map_err(iox("attach the housekeeping interval"))?;
+        loop {
+            let result = waitset.wait_and_process_once(|id| {
+                if id.has_event_from(&tick) {
                     housekeeping();
-                    last_housekeeping = Instant::now();
                 }
-                std::hint::spin_loop();
-            }
-        } else {
-            let waitset = WaitSetBuilder::new()
-                .create::<Transport>()
-                .map_err(iox("create the WaitSet"))?;
-            let requests = waitset
-                .attach_notification(&listener)
-                .map_err(iox("attach the request listener"))?;
-            let tick = waitset
-                .attach_interval(HOUSEKEEPING)
-                .map_err(iox("attach the housekeeping interval"))?;
-            loop {
-                let result = waitset.wait_and_process_once(|id| {
-                    if id.has_event_from(&requests) {
-                        let _ = listener.try_wait(|_| {});
-                    }
-                    if id.has_event_from(&tick) {
-                        housekeeping();
-                    }
-                    CallbackProgression::Continue
-                });
-                // Always look: a notification may carry several requests, or none.
-                drain_and_poll();
-                match result {
-                    Ok(WaitSetRunResult::AllEventsHandled) if !stop.load(Ordering::Relaxed) => {}
-                    // A SIGHUP also interrupts the wait; it asks for a reload, not an exit.
-                    Ok(WaitSetRunResult::Interrupt) if hangup.load(Ordering::Relaxed) => {
-                        housekeeping();
-                    }
-                    Ok(_) => break,
-                    Err(e) => {
-                        warn!(error = ?e, "WaitSet failed; shutting down");
-                        break;
-                    }
+                CallbackProgression::Continue
+            });
+            match result {
+                Ok(WaitSetRunResult::AllEventsHandled) if !stop.load(Ordering::Relaxed) => {}
+                // A SIGHUP also interrupts the wait; it asks for a reload, not an exit.
+                Ok(WaitSetRunResult::Interrupt) if hangup.load(Ordering::Relaxed) => {
+                    housekeeping();
+                }
+                Ok(_) => break,
+                Err(e) => {
+                    warn!(error = ?e, "WaitSet failed; shutting down");
+                    break;
                 }
             }
         }
         info!("shutting down: refusing queued requests, finishing those in flight");
-        // Requests that arrived since the last look are refused by name too.
-        let _ = drain();
         let left = queue.close();
         let refused = left.len();
         for job in left {
             context.refuse_shutting_down(job);
         }
+        // The leader may be asleep on the listener.
+        let _ = wake_leader.notify();
         Ok(refused)
     })?;
+    // Requests that arrived while the workers stopped are refused by name too.
+    let refused = refused + requests.drain(&context, &queue).refused;
     let figures = context.stats.figures().to_vec();
     Ok(ServeSummary {
         figures,

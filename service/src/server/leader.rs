@@ -1,0 +1,109 @@
+//! Leader/followers: every worker runs the same loop. The one holding the leader's
+//! turn waits for requests and queues them, then answers the next one itself, so a
+//! request meets a thread already awake (a thread hand-off costs tens of
+//! microseconds on virtual machines); a follower takes the turn meanwhile.
+
+use std::time::{Duration, Instant};
+
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::server::Server;
+use kfmap_shared::protocol::transport::Transport;
+use kfmap_shared::protocol::{RequestHeader, RequestKind, ResponseHeader, WirePairing};
+
+use super::queue::{FairQueue, Turn};
+use super::session;
+use super::workers::{Job, WorkerContext};
+
+/// After an echo the leader keeps polling this long before it sleeps again: a client
+/// sending back to back is then served without a wake-up.
+const POLL_AFTER_ECHO: Duration = Duration::from_micros(50);
+/// The leader looks at the queue's state at least this often while waiting.
+const LEADER_WAKE: Duration = Duration::from_millis(250);
+
+/// The server's request port.
+pub type RequestServer = Server<Transport, [f32], RequestHeader, [WirePairing], ResponseHeader>;
+
+/// What one look at the request port did.
+#[derive(Debug, Default)]
+pub struct Drained {
+    /// Requests queued for the workers.
+    pub queued: usize,
+    /// Echoes answered at once.
+    pub echoed: usize,
+    /// Requests refused because the server is shutting down.
+    pub refused: usize,
+}
+
+/// Where requests come from.
+pub struct Requests<'a> {
+    /// The request-response port.
+    pub server: &'a RequestServer,
+    /// Woken by clients after each request (and by the server at shutdown).
+    pub listener: &'a Listener<Transport>,
+    /// Poll instead of sleeping.
+    pub spin: bool,
+}
+
+impl Requests<'_> {
+    /// Takes every received request: echoes are answered at once, the rest queued;
+    /// after the queue closed they are refused.
+    pub fn drain(&self, context: &WorkerContext, queue: &FairQueue<Job>) -> Drained {
+        let mut drained = Drained::default();
+        while let Ok(Some(request)) = self.server.receive() {
+            let header = request.user_header();
+            if header.kind == RequestKind::Echo as u32 {
+                // No work to schedule: answered here, it measures the transport alone.
+                context.handle(Job::new(request));
+                drained.echoed += 1;
+                continue;
+            }
+            let client = session::client_of(header.client_node);
+            match queue.push(client, Job::new(request)) {
+                Ok(()) => drained.queued += 1,
+                Err(job) => {
+                    context.refuse_shutting_down(job);
+                    drained.refused += 1;
+                }
+            }
+        }
+        drained
+    }
+
+    /// The leader's turn: returns once work is queued or the queue closed.
+    fn lead(&self, context: &WorkerContext, queue: &FairQueue<Job>) {
+        let mut last_echo: Option<Instant> = None;
+        while !queue.is_closed() {
+            let drained = self.drain(context, queue);
+            if drained.queued > 0 {
+                return;
+            }
+            if drained.echoed > 0 {
+                last_echo = Some(Instant::now());
+            }
+            if self.spin {
+                std::hint::spin_loop();
+            } else if last_echo.is_some_and(|t| t.elapsed() < POLL_AFTER_ECHO) {
+                // Yield, not spin: the client may share this core.
+                std::thread::yield_now();
+            } else {
+                last_echo = None;
+                // A notification that came after the drain returns at once.
+                let _ = self.listener.timed_wait(|_| {}, LEADER_WAKE);
+            }
+        }
+    }
+}
+
+/// One worker's loop until the queue closes.
+pub fn work(context: &WorkerContext, queue: &FairQueue<Job>, requests: &Requests) {
+    loop {
+        match queue.next() {
+            Turn::Work(job) => context.handle(job),
+            Turn::Lead => {
+                requests.lead(context, queue);
+                queue.resign();
+            }
+            Turn::Closed => return,
+        }
+    }
+}
