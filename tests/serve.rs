@@ -43,6 +43,11 @@ struct Site {
 /// A site and a `kfmap serve` on its map (`server_toml`: a server.toml body, or "").
 /// Bind as `let (site, server)`: the server is dropped (killed) before the site.
 fn served(test: &str, server_toml: &str) -> (Site, Server) {
+    served_with(test, server_toml, &[])
+}
+
+/// As [`served`], with more `kfmap serve` arguments.
+fn served_with(test: &str, server_toml: &str, extra: &[&str]) -> (Site, Server) {
     let prefix = Prefix::new(test);
     let dir = temp_dir(test);
     let data = dir.join("sim");
@@ -51,12 +56,8 @@ fn served(test: &str, server_toml: &str) -> (Site, Server) {
     bake_dataset(&data, &map);
     let config = dir.join("server.toml");
     std::fs::write(&config, server_toml).unwrap();
-    let server = Server::start(
-        &map,
-        "court",
-        &prefix.0,
-        &["--config", config.to_str().unwrap()],
-    );
+    let args = [&["--config", config.to_str().unwrap()], extra].concat();
+    let server = Server::start(&map, "court", &prefix.0, &args);
     let site = Site {
         prefix,
         data,
@@ -149,6 +150,38 @@ fn ipc_answers_equal_in_process_answers_bit_for_bit() {
         assert_eq!(ipc.pairings, local, "{mode:?}");
         assert!(!ipc.active.is_empty());
     }
+}
+
+#[test]
+fn a_spinning_server_answers_as_the_library_does_and_stops_on_sigterm() {
+    let (site, server) = served_with("spin", "", &["--spin"]);
+    let spinning = ClientOptions {
+        spin: true,
+        ..options(&site.prefix)
+    };
+    let mut client = Client::connect("court", spinning).unwrap();
+    let served = ServedMap::open(&site.map, false, 0).unwrap();
+    let (cloud, truth) = scan(&site.data, 9);
+    let plain = ScanPayload {
+        points: &cloud.points,
+        view_dirs: None,
+        covariances: None,
+    };
+    let nearest = RequestHeader {
+        kind: RequestKind::Nearest as u32,
+        k: 2,
+        pose: pose_to_wire(&truth),
+        ..Default::default()
+    };
+    // Back to back, so that the spinning leader, not a woken one, takes most of them.
+    for _ in 0..20 {
+        let ipc = client.nearest(&cloud.points, &truth, 2).unwrap();
+        assert_eq!(ipc, in_process(&served, &nearest, &plain));
+    }
+    drop(client);
+    let (status, log) = server.stop();
+    assert!(status.success(), "{log}");
+    assert!(log.contains("20 requests"), "{log}");
 }
 
 #[test]

@@ -39,7 +39,8 @@ pub struct Args {
     /// server.toml (defaults: config/server.toml as shipped).
     #[arg(long)]
     config: Option<PathBuf>,
-    /// Poll for requests instead of sleeping on events: lower latency, one core busy.
+    /// Poll for requests instead of sleeping on events: lower latency, one core busy
+    /// (computations lose that core: on 2 cores a cov2cov takes about twice as long).
     #[arg(long)]
     spin: bool,
     /// Skip bytechecks of keyframe archives on first use (checksums are still verified).
