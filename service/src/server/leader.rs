@@ -30,8 +30,6 @@ pub struct Drained {
     pub queued: usize,
     /// Echoes answered at once.
     pub echoed: usize,
-    /// Requests refused because the server is shutting down.
-    pub refused: usize,
 }
 
 /// Where requests come from.
@@ -46,7 +44,7 @@ pub struct Requests<'a> {
 
 impl Requests<'_> {
     /// Takes every received request: echoes are answered at once, the rest queued;
-    /// after the queue closed they are refused.
+    /// once the queue is closed they are refused.
     pub fn drain(&self, context: &WorkerContext, queue: &FairQueue<Job>) -> Drained {
         let mut drained = Drained::default();
         while let Ok(Some(request)) = self.server.receive() {
@@ -60,10 +58,8 @@ impl Requests<'_> {
             let client = session::client_of(header.client_node);
             match queue.push(client, Job::new(request)) {
                 Ok(()) => drained.queued += 1,
-                Err(job) => {
-                    context.refuse_shutting_down(job);
-                    drained.refused += 1;
-                }
+                // Closed: the queue counts it as turned away.
+                Err(job) => context.refuse_shutting_down(job),
             }
         }
         drained
@@ -88,7 +84,10 @@ impl Requests<'_> {
             } else {
                 last_echo = None;
                 // A notification that came after the drain returns at once.
-                let _ = self.listener.timed_wait(|_| {}, LEADER_WAKE);
+                if self.listener.timed_wait(|_| {}, LEADER_WAKE).is_err() {
+                    // Interrupted by a signal, or worse: never a busy loop.
+                    std::thread::sleep(Duration::from_millis(1));
+                }
             }
         }
     }

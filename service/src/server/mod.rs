@@ -262,7 +262,14 @@ pub fn serve(
         listener: &listener,
         spin: options.spin,
     };
-    let refused = std::thread::scope(|scope| -> Result<usize, ServeError> {
+    // Made before the workers start: a failure must not leave them running.
+    let waitset = WaitSetBuilder::new()
+        .create::<Transport>()
+        .map_err(iox("create the WaitSet"))?;
+    let tick = waitset
+        .attach_interval(HOUSEKEEPING)
+        .map_err(iox("attach the housekeeping interval"))?;
+    let never_started = std::thread::scope(|scope| {
         for _ in 0..workers {
             scope.spawn(|| leader::work(&context, &queue, &requests));
         }
@@ -277,12 +284,6 @@ pub fn serve(
                 let _ = context.reload();
             }
         };
-        let waitset = WaitSetBuilder::new()
-            .create::<Transport>()
-            .map_err(iox("create the WaitSet"))?;
-        let tick = waitset
-            .attach_interval(HOUSEKEEPING)
-            .map_err(iox("attach the housekeeping interval"))?;
         loop {
             let result = waitset.wait_and_process_once(|id| {
                 if id.has_event_from(&tick) {
@@ -305,16 +306,17 @@ pub fn serve(
         }
         info!("shutting down: refusing queued requests, finishing those in flight");
         let left = queue.close();
-        let refused = left.len();
+        let never_started = left.len();
         for job in left {
             context.refuse_shutting_down(job);
         }
         // The leader may be asleep on the listener.
         let _ = wake_leader.notify();
-        Ok(refused)
-    })?;
+        never_started
+    });
     // Requests that arrived while the workers stopped are refused by name too.
-    let refused = refused + requests.drain(&context, &queue).refused;
+    requests.drain(&context, &queue);
+    let refused = never_started + queue.turned_away();
     let figures = context.stats.figures().to_vec();
     Ok(ServeSummary {
         figures,

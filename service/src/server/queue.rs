@@ -13,6 +13,8 @@ struct State<T> {
     /// A worker is waiting for requests.
     led: bool,
     closed: bool,
+    /// Items handed back by `push` after closing.
+    turned_away: usize,
 }
 
 /// What a worker does next.
@@ -40,6 +42,7 @@ impl<T> Default for FairQueue<T> {
                 turn: VecDeque::new(),
                 led: false,
                 closed: false,
+                turned_away: 0,
             }),
             changed: Condvar::new(),
         }
@@ -51,6 +54,7 @@ impl<T> FairQueue<T> {
     pub fn push(&self, client: u128, item: T) -> Result<(), T> {
         let mut s = self.lock();
         if s.closed {
+            s.turned_away += 1;
             return Err(item);
         }
         let queue = s.queues.entry(client).or_default();
@@ -86,6 +90,11 @@ impl<T> FairQueue<T> {
     pub fn resign(&self) {
         self.lock().led = false;
         self.changed.notify_one();
+    }
+
+    /// Items `push` handed back since closing.
+    pub fn turned_away(&self) -> usize {
+        self.lock().turned_away
     }
 
     /// True once closed.
@@ -144,6 +153,7 @@ mod tests {
         assert_eq!(left.len(), 3);
         assert_eq!(q.next(), Turn::Closed);
         assert_eq!(q.push(1, ("a", 9)), Err(("a", 9)));
+        assert_eq!(q.turned_away(), 1);
     }
 
     #[test]
