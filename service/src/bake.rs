@@ -294,20 +294,13 @@ fn load_scan(
     config: &BakeConfig,
     pose: &Pose,
 ) -> Result<(PointCloud, Option<Vec<u32>>), BakeError> {
-    let cloud = load_raw_scan(path, config)?;
-    let voxel = config.keyframes.voxel_size;
     let fused = config.map.fuse_overlapping_keyframes;
-    let (cloud, weights) = if voxel > 0.0 {
-        let v = cloud
-            .voxelize(voxel, fused.then_some(pose))
-            .map_err(|e| BakeError::Scan {
-                path: path.to_path_buf(),
-                message: e.to_string(),
-            })?;
-        (v.cloud, fused.then_some(v.counts))
-    } else {
-        (cloud, None)
-    };
+    let (cloud, weights) = load_raw_scan(path, config)?
+        .into_keyframe_points(config.keyframes.voxel_size, fused.then_some(pose))
+        .map_err(|e| BakeError::Scan {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        })?;
     if cloud.is_empty() {
         return Err(BakeError::Scan {
             path: path.to_path_buf(),

@@ -414,20 +414,17 @@ mod tests {
                 && err.contains("[3, k-correspondences-for-cov = 20]"),
             "{err}"
         );
-        let err = BakeConfig::from_toml("[filter]\nmin-range = -1\n", Path::new("b.toml"))
-            .unwrap_err()
-            .to_string();
+        let bake_error = |toml: &str| {
+            BakeConfig::from_toml(toml, Path::new("b.toml"))
+                .unwrap_err()
+                .to_string()
+        };
+        let err = bake_error("[filter]\nmin-range = -1\n");
         assert!(err.contains("min-range") && err.contains(">= 0"), "{err}");
-        let err = BakeConfig::from_toml("[input]\nbin-layout = \"xyzrgb\"\n", Path::new("b.toml"))
-            .unwrap_err()
-            .to_string();
+        let err = bake_error("[input]\nbin-layout = \"xyzrgb\"\n");
         assert!(err.contains("xyzrgb") && err.contains("xyzi"), "{err}");
-        let err = BakeConfig::from_toml(
-            "[keyframes]\nvoxel-size = 0\n[map]\nfuse-overlapping-keyframes = true\n",
-            Path::new("b.toml"),
-        )
-        .unwrap_err()
-        .to_string();
+        let err =
+            bake_error("[keyframes]\nvoxel-size = 0\n[map]\nfuse-overlapping-keyframes = true\n");
         assert!(
             err.contains("[map]") && err.contains("fuse-overlapping-keyframes"),
             "{err}"

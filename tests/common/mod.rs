@@ -182,7 +182,8 @@ pub fn bake_map(path: &Path, keyframes: &[(PointCloud, Pose)], voxel: f64) {
 }
 
 /// As [`bake_map`] with other map options. With `fuse_voxel_size` set, keyframes are
-/// voxelized on the map's grid with their counts, as `kfmap bake` does when fusing.
+/// voxelized on the map's grid with their counts, as `kfmap bake` does when fusing
+/// (the same `PointCloud::into_keyframe_points`).
 pub fn bake_map_with(
     path: &Path,
     keyframes: &[(PointCloud, Pose)],
@@ -192,12 +193,10 @@ pub fn bake_map_with(
     let mut map = KeyframeMap::new(options).unwrap();
     let fused = options.fuse_voxel_size > 0.0;
     for (i, (cloud, pose)) in keyframes.iter().enumerate() {
-        let (cloud, weights) = if voxel > 0.0 {
-            let v = cloud.voxelize(voxel, fused.then_some(pose)).unwrap();
-            (v.cloud, fused.then_some(v.counts))
-        } else {
-            (cloud.clone(), None)
-        };
+        let (cloud, weights) = cloud
+            .clone()
+            .into_keyframe_points(voxel, fused.then_some(pose))
+            .unwrap();
         let id = i as u64;
         let keyframe =
             Keyframe::build_weighted(id, *pose, i as f64, cloud, weights, &options.covariance);

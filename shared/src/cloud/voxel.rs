@@ -151,6 +151,21 @@ impl PointCloud {
         }
         Ok(Voxelized { cloud: out, counts })
     }
+
+    /// The scan as a keyframe keeps it: voxelized at `voxel_size` (0 = as it is); with
+    /// `map_from_cloud`, on the map frame's grid and with each point's raw count, the
+    /// weights the fusion of overlapping keyframes needs.
+    pub fn into_keyframe_points(
+        self,
+        voxel_size: f64,
+        map_from_cloud: Option<&Pose>,
+    ) -> Result<(PointCloud, Option<Vec<u32>>), CloudError> {
+        if voxel_size == 0.0 {
+            return Ok((self, None));
+        }
+        let v = self.voxelize(voxel_size, map_from_cloud)?;
+        Ok((v.cloud, map_from_cloud.map(|_| v.counts)))
+    }
 }
 
 #[cfg(test)]
