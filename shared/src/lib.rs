@@ -29,6 +29,7 @@ pub mod imu;
 pub mod io;
 pub mod map;
 pub mod mapping;
+pub mod motion;
 pub mod neighbourhoods;
 pub mod options;
 pub mod pose_graph;
