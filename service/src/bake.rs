@@ -16,9 +16,9 @@ use kfmap_shared::map::{Keyframe, KeyframeMapOptions};
 use rayon::prelude::*;
 
 use kfmap_shared::mapping::{
-    BuildParams, GlobalError, Stage, absolute_trajectory_error, build_trajectory,
+    GlobalError, OdometryOutcome, Stage, absolute_trajectory_error, build_trajectory,
 };
-use kfmap_shared::registration::RegistrationError;
+use kfmap_shared::registration::{Fitness, RegistrationError};
 
 use crate::config::BakeConfig;
 use crate::gravity::{BakeGravity, GravityError, POSE_FILES, bake_gravity, find_in};
@@ -123,8 +123,30 @@ pub struct MappingSummary {
     pub poses: Vec<Pose>,
     /// Keyframe ATE against the dataset's pose file, metres, when there is one.
     pub ate: Option<f64>,
+    /// ATE of every scan's pose against the pose file, metres.
+    pub ate_scans: Option<f64>,
+    /// Every loop candidate verified, in scan indices, with its fitness.
+    pub loop_checks: Vec<LoopSummary>,
+    /// Scans odometry found only after retrying wider hypotheses.
+    pub recovered_scans: Vec<usize>,
+    /// Scans no hypothesis registered well (their pose may be off).
+    pub poor_scans: Vec<usize>,
     /// The same for odometry alone.
     pub ate_odometry: Option<f64>,
+}
+
+/// One verified loop candidate, in scan indices.
+#[derive(Debug, Clone, Copy)]
+pub struct LoopSummary {
+    /// The older scan (a graph keyframe).
+    pub older_scan: usize,
+    /// The newer scan (a graph keyframe).
+    pub newer_scan: usize,
+    /// How the newer keyframe lay on the older one's neighbourhood (`None`: the
+    /// registration could not run).
+    pub fitness: Option<Fitness>,
+    /// Became a graph edge.
+    pub accepted: bool,
 }
 
 /// What a bake produced.
@@ -250,10 +272,16 @@ fn build_poses(
         total,
         points_done: 0,
     };
+    // Without a pose file the scans are taken to be evenly spaced (the motion model
+    // then predicts per scan instead of per second).
+    let stamps: Vec<f64> = truth.map_or_else(
+        || (0..scans.len()).map(|i| i as f64).collect(),
+        |t| t.stamps.clone(),
+    );
     let built = build_trajectory::<BakeError>(
-        scans.len(),
+        &stamps,
         |i| load_raw_scan(&scans[i], config),
-        &BuildParams::default(),
+        &config.build,
         |stage| {
             progress(match stage {
                 Stage::Odometry(d, t) => report(BakeStage::Odometry, d, t),
@@ -273,18 +301,35 @@ fn build_poses(
         loops_accepted: built.loops_accepted.len(),
         graph_error: (built.graph.initial_error, built.graph.final_error),
         ate: ate(&built.poses),
+        ate_scans: truth.map(|t| absolute_trajectory_error(&built.poses, &t.poses)),
+        loop_checks: built
+            .loop_checks
+            .iter()
+            .map(|c| LoopSummary {
+                older_scan: built.keyframe_scans[c.older],
+                newer_scan: built.keyframe_scans[c.newer],
+                fitness: c.verdict.map(|v| v.fitness),
+                accepted: c.verdict.is_some_and(|v| v.accepted),
+            })
+            .collect(),
+        recovered_scans: scans_where(&built.outcomes, OdometryOutcome::Recovered),
+        poor_scans: scans_where(&built.outcomes, OdometryOutcome::Poor),
         ate_odometry: ate(&built.odometry),
         poses: built.poses.clone(),
     };
     let poses = ScanPoses {
         poses: built.poses,
-        stamps: truth.map_or_else(
-            || (0..scans.len()).map(|i| i as f64).collect(),
-            |t| t.stamps.clone(),
-        ),
+        stamps,
         stamped: truth.is_some_and(|t| t.stamped),
     };
     Ok((poses, summary))
+}
+
+/// Indices of the scans whose odometry outcome was `which`.
+fn scans_where(outcomes: &[OdometryOutcome], which: OdometryOutcome) -> Vec<usize> {
+    (0..outcomes.len())
+        .filter(|&i| outcomes[i] == which)
+        .collect()
 }
 
 /// Reads, filters and downsamples one scan taken at `pose` (map frame): on the map's

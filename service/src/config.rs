@@ -10,6 +10,7 @@ use kfmap_shared::covis::CovisOptions;
 use kfmap_shared::gravity::GravityParams;
 use kfmap_shared::io::BinLayout;
 use kfmap_shared::map::{ActiveSetMode, KeyframeDecider, KeyframeMapOptions};
+use kfmap_shared::mapping::BuildParams;
 use kfmap_shared::options::{InvalidOption, ensure};
 use kfmap_shared::select::SelectionOptions;
 use serde::de::DeserializeOwned;
@@ -254,6 +255,8 @@ pub struct BakeConfig {
     pub covisibility: CovisOptions,
     /// Gravity from the dataset's IMU log.
     pub gravity: GravityParams,
+    /// Building poses from the scans (odometry, loops, pose graph).
+    pub build: BuildParams,
 }
 
 impl BakeConfig {
@@ -339,6 +342,7 @@ impl ConfigFile for BakeConfig {
             .validate()
             .map_err(|e| ("covisibility", e))?;
         self.gravity.validate().map_err(|e| ("gravity", e))?;
+        self.build.validate()?;
         // The sections above passed, so what can still fail here is a [map] key.
         ensure(
             !self.map.fuse_overlapping_keyframes || self.keyframes.voxel_size > 0.0,

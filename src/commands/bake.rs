@@ -136,7 +136,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                     "keyframes": m.keyframes, "loops_found": m.loops_found,
                     "loops_accepted": m.loops_accepted, "graph_error_initial": m.graph_error.0,
                     "graph_error_final": m.graph_error.1, "ate_m": m.ate,
-                    "ate_odometry_m": m.ate_odometry,
+                    "ate_odometry_m": m.ate_odometry, "ate_scans_m": m.ate_scans,
+                    "recovered_scans": m.recovered_scans, "poor_scans": m.poor_scans,
+                    "loop_checks": m.loop_checks.iter().map(|c| json!({
+                        "older_scan": c.older_scan, "newer_scan": c.newer_scan,
+                        "accepted": c.accepted,
+                        "inlier_ratio": c.fitness.map(|f| f.inlier_ratio),
+                        "rmse_m": c.fitness.map(|f| f.rmse),
+                    })).collect::<Vec<_>>(),
                 })),
             })
         );
@@ -190,10 +197,35 @@ fn print_mapping(m: &MappingSummary) {
         "  poses built from the scans: {} graph keyframes, loops {} found / {} accepted, graph error {:.3} -> {:.3}",
         m.keyframes, m.loops_found, m.loops_accepted, m.graph_error.0, m.graph_error.1
     );
+    if !m.recovered_scans.is_empty() || !m.poor_scans.is_empty() {
+        println!(
+            "  odometry retried wider hypotheses for scans {:?}; no good registration for {:?}",
+            m.recovered_scans, m.poor_scans
+        );
+    }
+    for c in &m.loop_checks {
+        let verdict = if c.accepted { "accepted" } else { "rejected" };
+        match c.fitness {
+            Some(f) => println!(
+                "  loop scan {} -> {}: {verdict}, {:.0} % paired, RMS {:.3} m",
+                c.newer_scan,
+                c.older_scan,
+                f.inlier_ratio * 100.0,
+                f.rmse
+            ),
+            None => println!(
+                "  loop scan {} -> {}: rejected, registration failed",
+                c.newer_scan, c.older_scan
+            ),
+        }
+    }
     if let (Some(ate), Some(odometry)) = (m.ate, m.ate_odometry) {
         println!(
             "  keyframe ATE against the pose file: {:.3} m (odometry alone {:.3} m)",
             ate, odometry
         );
+    }
+    if let Some(ate) = m.ate_scans {
+        println!("  ATE of every scan against the pose file: {ate:.3} m");
     }
 }

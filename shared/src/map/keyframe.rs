@@ -239,6 +239,22 @@ impl Default for KeyframeDecider {
 }
 
 impl KeyframeDecider {
+    /// Checks both thresholds; the error names the option.
+    pub fn validate(&self) -> Result<(), crate::options::InvalidOption> {
+        crate::options::ensure(
+            self.min_translation.is_finite() && self.min_translation >= 0.0,
+            "min-translation",
+            self.min_translation,
+            "a finite distance >= 0 m",
+        )?;
+        crate::options::ensure(
+            self.min_rotation_deg.is_finite() && self.min_rotation_deg >= 0.0,
+            "min-rotation-deg",
+            self.min_rotation_deg,
+            "a finite angle >= 0 degrees",
+        )
+    }
+
     /// Whether a keyframe should be created at `pose` given the existing poses.
     pub fn should_create<'a>(
         &self,

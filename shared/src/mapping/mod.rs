@@ -8,20 +8,23 @@ mod odometry;
 mod tests;
 
 use nalgebra::{Matrix3, Vector3};
+use serde::{Deserialize, Serialize};
 
 use crate::cloud::PointCloud;
 use crate::geometry::Pose;
 use crate::map::KeyframeDecider;
+use crate::options::InvalidOption;
 use crate::pose_graph::{GraphParams, GraphReport};
 use crate::registration::RegistrationError;
 pub use framework::{
     CloudId, DistanceLoopDetection, GlobalError, GlobalRegistration, GlobalReport, GraphOptimizer,
-    LoopDetection, PairwiseGlobalRegistration, PairwiseRegistration,
+    LoopCheck, LoopDetection, LoopVerdict, PairwiseGlobalRegistration, PairwiseRegistration,
 };
-pub use odometry::{Odometry, OdometryParams, OdometryStep};
+pub use odometry::{Odometry, OdometryOutcome, OdometryParams, OdometryStep};
 
-/// Map-building settings.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
+/// Map-building settings (`bake.toml`'s `[build]`).
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
 pub struct BuildParams {
     /// Scan-to-local-map odometry.
     pub odometry: OdometryParams,
@@ -33,6 +36,36 @@ pub struct BuildParams {
     pub graph: GraphParams,
 }
 
+impl BuildParams {
+    /// Checks every value; the error names the section and the option.
+    pub fn validate(&self) -> Result<(), (&'static str, InvalidOption)> {
+        // Nested sections first, so an error names the innermost section.
+        let odometry = &self.odometry;
+        odometry
+            .registration
+            .validate()
+            .map_err(|e| ("build.odometry.registration", e))?;
+        odometry
+            .adaptive_distance
+            .validate()
+            .map_err(|e| ("build.odometry.adaptive-distance", e))?;
+        odometry
+            .local_map_decider
+            .validate()
+            .map_err(|e| ("build.odometry.local-map-decider", e))?;
+        odometry.validate().map_err(|e| ("build.odometry", e))?;
+        self.loops
+            .registration
+            .validate()
+            .map_err(|e| ("build.loops.registration", e))?;
+        self.keyframes
+            .validate()
+            .map_err(|e| ("build.keyframes", e))?;
+        self.loops.validate().map_err(|e| ("build.loops", e))?;
+        self.graph.validate().map_err(|e| ("build.graph", e))
+    }
+}
+
 /// What map building produced.
 #[derive(Debug, Clone)]
 pub struct BuiltTrajectory {
@@ -40,12 +73,16 @@ pub struct BuiltTrajectory {
     pub poses: Vec<Pose>,
     /// Every scan's pose from odometry alone.
     pub odometry: Vec<Pose>,
+    /// How odometry found each scan's pose.
+    pub outcomes: Vec<OdometryOutcome>,
     /// Scans chosen as graph keyframes.
     pub keyframe_scans: Vec<usize>,
     /// Loop candidates and the accepted loops (keyframe indices).
     pub loops_found: usize,
     /// Accepted loops `(older, newer)`, keyframe indices.
     pub loops_accepted: Vec<(usize, usize)>,
+    /// Every loop candidate verified, with its fitness (keyframe indices).
+    pub loop_checks: Vec<LoopCheck>,
     /// The pose-graph optimization.
     pub graph: GraphReport,
 }
@@ -61,21 +98,24 @@ pub enum Stage {
     Optimizing,
 }
 
-/// Builds a consistent trajectory for `scans` (sensor frames, in order; `load(i)` reads
-/// scan `i` of `count`).
+/// Builds a consistent trajectory for scans taken at `stamps` (seconds, increasing;
+/// `load(i)` reads scan `i` in its sensor frame).
 pub fn build_trajectory<E: From<RegistrationError> + From<GlobalError>>(
-    count: usize,
+    stamps: &[f64],
     mut load: impl FnMut(usize) -> Result<PointCloud, E>,
     params: &BuildParams,
     mut progress: impl FnMut(Stage),
 ) -> Result<BuiltTrajectory, E> {
-    let mut odometry = Odometry::new(params.odometry);
+    let count = stamps.len();
+    let mut odometry = Odometry::new(params.odometry)?;
     let mut odometry_poses = Vec::with_capacity(count);
+    let mut outcomes = Vec::with_capacity(count);
     let mut keyframe_scans: Vec<usize> = Vec::new();
     let mut keyframe_clouds = Vec::new();
-    for i in 0..count {
+    for (i, &stamp) in stamps.iter().enumerate() {
         let scan = load(i)?;
-        let step = odometry.push(&scan)?;
+        let step = odometry.push(stamp, &scan)?;
+        outcomes.push(step.outcome);
         // Against the last keyframe only: a revisit must still get graph vertices, or
         // its scans hang off one keyframe's pose for the rest of the run.
         if params.keyframes.should_create(
@@ -114,9 +154,11 @@ pub fn build_trajectory<E: From<RegistrationError> + From<GlobalError>>(
     Ok(BuiltTrajectory {
         poses,
         odometry: odometry_poses,
+        outcomes,
         keyframe_scans,
         loops_found: report.loops_found,
         loops_accepted: report.loops_accepted,
+        loop_checks: report.loop_checks,
         graph: report.graph,
     })
 }

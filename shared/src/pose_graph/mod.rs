@@ -32,7 +32,7 @@ mod tests;
 use std::collections::HashMap;
 
 use nalgebra::Matrix6;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::geometry::Pose;
 use crate::registration::{Optimizer, RobustKernel};
@@ -103,7 +103,8 @@ pub enum GraphError {
 }
 
 /// Optimizer settings (GTSAM's Gauss-Newton defaults).
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
 pub struct GraphParams {
     /// Step method.
     pub optimizer: Optimizer,
@@ -114,6 +115,7 @@ pub struct GraphParams {
     /// Stop when the error is below this.
     pub absolute_error_tol: f64,
     /// The vertex held fixed (gauge); default: the first added.
+    #[serde(skip)]
     pub fixed: Option<VertexId>,
 }
 
@@ -126,6 +128,31 @@ impl Default for GraphParams {
             absolute_error_tol: 1e-5,
             fixed: None,
         }
+    }
+}
+
+impl GraphParams {
+    /// Checks every value; the error names the option.
+    pub fn validate(&self) -> Result<(), crate::options::InvalidOption> {
+        use crate::options::ensure;
+        ensure(
+            self.max_iterations >= 1,
+            "max-iterations",
+            self.max_iterations,
+            "at least 1",
+        )?;
+        ensure(
+            self.relative_error_tol.is_finite() && self.relative_error_tol >= 0.0,
+            "relative-error-tol",
+            self.relative_error_tol,
+            "a finite value >= 0",
+        )?;
+        ensure(
+            self.absolute_error_tol.is_finite() && self.absolute_error_tol >= 0.0,
+            "absolute-error-tol",
+            self.absolute_error_tol,
+            "a finite value >= 0",
+        )
     }
 }
 

@@ -22,6 +22,7 @@
 
 mod gicp;
 mod kernel;
+mod overlap;
 mod solver;
 #[cfg(test)]
 mod tests;
@@ -31,6 +32,7 @@ pub use gicp::{
     align, correspondences, register, solve_pose,
 };
 pub use kernel::RobustKernel;
+pub use overlap::overlap;
 pub use solver::{
     Constraint, Correspondence, Linearized, Optimizer, cost, linearize, retract, solve_step,
 };
