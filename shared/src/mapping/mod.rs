@@ -12,7 +12,7 @@ use nalgebra::{Matrix3, Vector3};
 use crate::cloud::PointCloud;
 use crate::geometry::Pose;
 use crate::map::KeyframeDecider;
-use crate::pose_graph::{GraphParams, GraphReport};
+use crate::pose_graph::{GraphParams, GraphReport, PoseEdge};
 use crate::registration::RegistrationError;
 pub use framework::{
     CloudId, DistanceLoopDetection, GlobalError, GlobalRegistration, GlobalReport, GraphOptimizer,
@@ -48,6 +48,8 @@ pub struct BuiltTrajectory {
     pub loops_accepted: Vec<(usize, usize)>,
     /// The pose-graph optimization.
     pub graph: GraphReport,
+    /// The pose graph's edges (consecutive and loop), between keyframe indices.
+    pub edges: Vec<PoseEdge>,
 }
 
 /// Which stage is running, for progress reports.
@@ -118,6 +120,7 @@ pub fn build_trajectory<E: From<RegistrationError> + From<GlobalError>>(
         loops_found: report.loops_found,
         loops_accepted: report.loops_accepted,
         graph: report.graph,
+        edges: global.edges().to_vec(),
     })
 }
 
