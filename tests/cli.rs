@@ -8,6 +8,7 @@ use std::process::{Command, Output};
 use common::{TestDir, json, kfmap, temp_dir};
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::datasets::require_test_data;
+use kfmap_shared::geometry::Pose;
 use kfmap_shared::io::{CloudFormat, PcdData, write_cloud};
 
 fn stderr(out: &Output) -> String {
@@ -186,6 +187,8 @@ fn simulate_writes_a_readable_dataset() {
         "16",
         "--tilt-deg",
         "2,-1",
+        "--speed",
+        "3",
         "--out",
         dir.to_str().unwrap(),
         "--json",
@@ -195,7 +198,9 @@ fn simulate_writes_a_readable_dataset() {
     assert_eq!(report["imu_samples"], 61);
     let meta = std::fs::read_to_string(dir.join("meta.toml")).unwrap();
     assert!(
-        meta.contains("preset = \"corridor\"") && meta.contains("tilt-deg = [2.0, -1.0]"),
+        meta.contains("preset = \"corridor\"")
+            && meta.contains("tilt-deg = [2.0, -1.0]")
+            && meta.contains("cruise-speed = 3.0"),
         "{meta}"
     );
     let scan = json(&kfmap(&[
@@ -233,6 +238,10 @@ fn simulate_writes_a_readable_dataset() {
         (
             vec!["simulate", "--seconds", "0", "--out", "/tmp/kfmap-never"],
             "seconds",
+        ),
+        (
+            vec!["simulate", "--speed", "0", "--out", "/tmp/kfmap-never"],
+            "speed",
         ),
     ] {
         let out = kfmap(&args);
@@ -356,10 +365,15 @@ fn a_fused_bake_serves_the_voxelization_of_the_merged_scans() {
 /// its poses, as bake runs it.
 fn keyframe_scans(dataset: &std::path::Path) -> Vec<usize> {
     use kfmap_shared::io::read_trajectory;
-    use kfmap_shared::map::KeyframeDecider;
     let poses = read_trajectory(&dataset.join("poses_gt.txt"))
         .unwrap()
         .poses;
+    choose_keyframes(&poses)
+}
+
+/// The keyframe decider (shipped defaults) over `poses`, as bake runs it.
+fn choose_keyframes(poses: &[Pose]) -> Vec<usize> {
+    use kfmap_shared::map::KeyframeDecider;
     let decider = KeyframeDecider::default();
     let mut chosen: Vec<usize> = Vec::new();
     for (i, p) in poses.iter().enumerate() {
@@ -368,6 +382,12 @@ fn keyframe_scans(dataset: &std::path::Path) -> Vec<usize> {
         }
     }
     chosen
+}
+
+/// True when two poses agree within `metres` and `metres` radians.
+fn close(a: &Pose, b: &Pose, metres: f64) -> bool {
+    (a.translation.vector - b.translation.vector).norm() < metres
+        && a.rotation.angle_to(&b.rotation) < metres
 }
 
 /// A small simulated dataset in a test directory (removed when the first is dropped).
@@ -643,4 +663,224 @@ fn gravity_and_bake_recover_a_tilted_world() {
         stderr(&refused)
     );
     let _ = std::fs::remove_dir_all(dir.parent().unwrap());
+}
+
+/// `--scans A..B` with the dataset's own poses bakes exactly scans A to B-1, each at its
+/// pose in the pose file; `--trajectory-out` writes those poses as the map has them
+/// (the pose file's, moved by the map's levelling `T_map_input`), stamped with the pose
+/// file's times. Built poses over a range start from scan A's frame. Bad ranges and a
+/// graph without built poses are refused by name before anything is written.
+#[test]
+fn bake_a_scan_range_and_write_the_poses_it_used() {
+    use kfmap_shared::archive::{OpenOptions, open_map};
+    use kfmap_shared::geometry::pose_from_xyz_quat;
+    use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
+    let (_tmp, sim) = simulated("scanrange");
+    let dir = sim.parent().unwrap();
+    let path = |name: &str| dir.join(name).to_str().unwrap().to_owned();
+    let (map, tum) = (path("part.kfmap"), path("part.tum"));
+    let sim_arg = sim.to_str().unwrap();
+    let bake = |extra: &[&str]| {
+        let mut args = vec!["bake", "--dataset", sim_arg];
+        args.extend(extra);
+        kfmap(&args)
+    };
+    let baked = json(&bake(&[
+        "--scans",
+        "5..25",
+        "--out",
+        &map,
+        "--trajectory-out",
+        &tum,
+        "--json",
+    ]));
+    assert_eq!(baked["scans"], 20);
+    assert_eq!(baked["scan_range"], serde_json::json!([5, 25]));
+    assert_eq!(baked["dataset_scans"], 30);
+
+    let truth = read_trajectory(&sim.join("poses_gt.txt")).unwrap();
+    let true_stamps = &truth.stamps.as_ref().unwrap()[5..25];
+    let true_poses = &truth.poses[5..25];
+    let opened = open_map(std::path::Path::new(&map), OpenOptions::default()).unwrap();
+    let map_from_input = pose_from_xyz_quat(opened.index.map_from_input).unwrap();
+    let written = read_trajectory(std::path::Path::new(&tum)).unwrap();
+    let stamps = written.stamps.as_ref().unwrap();
+    assert_eq!(written.poses.len(), 20);
+    for i in 0..20 {
+        assert!((stamps[i] - true_stamps[i]).abs() < 1e-9, "line {i}");
+        let levelled = map_from_input * true_poses[i];
+        assert!(close(&written.poses[i], &levelled, 1e-6), "line {i}");
+    }
+    // Oracle: the decider over the range's poses, each chosen scan downsampled at 0.1 m.
+    let chosen = choose_keyframes(true_poses);
+    assert_eq!(opened.map.len(), chosen.len());
+    let points: usize = chosen
+        .iter()
+        .map(|i| {
+            let scan = sim.join(format!("scans/{:06}.pcd", 5 + i));
+            let cloud = read_cloud(&scan, &ReadOptions::default()).unwrap().cloud;
+            cloud.voxel_downsample(0.1).unwrap().len()
+        })
+        .sum();
+    assert_eq!(baked["points"], points);
+    for (k, &scan) in opened.map.keyframes().zip(&chosen) {
+        assert!((k.timestamp - true_stamps[scan]).abs() < 1e-9, "{}", k.id);
+        assert!(close(&k.pose, &written.poses[scan], 1e-6), "{}", k.id);
+    }
+
+    // Built poses over a range: the first baked scan is the map origin (before levelling).
+    let built = json(&bake(&[
+        "--scans",
+        "10..",
+        "--build-poses",
+        "--out",
+        &path("built.kfmap"),
+        "--trajectory-out",
+        &path("built.tum"),
+        "--json",
+    ]));
+    assert_eq!(built["scan_range"], serde_json::json!([10, 30]));
+    let opened = open_map(&dir.join("built.kfmap"), OpenOptions::default()).unwrap();
+    let map_from_input = pose_from_xyz_quat(opened.index.map_from_input).unwrap();
+    let written = read_trajectory(&dir.join("built.tum")).unwrap();
+    assert_eq!(written.poses.len(), 20);
+    assert!(close(&written.poses[0], &map_from_input, 1e-6));
+    assert_eq!(
+        written.stamps.unwrap()[0],
+        truth.stamps.as_ref().unwrap()[10]
+    );
+
+    let refused = path("refused.kfmap");
+    for (extra, message) in [
+        (
+            vec!["--scans", "5..300"],
+            "--scans 5..300: the dataset has 30 scans",
+        ),
+        (
+            vec!["--scans", "30.."],
+            "--scans 30..: the dataset has 30 scans",
+        ),
+        (vec!["--scans", "7"], "--scans"),
+        (vec!["--scans", "9..3"], "holds no scan"),
+        (vec!["--graph-out", "/tmp/never.g2o"], "--build-poses"),
+        (
+            vec!["--trajectory-out", &tum],
+            "part.tum exists; pass --force",
+        ),
+    ] {
+        let mut args = extra.clone();
+        args.extend(["--out", &refused]);
+        let out = bake(&args);
+        assert_eq!(out.status.code(), Some(2), "{extra:?}: {}", stderr(&out));
+        assert!(
+            stderr(&out).contains(message),
+            "{extra:?}: {}",
+            stderr(&out)
+        );
+        assert!(
+            stderr(&out).contains(extra[0]),
+            "{extra:?}: {}",
+            stderr(&out)
+        );
+        assert!(!dir.join("refused.kfmap").exists(), "{extra:?}");
+    }
+}
+
+/// Poses built from the scans over a lap (courtyard at 4 m/s): `--graph-out` writes the
+/// keyframe pose graph the summary reports (its keyframes, their consecutive edges and
+/// the accepted loops), read back by the project's g2o reader at the summary's final
+/// error, each vertex (named by its scan) at that scan's pose in `--trajectory-out`,
+/// which holds every scan's built pose as the map has it, with the dataset's stamps.
+#[test]
+fn bake_with_built_poses_writes_its_pose_graph_and_trajectory() {
+    use kfmap_shared::archive::{OpenOptions, open_map};
+    use kfmap_shared::io::read_trajectory;
+    use kfmap_shared::pose_graph::read_g2o;
+    let tmp = temp_dir("bakegraph");
+    let sim = tmp.join("sim");
+    let out = kfmap(&[
+        "simulate",
+        "--preset",
+        "courtyard",
+        "--seconds",
+        "26",
+        "--speed",
+        "4",
+        "--beams",
+        "16",
+        "--h-res-deg",
+        "0.4",
+        "--out",
+        sim.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let (map, tum, g2o) = (
+        tmp.join("lap.kfmap"),
+        tmp.join("lap.tum"),
+        tmp.join("lap.g2o"),
+    );
+    let baked = json(&kfmap(&[
+        "bake",
+        "--dataset",
+        sim.to_str().unwrap(),
+        "--build-poses",
+        "--out",
+        map.to_str().unwrap(),
+        "--trajectory-out",
+        tum.to_str().unwrap(),
+        "--graph-out",
+        g2o.to_str().unwrap(),
+        "--json",
+    ]));
+    let mapping = &baked["mapping"];
+    let keyframes = mapping["keyframes"].as_u64().unwrap() as usize;
+    let loops = mapping["loops_accepted"].as_u64().unwrap() as usize;
+    assert!(loops >= 1, "the lap closes: {mapping}");
+
+    let (graph, fixed) = read_g2o(&g2o).unwrap();
+    assert_eq!(graph.len(), keyframes);
+    assert_eq!(graph.edges().len(), keyframes - 1 + loops);
+    assert_eq!(fixed, Some(graph.ids()[0]));
+    assert!(graph.ids().windows(2).all(|w| w[0] < w[1]));
+    let rank = |id: u64| graph.ids().iter().position(|&v| v == id).unwrap();
+    let consecutive = graph
+        .edges()
+        .iter()
+        .filter(|e| rank(e.to) == rank(e.from) + 1)
+        .count();
+    assert_eq!(consecutive, keyframes - 1);
+    // Written at the optimum: the reader's error is the summary's final error (loop
+    // kernels are not in g2o files; at these residuals they are quadratic).
+    let final_error = mapping["graph_error_final"].as_f64().unwrap();
+    assert!(
+        (graph.error() - final_error).abs() <= 1e-2 * final_error + 1e-9,
+        "{} vs {final_error}",
+        graph.error()
+    );
+
+    let truth = read_trajectory(&sim.join("poses_gt.txt")).unwrap();
+    let written = read_trajectory(&tum).unwrap();
+    assert_eq!(written.poses.len(), truth.poses.len());
+    assert_eq!(baked["scans"], truth.poses.len());
+    let (stamps, true_stamps) = (written.stamps.unwrap(), truth.stamps.unwrap());
+    for (a, b) in stamps.iter().zip(&true_stamps) {
+        assert!((a - b).abs() < 1e-9);
+    }
+    for &id in graph.ids() {
+        let pose = graph.pose(id).unwrap();
+        assert!(
+            close(pose, &written.poses[id as usize], 1e-6),
+            "vertex {id}"
+        );
+    }
+    let opened = open_map(&map, OpenOptions::default()).unwrap();
+    for k in opened.map.keyframes() {
+        let scan = true_stamps.iter().position(|&t| t == k.timestamp).unwrap();
+        assert!(
+            close(&k.pose, &written.poses[scan], 1e-6),
+            "keyframe {}",
+            k.id
+        );
+    }
 }

@@ -1,18 +1,24 @@
 //! `kfmap bake`: a scan sequence with poses -> one `.kfmap` file. Keyframes are chosen
 //! by the decider on the poses alone, then read, downsampled, indexed (tree +
 //! covariances, in parallel) and written a chunk at a time, so memory stays bounded by
-//! one chunk of keyframes plus the covisibility index, whatever the map's size.
+//! one chunk of keyframes plus the covisibility index, whatever the map's size. Beside
+//! the map a bake can write the trajectory it used (TUM) and, when it built the poses,
+//! its keyframe pose graph (g2o).
 
+use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use kfmap_shared::KeyframeId;
 use kfmap_shared::archive::{ArchiveError, MapWriter, WriteSummary};
-use kfmap_shared::cloud::PointCloud;
+use kfmap_shared::cloud::{PointCloud, Twist, deskew};
 use kfmap_shared::covis::CovisibilityGraph;
 use kfmap_shared::geometry::Pose;
-use kfmap_shared::io::{IoError, ReadOptions, read_cloud, read_trajectory};
+use kfmap_shared::io::{
+    IoError, ReadOptions, Trajectory, format_tum, read_cloud, read_trajectory, write_atomic,
+};
 use kfmap_shared::map::{Keyframe, KeyframeMapOptions};
+use kfmap_shared::pose_graph::{G2oError, GraphError, PoseEdge, PoseGraph, write_g2o};
 use rayon::prelude::*;
 
 use kfmap_shared::mapping::{
@@ -22,6 +28,7 @@ use kfmap_shared::registration::{Fitness, RegistrationError};
 
 use crate::config::BakeConfig;
 use crate::gravity::{BakeGravity, GravityError, POSE_FILES, bake_gravity, find_in};
+use crate::scan_range::{ScanRange, ScanRangeError};
 
 /// Scan file extensions a dataset may hold.
 const SCAN_EXTENSIONS: [&str; 3] = ["pcd", "ply", "bin"];
@@ -67,6 +74,24 @@ pub enum BakeError {
     /// Building poses from the scans failed (loops, graph).
     #[error("building poses from the scans: {0}")]
     Mapping(#[from] GlobalError),
+    /// The scan range does not fit the dataset.
+    #[error(transparent)]
+    ScanRange(#[from] ScanRangeError),
+    /// A pose graph was asked for, but the poses come from a pose file.
+    #[error(
+        "--graph-out: the poses come from {}, so no pose graph is built; pass --build-poses to build the poses (and their graph) from the scans, the pose file then serving as ground truth",
+        .0.display()
+    )]
+    NoPoseGraph(PathBuf),
+    /// The pose graph could not be assembled or written.
+    #[error("writing the pose graph: {0}")]
+    Graph(#[from] G2oError),
+}
+
+impl From<GraphError> for BakeError {
+    fn from(error: GraphError) -> Self {
+        Self::Mapping(error.into())
+    }
 }
 
 /// Where a bake reads from.
@@ -80,6 +105,63 @@ pub struct BakeInput {
     /// file exists; it then serves as ground truth for the ATE. Without any pose file
     /// the poses are always built.
     pub build_poses: bool,
+    /// Only these scans of the dataset's sorted scan list ([`find_scans`]); scans named
+    /// by frame number keep their number's pose, others their place in the pose file.
+    pub scans: ScanRange,
+}
+
+impl BakeInput {
+    /// Reads `dataset` (every scan, its own pose file, poses built only without one).
+    pub fn dataset(dataset: impl Into<PathBuf>) -> Self {
+        Self {
+            dataset: dataset.into(),
+            poses: None,
+            build_poses: false,
+            scans: ScanRange::ALL,
+        }
+    }
+
+    /// The pose file the bake reads: `poses`, else the first of [`POSE_FILES`] in the
+    /// dataset; `None` when there is none.
+    pub fn pose_file(&self) -> Option<PathBuf> {
+        self.poses
+            .clone()
+            .or_else(|| find_in(&self.dataset, &POSE_FILES))
+    }
+
+    /// True when the bake builds the poses from the scans (no pose file, or
+    /// `build_poses`), so that it has a pose graph.
+    pub fn builds_poses(&self) -> bool {
+        self.build_poses || self.pose_file().is_none()
+    }
+}
+
+/// What a bake writes.
+#[derive(Debug, Clone)]
+pub struct BakeOutput {
+    /// The map file (`.kfmap`).
+    pub map: PathBuf,
+    /// A TUM trajectory (`t x y z qx qy qz qw`, seconds and metres): one pose
+    /// `T_map_scan` per baked scan, in the map frame of the written map (after any
+    /// gravity levelling), stamped with the dataset's times (its scan index where it has
+    /// none).
+    pub trajectory: Option<PathBuf>,
+    /// The keyframe pose graph as g2o (`VERTEX_SE3:QUAT` per graph keyframe, id = its
+    /// scan index in the dataset, pose in the map frame of the written map;
+    /// `EDGE_SE3:QUAT` per consecutive and loop edge with its information; `FIX` on the
+    /// first). Only when the poses are built from the scans.
+    pub graph: Option<PathBuf>,
+}
+
+impl BakeOutput {
+    /// The map file alone.
+    pub fn map(path: impl Into<PathBuf>) -> Self {
+        Self {
+            map: path.into(),
+            trajectory: None,
+            graph: None,
+        }
+    }
 }
 
 /// Which part of a bake is running.
@@ -119,7 +201,11 @@ pub struct MappingSummary {
     pub loops_accepted: usize,
     /// Pose-graph error before and after optimization.
     pub graph_error: (f64, f64),
-    /// Every scan's built pose (`T_map_scan`, map = the first scan's frame).
+    /// The optimized keyframe pose graph: vertex id = the keyframe's scan index in the
+    /// dataset, poses as in [`MappingSummary::poses`]; consecutive and loop edges.
+    pub graph: PoseGraph,
+    /// Every baked scan's built pose (`T_map_scan`, map = the first baked scan's frame,
+    /// before any gravity levelling).
     pub poses: Vec<Pose>,
     /// Keyframe ATE against the dataset's pose file, metres, when there is one.
     pub ate: Option<f64>,
@@ -153,7 +239,9 @@ pub struct LoopSummary {
 #[derive(Debug, Clone)]
 pub struct BakeReport {
     /// Scans in the dataset.
-    pub scans: usize,
+    pub dataset_scans: usize,
+    /// The scans baked (indices in the dataset's sorted scan list).
+    pub scans: Range<usize>,
     /// Pose building, when the poses came from the scans.
     pub mapping: Option<MappingSummary>,
     /// The gravity stage, when the dataset has an IMU log.
@@ -215,6 +303,17 @@ pub struct ScanPoses {
     pub stamped: bool,
 }
 
+impl ScanPoses {
+    /// The poses and times of scans `range` only.
+    pub fn select(mut self, range: Range<usize>) -> Self {
+        self.poses.truncate(range.end);
+        self.stamps.truncate(range.end);
+        self.poses.drain(..range.start);
+        self.stamps.drain(..range.start);
+        self
+    }
+}
+
 /// The pose of every scan: by frame number when every scan is named by one (KITTI
 /// `000123.bin`), else one pose per scan in order.
 fn scan_poses(path: &Path, scans: &[PathBuf]) -> Result<ScanPoses, BakeError> {
@@ -259,9 +358,11 @@ pub fn load_raw_scan(path: &Path, config: &BakeConfig) -> Result<PointCloud, Bak
     Ok(read_cloud(path, &options)?.cloud)
 }
 
-/// Poses built from the scans; `truth` (a pose file) gives stamps and the ATE.
+/// Poses built from `scans` (dataset indices from `first`); `truth` (a pose file, the
+/// same scans) gives stamps and the ATE.
 fn build_poses(
     scans: &[PathBuf],
+    first: usize,
     config: &BakeConfig,
     truth: Option<&ScanPoses>,
     progress: &mut impl FnMut(BakeProgress),
@@ -275,7 +376,7 @@ fn build_poses(
     // Without a pose file the scans are taken to be evenly spaced (the motion model
     // then predicts per scan instead of per second).
     let stamps: Vec<f64> = truth.map_or_else(
-        || (0..scans.len()).map(|i| i as f64).collect(),
+        || (first..first + scans.len()).map(|i| i as f64).collect(),
         |t| t.stamps.clone(),
     );
     let built = build_trajectory::<BakeError>(
@@ -295,25 +396,39 @@ fn build_poses(
     let ate = |poses: &[Pose]| {
         truth.map(|t| absolute_trajectory_error(&at_keyframes(poses), &at_keyframes(&t.poses)))
     };
+    // A keyframe's vertex is named by its scan's index in the dataset.
+    let vertex = |k: u64| (first + built.keyframe_scans[k as usize]) as u64;
+    let mut graph = PoseGraph::default();
+    for &scan in &built.keyframe_scans {
+        graph.add_pose((first + scan) as u64, built.poses[scan])?;
+    }
+    for edge in &built.edges {
+        graph.add_edge(PoseEdge {
+            from: vertex(edge.from),
+            to: vertex(edge.to),
+            ..*edge
+        })?;
+    }
     let summary = MappingSummary {
         keyframes: built.keyframe_scans.len(),
         loops_found: built.loops_found,
         loops_accepted: built.loops_accepted.len(),
         graph_error: (built.graph.initial_error, built.graph.final_error),
+        graph,
         ate: ate(&built.poses),
         ate_scans: truth.map(|t| absolute_trajectory_error(&built.poses, &t.poses)),
         loop_checks: built
             .loop_checks
             .iter()
             .map(|c| LoopSummary {
-                older_scan: built.keyframe_scans[c.older],
-                newer_scan: built.keyframe_scans[c.newer],
+                older_scan: first + built.keyframe_scans[c.older],
+                newer_scan: first + built.keyframe_scans[c.newer],
                 fitness: c.verdict.map(|v| v.fitness),
                 accepted: c.verdict.is_some_and(|v| v.accepted),
             })
             .collect(),
-        recovered_scans: scans_where(&built.outcomes, OdometryOutcome::Recovered),
-        poor_scans: scans_where(&built.outcomes, OdometryOutcome::Poor),
+        recovered_scans: scans_where(&built.outcomes, OdometryOutcome::Recovered, first),
+        poor_scans: scans_where(&built.outcomes, OdometryOutcome::Poor, first),
         ate_odometry: ate(&built.odometry),
         poses: built.poses.clone(),
     };
@@ -325,11 +440,23 @@ fn build_poses(
     Ok((poses, summary))
 }
 
-/// Indices of the scans whose odometry outcome was `which`.
-fn scans_where(outcomes: &[OdometryOutcome], which: OdometryOutcome) -> Vec<usize> {
+/// Dataset indices of the scans (the first at `first`) whose odometry outcome was `which`.
+fn scans_where(outcomes: &[OdometryOutcome], which: OdometryOutcome, first: usize) -> Vec<usize> {
     (0..outcomes.len())
         .filter(|&i| outcomes[i] == which)
+        .map(|i| first + i)
         .collect()
+}
+
+/// The sensor's twist at scan `i` from its poses and times: towards the next scan (the
+/// previous one for the last), for deskewing scans that carry per-point times.
+fn scan_twist(poses: &[Pose], stamps: &[f64], i: usize) -> Option<Twist> {
+    let (a, b) = if i + 1 < poses.len() {
+        (i, i + 1)
+    } else {
+        (i.checked_sub(1)?, i)
+    };
+    Twist::between(&poses[a], &poses[b], stamps[b] - stamps[a])
 }
 
 /// Reads, filters and downsamples one scan taken at `pose` (map frame): on the map's
@@ -338,9 +465,17 @@ fn load_scan(
     path: &Path,
     config: &BakeConfig,
     pose: &Pose,
+    twist: Option<Twist>,
 ) -> Result<(PointCloud, Option<Vec<u32>>), BakeError> {
     let fused = config.map.fuse_overlapping_keyframes;
-    let (cloud, weights) = load_raw_scan(path, config)?
+    let mut raw = load_raw_scan(path, config)?;
+    if let Some(twist) = twist.filter(|_| config.build.odometry.deskew) {
+        deskew(&mut raw, &twist, 0.0).map_err(|e| BakeError::Scan {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        })?;
+    }
+    let (cloud, weights) = raw
         .into_keyframe_points(config.keyframes.voxel_size, fused.then_some(pose))
         .map_err(|e| BakeError::Scan {
             path: path.to_path_buf(),
@@ -355,25 +490,35 @@ fn load_scan(
     Ok((cloud, weights))
 }
 
-/// Bakes `input` into `out` with `config`; `progress` is called after each keyframe.
-/// Runs on the current rayon pool.
+/// Bakes `input` into `output` with `config`; `progress` is called after each keyframe.
+/// Runs on the current rayon pool. The trajectory and graph files are written (each
+/// atomically) after the map is complete.
 pub fn bake(
     input: &BakeInput,
     config: &BakeConfig,
-    out: &Path,
+    output: &BakeOutput,
     mut progress: impl FnMut(BakeProgress),
 ) -> Result<BakeReport, BakeError> {
     let started = Instant::now();
-    let scans = find_scans(&input.dataset)?;
-    let pose_file = input
-        .poses
-        .clone()
-        .or_else(|| find_in(&input.dataset, &POSE_FILES));
+    let all_scans = find_scans(&input.dataset)?;
+    let range = input.scans.within(all_scans.len())?;
+    let scans = &all_scans[range.clone()];
+    let pose_file = input.pose_file();
+    let given_poses = pose_file.as_ref().filter(|_| !input.build_poses);
+    if let Some(path) = given_poses.filter(|_| output.graph.is_some()) {
+        return Err(BakeError::NoPoseGraph(path.clone()));
+    }
+    // Poses are matched against the whole dataset, so a range keeps each scan's pose.
     let (scan_poses, mapping) = match pose_file {
-        Some(path) if !input.build_poses => (scan_poses(&path, &scans)?, None),
+        Some(path) if !input.build_poses => {
+            (scan_poses(&path, &all_scans)?.select(range.clone()), None)
+        }
         truth => {
-            let truth = truth.map(|p| scan_poses(&p, &scans)).transpose()?;
-            let (built, summary) = build_poses(&scans, config, truth.as_ref(), &mut progress)?;
+            let truth = truth
+                .map(|p| scan_poses(&p, &all_scans).map(|t| t.select(range.clone())))
+                .transpose()?;
+            let (built, summary) =
+                build_poses(scans, range.start, config, truth.as_ref(), &mut progress)?;
             (built, Some(summary))
         }
     };
@@ -405,13 +550,13 @@ pub fn bake(
     if let Some(g) = gravity.as_mut().filter(|_| config.map.align_gravity)
         && let Some(c) = &g.correction
     {
-        // Rotating about the map origin keeps every relative pose.
+        // Rotating about the map origin keeps every relative pose (and graph edge).
         map_from_input = Pose::from_parts(Default::default(), c.rotation.into());
         poses.iter_mut().for_each(|p| *p = map_from_input * *p);
         g.applied = true;
     }
     let options: KeyframeMapOptions = config.map_options();
-    let mut writer = MapWriter::create(out, &options)?;
+    let mut writer = MapWriter::create(&output.map, &options)?;
     writer.set_map_from_input(&map_from_input);
     let mut covis = CovisibilityGraph::new(options.covisibility);
     let chunk = 2 * rayon::current_num_threads();
@@ -426,7 +571,8 @@ pub fn bake(
             .par_iter()
             .enumerate()
             .map(|(j, &scan)| {
-                let (cloud, weights) = load_scan(&scans[scan], config, &poses[scan])?;
+                let twist = stamped.then(|| scan_twist(&poses, &stamps, scan)).flatten();
+                let (cloud, weights) = load_scan(&scans[scan], config, &poses[scan], twist)?;
                 let id = (chunk_index * chunk + j) as u64;
                 let (pose, stamp) = (poses[scan], stamps[scan]);
                 Keyframe::build_weighted(id, pose, stamp, cloud, weights, &options.covariance)
@@ -446,8 +592,24 @@ pub fn bake(
     }
     let pool = gravity.as_ref().map_or(&[][..], |g| &g.pool[..]);
     let written = writer.finish(chosen.len() as u64, &covis.snapshot(), pool)?;
+    if let Some(path) = &output.trajectory {
+        let trajectory = Trajectory {
+            stamps: Some(stamps),
+            poses,
+        };
+        write_atomic(path, format_tum(&trajectory).as_bytes())?;
+    }
+    if let (Some(path), Some(m)) = (&output.graph, &mapping) {
+        let mut graph = m.graph.clone();
+        for &id in m.graph.ids() {
+            let levelled = map_from_input * m.graph.pose(id).expect("a listed vertex");
+            graph.set_pose(id, levelled)?;
+        }
+        write_g2o(path, &graph, m.graph.ids().first().copied())?;
+    }
     Ok(BakeReport {
-        scans: scans.len(),
+        dataset_scans: all_scans.len(),
+        scans: range,
         mapping,
         gravity,
         written,

@@ -391,6 +391,30 @@ mod tests {
     }
 
     #[test]
+    fn build_section_errors_name_the_section_and_key() {
+        let bad = |text: &str| {
+            BakeConfig::from_toml(text, Path::new("bake.toml"))
+                .unwrap_err()
+                .to_string()
+        };
+        let text = bad("[build.odometry]\nfit-distance = -1.0\n");
+        assert!(
+            text.contains("build.odometry") && text.contains("fit-distance"),
+            "{text}"
+        );
+        let text = bad("[build.odometry.registration]\nvoxel-size = -0.5\n");
+        assert!(
+            text.contains("build.odometry.registration") && text.contains("voxel-size"),
+            "{text}"
+        );
+        let text = bad("[build.loops]\nmax-distanse = 3.0\n");
+        assert!(text.contains("max-distanse"), "{text}");
+        let ok =
+            BakeConfig::from_toml("[build.loops]\nmax-distance = 3.0\n", Path::new("b")).unwrap();
+        assert_eq!(ok.build.loops.max_distance, 3.0);
+    }
+
+    #[test]
     fn unknown_key_is_named_with_the_file() {
         let err = BakeConfig::from_toml("[covariance]\nk-neighbours = 3\n", Path::new("my.toml"))
             .unwrap_err();

@@ -1,5 +1,6 @@
-//! Server runtime of kfmap: the server and bake configuration files, and the baking
-//! pipeline (`kfmap bake`), and the map server (`kfmap serve`).
+//! Server runtime of kfmap: the server and bake configuration files, the baking
+//! pipeline (`kfmap bake`), dataset scan ranges (`--scans`), and the map server
+//! (`kfmap serve`).
 //!
 //! ```
 //! let config = kfmap_service::config::ServerConfig::default();
@@ -10,4 +11,5 @@
 pub mod bake;
 pub mod config;
 pub mod gravity;
+pub mod scan_range;
 pub mod server;

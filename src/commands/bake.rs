@@ -4,9 +4,10 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
-use kfmap_service::bake::{BakeInput, BakeStage, MappingSummary, bake};
+use kfmap_service::bake::{BakeInput, BakeOutput, BakeReport, BakeStage, MappingSummary, bake};
 use kfmap_service::config::{BakeConfig, ConfigFile};
 use kfmap_service::gravity::BakeGravity;
+use kfmap_service::scan_range::ScanRange;
 use serde_json::json;
 
 /// Bake a map: choose keyframes from a scan sequence with poses, build each keyframe's
@@ -30,13 +31,31 @@ use serde_json::json;
 /// summary gives loops found/accepted, the graph error and, when a pose file exists,
 /// the keyframe ATE against it.
 ///
-/// The file is written beside MAP.kfmap under a temporary name and renamed when
+/// --scans A..B bakes only scans A to B-1 of the sorted scan list (A.. and ..B leave an
+/// end open); each keeps the pose it has in the whole dataset (by frame number, or by
+/// its place in the pose file), and built poses start from scan A's frame.
+///
+/// Outputs beside the map:
+///   --trajectory-out FILE.tum  the poses used (given, or built from the scans), one per
+///       baked scan: t x y z qx qy qz qw with the dataset's times (its scan index where
+///       the poses have none), in the map frame of the written map, i.e. after the
+///       gravity levelling bake applies, so they match the keyframe poses in the map.
+///   --graph-out FILE.g2o  the keyframe pose graph of the built poses (VERTEX_SE3:QUAT
+///       per graph keyframe, its id the scan's index in the dataset; EDGE_SE3:QUAT for
+///       consecutive and loop edges with their information; FIX on the first), in the
+///       same map frame;
+///       `kfmap optimize-graph` reads it. Only when the poses are built: with a given
+///       pose file there is no graph and --graph-out is refused (pass --build-poses).
+///
+/// Every file is written beside its final name under a temporary name and renamed when
 /// complete: an interrupted bake never leaves a partial map. Memory stays bounded by a
 /// few keyframes at a time, whatever the map's size.
 ///
 /// Example:
 ///   kfmap simulate --preset campus --seconds 60 --out /tmp/campus
 ///   kfmap bake --dataset /tmp/campus --out campus.kfmap
+///   kfmap bake --dataset /tmp/campus --build-poses --scans 100..400 --out part.kfmap \
+///       --trajectory-out part.tum --graph-out part.g2o
 ///   kfmap bake --dataset ../shared/data/kitti00 --out kitti.kfmap --threads 2
 #[derive(clap::Args)]
 #[command(verbatim_doc_comment)]
@@ -54,6 +73,15 @@ pub struct Args {
     /// Output map file (conventionally *.kfmap).
     #[arg(long)]
     out: PathBuf,
+    /// Bake only scans A to B-1 of the dataset's sorted scan list (A.., ..B: open end).
+    #[arg(long, value_name = "A..B")]
+    scans: Option<ScanRange>,
+    /// Write the poses used, one per baked scan, as TUM (map frame of the written map).
+    #[arg(long, value_name = "FILE.tum")]
+    trajectory_out: Option<PathBuf>,
+    /// Write the keyframe pose graph as g2o (only when the poses are built).
+    #[arg(long, value_name = "FILE.g2o")]
+    graph_out: Option<PathBuf>,
     /// bake.toml with keyframe, covariance and map options (default: config/bake.toml).
     #[arg(long)]
     config: Option<PathBuf>,
@@ -71,8 +99,23 @@ pub struct Args {
 /// Runs the subcommand.
 pub fn run(args: Args) -> anyhow::Result<()> {
     let config = BakeConfig::load(args.config.as_deref())?;
-    if args.out.exists() && !args.force {
-        anyhow::bail!("{} exists; pass --force to replace it", args.out.display());
+    let output = BakeOutput {
+        map: args.out.clone(),
+        trajectory: args.trajectory_out.clone(),
+        graph: args.graph_out.clone(),
+    };
+    let paths = [
+        ("--out", Some(&output.map)),
+        ("--trajectory-out", output.trajectory.as_ref()),
+        ("--graph-out", output.graph.as_ref()),
+    ];
+    for (flag, path) in paths {
+        if let Some(path) = path.filter(|p| p.exists() && !args.force) {
+            anyhow::bail!(
+                "{flag} {} exists; pass --force to replace it",
+                path.display()
+            );
+        }
     }
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(args.threads)
@@ -93,9 +136,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         dataset: args.dataset.clone(),
         poses: args.poses.clone(),
         build_poses: args.build_poses,
+        scans: args.scans.unwrap_or(ScanRange::ALL),
     };
     let report = pool.install(|| {
-        bake(&input, &config, &args.out, |p| {
+        bake(&input, &config, &output, |p| {
             bar.set_length(p.total as u64);
             bar.set_position(p.done as u64);
             let rate = p.points_done as f64 / started.elapsed().as_secs_f64().max(1e-9);
@@ -124,7 +168,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "{}",
             json!({
                 "map": args.out,
-                "scans": report.scans,
+                "scans": report.scans.len(),
+                "scan_range": [report.scans.start, report.scans.end],
+                "dataset_scans": report.dataset_scans,
+                "trajectory_out": output.trajectory,
+                "graph_out": output.graph.as_ref().zip(report.mapping.as_ref()).map(|(path, m)| json!({
+                    "path": path, "vertices": m.graph.len(), "edges": m.graph.edges().len(),
+                })),
                 "keyframes": w.keyframes,
                 "points": w.points,
                 "bytes": w.bytes,
@@ -152,7 +202,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "{}: {} keyframes from {} scans, {} points, {:.1} MB, {:.2} s ({:.2} M points/s, {} threads)",
             args.out.display(),
             w.keyframes,
-            report.scans,
+            report.scans.len(),
             w.points,
             w.bytes as f64 / 1e6,
             report.seconds,
@@ -165,8 +215,34 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         if let Some(g) = &report.gravity {
             print_gravity(g);
         }
+        print_outputs(&output, &report);
     }
     Ok(())
+}
+
+fn print_outputs(output: &BakeOutput, report: &BakeReport) {
+    if report.scans.len() != report.dataset_scans {
+        println!(
+            "  scans {}..{} of the dataset's {}",
+            report.scans.start, report.scans.end, report.dataset_scans
+        );
+    }
+    if let Some(path) = &output.trajectory {
+        println!(
+            "  trajectory: {} poses (map frame) -> {}",
+            report.scans.len(),
+            path.display()
+        );
+    }
+    if let (Some(path), Some(m)) = (&output.graph, &report.mapping) {
+        println!(
+            "  pose graph: {} vertices, {} edges ({} loops) -> {}",
+            m.graph.len(),
+            m.graph.edges().len(),
+            m.loops_accepted,
+            path.display()
+        );
+    }
 }
 
 fn print_gravity(g: &BakeGravity) {

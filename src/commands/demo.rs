@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::Context;
-use kfmap_service::bake::{BakeInput, bake};
+use kfmap_service::bake::{BakeInput, BakeOutput, bake};
 use kfmap_service::config::BakeConfig;
 use kfmap_shared::archive::{OpenOptions, open_map};
 use kfmap_shared::datasets::shared_data_dir;
@@ -138,11 +138,10 @@ fn baked_map_stage(
     let map_path = dataset.join("courtyard.kfmap");
     // The poses are built from the raw scans; poses_gt.txt only measures them.
     let input = BakeInput {
-        dataset: dataset.to_path_buf(),
-        poses: None,
         build_poses: true,
+        ..BakeInput::dataset(dataset)
     };
-    let report = bake(&input, &config, &map_path, |_| {})?;
+    let report = bake(&input, &config, &BakeOutput::map(&map_path), |_| {})?;
     println!(
         "baked {}: {} keyframes, {} points ({} m voxels), {:.1} MB in {:.2} s ({:.2} M points/s)",
         map_path.display(),

@@ -1,8 +1,10 @@
 //! The point cloud type: points in one frame plus optional per-point attributes.
 
+mod deskew;
 mod filter;
 mod voxel;
 
+pub use deskew::{DeskewError, DeskewOutcome, Twist, deskew};
 pub use filter::{FilterOptions, FilterReport};
 pub use voxel::Voxelized;
 pub(crate) use voxel::{grid_position, unit_or_zero, voxel_groups};

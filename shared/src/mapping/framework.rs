@@ -299,6 +299,11 @@ impl<P: PairwiseRegistration, L: LoopDetection, G: GraphOptimizer>
         &self.poses
     }
 
+    /// The graph's edges so far, between cloud ids: consecutive, then accepted loops.
+    pub fn edges(&self) -> &[PoseEdge] {
+        &self.edges
+    }
+
     /// Cloud `centre` merged with its sequence neighbours, in `centre`'s frame: one
     /// sparse scan against another gave 0.4-0.5 m RMSE and no accepted loop on the
     /// simulated campus.

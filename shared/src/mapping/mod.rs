@@ -14,7 +14,7 @@ use crate::cloud::PointCloud;
 use crate::geometry::Pose;
 use crate::map::KeyframeDecider;
 use crate::options::InvalidOption;
-use crate::pose_graph::{GraphParams, GraphReport};
+use crate::pose_graph::{GraphParams, GraphReport, PoseEdge};
 use crate::registration::RegistrationError;
 pub use framework::{
     CloudId, DistanceLoopDetection, GlobalError, GlobalRegistration, GlobalReport, GraphOptimizer,
@@ -85,6 +85,8 @@ pub struct BuiltTrajectory {
     pub loop_checks: Vec<LoopCheck>,
     /// The pose-graph optimization.
     pub graph: GraphReport,
+    /// The pose graph's edges (consecutive and loop), between keyframe indices.
+    pub edges: Vec<PoseEdge>,
 }
 
 /// Which stage is running, for progress reports.
@@ -112,6 +114,8 @@ pub fn build_trajectory<E: From<RegistrationError> + From<GlobalError>>(
     let mut outcomes = Vec::with_capacity(count);
     let mut keyframe_scans: Vec<usize> = Vec::new();
     let mut keyframe_clouds = Vec::new();
+    // Graph vertices sit at the keyframe clouds' frames (mid-scan when deskewed).
+    let mut keyframe_cloud_poses = Vec::new();
     for (i, &stamp) in stamps.iter().enumerate() {
         let scan = load(i)?;
         let step = odometry.push(stamp, &scan)?;
@@ -125,6 +129,7 @@ pub fn build_trajectory<E: From<RegistrationError> + From<GlobalError>>(
             keyframe_scans.push(i);
             // The odometry's preparation of the scan serves the loop search too.
             keyframe_clouds.push(step.prepared);
+            keyframe_cloud_poses.push(step.cloud_pose);
         }
         odometry_poses.push(step.pose);
         progress(Stage::Odometry(i + 1, count));
@@ -136,7 +141,7 @@ pub fn build_trajectory<E: From<RegistrationError> + From<GlobalError>>(
     global.register_consecutive = false;
     let total = keyframe_clouds.len();
     for (k, cloud) in keyframe_clouds.into_iter().enumerate() {
-        global.add_cloud(cloud, Some(odometry_poses[keyframe_scans[k]]))?;
+        global.add_cloud(cloud, Some(keyframe_cloud_poses[k]))?;
         progress(Stage::Keyframes(k + 1, total));
     }
     progress(Stage::Optimizing);
@@ -148,8 +153,7 @@ pub fn build_trajectory<E: From<RegistrationError> + From<GlobalError>>(
         while k + 1 < keyframe_scans.len() && keyframe_scans[k + 1] <= i {
             k += 1;
         }
-        let anchor = keyframe_scans[k];
-        poses.push(global.poses()[k] * odometry_poses[anchor].inverse() * odom);
+        poses.push(global.poses()[k] * keyframe_cloud_poses[k].inverse() * odom);
     }
     Ok(BuiltTrajectory {
         poses,
@@ -160,6 +164,7 @@ pub fn build_trajectory<E: From<RegistrationError> + From<GlobalError>>(
         loops_accepted: report.loops_accepted,
         loop_checks: report.loop_checks,
         graph: report.graph,
+        edges: global.edges().to_vec(),
     })
 }
 

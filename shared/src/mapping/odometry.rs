@@ -8,7 +8,7 @@ use std::collections::{HashMap, VecDeque};
 
 use serde::{Deserialize, Serialize};
 
-use crate::cloud::PointCloud;
+use crate::cloud::{PointCloud, deskew};
 use crate::geometry::{Pose, to_point, transform_point};
 use crate::map::KeyframeDecider;
 use crate::motion::{AdaptiveThreshold, AdaptiveThresholdParams, ConstantVelocity, yaw_hypotheses};
@@ -49,6 +49,8 @@ pub struct OdometryParams {
     pub coarse_voxel_factor: f64,
     /// Retry: the coarse pass's correspondence distance, metres.
     pub coarse_distance: f64,
+    /// Deskew scans that carry per-point times with the motion model's last twist.
+    pub deskew: bool,
     /// Retry: yaw hypotheses every this many degrees...
     pub yaw_step_deg: f64,
     /// ...up to this far either side of the prediction (0 turns them off).
@@ -81,6 +83,7 @@ impl Default for OdometryParams {
             max_correction: 3.0,
             coarse_voxel_factor: 2.0,
             coarse_distance: 3.0,
+            deskew: true,
             yaw_step_deg: 20.0,
             yaw_max_deg: 60.0,
         }
@@ -179,15 +182,19 @@ pub struct Odometry {
 
 /// One odometry step.
 pub struct OdometryStep {
-    /// `T_odom_scan`.
+    /// `T_odom_scan`: the sensor at the scan's stamp.
     pub pose: Pose,
+    /// The pose of `prepared`'s frame: the sensor mid-scan for a deskewed scan, else
+    /// `pose`.
+    pub cloud_pose: Pose,
     /// The accepted registration against the local map (`None` for the first scan).
     pub registration: Option<RegistrationResult>,
     /// How the pose was found.
     pub outcome: OdometryOutcome,
     /// The correspondence distance the scan was first registered with, metres.
     pub distance: f64,
-    /// The scan as registered (downsampled, covariances, tree), for callers that keep it.
+    /// The scan as registered (deskewed, downsampled, covariances, tree; frame at
+    /// `cloud_pose`), for callers that keep it.
     pub prepared: PreparedCloud,
 }
 
@@ -212,9 +219,17 @@ impl Odometry {
         scan: &PointCloud,
     ) -> Result<OdometryStep, RegistrationError> {
         let reg = self.params.registration;
+        // Deskewed to mid-scan, and tracked there: a velocity error then shifts the
+        // cloud symmetrically instead of along the motion, so it does not feed back
+        // into the next velocity (deskewing to the stamp oscillated and diverged).
+        let mid = self.reference_time(scan);
+        let deskewed = self.deskewed(scan, mid)?;
+        let scan = deskewed.as_ref().unwrap_or(scan);
         let prepared = PreparedCloud::new(scan, &reg, "scan")?;
         let distance = self.threshold.distance();
-        let (pose, registration, outcome) = match (&self.local_map, self.motion.predict(stamp)) {
+        let tracked_at = stamp + mid;
+        let predicted = self.motion.predict(tracked_at);
+        let (cloud_pose, registration, outcome) = match (&self.local_map, predicted) {
             (Some(map), Some(predicted)) => {
                 let (result, outcome) = self.register(map, scan, &prepared, &predicted)?;
                 let motion = self.motion.last().expect("predicted").inverse() * result.pose;
@@ -227,15 +242,58 @@ impl Odometry {
             // The motion since the last good scan is unknown: do not extrapolate it.
             self.motion.forget_velocity();
         }
-        self.motion.update(stamp, pose);
-        self.grow_local_map(&pose, &prepared)?;
+        self.motion.update(tracked_at, cloud_pose);
+        self.grow_local_map(&cloud_pose, &prepared)?;
+        let pose = match self.motion.velocity() {
+            Some(twist) if mid != 0.0 => cloud_pose * twist.motion(-mid),
+            _ => cloud_pose,
+        };
         Ok(OdometryStep {
             pose,
+            cloud_pose,
             registration,
             outcome,
             distance,
             prepared,
         })
+    }
+
+    /// Seconds after the stamp the scan is tracked at: the middle of its points' times
+    /// when it is deskewed, else the stamp.
+    fn reference_time(&self, scan: &PointCloud) -> f64 {
+        match scan.time.as_deref().filter(|_| self.params.deskew) {
+            Some(times) if !times.is_empty() => {
+                let (lo, hi) = times
+                    .iter()
+                    .filter(|t| t.is_finite())
+                    .fold((f32::MAX, f32::MIN), |(lo, hi), &t| (lo.min(t), hi.max(t)));
+                if lo <= hi {
+                    f64::from(lo + hi) / 2.0
+                } else {
+                    0.0
+                }
+            }
+            _ => 0.0,
+        }
+    }
+
+    /// The scan moved into its sensor frame at `reference` seconds after the stamp by the
+    /// motion model's last twist, when deskewing is on and the scan has per-point times
+    /// (`None`: use it as it is).
+    fn deskewed(
+        &self,
+        scan: &PointCloud,
+        reference: f64,
+    ) -> Result<Option<PointCloud>, RegistrationError> {
+        let Some(twist) = self.motion.velocity().filter(|_| self.params.deskew) else {
+            return Ok(None);
+        };
+        if scan.time.is_none() {
+            return Ok(None);
+        }
+        let mut moved = scan.clone();
+        deskew(&mut moved, &twist, reference)?;
+        Ok(Some(moved))
     }
 
     /// The registration ladder: from the prediction at the adaptive distance; when that

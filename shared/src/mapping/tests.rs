@@ -114,6 +114,54 @@ fn campus_lap_from_raw_scans() {
     );
 }
 
+/// Odometry keyframe ATE on a simulated courtyard drive with motion-distorted (raw)
+/// scans at `speed` m/s, with and without deskewing.
+fn raw_drive_ate(speed: f64, deskew: bool) -> f64 {
+    let sim = Simulation::new(SimConfig {
+        preset: Preset::Courtyard,
+        seconds: 12.0,
+        cruise_speed: Some(speed),
+        lidar: LidarParams {
+            beams: 16,
+            deskew: false,
+            ..LidarParams::default()
+        },
+        ..SimConfig::default()
+    })
+    .unwrap();
+    let count = sim.config().scan_count();
+    let stamps: Vec<f64> = (0..count)
+        .map(|i| i as f64 / sim.config().lidar.rate_hz)
+        .collect();
+    let mut params = BuildParams::default();
+    params.odometry.deskew = deskew;
+    let built =
+        build_trajectory::<TestError>(&stamps, |i| Ok(sim.scan(i).cloud), &params, |_| {}).unwrap();
+    let truth: Vec<Pose> = (0..count).map(|i| sim.scan_pose(i)).collect();
+    absolute_trajectory_error(&built.odometry, &truth)
+}
+
+/// Deskewing raw scans with the motion model's twist: never worse, and clearly better
+/// at 4 m/s. Measured odometry ATE without / with: 1 m/s 1.5 / 0.3 cm, 2 m/s 5.5 / 1.5
+/// cm, 4 m/s 16.2 / 11.7 cm (the 4 m/s error comes from one sharp corner, deskewed or
+/// not).
+#[test]
+fn deskewing_raw_scans_lowers_the_odometry_error() {
+    for speed in [1.0, 2.0, 4.0] {
+        let (raw, deskewed) = (raw_drive_ate(speed, false), raw_drive_ate(speed, true));
+        println!(
+            "raw courtyard at {speed} m/s: ATE {raw:.4} m without deskew, {deskewed:.4} m with"
+        );
+        assert!(
+            deskewed <= raw * 1.05 + 1e-3,
+            "{speed} m/s: {deskewed} vs {raw}"
+        );
+        if speed >= 4.0 {
+            assert!(deskewed < raw * 0.8, "{speed} m/s: {deskewed} vs {raw}");
+        }
+    }
+}
+
 #[test]
 fn relative_pose_error_of_a_stretched_straight_line() {
     // Closed form: every 1 m step is estimated as 1.1 m, so each step is 0.1 m off.

@@ -168,6 +168,9 @@ pub enum RegistrationError {
         /// What the voxel grid said.
         message: String,
     },
+    /// A scan's per-point times could not deskew it.
+    #[error("scan: {0}")]
+    Deskew(#[from] crate::cloud::DeskewError),
     /// No source point has a target point within the correspondence distance.
     #[error(
         "no correspondences within {max_distance} m at the initial pose; the guess is too far off or the clouds do not overlap"

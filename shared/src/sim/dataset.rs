@@ -33,6 +33,10 @@ pub struct SimConfig {
     pub seed: u64,
     /// World (gravity) frame tilt against the map frame, `[roll, pitch]` in degrees.
     pub tilt_deg: [f64; 2],
+    /// Cruise speed of the drive, m/s, instead of the preset's (courtyard and corridor 2,
+    /// campus 5, street 10); the start from rest and the +-20 % swing stay.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cruise_speed: Option<f64>,
     /// LiDAR model.
     pub lidar: LidarParams,
     /// IMU model.
@@ -46,6 +50,7 @@ impl Default for SimConfig {
             seconds: 10.0,
             seed: 1,
             tilt_deg: [0.0, 0.0],
+            cruise_speed: None,
             lidar: LidarParams::default(),
             imu: ImuParams::default(),
         }
@@ -79,6 +84,14 @@ impl SimConfig {
                 name,
                 angle,
                 "-45 to 45 degrees",
+            )?;
+        }
+        if let Some(speed) = self.cruise_speed {
+            ensure(
+                speed.is_finite() && (0.1..=40.0).contains(&speed),
+                "speed",
+                speed,
+                "0.1 to 40 m/s",
             )?;
         }
         self.lidar.validate()?;
@@ -117,7 +130,10 @@ impl Simulation {
     /// Builds the site of a validated configuration.
     pub fn new(config: SimConfig) -> Result<Self, InvalidOption> {
         config.validate()?;
-        let site = build_site(config.preset, config.seed);
+        let mut site = build_site(config.preset, config.seed);
+        if let Some(cruise) = config.cruise_speed {
+            site.trajectory = site.trajectory.with_cruise(cruise);
+        }
         Ok(Self { config, site })
     }
 

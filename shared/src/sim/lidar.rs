@@ -32,8 +32,9 @@ pub struct LidarParams {
     pub range_noise_sigma: f64,
     /// Probability that a return is dropped (0 = none).
     pub dropout: f64,
-    /// Points in the sensor frame at the sweep start (true) or at their own firing time
-    /// (false, "raw": motion distortion left in, per-point times tell when).
+    /// Points in the sensor frame at the sweep start, without per-point times (true), or
+    /// at their own firing time (false, "raw": motion distortion left in, per-point times
+    /// tell when).
     pub deskew: bool,
 }
 
@@ -176,6 +177,11 @@ pub fn sweep(
                 .push(to_point(&view));
             cloud.time.as_mut().expect("set above").push(dt as f32);
         }
+    }
+    if params.deskew {
+        // Deskewed points all sit in the sweep-start frame: per-point times would tell
+        // readers (kfmap's odometry) to deskew them a second time.
+        cloud.time = None;
     }
     cloud
 }

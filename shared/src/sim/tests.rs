@@ -318,3 +318,30 @@ fn invalid_parameters_are_named() {
     };
     assert_eq!(bad.validate().unwrap_err().option, "seconds");
 }
+
+/// `cruise_speed` overrides the preset's: at the end of the start from rest (3 s) the
+/// speed is the cruise speed exactly (the swing starts there at zero), on the same path.
+#[test]
+fn cruise_speed_override_drives_the_same_path_faster() {
+    let speed_at_cruise = |cruise_speed: Option<f64>| {
+        let sim = Simulation::new(SimConfig {
+            cruise_speed,
+            ..SimConfig::default()
+        })
+        .unwrap();
+        let path = &sim.site().trajectory;
+        (path.velocity(3.0).norm(), path.spline().total_length())
+    };
+    let (preset, lap) = speed_at_cruise(None);
+    assert!((preset - 2.0).abs() < 1e-4, "{preset}");
+    for cruise in [1.0, 4.0] {
+        let (speed, same_lap) = speed_at_cruise(Some(cruise));
+        assert!((speed - cruise).abs() < 1e-4, "{cruise}: {speed}");
+        assert_eq!(same_lap, lap);
+    }
+    let bad = SimConfig {
+        cruise_speed: Some(0.0),
+        ..SimConfig::default()
+    };
+    assert_eq!(bad.validate().unwrap_err().option, "speed");
+}

@@ -173,6 +173,17 @@ impl Trajectory {
         &self.spline
     }
 
+    /// How fast the path is driven.
+    pub fn speed(&self) -> &SpeedProfile {
+        &self.speed
+    }
+
+    /// The same path driven at `cruise` m/s (same start from rest and relative swing).
+    pub fn with_cruise(mut self, cruise: f64) -> Self {
+        self.speed.cruise = cruise;
+        self
+    }
+
     /// Seconds to drive one lap.
     pub fn lap_time(&self) -> f64 {
         // Distance is monotone in t: bisect.
