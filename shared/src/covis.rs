@@ -74,6 +74,9 @@ pub struct CovisibilityGraph {
     index: HashMap<Voxel, Vec<KeyframeId>>,
     /// Symmetric: `edges[a][b] == edges[b][a]` for every kept edge.
     edges: HashMap<KeyframeId, BTreeMap<KeyframeId, u32>>,
+    /// Each keyframe's own fallback: its strongest partner, when none reaches
+    /// `min_weight`. An edge below the threshold exists iff it is one end's fallback.
+    fallback: HashMap<KeyframeId, KeyframeId>,
     parent: HashMap<KeyframeId, KeyframeId>,
     children: HashMap<KeyframeId, BTreeSet<KeyframeId>>,
     /// Keyframes that joined the tree (a parent, or the first keyframe = root).
@@ -135,6 +138,16 @@ impl CovisibilityGraph {
         for &(a, b, w) in &snapshot.edges {
             graph.edges.entry(a).or_default().insert(b, w);
             graph.edges.entry(b).or_default().insert(a, w);
+        }
+        // A stored row without a thresholded edge holds its keyframe's fallback, which is
+        // the strongest partner overall and hence the row's strongest.
+        let threshold = options.min_weight;
+        for (&id, row) in &graph.edges {
+            if row.values().all(|&w| w < threshold)
+                && let Some((&best, _)) = strongest(row)
+            {
+                graph.fallback.insert(id, best);
+            }
         }
         for &(child, parent) in &snapshot.parents {
             graph.attach(child, parent);
@@ -203,32 +216,44 @@ impl CovisibilityGraph {
 
     /// Recomputes every edge of `id` from the voxel index: edges with weight >= the
     /// threshold, or the single strongest when none qualifies; mirrored on both ends.
+    /// Every keyframe whose shared-voxel count with `id` changed gets its own fallback
+    /// recomputed too, so an edge below the threshold survives as long as it is either
+    /// end's strongest (the graph equals one built from scratch).
     /// The first time `id` gets an edge to a keyframe of the spanning tree it joins the
     /// tree under the strongest such neighbour.
     pub fn update_connections(&mut self, id: KeyframeId) {
         let counts = self.shared_voxels(id);
-        let mut kept: BTreeMap<KeyframeId, u32> = counts
+        let previous = self.detach_edges(id);
+        let threshold = self.options.min_weight;
+        let mut row: BTreeMap<KeyframeId, u32> = counts
             .iter()
-            .filter(|&(_, &w)| w >= self.options.min_weight)
+            .filter(|&(_, &w)| w >= threshold)
             .map(|(&k, &w)| (k, w))
             .collect();
-        if kept.is_empty()
-            && let Some((&k, &w)) = strongest(&counts)
-        {
-            kept.insert(k, w);
-        }
-        for (other, _) in self.edges.remove(&id).unwrap_or_default() {
-            if let Some(row) = self.edges.get_mut(&other) {
-                row.remove(&id);
+        match strongest(&counts).filter(|_| row.is_empty()) {
+            Some((&k, &w)) => {
+                row.insert(k, w);
+                self.fallback.insert(id, k);
+            }
+            None => {
+                self.fallback.remove(&id);
             }
         }
-        for (&other, &w) in &kept {
+        for (&other, &w) in &row {
             self.edges.entry(other).or_default().insert(id, w);
+        }
+        self.edges.insert(id, row);
+        // Old partners (their count with `id` may have dropped) and new ones (it may have
+        // risen): their fallbacks depend on it; everyone else's counts are unchanged.
+        let affected: BTreeSet<KeyframeId> =
+            previous.keys().chain(counts.keys()).copied().collect();
+        for other in affected {
+            self.refresh_fallback(other);
         }
         if !self.in_tree.contains(&id) {
             // Only under a keyframe already in the tree: an outsider has no subtree, so
             // attaching it can never close a cycle.
-            let in_tree: BTreeMap<KeyframeId, u32> = kept
+            let in_tree: BTreeMap<KeyframeId, u32> = self.edges[&id]
                 .iter()
                 .filter(|(k, _)| self.in_tree.contains(k))
                 .map(|(&k, &w)| (k, w))
@@ -237,7 +262,61 @@ impl CovisibilityGraph {
                 self.attach(id, best);
             }
         }
-        self.edges.insert(id, kept);
+    }
+
+    /// Removes `id`'s row and its mirror entries; returns the row.
+    fn detach_edges(&mut self, id: KeyframeId) -> BTreeMap<KeyframeId, u32> {
+        let row = self.edges.remove(&id).unwrap_or_default();
+        for other in row.keys() {
+            if let Some(other_row) = self.edges.get_mut(other) {
+                other_row.remove(&id);
+            }
+        }
+        row
+    }
+
+    /// Recomputes keyframe `id`'s own fallback after one of its counts changed: drops the
+    /// old fallback edge unless the other end still wants it, adds the new one.
+    fn refresh_fallback(&mut self, id: KeyframeId) {
+        let threshold = self.options.min_weight;
+        let Some(row) = self.edges.get(&id) else {
+            return; // Removed, or not added yet.
+        };
+        // Every partner at or above the threshold already has an edge, so a thresholded
+        // edge in the row settles it without recounting.
+        let wanted = if row.values().any(|&w| w >= threshold) {
+            None
+        } else {
+            let counts = self.shared_voxels(id);
+            strongest(&counts)
+                .filter(|&(_, &w)| w < threshold)
+                .map(|(&k, &w)| (k, w))
+        };
+        let old = self.fallback.get(&id).copied();
+        if let Some(old) = old.filter(|&o| Some(o) != wanted.map(|(k, _)| k)) {
+            let kept = self.weight(id, old) >= threshold || self.fallback.get(&old) == Some(&id);
+            if !kept {
+                self.unlink(id, old);
+            }
+        }
+        match wanted {
+            Some((k, w)) => {
+                self.fallback.insert(id, k);
+                self.edges.entry(id).or_default().insert(k, w);
+                self.edges.entry(k).or_default().insert(id, w);
+            }
+            None => {
+                self.fallback.remove(&id);
+            }
+        }
+    }
+
+    fn unlink(&mut self, a: KeyframeId, b: KeyframeId) {
+        for (x, y) in [(a, b), (b, a)] {
+            if let Some(row) = self.edges.get_mut(&x) {
+                row.remove(&y);
+            }
+        }
     }
 
     fn attach(&mut self, child: KeyframeId, parent: KeyframeId) {
@@ -246,17 +325,20 @@ impl CovisibilityGraph {
         self.in_tree.insert(child);
     }
 
-    /// Removes keyframe `id`: its voxels, its edges on both ends, and its tree node;
+    /// Removes keyframe `id`: its voxels, its edges on both ends (a neighbour that loses
+    /// its fallback edge gets one to its next strongest partner), and its tree node;
     /// its children are re-parented greedily (ORB-SLAM2 `SetBadFlag`): repeatedly the
     /// child with the strongest edge to a candidate (the removed keyframe's parent,
     /// then every re-attached child) joins that candidate; the rest join the removed
     /// keyframe's parent (or become roots when it had none).
     pub fn remove_keyframe(&mut self, id: KeyframeId) {
         self.drop_voxels(id);
-        for (other, _) in self.edges.remove(&id).unwrap_or_default() {
-            if let Some(row) = self.edges.get_mut(&other) {
-                row.remove(&id);
-            }
+        let previous = self.detach_edges(id);
+        self.fallback.remove(&id);
+        // A neighbour whose only edge was to `id` falls back on its next strongest
+        // partner; done before re-parenting so that the children see the true graph.
+        for &other in previous.keys() {
+            self.refresh_fallback(other);
         }
         let parent = self.parent.remove(&id);
         if let Some(siblings) = parent.and_then(|p| self.children.get_mut(&p)) {

@@ -278,8 +278,12 @@ pub struct RegistrationResult {
     pub converged: bool,
     /// How well the scene constrains rotation and translation.
     pub constraint: Constraint,
-    /// True when a block is below the degeneracy ratio: the pose is not trustworthy
-    /// along some direction (e.g. a featureless corridor).
+    /// Directions of the pose update (rotation and translation) the last Hessian does
+    /// not constrain at all (0 to 6, see [`solve_step`]): the last step left the pose
+    /// at its guess along them, e.g. 1 along a corridor seen as infinite.
+    pub unobservable: usize,
+    /// True when a block is below the degeneracy ratio or a direction is unobservable:
+    /// the pose is not trustworthy along some direction (e.g. a featureless corridor).
     pub degenerate: bool,
 }
 
@@ -355,6 +359,7 @@ pub fn solve_pose<E: From<RegistrationError>>(
     let mut lambda = 1e-4;
     let mut converged = false;
     let mut iterations = 0;
+    let mut unobservable = 0;
     // The last linearization and the pose it was taken at: its Hessian and pairs are
     // the result's (as small_gicp), so no extra correspondence search after the loop.
     let mut last: Option<(Vec<Correspondence>, Linearized, Pose)> = None;
@@ -366,13 +371,17 @@ pub fn solve_pose<E: From<RegistrationError>>(
         }
         let lin = linearize(&pairs, &pose, &params.kernel);
         let step = match params.optimizer {
-            Optimizer::GaussNewton => solve_step(&lin, 0.0),
+            Optimizer::GaussNewton => solve_step(&lin, 0.0).inspect(|s| {
+                unobservable = s.unobservable;
+            }),
             Optimizer::LevenbergMarquardt => {
                 // Damp until the cost over these correspondences drops.
                 let mut accepted = None;
                 for _ in 0..10 {
-                    if let Some(step) = solve_step(&lin, lambda)
-                        && cost(&pairs, &retract(&pose, &step), &params.kernel) <= lin.cost
+                    // `unobservable` is a property of H alone, whatever the damping.
+                    if let Some(step) = solve_step(&lin, lambda).inspect(|s| {
+                        unobservable = s.unobservable;
+                    }) && cost(&pairs, &retract(&pose, &step.delta), &params.kernel) <= lin.cost
                     {
                         lambda = (lambda / 10.0).max(1e-10);
                         accepted = Some(step);
@@ -384,7 +393,7 @@ pub fn solve_pose<E: From<RegistrationError>>(
             }
         };
         last = Some((pairs, lin, pose));
-        let Some(step) = step else {
+        let Some(step) = step.map(|s| s.delta) else {
             break;
         };
         pose = retract(&pose, &step);
@@ -413,8 +422,10 @@ pub fn solve_pose<E: From<RegistrationError>>(
         iterations,
         converged,
         constraint,
+        unobservable,
         degenerate: constraint.rotation_ratio < params.degeneracy_ratio
-            || constraint.translation_ratio < params.degeneracy_ratio,
+            || constraint.translation_ratio < params.degeneracy_ratio
+            || unobservable > 0,
     })
 }
 

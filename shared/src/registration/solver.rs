@@ -152,10 +152,89 @@ pub fn retract(pose: &Pose, step: &Vector6<f64>) -> Pose {
     pose * Pose::new(v, omega)
 }
 
-/// Solves `(H + lambda I) d = -g`; `None` when singular.
-pub fn solve_step(lin: &Linearized, lambda: f64) -> Option<Vector6<f64>> {
+/// A solved step and the directions it could not move along.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Step {
+    /// `d = (omega, v)` for [`retract`]: rotation in radians, then translation in
+    /// metres, both in the body (source) frame.
+    pub delta: Vector6<f64>,
+    /// How many directions of `d` the Hessian does not constrain (0 to 6); `delta` has
+    /// no component along them, so the pose keeps its guess there.
+    pub unobservable: usize,
+}
+
+/// Eigenvalues of the scaled Hessian below this fraction of the largest are
+/// unobservable directions: their information is rounding noise, and a step along
+/// them would amplify it by the inverse ratio.
+pub const UNOBSERVABLE_RATIO: f64 = 1e-9;
+
+/// Solves `(H + lambda I) d = -g` over the directions `H` observes.
+///
+/// Observability is decided on `S H S` with `S = diag(I / L, I)`, where
+/// `L = sqrt(tr H_rr / tr H_tt)` metres (the RMS lever arm of the constraints) turns
+/// rotations into displacements comparable with translations: eigen-directions whose
+/// eigenvalue is at most [`UNOBSERVABLE_RATIO`] times the largest are unobservable.
+/// When none is, this is the plain Cholesky solve. Otherwise the system is solved on
+/// the observable eigen-directions only (with `lambda = 0`: the least-squares step
+/// of least scaled length, the observable-directions update of Zhang, Kaess and Singh,
+/// "On degeneracy of optimization-based state estimation problems", ICRA 2016).
+/// `None` only for a non-finite system or a negative or non-finite `lambda`.
+pub fn solve_step(lin: &Linearized, lambda: f64) -> Option<Step> {
+    let finite = lin
+        .hessian
+        .iter()
+        .chain(lin.gradient.iter())
+        .all(|v| v.is_finite());
+    if !finite || !lambda.is_finite() || lambda < 0.0 {
+        return None;
+    }
     let damped = lin.hessian + Matrix6::identity() * lambda;
-    damped.cholesky().map(|c| c.solve(&(-lin.gradient)))
+    let scale = scaling(&lin.hessian);
+    let eigen = SymmetricEigen::new(scale * lin.hessian * scale);
+    let largest = eigen.eigenvalues.max();
+    let observable = eigen
+        .eigenvalues
+        .map(|e| largest > 0.0 && e > UNOBSERVABLE_RATIO * largest);
+    let unobservable = observable.iter().filter(|&&o| !o).count();
+    if unobservable == 0
+        && let Some(cholesky) = damped.cholesky()
+    {
+        return Some(Step {
+            delta: cholesky.solve(&(-lin.gradient)),
+            unobservable,
+        });
+    }
+    // `d = B z` over the observable columns of `B = S V`; the other columns are zero
+    // and their unknowns pinned to 0 by a unit diagonal.
+    let mut basis = Matrix6::zeros();
+    for (i, _) in observable.iter().enumerate().filter(|(_, o)| **o) {
+        basis.set_column(i, &(scale * eigen.eigenvectors.column(i)));
+    }
+    let mut reduced = basis.transpose() * damped * basis;
+    for (i, _) in observable.iter().enumerate().filter(|(_, o)| !**o) {
+        reduced[(i, i)] = 1.0;
+    }
+    let z = reduced
+        .cholesky()?
+        .solve(&(-basis.transpose() * lin.gradient));
+    Some(Step {
+        delta: basis * z,
+        unobservable,
+    })
+}
+
+/// `S = diag(I / L, I)` of [`solve_step`] (identity when a block carries nothing).
+fn scaling(hessian: &Matrix6<f64>) -> Matrix6<f64> {
+    let rotation = hessian.fixed_view::<3, 3>(0, 0).trace();
+    let translation = hessian.fixed_view::<3, 3>(3, 3).trace();
+    let per_radian = if rotation > 0.0 && translation > 0.0 {
+        (translation / rotation).sqrt()
+    } else {
+        1.0
+    };
+    Matrix6::from_diagonal(&Vector6::new(
+        per_radian, per_radian, per_radian, 1.0, 1.0, 1.0,
+    ))
 }
 
 /// How well the Hessian constrains each block: the smallest over the largest
