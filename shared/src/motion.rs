@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::cloud::Twist;
 use crate::geometry::Pose;
-use crate::options::{InvalidOption, ensure};
+use crate::options::{InvalidOption, ensure, ensure_distance};
 use crate::pose_graph::{exp, log};
 
 /// `relative` scaled to a fraction `s` of itself along its screw motion,
@@ -122,25 +122,15 @@ impl AdaptiveThresholdParams {
     /// Checks every value; the error names the option.
     pub fn validate(&self) -> Result<(), InvalidOption> {
         let positive = |v: f64| v.is_finite() && v > 0.0;
-        ensure(
-            positive(self.min),
-            "min",
-            self.min,
-            "a finite distance > 0 m",
-        )?;
+        ensure_distance("min", self.min)?;
         ensure(
             positive(self.max) && self.max >= self.min,
             "max",
             self.max,
             "a finite distance >= min",
         )?;
-        ensure(
-            positive(self.initial),
-            "initial",
-            self.initial,
-            "a finite distance > 0 m",
-        )?;
-        ensure(positive(self.range), "range", self.range, "> 0 m")?;
+        ensure_distance("initial", self.initial)?;
+        ensure_distance("range", self.range)?;
         ensure(
             self.min_motion.is_finite() && self.min_motion >= 0.0,
             "min-motion",

@@ -40,3 +40,18 @@ pub fn ensure(
         Err(InvalidOption::new(option, value, allowed))
     }
 }
+
+/// Fails unless `value` is a finite distance > 0 m.
+pub fn ensure_distance(option: &'static str, value: f64) -> Result<(), InvalidOption> {
+    ensure(
+        value.is_finite() && value > 0.0,
+        option,
+        value,
+        "a finite distance > 0 m",
+    )
+}
+
+/// Fails unless `value` is a share from 0 to 1.
+pub fn ensure_ratio(option: &'static str, value: f64) -> Result<(), InvalidOption> {
+    ensure((0.0..=1.0).contains(&value), option, value, "0 to 1")
+}

@@ -6,7 +6,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::covis::{CovisOptions, CovisibilityGraph};
 use crate::geometry::{Pose, to_point, transform_point};
-use crate::options::{InvalidOption, ensure};
+use crate::options::{InvalidOption, ensure_distance, ensure_ratio};
 use crate::pose_graph::{GraphError, GraphParams, GraphReport, PoseEdge, PoseGraph};
 use crate::registration::{
     Fitness, PreparedCloud, RegistrationError, RegistrationParams, RegistrationResult,
@@ -171,24 +171,9 @@ impl DistanceLoopDetection {
     /// Checks every value; the error names the option.
     pub fn validate(&self) -> Result<(), InvalidOption> {
         self.registration.validate()?;
-        ensure(
-            self.max_distance.is_finite() && self.max_distance > 0.0,
-            "max-distance",
-            self.max_distance,
-            "a finite distance > 0 m",
-        )?;
-        ensure(
-            (0.0..=1.0).contains(&self.min_inlier_ratio),
-            "min-inlier-ratio",
-            self.min_inlier_ratio,
-            "0 to 1",
-        )?;
-        ensure(
-            self.max_rmse.is_finite() && self.max_rmse > 0.0,
-            "max-rmse",
-            self.max_rmse,
-            "a finite distance > 0 m",
-        )
+        ensure_distance("max-distance", self.max_distance)?;
+        ensure_ratio("min-inlier-ratio", self.min_inlier_ratio)?;
+        ensure_distance("max-rmse", self.max_rmse)
     }
 }
 

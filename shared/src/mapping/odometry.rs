@@ -12,7 +12,7 @@ use crate::cloud::{PointCloud, deskew};
 use crate::geometry::{Pose, to_point, transform_point};
 use crate::map::KeyframeDecider;
 use crate::motion::{AdaptiveThreshold, AdaptiveThresholdParams, ConstantVelocity, yaw_hypotheses};
-use crate::options::{InvalidOption, ensure};
+use crate::options::{InvalidOption, ensure, ensure_distance, ensure_ratio};
 use crate::registration::{
     Fitness, PreparedCloud, RegistrationError, RegistrationParams, RegistrationResult,
     RobustKernel, align, overlap,
@@ -114,18 +114,8 @@ impl OdometryParams {
             self.local_map_voxel_points,
             "at least 1",
         )?;
-        ensure(
-            (0.0..=1.0).contains(&self.min_inlier_ratio),
-            "min-inlier-ratio",
-            self.min_inlier_ratio,
-            "0 to 1",
-        )?;
-        ensure(
-            self.fit_distance.is_finite() && self.fit_distance > 0.0,
-            "fit-distance",
-            self.fit_distance,
-            "a finite distance > 0 m",
-        )?;
+        ensure_ratio("min-inlier-ratio", self.min_inlier_ratio)?;
+        ensure_distance("fit-distance", self.fit_distance)?;
         ensure(
             self.max_correction.is_finite() && self.max_correction > 0.0,
             "max-correction",
@@ -138,12 +128,7 @@ impl OdometryParams {
             self.coarse_voxel_factor,
             ">= 1",
         )?;
-        ensure(
-            self.coarse_distance.is_finite() && self.coarse_distance > 0.0,
-            "coarse-distance",
-            self.coarse_distance,
-            "a finite distance > 0 m",
-        )?;
+        ensure_distance("coarse-distance", self.coarse_distance)?;
         ensure(
             self.yaw_max_deg.is_finite()
                 && self.yaw_max_deg >= 0.0

@@ -224,7 +224,7 @@ pub fn solve_step(lin: &Linearized, lambda: f64) -> Option<Step> {
 }
 
 /// `S = diag(I / L, I)` of [`solve_step`] (identity when a block carries nothing).
-fn scaling(hessian: &Matrix6<f64>) -> Matrix6<f64> {
+pub(super) fn scaling(hessian: &Matrix6<f64>) -> Matrix6<f64> {
     let rotation = hessian.fixed_view::<3, 3>(0, 0).trace();
     let translation = hessian.fixed_view::<3, 3>(3, 3).trace();
     let per_radian = if rotation > 0.0 && translation > 0.0 {

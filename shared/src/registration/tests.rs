@@ -182,22 +182,8 @@ fn a_corridor_is_aligned_across_and_left_alone_along_its_axis() {
     }
 }
 
-/// `S = diag(I / L, I)`, `L = sqrt(tr H_rr / tr H_tt)`, as `solve_step` documents it
-/// (identity when a block is empty).
-fn documented_scaling(h: &Matrix6<f64>) -> Matrix6<f64> {
-    let (rotation, translation) = (
-        h.fixed_view::<3, 3>(0, 0).trace(),
-        h.fixed_view::<3, 3>(3, 3).trace(),
-    );
-    let per_radian = if rotation > 0.0 && translation > 0.0 {
-        (translation / rotation).sqrt()
-    } else {
-        1.0
-    };
-    Matrix6::from_diagonal(&Vector6::new(
-        per_radian, per_radian, per_radian, 1.0, 1.0, 1.0,
-    ))
-}
+/// The scaled metric the step is least-length in (`solve_step`'s own scaling).
+use super::solver::scaling as documented_scaling;
 
 /// A normal-equation system with Hessian `h` and gradient `g`.
 fn system(hessian: Matrix6<f64>, gradient: Vector6<f64>) -> Linearized {
