@@ -49,6 +49,7 @@ fn localize(
         max_iterations,
         max_pair_dist: 1.0,
         mode,
+        ..LocalizeOptions::default()
     };
     client
         .localize(&payload, guess, &options)
@@ -124,11 +125,11 @@ fn kitti07_held_out_keyframes_localize_over_ipc() {
             "kitti07 keyframe {held_out} held out: {:.2} cm, {:.3} deg from graph.txt ({} iterations, inliers {:.2})",
             t * 100.0,
             r,
-            found.iterations,
-            found.inlier_ratio
+            found.health.iterations,
+            found.health.inlier_ratio
         );
         assert!(t < 0.03 && r < 0.15, "keyframe {held_out}: {t} m, {r} deg");
-        assert!(found.converged);
+        assert!(found.health.converged);
     }
 }
 

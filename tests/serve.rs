@@ -16,7 +16,6 @@ use kfmap_service::server::ServedMap;
 use kfmap_service::server::answer::{Limits, answer};
 use kfmap_service::server::session::Session;
 use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::cov::CovOptions;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::protocol::{
     Cov2CovMode, PROTOCOL_VERSION, RequestHeader, RequestKind, ScanPayload, StatusCode,
@@ -81,10 +80,7 @@ fn scan(data: &Path, i: usize) -> (PointCloud, Pose) {
 fn in_process(map: &ServedMap, header: &RequestHeader, scan: &ScanPayload) -> Vec<WirePairing> {
     let mut h = *header;
     let payload = scan.encode(&mut h);
-    let limits = Limits {
-        max_points: 1 << 20,
-        scan_covariance: CovOptions::default(),
-    };
+    let limits = Limits::default();
     let a = answer(map, &mut Session::new(0), &h, &payload, &limits);
     assert_eq!(a.header.status, 0, "{}", a.header.message());
     a.pairings.into_wire()
@@ -203,10 +199,10 @@ fn client_and_server_side_localization_agree() {
     let gap = server.pose.inverse() * local.pose;
     assert!(gap.translation.vector.norm() < 1e-6, "{gap}");
     assert!(gap.rotation.angle().to_degrees() < 1e-6, "{gap}");
-    assert_eq!(server.iterations, local.iterations);
+    assert_eq!(server.health, local.health);
     let error = (truth.inverse() * server.pose).translation.vector.norm();
     assert!(error < 0.02, "{error} m from the true pose");
-    assert!(server.converged && server.inlier_ratio > 0.5);
+    assert!(server.health.converged && server.health.inlier_ratio > 0.5);
 }
 
 #[test]
@@ -619,6 +615,7 @@ fn sigterm_answers_queued_requests_with_shutting_down() {
         max_iterations: 100,
         max_pair_dist: 5.0,
         mode: Cov2CovMode::Exact,
+        ..LocalizeOptions::default()
     };
     // Connected first, so the signal below can only meet requests sent or running. The
     // running request may take long on a loaded machine: wait for it, up to 5 minutes.
@@ -683,5 +680,82 @@ fn serve_names_a_bad_map_file_once_and_exits_2() {
         let err = String::from_utf8_lossy(&out.stderr);
         assert!(err.contains(expected), "{err}");
         assert_eq!(err.matches(path).count(), 1, "{err}");
+    }
+}
+
+/// Which cov2cov mode requests that leave it to the server get: approximate for a
+/// shipped bake; exact for a map baked with `[map] cov2cov-mode = "exact"`; server.toml's
+/// `[server] cov2cov-mode` overrides the map's either way. A map-default request then
+/// answers exactly as an explicit request of that mode, and the ready line says which.
+#[test]
+fn the_default_cov2cov_mode_comes_from_the_server_then_the_map() {
+    let prefix = Prefix::new("modes");
+    let dir = temp_dir("modes");
+    let data = dir.join("sim");
+    simulate(&data, "courtyard", "3", "16", &[]);
+    let approximate_map = dir.join("approximate.kfmap");
+    bake_dataset(&data, &approximate_map);
+    let exact_map = dir.join("exact.kfmap");
+    let bake_toml = dir.join("bake.toml");
+    std::fs::write(&bake_toml, "[map]\ncov2cov-mode = \"exact\"\n").unwrap();
+    json(&kfmap(&[
+        "bake",
+        "--dataset",
+        data.to_str().unwrap(),
+        "--out",
+        exact_map.to_str().unwrap(),
+        "--config",
+        bake_toml.to_str().unwrap(),
+        "--json",
+    ]));
+    let (cloud, truth) = scan(&data, 11);
+    let guess = truth * Pose::translation(0.1, 0.05, 0.0);
+    let plain = ScanPayload {
+        points: &cloud.points,
+        view_dirs: None,
+        covariances: None,
+    };
+    let cases = [
+        (&approximate_map, "", false),
+        (&exact_map, "", true),
+        (
+            &exact_map,
+            "[server]\ncov2cov-mode = \"approximate\"\n",
+            false,
+        ),
+        (
+            &approximate_map,
+            "[server]\ncov2cov-mode = \"exact\"\n",
+            true,
+        ),
+    ];
+    for (i, (map, server_toml, exact)) in cases.into_iter().enumerate() {
+        let config = dir.join(format!("server{i}.toml"));
+        std::fs::write(&config, server_toml).unwrap();
+        let name = format!("modes{i}");
+        let server = Server::start(
+            map,
+            &name,
+            &prefix.0,
+            &["--config", config.to_str().unwrap()],
+        );
+        let said = if exact { "exact" } else { "approximate" };
+        assert!(
+            server
+                .ready_line
+                .contains(&format!("{said} cov2cov by default")),
+            "case {i}: {}",
+            server.ready_line
+        );
+        let mut client = Client::connect(&name, options(&prefix)).unwrap();
+        let (same, other) = if exact {
+            (Cov2CovMode::Exact, Cov2CovMode::Approximate)
+        } else {
+            (Cov2CovMode::Approximate, Cov2CovMode::Exact)
+        };
+        let mut ask = |mode| client.cov2cov(&plain, &guess, 1.0, mode).unwrap().pairings;
+        let default = ask(Cov2CovMode::MapDefault);
+        assert_eq!(default, ask(same), "case {i}");
+        assert_ne!(default, ask(other), "case {i}");
     }
 }

@@ -18,10 +18,12 @@
 mod connection;
 mod error;
 mod localize;
+mod tracker;
 
 pub use connection::{ClientOptions, Connection, Response};
 pub use error::ClientError;
 pub use localize::{LocalizeOptions, Localized};
+pub use tracker::{TrackedScan, Tracker, TrackerOptions};
 
 use kfmap_shared::KeyframeId;
 use kfmap_shared::geometry::Pose;

@@ -1,27 +1,44 @@
-//! Localization against the server: server-side (`Localize`, for thin clients) or
-//! client-side (this process iterates the shared GICP solver over `Cov2Cov` answers).
-//! Both run the same loop on the same pairings, so they land on the same pose.
+//! Localization of one scan against the server: server-side (`Localize`, for thin
+//! clients) or client-side (this process iterates the shared GICP solver over
+//! `Cov2Cov` answers). Both run the same checks and retry ladder
+//! ([`kfmap_shared::tracking::localize_scan`]) on the same pairings, so they land on the
+//! same pose with the same health.
 
+use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::cov::{CovOptions, estimate_covariances};
-use kfmap_shared::geometry::Pose;
+use kfmap_shared::geometry::{PackedSym3, Pose};
 use kfmap_shared::protocol::{
     Cov2CovMode, RequestHeader, RequestKind, ScanPayload, correspondences_from_wire,
-    localize_registration, pose_from_wire, pose_to_wire,
+    localize_stage, pose_from_wire, pose_to_wire,
 };
-use kfmap_shared::registration::solve_pose;
-use nalgebra::Matrix6;
+use kfmap_shared::registration::{Constraint, RegistrationError, solve_pose};
+use kfmap_shared::tracking::{
+    Expectation, Reasons, ScanHealth, TrackingParams, TrackingStatus, covariance_from_wire,
+    localize_scan,
+};
 
 use crate::{Client, ClientError};
 
 /// Localization settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LocalizeOptions {
-    /// Iterations at most.
+    /// Iterations per registration at most.
     pub max_iterations: u32,
     /// Largest pairing distance, metres.
     pub max_pair_dist: f32,
-    /// Cov2cov mode.
+    /// Cov2cov mode (`MapDefault`: the server's choice).
     pub mode: Cov2CovMode,
+    /// The largest correction from the guess the caller's motion model allows: metres
+    /// of translation plus the chord a point at
+    /// [`kfmap_shared::tracking::CORRECTION_RANGE_M`] sweeps; `None` for no bound (no
+    /// motion model yet). Sent as f32.
+    pub max_correction: Option<f64>,
+    /// The inlier ratio the caller expects (e.g. that of the scans before); a first
+    /// registration well below it is retried from wider hypotheses. Sent as f32.
+    pub expected_inlier_ratio: Option<f64>,
+    /// Checks and retry ladder of client-side localization (server-side localization
+    /// uses the server's `[tracking]`, the same defaults).
+    pub tracking: TrackingParams,
 }
 
 impl Default for LocalizeOptions {
@@ -30,65 +47,92 @@ impl Default for LocalizeOptions {
             max_iterations: 30,
             max_pair_dist: 1.0,
             mode: Cov2CovMode::MapDefault,
+            max_correction: None,
+            expected_inlier_ratio: None,
+            tracking: TrackingParams::default(),
         }
     }
 }
 
-/// A solved pose.
+impl LocalizeOptions {
+    /// The expectation as it travels (f32), so both sides compare alike.
+    fn expectation(&self) -> Expectation {
+        let wire = |v: Option<f64>| v.filter(|v| *v > 0.0).map(|v| v as f32 as f64);
+        Expectation {
+            max_correction: wire(self.max_correction),
+            inlier_ratio: wire(self.expected_inlier_ratio.map(|e| e.min(1.0))),
+        }
+    }
+}
+
+/// A localized scan: the pose and its health.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Localized {
-    /// `T_map_sensor`.
+    /// `T_map_sensor`; the guess when `health.status` is `Lost`.
     pub pose: Pose,
-    /// Pose covariance (rotation first), the inverse GICP Hessian.
-    pub covariance: Matrix6<f64>,
-    /// Scan points with a pairing, over all.
-    pub inlier_ratio: f64,
-    /// RMS pairing distance, metres.
-    pub rmse: f64,
-    /// Iterations run.
-    pub iterations: u32,
-    /// True when the update fell below the thresholds.
-    pub converged: bool,
+    /// Status, fitness, degeneracy, covariance.
+    pub health: ScanHealth,
 }
 
 impl Client {
-    /// Server-side GICP of `scan` from `guess`.
+    /// Server-side localization of `scan` from `guess` (the server's checks and retry
+    /// ladder; a scan that fails them comes back `Lost` with the guess as its pose).
     pub fn localize(
         &mut self,
         scan: &ScanPayload,
         guess: &Pose,
         options: &LocalizeOptions,
     ) -> Result<Localized, ClientError> {
+        let expected = options.expectation();
         let header = RequestHeader {
             kind: RequestKind::Localize as u32,
             pose: pose_to_wire(guess),
             max_iterations: options.max_iterations,
             max_pair_dist: options.max_pair_dist,
+            max_correction: expected.max_correction.unwrap_or(0.0) as f32,
+            expected_inlier_ratio: expected.inlier_ratio.unwrap_or(0.0) as f32,
             mode: options.mode as u32,
             ..Default::default()
         };
         let r = self.connection().call_scan(header, scan)?;
         let h = r.header;
-        let pose = pose_from_wire(&h.pose)
-            .ok_or_else(|| ClientError::Invalid("the server sent an invalid pose".into()))?;
+        let invalid = |what: &str| ClientError::Invalid(format!("the server sent {what}"));
+        let pose = pose_from_wire(&h.pose).ok_or_else(|| invalid("an invalid pose"))?;
+        let status = TrackingStatus::from_code(h.tracking)
+            .ok_or_else(|| invalid(&format!("an unknown tracking status {}", h.tracking)))?;
         Ok(Localized {
             pose,
-            covariance: Matrix6::from_row_slice(&h.covariance),
-            inlier_ratio: h.fitness[0],
-            rmse: h.fitness[1],
-            iterations: h.iterations,
-            converged: h.converged == 1,
+            health: ScanHealth {
+                status,
+                reasons: Reasons(h.reasons),
+                inlier_ratio: h.fitness[0],
+                rmse: h.fitness[1],
+                constraint: Constraint {
+                    rotation_ratio: h.constraint[0],
+                    translation_ratio: h.constraint[1],
+                },
+                degenerate: h.degenerate == 1,
+                covariance: covariance_from_wire(&h.covariance),
+                correction: h.pose_correction,
+                registrations: h.registrations,
+                iterations: h.iterations,
+                converged: h.converged == 1,
+            },
         })
     }
 
-    /// Client-side GICP: asks for cov2cov pairings at each iterate and solves here.
+    /// Client-side localization: the checks and retry ladder run here, each
+    /// registration asking the server for cov2cov pairings at every iterate.
     pub fn localize_client_side(
         &mut self,
         scan: &ScanPayload,
         guess: &Pose,
         options: &LocalizeOptions,
     ) -> Result<Localized, ClientError> {
-        let params = localize_registration(options.max_pair_dist, options.max_iterations);
+        let tracking = &options.tracking;
+        tracking
+            .validate()
+            .map_err(|e| ClientError::Invalid(format!("tracking: {e}")))?;
         // Estimated once here rather than by the server at every iterate; the server's
         // shipped [covariance] settings are these defaults, so both solvers agree.
         let estimated;
@@ -99,26 +143,54 @@ impl Client {
                 &estimated
             }
         };
-        let with_covs = ScanPayload {
+        let fine = ScanPayload {
             covariances: Some(covariances),
             ..*scan
         };
-        let result = solve_pose(guess, &params, scan.points.len(), |pose| {
-            self.cov2cov_with(
-                &with_covs,
-                pose,
-                options.max_pair_dist,
-                options.mode,
-                |_, pairings| correspondences_from_wire(pairings, scan.points),
-            )
-        })?;
+        // The coarse scan as the server builds it, on the ladder's first coarse stage.
+        let mut coarse: Option<(PointCloud, Vec<PackedSym3>)> = None;
+        let found = localize_scan(
+            guess,
+            &options.expectation(),
+            localize_stage(options.max_pair_dist, options.max_iterations),
+            tracking,
+            |start, stage| {
+                if stage.coarse && coarse.is_none() {
+                    let c = tracking
+                        .coarse_scan(scan.points, scan.view_dirs)
+                        .map_err(|e| ClientError::Invalid(format!("coarse scan: {e}")))?;
+                    let covs = estimate_covariances(&c.points, &CovOptions::default()).values;
+                    coarse = Some((c, covs));
+                }
+                let payload = match (&coarse, stage.coarse) {
+                    (Some((cloud, covs)), true) => ScanPayload {
+                        points: &cloud.points,
+                        view_dirs: cloud.view_dirs.as_deref(),
+                        covariances: Some(covs),
+                    },
+                    _ => fine,
+                };
+                let result = solve_pose(start, &stage.params(), payload.points.len(), |pose| {
+                    self.cov2cov_with(
+                        &payload,
+                        pose,
+                        stage.max_pair_dist as f32,
+                        options.mode,
+                        |_, pairings| correspondences_from_wire(pairings, payload.points),
+                    )
+                });
+                match result {
+                    Ok(r) => Ok(Some(r)),
+                    Err(ClientError::Registration(RegistrationError::NoCorrespondences {
+                        ..
+                    })) => Ok(None),
+                    Err(e) => Err(e),
+                }
+            },
+        )?;
         Ok(Localized {
-            pose: result.pose,
-            covariance: result.hessian.try_inverse().unwrap_or_else(Matrix6::zeros),
-            inlier_ratio: result.fitness.inlier_ratio,
-            rmse: result.fitness.rmse,
-            iterations: result.iterations as u32,
-            converged: result.converged,
+            pose: found.pose,
+            health: found.health,
         })
     }
 }

@@ -12,7 +12,9 @@ use kfmap_shared::io::BinLayout;
 use kfmap_shared::map::{ActiveSetMode, KeyframeDecider, KeyframeMapOptions};
 use kfmap_shared::mapping::BuildParams;
 use kfmap_shared::options::{InvalidOption, ensure};
+use kfmap_shared::protocol::Cov2CovMode;
 use kfmap_shared::select::SelectionOptions;
+use kfmap_shared::tracking::TrackingParams;
 use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 
@@ -62,6 +64,9 @@ pub struct ServerSection {
     pub worker_threads: usize,
     /// Largest scan a client may send, in points.
     pub max_points_per_request: usize,
+    /// Cov2cov mode of requests that leave it to the server: "map-default" (what the
+    /// map was baked with, `[map] cov2cov-mode`), "approximate" or "exact".
+    pub cov2cov_mode: Cov2CovMode,
 }
 
 impl Default for ServerSection {
@@ -70,6 +75,7 @@ impl Default for ServerSection {
             map_name: String::new(),
             worker_threads: 0,
             max_points_per_request: 1 << 20,
+            cov2cov_mode: Cov2CovMode::MapDefault,
         }
     }
 }
@@ -196,6 +202,10 @@ pub struct MapSection {
     /// exact mode fuses keyframes that see the same place into the voxelization of
     /// their merged scans (no doubled surfaces where keyframes overlap).
     pub fuse_overlapping_keyframes: bool,
+    /// How the server answers cov2cov requests that leave the mode to it:
+    /// "approximate" (keyframe by keyframe, never rebuilds) or "exact" (a merged
+    /// submap built inside the query each time the active set changes).
+    pub cov2cov_mode: Cov2CovMode,
 }
 
 impl Default for MapSection {
@@ -209,6 +219,7 @@ impl Default for MapSection {
             serialize_covariances: o.serialize_covariances,
             align_gravity: true,
             fuse_overlapping_keyframes: false,
+            cov2cov_mode: Cov2CovMode::Approximate,
         }
     }
 }
@@ -233,6 +244,8 @@ pub struct ServerConfig {
     pub filter: FilterOptions,
     /// Covariances of incoming scans.
     pub covariance: CovOptions,
+    /// Checks and retry ladder of server-side localization.
+    pub tracking: TrackingParams,
 }
 
 /// `bake.toml`.
@@ -271,6 +284,7 @@ impl BakeConfig {
             max_view_angle_deg: self.map.max_view_angle_deg,
             serialize_kdtrees: self.map.serialize_kdtrees,
             serialize_covariances: self.map.serialize_covariances,
+            serve_exact: self.map.cov2cov_mode == Cov2CovMode::Exact,
             fuse_voxel_size: if self.map.fuse_overlapping_keyframes {
                 self.keyframes.voxel_size
             } else {
@@ -326,7 +340,8 @@ impl ConfigFile for ServerConfig {
     fn validate(&self) -> Result<(), (&'static str, InvalidOption)> {
         self.server.validate().map_err(|e| ("server", e))?;
         validate_filter(&self.filter).map_err(|e| ("filter", e))?;
-        self.covariance.validate().map_err(|e| ("covariance", e))
+        self.covariance.validate().map_err(|e| ("covariance", e))?;
+        self.tracking.validate().map_err(|e| ("tracking", e))
     }
 }
 
@@ -349,6 +364,13 @@ impl ConfigFile for BakeConfig {
             "fuse-overlapping-keyframes",
             true,
             "false when [keyframes] voxel-size is 0 (fusion needs the voxel grid)",
+        )
+        .map_err(|e| ("map", e))?;
+        ensure(
+            self.map.cov2cov_mode != Cov2CovMode::MapDefault,
+            "cov2cov-mode",
+            "\"map-default\"",
+            "\"approximate\" or \"exact\" (the map's own default)",
         )
         .map_err(|e| ("map", e))?;
         self.map_options().validate().map_err(|e| ("map", e))
@@ -451,6 +473,20 @@ mod tests {
         assert!(err.contains("min-range") && err.contains(">= 0"), "{err}");
         let err = bake_error("[input]\nbin-layout = \"xyzrgb\"\n");
         assert!(err.contains("xyzrgb") && err.contains("xyzi"), "{err}");
+        let err = bake_error("[map]\ncov2cov-mode = \"map-default\"\n");
+        assert!(
+            err.contains("[map]") && err.contains("cov2cov-mode") && err.contains("exact"),
+            "{err}"
+        );
+        let err = bake_error("[map]\ncov2cov-mode = \"fast\"\n");
+        assert!(err.contains("fast") && err.contains("approximate"), "{err}");
+        let err = ServerConfig::from_toml("[tracking]\ncoarse-voxel = 0\n", Path::new("s.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("[tracking]") && err.contains("coarse-voxel"),
+            "{err}"
+        );
         let err =
             bake_error("[keyframes]\nvoxel-size = 0\n[map]\nfuse-overlapping-keyframes = true\n");
         assert!(

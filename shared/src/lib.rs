@@ -42,3 +42,4 @@ pub mod sim;
 pub mod spatial;
 pub mod summary;
 pub mod surfel;
+pub mod tracking;

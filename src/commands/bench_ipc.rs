@@ -150,10 +150,7 @@ fn ipc_against_in_process(
     let served = ServedMap::open(map, false, 0)?;
     let mut header = request.header;
     let payload = request.scan().encode(&mut header);
-    let limits = Limits {
-        max_points: 1 << 20,
-        scan_covariance: CovOptions::default(),
-    };
+    let limits = Limits::default();
     let mut session = Session::new(0);
     let (mut ipc, mut server, mut local) = (Vec::new(), Vec::new(), Vec::new());
     let started = Instant::now();

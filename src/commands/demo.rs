@@ -316,11 +316,14 @@ fn serve_and_localize(dataset: &Path, sim: &SimConfig, level: &Pose) -> anyhow::
     );
     let s: serde_json::Value = serde_json::from_slice(&out.stdout)?;
     println!(
-        "kfmap localize (child process) on a second drive ({} scans at 7 Hz) in {:.1} s: ATE {:.4} m, RPE {:.4} m, {} failed; latency per scan p50 {:.1} ms, p99 {:.1} ms ({:.1} GICP iterations on average)",
+        "kfmap localize (child process) on a second drive ({} scans at 7 Hz) in {:.1} s: ATE {:.4} m, RPE {:.4} m, {} ok / {} degraded / {} lost, {} failed; latency per scan p50 {:.1} ms, p99 {:.1} ms ({:.1} GICP iterations on average)",
         s["scans"],
         started.elapsed().as_secs_f64(),
         s["ate_m"].as_f64().unwrap_or(f64::NAN),
         s["rpe_m"].as_f64().unwrap_or(f64::NAN),
+        s["ok"],
+        s["degraded"],
+        s["lost"],
         s["failed"],
         s["p50_ms"].as_f64().unwrap_or(f64::NAN),
         s["p99_ms"].as_f64().unwrap_or(f64::NAN),

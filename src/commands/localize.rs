@@ -1,42 +1,60 @@
 //! `kfmap localize`: replay a dataset against a running server and localize every scan.
 
+use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
-use kfmap_client::{GravityAnswer, LocalizeOptions, Localized};
+use kfmap_client::{GravityAnswer, LocalizeOptions, TrackedScan, Tracker, TrackerOptions};
 use kfmap_service::bake::{dataset_poses, find_scans, load_raw_scan};
-use kfmap_service::config::BakeConfig;
-use kfmap_service::gravity::{IMU_FILES, find_in, read_imu};
+use kfmap_service::config::{BakeConfig, ConfigFile, ServerConfig};
+use kfmap_service::gravity::{IMU_FILES, POSE_FILES, find_in, read_imu};
 use kfmap_service::server::percentile;
-use kfmap_shared::geometry::Pose;
+use kfmap_shared::geometry::{Pose, pose_to_xyz_quat, rotation_distance, translation_distance};
 use kfmap_shared::gravity::ImuWindow;
 use kfmap_shared::io::{Trajectory, format_tum, write_atomic};
 use kfmap_shared::mapping::{absolute_trajectory_error, relative_pose_error};
 use kfmap_shared::protocol::{Cov2CovMode, ScanPayload};
+use kfmap_shared::tracking::TrackingStatus;
 use serde_json::json;
 
 use super::connect_arg::ConnectArgs;
 
 /// Replay a dataset's scans (and IMU) against a running `kfmap serve` and localize
-/// every scan, each starting from the previous scan's pose (the first from
-/// --initial, in the map frame, else the dataset's first ground-truth pose, else
-/// identity). Ground truth is taken to be in the frame of the dataset the map was
-/// baked from; the rotation bake applied (gravity levelling) is read from the server.
+/// every scan, tracking it: each scan is localized from the pose a constant-velocity
+/// model predicts from the scans before (the first from --initial, or with
+/// --initial-from-ground-truth the dataset's reference pose of the first replayed scan;
+/// without either, that reference pose when the dataset has one, else identity).
+/// Ground truth is taken to be in the frame of the dataset the map was baked from; the
+/// rotation bake applied (gravity levelling) is read from the server.
+///
+/// Every scan gets a health: status ok / degraded / lost, fitness (inlier ratio), RMSE,
+/// degeneracy, the 6x6 pose covariance. A correction larger than the motion model
+/// allows (the gate adapts to how wrong predictions have been) is retried from wider
+/// hypotheses (a coarser scan with a larger pairing distance, then yaw hypotheses) and
+/// adopted only when consistent; otherwise the scan is lost, its pose is the prediction,
+/// and tracking keeps predicting until scans agree again.
 ///
 /// Scans are read (PCD, PLY, KITTI .bin), invalid returns dropped, downsampled with
-/// --voxel and sent over iceoryx2 shared memory. By default this process runs the GICP
-/// solver over the server's cov2cov pairings (client-side); --server-side asks the
-/// server to solve (thin client). With an IMU log (imu.csv/imu.txt) and timestamped
-/// poses, each scan's IMU window goes to the server's gravity pool and the final
-/// gravity correction is reported. With ground truth, ATE (aligned, RMS) and RPE
-/// (RMS of consecutive-motion errors) are printed. A scan that fails keeps the
-/// previous pose and is counted in "failed".
+/// --voxel and sent over iceoryx2 shared memory. By default this process runs the
+/// checks and the GICP solver over the server's cov2cov pairings (client-side);
+/// --server-side asks the server to run them (thin client). With an IMU log
+/// (imu.csv/imu.txt) and timestamped poses, each scan's IMU window goes to the server's
+/// gravity pool and the final gravity correction is reported. With ground truth, ATE
+/// (aligned, RMS), RPE (RMS of consecutive-motion errors) and each scan's error against
+/// its reference pose are reported. A scan whose request fails (e.g. the server died)
+/// keeps the prediction and is counted in "failed".
+///
+/// --json-lines prints one JSON object per scan (index, t, pose [x,y,z,qx,qy,qz,qw],
+/// status, fitness, rmse_m, latency_ms, and reasons, covariance, ...) and then the
+/// summary object on one line.
 ///
 /// Examples:
 ///   kfmap localize --map-name site --dataset runs/site-2 --out site-2.tum
 ///   kfmap localize --map-name site --dataset runs/site-2 --rate 0 --server-side --json
+///   kfmap localize --map-name site --dataset runs/site-2 --scans 116..177 \
+///       --initial-from-ground-truth --rate 0 --json-lines --mode approximate
 #[derive(clap::Args)]
 #[command(verbatim_doc_comment)]
 pub struct Args {
@@ -45,33 +63,93 @@ pub struct Args {
     /// Dataset directory (scans/ or scan files, optional pose file and IMU log).
     #[arg(long)]
     dataset: PathBuf,
+    /// Replay only scans A..B of the dataset: a half-open range of indices in its
+    /// sorted scan list (e.g. 116..177; "A.." to the end).
+    #[arg(long, value_name = "A..B")]
+    scans: Option<String>,
     /// Scans per second to replay at; 0 sends each scan as soon as the last is done.
     #[arg(long, default_value_t = 10.0)]
     rate: f64,
     /// First pose guess "x y z roll pitch yaw" (metres, degrees) or a 4x4 matrix file.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "initial_from_ground_truth")]
     initial: Option<String>,
+    /// Start at the dataset's reference pose of the first replayed scan (an error when
+    /// the dataset has no pose file).
+    #[arg(long)]
+    initial_from_ground_truth: bool,
     /// Write the trajectory here (TUM: t x y z qx qy qz qw).
     #[arg(long)]
     out: Option<PathBuf>,
     /// Let the server solve the pose (thin client) instead of solving here.
     #[arg(long)]
     server_side: bool,
+    /// Cov2cov mode: map-default (the server's choice: server.toml, else the map's
+    /// bake.toml), approximate (never rebuilds) or exact (a merged submap per active
+    /// set, built inside the query).
+    #[arg(long, value_enum, default_value_t = ModeArg::MapDefault)]
+    mode: ModeArg,
     /// Voxel size applied to each scan before sending, metres (0 sends every point).
     #[arg(long, default_value_t = 0.25)]
     voxel: f64,
     /// Largest pairing distance, metres.
     #[arg(long, default_value_t = 1.0)]
     max_pair_dist: f32,
-    /// Iterations per scan at most.
+    /// Iterations per registration at most.
     #[arg(long, default_value_t = 30)]
     max_iterations: u32,
+    /// server.toml whose [tracking] section (checks and retry ladder) client-side
+    /// localization uses; pass the server's own file so both decide alike
+    /// (--server-side uses the server's).
+    #[arg(long)]
+    config: Option<PathBuf>,
     /// Do not send IMU windows even when the dataset has an IMU log.
     #[arg(long)]
     no_imu: bool,
-    /// Print a JSON summary (scans, ate_m, rpe_m, p50_ms, p99_ms, failed, ...).
+    /// Print a JSON summary (scans, ok, degraded, lost, failed, ate_m, p50_ms, ...).
     #[arg(long)]
     json: bool,
+    /// Print one JSON object per scan, then the summary on one line.
+    #[arg(long)]
+    json_lines: bool,
+}
+
+/// `--mode`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum ModeArg {
+    MapDefault,
+    Approximate,
+    Exact,
+}
+
+impl From<ModeArg> for Cov2CovMode {
+    fn from(mode: ModeArg) -> Self {
+        match mode {
+            ModeArg::MapDefault => Cov2CovMode::MapDefault,
+            ModeArg::Approximate => Cov2CovMode::Approximate,
+            ModeArg::Exact => Cov2CovMode::Exact,
+        }
+    }
+}
+
+/// `--scans A..B`: the half-open range, checked against the dataset's `count` scans.
+fn scan_range(text: &str, count: usize) -> anyhow::Result<Range<usize>> {
+    let usage = || {
+        anyhow::anyhow!(
+            "--scans {text:?}: expected A..B, a half-open range of scan indices (e.g. 116..177, or 116.. to the end)"
+        )
+    };
+    let (a, b) = text.split_once("..").ok_or_else(usage)?;
+    let start: usize = a.trim().parse().map_err(|_| usage())?;
+    let end: usize = match b.trim() {
+        "" => count,
+        b => b.parse().map_err(|_| usage())?,
+    };
+    if start >= end || end > count {
+        anyhow::bail!(
+            "--scans {text}: out of range; the dataset has {count} scans (indices 0..{count}) and the range must hold at least one"
+        );
+    }
+    Ok(start..end)
 }
 
 /// Per-scan IMU windows: samples in `(previous scan's time, this scan's time]`.
@@ -95,40 +173,101 @@ fn imu_windows(dataset: &Path, stamps: &[f64]) -> anyhow::Result<Option<Vec<ImuW
     Ok(Some(windows))
 }
 
+/// One replayed scan's line of `--json-lines`.
+fn scan_line(
+    index: usize,
+    tracked: &TrackedScan,
+    latency_ms: f64,
+    reference: Option<&Pose>,
+    error: Option<&str>,
+) -> serde_json::Value {
+    let h = &tracked.localized.health;
+    let gap = reference.map(|r| {
+        (
+            translation_distance(&tracked.localized.pose, r),
+            rotation_distance(&tracked.localized.pose, r).to_degrees(),
+        )
+    });
+    json!({
+        "index": index,
+        "t": tracked.t,
+        "pose": pose_to_xyz_quat(&tracked.localized.pose),
+        "status": if error.is_some() { "failed" } else { h.status.name() },
+        "fitness": h.inlier_ratio,
+        "rmse_m": h.rmse,
+        "latency_ms": latency_ms,
+        "reasons": h.reasons.names(),
+        "degenerate": h.degenerate,
+        "constraint": [h.constraint.rotation_ratio, h.constraint.translation_ratio],
+        "covariance": h.covariance.map(|c| c.transpose().as_slice().to_vec()),
+        "correction_m": h.correction,
+        "max_correction_m": tracked.max_correction,
+        "registrations": h.registrations,
+        "iterations": h.iterations,
+        "converged": h.converged,
+        "error_m": gap.map(|g| g.0),
+        "error_deg": gap.map(|g| g.1),
+        "failure": error,
+    })
+}
+
 pub fn run(args: Args) -> anyhow::Result<()> {
     if !(args.rate.is_finite() && args.rate >= 0.0) {
         anyhow::bail!("--rate must be >= 0 scans/s, got {}", args.rate);
     }
-    let scans = find_scans(&args.dataset)?;
-    let truth = dataset_poses(&args.dataset, &scans)?;
-    let stamps: Vec<f64> = match &truth {
+    let all_scans = find_scans(&args.dataset)?;
+    let range = match &args.scans {
+        Some(text) => scan_range(text, all_scans.len())?,
+        None => 0..all_scans.len(),
+    };
+    let truth = dataset_poses(&args.dataset, &all_scans)?;
+    if args.initial_from_ground_truth && truth.is_none() {
+        anyhow::bail!(
+            "--initial-from-ground-truth: {} has no pose file ({})",
+            args.dataset.display(),
+            POSE_FILES.join(", ")
+        );
+    }
+    let all_stamps: Vec<f64> = match &truth {
         Some(t) => t.stamps.clone(),
-        None => (0..scans.len())
+        None => (0..all_scans.len())
             .map(|i| i as f64 / args.rate.max(1.0))
             .collect(),
     };
     let windows = match &truth {
-        Some(t) if t.stamped && !args.no_imu => imu_windows(&args.dataset, &stamps)?,
+        Some(t) if t.stamped && !args.no_imu => imu_windows(&args.dataset, &all_stamps)?,
         _ => None,
     };
+    let scans = &all_scans[range.clone()];
+    let stamps = &all_stamps[range.clone()];
     let mut client = args.server.connect()?;
     // Ground truth is in the baked dataset's frame; the map may be levelled from it.
     let map_from_input = client.status()?.map_from_input;
-    let truth = truth.map(|mut t| {
-        t.poses.iter_mut().for_each(|p| *p = map_from_input * *p);
-        t
+    let truth: Option<Vec<Pose>> = truth.map(|t| {
+        t.poses[range.clone()]
+            .iter()
+            .map(|p| map_from_input * *p)
+            .collect()
     });
     let initial = match (&args.initial, &truth) {
         (Some(text), _) => super::pose_arg::parse_pose(text)?,
-        (None, Some(t)) => t.poses[0],
+        (None, Some(t)) => t[0],
         (None, None) => Pose::identity(),
     };
-    let options = LocalizeOptions {
-        max_iterations: args.max_iterations,
-        max_pair_dist: args.max_pair_dist,
-        mode: Cov2CovMode::MapDefault,
+    let tracking = ServerConfig::load(args.config.as_deref())?.tracking;
+    let options = TrackerOptions {
+        localize: LocalizeOptions {
+            max_iterations: args.max_iterations,
+            max_pair_dist: args.max_pair_dist,
+            mode: args.mode.into(),
+            tracking,
+            ..LocalizeOptions::default()
+        },
+        server_side: args.server_side,
+        ..TrackerOptions::default()
     };
-    let bar = if args.json {
+    let quiet = args.json || args.json_lines;
+    let bar = if quiet {
         ProgressBar::hidden()
     } else {
         ProgressBar::new(scans.len() as u64)
@@ -139,13 +278,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     );
     let config = BakeConfig::default();
     let period = (args.rate > 0.0).then(|| Duration::from_secs_f64(1.0 / args.rate));
+    let mut tracker = Tracker::new(initial, options);
     let mut poses = Vec::with_capacity(scans.len());
     let mut latencies = Vec::with_capacity(scans.len());
+    let mut statuses = Vec::with_capacity(scans.len());
     let mut failed = 0usize;
     let mut iterations = 0u64;
     let mut gravity: Option<GravityAnswer> = None;
-    let mut guess = initial;
-    for (i, path) in scans.iter().enumerate() {
+    for (k, path) in scans.iter().enumerate() {
+        let index = range.start + k;
         let tick = Instant::now();
         let cloud = load_raw_scan(path, &config)?;
         let cloud = if args.voxel > 0.0 {
@@ -160,31 +301,40 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             view_dirs: None,
             covariances: None,
         };
+        let t = stamps[k];
         let sent = Instant::now();
-        let result: Result<Localized, _> = if args.server_side {
-            client.localize(&scan, &guess, &options)
-        } else {
-            client.localize_client_side(&scan, &guess, &options)
-        };
-        latencies.push(sent.elapsed().as_secs_f64() * 1e3);
-        match result {
-            Ok(found) => {
-                guess = found.pose;
-                iterations += found.iterations as u64;
-            }
+        let result = tracker.track(&mut client, &scan, t);
+        let latency = sent.elapsed().as_secs_f64() * 1e3;
+        latencies.push(latency);
+        let (tracked, error) = match result {
+            Ok(tracked) => (tracked, None),
             Err(e) => {
                 failed += 1;
                 bar.suspend(|| eprintln!("scan {}: {e}", path.display()));
+                (tracker.unanswered(t), Some(e.to_string()))
             }
+        };
+        let health = &tracked.localized.health;
+        iterations += health.iterations as u64;
+        statuses.push(error.is_none().then_some(health.status));
+        if args.json_lines {
+            let reference = truth.as_ref().map(|t| &t[k]);
+            let line = scan_line(index, &tracked, latency, reference, error.as_deref());
+            println!("{line}");
         }
-        poses.push(guess);
-        if let Some(w) = windows.as_ref().map(|w| &w[i]).filter(|w| !w.is_empty()) {
-            match client.push_imu_window(i as u64, &guess, w.samples()) {
+        let pose = tracked.localized.pose;
+        poses.push(pose);
+        if let Some(w) = windows
+            .as_ref()
+            .map(|w| &w[index])
+            .filter(|w| !w.is_empty())
+        {
+            match client.push_imu_window(index as u64, &pose, w.samples()) {
                 Ok(g) => gravity = Some(g),
-                Err(e) => bar.suspend(|| eprintln!("IMU window of scan {i}: {e}")),
+                Err(e) => bar.suspend(|| eprintln!("IMU window of scan {index}: {e}")),
             }
         }
-        bar.set_message(format!("last {:.1} ms", latencies[i]));
+        bar.set_message(format!("last {latency:.1} ms"));
         bar.inc(1);
         if let Some(period) = period {
             std::thread::sleep(period.saturating_sub(tick.elapsed()));
@@ -193,7 +343,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     bar.finish_and_clear();
     if let Some(out) = &args.out {
         let trajectory = Trajectory {
-            stamps: Some(stamps.clone()),
+            stamps: Some(stamps.to_vec()),
             poses: poses.clone(),
         };
         write_atomic(out, format_tum(&trajectory).as_bytes())?;
@@ -201,12 +351,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut sorted = latencies.clone();
     sorted.sort_by(f64::total_cmp);
     let (p50, p99) = (percentile(&sorted, 0.5), percentile(&sorted, 0.99));
-    let errors = truth.as_ref().map(|t| {
-        (
-            absolute_trajectory_error(&poses, &t.poses),
-            relative_pose_error(&poses, &t.poses),
-        )
-    });
+    let count = |s: TrackingStatus| statuses.iter().filter(|x| **x == Some(s)).count();
+    let (ok, degraded, lost) = (
+        count(TrackingStatus::Ok),
+        count(TrackingStatus::Degraded),
+        count(TrackingStatus::Lost),
+    );
+    let errors = truth
+        .as_ref()
+        .map(|t| ReferenceErrors::of(&poses, t, &statuses));
     let tilt = gravity.filter(|g| g.gravity.is_some()).map(|g| {
         (
             g.roll_pitch[0].to_degrees(),
@@ -214,23 +367,36 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             g.members,
         )
     });
-    if args.json {
+    if quiet {
         let out = json!({
             "scans": scans.len(),
+            "first_scan": range.start,
+            "ok": ok,
+            "degraded": degraded,
+            "lost": lost,
             "failed": failed,
-            "ate_m": errors.map(|e| e.0),
-            "rpe_m": errors.map(|e| e.1),
+            "ate_m": errors.as_ref().map(|e| e.ate),
+            "rpe_m": errors.as_ref().map(|e| e.rpe),
+            "rms_error_m": errors.as_ref().map(|e| e.rms),
+            "max_error_m": errors.as_ref().map(|e| e.max_m),
+            "max_error_deg": errors.as_ref().map(|e| e.max_deg),
+            "wrong_ok": errors.as_ref().map(|e| e.wrong_ok),
             "p50_ms": p50,
             "p99_ms": p99,
-            "mean_iterations": iterations as f64 / (scans.len() - failed).max(1) as f64,
+            "mean_iterations": iterations as f64 / scans.len().max(1) as f64,
             "server_side": args.server_side,
+            "mode": Cov2CovMode::from(args.mode).name(),
             "gravity": tilt.map(|(r, p, n)| json!({"roll_deg": r, "pitch_deg": p, "members": n})),
         });
-        println!("{}", serde_json::to_string_pretty(&out)?);
+        if args.json_lines {
+            println!("{out}");
+        } else {
+            println!("{}", serde_json::to_string_pretty(&out)?);
+        }
         return Ok(());
     }
     println!(
-        "{} scans localized against map {} ({}), {failed} failed",
+        "{} scans localized against map {} ({}): {ok} ok, {degraded} degraded, {lost} lost, {failed} failed",
         scans.len(),
         args.server.map_name,
         if args.server_side {
@@ -240,8 +406,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
     );
     println!("  latency per scan: p50 {p50:.2} ms, p99 {p99:.2} ms");
-    if let Some((ate, rpe)) = errors {
-        println!("  ATE {ate:.4} m, RPE {rpe:.4} m per scan");
+    if let Some(e) = &errors {
+        println!(
+            "  ATE {:.4} m, RPE {:.4} m per scan; against the reference poses: RMS {:.4} m, max {:.3} m / {:.2} deg, {} scans off by more than {WRONG_M} m reported ok",
+            e.ate, e.rpe, e.rms, e.max_m, e.max_deg, e.wrong_ok
+        );
     }
     if let Some((roll, pitch, members)) = tilt {
         println!(
@@ -252,4 +421,51 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         println!("  trajectory: {}", out.display());
     }
     Ok(())
+}
+
+/// A pose farther than this from its reference is wrong, metres.
+const WRONG_M: f64 = 0.5;
+
+/// The replayed poses against the dataset's reference poses (map frame).
+struct ReferenceErrors {
+    /// Aligned ATE (RMS), metres.
+    ate: f64,
+    /// RPE (RMS of consecutive-motion errors), metres.
+    rpe: f64,
+    /// RMS of the unaligned position errors, metres.
+    rms: f64,
+    /// Largest position error, metres.
+    max_m: f64,
+    /// Largest rotation error, degrees.
+    max_deg: f64,
+    /// Scans farther than [`WRONG_M`] from their reference but reported `ok`.
+    wrong_ok: usize,
+}
+
+impl ReferenceErrors {
+    fn of(poses: &[Pose], truth: &[Pose], statuses: &[Option<TrackingStatus>]) -> Self {
+        let gaps: Vec<(f64, f64)> = poses
+            .iter()
+            .zip(truth)
+            .map(|(p, t)| {
+                (
+                    translation_distance(p, t),
+                    rotation_distance(p, t).to_degrees(),
+                )
+            })
+            .collect();
+        let n = gaps.len().max(1) as f64;
+        Self {
+            ate: absolute_trajectory_error(poses, truth),
+            rpe: relative_pose_error(poses, truth),
+            rms: (gaps.iter().map(|g| g.0 * g.0).sum::<f64>() / n).sqrt(),
+            max_m: gaps.iter().map(|g| g.0).fold(0.0, f64::max),
+            max_deg: gaps.iter().map(|g| g.1).fold(0.0, f64::max),
+            wrong_ok: gaps
+                .iter()
+                .zip(statuses)
+                .filter(|(g, s)| g.0 > WRONG_M && **s == Some(TrackingStatus::Ok))
+                .count(),
+        }
+    }
 }

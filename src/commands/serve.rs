@@ -18,6 +18,14 @@ use kfmap_shared::protocol::RequestKind;
 /// start. Requests are answered by a worker pool, clients taking turns; each client has
 /// its own session (active keyframes, gravity pool), reclaimed when it dies.
 ///
+/// Cov2cov and Localize requests that leave the mode to the server are answered in
+/// approximate mode (keyframe by keyframe with the baked trees and covariances: no
+/// query ever rebuilds anything) unless the map was baked with `[map] cov2cov-mode =
+/// "exact"` or server.toml sets `[server] cov2cov-mode`; exact mode builds a merged
+/// submap inside the query each time a client's active set changes (a stall of tens
+/// to hundreds of milliseconds). The ready line says which. Server-side localization
+/// runs server.toml's [tracking] checks and retry ladder.
+///
 /// SIGHUP (or `kfmap status --reload`) reopens the map file and switches to it
 /// atomically; requests in flight finish on the old map. On SIGINT/SIGTERM queued
 /// requests get a "shutting down" status, those in flight finish, and the shared-memory
@@ -85,8 +93,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let summary = serve(&options, &stop, |info| {
         // One line on stdout when ready: scripts and tests wait for it.
         println!(
-            "ready: serving map {} ({} keyframes, {} points) with {} workers, started in {:.1} ms",
-            info.map_name, info.keyframes, info.points, info.workers, info.startup_ms
+            "ready: serving map {} ({} keyframes, {} points, {} cov2cov by default) with {} workers, started in {:.1} ms",
+            info.map_name,
+            info.keyframes,
+            info.points,
+            info.default_mode,
+            info.workers,
+            info.startup_ms
         );
     })?;
     eprintln!(

@@ -13,14 +13,17 @@ use kfmap_shared::map::{ActiveSet, MapError, MapHit, Pairing};
 use kfmap_shared::protocol::{
     Cov2CovMode, DecodedScan, Rejection, RequestHeader, RequestKind, ResponseHeader, StatusCode,
     WirePairing, check_version, correspondences_from_pairings, decode_imu, decode_scan,
-    localize_registration, pose_from_wire, pose_to_wire,
+    localize_stage, pose_from_wire, pose_to_wire,
 };
-use kfmap_shared::registration::{RegistrationError, RegistrationParams, solve_pose};
-use nalgebra::Matrix6;
+use kfmap_shared::registration::{RegistrationError, RegistrationResult, solve_pose};
+use kfmap_shared::tracking::{
+    Expectation, Stage, TrackingParams, covariance_to_wire, localize_scan,
+};
 use rayon::prelude::*;
 
 use super::session::Session;
 use super::state::ServedMap;
+use crate::config::ServerConfig;
 
 /// Largest `k` of a `Nearest` request.
 pub const MAX_K: u32 = 64;
@@ -30,6 +33,8 @@ pub const MAX_RADIUS: f32 = 20.0;
 pub const MAX_PAIR_DIST: f32 = 50.0;
 /// Most iterations of a `Localize` request.
 pub const MAX_ITERATIONS: u32 = 100;
+/// Largest `max_correction` of a `Localize` request, metres.
+pub const MAX_CORRECTION: f32 = 1000.0;
 /// Most pairings one `Radius` answer may hold.
 pub const MAX_RADIUS_PAIRINGS: usize = 1 << 22;
 
@@ -40,6 +45,30 @@ pub struct Limits {
     pub max_points: usize,
     /// Covariances estimated for scans sent without them.
     pub scan_covariance: CovOptions,
+    /// Checks and retry ladder of `Localize`.
+    pub tracking: TrackingParams,
+    /// What `Cov2CovMode::MapDefault` requests get (`server.toml`); `MapDefault` here
+    /// means the map's own choice (`bake.toml`).
+    pub cov2cov_mode: Cov2CovMode,
+}
+
+impl Limits {
+    /// The limits `server.toml` sets.
+    pub fn of(config: &ServerConfig) -> Self {
+        Self {
+            max_points: config.server.max_points_per_request,
+            scan_covariance: config.covariance,
+            tracking: config.tracking,
+            cov2cov_mode: config.server.cov2cov_mode,
+        }
+    }
+}
+
+impl Default for Limits {
+    /// The shipped `server.toml`'s.
+    fn default() -> Self {
+        Self::of(&ServerConfig::default())
+    }
 }
 
 /// A response: header and pairings.
@@ -177,7 +206,7 @@ fn compute(
                 RequestKind::Nearest => nearest(map, session, request, &scan, &pose),
                 RequestKind::Radius => radius(map, session, request, &scan, &pose),
                 RequestKind::Cov2Cov => {
-                    let exact = exact_mode(map, request.mode)?;
+                    let exact = exact_mode(map, request.mode, limits)?;
                     let covs = scan_covariances(&scan, limits);
                     let (pairings, active) = cov2cov(
                         map,
@@ -226,15 +255,20 @@ fn map_error(e: MapError) -> Rejection {
     Rejection::new(StatusCode::Internal, format!("map: {e}"))
 }
 
-fn exact_mode(map: &ServedMap, mode: u32) -> Result<bool, Rejection> {
-    match Cov2CovMode::from_code(mode) {
-        Some(Cov2CovMode::MapDefault) => Ok(!map.map.options().approximate_cov),
-        Some(Cov2CovMode::Approximate) => Ok(false),
-        Some(Cov2CovMode::Exact) => Ok(true),
-        None => Err(bad(format!(
+/// True when a request of wire mode `mode` is answered in exact mode: its own mode,
+/// else the server's (`server.toml`), else the map's (`bake.toml`).
+fn exact_mode(map: &ServedMap, mode: u32, limits: &Limits) -> Result<bool, Rejection> {
+    let requested = Cov2CovMode::from_code(mode).ok_or_else(|| {
+        bad(format!(
             "cov2cov mode {mode} is unknown (0 map default, 1 approximate, 2 exact)"
-        ))),
-    }
+        ))
+    })?;
+    Ok(matches!(
+        (requested, limits.cov2cov_mode, map.exact_by_default),
+        (Cov2CovMode::Exact, _, _)
+            | (Cov2CovMode::MapDefault, Cov2CovMode::Exact, _)
+            | (Cov2CovMode::MapDefault, Cov2CovMode::MapDefault, true)
+    ))
 }
 
 /// The active set for a query at `pose`, with the session's merged-submap cache.
@@ -371,9 +405,14 @@ fn cov2cov(
     Ok((pairings, active.ids().to_vec()))
 }
 
-/// The registration settings of a `Localize` request.
-pub fn localize_params(request: &RequestHeader) -> Result<RegistrationParams, Rejection> {
-    let (d, n) = (request.max_pair_dist, request.max_iterations);
+/// The fine stage and the client's expectation of a `Localize` request.
+pub fn localize_params(request: &RequestHeader) -> Result<(Stage, Expectation), Rejection> {
+    let (d, n, c, e) = (
+        request.max_pair_dist,
+        request.max_iterations,
+        request.max_correction,
+        request.expected_inlier_ratio,
+    );
     if !(d.is_finite() && d > 0.0 && d <= MAX_PAIR_DIST) {
         return Err(bad(format!(
             "max_pair_dist {d} m must be within (0, {MAX_PAIR_DIST}]"
@@ -384,10 +423,25 @@ pub fn localize_params(request: &RequestHeader) -> Result<RegistrationParams, Re
             "max_iterations {n} must be within 1..={MAX_ITERATIONS}"
         )));
     }
-    Ok(localize_registration(d, n))
+    if !(c.is_finite() && (0.0..=MAX_CORRECTION).contains(&c)) {
+        return Err(bad(format!(
+            "max_correction {c} m must be within [0, {MAX_CORRECTION}] (0: no bound)"
+        )));
+    }
+    if !(0.0..=1.0).contains(&e) {
+        return Err(bad(format!(
+            "expected_inlier_ratio {e} must be within [0, 1] (0: unknown)"
+        )));
+    }
+    let expected = Expectation {
+        max_correction: (c > 0.0).then_some(c as f64),
+        inlier_ratio: (e > 0.0).then_some(e as f64),
+    };
+    Ok((localize_stage(d, n), expected))
 }
 
-/// Server-side GICP: the same loop a client runs over cov2cov answers.
+/// Server-side localization: the same checks and retry ladder a client runs over
+/// cov2cov answers ([`localize_scan`]), each registration the shared GICP loop.
 fn localize(
     map: &ServedMap,
     session: &mut Session,
@@ -396,43 +450,82 @@ fn localize(
     pose: &Pose,
     limits: &Limits,
 ) -> Result<Answer, Rejection> {
-    let params = localize_params(request)?;
-    let exact = exact_mode(map, request.mode)?;
-    let covs = scan_covariances(scan, limits);
+    let (fine, expected) = localize_params(request)?;
+    let exact = exact_mode(map, request.mode, limits)?;
     let cloud = scan_cloud(scan);
+    let covs = scan_covariances(scan, limits);
+    // Built on the ladder's first coarse registration, then reused.
+    let mut coarse: Option<(PointCloud, Vec<[f32; 6]>)> = None;
     let mut active = Vec::new();
-    let result = solve_pose(pose, &params, scan.points.len(), |at| {
-        let (pairings, ids) = cov2cov(
-            map,
-            session,
-            &cloud,
-            &covs,
-            at,
-            request.max_pair_dist,
-            exact,
-        )
-        .map_err(LocalizeError::Rejected)?;
-        active = ids;
-        Ok::<_, LocalizeError>(correspondences_from_pairings(&pairings, scan.points))
-    })
-    .map_err(|e| match e {
-        LocalizeError::Rejected(r) => r,
-        LocalizeError::Registration(e) => bad(format!("localization: {e}")),
+    let found = localize_scan(pose, &expected, fine, &limits.tracking, |start, stage| {
+        let (cloud, covs) = if stage.coarse {
+            if coarse.is_none() {
+                let c = limits
+                    .tracking
+                    .coarse_scan(scan.points, scan.view_dirs)
+                    .map_err(|e| bad(format!("coarse scan: {e}")))?;
+                let covs = estimate_covariances(&c.points, &limits.scan_covariance).values;
+                coarse = Some((c, covs));
+            }
+            let (c, v) = coarse.as_ref().expect("built above");
+            (c, v.as_slice())
+        } else {
+            (&cloud, covs.as_slice())
+        };
+        register(map, session, cloud, covs, start, stage, exact, &mut active)
     })?;
     let mut answer = with_active(AnswerPairings::default(), &active);
-    let h = &mut answer.header;
-    h.pose = pose_to_wire(&result.pose);
-    h.covariance = pose_covariance(&result.hessian);
-    h.fitness = [result.fitness.inlier_ratio, result.fitness.rmse];
-    h.iterations = result.iterations as u32;
-    h.converged = result.converged as u32;
+    let (h, health) = (&mut answer.header, &found.health);
+    h.pose = pose_to_wire(&found.pose);
+    h.covariance = covariance_to_wire(health.covariance.as_ref());
+    h.fitness = [health.inlier_ratio, health.rmse];
+    h.iterations = health.iterations;
+    h.converged = health.converged as u32;
+    h.tracking = health.status as u32;
+    h.reasons = health.reasons.0;
+    h.registrations = health.registrations;
+    h.degenerate = health.degenerate as u32;
+    h.constraint = [
+        health.constraint.rotation_ratio,
+        health.constraint.translation_ratio,
+    ];
+    h.pose_correction = health.correction;
     Ok(answer)
 }
 
-/// The pose covariance, the inverse Hessian (zeros when singular), row-major.
-pub fn pose_covariance(hessian: &Matrix6<f64>) -> [f64; 36] {
-    let inverse = hessian.try_inverse().unwrap_or_else(Matrix6::zeros);
-    std::array::from_fn(|i| inverse[(i / 6, i % 6)])
+/// One registration of `cloud` from `start` over the map's cov2cov pairings; `None`
+/// when no scan point has a pair. `active` gets the keyframes of the last pairing.
+#[allow(clippy::too_many_arguments)]
+fn register(
+    map: &ServedMap,
+    session: &mut Session,
+    cloud: &PointCloud,
+    covs: &[[f32; 6]],
+    start: &Pose,
+    stage: &Stage,
+    exact: bool,
+    active: &mut Vec<u64>,
+) -> Result<Option<RegistrationResult>, Rejection> {
+    let result = solve_pose(start, &stage.params(), cloud.len(), |at| {
+        let (pairings, ids) = cov2cov(
+            map,
+            session,
+            cloud,
+            covs,
+            at,
+            stage.max_pair_dist as f32,
+            exact,
+        )
+        .map_err(LocalizeError::Rejected)?;
+        *active = ids;
+        Ok::<_, LocalizeError>(correspondences_from_pairings(&pairings, &cloud.points))
+    });
+    match result {
+        Ok(r) => Ok(Some(r)),
+        Err(LocalizeError::Registration(RegistrationError::NoCorrespondences { .. })) => Ok(None),
+        Err(LocalizeError::Registration(e)) => Err(bad(format!("localization: {e}"))),
+        Err(LocalizeError::Rejected(r)) => Err(r),
+    }
 }
 
 enum LocalizeError {

@@ -22,6 +22,7 @@ use iceoryx2::node::{Node, NodeView};
 use iceoryx2::prelude::{CallbackProgression, NodeState, PortFactory, WaitSetBuilder};
 use iceoryx2::waitset::WaitSetRunResult;
 use kfmap_shared::archive::ArchiveError;
+use kfmap_shared::protocol::Cov2CovMode;
 use kfmap_shared::protocol::transport::{
     ALLOCATION, INITIAL_SLICE_LEN, Transport, TransportError, create_node, iceoryx_config, iox,
     open_request_event, open_response_event, open_rpc,
@@ -115,6 +116,8 @@ pub struct ServeInfo {
     pub workers: usize,
     /// Milliseconds from start to ready.
     pub startup_ms: f64,
+    /// Cov2cov mode requests without their own get: "approximate" or "exact".
+    pub default_mode: &'static str,
 }
 
 /// What a server did, returned on shutdown.
@@ -236,25 +239,27 @@ pub fn serve(
         slot: &slot,
         sessions: &Sessions::default(),
         stats: &Stats::default(),
-        limits: Limits {
-            max_points: options.config.server.max_points_per_request,
-            scan_covariance: options.config.covariance,
-        },
+        limits: Limits::of(&options.config),
         notifier: &notifier,
         map_name: &options.map_name,
         started,
         trust: options.trust,
     };
     let current = slot.current();
+    let exact = match options.config.server.cov2cov_mode {
+        Cov2CovMode::MapDefault => current.exact_by_default,
+        mode => mode == Cov2CovMode::Exact,
+    };
     let info_line = ServeInfo {
         map_name: options.map_name.clone(),
         keyframes: current.keyframes,
         points: current.points,
         workers,
         startup_ms: started.elapsed().as_secs_f64() * 1e3,
+        default_mode: if exact { "exact" } else { "approximate" },
     };
     drop(current);
-    info!(map = %options.map_name, keyframes = info_line.keyframes, points = info_line.points, workers, "serving");
+    info!(map = %options.map_name, keyframes = info_line.keyframes, points = info_line.points, workers, cov2cov = info_line.default_mode, "serving");
     ready(&info_line);
 
     let requests = Requests {

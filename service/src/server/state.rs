@@ -21,6 +21,10 @@ pub struct ServedMap {
     pub points: usize,
     /// `T_map_input`: how bake moved the input poses into the map frame.
     pub map_from_input: [f64; 7],
+    /// True when the map was baked to serve exact cov2cov by default (`[map]
+    /// cov2cov-mode = "exact"`); the map itself is opened in approximate mode and
+    /// exact requests build their merged submaps per session.
+    pub exact_by_default: bool,
 }
 
 impl ServedMap {
@@ -35,6 +39,7 @@ impl ServedMap {
         )?;
         let map = opened.map;
         Ok(Self {
+            exact_by_default: map.options().serve_exact,
             map_from_input: opened.index.map_from_input,
             keyframes: map.len(),
             points: map.point_count(),

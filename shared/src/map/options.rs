@@ -40,6 +40,11 @@ pub struct KeyframeMapOptions {
     pub serialize_covariances: bool,
     /// Per-keyframe lookups without a merged submap (zero rebuild cost).
     pub approximate_cov: bool,
+    /// Baked maps: the map server answers cov2cov requests in exact mode by default,
+    /// building a merged submap inside the query each time the active set changes;
+    /// false (the default) serves approximate mode, which never rebuilds. Queries in
+    /// this process follow `approximate_cov` instead.
+    pub serve_exact: bool,
     /// Inserting at pose p first evicts keyframes farther than this (metres); 0 = off.
     pub remove_frames_farther_than: f64,
     /// Exact mode: fuse the merged submap's points that share a map-frame voxel of this
@@ -60,6 +65,7 @@ impl Default for KeyframeMapOptions {
             serialize_kdtrees: true,
             serialize_covariances: true,
             approximate_cov: false,
+            serve_exact: false,
             remove_frames_farther_than: 0.0,
             fuse_voxel_size: 0.0,
         }

@@ -26,11 +26,13 @@ pub use wire::{
     ResponseHeader, WirePairing, read_text, write_text,
 };
 
+use serde::{Deserialize, Serialize};
+
 use crate::geometry::{Pose, pose_from_xyz_quat, pose_to_xyz_quat};
-use crate::registration::RegistrationParams;
+use crate::tracking::Stage;
 
 /// Version of this protocol; a peer of another version gets `VersionMismatch`.
-pub const PROTOCOL_VERSION: u32 = 2;
+pub const PROTOCOL_VERSION: u32 = 3;
 /// Default limit on points per request.
 pub const DEFAULT_MAX_POINTS: usize = 1 << 20;
 /// Floats per IMU sample in an `ImuWindow` payload.
@@ -165,8 +167,9 @@ impl StatusCode {
     }
 }
 
-/// Cov2cov search mode.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// Cov2cov search mode (in config files: "map-default", "approximate", "exact").
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
 #[repr(u32)]
 pub enum Cov2CovMode {
     /// The map's own setting.
@@ -184,16 +187,25 @@ impl Cov2CovMode {
             .into_iter()
             .find(|m| *m as u32 == code)
     }
+
+    /// Lower-case name, as in config files.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::MapDefault => "map-default",
+            Self::Approximate => "approximate",
+            Self::Exact => "exact",
+        }
+    }
 }
 
-/// The registration settings of localization against a server, the same for the
+/// The fine registration stage of localization against a server, the same for the
 /// server-side `Localize` and a client iterating over `Cov2Cov` answers, so both land
-/// on the same pose.
-pub fn localize_registration(max_pair_dist: f32, max_iterations: u32) -> RegistrationParams {
-    RegistrationParams {
-        max_correspondence_distance: max_pair_dist as f64,
+/// on the same pose ([`Stage::params`] gives the registration settings).
+pub fn localize_stage(max_pair_dist: f32, max_iterations: u32) -> Stage {
+    Stage {
+        coarse: false,
+        max_pair_dist: max_pair_dist as f64,
         max_iterations: max_iterations as usize,
-        ..RegistrationParams::default()
     }
 }
 

@@ -148,3 +148,85 @@ fn message_text_is_cut_at_a_character_boundary() {
     assert!(h.message_len as usize <= MESSAGE_LEN && h.message_len % 2 == 0);
     assert!(h.message().chars().all(|c| c == 'é'));
 }
+
+/// The offsets documented on the wire types (foreign clients rely on them).
+#[test]
+fn header_layouts_are_the_documented_ones() {
+    use std::mem::{offset_of, size_of};
+    macro_rules! layout {
+        ($t:ty, $size:expr, $($f:ident = $at:expr),*) => {
+            assert_eq!(size_of::<$t>(), $size, "size of {}", stringify!($t));
+            $(assert_eq!(offset_of!($t, $f), $at, "{}::{}", stringify!($t), stringify!($f));)*
+        };
+    }
+    layout!(
+        RequestHeader,
+        144,
+        version = 0,
+        kind = 4,
+        request_id = 8,
+        client_node = 16,
+        pose = 32,
+        point_count = 88,
+        flags = 92,
+        k = 96,
+        mode = 100,
+        radius = 104,
+        max_pair_dist = 108,
+        max_iterations = 112,
+        max_correction = 116,
+        keyframe_or_scan_id = 120,
+        imu_t0 = 128,
+        expected_inlier_ratio = 136,
+        reserved = 140
+    );
+    layout!(
+        WirePairing,
+        56,
+        query = 0,
+        local_index = 4,
+        keyframe = 8,
+        point = 16,
+        dist_sq = 28,
+        information = 32
+    );
+    layout!(
+        ResponseHeader,
+        1160,
+        version = 0,
+        status = 4,
+        request_id = 8,
+        detail = 16,
+        message_len = 24,
+        active_len = 28,
+        active = 32,
+        server_us = 160,
+        pose = 168,
+        covariance = 224,
+        fitness = 512,
+        iterations = 528,
+        converged = 532,
+        tracking = 536,
+        reasons = 540,
+        registrations = 544,
+        degenerate = 548,
+        constraint = 552,
+        pose_correction = 568,
+        has_gravity = 576,
+        gravity_members = 580,
+        gravity = 584,
+        roll_pitch = 608,
+        correction = 624,
+        map_keyframes = 656,
+        map_points = 664,
+        uptime_s = 672,
+        counts = 680,
+        p50_us = 760,
+        p99_us = 800,
+        sessions = 840,
+        in_flight = 844,
+        map_name_len = 848,
+        map_name = 852,
+        message = 916
+    );
+}

@@ -16,6 +16,12 @@ pub const NAME_LEN: usize = 64;
 /// `flags & FLAG_VIEW_DIRS`, then `6 n` packed covariances (xx xy xz yy yz zz, m^2) when
 /// `flags & FLAG_COVARIANCES`; for IMU windows `7 n` values per sample (seconds after
 /// `imu_t0`, specific force xyz m/s^2, angular rate xyz rad/s).
+///
+/// Layout (protocol 3, 144 bytes, byte offsets): version 0, kind 4, request_id 8,
+/// client_node 16, pose 32, point_count 88, flags 92, k 96, mode 100, radius 104,
+/// max_pair_dist 108, max_iterations 112, max_correction 116 (was `reserved` in
+/// protocol 2), keyframe_or_scan_id 120, imu_t0 128, expected_inlier_ratio 136 (new
+/// in protocol 3), reserved 140.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
 #[repr(C)]
 #[type_name("kfmap::RequestHeader")]
@@ -45,12 +51,19 @@ pub struct RequestHeader {
     pub max_pair_dist: f32,
     /// Iterations at most (`Localize`).
     pub max_iterations: u32,
-    /// Reserved, zero.
-    pub reserved: u32,
+    /// `Localize`: the largest correction from the pose guess (the client's prediction)
+    /// its motion model allows, metres of translation plus the chord a point at
+    /// [`crate::tracking::CORRECTION_RANGE_M`] sweeps; 0 = no motion model (no bound).
+    pub max_correction: f32,
     /// Keyframe or scan the IMU window belongs to (`ImuWindow`).
     pub keyframe_or_scan_id: u64,
     /// Time origin of the IMU samples, seconds (`ImuWindow`).
     pub imu_t0: f64,
+    /// `Localize`: the inlier ratio the client's tracker expects (that of its scans
+    /// before); a first registration well below it is retried. 0 = unknown.
+    pub expected_inlier_ratio: f32,
+    /// Reserved, zero.
+    pub reserved: u32,
 }
 
 /// View directions follow the points.
@@ -73,15 +86,20 @@ impl Default for RequestHeader {
             radius: 0.0,
             max_pair_dist: 0.0,
             max_iterations: 0,
-            reserved: 0,
+            max_correction: 0.0,
             keyframe_or_scan_id: 0,
             imu_t0: 0.0,
+            expected_inlier_ratio: 0.0,
+            reserved: 0,
         }
     }
 }
 
 /// One answer element: a map point found for query point `query`. Nearest and radius
 /// answers leave `information` zero; cov2cov answers carry `(C_map + R C_q R^T)^-1`.
+///
+/// Layout (56 bytes): query 0, local_index 4, keyframe 8, point 16, dist_sq 28,
+/// information 32.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
 #[repr(C)]
 #[type_name("kfmap::WirePairing")]
@@ -101,6 +119,15 @@ pub struct WirePairing {
 }
 
 /// Header of every response; the payload is `[WirePairing]`.
+///
+/// Layout (protocol 3, 1160 bytes, byte offsets): version 0, status 4, request_id 8,
+/// detail 16, message_len 24, active_len 28, active 32, server_us 160, pose 168,
+/// covariance 224, fitness 512, iterations 528, converged 532, tracking 536 (new in
+/// protocol 3, as the next five), reasons 540, registrations 544, degenerate 548,
+/// constraint 552, pose_correction 568, has_gravity 576, gravity_members 580, gravity
+/// 584, roll_pitch 608, correction 624, map_keyframes 656, map_points 664, uptime_s
+/// 672, counts 680, p50_us 760, p99_us 800, sessions 840, in_flight 844, map_name_len
+/// 848, map_name 852, message 916.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
 #[repr(C)]
 #[type_name("kfmap::ResponseHeader")]
@@ -124,14 +151,32 @@ pub struct ResponseHeader {
     /// `Localize`: solved `T_map_sensor` (x y z qx qy qz qw). `Status`: `T_map_input`,
     /// how bake moved the input poses into the map frame (gravity levelling).
     pub pose: [f64; 7],
-    /// `Localize`: 6x6 pose covariance (rotation first), row-major; inverse Hessian.
+    /// `Localize`: 6x6 pose covariance, row-major, all zero when unknown: the inverse
+    /// Hessian scaled by the residual variance, of the perturbation `T exp(d)` with `d`
+    /// = (rotation rad, translation m) in the sensor frame, rotation first
+    /// ([`crate::tracking::pose_covariance`]).
     pub covariance: [f64; 36],
     /// `Localize`: inlier ratio and RMSE (metres).
     pub fitness: [f64; 2],
-    /// `Localize`: iterations run; 1 in `converged` when converged.
+    /// `Localize`: solver iterations over every registration run; 1 in `converged`
+    /// when the registration the pose came from converged.
     pub iterations: u32,
     /// See `iterations`.
     pub converged: u32,
+    /// `Localize`: [`crate::tracking::TrackingStatus`] code (0 ok, 1 degraded, 2 lost;
+    /// lost answers carry the pose guess).
+    pub tracking: u32,
+    /// `Localize`: [`crate::tracking::Reasons`] bits.
+    pub reasons: u32,
+    /// `Localize`: registrations run (1 when the first passed every check).
+    pub registrations: u32,
+    /// `Localize`: 1 when the Hessian is degenerate.
+    pub degenerate: u32,
+    /// `Localize`: min/max eigenvalue ratios of the Hessian's rotation and translation
+    /// blocks.
+    pub constraint: [f64; 2],
+    /// `Localize`: correction from the pose guess, metres (as `max_correction`).
+    pub pose_correction: f64,
     /// `ImuWindow`: 1 when a correction is available.
     pub has_gravity: u32,
     /// `ImuWindow`: keyframes pooled in this session.
@@ -182,6 +227,12 @@ impl Default for ResponseHeader {
             fitness: [0.0; 2],
             iterations: 0,
             converged: 0,
+            tracking: 0,
+            reasons: 0,
+            registrations: 0,
+            degenerate: 0,
+            constraint: [0.0; 2],
+            pose_correction: 0.0,
             has_gravity: 0,
             gravity_members: 0,
             gravity: [0.0; 3],

@@ -285,6 +285,11 @@ pub struct RegistrationResult {
     /// True when a block is below the degeneracy ratio or a direction is unobservable:
     /// the pose is not trustworthy along some direction (e.g. a featureless corridor).
     pub degenerate: bool,
+    /// The weighted cost `sum w r^T W r` of the last linearization (the one `hessian`
+    /// comes from), dimensionless (residuals whitened by the information matrices).
+    pub cost: f64,
+    /// Correspondences of the last linearization.
+    pub pairs: usize,
 }
 
 /// The correspondences of `source` moved by `pose` (source order).
@@ -426,6 +431,8 @@ pub fn solve_pose<E: From<RegistrationError>>(
         degenerate: constraint.rotation_ratio < params.degeneracy_ratio
             || constraint.translation_ratio < params.degeneracy_ratio
             || unobservable > 0,
+        cost: lin.cost,
+        pairs: pairs.len(),
     })
 }
 

@@ -1,0 +1,285 @@
+//! The client-side tracker (ARCHITECTURE section 12): predicts each scan's pose with a
+//! constant-velocity model, bounds the correction localization may make by how wrong
+//! the predictions have been (an adaptive gate, after KISS-ICP), and follows the
+//! status: a `lost` scan adopts no pose and the tracker keeps predicting; it is `ok`
+//! again once scans agree with the prediction for `recover-after` scans in a row.
+
+use kfmap_shared::geometry::Pose;
+use kfmap_shared::motion::{AdaptiveThreshold, AdaptiveThresholdParams, ConstantVelocity};
+use kfmap_shared::protocol::ScanPayload;
+use kfmap_shared::tracking::{CORRECTION_RANGE_M, Reasons, ScanHealth, TrackingStatus};
+
+use crate::{Client, ClientError, LocalizeOptions, Localized};
+
+/// Tracker settings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrackerOptions {
+    /// How each scan is localized (its `max_correction` is set by the tracker).
+    pub localize: LocalizeOptions,
+    /// Let the server run the checks and retry ladder (`Localize`) instead of this
+    /// process (cov2cov answers); both decide alike.
+    pub server_side: bool,
+    /// The correction gate: `sigmas` times the RMS of past corrections (metres of
+    /// point displacement at `range`, which must be
+    /// [`kfmap_shared::tracking::CORRECTION_RANGE_M`]), within `[min, max]`.
+    pub gate: AdaptiveThresholdParams,
+    /// Scans in a row that must be adopted after `lost` before the status is `ok`
+    /// again (until then `degraded`, reason `recovering`).
+    pub recover_after: usize,
+}
+
+impl Default for TrackerOptions {
+    fn default() -> Self {
+        Self {
+            localize: LocalizeOptions::default(),
+            server_side: false,
+            gate: AdaptiveThresholdParams {
+                initial: 3.0,
+                min: 1.0,
+                max: 10.0,
+                range: CORRECTION_RANGE_M,
+                min_motion: 0.1,
+                sigmas: 3.0,
+            },
+            recover_after: 2,
+        }
+    }
+}
+
+/// One tracked scan.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrackedScan {
+    /// The scan's time, seconds.
+    pub t: f64,
+    /// The motion model's prediction the scan was localized from, `T_map_sensor`.
+    pub predicted: Pose,
+    /// The correction bound used, metres (`None` before the motion model has a
+    /// velocity).
+    pub max_correction: Option<f64>,
+    /// The localized pose (the prediction when `lost`) and its health, with the
+    /// tracker's status (a scan adopted while recovering is `degraded`).
+    pub localized: Localized,
+}
+
+/// Follows a sensor through a scan sequence against a map server.
+#[derive(Debug, Clone)]
+pub struct Tracker {
+    options: TrackerOptions,
+    /// Where the first scan is localized from.
+    initial: Pose,
+    /// Adopted poses.
+    motion: ConstantVelocity,
+    gate: AdaptiveThreshold,
+    /// Scans lost since the last adopted one.
+    lost_streak: usize,
+    /// Scans adopted in a row since the last `lost` (saturating).
+    adopted_streak: usize,
+    /// Inlier ratio of the last adopted scan.
+    last_inlier_ratio: Option<f64>,
+}
+
+impl Tracker {
+    /// A tracker whose first scan is localized from `initial` (`T_map_sensor`, e.g. a
+    /// relocalization or a known start), with no bound on its correction.
+    pub fn new(initial: Pose, options: TrackerOptions) -> Self {
+        Self {
+            options,
+            initial,
+            motion: ConstantVelocity::new(),
+            gate: AdaptiveThreshold::new(options.gate),
+            lost_streak: 0,
+            adopted_streak: usize::MAX,
+            last_inlier_ratio: None,
+        }
+    }
+
+    /// The pose expected at time `t` (seconds): the last adopted pose carried forward
+    /// at the last velocity (the initial pose before any).
+    pub fn predict(&self, t: f64) -> Pose {
+        self.motion.predict(t).unwrap_or(self.initial)
+    }
+
+    /// The correction bound for the next scan, metres: `None` until a pose was
+    /// adopted; it widens with every scan lost since the last adopted one.
+    pub fn max_correction(&self) -> Option<f64> {
+        self.motion
+            .last()
+            .map(|_| self.gate.distance() * (1 + self.lost_streak) as f64)
+    }
+
+    /// Localizes `scan`, taken at time `t` (seconds), from the prediction, and updates
+    /// the tracker.
+    pub fn track(
+        &mut self,
+        client: &mut Client,
+        scan: &ScanPayload,
+        t: f64,
+    ) -> Result<TrackedScan, ClientError> {
+        let predicted = self.predict(t);
+        let max_correction = self.max_correction();
+        let options = LocalizeOptions {
+            max_correction,
+            expected_inlier_ratio: self.last_inlier_ratio,
+            ..self.options.localize
+        };
+        let localized = if self.options.server_side {
+            client.localize(scan, &predicted, &options)?
+        } else {
+            client.localize_client_side(scan, &predicted, &options)?
+        };
+        Ok(self.observe(t, predicted, max_correction, localized))
+    }
+
+    /// Records a scan whose localization failed (e.g. the server did not answer) as
+    /// `lost`, with the prediction as its pose.
+    pub fn unanswered(&mut self, t: f64) -> TrackedScan {
+        let predicted = self.predict(t);
+        let max_correction = self.max_correction();
+        let localized = Localized {
+            pose: predicted,
+            health: ScanHealth::no_fit(0, 0),
+        };
+        self.observe(t, predicted, max_correction, localized)
+    }
+
+    /// Updates the tracker with a scan localized from `predicted` (what
+    /// [`Self::track`] does after localizing), and returns it with the tracker's
+    /// status.
+    pub fn observe(
+        &mut self,
+        t: f64,
+        predicted: Pose,
+        max_correction: Option<f64>,
+        mut localized: Localized,
+    ) -> TrackedScan {
+        if localized.health.status == TrackingStatus::Lost {
+            // Keep predicting from the last adopted pose at the last velocity.
+            self.lost_streak += 1;
+            self.adopted_streak = 0;
+        } else {
+            self.adopted_streak = self.adopted_streak.saturating_add(1);
+            if self.adopted_streak < self.options.recover_after {
+                localized.health.reasons.insert(Reasons::RECOVERING);
+                localized.health.status = TrackingStatus::Degraded;
+            }
+            if let Some(last) = self.motion.last() {
+                let moved = last.inverse() * localized.pose;
+                self.gate.observe(&predicted, &localized.pose, &moved);
+            }
+            self.lost_streak = 0;
+            self.last_inlier_ratio = Some(localized.health.inlier_ratio);
+            self.motion.update(t, localized.pose);
+        }
+        TrackedScan {
+            t,
+            predicted,
+            max_correction,
+            localized,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use kfmap_shared::geometry::translation_distance;
+
+    fn at(x: f64) -> Pose {
+        Pose::translation(x, 0.0, 0.0)
+    }
+
+    fn scan(pose: Pose, status: TrackingStatus, inlier_ratio: f64) -> Localized {
+        Localized {
+            pose,
+            health: ScanHealth {
+                status,
+                reasons: Reasons::NONE,
+                inlier_ratio,
+                ..ScanHealth::no_fit(1, 3)
+            },
+        }
+    }
+
+    #[test]
+    fn a_lost_scan_keeps_predicting_and_recovery_needs_scans_that_agree_again() {
+        let mut tracker = Tracker::new(at(0.0), TrackerOptions::default());
+        assert_eq!(tracker.predict(0.0), at(0.0));
+        assert_eq!(tracker.max_correction(), None, "no motion model yet");
+        let first = tracker.observe(0.0, at(0.0), None, scan(at(0.1), TrackingStatus::Ok, 0.9));
+        assert_eq!(first.localized.health.status, TrackingStatus::Ok);
+        tracker.observe(
+            1.0,
+            at(0.1),
+            Some(3.0),
+            scan(at(1.1), TrackingStatus::Ok, 0.9),
+        );
+        // Constant velocity: 1 m/s along x.
+        assert!(translation_distance(&tracker.predict(2.0), &at(2.1)) < 1e-12);
+        let bound = tracker.max_correction().unwrap();
+
+        // A lost scan adopts nothing: the prediction carries on at the same velocity and
+        // the bound widens with the time since the last adopted scan.
+        let lost = tracker.observe(
+            2.0,
+            at(2.1),
+            Some(bound),
+            scan(at(2.1), TrackingStatus::Lost, 0.9),
+        );
+        assert_eq!(lost.localized.health.status, TrackingStatus::Lost);
+        assert!(translation_distance(&tracker.predict(3.0), &at(3.1)) < 1e-12);
+        assert_eq!(tracker.max_correction(), Some(2.0 * bound));
+
+        // The first scan adopted after it is degraded (recovering), the next one ok.
+        let back = tracker.observe(
+            3.0,
+            at(3.1),
+            Some(2.0 * bound),
+            scan(at(3.12), TrackingStatus::Ok, 0.9),
+        );
+        assert_eq!(back.localized.health.status, TrackingStatus::Degraded);
+        assert!(back.localized.health.reasons.contains(Reasons::RECOVERING));
+        let ok = tracker.observe(
+            4.0,
+            at(4.12),
+            Some(bound),
+            scan(at(4.1), TrackingStatus::Ok, 0.9),
+        );
+        assert_eq!(ok.localized.health.status, TrackingStatus::Ok);
+        assert_eq!(tracker.max_correction(), Some(tracker.gate.distance()));
+    }
+
+    #[test]
+    fn the_gate_follows_how_wrong_the_predictions_were() {
+        let options = TrackerOptions::default();
+        let mut tracker = Tracker::new(at(0.0), options);
+        assert_eq!(tracker.gate.distance(), options.gate.initial);
+        // Steady 1 m steps, each prediction 0.2 m short of where the scan landed.
+        for i in 0..10 {
+            let t = i as f64;
+            let predicted = tracker.predict(t);
+            // The first scan lands where it was predicted.
+            let landed = if i == 0 {
+                at(0.0)
+            } else {
+                predicted * Pose::translation(0.2, 0.0, 0.0)
+            };
+            tracker.observe(
+                t,
+                predicted,
+                tracker.max_correction(),
+                scan(landed, TrackingStatus::Ok, 0.9),
+            );
+        }
+        // 3 sigma of 0.2 m corrections is 0.6 m: clamped to the 1 m minimum.
+        assert_eq!(tracker.max_correction(), Some(options.gate.min));
+    }
+
+    #[test]
+    fn a_failed_request_counts_as_lost() {
+        let mut tracker = Tracker::new(at(5.0), TrackerOptions::default());
+        let failed = tracker.unanswered(0.0);
+        assert_eq!(failed.localized.health.status, TrackingStatus::Lost);
+        assert_eq!(failed.localized.pose, at(5.0));
+        assert_eq!(tracker.predict(1.0), at(5.0));
+    }
+}

@@ -1,0 +1,198 @@
+//! What a localized scan reports about itself: status, fitness, degeneracy and the
+//! pose covariance (ARCHITECTURE section 12).
+
+use nalgebra::Matrix6;
+use serde::Serialize;
+
+use crate::registration::{Constraint, RegistrationResult};
+
+/// How far a localized scan can be trusted.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize)]
+#[serde(rename_all = "lowercase")]
+#[repr(u32)]
+pub enum TrackingStatus {
+    /// The pose fits the map well, is constrained in every direction and agrees with
+    /// the motion model.
+    Ok = 0,
+    /// A pose was adopted but one check is marginal (see the reasons): degenerate
+    /// geometry, no convergence, fitness below the `ok` level, a correction beyond the
+    /// motion model that the wider search confirmed, or the first scans after `lost`.
+    Degraded = 1,
+    /// No pose was adopted: the reported pose is the prediction.
+    Lost = 2,
+}
+
+impl TrackingStatus {
+    /// Every status, by code.
+    pub const ALL: [TrackingStatus; 3] = [Self::Ok, Self::Degraded, Self::Lost];
+
+    /// The status of a wire code; `None` for codes this build does not know.
+    pub fn from_code(code: u32) -> Option<Self> {
+        Self::ALL.into_iter().find(|s| *s as u32 == code)
+    }
+
+    /// Lower-case name, as in JSON output.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Ok => "ok",
+            Self::Degraded => "degraded",
+            Self::Lost => "lost",
+        }
+    }
+}
+
+/// Why a scan is not `ok`, and what the retry ladder did: a set of bits (stable on
+/// the wire).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub struct Reasons(pub u32);
+
+impl Reasons {
+    /// A block of the Hessian is below the degeneracy ratio.
+    pub const DEGENERATE: Self = Self(1);
+    /// The solver stopped at its iteration limit.
+    pub const NOT_CONVERGED: Self = Self(1 << 1);
+    /// Inlier ratio below the `ok` level (`ok-inlier-ratio`).
+    pub const LOW_FITNESS: Self = Self(1 << 2);
+    /// Inlier ratio below the `lost` level, or no correspondences at all.
+    pub const NO_FIT: Self = Self(1 << 3);
+    /// The correction from the prediction exceeds what the motion model allows.
+    pub const IMPLAUSIBLE: Self = Self(1 << 4);
+    /// The first registration failed a check and wider hypotheses were tried.
+    pub const RETRIED: Self = Self(1 << 5);
+    /// Distinct poses fit about equally well.
+    pub const AMBIGUOUS: Self = Self(1 << 6);
+    /// The tracker was lost and has not yet seen scans agree again.
+    pub const RECOVERING: Self = Self(1 << 7);
+    /// The Hessian is singular: no covariance.
+    pub const SINGULAR: Self = Self(1 << 8);
+    /// Inlier ratio well below that of the scans before (`fitness-drop`).
+    pub const FITNESS_DROP: Self = Self(1 << 9);
+
+    const NAMES: [(Self, &'static str); 10] = [
+        (Self::DEGENERATE, "degenerate"),
+        (Self::NOT_CONVERGED, "not-converged"),
+        (Self::LOW_FITNESS, "low-fitness"),
+        (Self::NO_FIT, "no-fit"),
+        (Self::IMPLAUSIBLE, "implausible"),
+        (Self::RETRIED, "retried"),
+        (Self::AMBIGUOUS, "ambiguous"),
+        (Self::RECOVERING, "recovering"),
+        (Self::SINGULAR, "singular"),
+        (Self::FITNESS_DROP, "fitness-drop"),
+    ];
+
+    /// No reason.
+    pub const NONE: Self = Self(0);
+
+    /// True when every bit of `other` is set.
+    pub fn contains(self, other: Self) -> bool {
+        self.0 & other.0 == other.0
+    }
+
+    /// Sets the bits of `other`.
+    pub fn insert(&mut self, other: Self) {
+        self.0 |= other.0;
+    }
+
+    /// The names of the bits set, in bit order (unknown bits are left out).
+    pub fn names(self) -> Vec<&'static str> {
+        Self::NAMES
+            .iter()
+            .filter(|(bit, _)| self.contains(*bit))
+            .map(|(_, name)| *name)
+            .collect()
+    }
+}
+
+impl std::ops::BitOr for Reasons {
+    type Output = Self;
+
+    fn bitor(self, other: Self) -> Self {
+        Self(self.0 | other.0)
+    }
+}
+
+/// The health of one localized scan.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ScanHealth {
+    /// Whether the pose was adopted and how far to trust it.
+    pub status: TrackingStatus,
+    /// Why it is not `ok`, and whether the retry ladder ran.
+    pub reasons: Reasons,
+    /// Scan points with a map partner within the pairing distance, over all (of the
+    /// registration the pose came from; of the best rejected one when `lost`).
+    pub inlier_ratio: f64,
+    /// RMS distance of those pairs, metres.
+    pub rmse: f64,
+    /// Eigenvalue ratios of the Hessian's rotation and translation blocks.
+    pub constraint: Constraint,
+    /// True when a ratio is below the degeneracy threshold.
+    pub degenerate: bool,
+    /// 6x6 covariance of the pose (see [`pose_covariance`]); `None` when the Hessian is
+    /// singular or no registration ran.
+    pub covariance: Option<Matrix6<f64>>,
+    /// How far the pose moved from the prediction: translation plus the chord a point
+    /// at [`super::CORRECTION_RANGE_M`] sweeps, metres (of the best rejected pose when
+    /// `lost`).
+    pub correction: f64,
+    /// Registrations run for this scan (1 when the first one passed every check).
+    pub registrations: u32,
+    /// Solver iterations, summed over those registrations.
+    pub iterations: u32,
+    /// True when the registration the pose came from converged.
+    pub converged: bool,
+}
+
+impl ScanHealth {
+    /// A `lost` scan for which no registration produced a pose.
+    pub fn no_fit(registrations: u32, iterations: u32) -> Self {
+        Self {
+            status: TrackingStatus::Lost,
+            reasons: Reasons::NO_FIT,
+            inlier_ratio: 0.0,
+            rmse: 0.0,
+            constraint: Constraint {
+                rotation_ratio: 0.0,
+                translation_ratio: 0.0,
+            },
+            degenerate: true,
+            covariance: None,
+            correction: 0.0,
+            registrations,
+            iterations,
+            converged: false,
+        }
+    }
+}
+
+/// Covariance of a registered pose: the inverse Hessian scaled by the residual
+/// variance, `sigma^2 H^-1` with `sigma^2 = cost / (3 pairs - 6)` (the cost is already
+/// whitened by the pairs' information matrices, so `sigma^2` is 1 when those match the
+/// real noise). It is the covariance of the right perturbation `T exp(d)`, `d` =
+/// (rotation, rad; translation, m) in the sensor frame, rotation first: rad^2, rad m
+/// and m^2. `None` when the Hessian is singular or there are too few pairs.
+pub fn pose_covariance(result: &RegistrationResult) -> Option<Matrix6<f64>> {
+    let dof = 3 * result.pairs;
+    if dof <= 6 {
+        return None;
+    }
+    let sigma2 = result.cost / (dof - 6) as f64;
+    let inverse = result.hessian.try_inverse()?;
+    inverse
+        .iter()
+        .all(|v| v.is_finite())
+        .then(|| inverse * sigma2)
+}
+
+/// The covariance as 36 row-major values, zeros when unknown (the wire layout).
+pub fn covariance_to_wire(covariance: Option<&Matrix6<f64>>) -> [f64; 36] {
+    covariance.map_or([0.0; 36], |c| std::array::from_fn(|i| c[(i / 6, i % 6)]))
+}
+
+/// The covariance of 36 row-major wire values; `None` when all are zero (unknown).
+pub fn covariance_from_wire(values: &[f64; 36]) -> Option<Matrix6<f64>> {
+    values
+        .iter()
+        .any(|v| *v != 0.0)
+        .then(|| Matrix6::from_row_slice(values))
+}
