@@ -55,6 +55,7 @@ fn result_at_identity(pairs: &[Correspondence]) -> RegistrationResult {
         iterations: 1,
         converged: true,
         constraint: Constraint::of(&lin.hessian),
+        unobservable: 0,
         degenerate: false,
         cost: lin.cost,
         pairs: pairs.len(),
@@ -113,10 +114,7 @@ fn covariance_predicts_the_scatter_of_the_solution() {
         })
         .unwrap();
         predicted += pose_covariance(&result).unwrap() / draws as f64;
-        let (omega, v) = crate::motion::twist(&result.pose);
-        solutions.push(nalgebra::Vector6::new(
-            omega.x, omega.y, omega.z, v.x, v.y, v.z,
-        ));
+        solutions.push(crate::pose_graph::log(&result.pose));
     }
     let mean = solutions.iter().sum::<nalgebra::Vector6<f64>>() / draws as f64;
     let empirical = solutions
