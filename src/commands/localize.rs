@@ -46,9 +46,14 @@ use super::connect_arg::ConnectArgs;
 /// its reference pose are reported. A scan whose request fails (e.g. the server died)
 /// keeps the prediction and is counted in "failed".
 ///
-/// --json-lines prints one JSON object per scan (index, t, pose [x,y,z,qx,qy,qz,qw],
-/// status, fitness, rmse_m, latency_ms, and reasons, covariance, ...) and then the
-/// summary object on one line.
+/// --json-lines prints one JSON object per scan and then the summary object, one per
+/// line. A scan's object: index (in the dataset), t (s), pose [x,y,z,qx,qy,qz,qw]
+/// (map frame), status (ok, degraded, lost; failed when the request failed), fitness
+/// (inlier ratio), rmse_m, latency_ms, reasons, degenerate, constraint (rotation and
+/// translation eigenvalue ratios), covariance (36 values row-major, rotation first,
+/// rad and m, sensor frame; null when unknown), correction_m and max_correction_m
+/// (translation plus the chord at 10 m), registrations, iterations, converged, and
+/// error_m / error_deg against the reference pose when the dataset has one.
 ///
 /// Examples:
 ///   kfmap localize --map-name site --dataset runs/site-2 --out site-2.tum

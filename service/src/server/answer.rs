@@ -456,7 +456,12 @@ fn localize(
     let covs = scan_covariances(scan, limits);
     // Built on the ladder's first coarse registration, then reused.
     let mut coarse: Option<(PointCloud, Vec<[f32; 6]>)> = None;
-    let mut active = Vec::new();
+    let mut against = MapRegistration {
+        map,
+        session,
+        exact,
+        active: Vec::new(),
+    };
     let found = localize_scan(pose, &expected, fine, &limits.tracking, |start, stage| {
         let (cloud, covs) = if stage.coarse {
             if coarse.is_none() {
@@ -472,9 +477,9 @@ fn localize(
         } else {
             (&cloud, covs.as_slice())
         };
-        register(map, session, cloud, covs, start, stage, exact, &mut active)
+        against.register(cloud, covs, start, stage)
     })?;
-    let mut answer = with_active(AnswerPairings::default(), &active);
+    let mut answer = with_active(AnswerPairings::default(), &against.active);
     let (h, health) = (&mut answer.header, &found.health);
     h.pose = pose_to_wire(&found.pose);
     h.covariance = covariance_to_wire(health.covariance.as_ref());
@@ -493,38 +498,47 @@ fn localize(
     Ok(answer)
 }
 
-/// One registration of `cloud` from `start` over the map's cov2cov pairings; `None`
-/// when no scan point has a pair. `active` gets the keyframes of the last pairing.
-#[allow(clippy::too_many_arguments)]
-fn register(
-    map: &ServedMap,
-    session: &mut Session,
-    cloud: &PointCloud,
-    covs: &[[f32; 6]],
-    start: &Pose,
-    stage: &Stage,
+/// Registrations against the served map in one client's session.
+struct MapRegistration<'a> {
+    map: &'a ServedMap,
+    session: &'a mut Session,
     exact: bool,
-    active: &mut Vec<u64>,
-) -> Result<Option<RegistrationResult>, Rejection> {
-    let result = solve_pose(start, &stage.params(), cloud.len(), |at| {
-        let (pairings, ids) = cov2cov(
-            map,
-            session,
-            cloud,
-            covs,
-            at,
-            stage.max_pair_dist as f32,
-            exact,
-        )
-        .map_err(LocalizeError::Rejected)?;
-        *active = ids;
-        Ok::<_, LocalizeError>(correspondences_from_pairings(&pairings, &cloud.points))
-    });
-    match result {
-        Ok(r) => Ok(Some(r)),
-        Err(LocalizeError::Registration(RegistrationError::NoCorrespondences { .. })) => Ok(None),
-        Err(LocalizeError::Registration(e)) => Err(bad(format!("localization: {e}"))),
-        Err(LocalizeError::Rejected(r)) => Err(r),
+    /// Keyframes of the last pairing.
+    active: Vec<u64>,
+}
+
+impl MapRegistration<'_> {
+    /// One registration of `cloud` (with its covariances) from `start` over the map's
+    /// cov2cov pairings; `None` when no scan point has a pair.
+    fn register(
+        &mut self,
+        cloud: &PointCloud,
+        covs: &[[f32; 6]],
+        start: &Pose,
+        stage: &Stage,
+    ) -> Result<Option<RegistrationResult>, Rejection> {
+        let result = solve_pose(start, &stage.params(), cloud.len(), |at| {
+            let (pairings, ids) = cov2cov(
+                self.map,
+                self.session,
+                cloud,
+                covs,
+                at,
+                stage.max_pair_dist as f32,
+                self.exact,
+            )
+            .map_err(LocalizeError::Rejected)?;
+            self.active = ids;
+            Ok::<_, LocalizeError>(correspondences_from_pairings(&pairings, &cloud.points))
+        });
+        match result {
+            Ok(r) => Ok(Some(r)),
+            Err(LocalizeError::Registration(RegistrationError::NoCorrespondences { .. })) => {
+                Ok(None)
+            }
+            Err(LocalizeError::Registration(e)) => Err(bad(format!("localization: {e}"))),
+            Err(LocalizeError::Rejected(r)) => Err(r),
+        }
     }
 }
 

@@ -224,11 +224,13 @@ impl<E, F: FnMut(&Pose, &Stage) -> Result<Option<RegistrationResult>, E>> Runner
         Ok(result)
     }
 
-    fn coarse_stage(&self, iterations: usize) -> Stage {
+    /// Coarse iterations: the coarse scan, pairs up to `coarse-pair-dist` (at least the
+    /// request's distance).
+    fn coarse_stage(&self) -> Stage {
         Stage {
             coarse: true,
             max_pair_dist: self.params.coarse_pair_dist.max(self.fine.max_pair_dist),
-            max_iterations: iterations,
+            max_iterations: self.params.coarse_iterations,
         }
     }
 
@@ -240,7 +242,7 @@ impl<E, F: FnMut(&Pose, &Stage) -> Result<Option<RegistrationResult>, E>> Runner
     ) -> Result<Option<RegistrationResult>, E> {
         let mut from = *start;
         if coarse {
-            let stage = self.coarse_stage(self.params.coarse_iterations);
+            let stage = self.coarse_stage();
             if let Some(r) = self.run(start, &stage)? {
                 from = r.pose;
             }
@@ -297,7 +299,7 @@ pub fn localize_scan<E>(
     };
 
     let coarse = if params.coarse_first {
-        let stage = runner.coarse_stage(params.coarse_iterations);
+        let stage = runner.coarse_stage();
         runner.run(prediction, &stage)?
     } else {
         None
