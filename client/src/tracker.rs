@@ -20,8 +20,8 @@ pub struct TrackerOptions {
     /// process (cov2cov answers); both decide alike.
     pub server_side: bool,
     /// The correction gate: `sigmas` times the RMS of past corrections (metres of
-    /// point displacement at `range`, which must be
-    /// [`kfmap_shared::tracking::CORRECTION_RANGE_M`]), within `[min, max]`.
+    /// point displacement at [`kfmap_shared::tracking::CORRECTION_RANGE_M`], whatever
+    /// `range` says: the ladder measures corrections there), within `[min, max]`.
     pub gate: AdaptiveThresholdParams,
     /// Scans in a row that must be adopted after `lost` before the status is `ok`
     /// again (until then `degraded`, reason `recovering`).
@@ -86,7 +86,11 @@ impl Tracker {
             options,
             initial,
             motion: ConstantVelocity::new(),
-            gate: AdaptiveThreshold::new(options.gate),
+            // Corrections are compared with the ladder's, measured at its range.
+            gate: AdaptiveThreshold::new(AdaptiveThresholdParams {
+                range: CORRECTION_RANGE_M,
+                ..options.gate
+            }),
             lost_streak: 0,
             adopted_streak: usize::MAX,
             last_inlier_ratio: None,

@@ -197,8 +197,6 @@ pub struct MappingSummary {
     pub keyframes: usize,
     /// Loop candidates examined.
     pub loops_found: usize,
-    /// Loops verified and added.
-    pub loops_accepted: usize,
     /// Pose-graph error before and after optimization.
     pub graph_error: (f64, f64),
     /// The optimized keyframe pose graph: vertex id = the keyframe's scan index in the
@@ -219,6 +217,13 @@ pub struct MappingSummary {
     pub poor_scans: Vec<usize>,
     /// The same for odometry alone.
     pub ate_odometry: Option<f64>,
+}
+
+impl MappingSummary {
+    /// Loops verified and added to the graph.
+    pub fn loops_accepted(&self) -> usize {
+        self.loop_checks.iter().filter(|c| c.accepted).count()
+    }
 }
 
 /// One verified loop candidate, in scan indices.
@@ -412,7 +417,6 @@ fn build_poses(
     let summary = MappingSummary {
         keyframes: built.keyframe_scans.len(),
         loops_found: built.loops_found,
-        loops_accepted: built.loops_accepted.len(),
         graph_error: (built.graph.initial_error, built.graph.final_error),
         graph,
         ate: ate(&built.poses),

@@ -98,8 +98,8 @@ fn build(seq: &Sequence, pick: &[usize]) -> BuiltTrajectory {
         absolute_trajectory_error(&built.odometry, &truth),
         built.keyframe_scans.len(),
         built.loops_found,
-        built.loops_accepted.len(),
-        built.loops_accepted,
+        built.loops_accepted().len(),
+        built.loops_accepted(),
         built
             .outcomes
             .iter()
@@ -121,11 +121,11 @@ fn balm_built_from_raw_scans_at_2hz() {
     let scan = |k: usize| built.keyframe_scans[k];
     assert!(
         built
-            .loops_accepted
+            .loops_accepted()
             .iter()
             .any(|&(older, newer)| scan(older) <= 7 && scan(newer) >= 116),
         "{:?}",
-        built.loops_accepted
+        built.loops_accepted()
     );
 }
 

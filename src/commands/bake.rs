@@ -184,7 +184,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 "gravity": gravity,
                 "mapping": report.mapping.as_ref().map(|m| json!({
                     "keyframes": m.keyframes, "loops_found": m.loops_found,
-                    "loops_accepted": m.loops_accepted, "graph_error_initial": m.graph_error.0,
+                    "loops_accepted": m.loops_accepted(), "graph_error_initial": m.graph_error.0,
                     "graph_error_final": m.graph_error.1, "ate_m": m.ate,
                     "ate_odometry_m": m.ate_odometry, "ate_scans_m": m.ate_scans,
                     "recovered_scans": m.recovered_scans, "poor_scans": m.poor_scans,
@@ -239,7 +239,7 @@ fn print_outputs(output: &BakeOutput, report: &BakeReport) {
             "  pose graph: {} vertices, {} edges ({} loops) -> {}",
             m.graph.len(),
             m.graph.edges().len(),
-            m.loops_accepted,
+            m.loops_accepted(),
             path.display()
         );
     }
@@ -271,7 +271,11 @@ fn print_gravity(g: &BakeGravity) {
 fn print_mapping(m: &MappingSummary) {
     println!(
         "  poses built from the scans: {} graph keyframes, loops {} found / {} accepted, graph error {:.3} -> {:.3}",
-        m.keyframes, m.loops_found, m.loops_accepted, m.graph_error.0, m.graph_error.1
+        m.keyframes,
+        m.loops_found,
+        m.loops_accepted(),
+        m.graph_error.0,
+        m.graph_error.1
     );
     if !m.recovered_scans.is_empty() || !m.poor_scans.is_empty() {
         println!(

@@ -160,7 +160,7 @@ fn baked_map_stage(
         "  poses built from the raw scans (GICP odometry, {} graph keyframes, loops {} found / {} accepted): keyframe ATE {:.3} m against poses_gt.txt (odometry alone {:.3} m)",
         mapping.keyframes,
         mapping.loops_found,
-        mapping.loops_accepted,
+        mapping.loops_accepted(),
         mapping.ate.unwrap_or(f64::NAN),
         mapping.ate_odometry.unwrap_or(f64::NAN)
     );

@@ -126,12 +126,20 @@ pub trait GlobalRegistration {
 pub struct GlobalReport {
     /// Loop candidates examined.
     pub loops_found: usize,
-    /// Loops verified and added as edges, `(older, newer)`.
-    pub loops_accepted: Vec<(CloudId, CloudId)>,
-    /// Every candidate verified, accepted or not, with its fitness.
+    /// Every candidate verified, accepted or not, with its fitness (the accepted ones
+    /// became graph edges: [`accepted_loops`]).
     pub loop_checks: Vec<LoopCheck>,
     /// The pose-graph optimization.
     pub graph: GraphReport,
+}
+
+/// The accepted loops `(older, newer)` among `checks`.
+pub fn accepted_loops(checks: &[LoopCheck]) -> Vec<(CloudId, CloudId)> {
+    checks
+        .iter()
+        .filter(|c| c.verdict.is_some_and(|v| v.accepted))
+        .map(|c| (c.older, c.newer))
+        .collect()
 }
 
 /// Loop candidates by distance: poses closer than `max_distance` but at least
@@ -401,7 +409,6 @@ impl<P: PairwiseRegistration, L: LoopDetection, G: GraphOptimizer> GlobalRegistr
         }
         Ok(GlobalReport {
             loops_found: candidates.len(),
-            loops_accepted: accepted,
             loop_checks: checks,
             graph: report,
         })

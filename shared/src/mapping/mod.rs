@@ -19,6 +19,7 @@ use crate::registration::RegistrationError;
 pub use framework::{
     CloudId, DistanceLoopDetection, GlobalError, GlobalRegistration, GlobalReport, GraphOptimizer,
     LoopCheck, LoopDetection, LoopVerdict, PairwiseGlobalRegistration, PairwiseRegistration,
+    accepted_loops,
 };
 pub use odometry::{Odometry, OdometryOutcome, OdometryParams, OdometryStep};
 
@@ -34,6 +35,13 @@ pub struct BuildParams {
     pub loops: DistanceLoopDetection,
     /// Pose-graph optimization.
     pub graph: GraphParams,
+}
+
+impl BuiltTrajectory {
+    /// Accepted loops `(older, newer)`, keyframe indices.
+    pub fn loops_accepted(&self) -> Vec<(usize, usize)> {
+        accepted_loops(&self.loop_checks)
+    }
 }
 
 impl BuildParams {
@@ -79,8 +87,6 @@ pub struct BuiltTrajectory {
     pub keyframe_scans: Vec<usize>,
     /// Loop candidates and the accepted loops (keyframe indices).
     pub loops_found: usize,
-    /// Accepted loops `(older, newer)`, keyframe indices.
-    pub loops_accepted: Vec<(usize, usize)>,
     /// Every loop candidate verified, with its fitness (keyframe indices).
     pub loop_checks: Vec<LoopCheck>,
     /// The pose-graph optimization.
@@ -161,7 +167,6 @@ pub fn build_trajectory<E: From<RegistrationError> + From<GlobalError>>(
         outcomes,
         keyframe_scans,
         loops_found: report.loops_found,
-        loops_accepted: report.loops_accepted,
         loop_checks: report.loop_checks,
         graph: report.graph,
         edges: global.edges().to_vec(),

@@ -176,8 +176,6 @@ pub struct OdometryStep {
     pub registration: Option<RegistrationResult>,
     /// How the pose was found.
     pub outcome: OdometryOutcome,
-    /// The correspondence distance the scan was first registered with, metres.
-    pub distance: f64,
     /// The scan as registered (deskewed, downsampled, covariances, tree; frame at
     /// `cloud_pose`), for callers that keep it.
     pub prepared: PreparedCloud,
@@ -211,7 +209,6 @@ impl Odometry {
         let deskewed = self.deskewed(scan, mid)?;
         let scan = deskewed.as_ref().unwrap_or(scan);
         let prepared = PreparedCloud::new(scan, &reg, "scan")?;
-        let distance = self.threshold.distance();
         let tracked_at = stamp + mid;
         let predicted = self.motion.predict(tracked_at);
         let (cloud_pose, registration, outcome) = match (&self.local_map, predicted) {
@@ -238,7 +235,6 @@ impl Odometry {
             cloud_pose,
             registration,
             outcome,
-            distance,
             prepared,
         })
     }

@@ -71,7 +71,7 @@ fn lap(preset: Preset, seconds: f64, beams: u32) -> LapFigures {
         ate_odometry: absolute_trajectory_error(&kf(&built.odometry), &kf(&truth)),
         drift: end_to_start_drift(&built.poses, &truth, closing),
         drift_odometry: end_to_start_drift(&built.odometry, &truth, closing),
-        loops: built.loops_accepted.len(),
+        loops: built.loops_accepted().len(),
     };
     println!(
         "{preset:?} {seconds} s, {beams} beams, {count} scans, {} keyframes in {:.1} s: loops {} \
