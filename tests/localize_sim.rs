@@ -117,3 +117,45 @@ fn campus_run_localizes_against_the_map_of_another_run() {
     assert!((pitch - expected.pitch_deg()).abs() < 1e-6);
     assert_eq!(got["members"], aligner.size());
 }
+
+/// Deskew and the gyro in localization: a raw (motion-distorted, per-point times)
+/// courtyard drive at 4 m/s and 7 Hz, replayed against the map of a deskewed drive at
+/// 10 Hz. The oracle is the simulator's pose at each scan's stamp. Measured (2 cores):
+/// neither RMS 0.352 m, 4 lost and 4 scans over 0.5 m reported ok; deskew alone
+/// 0.112 m; deskew and gyro 0.016 m (max 0.079 m), none lost.
+#[test]
+fn a_raw_drive_is_deskewed_and_turned_by_the_gyro() {
+    let dir = temp_dir("raw_drive");
+    let (mapped, raw) = (dir.join("mapped"), dir.join("raw"));
+    simulate(&mapped, "courtyard", "12", "32", &["--speed", "4"]);
+    simulate(
+        &raw,
+        "courtyard",
+        "12",
+        "32",
+        &["--speed", "4", "--raw", "--lidar-rate", "7", "--seed", "5"],
+    );
+    let map = dir.join("courtyard.kfmap");
+    bake_dataset(&mapped, &map);
+    let prefix = Prefix::new("raw_drive");
+    let _server = Server::start(&map, "campus", &prefix.0, &[]);
+    let out = dir.join("replay.tum");
+    let run = |extra: &[&str]| {
+        let s = localize(&raw, &prefix.0, &out, extra);
+        println!("{extra:?}: {s}");
+        let f = |key: &str| s[key].as_f64().unwrap();
+        (f("rms_error_m"), f("max_error_m"), f("lost"), f("wrong_ok"))
+    };
+    let neither = run(&["--no-deskew", "--no-imu"]);
+    let deskewed = run(&["--no-imu"]);
+    let both = run(&[]);
+    let server_side = run(&["--server-side"]);
+    assert!(deskewed.0 * 2.0 < neither.0, "{deskewed:?} vs {neither:?}");
+    for result in [both, server_side] {
+        assert!(
+            result.0 < 0.03 && result.0 * 5.0 < deskewed.0 && result.1 < 0.15,
+            "{result:?} vs deskew alone {deskewed:?}"
+        );
+        assert_eq!((result.2, result.3), (0.0, 0.0), "none lost, none wrong");
+    }
+}

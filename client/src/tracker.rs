@@ -1,11 +1,13 @@
 //! The client-side tracker (ARCHITECTURE section 12): predicts each scan's pose with a
-//! constant-velocity model, bounds the correction localization may make by how wrong
+//! constant-velocity model (rotation from the gyro when it has an IMU log), deskews scans
+//! that carry per-point times into their mid-scan frame, bounds the correction localization may make by how wrong
 //! the predictions have been (an adaptive gate, after KISS-ICP), and follows the
 //! status: a `lost` scan adopts no pose and the tracker keeps predicting; it is `ok`
 //! again once scans agree with the prediction for `recover-after` scans in a row.
 
+use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::geometry::Pose;
-use kfmap_shared::motion::{AdaptiveThreshold, AdaptiveThresholdParams, ConstantVelocity};
+use kfmap_shared::motion::{AdaptiveThreshold, AdaptiveThresholdParams, Gyro, PosePredictor};
 use kfmap_shared::protocol::ScanPayload;
 use kfmap_shared::tracking::{CORRECTION_RANGE_M, Reasons, ScanHealth, TrackingStatus};
 
@@ -26,6 +28,8 @@ pub struct TrackerOptions {
     /// Scans in a row that must be adopted after `lost` before the status is `ok`
     /// again (until then `degraded`, reason `recovering`).
     pub recover_after: usize,
+    /// Deskew scans that carry per-point times ([`Tracker::track_cloud`]).
+    pub deskew: bool,
 }
 
 impl Default for TrackerOptions {
@@ -42,6 +46,7 @@ impl Default for TrackerOptions {
                 sigmas: 3.0,
             },
             recover_after: 2,
+            deskew: true,
         }
     }
 }
@@ -67,8 +72,8 @@ pub struct Tracker {
     options: TrackerOptions,
     /// Where the first scan is localized from.
     initial: Pose,
-    /// Adopted poses.
-    motion: ConstantVelocity,
+    /// Adopted poses (at the scans' mid-scan times when deskewed).
+    motion: PosePredictor,
     gate: AdaptiveThreshold,
     /// Scans lost since the last adopted one.
     lost_streak: usize,
@@ -85,7 +90,7 @@ impl Tracker {
         Self {
             options,
             initial,
-            motion: ConstantVelocity::new(),
+            motion: PosePredictor::new(None),
             // Corrections are compared with the ladder's, measured at its range.
             gate: AdaptiveThreshold::new(AdaptiveThresholdParams {
                 range: CORRECTION_RANGE_M,
@@ -95,6 +100,18 @@ impl Tracker {
             adopted_streak: usize::MAX,
             last_inlier_ratio: None,
         }
+    }
+
+    /// The same tracker predicting rotation with `gyro` (an IMU log on the scans' clock,
+    /// its bias learned from the scans adopted).
+    pub fn with_gyro(mut self, gyro: Gyro) -> Self {
+        self.motion = PosePredictor::new(Some(gyro));
+        self
+    }
+
+    /// The gyro's bias estimate, IMU frame, rad/s (`None` without a gyro).
+    pub fn gyro_bias(&self) -> Option<nalgebra::Vector3<f64>> {
+        self.motion.gyro().map(|g| g.bias())
     }
 
     /// The pose expected at time `t` (seconds): the last adopted pose carried forward
@@ -132,6 +149,37 @@ impl Tracker {
             client.localize_client_side(scan, &predicted, &options)?
         };
         Ok(self.observe(t, predicted, max_correction, localized))
+    }
+
+    /// Localizes `cloud` (sensor frame, stamped `stamp` seconds): deskewed into its
+    /// mid-scan frame first when it carries per-point times (and `deskew` is on), tracked
+    /// there, and reported at the stamp like an undistorted scan.
+    pub fn track_cloud(
+        &mut self,
+        client: &mut Client,
+        cloud: &PointCloud,
+        stamp: f64,
+    ) -> Result<TrackedScan, ClientError> {
+        let mid = self
+            .motion
+            .mid_scan(cloud, stamp, self.options.deskew)
+            .map_err(kfmap_shared::registration::RegistrationError::from)?;
+        let cloud = mid.deskewed.as_ref().unwrap_or(cloud);
+        let scan = ScanPayload {
+            points: &cloud.points,
+            view_dirs: None,
+            covariances: None,
+        };
+        let tracked_at = stamp + mid.offset;
+        let mut tracked = self.track(client, &scan, tracked_at)?;
+        if mid.offset != 0.0 {
+            tracked.t = stamp;
+            tracked.predicted = self.motion.carry(&tracked.predicted, tracked_at, stamp);
+            tracked.localized.pose = self
+                .motion
+                .carry(&tracked.localized.pose, tracked_at, stamp);
+        }
+        Ok(tracked)
     }
 
     /// Records a scan whose localization failed (e.g. the server did not answer) as
@@ -172,7 +220,8 @@ impl Tracker {
             }
             self.lost_streak = 0;
             self.last_inlier_ratio = Some(localized.health.inlier_ratio);
-            self.motion.update(t, localized.pose);
+            let trusted = localized.health.status == TrackingStatus::Ok;
+            self.motion.update(t, localized.pose, trusted);
         }
         TrackedScan {
             t,

@@ -14,6 +14,7 @@ use kfmap_shared::archive::{ArchiveError, MapWriter, WriteSummary};
 use kfmap_shared::cloud::{PointCloud, Twist, deskew};
 use kfmap_shared::covis::CovisibilityGraph;
 use kfmap_shared::geometry::Pose;
+use kfmap_shared::imu::ImuSample;
 use kfmap_shared::io::{
     IoError, ReadOptions, Trajectory, format_tum, read_cloud, read_trajectory, write_atomic,
 };
@@ -27,7 +28,10 @@ use kfmap_shared::mapping::{
 use kfmap_shared::registration::{Fitness, RegistrationError};
 
 use crate::config::BakeConfig;
-use crate::gravity::{BakeGravity, GravityError, POSE_FILES, bake_gravity, find_in};
+use crate::gravity::{
+    BakeGravity, GravityError, IMU_FILES, POSE_FILES, bake_gravity, check_overlap, find_in,
+    read_imu,
+};
 use crate::scan_range::{ScanRange, ScanRangeError};
 
 /// Scan file extensions a dataset may hold.
@@ -217,6 +221,8 @@ pub struct MappingSummary {
     pub poor_scans: Vec<usize>,
     /// The same for odometry alone.
     pub ate_odometry: Option<f64>,
+    /// The gyro bias odometry learned, IMU frame, rad/s (`None`: no IMU log used).
+    pub gyro_bias: Option<[f64; 3]>,
 }
 
 impl MappingSummary {
@@ -370,6 +376,7 @@ fn build_poses(
     first: usize,
     config: &BakeConfig,
     truth: Option<&ScanPoses>,
+    imu: Vec<ImuSample>,
     progress: &mut impl FnMut(BakeProgress),
 ) -> Result<(ScanPoses, MappingSummary), BakeError> {
     let report = |stage, done, total| BakeProgress {
@@ -386,6 +393,7 @@ fn build_poses(
     );
     let built = build_trajectory::<BakeError>(
         &stamps,
+        imu,
         |i| load_raw_scan(&scans[i], config),
         &config.build,
         |stage| {
@@ -435,6 +443,7 @@ fn build_poses(
         poor_scans: scans_where(&built.outcomes, OdometryOutcome::Poor, first),
         ate_odometry: ate(&built.odometry),
         poses: built.poses.clone(),
+        gyro_bias: built.gyro_bias.map(Into::into),
     };
     let poses = ScanPoses {
         poses: built.poses,
@@ -442,6 +451,23 @@ fn build_poses(
         stamped: truth.is_some_and(|t| t.stamped),
     };
     Ok((poses, summary))
+}
+
+/// The dataset's IMU log for the odometry's motion model: read when the gyro is enabled
+/// and the scans have timestamps (from the pose file) to place it on; empty otherwise.
+fn odometry_imu(
+    dataset: &Path,
+    config: &BakeConfig,
+    truth: Option<&ScanPoses>,
+) -> Result<Vec<ImuSample>, BakeError> {
+    let stamps = truth.filter(|t| t.stamped).map(|t| &t.stamps);
+    let path = find_in(dataset, &IMU_FILES).filter(|_| config.build.odometry.gyro.enabled);
+    let (Some(path), Some(stamps)) = (path, stamps) else {
+        return Ok(Vec::new());
+    };
+    let imu = read_imu(&path)?;
+    check_overlap(&path, &imu, stamps)?;
+    Ok(imu)
 }
 
 /// Dataset indices of the scans (the first at `first`) whose odometry outcome was `which`.
@@ -521,8 +547,15 @@ pub fn bake(
             let truth = truth
                 .map(|p| scan_poses(&p, &all_scans).map(|t| t.select(range.clone())))
                 .transpose()?;
-            let (built, summary) =
-                build_poses(scans, range.start, config, truth.as_ref(), &mut progress)?;
+            let imu = odometry_imu(&input.dataset, config, truth.as_ref())?;
+            let (built, summary) = build_poses(
+                scans,
+                range.start,
+                config,
+                truth.as_ref(),
+                imu,
+                &mut progress,
+            )?;
             (built, Some(summary))
         }
     };

@@ -424,6 +424,11 @@ mod tests {
             text.contains("build.odometry") && text.contains("fit-distance"),
             "{text}"
         );
+        let text = bad("[build.odometry.gyro]\nmax-gap = 0.0\n");
+        assert!(
+            text.contains("build.odometry.gyro") && text.contains("max-gap"),
+            "{text}"
+        );
         let text = bad("[build.odometry.registration]\nvoxel-size = -0.5\n");
         assert!(
             text.contains("build.odometry.registration") && text.contains("voxel-size"),

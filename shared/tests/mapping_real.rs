@@ -54,6 +54,7 @@ fn build(seq: &Sequence, pick: &[usize]) -> BuiltTrajectory {
     let started = std::time::Instant::now();
     let built = build_trajectory::<TestError>(
         &stamps,
+        Vec::new(),
         |i| Ok(read_cloud(&seq.scans[pick[i]], &options)?.cloud),
         &BuildParams::default(),
         |_| {},
@@ -168,6 +169,7 @@ fn kitti00_frames_built_from_raw_scans() {
     };
     let built = build_trajectory::<TestError>(
         &stamps,
+        Vec::new(),
         |i| Ok(read_cloud(&dir.join(format!("{i:06}.bin")), &options)?.cloud),
         &BuildParams::default(),
         |_| {},

@@ -188,6 +188,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                     "graph_error_final": m.graph_error.1, "ate_m": m.ate,
                     "ate_odometry_m": m.ate_odometry, "ate_scans_m": m.ate_scans,
                     "recovered_scans": m.recovered_scans, "poor_scans": m.poor_scans,
+                    "gyro_bias_rad_s": m.gyro_bias,
                     "loop_checks": m.loop_checks.iter().map(|c| json!({
                         "older_scan": c.older_scan, "newer_scan": c.newer_scan,
                         "accepted": c.accepted,
@@ -277,6 +278,12 @@ fn print_mapping(m: &MappingSummary) {
         m.graph_error.0,
         m.graph_error.1
     );
+    match m.gyro_bias {
+        Some([x, y, z]) => println!(
+            "  odometry predicted rotation with the IMU's gyro (bias learned: [{x:.4}, {y:.4}, {z:.4}] rad/s)"
+        ),
+        None => println!("  odometry predicted with constant velocity (no IMU log used)"),
+    }
     if !m.recovered_scans.is_empty() || !m.poor_scans.is_empty() {
         println!(
             "  odometry retried wider hypotheses for scans {:?}; no good registration for {:?}",

@@ -13,9 +13,11 @@ use kfmap_service::gravity::{IMU_FILES, POSE_FILES, find_in, read_imu};
 use kfmap_service::server::percentile;
 use kfmap_shared::geometry::{Pose, pose_to_xyz_quat, rotation_distance, translation_distance};
 use kfmap_shared::gravity::ImuWindow;
+use kfmap_shared::imu::ImuSample;
 use kfmap_shared::io::{Trajectory, format_tum, write_atomic};
 use kfmap_shared::mapping::{absolute_trajectory_error, relative_pose_error};
-use kfmap_shared::protocol::{Cov2CovMode, ScanPayload};
+use kfmap_shared::motion::{Gyro, GyroParams};
+use kfmap_shared::protocol::Cov2CovMode;
 use kfmap_shared::tracking::TrackingStatus;
 use serde_json::json;
 
@@ -23,7 +25,8 @@ use super::connect_arg::ConnectArgs;
 
 /// Replay a dataset's scans (and IMU) against a running `kfmap serve` and localize
 /// every scan, tracking it: each scan is localized from the pose a constant-velocity
-/// model predicts from the scans before (the first from --initial, or with
+/// model predicts from the scans before (its rotation integrated from the gyro when the
+/// dataset has an IMU log and timestamped poses) (the first from --initial, or with
 /// --initial-from-ground-truth the dataset's reference pose of the first replayed scan;
 /// without either, that reference pose when the dataset has one, else identity).
 /// Ground truth is taken to be in the frame of the dataset the map was baked from; the
@@ -37,7 +40,10 @@ use super::connect_arg::ConnectArgs;
 /// and tracking keeps predicting until scans agree again.
 ///
 /// Scans are read (PCD, PLY, KITTI .bin), invalid returns dropped, downsampled with
-/// --voxel and sent over iceoryx2 shared memory. By default this process runs the
+/// --voxel, deskewed when they carry per-point times (the simulator's --raw output,
+/// Ouster/Velodyne t or time fields: moved into the sensor frame at mid-scan by the
+/// motion model, tracked there and reported at the scan's stamp) and sent over
+/// iceoryx2 shared memory. By default this process runs the
 /// checks and the GICP solver over the server's cov2cov pairings (client-side);
 /// --server-side asks the server to run them (thin client). With an IMU log
 /// (imu.csv/imu.txt) and timestamped poses, each scan's IMU window goes to the server's
@@ -107,9 +113,16 @@ pub struct Args {
     /// (--server-side uses the server's).
     #[arg(long)]
     config: Option<PathBuf>,
-    /// Do not send IMU windows even when the dataset has an IMU log.
+    /// Do not use the dataset's IMU log (no gravity windows, no gyro).
     #[arg(long)]
     no_imu: bool,
+    /// The IMU's orientation in the LiDAR frame, "roll pitch yaw" degrees (about fixed
+    /// X, then Y, then Z), for the gyro.
+    #[arg(long, value_name = "R P Y", default_value = "0 0 0")]
+    imu_rpy_deg: String,
+    /// Do not deskew scans that carry per-point times.
+    #[arg(long)]
+    no_deskew: bool,
     /// Print a JSON summary (scans, ok, degraded, lost, failed, ate_m, p50_ms, ...).
     #[arg(long)]
     json: bool,
@@ -158,12 +171,9 @@ fn scan_range(text: &str, count: usize) -> anyhow::Result<Range<usize>> {
 }
 
 /// Per-scan IMU windows: samples in `(previous scan's time, this scan's time]`.
-fn imu_windows(dataset: &Path, stamps: &[f64]) -> anyhow::Result<Option<Vec<ImuWindow>>> {
-    let Some(path) = find_in(dataset, &IMU_FILES) else {
-        return Ok(None);
-    };
-    let stream = ImuWindow::new(read_imu(&path)?);
-    let windows = stamps
+fn imu_windows(samples: &[ImuSample], stamps: &[f64]) -> Vec<ImuWindow> {
+    let stream = ImuWindow::new(samples.to_vec());
+    stamps
         .iter()
         .enumerate()
         .map(|(i, &t)| {
@@ -174,8 +184,28 @@ fn imu_windows(dataset: &Path, stamps: &[f64]) -> anyhow::Result<Option<Vec<ImuW
             };
             ImuWindow::cut(stream.samples(), start, t)
         })
-        .collect();
-    Ok(Some(windows))
+        .collect()
+}
+
+/// The tracker's gyro over the IMU log at `path`, with `--imu-rpy-deg`.
+fn gyro_from(path: &Path, samples: &[ImuSample], rpy: &str) -> anyhow::Result<Gyro> {
+    let angles: Vec<f64> = rpy
+        .split_whitespace()
+        .map(str::parse)
+        .collect::<Result<_, _>>()
+        .ok()
+        .filter(|a: &Vec<f64>| a.len() == 3)
+        .ok_or_else(|| {
+            anyhow::anyhow!(
+                "--imu-rpy-deg {rpy:?}: expected three angles in degrees, e.g. \"0 0 90\""
+            )
+        })?;
+    let params = GyroParams {
+        lidar_from_imu_rpy_deg: [angles[0], angles[1], angles[2]],
+        ..GyroParams::default()
+    };
+    Gyro::new(samples.to_vec(), params)
+        .with_context(|| format!("{}: cannot drive the gyro", path.display()))
 }
 
 /// One replayed scan's line of `--json-lines`.
@@ -239,10 +269,19 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .map(|i| i as f64 / args.rate.max(1.0))
             .collect(),
     };
-    let windows = match &truth {
-        Some(t) if t.stamped && !args.no_imu => imu_windows(&args.dataset, &all_stamps)?,
+    let imu = match &truth {
+        Some(t) if t.stamped && !args.no_imu => find_in(&args.dataset, &IMU_FILES)
+            .map(|path| read_imu(&path).map(|samples| (path, samples)))
+            .transpose()?,
         _ => None,
     };
+    let windows = imu
+        .as_ref()
+        .map(|(_, samples)| imu_windows(samples, &all_stamps));
+    let gyro = imu
+        .as_ref()
+        .map(|(path, samples)| gyro_from(path, samples, &args.imu_rpy_deg))
+        .transpose()?;
     let scans = &all_scans[range.clone()];
     let stamps = &all_stamps[range.clone()];
     let mut client = args.server.connect()?;
@@ -269,6 +308,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             ..LocalizeOptions::default()
         },
         server_side: args.server_side,
+        deskew: !args.no_deskew,
         ..TrackerOptions::default()
     };
     let quiet = args.json || args.json_lines;
@@ -284,6 +324,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let config = BakeConfig::default();
     let period = (args.rate > 0.0).then(|| Duration::from_secs_f64(1.0 / args.rate));
     let mut tracker = Tracker::new(initial, options);
+    if let Some(gyro) = gyro {
+        tracker = tracker.with_gyro(gyro);
+    }
     let mut poses = Vec::with_capacity(scans.len());
     let mut latencies = Vec::with_capacity(scans.len());
     let mut statuses = Vec::with_capacity(scans.len());
@@ -301,14 +344,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         } else {
             cloud
         };
-        let scan = ScanPayload {
-            points: &cloud.points,
-            view_dirs: None,
-            covariances: None,
-        };
         let t = stamps[k];
         let sent = Instant::now();
-        let result = tracker.track(&mut client, &scan, t);
+        let result = tracker.track_cloud(&mut client, &cloud, t);
         let latency = sent.elapsed().as_secs_f64() * 1e3;
         latencies.push(latency);
         let (tracked, error) = match result {

@@ -12,6 +12,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::cloud::PointCloud;
 use crate::geometry::Pose;
+use crate::imu::ImuSample;
 use crate::map::KeyframeDecider;
 use crate::options::InvalidOption;
 use crate::pose_graph::{GraphParams, GraphReport, PoseEdge};
@@ -61,6 +62,10 @@ impl BuildParams {
             .local_map_decider
             .validate()
             .map_err(|e| ("build.odometry.local-map-decider", e))?;
+        odometry
+            .gyro
+            .validate()
+            .map_err(|e| ("build.odometry.gyro", e))?;
         odometry.validate().map_err(|e| ("build.odometry", e))?;
         self.loops
             .registration
@@ -93,6 +98,8 @@ pub struct BuiltTrajectory {
     pub graph: GraphReport,
     /// The pose graph's edges (consecutive and loop), between keyframe indices.
     pub edges: Vec<PoseEdge>,
+    /// The gyro bias the odometry learned, IMU frame, rad/s (`None`: no gyro used).
+    pub gyro_bias: Option<Vector3<f64>>,
 }
 
 /// Which stage is running, for progress reports.
@@ -107,15 +114,17 @@ pub enum Stage {
 }
 
 /// Builds a consistent trajectory for scans taken at `stamps` (seconds, increasing;
-/// `load(i)` reads scan `i` in its sensor frame).
+/// `load(i)` reads scan `i` in its sensor frame); `imu` (the same clock, may be empty)
+/// gives the odometry's motion model the gyro's rotation.
 pub fn build_trajectory<E: From<RegistrationError> + From<GlobalError>>(
     stamps: &[f64],
+    imu: Vec<ImuSample>,
     mut load: impl FnMut(usize) -> Result<PointCloud, E>,
     params: &BuildParams,
     mut progress: impl FnMut(Stage),
 ) -> Result<BuiltTrajectory, E> {
     let count = stamps.len();
-    let mut odometry = Odometry::new(params.odometry)?;
+    let mut odometry = Odometry::new(params.odometry, imu)?;
     let mut odometry_poses = Vec::with_capacity(count);
     let mut outcomes = Vec::with_capacity(count);
     let mut keyframe_scans: Vec<usize> = Vec::new();
@@ -170,6 +179,7 @@ pub fn build_trajectory<E: From<RegistrationError> + From<GlobalError>>(
         loop_checks: report.loop_checks,
         graph: report.graph,
         edges: global.edges().to_vec(),
+        gyro_bias: odometry.gyro_bias(),
     })
 }
 

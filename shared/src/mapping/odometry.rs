@@ -8,10 +8,13 @@ use std::collections::{HashMap, VecDeque};
 
 use serde::{Deserialize, Serialize};
 
-use crate::cloud::{PointCloud, deskew};
+use crate::cloud::PointCloud;
 use crate::geometry::{Pose, to_point, transform_point};
+use crate::imu::ImuSample;
 use crate::map::KeyframeDecider;
-use crate::motion::{AdaptiveThreshold, AdaptiveThresholdParams, ConstantVelocity, yaw_hypotheses};
+use crate::motion::{
+    AdaptiveThreshold, AdaptiveThresholdParams, Gyro, GyroParams, PosePredictor, yaw_hypotheses,
+};
 use crate::options::{InvalidOption, ensure, ensure_distance, ensure_ratio};
 use crate::registration::{
     Fitness, PreparedCloud, RegistrationError, RegistrationParams, RegistrationResult,
@@ -49,8 +52,10 @@ pub struct OdometryParams {
     pub coarse_voxel_factor: f64,
     /// Retry: the coarse pass's correspondence distance, metres.
     pub coarse_distance: f64,
-    /// Deskew scans that carry per-point times with the motion model's last twist.
+    /// Deskew scans that carry per-point times with the motion model's twist.
     pub deskew: bool,
+    /// The gyro's part in the motion model, when the dataset has IMU samples.
+    pub gyro: GyroParams,
     /// Retry: yaw hypotheses every this many degrees...
     pub yaw_step_deg: f64,
     /// ...up to this far either side of the prediction (0 turns them off).
@@ -84,6 +89,7 @@ impl Default for OdometryParams {
             coarse_voxel_factor: 2.0,
             coarse_distance: 3.0,
             deskew: true,
+            gyro: GyroParams::default(),
             yaw_step_deg: 20.0,
             yaw_max_deg: 60.0,
         }
@@ -96,6 +102,7 @@ impl OdometryParams {
         self.registration.validate()?;
         self.adaptive_distance.validate()?;
         self.local_map_decider.validate()?;
+        self.gyro.validate()?;
         ensure(
             self.local_map_keyframes >= 1,
             "local-map-keyframes",
@@ -158,7 +165,7 @@ pub enum OdometryOutcome {
 /// Odometry state: the motion model, the adaptive distance and the local map.
 pub struct Odometry {
     params: OdometryParams,
-    motion: ConstantVelocity,
+    motion: PosePredictor,
     threshold: AdaptiveThreshold,
     /// Local-map keyframes: pose and downsampled points (odometry frame).
     keyframes: VecDeque<(Pose, Vec<[f32; 3]>)>,
@@ -182,12 +189,16 @@ pub struct OdometryStep {
 }
 
 impl Odometry {
-    /// Starts at `T_odom_scan0 = identity`.
-    pub fn new(params: OdometryParams) -> Result<Self, RegistrationError> {
+    /// Starts at `T_odom_scan0 = identity`; `imu` (on the scans' clock, may be empty)
+    /// gives the motion model its rotation when `gyro` is enabled.
+    pub fn new(params: OdometryParams, imu: Vec<ImuSample>) -> Result<Self, RegistrationError> {
         params.validate()?;
+        let gyro = (params.gyro.enabled && !imu.is_empty())
+            .then(|| Gyro::new(imu, params.gyro))
+            .transpose()?;
         Ok(Self {
             params,
-            motion: ConstantVelocity::new(),
+            motion: PosePredictor::new(gyro),
             threshold: AdaptiveThreshold::new(params.adaptive_distance),
             keyframes: VecDeque::new(),
             local_map: None,
@@ -202,14 +213,10 @@ impl Odometry {
         scan: &PointCloud,
     ) -> Result<OdometryStep, RegistrationError> {
         let reg = self.params.registration;
-        // Deskewed to mid-scan, and tracked there: a velocity error then shifts the
-        // cloud symmetrically instead of along the motion, so it does not feed back
-        // into the next velocity (deskewing to the stamp oscillated and diverged).
-        let mid = self.reference_time(scan);
-        let deskewed = self.deskewed(scan, mid)?;
-        let scan = deskewed.as_ref().unwrap_or(scan);
+        let mid = self.motion.mid_scan(scan, stamp, self.params.deskew)?;
+        let scan = mid.deskewed.as_ref().unwrap_or(scan);
         let prepared = PreparedCloud::new(scan, &reg, "scan")?;
-        let tracked_at = stamp + mid;
+        let tracked_at = stamp + mid.offset;
         let predicted = self.motion.predict(tracked_at);
         let (cloud_pose, registration, outcome) = match (&self.local_map, predicted) {
             (Some(map), Some(predicted)) => {
@@ -224,12 +231,10 @@ impl Odometry {
             // The motion since the last good scan is unknown: do not extrapolate it.
             self.motion.forget_velocity();
         }
-        self.motion.update(tracked_at, cloud_pose);
+        let trusted = outcome == OdometryOutcome::Tracked;
+        self.motion.update(tracked_at, cloud_pose, trusted);
         self.grow_local_map(&cloud_pose, &prepared)?;
-        let pose = match self.motion.velocity() {
-            Some(twist) if mid != 0.0 => cloud_pose * twist.motion(-mid),
-            _ => cloud_pose,
-        };
+        let pose = self.motion.carry(&cloud_pose, tracked_at, stamp);
         Ok(OdometryStep {
             pose,
             cloud_pose,
@@ -239,42 +244,9 @@ impl Odometry {
         })
     }
 
-    /// Seconds after the stamp the scan is tracked at: the middle of its points' times
-    /// when it is deskewed, else the stamp.
-    fn reference_time(&self, scan: &PointCloud) -> f64 {
-        match scan.time.as_deref().filter(|_| self.params.deskew) {
-            Some(times) if !times.is_empty() => {
-                let (lo, hi) = times
-                    .iter()
-                    .filter(|t| t.is_finite())
-                    .fold((f32::MAX, f32::MIN), |(lo, hi), &t| (lo.min(t), hi.max(t)));
-                if lo <= hi {
-                    f64::from(lo + hi) / 2.0
-                } else {
-                    0.0
-                }
-            }
-            _ => 0.0,
-        }
-    }
-
-    /// The scan moved into its sensor frame at `reference` seconds after the stamp by the
-    /// motion model's last twist, when deskewing is on and the scan has per-point times
-    /// (`None`: use it as it is).
-    fn deskewed(
-        &self,
-        scan: &PointCloud,
-        reference: f64,
-    ) -> Result<Option<PointCloud>, RegistrationError> {
-        let Some(twist) = self.motion.velocity().filter(|_| self.params.deskew) else {
-            return Ok(None);
-        };
-        if scan.time.is_none() {
-            return Ok(None);
-        }
-        let mut moved = scan.clone();
-        deskew(&mut moved, &twist, reference)?;
-        Ok(Some(moved))
+    /// The gyro bias learned so far, IMU frame, rad/s (`None` without a gyro).
+    pub fn gyro_bias(&self) -> Option<nalgebra::Vector3<f64>> {
+        self.motion.gyro().map(|g| g.bias())
     }
 
     /// The registration ladder: from the prediction at the adaptive distance; when that

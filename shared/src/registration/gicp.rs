@@ -171,6 +171,9 @@ pub enum RegistrationError {
     /// A scan's per-point times could not deskew it.
     #[error("scan: {0}")]
     Deskew(#[from] crate::cloud::DeskewError),
+    /// The IMU log cannot drive the odometry's motion model.
+    #[error("IMU: {0}")]
+    Imu(#[from] crate::motion::GyroError),
     /// No source point has a target point within the correspondence distance.
     #[error(
         "no correspondences within {max_distance} m at the initial pose; the guess is too far off or the clouds do not overlap"

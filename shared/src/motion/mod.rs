@@ -1,5 +1,6 @@
 //! Motion model for following a sensor through a scan sequence (odometry and the
-//! localization tracker): a constant-velocity prediction, an adaptive correspondence
+//! localization tracker): a constant-velocity prediction (the gyro's rotation when
+//! there is an IMU), an adaptive correspondence
 //! distance learned from how wrong the prediction was (the idea of KISS-ICP's adaptive
 //! threshold, Vizzo et al. 2023), a plausibility gate on corrections, and the wider
 //! starting hypotheses to retry from when a registration looks wrong.
@@ -11,6 +12,12 @@ use crate::cloud::Twist;
 use crate::geometry::Pose;
 use crate::options::{InvalidOption, ensure, ensure_distance};
 use crate::pose_graph::{exp, log};
+
+mod gyro;
+mod predictor;
+
+pub use gyro::{Gyro, GyroError, GyroParams};
+pub use predictor::{MidScan, PosePredictor};
 
 /// `relative` scaled to a fraction `s` of itself along its screw motion,
 /// `exp(s log(relative))`: exact for a constant body-frame twist, so a steady turn is
@@ -38,6 +45,11 @@ impl ConstantVelocity {
     /// The last pose given to [`ConstantVelocity::update`].
     pub fn last(&self) -> Option<&Pose> {
         self.last.as_ref().map(|(_, p)| p)
+    }
+
+    /// The time of the last pose, seconds.
+    pub fn last_time(&self) -> Option<f64> {
+        self.last.map(|(t, _)| t)
     }
 
     /// The motion expected from the last pose to time `t` (identity before two poses,

@@ -1,0 +1,222 @@
+//! The pose predictor (motion model) odometry and the localization tracker share: constant velocity for
+//! translation, the gyro for rotation where an IMU log covers the interval, and the
+//! deskew of scans that carry per-point times into their mid-scan frame.
+
+use nalgebra::Vector3;
+
+use super::{ConstantVelocity, Gyro};
+use crate::cloud::{DeskewError, PointCloud, Twist, deskew};
+use crate::geometry::Pose;
+
+/// Predicts the sensor's pose from the poses accepted so far (and the gyro).
+#[derive(Debug, Clone, Default)]
+pub struct PosePredictor {
+    velocity: ConstantVelocity,
+    gyro: Option<Gyro>,
+}
+
+/// A scan moved into the sensor frame at mid-scan, where it is tracked.
+#[derive(Debug, Clone)]
+pub struct MidScan {
+    /// The deskewed scan (`None`: use the scan as it is: no per-point times, deskew
+    /// off, or no motion known yet).
+    pub deskewed: Option<PointCloud>,
+    /// Seconds after the scan's stamp of the frame the scan is in: the middle of its
+    /// points' times when it has them (and deskewing is on), else 0.
+    pub offset: f64,
+}
+
+impl PosePredictor {
+    /// No pose yet; rotation from `gyro` where it covers the interval.
+    pub fn new(gyro: Option<Gyro>) -> Self {
+        Self {
+            velocity: ConstantVelocity::new(),
+            gyro,
+        }
+    }
+
+    /// The gyro, when there is one.
+    pub fn gyro(&self) -> Option<&Gyro> {
+        self.gyro.as_ref()
+    }
+
+    /// The last pose given to [`PosePredictor::update`].
+    pub fn last(&self) -> Option<&Pose> {
+        self.velocity.last()
+    }
+
+    /// The pose expected at time `t`, seconds: the constant-velocity prediction with the
+    /// gyro's rotation since the last pose; `None` before the first pose.
+    pub fn predict(&self, t: f64) -> Option<Pose> {
+        let last = *self.velocity.last()?;
+        let t_last = self.velocity.last_time()?;
+        let motion = self.velocity.predicted_motion(t);
+        let motion = match self.gyro.as_ref().and_then(|g| g.rotation(t_last, t)) {
+            Some(rotation) => Pose::from_parts(motion.translation, rotation),
+            None => motion,
+        };
+        Some(last * motion)
+    }
+
+    /// The body twist over `[t0, t1]`: the last velocity's linear part, and the gyro's
+    /// mean rate there (else the last velocity's); `None` when neither is known.
+    pub fn twist_over(&self, t0: f64, t1: f64) -> Option<Twist> {
+        let velocity = self.velocity.velocity();
+        let rate = self.gyro.as_ref().and_then(|g| g.mean_rate(t0, t1));
+        match (velocity, rate) {
+            (Some(v), Some(w)) => Some(Twist::new(w, v.linear)),
+            (None, Some(w)) => Some(Twist::new(w, Vector3::zeros())),
+            (v, None) => v,
+        }
+    }
+
+    /// Accepts `pose` at time `t`; `trusted` poses (registered well) also teach the gyro
+    /// its bias.
+    pub fn update(&mut self, t: f64, pose: Pose, trusted: bool) {
+        if let (true, Some(gyro), Some(last), Some(t_last)) = (
+            trusted,
+            self.gyro.as_mut(),
+            self.velocity.last(),
+            self.velocity.last_time(),
+        ) {
+            gyro.observe(t_last, t, &(last.inverse() * pose).rotation);
+        }
+        self.velocity.update(t, pose);
+    }
+
+    /// Keeps the last pose but forgets the velocity (the motion since is unknown); the
+    /// gyro still predicts rotation.
+    pub fn forget_velocity(&mut self) {
+        self.velocity.forget_velocity();
+    }
+
+    /// `pose` (at time `from`) carried to time `to` by the motion model's twist there.
+    pub fn carry(&self, pose: &Pose, from: f64, to: f64) -> Pose {
+        match self.twist_over(from.min(to), from.max(to)) {
+            Some(twist) if to != from => pose * twist.motion(to - from),
+            _ => *pose,
+        }
+    }
+
+    /// `scan`, stamped `stamp`, moved into its sensor frame at mid-scan by the motion
+    /// model's twist over the scan, when `enabled` and it has per-point times. Tracking
+    /// at mid-scan keeps a velocity error from feeding back: it shifts the cloud
+    /// symmetrically instead of along the motion (deskewing to the stamp oscillated and
+    /// diverged on the simulated courtyard).
+    pub fn mid_scan(
+        &self,
+        scan: &PointCloud,
+        stamp: f64,
+        enabled: bool,
+    ) -> Result<MidScan, DeskewError> {
+        let Some((first, last)) = time_span(scan).filter(|_| enabled) else {
+            return Ok(MidScan {
+                deskewed: None,
+                offset: 0.0,
+            });
+        };
+        let offset = (first + last) / 2.0;
+        let deskewed = match self.twist_over(stamp + first, stamp + last) {
+            Some(twist) => {
+                let mut moved = scan.clone();
+                deskew(&mut moved, &twist, offset)?;
+                Some(moved)
+            }
+            None => None,
+        };
+        Ok(MidScan { deskewed, offset })
+    }
+}
+
+/// The first and last finite per-point time of `scan`, seconds after its stamp.
+fn time_span(scan: &PointCloud) -> Option<(f64, f64)> {
+    let (lo, hi) = scan
+        .time
+        .as_deref()?
+        .iter()
+        .filter(|t| t.is_finite())
+        .fold((f32::MAX, f32::MIN), |(lo, hi), &t| (lo.min(t), hi.max(t)));
+    (lo <= hi).then(|| (f64::from(lo), f64::from(hi)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::{rotation_distance, translation_distance};
+    use crate::imu::ImuSample;
+    use crate::motion::GyroParams;
+    use nalgebra::UnitQuaternion;
+
+    /// Yaw rate `w(t)` (rad/s) sampled at 200 Hz for 3 s.
+    fn yaw_log(w: impl Fn(f64) -> f64) -> Gyro {
+        let samples = (0..=600)
+            .map(|k| {
+                let t = k as f64 / 200.0;
+                ImuSample {
+                    t,
+                    acc: [0.0, 0.0, 9.81],
+                    gyro: [0.0, 0.0, w(t)],
+                }
+            })
+            .collect();
+        Gyro::new(samples, GyroParams::default()).unwrap()
+    }
+
+    fn yawed(x: f64, yaw: f64) -> Pose {
+        Pose::from_parts(
+            nalgebra::Translation3::new(x, 0.0, 0.0),
+            UnitQuaternion::from_euler_angles(0.0, 0.0, yaw),
+        )
+    }
+
+    #[test]
+    fn the_gyro_predicts_a_turn_that_starts_after_the_last_pose() {
+        // Straight at 1 m/s until t = 1 s, then yawing at 1 rad/s: constant velocity
+        // predicts no turn at t = 1.5, the gyro the half radian.
+        let rate = |t: f64| if t < 1.0 { 0.0 } else { 1.0 };
+        let mut with_gyro = PosePredictor::new(Some(yaw_log(rate)));
+        let mut without = PosePredictor::new(None);
+        // Untrusted: the interpolated rate step would teach a bias here.
+        for (t, pose) in [(0.5, yawed(0.5, 0.0)), (1.0, yawed(1.0, 0.0))] {
+            with_gyro.update(t, pose, false);
+            without.update(t, pose, false);
+        }
+        let predicted = with_gyro.predict(1.5).unwrap();
+        assert!((predicted.rotation.euler_angles().2 - 0.5).abs() < 1e-6);
+        assert!(translation_distance(&predicted, &yawed(1.5, 0.5)) < 1e-9);
+        assert!(rotation_distance(&without.predict(1.5).unwrap(), &yawed(1.5, 0.0)) < 1e-12);
+        // Without a velocity the gyro still turns the prediction.
+        with_gyro.forget_velocity();
+        let held = with_gyro.predict(1.5).unwrap();
+        assert!(translation_distance(&held, &yawed(1.0, 0.0)) < 1e-12);
+        assert!((held.rotation.euler_angles().2 - 0.5).abs() < 1e-6);
+    }
+
+    #[test]
+    fn mid_scan_deskews_with_the_gyro_rate_over_the_scan() {
+        let mut model = PosePredictor::new(Some(yaw_log(|_| 2.0)));
+        let mut scan = PointCloud::from_points(vec![[10.0, 0.0, 0.0], [10.0, 0.0, 0.0]]);
+        scan.time = Some(vec![0.0, 0.1]);
+        // No pose yet: the gyro alone deskews.
+        let mid = model.mid_scan(&scan, 1.0, true).unwrap();
+        assert!((mid.offset - 0.05).abs() < 1e-9);
+        let moved = mid.deskewed.unwrap();
+        // Turning at 2 rad/s, a point seen 0.05 s before (after) mid-scan lies at -0.1
+        // (+0.1) rad yaw in the mid-scan frame.
+        let expect = |dt: f64| {
+            let a = 2.0 * dt;
+            [10.0 * a.cos(), 10.0 * a.sin()]
+        };
+        for (p, dt) in moved.points.iter().zip([-0.05, 0.05]) {
+            let [x, y] = expect(dt);
+            assert!((p[0] as f64 - x).abs() < 1e-4 && (p[1] as f64 - y).abs() < 1e-4);
+        }
+        model.update(1.0, Pose::identity(), true);
+        // Off, or without times: nothing moves and the frame stays at the stamp.
+        let off = model.mid_scan(&scan, 1.0, false).unwrap();
+        assert!(off.deskewed.is_none() && off.offset == 0.0);
+        scan.time = None;
+        let bare = model.mid_scan(&scan, 1.0, true).unwrap();
+        assert!(bare.deskewed.is_none() && bare.offset == 0.0);
+    }
+}
