@@ -1,9 +1,10 @@
 //! The client-side tracker (ARCHITECTURE section 12): predicts each scan's pose with a
-//! constant-velocity model (rotation from the gyro when it has an IMU log), deskews scans
-//! that carry per-point times into their mid-scan frame, bounds the correction localization may make by how wrong
-//! the predictions have been (an adaptive gate, after KISS-ICP), and follows the
-//! status: a `lost` scan adopts no pose and the tracker keeps predicting; it is `ok`
-//! again once scans agree with the prediction for `recover-after` scans in a row.
+//! constant-velocity model (rotation from the gyro when it has an IMU log), deskews
+//! scans that carry per-point times into their mid-scan frame, bounds the correction
+//! localization may make by how wrong the predictions have been (an adaptive gate,
+//! after KISS-ICP), and follows the status: a `lost` scan adopts no pose and the
+//! tracker keeps predicting; it is `ok` again once scans agree with the prediction for
+//! `recover-after` scans in a row.
 
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::geometry::Pose;
