@@ -8,6 +8,7 @@ use kfmap_service::bake::{BakeInput, BakeOutput, BakeReport, BakeStage, MappingS
 use kfmap_service::config::{BakeConfig, ConfigFile};
 use kfmap_service::gravity::BakeGravity;
 use kfmap_service::scan_range::ScanRange;
+use kfmap_shared::gravity::GravityCorrection;
 use serde_json::json;
 
 /// Bake a map: choose keyframes from a scan sequence with poses, build each keyframe's
@@ -161,6 +162,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "roll_deg": c.map(|c| c.roll_deg()), "pitch_deg": c.map(|c| c.pitch_deg()),
             "members": c.map(|c| c.estimate.health.members),
             "spread_deg": c.map(|c| c.estimate.health.spread_deg),
+            "accel_bias_mps2": c.map(|c| c.estimate.accel_bias.mps2.as_slice().to_vec()),
+            "bias_observable": c.map(|c| c.estimate.accel_bias.observable),
         })
     });
     if args.json {
@@ -248,25 +251,32 @@ fn print_outputs(output: &BakeOutput, report: &BakeReport) {
 
 fn print_gravity(g: &BakeGravity) {
     match &g.correction {
-        Some(c) => println!(
-            "  gravity from {}: roll {:.3}°, pitch {:.3}° over {} keyframes (spread {:.3}°); {}",
-            g.imu.display(),
-            c.roll_deg(),
-            c.pitch_deg(),
-            c.estimate.health.members,
-            c.estimate.health.spread_deg,
-            if g.applied {
-                "poses rotated to +Z up"
-            } else {
-                "poses kept ([map] align-gravity = false)"
-            }
-        ),
+        Some(c) => {
+            print_levelled(g, c);
+            println!("    {}", super::gravity::bias_line(&c.estimate.accel_bias));
+        }
         None => println!(
             "  gravity from {}: only {} keyframes with samples, too few for an estimate; poses kept",
             g.imu.display(),
             g.fill.with_samples
         ),
     }
+}
+
+fn print_levelled(g: &BakeGravity, c: &GravityCorrection) {
+    println!(
+        "  gravity from {}: roll {:.3}°, pitch {:.3}° over {} keyframes (spread {:.3}°); {}",
+        g.imu.display(),
+        c.roll_deg(),
+        c.pitch_deg(),
+        c.estimate.health.members,
+        c.estimate.health.spread_deg,
+        if g.applied {
+            "poses rotated to +Z up"
+        } else {
+            "poses kept ([map] align-gravity = false)"
+        }
+    );
 }
 
 fn print_mapping(m: &MappingSummary) {

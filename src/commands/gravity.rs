@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 use kfmap_service::config::{BakeConfig, ConfigFile};
 use kfmap_service::gravity::{GravityInput, PerKeyframe, estimate_dataset_gravity};
-use kfmap_shared::gravity::GravityCorrection;
+use kfmap_shared::gravity::{AccelBias, GravityCorrection};
 use serde_json::{Value, json};
 
 /// Estimate gravity in a trajectory's frame from its IMU log: every --keyframe-interval
@@ -112,6 +112,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "imu": input.imu, "poses": input.poses, "pose_count": report.poses,
             "imu_samples": report.imu_samples, "pool": report.fill,
             "motion_compensation": params.motion_compensation,
+            "compensated": params.motion_compensation && report.fill.compensated > 0,
+            "accel_bias_mps2": correction.estimate.accel_bias.mps2.as_slice(),
+            "bias_observable": correction.estimate.accel_bias.observable,
             "gravity": correction_json(&correction),
             "roll_deg": correction.roll_deg(), "pitch_deg": correction.pitch_deg(),
             "members": correction.estimate.health.members,
@@ -168,7 +171,37 @@ fn correction_json(c: &GravityCorrection) -> Value {
         "vector": [g.x, g.y, g.z], "norm": g.norm(),
         "roll_deg": c.roll_deg(), "pitch_deg": c.pitch_deg(), "yaw_deg": c.yaw().to_degrees(),
         "health": c.estimate.health,
+        "accel_bias": bias_json(&c.estimate.accel_bias),
     })
+}
+
+/// An accelerometer bias estimate as JSON: `accel_bias_mps2` `[x, y, z]` (body frame),
+/// its standard deviations, and whether the motion made it observable.
+pub fn bias_json(b: &AccelBias) -> Value {
+    json!({
+        "accel_bias_mps2": b.mps2.as_slice(),
+        "accel_bias_sigma_mps2": b.sigma_mps2.map(|s| s.as_slice().to_vec()),
+        "bias_observable": b.observable,
+    })
+}
+
+/// One line on an accelerometer bias estimate.
+pub fn bias_line(b: &AccelBias) -> String {
+    let [x, y, z] = [b.mps2.x, b.mps2.y, b.mps2.z];
+    match b.sigma_mps2 {
+        Some(s) => format!(
+            "accelerometer bias [{x:.4}, {y:.4}, {z:.4}] +- [{:.4}, {:.4}, {:.4}] m/s^2 (body), {}",
+            s.x,
+            s.y,
+            s.z,
+            if b.observable {
+                "observable"
+            } else {
+                "not yet observable: the platform has not turned enough; held near 0 by its prior"
+            }
+        ),
+        None => "accelerometer bias not estimated".to_string(),
+    }
 }
 
 fn print_correction(label: &str, c: &GravityCorrection) {
@@ -191,4 +224,5 @@ fn print_correction(label: &str, c: &GravityCorrection) {
         "  pool: {} members, {} within the Huber threshold, effective weight {:.1}, spread {:.3} m/s^2 / {:.3}°",
         h.members, h.inliers, h.effective_weight, h.spread_mps2, h.spread_deg
     );
+    println!("  {}", bias_line(&c.estimate.accel_bias));
 }

@@ -27,7 +27,9 @@ mod window;
 
 use std::collections::BTreeMap;
 
-use nalgebra::{Matrix3, Rotation3, Vector3};
+use std::ops::AddAssign;
+
+use nalgebra::{Matrix3, Matrix6, Rotation3, UnitQuaternion, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
 
 use crate::KeyframeId;
@@ -53,6 +55,17 @@ pub struct GravityParams {
     pub axis_eps: f64,
     /// Remove the platform's acceleration (from poses with timestamps) before pooling.
     pub motion_compensation: bool,
+    /// Estimate a constant body-frame accelerometer bias jointly with gravity (it shows
+    /// as the keyframes' readings disagreeing as the platform turns).
+    pub estimate_accel_bias: bool,
+    /// Prior standard deviation of each bias axis, m/s^2: what pins the bias where the
+    /// motion so far cannot tell it from gravity.
+    pub accel_bias_prior_mps2: f64,
+    /// Local gravity magnitude, m/s^2, and how well it is known: it separates the bias
+    /// along gravity from gravity itself.
+    pub gravity_mps2: f64,
+    /// Standard deviation of `gravity-mps2`, m/s^2.
+    pub gravity_sigma_mps2: f64,
 }
 
 impl Default for GravityParams {
@@ -64,6 +77,10 @@ impl Default for GravityParams {
             irls_iterations: 3,
             axis_eps: 1e-9,
             motion_compensation: true,
+            estimate_accel_bias: true,
+            accel_bias_prior_mps2: 0.1,
+            gravity_mps2: 9.80665,
+            gravity_sigma_mps2: 0.02,
         }
     }
 }
@@ -97,6 +114,24 @@ impl GravityParams {
             "0 to 100",
         )?;
         ensure(
+            positive(self.accel_bias_prior_mps2),
+            "accel-bias-prior-mps2",
+            self.accel_bias_prior_mps2,
+            "a finite value > 0 m/s^2",
+        )?;
+        ensure(
+            positive(self.gravity_mps2),
+            "gravity-mps2",
+            self.gravity_mps2,
+            "a finite value > 0 m/s^2",
+        )?;
+        ensure(
+            positive(self.gravity_sigma_mps2),
+            "gravity-sigma-mps2",
+            self.gravity_sigma_mps2,
+            "a finite value > 0 m/s^2",
+        )?;
+        ensure(
             positive(self.axis_eps) && self.axis_eps < 0.1,
             "axis-eps",
             self.axis_eps,
@@ -128,6 +163,29 @@ pub struct GravityEstimate {
     pub g: Vector3<f64>,
     /// Pool health at the estimate.
     pub health: PoolHealth,
+    /// The accelerometer bias removed from every reading, body frame.
+    pub accel_bias: AccelBias,
+}
+
+/// The accelerometer bias an estimate used.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AccelBias {
+    /// The bias, body frame, m/s^2 (zero when not estimated).
+    pub mps2: Vector3<f64>,
+    /// Its standard deviation per body axis, m/s^2 (`None`: not estimated here).
+    pub sigma_mps2: Option<Vector3<f64>>,
+    /// True when the motion so far determines every axis of the bias (the keyframes
+    /// turned enough), rather than the prior.
+    pub observable: bool,
+}
+
+impl AccelBias {
+    /// No bias, not estimated.
+    pub const NONE: AccelBias = AccelBias {
+        mps2: Vector3::new(0.0, 0.0, 0.0),
+        sigma_mps2: None,
+        observable: false,
+    };
 }
 
 /// The rotation taking the map to a gravity-aligned frame (+Z up), yaw exactly 0.
@@ -199,10 +257,27 @@ pub struct GravityAligner {
     pool: BTreeMap<KeyframeId, KfAccSample>,
 }
 
-/// One pool member in the map frame, with its seed weight.
+/// One pool member: its keyframe's attitude and mean reading, with its seed weight.
 struct Member {
-    g: Vector3<f64>,
+    rotation: UnitQuaternion<f64>,
+    a_body: Vector3<f64>,
     seed: f64,
+}
+
+impl Member {
+    /// Its reading, less `bias`, in the map frame.
+    fn up(&self, bias: &Vector3<f64>) -> Vector3<f64> {
+        self.rotation * (self.a_body - bias)
+    }
+}
+
+/// How an estimate treats the accelerometer bias.
+#[derive(Debug, Clone, Copy)]
+enum BiasMode {
+    /// Estimated jointly with gravity.
+    Estimate,
+    /// Taken as known.
+    Fixed(AccelBias),
 }
 
 impl GravityAligner {
@@ -262,29 +337,54 @@ impl GravityAligner {
         &self.pool
     }
 
-    /// Robust gravity over every pooled keyframe with a pose; `None` with fewer than
-    /// `min_keyframes` of them.
+    /// Robust gravity over every pooled keyframe with a pose, with the accelerometer
+    /// bias when `estimate-accel-bias` is on; `None` with fewer than `min_keyframes` of
+    /// them.
     pub fn estimate_gravity_vector(
         &self,
         poses: &BTreeMap<KeyframeId, Pose>,
     ) -> Option<GravityEstimate> {
+        let bias = if self.params.estimate_accel_bias {
+            BiasMode::Estimate
+        } else {
+            BiasMode::Fixed(AccelBias::NONE)
+        };
         self.estimate_over(
             poses.iter().map(|(&id, p)| (id, p)),
             self.params.min_keyframes,
+            bias,
         )
     }
 
-    /// Robust gravity over the keyframes `ids` (those pooled and with a pose); `None`
-    /// with fewer than `max(2, min_pool)` of them.
+    /// Robust gravity over the keyframes `ids` (those pooled and with a pose), with
+    /// the bias of the whole pool's estimate (a few keyframes cannot tell it apart);
+    /// `None` with fewer than `max(2, min_pool)` of them.
     pub fn estimate_gravity_vector_over_window(
         &self,
         poses: &BTreeMap<KeyframeId, Pose>,
         ids: &[KeyframeId],
         min_pool: usize,
     ) -> Option<GravityEstimate> {
+        self.estimate_window(poses, ids, min_pool, self.pool_bias(poses))
+    }
+
+    /// The bias of the whole pool's estimate (none when there is no estimate).
+    fn pool_bias(&self, poses: &BTreeMap<KeyframeId, Pose>) -> AccelBias {
+        self.estimate_gravity_vector(poses)
+            .map_or(AccelBias::NONE, |e| e.accel_bias)
+    }
+
+    fn estimate_window(
+        &self,
+        poses: &BTreeMap<KeyframeId, Pose>,
+        ids: &[KeyframeId],
+        min_pool: usize,
+        bias: AccelBias,
+    ) -> Option<GravityEstimate> {
         self.estimate_over(
             ids.iter().filter_map(|id| Some((*id, poses.get(id)?))),
             min_pool,
+            BiasMode::Fixed(bias),
         )
     }
 
@@ -308,14 +408,14 @@ impl GravityAligner {
         min_pool_per_kf: usize,
     ) -> BTreeMap<KeyframeId, GravityCorrection> {
         let ids: Vec<KeyframeId> = poses.keys().copied().collect();
+        let bias = self.pool_bias(poses);
         ids.iter()
             .enumerate()
             .filter(|(_, id)| self.has(**id))
             .filter_map(|(k, &id)| {
                 let window =
                     &ids[k.saturating_sub(half_width)..(k + half_width + 1).min(ids.len())];
-                let estimate =
-                    self.estimate_gravity_vector_over_window(poses, window, min_pool_per_kf)?;
+                let estimate = self.estimate_window(poses, window, min_pool_per_kf, bias)?;
                 Some((id, self.correction(estimate)))
             })
             .collect()
@@ -331,11 +431,13 @@ impl GravityAligner {
         }
     }
 
-    /// Seed-weighted mean, then Huber IRLS on `|g_i - m|`.
+    /// Seed-weighted mean, then Huber IRLS on `|R_i (a_i - b) - m|`; with
+    /// [`BiasMode::Estimate`] each reweighting solves gravity and bias jointly.
     fn estimate_over<'p>(
         &self,
         keyframes: impl Iterator<Item = (KeyframeId, &'p Pose)>,
         min_pool: usize,
+        bias: BiasMode,
     ) -> Option<GravityEstimate> {
         let members: Vec<Member> = keyframes
             .filter_map(|(id, pose)| {
@@ -345,7 +447,8 @@ impl GravityAligner {
                     seed *= 1e-3;
                 }
                 Some(Member {
-                    g: pose.rotation * s.a_body,
+                    rotation: pose.rotation,
+                    a_body: s.a_body,
                     seed,
                 })
             })
@@ -354,52 +457,157 @@ impl GravityAligner {
             return None;
         }
         let h = self.params.huber_threshold_mps2;
-        let weights = |m: &Vector3<f64>| -> Vec<f64> {
+        let weights = |m: &Vector3<f64>, b: &Vector3<f64>| -> Vec<f64> {
             members
                 .iter()
                 .map(|x| {
-                    let r = (x.g - m).norm();
+                    let r = (x.up(b) - m).norm();
                     x.seed * if r <= h { 1.0 } else { h / r }
                 })
                 .collect()
         };
-        let weighted_mean = |w: &[f64]| -> Vector3<f64> {
-            let total: f64 = w.iter().sum();
-            members
-                .iter()
-                .zip(w)
-                .map(|(x, &wi)| x.g * wi)
-                .sum::<Vector3<f64>>()
-                / total
+        let mut w: Vec<f64> = members.iter().map(|x| x.seed).collect();
+        let mut fit = match bias {
+            BiasMode::Fixed(b) => (weighted_mean(&members, &w, &b.mps2), b),
+            BiasMode::Estimate => self.solve_with_bias(&members, &w),
         };
-        let seeds: Vec<f64> = members.iter().map(|x| x.seed).collect();
-        let mut g = weighted_mean(&seeds);
         for _ in 0..self.params.irls_iterations {
-            g = weighted_mean(&weights(&g));
+            w = weights(&fit.0, &fit.1.mps2);
+            fit = match bias {
+                BiasMode::Fixed(b) => (weighted_mean(&members, &w, &b.mps2), b),
+                BiasMode::Estimate => self.solve_with_bias(&members, &w),
+            };
         }
+        let (g, accel_bias) = fit;
+        let w = weights(&g, &accel_bias.mps2);
         Some(GravityEstimate {
             g,
-            health: health(&members, &weights(&g), &g, h),
+            health: health(&members, &w, &g, &accel_bias.mps2, h),
+            accel_bias,
         })
+    }
+
+    /// Weighted least squares for gravity `m` and bias `b` in `R_i (a_i - b) = m`, with
+    /// the bias prior and the known gravity magnitude (Gauss-Newton: only the magnitude
+    /// is nonlinear).
+    fn solve_with_bias(&self, members: &[Member], w: &[f64]) -> (Vector3<f64>, AccelBias) {
+        let p = &self.params;
+        let prior = 1.0 / p.accel_bias_prior_mps2.powi(2);
+        let magnitude = 1.0 / p.gravity_sigma_mps2.powi(2);
+        let mut m = weighted_mean(members, w, &Vector3::zeros());
+        let mut b = Vector3::zeros();
+        // The data's information on (m, b), plus the magnitude term at the last m.
+        let normal = |m: &Vector3<f64>| -> Matrix6<f64> {
+            let mut h = Matrix6::zeros();
+            for (x, &wi) in members.iter().zip(w) {
+                let r = x.rotation.to_rotation_matrix().into_inner();
+                h.fixed_view_mut::<3, 3>(0, 0)
+                    .add_assign(Matrix3::identity() * wi);
+                h.fixed_view_mut::<3, 3>(0, 3).add_assign(r * wi);
+                h.fixed_view_mut::<3, 3>(3, 0)
+                    .add_assign(r.transpose() * wi);
+                h.fixed_view_mut::<3, 3>(3, 3)
+                    .add_assign(Matrix3::identity() * wi);
+            }
+            let u = m.normalize();
+            h.fixed_view_mut::<3, 3>(0, 0)
+                .add_assign(u * u.transpose() * magnitude);
+            h
+        };
+        for _ in 0..5 {
+            let mut h = normal(&m);
+            let mut gradient = Vector6::zeros();
+            for (x, &wi) in members.iter().zip(w) {
+                let r = x.up(&b) - m;
+                gradient.fixed_rows_mut::<3>(0).add_assign(-r * wi);
+                gradient
+                    .fixed_rows_mut::<3>(3)
+                    .add_assign(-(x.rotation.inverse() * r) * wi);
+            }
+            gradient
+                .fixed_rows_mut::<3>(0)
+                .add_assign(m.normalize() * (m.norm() - p.gravity_mps2) * magnitude);
+            gradient.fixed_rows_mut::<3>(3).add_assign(b * prior);
+            h.fixed_view_mut::<3, 3>(3, 3)
+                .add_assign(Matrix3::identity() * prior);
+            let Some(step) = h.cholesky().map(|c| c.solve(&-gradient)) else {
+                break;
+            };
+            m += step.fixed_rows::<3>(0);
+            b += step.fixed_rows::<3>(3);
+            if step.norm() < 1e-12 {
+                break;
+            }
+        }
+        // Uncertainty: the inverse information, scaled by how well the model fits.
+        let data = normal(&m);
+        let mut full = data;
+        full.fixed_view_mut::<3, 3>(3, 3)
+            .add_assign(Matrix3::identity() * prior);
+        let dof = (3 * members.len()).saturating_sub(6).max(1) as f64;
+        let chi2: f64 = members
+            .iter()
+            .zip(w)
+            .map(|(x, &wi)| wi * (x.up(&b) - m).norm_squared())
+            .sum();
+        let sigma = full.try_inverse().map(|cov| {
+            let scale = (chi2 / dof).max(f64::EPSILON);
+            Vector3::from_fn(|i, _| (cov[(3 + i, 3 + i)] * scale).sqrt())
+        });
+        // Observable when the data (and the magnitude) alone pin every bias direction
+        // ten times tighter than the prior does.
+        let schur = data.fixed_view::<3, 3>(0, 0).try_inverse().map(|mm_inv| {
+            data.fixed_view::<3, 3>(3, 3)
+                - data.fixed_view::<3, 3>(3, 0) * mm_inv * data.fixed_view::<3, 3>(0, 3)
+        });
+        let observable = schur.is_some_and(|s| s.symmetric_eigenvalues().min() >= 10.0 * prior);
+        (
+            m,
+            AccelBias {
+                mps2: b,
+                sigma_mps2: sigma,
+                observable,
+            },
+        )
     }
 }
 
-fn health(members: &[Member], w: &[f64], g: &Vector3<f64>, huber: f64) -> PoolHealth {
+/// `sum w_i R_i (a_i - bias) / sum w_i`.
+fn weighted_mean(members: &[Member], w: &[f64], bias: &Vector3<f64>) -> Vector3<f64> {
+    let total: f64 = w.iter().sum();
+    members
+        .iter()
+        .zip(w)
+        .map(|(x, &wi)| x.up(bias) * wi)
+        .sum::<Vector3<f64>>()
+        / total
+}
+
+fn health(
+    members: &[Member],
+    w: &[f64],
+    g: &Vector3<f64>,
+    bias: &Vector3<f64>,
+    huber: f64,
+) -> PoolHealth {
     let total: f64 = w.iter().sum();
     let heaviest = members.iter().map(|m| m.seed).fold(0.0, f64::max);
-    let mean_sq = |f: &dyn Fn(&Member) -> f64| {
+    let mean_sq = |f: &dyn Fn(&Vector3<f64>) -> f64| {
         members
             .iter()
             .zip(w)
-            .map(|(m, wi)| wi * f(m).powi(2))
+            .map(|(m, wi)| wi * f(&m.up(bias)).powi(2))
             .sum::<f64>()
             / total
     };
     PoolHealth {
         members: members.len(),
-        inliers: members.iter().filter(|m| (m.g - g).norm() <= huber).count(),
+        inliers: members
+            .iter()
+            .filter(|m| (m.up(bias) - g).norm() <= huber)
+            .count(),
         effective_weight: total / heaviest,
-        spread_mps2: mean_sq(&|m| (m.g - g).norm()).sqrt(),
-        spread_deg: mean_sq(&|m| m.g.angle(g).to_degrees()).sqrt(),
+        spread_mps2: mean_sq(&|up| (up - g).norm()).sqrt(),
+        spread_deg: mean_sq(&|up| up.angle(g).to_degrees()).sqrt(),
     }
 }

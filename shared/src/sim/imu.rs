@@ -53,6 +53,15 @@ impl ImuParams {
         }
     }
 
+    /// The constant accelerometer (m/s^2) and gyroscope (rad/s) biases of a run with
+    /// `seed`, body frame: what a bias estimate is checked against.
+    pub fn biases(&self, seed: u64) -> (Vector3<f64>, Vector3<f64>) {
+        let mut rng = stream(seed, u64::MAX);
+        let acc = random_unit(&mut rng) * self.acc_bias;
+        let gyro = random_unit(&mut rng) * self.gyro_bias;
+        (acc, gyro)
+    }
+
     /// Checks every parameter; the error names the first bad one.
     pub fn validate(&self) -> Result<(), InvalidOption> {
         ensure(
@@ -100,9 +109,11 @@ pub fn imu_samples(
     t1: f64,
     seed: u64,
 ) -> Vec<ImuSample> {
+    let (acc_bias, gyro_bias) = params.biases(seed);
     let mut rng = stream(seed, u64::MAX);
-    let acc_bias = random_unit(&mut rng) * params.acc_bias;
-    let gyro_bias = random_unit(&mut rng) * params.gyro_bias;
+    // The same stream drew the biases first.
+    random_unit(&mut rng);
+    random_unit(&mut rng);
     let count = ((t1 - t0) * params.rate_hz).floor() as usize + 1;
     (0..count)
         .map(|k| {
