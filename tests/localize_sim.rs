@@ -7,11 +7,12 @@ use std::path::Path;
 use std::process::{Command, Stdio};
 
 use common::{Prefix, Server, bake_dataset, kfmap_bin, simulate, temp_dir};
+use kfmap_client::{Client, ClientOptions};
 use kfmap_service::bake::{dataset_poses, find_scans};
 use kfmap_service::gravity::read_imu;
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::gravity::{GravityAligner, GravityParams, ImuWindow};
+use kfmap_shared::gravity::{GravityParams, ImuWindow, LiveGravity};
 use kfmap_shared::io::read_trajectory;
+use kfmap_shared::sim::gravity_in_map;
 
 /// `kfmap localize --json` against a running server; returns the summary.
 fn localize(data: &Path, prefix: &str, out: &Path, extra: &[&str]) -> serde_json::Value {
@@ -36,13 +37,22 @@ fn localize(data: &Path, prefix: &str, out: &Path, extra: &[&str]) -> serde_json
 /// run localized: the same drive recorded at 7 Hz, so every scan is a new viewpoint.
 /// Issue target: ATE under 5 cm; client-side and server-side GICP within 1 mm and
 /// 0.01 deg of each other. The gravity correction from the IMU windows sent over IPC
-/// equals the in-process aligner's on the same windows and poses.
+/// (world tilted 2 / -3 deg, the simulator's accelerometer bias on) equals the
+/// in-process pool's on the same windows, poses and stamps, every member
+/// motion-compensated, and is within 0.1 deg of the simulator's tilt.
 #[test]
 fn campus_run_localizes_against_the_map_of_another_run() {
     let dir = temp_dir("campus");
     let (mapped, replayed) = (dir.join("mapped"), dir.join("replayed"));
-    simulate(&mapped, "campus", "10", "64", &[]);
-    simulate(&replayed, "campus", "10", "64", &["--lidar-rate", "7"]);
+    let tilt = ["--tilt-deg", "2,-3"];
+    simulate(&mapped, "campus", "10", "64", &tilt);
+    simulate(
+        &replayed,
+        "campus",
+        "10",
+        "64",
+        &["--lidar-rate", "7", tilt[0], tilt[1]],
+    );
     let map = dir.join("campus.kfmap");
     // Shipped settings: the map is levelled by the IMU's gravity, and `kfmap localize`
     // moves the replayed run's ground truth into that frame (T_map_input from Status).
@@ -68,13 +78,13 @@ fn campus_run_localizes_against_the_map_of_another_run() {
         );
     }
 
-    // Oracle for gravity: the in-process aligner on the same windows at the poses the
-    // client sent (its localized poses, read back from its trajectory file).
+    // Oracle for the served gravity: the same pool fed in process with the same
+    // windows (as they cross the wire), poses (the client's, read back from its
+    // trajectory file) and stamps; and the simulator's tilt, in the levelled map.
     let scans = find_scans(&replayed).unwrap();
     let stamps = dataset_poses(&replayed, &scans).unwrap().unwrap().stamps;
     let imu = read_imu(&replayed.join("imu.csv")).unwrap();
-    let mut aligner = GravityAligner::new(GravityParams::default()).unwrap();
-    let mut poses = std::collections::BTreeMap::<u64, Pose>::new();
+    let mut live = LiveGravity::new(GravityParams::default()).unwrap();
     for (i, &t) in stamps.iter().enumerate() {
         let start = if i == 0 {
             f64::NEG_INFINITY
@@ -97,25 +107,32 @@ fn campus_run_localizes_against_the_map_of_another_run() {
                     gyro: s.gyro.map(|x| x as f32 as f64),
                 })
                 .collect();
-            aligner.on_new_keyframe(i as u64, &ImuWindow::new(sent));
-            poses.insert(i as u64, a[i]);
+            live.add_window(i as u64, ImuWindow::new(sent), a[i], Some(t));
         }
     }
-    let expected = aligner.estimate_global_correction(&poses).unwrap();
+    let expected = live.answer();
+    let expected_g = expected.correction.unwrap().estimate.g;
     let got = &client_side["gravity"];
-    let (roll, pitch) = (
-        got["roll_deg"].as_f64().unwrap(),
-        got["pitch_deg"].as_f64().unwrap(),
-    );
+    let served: Vec<f64> = serde_json::from_value(got["vector"].clone()).unwrap();
+    let served = nalgebra::Vector3::new(served[0], served[1], served[2]);
+    let map_from_input = Client::connect("campus", client_options(&prefix))
+        .unwrap()
+        .status()
+        .unwrap()
+        .map_from_input;
+    let true_up = map_from_input.rotation * -gravity_in_map(2f64.to_radians(), -3f64.to_radians());
+    let residual = served.angle(&true_up).to_degrees();
     println!(
-        "gravity over IPC roll {roll:.6} pitch {pitch:.6} deg; in process {:.6} {:.6}",
-        expected.roll_deg(),
-        expected.pitch_deg()
+        "gravity over IPC {} deg from the in-process pool, {residual:.4} deg from the truth; {got}",
+        served.angle(&expected_g).to_degrees()
     );
     // The trajectory file rounds poses to 1e-9 m and 1e-12 in the quaternion.
-    assert!((roll - expected.roll_deg()).abs() < 1e-6);
-    assert!((pitch - expected.pitch_deg()).abs() < 1e-6);
-    assert_eq!(got["members"], aligner.size());
+    assert!(served.angle(&expected_g).to_degrees() < 1e-6);
+    assert_eq!(got["members"], expected.members);
+    assert_eq!(got["compensated"], true, "every member motion-compensated");
+    assert_eq!(got["compensated_members"], expected.members);
+    assert!(residual < 0.1, "{residual} deg");
+    assert!(got["accel_bias_mps2"].is_array());
 }
 
 /// Deskew and the gyro in localization: a raw (motion-distorted, per-point times)
@@ -157,5 +174,12 @@ fn a_raw_drive_is_deskewed_and_turned_by_the_gyro() {
             "{result:?} vs deskew alone {deskewed:?}"
         );
         assert_eq!((result.2, result.3), (0.0, 0.0), "none lost, none wrong");
+    }
+}
+
+fn client_options(prefix: &Prefix) -> ClientOptions {
+    ClientOptions {
+        iceoryx_prefix: Some(prefix.0.clone()),
+        ..ClientOptions::default()
     }
 }

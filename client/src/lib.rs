@@ -53,6 +53,30 @@ pub struct GravityAnswer {
     pub roll_pitch: [f64; 2],
     /// The correction as a quaternion (qx qy qz qw).
     pub correction: [f64; 4],
+    /// Members within the Huber threshold of the estimate.
+    pub inliers: u32,
+    /// Members whose platform acceleration was removed; the correction is only as good
+    /// as raw accelerometer means unless this equals `members`.
+    pub compensated: u32,
+    /// Windows waiting for a stamped pose after them.
+    pub pending: u32,
+    /// Stamped windows left out: no stamped poses bracketed them.
+    pub skipped: u32,
+    /// Weighted RMS angle of the members about the estimate, degrees.
+    pub spread_deg: f64,
+    /// Accelerometer bias estimated with gravity, body frame, m/s^2.
+    pub accel_bias_mps2: [f64; 3],
+    /// Its standard deviation per axis, m/s^2 (`None` when unknown).
+    pub accel_bias_sigma_mps2: Option<[f64; 3]>,
+    /// True when the motion so far determines every axis of the bias.
+    pub bias_observable: bool,
+}
+
+impl GravityAnswer {
+    /// True when every pooled member was motion-compensated (and there are members).
+    pub fn compensated(&self) -> bool {
+        self.members > 0 && self.compensated == self.members
+    }
 }
 
 /// The server's counters.
@@ -169,12 +193,18 @@ impl Client {
         })
     }
 
-    /// Adds an IMU window for keyframe (or scan) `id` taken at `pose` to this session's
-    /// gravity pool and returns the current correction.
+    /// Adds the IMU window of keyframe (or scan) `id` to this session's gravity pool and
+    /// returns the current correction. The window ends at `pose`, taken at `stamp`
+    /// (seconds, the samples' clock) and covers the time since the previous window.
+    /// With a stamp the server removes the platform's own acceleration, known from the
+    /// stamped poses (these and those of server-side localization): the window is
+    /// pooled once a pose after it arrives (`pending` until then). Without one it is
+    /// pooled as its raw mean, which is only right for a platform at rest.
     pub fn push_imu_window(
         &mut self,
         id: KeyframeId,
         pose: &Pose,
+        stamp: Option<f64>,
         samples: &[ImuSample],
     ) -> Result<GravityAnswer, ClientError> {
         let t0 = samples.first().map_or(0.0, |s| s.t);
@@ -185,15 +215,26 @@ impl Client {
             point_count: samples.len() as u32,
             ..header(RequestKind::ImuWindow, pose)
         };
+        let h = localize::stamped(h, stamp);
         let r = self
             .connection
             .call(h, payload.len(), |_, out| out.copy_from_slice(&payload))?;
         let h = r.header;
+        let has = h.has_gravity == 1;
         Ok(GravityAnswer {
             members: h.gravity_members,
-            gravity: (h.has_gravity == 1).then_some(h.gravity),
+            gravity: has.then_some(h.gravity),
             roll_pitch: h.roll_pitch,
             correction: h.correction,
+            inliers: h.gravity_inliers,
+            compensated: h.gravity_compensated,
+            pending: h.gravity_pending,
+            skipped: h.gravity_skipped,
+            spread_deg: h.gravity_spread_deg,
+            accel_bias_mps2: h.accel_bias,
+            accel_bias_sigma_mps2: (has && h.accel_bias_sigma != [0.0; 3])
+                .then_some(h.accel_bias_sigma),
+            bias_observable: h.bias_observable == 1,
         })
     }
 

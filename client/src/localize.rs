@@ -8,7 +8,7 @@ use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::cov::{CovOptions, estimate_covariances};
 use kfmap_shared::geometry::{PackedSym3, Pose};
 use kfmap_shared::protocol::{
-    Cov2CovMode, RequestHeader, RequestKind, ScanPayload, correspondences_from_wire,
+    Cov2CovMode, FLAG_STAMPED, RequestHeader, RequestKind, ScanPayload, correspondences_from_wire,
     localize_stage, pose_from_wire, pose_to_wire,
 };
 use kfmap_shared::registration::{Constraint, RegistrationError, solve_pose};
@@ -39,6 +39,10 @@ pub struct LocalizeOptions {
     /// Checks and retry ladder of client-side localization (server-side localization
     /// uses the server's `[tracking]`, the same defaults).
     pub tracking: TrackingParams,
+    /// The scan's time, seconds on the IMU's clock: server-side localization then adds
+    /// the adopted pose to the session's motion, which its gravity pool removes from
+    /// the IMU windows.
+    pub stamp: Option<f64>,
 }
 
 impl Default for LocalizeOptions {
@@ -50,6 +54,7 @@ impl Default for LocalizeOptions {
             max_correction: None,
             expected_inlier_ratio: None,
             tracking: TrackingParams::default(),
+            stamp: None,
         }
     }
 }
@@ -94,6 +99,7 @@ impl Client {
             mode: options.mode as u32,
             ..Default::default()
         };
+        let header = stamped(header, options.stamp);
         let r = self.connection().call_scan(header, scan)?;
         let h = r.header;
         let invalid = |what: &str| ClientError::Invalid(format!("the server sent {what}"));
@@ -193,4 +199,13 @@ impl Client {
             health: found.health,
         })
     }
+}
+
+/// `header` carrying `stamp` as its pose's time (`FLAG_STAMPED`), when there is one.
+pub(crate) fn stamped(mut header: RequestHeader, stamp: Option<f64>) -> RequestHeader {
+    if let Some(t) = stamp {
+        header.flags |= FLAG_STAMPED;
+        header.stamp = t;
+    }
+    header
 }

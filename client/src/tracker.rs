@@ -142,6 +142,7 @@ impl Tracker {
         let options = LocalizeOptions {
             max_correction,
             expected_inlier_ratio: self.last_inlier_ratio,
+            stamp: Some(t),
             ..self.options.localize
         };
         let localized = if self.options.server_side {

@@ -19,6 +19,7 @@ use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
 use kfmap_shared::protocol::transport::{iceoryx_config, remove_prefix_files};
 use kfmap_shared::sim::{LidarParams, Preset, SimConfig, gravity_in_map, write_dataset};
 use kfmap_shared::summary::summarize;
+use nalgebra::Vector3;
 
 use super::report::print_summary;
 
@@ -108,8 +109,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         truth.poses.len()
     );
     analyze(&dataset.join("scans/000010.pcd"), &config)?;
-    let level = baked_map_stage(&dataset, &truth, &sim)?;
-    serve_and_localize(&dataset, &sim, &level)?;
+    // The built map's frame is the first scan's: the simulated tilt, seen from it.
+    let up_map = -gravity_in_map(sim.tilt_deg[0].to_radians(), sim.tilt_deg[1].to_radians());
+    let up_built = truth.poses[0].rotation.inverse() * up_map;
+    let level = baked_map_stage(&dataset, &truth, &sim, &up_built)?;
+    serve_and_localize(&dataset, &sim, &level, &(level.rotation * up_built))?;
 
     let real = args.scan.or_else(|| {
         shared_data_dir()
@@ -133,6 +137,7 @@ fn baked_map_stage(
     dataset: &Path,
     truth: &kfmap_shared::io::Trajectory,
     sim: &SimConfig,
+    up_built: &Vector3<f64>,
 ) -> anyhow::Result<Pose> {
     let config = BakeConfig::default();
     let map_path = dataset.join("courtyard.kfmap");
@@ -168,11 +173,7 @@ fn baked_map_stage(
     let mut level = Pose::identity();
     match report.gravity.as_ref().and_then(|g| g.correction.as_ref()) {
         Some(c) => {
-            // The built map's frame is the first scan's: the simulated tilt, seen from it.
-            let up_map =
-                -gravity_in_map(sim.tilt_deg[0].to_radians(), sim.tilt_deg[1].to_radians());
-            let up_built = truth.poses[0].rotation.inverse() * up_map;
-            let (roll, pitch) = roll_pitch_from_gravity(&up_built, 1e-9);
+            let (roll, pitch) = roll_pitch_from_gravity(up_built, 1e-9);
             println!(
                 "  gravity: recovered roll {:.2}°, pitch {:.2}° from {} keyframes' IMU windows; true {:.2}°, {:.2}° (the simulated {:.0}°/{:.0}° world tilt seen from the first scan's frame); map levelled",
                 c.roll_deg(),
@@ -243,7 +244,14 @@ impl Drop for ServerChild {
 
 /// Serves the baked map from a child process and localizes a second drive against it
 /// from another process.
-fn serve_and_localize(dataset: &Path, sim: &SimConfig, level: &Pose) -> anyhow::Result<()> {
+/// `true_up`: the simulator's up in the levelled map, what the served correction is
+/// checked against.
+fn serve_and_localize(
+    dataset: &Path,
+    sim: &SimConfig,
+    level: &Pose,
+    true_up: &Vector3<f64>,
+) -> anyhow::Result<()> {
     use std::io::BufRead;
     use std::process::{Command, Stdio};
     let exe = std::env::current_exe()?;
@@ -330,12 +338,24 @@ fn serve_and_localize(dataset: &Path, sim: &SimConfig, level: &Pose) -> anyhow::
         s["mean_iterations"].as_f64().unwrap_or(f64::NAN)
     );
     match s["gravity"].as_object() {
-        Some(g) => println!(
-            "  gravity over IPC from {} IMU windows: roll {:.2}°, pitch {:.2}° left in the levelled map (raw accelerometer means, no motion compensation)",
-            g["members"],
-            g["roll_deg"].as_f64().unwrap_or(f64::NAN),
-            g["pitch_deg"].as_f64().unwrap_or(f64::NAN)
-        ),
+        Some(g) => {
+            let number = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
+            let (roll, pitch) = (number(&g["roll_deg"]), number(&g["pitch_deg"]));
+            let (true_roll, true_pitch) = roll_pitch_from_gravity(true_up, 1e-9);
+            let bias: Vec<f64> = g["accel_bias_mps2"]
+                .as_array()
+                .map(|b| b.iter().map(number).collect())
+                .unwrap_or_default();
+            println!(
+                "  gravity over IPC from {} IMU windows ({} motion-compensated): roll {roll:.3}°, pitch {pitch:.3}° left in the levelled map; the truth {:.3}°, {:.3}°: residual {:.3}° / {:.3}°; accelerometer bias {bias:.3?} m/s^2",
+                g["members"],
+                g["compensated_members"],
+                true_roll.to_degrees(),
+                true_pitch.to_degrees(),
+                roll - true_roll.to_degrees(),
+                pitch - true_pitch.to_degrees(),
+            )
+        }
         None => println!("  gravity over IPC: too few IMU windows for an estimate"),
     }
     drop(server);

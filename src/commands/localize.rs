@@ -47,7 +47,9 @@ use super::connect_arg::ConnectArgs;
 /// checks and the GICP solver over the server's cov2cov pairings (client-side);
 /// --server-side asks the server to run them (thin client). With an IMU log
 /// (imu.csv/imu.txt) and timestamped poses, each scan's IMU window goes to the server's
-/// gravity pool and the final gravity correction is reported. With ground truth, ATE
+/// gravity pool with the scan's pose and stamp (the server removes the platform's own
+/// acceleration and estimates the accelerometer bias) and the final gravity correction
+/// is reported. With ground truth, ATE
 /// (aligned, RMS), RPE (RMS of consecutive-motion errors) and each scan's error against
 /// its reference pose are reported. A scan whose request fails (e.g. the server died)
 /// keeps the prediction and is counted in "failed".
@@ -372,7 +374,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .map(|w| &w[index])
             .filter(|w| !w.is_empty())
         {
-            match client.push_imu_window(index as u64, &pose, w.samples()) {
+            // The window ends at this scan's stamp; the pose there goes with it.
+            match client.push_imu_window(index as u64, &pose, Some(stamps[k]), w.samples()) {
                 Ok(g) => gravity = Some(g),
                 Err(e) => bar.suspend(|| eprintln!("IMU window of scan {index}: {e}")),
             }
@@ -403,13 +406,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let errors = truth
         .as_ref()
         .map(|t| ReferenceErrors::of(&poses, t, &statuses));
-    let tilt = gravity.filter(|g| g.gravity.is_some()).map(|g| {
-        (
-            g.roll_pitch[0].to_degrees(),
-            g.roll_pitch[1].to_degrees(),
-            g.members,
-        )
-    });
+    let gravity = gravity.filter(|g| g.gravity.is_some());
     if quiet {
         let out = json!({
             "scans": scans.len(),
@@ -429,7 +426,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "mean_iterations": iterations as f64 / scans.len().max(1) as f64,
             "server_side": args.server_side,
             "mode": Cov2CovMode::from(args.mode).name(),
-            "gravity": tilt.map(|(r, p, n)| json!({"roll_deg": r, "pitch_deg": p, "members": n})),
+            "gravity": gravity.as_ref().map(gravity_json),
         });
         if args.json_lines {
             println!("{out}");
@@ -455,9 +452,23 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             e.ate, e.rpe, e.rms, e.max_m, e.max_deg, e.wrong_ok
         );
     }
-    if let Some((roll, pitch, members)) = tilt {
+    if let Some(g) = &gravity {
         println!(
-            "  gravity over IPC: roll {roll:.3} deg, pitch {pitch:.3} deg ({members} keyframes)"
+            "  gravity over IPC: roll {:.3} deg, pitch {:.3} deg from {} windows ({} motion-compensated, {} left out, {} pending); accelerometer bias [{:.4}, {:.4}, {:.4}] m/s^2 ({})",
+            g.roll_pitch[0].to_degrees(),
+            g.roll_pitch[1].to_degrees(),
+            g.members,
+            g.compensated,
+            g.skipped,
+            g.pending,
+            g.accel_bias_mps2[0],
+            g.accel_bias_mps2[1],
+            g.accel_bias_mps2[2],
+            if g.bias_observable {
+                "observable"
+            } else {
+                "not yet observable"
+            }
         );
     }
     if let Some(out) = &args.out {
@@ -511,4 +522,23 @@ impl ReferenceErrors {
                 .count(),
         }
     }
+}
+
+/// The summary's `gravity` object: the server's last correction and its health.
+fn gravity_json(g: &GravityAnswer) -> serde_json::Value {
+    json!({
+        "vector": g.gravity,
+        "roll_deg": g.roll_pitch[0].to_degrees(),
+        "pitch_deg": g.roll_pitch[1].to_degrees(),
+        "members": g.members,
+        "inliers": g.inliers,
+        "spread_deg": g.spread_deg,
+        "compensated": g.compensated(),
+        "compensated_members": g.compensated,
+        "pending": g.pending,
+        "skipped": g.skipped,
+        "accel_bias_mps2": g.accel_bias_mps2,
+        "accel_bias_sigma_mps2": g.accel_bias_sigma_mps2,
+        "bias_observable": g.bias_observable,
+    })
 }

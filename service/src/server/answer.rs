@@ -13,11 +13,11 @@ use kfmap_shared::map::{ActiveSet, MapError, MapHit, Pairing};
 use kfmap_shared::protocol::{
     Cov2CovMode, DecodedScan, Rejection, RequestHeader, RequestKind, ResponseHeader, StatusCode,
     WirePairing, check_version, correspondences_from_pairings, decode_imu, decode_scan,
-    localize_stage, pose_from_wire, pose_to_wire,
+    decode_stamp, localize_stage, pose_from_wire, pose_to_wire,
 };
 use kfmap_shared::registration::{RegistrationError, RegistrationResult, solve_pose};
 use kfmap_shared::tracking::{
-    Expectation, Stage, TrackingParams, covariance_to_wire, localize_scan,
+    Expectation, Stage, TrackingParams, TrackingStatus, covariance_to_wire, localize_scan,
 };
 use rayon::prelude::*;
 
@@ -479,7 +479,14 @@ fn localize(
         };
         against.register(cloud, covs, start, stage)
     })?;
-    let mut answer = with_active(AnswerPairings::default(), &against.active);
+    let active = against.active;
+    // An adopted pose with its scan's time joins the session's motion for gravity.
+    if let Some(stamp) = decode_stamp(request)?
+        && found.health.status != TrackingStatus::Lost
+    {
+        session.gravity.add_pose(stamp, found.pose);
+    }
+    let mut answer = with_active(AnswerPairings::default(), &active);
     let (h, health) = (&mut answer.header, &found.health);
     h.pose = pose_to_wire(&found.pose);
     h.covariance = covariance_to_wire(health.covariance.as_ref());
@@ -561,23 +568,30 @@ fn imu_window(
 ) -> Result<Answer, Rejection> {
     const MAX_IMU_SAMPLES: usize = 1 << 16;
     let samples = decode_imu(request, payload, MAX_IMU_SAMPLES)?;
+    let stamp = decode_stamp(request)?;
     let id = request.keyframe_or_scan_id;
     session
         .gravity
-        .on_new_keyframe(id, &ImuWindow::new(samples));
-    session.gravity_poses.insert(id, *pose);
+        .add_window(id, ImuWindow::new(samples), *pose, stamp);
     let mut answer = with_active(AnswerPairings::default(), &[]);
     let h = &mut answer.header;
-    h.gravity_members = session.gravity.size() as u32;
-    if let Some(c) = session
-        .gravity
-        .estimate_global_correction(&session.gravity_poses)
-    {
+    let pool = session.gravity.answer();
+    h.gravity_members = pool.members as u32;
+    h.gravity_compensated = pool.compensated as u32;
+    h.gravity_pending = pool.pending as u32;
+    h.gravity_skipped = pool.skipped as u32;
+    if let Some(c) = pool.correction {
         let q = nalgebra::UnitQuaternion::from_rotation_matrix(&c.rotation);
+        let (health, bias) = (&c.estimate.health, &c.estimate.accel_bias);
         h.has_gravity = 1;
         h.gravity = c.estimate.g.into();
         h.roll_pitch = [c.roll, c.pitch];
         h.correction = [q.i, q.j, q.k, q.w];
+        h.gravity_inliers = health.inliers as u32;
+        h.gravity_spread_deg = health.spread_deg;
+        h.accel_bias = bias.mps2.into();
+        h.accel_bias_sigma = bias.sigma_mps2.map_or([0.0; 3], Into::into);
+        h.bias_observable = bias.observable as u32;
     }
     Ok(answer)
 }

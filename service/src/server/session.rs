@@ -1,21 +1,18 @@
 //! Per-client state: each client's active-set cache and gravity pool are its own.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
-use kfmap_shared::KeyframeId;
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::gravity::{GravityAligner, GravityParams};
+use kfmap_shared::gravity::{GravityParams, LiveGravity};
 use kfmap_shared::map::MergedSubmap;
 
 /// One client's state.
 pub struct Session {
     /// Exact mode: the merged submap of this client's last active set.
     pub merged: Option<Arc<MergedSubmap>>,
-    /// Accelerometer pool of this client's IMU windows.
-    pub gravity: GravityAligner,
-    /// Pose of each pooled keyframe or scan, map frame.
-    pub gravity_poses: BTreeMap<KeyframeId, Pose>,
+    /// Gravity pool of this client's IMU windows, with its stamped poses (windows'
+    /// and localized scans') to remove the platform's acceleration.
+    pub gravity: LiveGravity,
     /// Map generation the cache belongs to.
     generation: u64,
 }
@@ -25,9 +22,8 @@ impl Session {
     pub fn new(generation: u64) -> Self {
         Self {
             merged: None,
-            gravity: GravityAligner::new(GravityParams::default())
+            gravity: LiveGravity::new(GravityParams::default())
                 .expect("default gravity parameters are valid"),
-            gravity_poses: BTreeMap::new(),
             generation,
         }
     }

@@ -19,6 +19,7 @@
 //! assert!(correction.roll_deg().abs() < 1e-9 && correction.pitch_deg().abs() < 1e-9);
 //! ```
 
+mod live;
 mod motion;
 mod pool;
 #[cfg(test)]
@@ -35,6 +36,7 @@ use serde::{Deserialize, Serialize};
 use crate::KeyframeId;
 use crate::geometry::Pose;
 use crate::options::{InvalidOption, ensure};
+pub use live::{LiveAnswer, LiveGravity};
 pub use motion::{MotionModel, compensated_sample};
 pub use pool::{KeyframeStamp, PoolFill, fill_pool};
 pub use window::{ImuWindow, KfAccSample, MIN_ACC_STD};
@@ -555,12 +557,15 @@ impl GravityAligner {
             Vector3::from_fn(|i, _| (cov[(3 + i, 3 + i)] * scale).sqrt())
         });
         // Observable when the data (and the magnitude) alone pin every bias direction
-        // ten times tighter than the prior does.
+        // ten times tighter than the prior does, and the fit leaves the bias known to a
+        // third of the prior (a poor fit makes even well-excited directions uncertain).
         let schur = data.fixed_view::<3, 3>(0, 0).try_inverse().map(|mm_inv| {
             data.fixed_view::<3, 3>(3, 3)
                 - data.fixed_view::<3, 3>(3, 0) * mm_inv * data.fixed_view::<3, 3>(0, 3)
         });
-        let observable = schur.is_some_and(|s| s.symmetric_eigenvalues().min() >= 10.0 * prior);
+        let excited = schur.is_some_and(|s| s.symmetric_eigenvalues().min() >= 10.0 * prior);
+        let known = sigma.is_some_and(|s| s.max() < p.accel_bias_prior_mps2 / 3.0);
+        let observable = excited && known;
         (
             m,
             AccelBias {

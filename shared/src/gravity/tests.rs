@@ -478,3 +478,91 @@ fn the_bias_and_the_tilt_are_recovered_on_simulated_runs() {
         assert!(joint.bias_error <= 0.01, "{}", joint.bias_error);
     }
 }
+
+/// A pool fed window by window (a server session) against the offline pool over the
+/// same windows and poses. Live, scan windows (10 Hz) are joined into half-second ones;
+/// the first scan's window has no start and the first joined one no two poses before it
+/// (a velocity by central differences needs them): both are left out; the last waits
+/// for a pose after it. The offline pool over the same joined windows must give the
+/// same correction. Oracle for both: the simulator's tilt, with the 0.05 m/s^2 bias on.
+#[test]
+fn a_pool_fed_live_agrees_with_the_offline_pool() {
+    let config = SimConfig {
+        preset: Preset::Campus,
+        seconds: 30.0,
+        seed: 11,
+        tilt_deg: [2.0, -3.0],
+        ..SimConfig::default()
+    };
+    let sim = Simulation::new(config).unwrap();
+    let imu = sim.imu();
+    let trajectory = &sim.site().trajectory;
+    let scans: Vec<KeyframeStamp> = (1..292u64)
+        .map(|id| KeyframeStamp {
+            id,
+            t: id as f64 * 0.1,
+            pose: trajectory.pose(id as f64 * 0.1),
+        })
+        .collect();
+    let mut live = LiveGravity::new(GravityParams::default()).unwrap();
+    let mut t_prev = 0.0;
+    for k in &scans {
+        live.add_window(k.id, ImuWindow::cut(&imu, t_prev, k.t), k.pose, Some(k.t));
+        t_prev = k.t;
+    }
+    let answer = live.answer();
+    // Joined windows end at scans 6, 11, ..., 286, 291: 58 of them.
+    assert_eq!(
+        answer.skipped, 2,
+        "the first scan window and the first joined one"
+    );
+    assert_eq!(
+        answer.pending, 1,
+        "the last joined window waits for a later pose"
+    );
+    assert_eq!(answer.members, 58 - 2);
+    assert_eq!(answer.compensated, answer.members);
+    let served = answer.correction.unwrap();
+
+    let members: Vec<KeyframeStamp> = scans
+        .iter()
+        .filter(|k| k.id >= 11 && k.id <= 286 && (k.id - 1) % 5 == 0)
+        .copied()
+        .collect();
+    assert_eq!(members.len(), answer.members);
+    let motion = MotionModel::new(scans.iter().map(|k| (k.t, k.pose))).unwrap();
+    let mut offline = GravityAligner::new(GravityParams::default()).unwrap();
+    let fill = fill_pool(&mut offline, &members, &imu, Some(&motion));
+    assert_eq!(fill.compensated, members.len());
+    let poses: BTreeMap<KeyframeId, Pose> = members.iter().map(|k| (k.id, k.pose)).collect();
+    let offline = offline.estimate_global_correction(&poses).unwrap();
+    let up = true_up(2.0, -3.0);
+    let apart = angle_deg(&served.estimate.g, &offline.estimate.g);
+    println!(
+        "live vs offline: {apart:.6} deg apart; against the truth {:.4} / {:.4} deg; bias {:?} / {:?}",
+        angle_deg(&served.estimate.g, &up),
+        angle_deg(&offline.estimate.g, &up),
+        served.estimate.accel_bias.mps2,
+        offline.estimate.accel_bias.mps2,
+    );
+    assert!(apart < 1e-4, "{apart}");
+    assert!(angle_deg(&served.estimate.g, &up) < 0.05);
+
+    // Unstamped windows are pooled at once as raw means, and say so.
+    let mut raw = LiveGravity::new(GravityParams::default()).unwrap();
+    let mut t_prev = 0.0;
+    for k in &scans {
+        raw.add_window(k.id, ImuWindow::cut(&imu, t_prev, k.t), k.pose, None);
+        t_prev = k.t;
+    }
+    let answer = raw.answer();
+    assert_eq!(
+        (
+            answer.members,
+            answer.compensated,
+            answer.pending,
+            answer.skipped
+        ),
+        (scans.len(), 0, 0, 0)
+    );
+}

@@ -3,7 +3,7 @@
 
 use std::mem::MaybeUninit;
 
-use super::wire::{FLAG_COVARIANCES, FLAG_VIEW_DIRS, RequestHeader, WirePairing};
+use super::wire::{FLAG_COVARIANCES, FLAG_STAMPED, FLAG_VIEW_DIRS, RequestHeader, WirePairing};
 use super::{IMU_SAMPLE_FLOATS, PROTOCOL_VERSION, StatusCode};
 use crate::geometry::{PackedSym3, to_vec3, unpack_sym3};
 use crate::imu::ImuSample;
@@ -73,7 +73,8 @@ impl ScanPayload<'_> {
     /// to the front of `out`, e.g. a loaned shared-memory slice.
     pub fn write(&self, header: &mut RequestHeader, out: &mut [MaybeUninit<f32>]) {
         header.point_count = self.points.len() as u32;
-        header.flags = 0;
+        // The payload's own flags are set here; a pose stamp is the caller's.
+        header.flags &= FLAG_STAMPED;
         let mut at = 0;
         let mut put = |values: &[f32]| {
             for (dst, &v) in out[at..at + values.len()].iter_mut().zip(values) {
@@ -152,7 +153,7 @@ pub fn decode_scan<'a>(
             detail: n as u64,
         });
     }
-    if header.flags & !(FLAG_VIEW_DIRS | FLAG_COVARIANCES) != 0 {
+    if header.flags & !(FLAG_VIEW_DIRS | FLAG_COVARIANCES | FLAG_STAMPED) != 0 {
         return Err(Rejection::new(
             StatusCode::BadRequest,
             format!("unknown flag bits {:#x}", header.flags),
@@ -192,6 +193,21 @@ pub fn decode_scan<'a>(
         view_dirs: with_views.then_some(views.as_chunks::<3>().0),
         covariances: with_covs.then_some(covs.as_chunks::<6>().0),
     })
+}
+
+/// The time of the request's pose when it carries one (`FLAG_STAMPED`); a stamp that
+/// is not a finite number of seconds is refused.
+pub fn decode_stamp(header: &RequestHeader) -> Result<Option<f64>, Rejection> {
+    if header.flags & FLAG_STAMPED == 0 {
+        return Ok(None);
+    }
+    if !header.stamp.is_finite() {
+        return Err(Rejection::new(
+            StatusCode::BadRequest,
+            format!("the pose's stamp is {} s; give a finite time", header.stamp),
+        ));
+    }
+    Ok(Some(header.stamp))
 }
 
 /// The `ImuWindow` payload of `samples`, times relative to `t0`.

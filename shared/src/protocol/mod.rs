@@ -19,11 +19,11 @@ mod wire;
 
 pub use decode::{
     DecodedScan, Rejection, ScanPayload, check_version, correspondences_from_pairings,
-    correspondences_from_wire, decode_imu, decode_scan, imu_payload,
+    correspondences_from_wire, decode_imu, decode_scan, decode_stamp, imu_payload,
 };
 pub use wire::{
-    FLAG_COVARIANCES, FLAG_VIEW_DIRS, KIND_SLOTS, MESSAGE_LEN, NAME_LEN, RequestHeader,
-    ResponseHeader, WirePairing, read_text, write_text,
+    FLAG_COVARIANCES, FLAG_STAMPED, FLAG_VIEW_DIRS, KIND_SLOTS, MESSAGE_LEN, NAME_LEN,
+    RequestHeader, ResponseHeader, WirePairing, read_text, write_text,
 };
 
 use serde::{Deserialize, Serialize};
@@ -32,7 +32,7 @@ use crate::geometry::{Pose, pose_from_xyz_quat, pose_to_xyz_quat};
 use crate::tracking::Stage;
 
 /// Version of this protocol; a peer of another version gets `VersionMismatch`.
-pub const PROTOCOL_VERSION: u32 = 3;
+pub const PROTOCOL_VERSION: u32 = 4;
 /// Default limit on points per request.
 pub const DEFAULT_MAX_POINTS: usize = 1 << 20;
 /// Floats per IMU sample in an `ImuWindow` payload.

@@ -161,7 +161,7 @@ fn header_layouts_are_the_documented_ones() {
     }
     layout!(
         RequestHeader,
-        144,
+        152,
         version = 0,
         kind = 4,
         request_id = 8,
@@ -178,7 +178,8 @@ fn header_layouts_are_the_documented_ones() {
         keyframe_or_scan_id = 120,
         imu_t0 = 128,
         expected_inlier_ratio = 136,
-        reserved = 140
+        reserved = 140,
+        stamp = 144
     );
     layout!(
         WirePairing,
@@ -192,7 +193,7 @@ fn header_layouts_are_the_documented_ones() {
     );
     layout!(
         ResponseHeader,
-        1160,
+        1240,
         version = 0,
         status = 4,
         request_id = 8,
@@ -217,16 +218,25 @@ fn header_layouts_are_the_documented_ones() {
         gravity = 584,
         roll_pitch = 608,
         correction = 624,
-        map_keyframes = 656,
-        map_points = 664,
-        uptime_s = 672,
-        counts = 680,
-        p50_us = 760,
-        p99_us = 800,
-        sessions = 840,
-        in_flight = 844,
-        map_name_len = 848,
-        map_name = 852,
-        message = 916
+        gravity_inliers = 656,
+        gravity_compensated = 660,
+        gravity_pending = 664,
+        gravity_skipped = 668,
+        bias_observable = 672,
+        gravity_reserved = 676,
+        gravity_spread_deg = 680,
+        accel_bias = 688,
+        accel_bias_sigma = 712,
+        map_keyframes = 736,
+        map_points = 744,
+        uptime_s = 752,
+        counts = 760,
+        p50_us = 840,
+        p99_us = 880,
+        sessions = 920,
+        in_flight = 924,
+        map_name_len = 928,
+        map_name = 932,
+        message = 996
     );
 }

@@ -17,11 +17,11 @@ pub const NAME_LEN: usize = 64;
 /// `flags & FLAG_COVARIANCES`; for IMU windows `7 n` values per sample (seconds after
 /// `imu_t0`, specific force xyz m/s^2, angular rate xyz rad/s).
 ///
-/// Layout (protocol 3, 144 bytes, byte offsets): version 0, kind 4, request_id 8,
+/// Layout (protocol 4, 152 bytes, byte offsets): version 0, kind 4, request_id 8,
 /// client_node 16, pose 32, point_count 88, flags 92, k 96, mode 100, radius 104,
 /// max_pair_dist 108, max_iterations 112, max_correction 116 (was `reserved` in
 /// protocol 2), keyframe_or_scan_id 120, imu_t0 128, expected_inlier_ratio 136 (new
-/// in protocol 3), reserved 140.
+/// in protocol 3), reserved 140, stamp 144 (new in protocol 4).
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
 #[repr(C)]
 #[type_name("kfmap::RequestHeader")]
@@ -64,12 +64,19 @@ pub struct RequestHeader {
     pub expected_inlier_ratio: f32,
     /// Reserved, zero.
     pub reserved: u32,
+    /// With `FLAG_STAMPED`: the time `pose` was taken at, seconds on the IMU's clock
+    /// (`Localize`: the scan's; `ImuWindow`: the window's end, its keyframe's). The
+    /// session keeps these stamped poses to remove the platform's own acceleration
+    /// from its IMU windows.
+    pub stamp: f64,
 }
 
 /// View directions follow the points.
 pub const FLAG_VIEW_DIRS: u32 = 1;
 /// Packed covariances follow the points (and view directions).
 pub const FLAG_COVARIANCES: u32 = 2;
+/// `stamp` holds the pose's time.
+pub const FLAG_STAMPED: u32 = 4;
 
 impl Default for RequestHeader {
     fn default() -> Self {
@@ -91,6 +98,7 @@ impl Default for RequestHeader {
             imu_t0: 0.0,
             expected_inlier_ratio: 0.0,
             reserved: 0,
+            stamp: 0.0,
         }
     }
 }
@@ -120,14 +128,17 @@ pub struct WirePairing {
 
 /// Header of every response; the payload is `[WirePairing]`.
 ///
-/// Layout (protocol 3, 1160 bytes, byte offsets): version 0, status 4, request_id 8,
+/// Layout (protocol 4, 1240 bytes, byte offsets): version 0, status 4, request_id 8,
 /// detail 16, message_len 24, active_len 28, active 32, server_us 160, pose 168,
 /// covariance 224, fitness 512, iterations 528, converged 532, tracking 536 (new in
 /// protocol 3, as the next five), reasons 540, registrations 544, degenerate 548,
 /// constraint 552, pose_correction 568, has_gravity 576, gravity_members 580, gravity
-/// 584, roll_pitch 608, correction 624, map_keyframes 656, map_points 664, uptime_s
-/// 672, counts 680, p50_us 760, p99_us 800, sessions 840, in_flight 844, map_name_len
-/// 848, map_name 852, message 916.
+/// 584, roll_pitch 608, correction 624, gravity_inliers 656 (new in protocol 4, as the
+/// next eight), gravity_compensated 660, gravity_pending 664, gravity_skipped 668,
+/// bias_observable 672, gravity_reserved 676, gravity_spread_deg 680, accel_bias 688,
+/// accel_bias_sigma 712, map_keyframes 736, map_points 744, uptime_s 752, counts 760,
+/// p50_us 840, p99_us 880, sessions 920, in_flight 924, map_name_len 928, map_name
+/// 932, message 996.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
 #[repr(C)]
 #[type_name("kfmap::ResponseHeader")]
@@ -187,6 +198,29 @@ pub struct ResponseHeader {
     pub roll_pitch: [f64; 2],
     /// `ImuWindow`: correction rotation (qx qy qz qw).
     pub correction: [f64; 4],
+    /// `ImuWindow`: pool members within the Huber threshold of the estimate.
+    pub gravity_inliers: u32,
+    /// `ImuWindow`: pool members whose platform acceleration was removed (the rest
+    /// are raw means: the session's stamped poses did not cover them closely enough).
+    /// The correction is only as good as a raw mean unless this equals
+    /// `gravity_members`.
+    pub gravity_compensated: u32,
+    /// `ImuWindow`: windows held until a stamped pose after them arrives (their
+    /// platform acceleration needs the motion on both sides); pooled then.
+    pub gravity_pending: u32,
+    /// `ImuWindow`: stamped windows left out because the session's stamped poses did
+    /// not bracket them (two on each side, at most 1 s apart).
+    pub gravity_skipped: u32,
+    /// `ImuWindow`: 1 when the motion so far determines every axis of the bias.
+    pub bias_observable: u32,
+    /// Reserved, zero.
+    pub gravity_reserved: u32,
+    /// `ImuWindow`: weighted RMS angle of the members about the estimate, degrees.
+    pub gravity_spread_deg: f64,
+    /// `ImuWindow`: accelerometer bias estimated with gravity, body frame, m/s^2.
+    pub accel_bias: [f64; 3],
+    /// `ImuWindow`: its standard deviation per axis, m/s^2 (zero when unknown).
+    pub accel_bias_sigma: [f64; 3],
     /// `Status`: keyframes and points of the map.
     pub map_keyframes: u64,
     /// See `map_keyframes`.
@@ -238,6 +272,15 @@ impl Default for ResponseHeader {
             gravity: [0.0; 3],
             roll_pitch: [0.0; 2],
             correction: [0.0, 0.0, 0.0, 1.0],
+            gravity_inliers: 0,
+            gravity_compensated: 0,
+            gravity_pending: 0,
+            gravity_skipped: 0,
+            bias_observable: 0,
+            gravity_reserved: 0,
+            gravity_spread_deg: 0.0,
+            accel_bias: [0.0; 3],
+            accel_bias_sigma: [0.0; 3],
             map_keyframes: 0,
             map_points: 0,
             uptime_s: 0.0,
