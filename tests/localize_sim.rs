@@ -133,6 +133,37 @@ fn campus_run_localizes_against_the_map_of_another_run() {
     assert_eq!(got["compensated_members"], expected.members);
     assert!(residual < 0.1, "{residual} deg");
     assert!(got["accel_bias_mps2"].is_array());
+
+    // `kfmap status` lists each session's pool: this process's windows, as it was told.
+    let mut client = Client::connect("campus", client_options(&prefix)).unwrap();
+    let mut last = None;
+    for (i, &t) in stamps.iter().enumerate().skip(1) {
+        let window: Vec<_> = imu
+            .iter()
+            .filter(|s| s.t > stamps[i - 1] && s.t <= t)
+            .copied()
+            .collect();
+        last = Some(
+            client
+                .push_imu_window(i as u64, &a[i], Some(t), &window)
+                .unwrap(),
+        );
+    }
+    let last = last.unwrap();
+    let status = client.status().unwrap();
+    let mine: Vec<_> = status
+        .session_gravity
+        .iter()
+        .filter(|g| g.members == last.members && g.has_gravity == 1)
+        .collect();
+    println!("status: {:?}", status.session_gravity);
+    assert_eq!(mine.len(), 1, "{:?}", status.session_gravity);
+    assert_eq!(mine[0].roll_pitch, last.roll_pitch);
+    assert_eq!(
+        (mine[0].compensated, mine[0].pending, mine[0].skipped),
+        (last.compensated, last.pending, last.skipped)
+    );
+    assert_eq!(mine[0].accel_bias, last.accel_bias_mps2);
 }
 
 /// Deskew and the gyro in localization: a raw (motion-distorted, per-point times)

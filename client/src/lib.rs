@@ -29,8 +29,8 @@ use kfmap_shared::KeyframeId;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::imu::ImuSample;
 use kfmap_shared::protocol::{
-    Cov2CovMode, KIND_SLOTS, RequestHeader, RequestKind, ScanPayload, WirePairing, imu_payload,
-    pose_from_wire, pose_to_wire,
+    Cov2CovMode, KIND_SLOTS, RequestHeader, RequestKind, ScanPayload, WirePairing,
+    WireSessionGravity, imu_payload, pose_from_wire, pose_to_wire,
 };
 
 /// Cov2cov pairings and the keyframes they came from.
@@ -101,6 +101,10 @@ pub struct StatusReport {
     /// `T_map_input`: how bake moved the dataset's poses into the map frame; apply it to
     /// poses of the baked dataset (e.g. its ground truth) to get map poses.
     pub map_from_input: Pose,
+    /// The gravity pool of each session (at most 16, by client id), as the server's
+    /// wire record: members, compensated, pending, skipped, inliers, roll and pitch,
+    /// spread and accelerometer bias; `busy` ones were answering a request.
+    pub session_gravity: Vec<WireSessionGravity>,
 }
 
 /// A client of one map server.
@@ -262,6 +266,12 @@ impl Client {
             in_flight: h.in_flight,
             kinds,
             map_from_input: pose_from_wire(&h.pose).unwrap_or_else(Pose::identity),
+            session_gravity: h
+                .session_gravity
+                .iter()
+                .take(h.sessions as usize)
+                .copied()
+                .collect(),
         })
     }
 

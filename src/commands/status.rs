@@ -5,7 +5,9 @@ use serde_json::json;
 use super::connect_arg::ConnectArgs;
 
 /// Show a running server's map, uptime, sessions and per-kind request counts with
-/// median and 99th percentile latency; `--reload` asks it to reopen its map file.
+/// median and 99th percentile latency, and each session's gravity pool (windows pooled,
+/// motion-compensated, pending and left out; the correction, its spread and the
+/// accelerometer bias); `--reload` asks it to reopen its map file.
 ///
 /// Examples:
 ///   kfmap status --map-name site
@@ -41,10 +43,26 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 )
             })
             .collect();
+        let sessions: Vec<serde_json::Value> = s
+            .session_gravity
+            .iter()
+            .map(|g| {
+                json!({
+                    "client": format!("{:016x}{:016x}", g.client_node[0], g.client_node[1]),
+                    "busy": g.busy == 1,
+                    "gravity_members": g.members, "compensated": g.compensated,
+                    "pending": g.pending, "skipped": g.skipped, "inliers": g.inliers,
+                    "has_gravity": g.has_gravity == 1,
+                    "roll_deg": g.roll_pitch[0].to_degrees(), "pitch_deg": g.roll_pitch[1].to_degrees(),
+                    "spread_deg": g.spread_deg, "accel_bias_mps2": g.accel_bias,
+                    "bias_observable": g.bias_observable == 1,
+                })
+            })
+            .collect();
         let out = json!({
             "map_name": s.map_name, "map_path": s.map_path, "keyframes": s.keyframes,
             "points": s.points, "uptime_s": s.uptime_s, "sessions": s.sessions, "in_flight": s.in_flight,
-            "requests": kinds,
+            "requests": kinds, "session_gravity": sessions,
         });
         println!("{}", serde_json::to_string_pretty(&out)?);
         return Ok(());
@@ -62,6 +80,37 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "  {:<10} {count:>8} requests, p50 {p50:.0} us, p99 {p99:.0} us",
             kind.name()
         );
+    }
+    for g in &s.session_gravity {
+        let client = format!("{:016x}{:016x}", g.client_node[0], g.client_node[1]);
+        if g.busy == 1 {
+            println!("  session {client}: busy answering a request");
+        } else if g.has_gravity == 1 {
+            println!(
+                "  session {client}: gravity roll {:.3}°, pitch {:.3}° from {} windows ({} motion-compensated, {} inliers, spread {:.3}°; {} pending, {} left out), accelerometer bias [{:.4}, {:.4}, {:.4}] m/s^2{}",
+                g.roll_pitch[0].to_degrees(),
+                g.roll_pitch[1].to_degrees(),
+                g.members,
+                g.compensated,
+                g.inliers,
+                g.spread_deg,
+                g.pending,
+                g.skipped,
+                g.accel_bias[0],
+                g.accel_bias[1],
+                g.accel_bias[2],
+                if g.bias_observable == 1 {
+                    " (observable)"
+                } else {
+                    " (not yet observable)"
+                }
+            );
+        } else {
+            println!(
+                "  session {client}: {} IMU windows pooled ({} pending, {} left out), too few for gravity",
+                g.members, g.pending, g.skipped
+            );
+        }
     }
     Ok(())
 }

@@ -3,7 +3,7 @@
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
-use kfmap_shared::gravity::{GravityParams, LiveGravity};
+use kfmap_shared::gravity::{GravityParams, LiveAnswer, LiveGravity};
 use kfmap_shared::map::MergedSubmap;
 
 /// One client's state.
@@ -58,6 +58,24 @@ impl Sessions {
         let before = map.len();
         map.retain(|client, _| alive.contains(client));
         before - map.len()
+    }
+
+    /// Each session's gravity pool, by client id (`None` for a session busy answering
+    /// a request: a status report does not wait for it).
+    pub fn gravity(&self) -> Vec<(u128, Option<LiveAnswer>)> {
+        let sessions: Vec<(u128, Arc<Mutex<Session>>)> = {
+            let map = self.by_client.lock().unwrap_or_else(|e| e.into_inner());
+            map.iter().map(|(c, s)| (*c, s.clone())).collect()
+        };
+        let mut out: Vec<_> = sessions
+            .into_iter()
+            .map(|(client, session)| {
+                let pool = session.try_lock().ok().map(|s| s.gravity.answer());
+                (client, pool)
+            })
+            .collect();
+        out.sort_by_key(|(client, _)| *client);
+        out
     }
 
     /// Open sessions.

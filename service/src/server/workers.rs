@@ -7,10 +7,11 @@ use std::time::Instant;
 
 use iceoryx2::active_request::ActiveRequest;
 use iceoryx2::port::notifier::Notifier;
+use kfmap_shared::gravity::LiveAnswer;
 use kfmap_shared::protocol::transport::Transport;
 use kfmap_shared::protocol::{
-    Rejection, RequestHeader, RequestKind, ResponseHeader, StatusCode, WirePairing, check_version,
-    write_text,
+    Rejection, RequestHeader, RequestKind, ResponseHeader, StatusCode, WirePairing,
+    WireSessionGravity, check_version, write_text,
 };
 use tracing::{debug, info, warn};
 
@@ -158,6 +159,9 @@ impl WorkerContext<'_> {
         }
         h.map_name_len = write_text(&mut h.map_name, self.map_name);
         h.set_message(&map.path.display().to_string());
+        for (slot, (client, pool)) in h.session_gravity.iter_mut().zip(self.sessions.gravity()) {
+            *slot = session_gravity(client, pool.as_ref());
+        }
         Answer {
             header: h,
             pairings: AnswerPairings::default(),
@@ -224,4 +228,33 @@ fn send(
     // SAFETY: `write` initialized every element of the loan (it checks the count).
     let response = unsafe { response.assume_init() };
     response.send().map_err(|e| format!("{e:?}"))
+}
+
+/// One session's gravity pool as a status report lists it.
+fn session_gravity(client: u128, pool: Option<&LiveAnswer>) -> WireSessionGravity {
+    let client_node = [(client >> 64) as u64, client as u64];
+    let Some(pool) = pool else {
+        return WireSessionGravity {
+            client_node,
+            busy: 1,
+            ..Default::default()
+        };
+    };
+    let mut out = WireSessionGravity {
+        client_node,
+        members: pool.members as u32,
+        compensated: pool.compensated as u32,
+        pending: pool.pending as u32,
+        skipped: pool.skipped as u32,
+        ..Default::default()
+    };
+    if let Some(c) = &pool.correction {
+        out.has_gravity = 1;
+        out.inliers = c.estimate.health.inliers as u32;
+        out.roll_pitch = [c.roll, c.pitch];
+        out.spread_deg = c.estimate.health.spread_deg;
+        out.accel_bias = c.estimate.accel_bias.mps2.into();
+        out.bias_observable = c.estimate.accel_bias.observable as u32;
+    }
+    out
 }

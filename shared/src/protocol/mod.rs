@@ -23,7 +23,8 @@ pub use decode::{
 };
 pub use wire::{
     FLAG_COVARIANCES, FLAG_STAMPED, FLAG_VIEW_DIRS, KIND_SLOTS, MESSAGE_LEN, NAME_LEN,
-    RequestHeader, ResponseHeader, WirePairing, read_text, write_text,
+    RequestHeader, ResponseHeader, STATUS_SESSIONS, WirePairing, WireSessionGravity, read_text,
+    write_text,
 };
 
 use serde::{Deserialize, Serialize};

@@ -193,7 +193,7 @@ fn header_layouts_are_the_documented_ones() {
     );
     layout!(
         ResponseHeader,
-        1240,
+        2776,
         version = 0,
         status = 4,
         request_id = 8,
@@ -237,6 +237,23 @@ fn header_layouts_are_the_documented_ones() {
         in_flight = 924,
         map_name_len = 928,
         map_name = 932,
-        message = 996
+        message = 996,
+        session_gravity = 1240
+    );
+    layout!(
+        WireSessionGravity,
+        96,
+        client_node = 0,
+        members = 16,
+        compensated = 20,
+        pending = 24,
+        skipped = 28,
+        inliers = 32,
+        has_gravity = 36,
+        bias_observable = 40,
+        busy = 44,
+        roll_pitch = 48,
+        spread_deg = 64,
+        accel_bias = 72
     );
 }

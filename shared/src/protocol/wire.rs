@@ -10,6 +10,8 @@ pub const MESSAGE_LEN: usize = 240;
 pub const KIND_SLOTS: usize = 10;
 /// Bytes of the map name in a status report.
 pub const NAME_LEN: usize = 64;
+/// Sessions whose gravity pool a status report lists, at most.
+pub const STATUS_SESSIONS: usize = 16;
 
 /// Header of every request. The payload is `[f32]`: for scan requests `3 n` point
 /// coordinates (sensor frame, metres), then `3 n` view directions when
@@ -128,7 +130,7 @@ pub struct WirePairing {
 
 /// Header of every response; the payload is `[WirePairing]`.
 ///
-/// Layout (protocol 4, 1240 bytes, byte offsets): version 0, status 4, request_id 8,
+/// Layout (protocol 4, 2776 bytes, byte offsets): version 0, status 4, request_id 8,
 /// detail 16, message_len 24, active_len 28, active 32, server_us 160, pose 168,
 /// covariance 224, fitness 512, iterations 528, converged 532, tracking 536 (new in
 /// protocol 3, as the next five), reasons 540, registrations 544, degenerate 548,
@@ -138,7 +140,7 @@ pub struct WirePairing {
 /// bias_observable 672, gravity_reserved 676, gravity_spread_deg 680, accel_bias 688,
 /// accel_bias_sigma 712, map_keyframes 736, map_points 744, uptime_s 752, counts 760,
 /// p50_us 840, p99_us 880, sessions 920, in_flight 924, map_name_len 928, map_name
-/// 932, message 996.
+/// 932, message 996, session_gravity 1240 (new in protocol 4).
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
 #[repr(C)]
 #[type_name("kfmap::ResponseHeader")]
@@ -243,6 +245,44 @@ pub struct ResponseHeader {
     pub map_name: [u8; NAME_LEN],
     /// Status message (UTF-8).
     pub message: [u8; MESSAGE_LEN],
+    /// `Status`: the gravity pool of each session (the first `min(sessions, 16)`, by
+    /// client id); unused slots are zero.
+    pub session_gravity: [WireSessionGravity; STATUS_SESSIONS],
+}
+
+/// One session's gravity pool in a status report.
+///
+/// Layout (96 bytes): client_node 0, members 16, compensated 20, pending 24, skipped
+/// 28, inliers 32, has_gravity 36, bias_observable 40, busy 44, roll_pitch 48,
+/// spread_deg 64, accel_bias 72.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("kfmap::WireSessionGravity")]
+pub struct WireSessionGravity {
+    /// The client's node id (as in requests); zero for an unused slot.
+    pub client_node: [u64; 2],
+    /// Pool members, and those motion-compensated.
+    pub members: u32,
+    /// See `members`.
+    pub compensated: u32,
+    /// Windows waiting for a later pose, and stamped windows left out.
+    pub pending: u32,
+    /// See `pending`.
+    pub skipped: u32,
+    /// Members within the Huber threshold.
+    pub inliers: u32,
+    /// 1 when the pool gives a correction.
+    pub has_gravity: u32,
+    /// 1 when the motion so far determines the accelerometer bias.
+    pub bias_observable: u32,
+    /// 1 when the session was answering a request and was not read.
+    pub busy: u32,
+    /// Roll and pitch of the correction, radians.
+    pub roll_pitch: [f64; 2],
+    /// Weighted RMS angle of the members about the estimate, degrees.
+    pub spread_deg: f64,
+    /// Accelerometer bias, body frame, m/s^2.
+    pub accel_bias: [f64; 3],
 }
 
 impl Default for ResponseHeader {
@@ -292,6 +332,7 @@ impl Default for ResponseHeader {
             map_name_len: 0,
             map_name: [0; NAME_LEN],
             message: [0; MESSAGE_LEN],
+            session_gravity: [WireSessionGravity::default(); STATUS_SESSIONS],
         }
     }
 }
