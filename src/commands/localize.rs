@@ -1,6 +1,5 @@
 //! `kfmap localize`: replay a dataset against a running server and localize every scan.
 
-use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -10,6 +9,7 @@ use kfmap_client::{GravityAnswer, LocalizeOptions, TrackedScan, Tracker, Tracker
 use kfmap_service::bake::{dataset_poses, find_scans, load_raw_scan};
 use kfmap_service::config::{BakeConfig, ConfigFile, ServerConfig};
 use kfmap_service::gravity::{IMU_FILES, POSE_FILES, find_in, read_imu};
+use kfmap_service::scan_range::ScanRange;
 use kfmap_service::server::percentile;
 use kfmap_shared::geometry::{Pose, pose_to_xyz_quat, rotation_distance, translation_distance};
 use kfmap_shared::gravity::ImuWindow;
@@ -79,7 +79,7 @@ pub struct Args {
     /// Replay only scans A..B of the dataset: a half-open range of indices in its
     /// sorted scan list (e.g. 116..177; "A.." to the end).
     #[arg(long, value_name = "A..B")]
-    scans: Option<String>,
+    scans: Option<ScanRange>,
     /// Scans per second to replay at; 0 sends each scan as soon as the last is done.
     #[arg(long, default_value_t = 10.0)]
     rate: f64,
@@ -149,27 +149,6 @@ impl From<ModeArg> for Cov2CovMode {
             ModeArg::Exact => Cov2CovMode::Exact,
         }
     }
-}
-
-/// `--scans A..B`: the half-open range, checked against the dataset's `count` scans.
-fn scan_range(text: &str, count: usize) -> anyhow::Result<Range<usize>> {
-    let usage = || {
-        anyhow::anyhow!(
-            "--scans {text:?}: expected A..B, a half-open range of scan indices (e.g. 116..177, or 116.. to the end)"
-        )
-    };
-    let (a, b) = text.split_once("..").ok_or_else(usage)?;
-    let start: usize = a.trim().parse().map_err(|_| usage())?;
-    let end: usize = match b.trim() {
-        "" => count,
-        b => b.parse().map_err(|_| usage())?,
-    };
-    if start >= end || end > count {
-        anyhow::bail!(
-            "--scans {text}: out of range; the dataset has {count} scans (indices 0..{count}) and the range must hold at least one"
-        );
-    }
-    Ok(start..end)
 }
 
 /// Per-scan IMU windows: samples in `(previous scan's time, this scan's time]`.
@@ -253,10 +232,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         anyhow::bail!("--rate must be >= 0 scans/s, got {}", args.rate);
     }
     let all_scans = find_scans(&args.dataset)?;
-    let range = match &args.scans {
-        Some(text) => scan_range(text, all_scans.len())?,
-        None => 0..all_scans.len(),
-    };
+    let range = args
+        .scans
+        .unwrap_or(ScanRange::ALL)
+        .within(all_scans.len())?;
     let truth = dataset_poses(&args.dataset, &all_scans)?;
     if args.initial_from_ground_truth && truth.is_none() {
         anyhow::bail!(
