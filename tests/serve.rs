@@ -602,6 +602,34 @@ fn sighup_reloads_the_map_and_sigterm_stops_cleanly() {
     assert!(left.iter().all(|n| n.ends_with("global_mgmt")), "{left:?}");
 }
 
+/// Issue 20: a server sent SIGSTOP then SIGCONT shut down, taking the WaitSet's
+/// interrupt (any signal) for a stop request. After SIGSTOP, SIGCONT and SIGWINCH it
+/// must keep serving; only SIGINT/SIGTERM stop it.
+#[test]
+fn job_control_signals_do_not_stop_the_server() {
+    let (site, server) = served("jobctl", "");
+    let (data, prefix) = (&site.data, &site.prefix);
+    let mut client = Client::connect("court", options(prefix)).unwrap();
+    let (cloud, truth) = scan(data, 4);
+    let before = client.nearest(&cloud.points, &truth, 1).unwrap();
+    common::signal(&server.child, libc::SIGSTOP);
+    std::thread::sleep(Duration::from_millis(300));
+    common::signal(&server.child, libc::SIGCONT);
+    common::signal(&server.child, libc::SIGWINCH);
+    std::thread::sleep(Duration::from_millis(500));
+    let after = client.nearest(&cloud.points, &truth, 1).unwrap();
+    assert_eq!(
+        before, after,
+        "still serving after SIGSTOP / SIGCONT / SIGWINCH"
+    );
+    let (status, log) = server.stop();
+    assert!(status.success(), "{log}");
+    assert!(
+        log.contains("nearest") && log.contains("2 requests"),
+        "{log}"
+    );
+}
+
 #[test]
 fn sigterm_answers_queued_requests_with_shutting_down() {
     let (site, server) = served("term", "[server]\nworker-threads = 1\n");

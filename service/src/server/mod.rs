@@ -298,9 +298,13 @@ pub fn serve(
             });
             match result {
                 Ok(WaitSetRunResult::AllEventsHandled) if !stop.load(Ordering::Relaxed) => {}
-                // A SIGHUP also interrupts the wait; it asks for a reload, not an exit.
-                Ok(WaitSetRunResult::Interrupt) if hangup.load(Ordering::Relaxed) => {
-                    housekeeping();
+                // Any signal interrupts the wait (SIGCONT after SIGSTOP, SIGWINCH, SIGHUP);
+                // only SIGINT and SIGTERM stop the server, seen by the next wait as a
+                // termination request. A SIGHUP asks for a reload.
+                Ok(WaitSetRunResult::Interrupt) if !stop.load(Ordering::Relaxed) => {
+                    if hangup.load(Ordering::Relaxed) {
+                        housekeeping();
+                    }
                 }
                 Ok(_) => break,
                 Err(e) => {
