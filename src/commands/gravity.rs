@@ -21,6 +21,12 @@ use serde_json::{Value, json};
 /// (velocity change over the window) is subtracted before pooling. The uncompensated
 /// estimate is printed beside it.
 ///
+/// Accelerometer bias ([gravity] estimate-accel-bias, on by default): a constant
+/// body-frame bias is estimated with gravity (R_i (a_i - b) = g over the keyframes) and
+/// printed with its standard deviation per axis and whether the motion determined it
+/// ("observable": the platform turned enough; otherwise its prior holds it near 0).
+/// --json adds accel_bias_mps2, bias_observable and compensated.
+///
 /// Inputs: --dataset DIR finds DIR/imu.csv (or imu.txt) and the first of
 /// DIR/poses_gt.txt, poses.txt, traj.txt; --imu and --poses override either. Poses are
 /// TUM (t x y z qx qy qz qw, T_map_body, on the IMU's clock); the IMU log is
