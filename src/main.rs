@@ -43,7 +43,18 @@ fn main() -> ExitCode {
         .with_writer(std::io::stderr)
         .with_max_level(level)
         .init();
+    // A closed output pipe (`kfmap ... | head`) ends the process quietly (status 141)
+    // instead of a panic on the failed print.
+    set_sigpipe(libc::SIG_DFL);
     let cli = Cli::parse(); // Usage errors exit with code 2 and a message from clap.
+    if matches!(
+        cli.command,
+        Command::Serve(_) | Command::Demo(_) | Command::Bench(_)
+    ) {
+        // These own a server, child processes or shared memory to clean up: a signal
+        // death would skip that, so a broken pipe stays an I/O error here.
+        set_sigpipe(libc::SIG_IGN);
+    }
     let result = match cli.command {
         Command::Bake(args) => commands::bake::run(args),
         Command::Bench(args) => commands::bench::run(args, started),
@@ -65,5 +76,14 @@ fn main() -> ExitCode {
             eprintln!("error: {error:#}");
             ExitCode::from(2)
         }
+    }
+}
+
+/// Sets what SIGPIPE does to this process.
+fn set_sigpipe(action: libc::sighandler_t) {
+    // SAFETY: setting a signal's disposition to SIG_DFL or SIG_IGN installs no handler
+    // code; it is done before any thread is spawned.
+    unsafe {
+        libc::signal(libc::SIGPIPE, action);
     }
 }

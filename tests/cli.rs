@@ -885,3 +885,37 @@ fn bake_with_built_poses_writes_its_pose_graph_and_trajectory() {
         );
     }
 }
+
+/// Issue 20: output into a closed pipe (`kfmap ... | head`) ends the process quietly
+/// (killed by SIGPIPE, status 141 in a shell, or 0), never with a panic.
+#[test]
+fn a_closed_output_pipe_ends_quietly() {
+    use std::os::unix::process::ExitStatusExt;
+    use std::process::Stdio;
+    let dir = temp_dir("closed_pipe");
+    let out_dir = dir.join("sim");
+    let mut child = Command::new(common::kfmap_bin())
+        .args([
+            "simulate",
+            "--preset",
+            "courtyard",
+            "--seconds",
+            "0.3",
+            "--out",
+        ])
+        .arg(&out_dir)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Close the reading end before the child prints its summary.
+    drop(child.stdout.take());
+    let out = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert!(
+        out.status.success() || out.status.signal() == Some(libc::SIGPIPE),
+        "{:?} {stderr}",
+        out.status
+    );
+}
