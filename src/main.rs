@@ -41,6 +41,9 @@ fn main() -> ExitCode {
         .unwrap_or(tracing::Level::INFO);
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
+        // A closed stderr must not panic a server: its own report of the failed write
+        // would go to the same stderr.
+        .log_internal_errors(false)
         .with_max_level(level)
         .init();
     // A closed output pipe (`kfmap ... | head`) ends the process quietly (status 141)

@@ -630,6 +630,45 @@ fn job_control_signals_do_not_stop_the_server() {
     );
 }
 
+/// Issue 20: a server whose stdout and stderr readers are gone (closed pipes) must
+/// still serve and stop cleanly, not panic on its ready line or its summary.
+#[test]
+fn a_server_with_closed_output_pipes_serves_and_stops_cleanly() {
+    // A second server, on the same map and prefix under another name.
+    let (site, _server) = served("pipes", "");
+    let mut child = std::process::Command::new(common::kfmap_bin())
+        .args([
+            "serve",
+            "--map",
+            site.map.to_str().unwrap(),
+            "--map-name",
+            "piped",
+        ])
+        .args(["--iceoryx-prefix", &site.prefix.0])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    drop(child.stderr.take());
+    // No ready line to wait for: ask until it answers.
+    let started = Instant::now();
+    let status = loop {
+        let answer = Client::connect("piped", options(&site.prefix)).and_then(|mut c| c.status());
+        match answer {
+            Ok(status) => break status,
+            Err(e) if started.elapsed() > Duration::from_secs(30) => {
+                panic!("the server never answered: {e}")
+            }
+            Err(_) => std::thread::sleep(Duration::from_millis(100)),
+        }
+    };
+    assert_eq!(status.map_name, "piped");
+    common::signal(&child, libc::SIGTERM);
+    let exit = child.wait().unwrap();
+    assert!(exit.success(), "{exit:?}");
+}
+
 #[test]
 fn sigterm_answers_queued_requests_with_shutting_down() {
     let (site, server) = served("term", "[server]\nworker-threads = 1\n");

@@ -1,5 +1,6 @@
 //! `kfmap serve`: serve a baked map to local clients over iceoryx2.
 
+use std::io::Write;
 use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
 
@@ -90,9 +91,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         trust: args.trust,
     };
     let stop = AtomicBool::new(false);
+    // Writes ignore errors: a closed stdout or stderr (the reader gone) must not stop a
+    // server, nor panic it.
     let summary = serve(&options, &stop, |info| {
         // One line on stdout when ready: scripts and tests wait for it.
-        println!(
+        let mut out = std::io::stdout().lock();
+        let _ = writeln!(
+            out,
             "ready: serving map {} ({} keyframes, {} points, {} cov2cov by default) with {} workers, started in {:.1} ms",
             info.map_name,
             info.keyframes,
@@ -101,15 +106,19 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             info.workers,
             info.startup_ms
         );
+        let _ = out.flush();
     })?;
-    eprintln!(
+    let mut err = std::io::stderr().lock();
+    let _ = writeln!(
+        err,
         "stopped after {:.1} s; {} queued requests refused at shutdown",
         summary.uptime_s, summary.refused_at_shutdown
     );
     for kind in RequestKind::ALL {
         let f = summary.figures[kind as usize];
         if f.count > 0 {
-            eprintln!(
+            let _ = writeln!(
+                err,
                 "  {:<10} {:>8} requests, p50 {:.0} us, p99 {:.0} us",
                 kind.name(),
                 f.count,
