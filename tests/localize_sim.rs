@@ -154,16 +154,24 @@ fn campus_run_localizes_against_the_map_of_another_run() {
     let mine: Vec<_> = status
         .session_gravity
         .iter()
-        .filter(|g| g.members == last.members && g.has_gravity == 1)
+        .filter(|g| g.pool.members == last.members && g.pool.gravity.is_some())
         .collect();
     println!("status: {:?}", status.session_gravity);
     assert_eq!(mine.len(), 1, "{:?}", status.session_gravity);
-    assert_eq!(mine[0].roll_pitch, last.roll_pitch);
+    // The status record carries no sigma; its correction is rebuilt from roll and pitch.
+    let listed = mine[0].pool;
     assert_eq!(
-        (mine[0].compensated, mine[0].pending, mine[0].skipped),
-        (last.compensated, last.pending, last.skipped)
+        listed,
+        kfmap_client::GravityAnswer {
+            accel_bias_sigma_mps2: None,
+            correction: listed.correction,
+            ..last
+        }
     );
-    assert_eq!(mine[0].accel_bias, last.accel_bias_mps2);
+    let quaternion = |q: [f64; 4]| {
+        nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q[3], q[0], q[1], q[2]))
+    };
+    assert!(quaternion(listed.correction).angle_to(&quaternion(last.correction)) < 1e-9);
 }
 
 /// Deskew and the gyro in localization: a raw (motion-distorted, per-point times)

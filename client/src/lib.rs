@@ -73,6 +73,27 @@ pub struct GravityAnswer {
 }
 
 impl GravityAnswer {
+    /// A session's pool as a status report lists it (no sigma: not sent there).
+    pub fn from_session(g: &WireSessionGravity) -> Self {
+        let [roll, pitch] = g.roll_pitch;
+        // The server's correction is Ry(pitch) Rx(roll): nalgebra's roll-pitch-yaw order.
+        let q = nalgebra::UnitQuaternion::from_euler_angles(roll, pitch, 0.0);
+        Self {
+            members: g.members,
+            gravity: (g.has_gravity == 1).then_some(g.gravity),
+            roll_pitch: g.roll_pitch,
+            correction: [q.i, q.j, q.k, q.w],
+            inliers: g.inliers,
+            compensated: g.compensated,
+            pending: g.pending,
+            skipped: g.skipped,
+            spread_deg: g.spread_deg,
+            accel_bias_mps2: g.accel_bias,
+            accel_bias_sigma_mps2: None,
+            bias_observable: g.bias_observable == 1,
+        }
+    }
+
     /// True when every pooled member was motion-compensated (and there are members).
     pub fn compensated(&self) -> bool {
         self.members > 0 && self.compensated == self.members
@@ -101,10 +122,19 @@ pub struct StatusReport {
     /// `T_map_input`: how bake moved the dataset's poses into the map frame; apply it to
     /// poses of the baked dataset (e.g. its ground truth) to get map poses.
     pub map_from_input: Pose,
-    /// The gravity pool of each session (at most 16, by client id), as the server's
-    /// wire record: members, compensated, pending, skipped, inliers, roll and pitch,
-    /// spread and accelerometer bias; `busy` ones were answering a request.
-    pub session_gravity: Vec<WireSessionGravity>,
+    /// The gravity pool of each session (at most 16, by client id).
+    pub session_gravity: Vec<SessionGravity>,
+}
+
+/// One session's gravity pool in a status report.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SessionGravity {
+    /// The session's client node id.
+    pub client: u128,
+    /// The session was answering a request and was not read (`pool` is empty).
+    pub busy: bool,
+    /// Its pool and correction.
+    pub pool: GravityAnswer,
 }
 
 /// A client of one map server.
@@ -270,7 +300,11 @@ impl Client {
                 .session_gravity
                 .iter()
                 .take(h.sessions as usize)
-                .copied()
+                .map(|g| SessionGravity {
+                    client: (g.client_node[0] as u128) << 64 | g.client_node[1] as u128,
+                    busy: g.busy == 1,
+                    pool: GravityAnswer::from_session(g),
+                })
                 .collect(),
         })
     }

@@ -3,6 +3,7 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
+use kfmap_client::GravityAnswer;
 use kfmap_service::config::{BakeConfig, ConfigFile};
 use kfmap_service::gravity::{GravityInput, PerKeyframe, estimate_dataset_gravity};
 use kfmap_shared::gravity::{AccelBias, GravityCorrection};
@@ -231,4 +232,48 @@ fn print_correction(label: &str, c: &GravityCorrection) {
         h.members, h.inliers, h.effective_weight, h.spread_mps2, h.spread_deg
     );
     println!("  {}", bias_line(&c.estimate.accel_bias));
+}
+
+/// A served gravity pool (an `ImuWindow` answer, or a session in a status report) as
+/// JSON: the correction, the pool's health and the accelerometer bias.
+pub fn served_json(g: &GravityAnswer) -> Value {
+    json!({
+        "vector": g.gravity,
+        "roll_deg": g.roll_pitch[0].to_degrees(),
+        "pitch_deg": g.roll_pitch[1].to_degrees(),
+        "members": g.members,
+        "inliers": g.inliers,
+        "spread_deg": g.spread_deg,
+        "compensated": g.compensated(),
+        "compensated_members": g.compensated,
+        "pending": g.pending,
+        "skipped": g.skipped,
+        "accel_bias_mps2": g.accel_bias_mps2,
+        "accel_bias_sigma_mps2": g.accel_bias_sigma_mps2,
+        "bias_observable": g.bias_observable,
+    })
+}
+
+/// A served gravity pool on one line.
+pub fn served_line(g: &GravityAnswer) -> String {
+    let windows = format!(
+        "{} windows ({} motion-compensated, {} pending, {} left out)",
+        g.members, g.compensated, g.pending, g.skipped
+    );
+    if g.gravity.is_none() {
+        return format!("{windows}, too few for gravity");
+    }
+    let [x, y, z] = g.accel_bias_mps2;
+    format!(
+        "roll {:.3} deg, pitch {:.3} deg from {windows}, {} inliers, spread {:.3} deg; accelerometer bias [{x:.4}, {y:.4}, {z:.4}] m/s^2 ({})",
+        g.roll_pitch[0].to_degrees(),
+        g.roll_pitch[1].to_degrees(),
+        g.inliers,
+        g.spread_deg,
+        if g.bias_observable {
+            "observable"
+        } else {
+            "not yet observable"
+        }
+    )
 }

@@ -405,7 +405,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "mean_iterations": iterations as f64 / scans.len().max(1) as f64,
             "server_side": args.server_side,
             "mode": Cov2CovMode::from(args.mode).name(),
-            "gravity": gravity.as_ref().map(gravity_json),
+            "gravity": gravity.as_ref().map(super::gravity::served_json),
         });
         if args.json_lines {
             println!("{out}");
@@ -432,23 +432,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         );
     }
     if let Some(g) = &gravity {
-        println!(
-            "  gravity over IPC: roll {:.3} deg, pitch {:.3} deg from {} windows ({} motion-compensated, {} left out, {} pending); accelerometer bias [{:.4}, {:.4}, {:.4}] m/s^2 ({})",
-            g.roll_pitch[0].to_degrees(),
-            g.roll_pitch[1].to_degrees(),
-            g.members,
-            g.compensated,
-            g.skipped,
-            g.pending,
-            g.accel_bias_mps2[0],
-            g.accel_bias_mps2[1],
-            g.accel_bias_mps2[2],
-            if g.bias_observable {
-                "observable"
-            } else {
-                "not yet observable"
-            }
-        );
+        println!("  gravity over IPC: {}", super::gravity::served_line(g));
     }
     if let Some(out) = &args.out {
         println!("  trajectory: {}", out.display());
@@ -501,23 +485,4 @@ impl ReferenceErrors {
                 .count(),
         }
     }
-}
-
-/// The summary's `gravity` object: the server's last correction and its health.
-fn gravity_json(g: &GravityAnswer) -> serde_json::Value {
-    json!({
-        "vector": g.gravity,
-        "roll_deg": g.roll_pitch[0].to_degrees(),
-        "pitch_deg": g.roll_pitch[1].to_degrees(),
-        "members": g.members,
-        "inliers": g.inliers,
-        "spread_deg": g.spread_deg,
-        "compensated": g.compensated(),
-        "compensated_members": g.compensated,
-        "pending": g.pending,
-        "skipped": g.skipped,
-        "accel_bias_mps2": g.accel_bias_mps2,
-        "accel_bias_sigma_mps2": g.accel_bias_sigma_mps2,
-        "bias_observable": g.bias_observable,
-    })
 }

@@ -47,16 +47,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .session_gravity
             .iter()
             .map(|g| {
-                json!({
-                    "client": format!("{:016x}{:016x}", g.client_node[0], g.client_node[1]),
-                    "busy": g.busy == 1,
-                    "gravity_members": g.members, "compensated": g.compensated,
-                    "pending": g.pending, "skipped": g.skipped, "inliers": g.inliers,
-                    "has_gravity": g.has_gravity == 1,
-                    "roll_deg": g.roll_pitch[0].to_degrees(), "pitch_deg": g.roll_pitch[1].to_degrees(),
-                    "spread_deg": g.spread_deg, "accel_bias_mps2": g.accel_bias,
-                    "bias_observable": g.bias_observable == 1,
-                })
+                let mut entry = super::gravity::served_json(&g.pool);
+                entry["client"] = json!(format!("{:032x}", g.client));
+                entry["busy"] = json!(g.busy);
+                entry
             })
             .collect();
         let out = json!({
@@ -82,35 +76,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         );
     }
     for g in &s.session_gravity {
-        let client = format!("{:016x}{:016x}", g.client_node[0], g.client_node[1]);
-        if g.busy == 1 {
-            println!("  session {client}: busy answering a request");
-        } else if g.has_gravity == 1 {
-            println!(
-                "  session {client}: gravity roll {:.3}°, pitch {:.3}° from {} windows ({} motion-compensated, {} inliers, spread {:.3}°; {} pending, {} left out), accelerometer bias [{:.4}, {:.4}, {:.4}] m/s^2{}",
-                g.roll_pitch[0].to_degrees(),
-                g.roll_pitch[1].to_degrees(),
-                g.members,
-                g.compensated,
-                g.inliers,
-                g.spread_deg,
-                g.pending,
-                g.skipped,
-                g.accel_bias[0],
-                g.accel_bias[1],
-                g.accel_bias[2],
-                if g.bias_observable == 1 {
-                    " (observable)"
-                } else {
-                    " (not yet observable)"
-                }
-            );
+        let line = if g.busy {
+            "busy answering a request".to_string()
         } else {
-            println!(
-                "  session {client}: {} IMU windows pooled ({} pending, {} left out), too few for gravity",
-                g.members, g.pending, g.skipped
-            );
-        }
+            super::gravity::served_line(&g.pool)
+        };
+        println!("  session {:032x}: gravity {line}", g.client);
     }
     Ok(())
 }

@@ -254,6 +254,7 @@ fn session_gravity(client: u128, pool: Option<&LiveAnswer>) -> WireSessionGravit
         out.roll_pitch = [c.roll, c.pitch];
         out.spread_deg = c.estimate.health.spread_deg;
         out.accel_bias = c.estimate.accel_bias.mps2.into();
+        out.gravity = c.estimate.g.into();
         out.bias_observable = c.estimate.accel_bias.observable as u32;
     }
     out

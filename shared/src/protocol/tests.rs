@@ -193,7 +193,7 @@ fn header_layouts_are_the_documented_ones() {
     );
     layout!(
         ResponseHeader,
-        2776,
+        3160,
         version = 0,
         status = 4,
         request_id = 8,
@@ -242,7 +242,7 @@ fn header_layouts_are_the_documented_ones() {
     );
     layout!(
         WireSessionGravity,
-        96,
+        120,
         client_node = 0,
         members = 16,
         compensated = 20,
@@ -254,6 +254,7 @@ fn header_layouts_are_the_documented_ones() {
         busy = 44,
         roll_pitch = 48,
         spread_deg = 64,
-        accel_bias = 72
+        accel_bias = 72,
+        gravity = 96
     );
 }

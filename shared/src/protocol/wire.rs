@@ -130,7 +130,7 @@ pub struct WirePairing {
 
 /// Header of every response; the payload is `[WirePairing]`.
 ///
-/// Layout (protocol 4, 2776 bytes, byte offsets): version 0, status 4, request_id 8,
+/// Layout (protocol 4, 3160 bytes, byte offsets): version 0, status 4, request_id 8,
 /// detail 16, message_len 24, active_len 28, active 32, server_us 160, pose 168,
 /// covariance 224, fitness 512, iterations 528, converged 532, tracking 536 (new in
 /// protocol 3, as the next five), reasons 540, registrations 544, degenerate 548,
@@ -252,9 +252,9 @@ pub struct ResponseHeader {
 
 /// One session's gravity pool in a status report.
 ///
-/// Layout (96 bytes): client_node 0, members 16, compensated 20, pending 24, skipped
+/// Layout (120 bytes): client_node 0, members 16, compensated 20, pending 24, skipped
 /// 28, inliers 32, has_gravity 36, bias_observable 40, busy 44, roll_pitch 48,
-/// spread_deg 64, accel_bias 72.
+/// spread_deg 64, accel_bias 72, gravity 96.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
 #[repr(C)]
 #[type_name("kfmap::WireSessionGravity")]
@@ -283,6 +283,8 @@ pub struct WireSessionGravity {
     pub spread_deg: f64,
     /// Accelerometer bias, body frame, m/s^2.
     pub accel_bias: [f64; 3],
+    /// Gravity estimate in the map frame, m/s^2.
+    pub gravity: [f64; 3],
 }
 
 impl Default for ResponseHeader {
