@@ -46,6 +46,8 @@ fn main() -> ExitCode {
         .log_internal_errors(false)
         .with_max_level(level)
         .init();
+    // iceoryx2's own warnings, one line per kind of event with a count, never per event.
+    kfmap_shared::protocol::log_limit::install();
     // A closed output pipe (`kfmap ... | head`) ends the process quietly (status 141)
     // instead of a panic on the failed print.
     set_sigpipe(libc::SIG_DFL);

@@ -94,6 +94,17 @@ impl Connection {
         Ok(connection)
     }
 
+    /// This client's node id, as it writes it into every request's `client_node`.
+    pub fn client_node(&self) -> [u64; 2] {
+        self.client_node
+    }
+
+    /// Writes `node` into later requests' `client_node` instead of this client's own:
+    /// only for tests that the server refuses it (status `NotYourSession`).
+    pub fn claim_client_node(&mut self, node: [u64; 2]) {
+        self.client_node = node;
+    }
+
     /// The map name.
     pub fn map_name(&self) -> &str {
         &self.map_name

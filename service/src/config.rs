@@ -67,6 +67,19 @@ pub struct ServerSection {
     /// Cov2cov mode of requests that leave it to the server: "map-default" (what the
     /// map was baked with, `[map] cov2cov-mode`), "approximate" or "exact".
     pub cov2cov_mode: Cov2CovMode,
+    /// Largest answer, bytes of pairings: a request whose worst case is larger is
+    /// refused before any work.
+    pub max_answer_bytes: u64,
+    /// Most map points one `Radius` query point may find; a point finding more stops
+    /// the request with a status naming this limit.
+    pub max_radius_points: u32,
+    /// Memory one client's requests in flight may hold at once (worst case from each
+    /// request's header: answer, its shared-memory copy and scratch), bytes.
+    pub client_memory_budget: u64,
+    /// Memory every client's requests in flight may hold at once, bytes.
+    pub memory_budget: u64,
+    /// Requests one process (all its clients together) may have queued or in flight.
+    pub max_requests_per_process: u32,
 }
 
 impl Default for ServerSection {
@@ -76,6 +89,11 @@ impl Default for ServerSection {
             worker_threads: 0,
             max_points_per_request: 1 << 20,
             cov2cov_mode: Cov2CovMode::MapDefault,
+            max_answer_bytes: 256 << 20,
+            max_radius_points: 4096,
+            client_memory_budget: 1 << 30,
+            memory_budget: 2 << 30,
+            max_requests_per_process: 16,
         }
     }
 }
@@ -104,6 +122,36 @@ impl ServerSection {
             "max-points-per-request",
             max,
             "1 to 67108864 points",
+        )?;
+        ensure(
+            (1 << 20..=1 << 40).contains(&self.max_answer_bytes),
+            "max-answer-bytes",
+            self.max_answer_bytes,
+            "1 MiB (1048576) to 1 TiB",
+        )?;
+        ensure(
+            (1..=1 << 24).contains(&self.max_radius_points),
+            "max-radius-points",
+            self.max_radius_points,
+            "1 to 16777216",
+        )?;
+        ensure(
+            self.client_memory_budget >= 2 * self.max_answer_bytes,
+            "client-memory-budget",
+            self.client_memory_budget,
+            "at least twice max-answer-bytes (an answer and its shared-memory copy)",
+        )?;
+        ensure(
+            self.memory_budget >= self.client_memory_budget,
+            "memory-budget",
+            self.memory_budget,
+            "at least client-memory-budget",
+        )?;
+        ensure(
+            (1..=4096).contains(&self.max_requests_per_process),
+            "max-requests-per-process",
+            self.max_requests_per_process,
+            "1 to 4096",
         )
     }
 }

@@ -3,6 +3,7 @@
 //! in-process tests that check the IPC answers bit for bit.
 
 use std::mem::MaybeUninit;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::time::Instant;
 
 use kfmap_shared::cloud::PointCloud;
@@ -27,6 +28,8 @@ use crate::config::ServerConfig;
 
 /// Largest `k` of a `Nearest` request.
 pub const MAX_K: u32 = 64;
+/// Bytes of one answer pairing.
+pub const PAIRING_BYTES: u64 = std::mem::size_of::<WirePairing>() as u64;
 /// Largest radius of a `Radius` request, metres.
 pub const MAX_RADIUS: f32 = 20.0;
 /// Largest pairing distance of `Cov2Cov` / `Localize`, metres.
@@ -35,14 +38,16 @@ pub const MAX_PAIR_DIST: f32 = 50.0;
 pub const MAX_ITERATIONS: u32 = 100;
 /// Largest `max_correction` of a `Localize` request, metres.
 pub const MAX_CORRECTION: f32 = 1000.0;
-/// Most pairings one `Radius` answer may hold.
-pub const MAX_RADIUS_PAIRINGS: usize = 1 << 22;
 
 /// Request limits from `server.toml`.
 #[derive(Debug, Clone, Copy)]
 pub struct Limits {
     /// Points per scan, at most.
     pub max_points: usize,
+    /// Map points one `Radius` query point may find, at most.
+    pub max_radius_points: usize,
+    /// Bytes of pairings one answer may hold.
+    pub max_answer_bytes: u64,
     /// Covariances estimated for scans sent without them.
     pub scan_covariance: CovOptions,
     /// Checks and retry ladder of `Localize`.
@@ -57,6 +62,8 @@ impl Limits {
     pub fn of(config: &ServerConfig) -> Self {
         Self {
             max_points: config.server.max_points_per_request,
+            max_radius_points: config.server.max_radius_points as usize,
+            max_answer_bytes: config.server.max_answer_bytes,
             scan_covariance: config.covariance,
             tracking: config.tracking,
             cov2cov_mode: config.server.cov2cov_mode,
@@ -204,7 +211,7 @@ fn compute(
             let scan = decode_scan(request, payload, limits.max_points)?;
             match kind {
                 RequestKind::Nearest => nearest(map, session, request, &scan, &pose),
-                RequestKind::Radius => radius(map, session, request, &scan, &pose),
+                RequestKind::Radius => radius(map, session, request, &scan, &pose, limits),
                 RequestKind::Cov2Cov => {
                     let exact = exact_mode(map, request.mode, limits)?;
                     let covs = scan_covariances(&scan, limits);
@@ -294,34 +301,71 @@ fn to_map_frame(pose: &Pose, p: &[f32; 3]) -> [f32; 3] {
     to_point(&transform_point(pose, p))
 }
 
+/// Why a search stopped before the end of the scan.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Overflow {
+    /// This scan point found more than its cap.
+    Point(usize),
+    /// The answer grew past its cap of pairings.
+    Total,
+}
+
+/// Caps on one search's answer, checked as it grows.
+#[derive(Debug, Clone, Copy)]
+struct Caps {
+    per_point: usize,
+    total: usize,
+}
+
 /// Every scan point moved by `pose` and searched by `search` in the active set: the
-/// hits as pairings without information, in query order.
+/// hits as pairings without information, in query order. The search stops once a
+/// point finds more than `caps.per_point` or the answer more than `caps.total`, so the
+/// answer never outgrows them.
 fn search_each(
     map: &ServedMap,
     session: &mut Session,
     scan: &DecodedScan,
     pose: &Pose,
+    caps: Caps,
     search: impl Fn(&ActiveSet, &[f32; 3]) -> Vec<MapHit> + Sync,
-) -> Result<Answer, Rejection> {
+) -> Result<Result<Answer, Overflow>, Rejection> {
     let active = activate(map, session, pose, false)?;
+    let (over_point, over_total) = (AtomicUsize::new(usize::MAX), AtomicBool::new(false));
+    let found = AtomicUsize::new(0);
     let pairings: Vec<WirePairing> = scan
         .points
         .par_iter()
         .enumerate()
         .flat_map_iter(|(i, p)| {
-            search(&active, &to_map_frame(pose, p))
-                .into_iter()
-                .map(move |h| WirePairing {
-                    query: i as u32,
-                    local_index: h.local_index,
-                    keyframe: h.keyframe,
-                    point: h.point,
-                    dist_sq: h.dist_sq,
-                    information: [0.0; 6],
-                })
+            let stopped = over_point.load(Ordering::Relaxed) != usize::MAX
+                || over_total.load(Ordering::Relaxed);
+            let mut hits = if stopped {
+                Vec::new()
+            } else {
+                search(&active, &to_map_frame(pose, p))
+            };
+            if hits.len() > caps.per_point {
+                over_point.fetch_min(i, Ordering::Relaxed);
+                hits.clear();
+            } else if found.fetch_add(hits.len(), Ordering::Relaxed) + hits.len() > caps.total {
+                over_total.store(true, Ordering::Relaxed);
+                hits.clear();
+            }
+            hits.into_iter().map(move |h| WirePairing {
+                query: i as u32,
+                local_index: h.local_index,
+                keyframe: h.keyframe,
+                point: h.point,
+                dist_sq: h.dist_sq,
+                information: [0.0; 6],
+            })
         })
         .collect();
-    Ok(with_active(AnswerPairings::Wire(pairings), active.ids()))
+    Ok(match (over_point.into_inner(), over_total.into_inner()) {
+        (usize::MAX, false) => Ok(with_active(AnswerPairings::Wire(pairings), active.ids())),
+        (usize::MAX, true) => Err(Overflow::Total),
+        (point, _) => Err(Overflow::Point(point)),
+    })
 }
 
 fn nearest(
@@ -335,9 +379,15 @@ fn nearest(
     if !(1..=MAX_K).contains(&k) {
         return Err(bad(format!("k = {k} must be within 1..={MAX_K}")));
     }
-    search_each(map, session, scan, pose, |active, p| {
+    // Never over: the admission checked points x k against max-answer-bytes.
+    let caps = Caps {
+        per_point: usize::MAX,
+        total: usize::MAX,
+    };
+    let answer = search_each(map, session, scan, pose, caps, |active, p| {
         active.nearest_k(p, k as usize)
-    })
+    })?;
+    Ok(answer.expect("k-nearest answers have no caps"))
 }
 
 fn radius(
@@ -346,6 +396,7 @@ fn radius(
     request: &RequestHeader,
     scan: &DecodedScan,
     pose: &Pose,
+    limits: &Limits,
 ) -> Result<Answer, Rejection> {
     let r = request.radius;
     if !(r.is_finite() && r > 0.0 && r <= MAX_RADIUS) {
@@ -353,16 +404,31 @@ fn radius(
             "radius {r} m must be within (0, {MAX_RADIUS}]"
         )));
     }
-    let answer = search_each(map, session, scan, pose, |active, p| {
+    let caps = Caps {
+        per_point: limits.max_radius_points,
+        total: (limits.max_answer_bytes / PAIRING_BYTES) as usize,
+    };
+    let answer = search_each(map, session, scan, pose, caps, |active, p| {
         active.within_radius(p, r as f64)
     })?;
-    if answer.pairings.len() > MAX_RADIUS_PAIRINGS {
-        return Err(bad(format!(
-            "the radius answer holds {} pairings, more than {MAX_RADIUS_PAIRINGS}; use a smaller radius or fewer points",
-            answer.pairings.len()
-        )));
-    }
-    Ok(answer)
+    answer.map_err(|overflow| match overflow {
+        Overflow::Point(point) => Rejection {
+            status: StatusCode::TooLarge,
+            message: format!(
+                "scan point {point} has more than {} map points within {r} m, over max-radius-points (server.toml); use a smaller radius",
+                caps.per_point
+            ),
+            detail: point as u64,
+        },
+        Overflow::Total => Rejection::new(
+            StatusCode::TooLarge,
+            format!(
+                "the radius answer grew past {} pairings ({} MiB), over max-answer-bytes (server.toml); use a smaller radius or fewer points",
+                caps.total,
+                limits.max_answer_bytes >> 20
+            ),
+        ),
+    })
 }
 
 /// The scan's covariances: the client's, or estimated with the server's options.

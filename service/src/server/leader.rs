@@ -11,7 +11,6 @@ use kfmap_shared::protocol::transport::Transport;
 use kfmap_shared::protocol::{RequestHeader, RequestKind, ResponseHeader, WirePairing};
 
 use super::queue::{FairQueue, Turn};
-use super::session;
 use super::workers::{Job, WorkerContext};
 
 /// After an echo the leader keeps polling this long before it sleeps again: a client
@@ -55,8 +54,12 @@ impl Requests<'_> {
                 drained.echoed += 1;
                 continue;
             }
-            let client = session::client_of(header.client_node);
-            match queue.push(client, Job::new(request)) {
+            // Refused at once when it is not the sender's session or over a budget.
+            let Some((job, process)) = context.admit(request) else {
+                continue;
+            };
+            // Processes take turns, however many clients each opened.
+            match queue.push(process as u128, job) {
                 Ok(()) => drained.queued += 1,
                 // Closed: the queue counts it as turned away.
                 Err(job) => context.refuse_shutting_down(job),

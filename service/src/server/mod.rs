@@ -5,7 +5,9 @@
 //! SIGINT/SIGTERM, and swaps in a new map file on SIGHUP (or a `Reload` request).
 
 pub mod answer;
+mod budget;
 mod leader;
+mod ports;
 mod queue;
 pub mod session;
 pub mod state;
@@ -31,7 +33,9 @@ use tracing::{info, warn};
 
 use crate::config::ServerConfig;
 use answer::Limits;
+use budget::{Budget, BudgetLimits};
 use leader::Requests;
+use ports::ClientPorts;
 use queue::FairQueue;
 use session::Sessions;
 pub use state::{MapSlot, ServedMap};
@@ -145,6 +149,11 @@ pub fn check_shared_memory() -> Result<(), ServeError> {
     Ok(())
 }
 
+/// Free bytes of `/dev/shm` (`None` where it cannot be read).
+pub(crate) fn shared_memory_free() -> Option<u64> {
+    free_bytes(Path::new("/dev/shm"))
+}
+
 fn free_bytes(dir: &Path) -> Option<u64> {
     use std::os::unix::ffi::OsStrExt;
     let path = std::ffi::CString::new(dir.as_os_str().as_bytes()).ok()?;
@@ -244,6 +253,8 @@ pub fn serve(
         map_name: &options.map_name,
         started,
         trust: options.trust,
+        budget: Budget::new(BudgetLimits::of(&options.config.server)),
+        ports: ClientPorts::new(&rpc),
     };
     let current = slot.current();
     let exact = match options.config.server.cov2cov_mode {

@@ -15,25 +15,41 @@ use kfmap_shared::protocol::{
 };
 use tracing::{debug, info, warn};
 
-use super::answer::{Answer, AnswerPairings, Limits, answer};
+use std::sync::Arc;
+
+use super::answer::{Answer, AnswerPairings, Limits, PAIRING_BYTES, answer};
+use super::budget::{Budget, Reservation, worst_case};
+use super::ports::ClientPorts;
 use super::session::{Sessions, client_of};
 use super::state::MapSlot;
 use super::stats::Stats;
 
-/// A received request and when it arrived.
+/// A request as the server port hands it over.
+pub type Request = ActiveRequest<Transport, [f32], RequestHeader, [WirePairing], ResponseHeader>;
+
+/// A received request, when it arrived, and its share of the budget (given back when
+/// the job is dropped, after the response is sent).
 pub struct Job {
-    request: ActiveRequest<Transport, [f32], RequestHeader, [WirePairing], ResponseHeader>,
+    request: Request,
     received: Instant,
+    reservation: Option<Reservation>,
 }
 
 impl Job {
     /// Wraps a request received now.
-    pub fn new(
-        request: ActiveRequest<Transport, [f32], RequestHeader, [WirePairing], ResponseHeader>,
-    ) -> Self {
+    pub fn new(request: Request) -> Self {
         Self {
             request,
             received: Instant::now(),
+            reservation: None,
+        }
+    }
+
+    /// The job holding `reservation` until it is answered.
+    pub fn holding(self, reservation: Reservation) -> Self {
+        Self {
+            reservation: Some(reservation),
+            ..self
         }
     }
 }
@@ -56,6 +72,10 @@ pub struct WorkerContext<'a> {
     pub started: Instant,
     /// Open reloaded maps without bytechecks.
     pub trust: bool,
+    /// Memory and request slots held by requests queued or in flight.
+    pub budget: Arc<Budget>,
+    /// Which node and process sent a request.
+    pub ports: ClientPorts<'a>,
 }
 
 impl WorkerContext<'_> {
@@ -105,7 +125,20 @@ impl WorkerContext<'_> {
 
     /// Sends `answer`, releases the request, records the latency, wakes the clients.
     fn respond(&self, job: Job, header: &RequestHeader, answer: &Answer) {
-        let Job { request, received } = job;
+        let Job {
+            request,
+            received,
+            reservation,
+        } = job;
+        let refused;
+        let answer = match fits_shared_memory(answer) {
+            Ok(()) => answer,
+            Err(rejection) => {
+                warn!("{}", rejection.message);
+                refused = Answer::rejected(header.request_id, &rejection);
+                &refused
+            }
+        };
         if let Err(e) = send(&request, answer) {
             warn!(error = %e, "could not send a response; sending the error instead");
             let error = Answer::rejected(
@@ -118,6 +151,7 @@ impl WorkerContext<'_> {
             let _ = send(&request, &error);
         }
         drop(request);
+        drop(reservation);
         self.stats
             .record(header.kind, received.elapsed().as_secs_f64() as f32 * 1e6);
         let _ = self.notifier.notify();
@@ -125,15 +159,62 @@ impl WorkerContext<'_> {
 
     /// Answers a request that was queued but never started when shutting down.
     pub fn refuse_shutting_down(&self, job: Job) {
-        let header = *job.request.user_header();
-        let answer = Answer::rejected(
-            header.request_id,
+        self.refuse(
+            job,
             &Rejection::new(
                 StatusCode::ShuttingDown,
                 "the server is shutting down; the request was not started",
             ),
         );
-        self.respond(job, &header, &answer);
+    }
+
+    /// Answers `job` with `rejection` without working on it.
+    pub fn refuse(&self, job: Job, rejection: &Rejection) {
+        let header = *job.request.user_header();
+        self.stats.started();
+        self.respond(
+            job,
+            &header,
+            &Answer::rejected(header.request_id, rejection),
+        );
+        self.stats.finished();
+    }
+
+    /// Takes `request` in: checks who sent it and reserves its worst case. The job to
+    /// queue and the process whose turn it takes, or the job refused already.
+    pub fn admit(&self, request: Request) -> Option<(Job, u32)> {
+        let header = *request.user_header();
+        let job = Job::new(request);
+        let claimed = client_of(header.client_node);
+        let owner = match self.ports.owner(job.request.origin()) {
+            Some(owner) if owner.node == claimed => owner,
+            found => {
+                let sender = found.map_or("an unregistered port".to_string(), |o| {
+                    format!("node {:032x}", o.node)
+                });
+                self.refuse(
+                    job,
+                    &Rejection::new(
+                        StatusCode::NotYourSession,
+                        format!(
+                            "client_node {claimed:032x} in the header is not the node of the port that sent the request ({sender}); a client may only use its own session"
+                        ),
+                    ),
+                );
+                return None;
+            }
+        };
+        let points = (job.request.payload().len() / 3) as u64;
+        let kind = RequestKind::from_code(header.kind);
+        let reserved = worst_case(kind, &header, points, self.budget.limits())
+            .and_then(|cost| self.budget.reserve(owner.node, owner.process, cost));
+        match reserved {
+            Ok(reservation) => Some((job.holding(reservation), owner.process)),
+            Err(rejection) => {
+                self.refuse(job, &rejection);
+                None
+            }
+        }
     }
 
     fn status(&self, request: &RequestHeader) -> Answer {
@@ -212,6 +293,35 @@ impl WorkerContext<'_> {
             }
         }
     }
+}
+
+/// Free space `/dev/shm` keeps beyond an answer's segment: other processes' ports.
+const SHM_HEADROOM: u64 = 16 << 20;
+
+/// Refuses an answer whose shared-memory segment `/dev/shm` may not be able to back:
+/// a segment grows by powers of two up to twice the answer, and a write to a tmpfs
+/// page that cannot be backed kills the writer with SIGBUS.
+fn fits_shared_memory(answer: &Answer) -> Result<(), Rejection> {
+    let bytes = answer.pairings.len() as u64 * PAIRING_BYTES;
+    if bytes == 0 {
+        return Ok(());
+    }
+    let Some(free) = super::shared_memory_free() else {
+        return Ok(());
+    };
+    let needed = 2 * bytes + SHM_HEADROOM;
+    if free >= needed {
+        return Ok(());
+    }
+    Err(Rejection::new(
+        StatusCode::Busy,
+        format!(
+            "/dev/shm has {} MiB free; this answer ({} MiB) could need {} MiB of shared memory there; free space in /dev/shm (in a container, raise --shm-size) or ask for less",
+            free >> 20,
+            bytes >> 20,
+            needed >> 20
+        ),
+    ))
 }
 
 /// Loans a response of the answer's size, writes the pairings straight into it (no

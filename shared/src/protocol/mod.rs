@@ -14,6 +14,7 @@
 //! ```
 
 mod decode;
+pub mod log_limit;
 pub mod transport;
 mod wire;
 
@@ -33,7 +34,7 @@ use crate::geometry::{Pose, pose_from_xyz_quat, pose_to_xyz_quat};
 use crate::tracking::Stage;
 
 /// Version of this protocol; a peer of another version gets `VersionMismatch`.
-pub const PROTOCOL_VERSION: u32 = 4;
+pub const PROTOCOL_VERSION: u32 = 5;
 /// Default limit on points per request.
 pub const DEFAULT_MAX_POINTS: usize = 1 << 20;
 /// Floats per IMU sample in an `ImuWindow` payload.
@@ -144,6 +145,17 @@ pub enum StatusCode {
     BadRequest = 8,
     /// The server is shutting down and did not start this request.
     ShuttingDown = 9,
+    /// The request's worst case exceeds a configured limit (the message names it:
+    /// `max-answer-bytes`, `max-radius-points`, `client-memory-budget`); sending it
+    /// again will not help (new in protocol 5).
+    TooLarge = 10,
+    /// The request fits the limits, but the memory or request slots it needs are held
+    /// by requests in flight (the message names the budget); retry later (new in
+    /// protocol 5).
+    Busy = 11,
+    /// `client_node` is not the node of the port that sent the request (new in
+    /// protocol 5).
+    NotYourSession = 12,
 }
 
 impl StatusCode {
@@ -161,6 +173,9 @@ impl StatusCode {
             VersionMismatch,
             BadRequest,
             ShuttingDown,
+            TooLarge,
+            Busy,
+            NotYourSession,
         ]
         .into_iter()
         .find(|s| *s as u32 == code)

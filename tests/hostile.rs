@@ -1,0 +1,232 @@
+//! Hostile and careless clients against a real `kfmap serve` (issue 20's table): each
+//! test sends what once took the server down or crossed into another client's state,
+//! and checks the refusal names the limit and the server's memory stays bounded. Each
+//! test runs under its own iceoryx2 prefix (removed at teardown).
+
+mod common;
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use common::{Prefix, Server, TestDir, bake_dataset, simulate, temp_dir};
+use kfmap_client::{Client, ClientOptions};
+use kfmap_shared::geometry::Pose;
+use kfmap_shared::imu::ImuSample;
+use kfmap_shared::protocol::StatusCode;
+
+fn options(prefix: &Prefix) -> ClientOptions {
+    ClientOptions {
+        iceoryx_prefix: Some(prefix.0.clone()),
+        timeout: Duration::from_secs(60),
+        spin: false,
+    }
+}
+
+/// A 3 s simulated courtyard baked into a map and served; bind as `let (site,
+/// server)` so the server goes first.
+struct Site {
+    prefix: Prefix,
+    _dir: TestDir,
+}
+
+fn served(test: &str) -> (Site, Server) {
+    let prefix = Prefix::new(test);
+    let dir = temp_dir(test);
+    let data: PathBuf = dir.join("sim");
+    simulate(&data, "courtyard", "3", "16", &[]);
+    let map = dir.join("court.kfmap");
+    bake_dataset(&data, &map);
+    let server = Server::start(&map, "court", &prefix.0, &[]);
+    (site(prefix, dir), server)
+}
+
+fn site(prefix: Prefix, dir: TestDir) -> Site {
+    Site { prefix, _dir: dir }
+}
+
+/// Peak resident memory of a process so far, MiB (`VmHWM`).
+fn peak_rss_mib(pid: u32) -> f64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
+    let line = status.lines().find(|l| l.starts_with("VmHWM:")).unwrap();
+    let kib: f64 = line.split_whitespace().nth(1).unwrap().parse().unwrap();
+    kib / 1024.0
+}
+
+/// Points on a 1 m grid around the map's origin, `n` of them.
+fn grid(n: usize) -> Vec<[f32; 3]> {
+    (0..n)
+        .map(|i| [(i % 30) as f32 - 15.0, (i / 30 % 30) as f32 - 15.0, 1.0])
+        .collect()
+}
+
+/// Was: 490 points with r = 20 m grew the server by 1.35 GB before a refusal that
+/// named no limit. Now a point finding more than `max-radius-points` stops the search.
+#[test]
+fn a_radius_flood_is_stopped_at_max_radius_points_before_memory_grows() {
+    let (site, server) = served("radius-flood");
+    let mut client = Client::connect("court", options(&site.prefix)).unwrap();
+    // Warm: a legal radius answer, so the baseline includes the answer path.
+    let legal = client.radius(&grid(490), &Pose::identity(), 0.5).unwrap();
+    assert!(!legal.is_empty());
+    let before = peak_rss_mib(server.child.id());
+
+    let e = client
+        .radius(&grid(490), &Pose::identity(), 20.0)
+        .unwrap_err();
+    assert_eq!(e.status(), Some(StatusCode::TooLarge), "{e}");
+    assert!(e.to_string().contains("max-radius-points"), "{e}");
+    let grown = peak_rss_mib(server.child.id()) - before;
+    println!("radius flood: refused ({e}); server peak RSS grew {grown:.1} MiB");
+    assert!(grown < 100.0, "peak RSS grew {grown:.0} MiB");
+
+    // The server goes on answering the same client.
+    let again = client.radius(&grid(490), &Pose::identity(), 0.5).unwrap();
+    assert_eq!(again, legal);
+}
+
+/// Was: a legal k = 64 on a million points grew the server past 3 GB within 30 s.
+/// Now its worst case (3.6 GB of pairings) is refused from the header, before work.
+#[test]
+fn k64_on_a_million_points_is_refused_from_its_header() {
+    let (site, server) = served("k64-million");
+    let mut client = Client::connect("court", options(&site.prefix)).unwrap();
+    client.nearest(&grid(100), &Pose::identity(), 1).unwrap();
+    let before = peak_rss_mib(server.child.id());
+    let million = grid(1 << 20);
+    let e = client.nearest(&million, &Pose::identity(), 64).unwrap_err();
+    assert_eq!(e.status(), Some(StatusCode::TooLarge), "{e}");
+    assert!(e.to_string().contains("max-answer-bytes"), "{e}");
+    let grown = peak_rss_mib(server.child.id()) - before;
+    println!("k = 64 x 1M points: refused ({e}); server peak RSS grew {grown:.1} MiB");
+    // The request itself sits in the client's shared memory (12 MiB), not the heap.
+    assert!(grown < 100.0, "peak RSS grew {grown:.0} MiB");
+    // The same points with k = 1 fit (56 MiB of pairings) and are answered.
+    let one = client.nearest(&million, &Pose::identity(), 1).unwrap();
+    assert_eq!(one.len(), million.len());
+}
+
+/// IMU windows of a level platform at rest, one per second.
+fn rest_window(second: usize) -> Vec<ImuSample> {
+    (0..50)
+        .map(|k| ImuSample {
+            t: second as f64 + k as f64 * 0.02,
+            acc: [0.0, 0.0, 9.81],
+            gyro: [0.0; 3],
+        })
+        .collect()
+}
+
+/// Was: a request whose header named another client's node landed in that client's
+/// session and gravity pool. Now the session is the sending port's node (iceoryx2
+/// stamps each request with its port), and a mismatching `client_node` is refused.
+#[test]
+fn a_client_cannot_write_into_another_clients_session() {
+    let (site, _server) = served("impersonation");
+    let mut owner = Client::connect("court", options(&site.prefix)).unwrap();
+    for second in 0..3 {
+        let answer = owner
+            .push_imu_window(second as u64, &Pose::identity(), None, &rest_window(second))
+            .unwrap();
+        assert_eq!(answer.members, second as u32 + 1);
+    }
+    let mut intruder = Client::connect("court", options(&site.prefix)).unwrap();
+    let stolen = owner.connection().client_node();
+    let own = intruder.connection().client_node();
+    assert_ne!(own, stolen);
+    intruder.connection().claim_client_node(stolen);
+    let e = intruder
+        .push_imu_window(99, &Pose::identity(), None, &rest_window(99))
+        .unwrap_err();
+    assert_eq!(e.status(), Some(StatusCode::NotYourSession), "{e}");
+    assert!(e.to_string().contains("client_node"), "{e}");
+
+    // The owner's pool did not change: its next window is its fourth.
+    let answer = owner
+        .push_imu_window(3, &Pose::identity(), None, &rest_window(3))
+        .unwrap();
+    assert_eq!(answer.members, 4);
+    // The intruder, under its own node again, has a session of its own.
+    intruder.connection().claim_client_node(own);
+    let answer = intruder
+        .push_imu_window(0, &Pose::identity(), None, &rest_window(0))
+        .unwrap();
+    assert_eq!(answer.members, 1);
+}
+
+/// Writes `points` as a raw little-endian float32 xyz `.bin` cloud.
+fn write_bin(path: &std::path::Path, points: &[[f32; 3]]) {
+    let bytes: Vec<u8> = points
+        .iter()
+        .flat_map(|p| p.iter().flat_map(|v| v.to_le_bytes()))
+        .collect();
+    std::fs::write(path, bytes).unwrap();
+}
+
+/// Was: a `/dev/shm` too small for an answer's segment killed the server with SIGBUS
+/// (exit 135) and its clients only timed out. Now the answer is refused with a status
+/// naming `/dev/shm` and the server keeps serving. Runs in a mount namespace of its own
+/// with a 96 MiB tmpfs on /dev/shm (needs root or user namespaces; skipped otherwise).
+#[test]
+fn a_full_dev_shm_refuses_the_answer_and_the_server_keeps_serving() {
+    let probe = std::process::Command::new("unshare")
+        .args(["--mount", "--propagation", "private", "sh", "-c"])
+        .arg("mount -t tmpfs -o size=1m tmpfs /dev/shm")
+        .output();
+    if !probe.as_ref().is_ok_and(|o| o.status.success()) {
+        println!(
+            "skipped: cannot mount a small tmpfs on /dev/shm in a private mount namespace ({})",
+            probe.map_or_else(
+                |e| e.to_string(),
+                |o| String::from_utf8_lossy(&o.stderr).into_owned()
+            )
+        );
+        return;
+    }
+    let dir = temp_dir("shm-full");
+    let data = dir.join("sim");
+    simulate(&data, "courtyard", "3", "16", &[]);
+    let map = dir.join("court.kfmap");
+    bake_dataset(&data, &map);
+    // 100 000 points x k = 20: up to 107 MiB of pairings, within max-answer-bytes, more than
+    // the namespace's /dev/shm holds.
+    write_bin(&dir.join("big.bin"), &grid(100_000));
+    write_bin(&dir.join("small.bin"), &grid(100));
+    let script = r#"
+set -u
+mount -t tmpfs -o size=96m tmpfs /dev/shm || exit 90
+"$KFMAP" serve --map "$D/court.kfmap" --map-name court > "$D/serve.out" 2> "$D/serve.err" &
+S=$!
+for i in $(seq 1 600); do grep -q '^ready' "$D/serve.out" && break; sleep 0.1; done
+q() { "$KFMAP" query --map-name court --timeout 60 --points "$D/$1.bin" --k "$2" > "$D/$1.out" 2> "$D/$1.err"; echo $? > "$D/$1.rc"; }
+q big 20
+q small 1
+kill -TERM $S
+wait $S
+echo $? > "$D/serve.rc"
+"#;
+    let status = std::process::Command::new("unshare")
+        .args(["--mount", "--propagation", "private", "sh", "-c", script])
+        .env("KFMAP", common::kfmap_bin())
+        .env("D", dir.as_os_str())
+        .status()
+        .unwrap();
+    assert!(status.success(), "{status:?}");
+    let read = |name: &str| std::fs::read_to_string(dir.join(name)).unwrap_or_default();
+    let rc = |name: &str| read(&format!("{name}.rc")).trim().to_string();
+    println!(
+        "big query: rc {}, {}; small query rc {}; server rc {}",
+        rc("big"),
+        read("big.err").trim(),
+        rc("small"),
+        rc("serve")
+    );
+    assert_eq!(rc("serve"), "0", "server: {}", read("serve.err"));
+    assert_ne!(rc("big"), "0");
+    assert!(read("big.err").contains("/dev/shm"), "{}", read("big.err"));
+    assert_eq!(rc("small"), "0", "{}", read("small.err"));
+    assert!(
+        read("small.out").contains("answers for"),
+        "{}",
+        read("small.out")
+    );
+}
