@@ -230,3 +230,47 @@ echo $? > "$D/serve.rc"
         read("small.out")
     );
 }
+
+/// Was: a second unix user got `InternalError`, with nothing about permissions. Now the
+/// error says "permission denied", names the folder, its owner and why (iceoryx2 keeps a
+/// server's files owner-only). Runs `kfmap status` as uid 65534 (nobody); needs root.
+#[test]
+fn a_second_unix_user_is_told_permission_denied_with_the_path() {
+    use std::os::unix::process::CommandExt;
+    // SAFETY: geteuid has no preconditions.
+    if unsafe { libc::geteuid() } != 0 {
+        println!("skipped: starting a process as another unix user needs root");
+        return;
+    }
+    let (site, _server) = served("other-user");
+    let out = std::process::Command::new(common::kfmap_bin())
+        .args([
+            "status",
+            "--map-name",
+            "court",
+            "--iceoryx-prefix",
+            &site.prefix.0,
+        ])
+        .uid(65534)
+        .gid(65534)
+        .output();
+    let out = match out {
+        Ok(out) => out,
+        Err(e) => {
+            println!("skipped: cannot run kfmap as uid 65534 ({e})");
+            return;
+        }
+    };
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    println!("as uid 65534: {}", stderr.trim());
+    if stderr.contains("Permission denied")
+        && stderr.contains("os error 13")
+        && !stderr.contains("iceoryx2")
+    {
+        println!("skipped: uid 65534 cannot run the kfmap binary here");
+        return;
+    }
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("permission denied on /"), "{stderr}");
+    assert!(stderr.contains("owner uid 0"), "{stderr}");
+}

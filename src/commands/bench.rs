@@ -19,7 +19,7 @@ use rayon::prelude::*;
 use serde_json::json;
 
 /// Benchmarks. `load`: cold start of a baked map against rebuilding it. `ipc`: the map
-/// server's round trips and throughput.
+/// server's round trips and throughput. `soak`: many clients for minutes.
 ///
 /// `kfmap bench load` generates a map (default 500 keyframes x 40 000 points, about
 /// 1.3 GB, under --dir), then measures: the time from starting a fresh `kfmap` process
@@ -35,15 +35,46 @@ use serde_json::json;
 /// against four client processes at once (scans/s, p99). --spin makes server and
 /// client poll instead of sleeping on events.
 ///
+/// `kfmap bench soak` starts `kfmap serve` on the same synthetic map and --clients
+/// client processes, each sending --rate requests per second for --seconds: scans of
+/// 30k-120k points, mixed kinds (cov2cov, nearest, radius, localize, IMU windows,
+/// status). It reports requests, failed (an error status), lost (no answer within
+/// 30 s), busy (refused by the server's budgets), latency per kind, the server's RSS
+/// after warm-up (the first tenth of the run, at most 60 s; in all and as heap, map-file
+/// pages and shared memory), at the end and at most, and the
+/// shared-memory files left after shutdown. --flood N adds an overload phase: a 1 Hz
+/// client alone, then the same client while N processes send back to back. Exits 1
+/// when any request failed or was lost, or shared memory was left behind.
+///
 /// Examples:
 ///   kfmap bench load --dir /var/tmp/kfmap-bench
 ///   kfmap bench ipc --spin --json
+///   kfmap bench soak --clients 8 --seconds 300 --json
+///   kfmap bench soak --clients 2 --seconds 20 --flood 4
 #[derive(clap::Args)]
 #[command(verbatim_doc_comment)]
 pub struct Args {
-    /// What to measure: load or ipc.
-    #[arg(value_parser = ["load", "ipc"])]
+    /// What to measure: load, ipc or soak.
+    #[arg(value_parser = ["load", "ipc", "soak"])]
     what: String,
+    /// soak: client processes.
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=32))]
+    clients: u32,
+    /// soak: seconds the clients run.
+    #[arg(long, default_value_t = 300.0)]
+    seconds: f64,
+    /// soak: requests per second of each client (0: back to back).
+    #[arg(long, default_value_t = 10.0)]
+    rate: f64,
+    /// soak: processes flooding the server in the overload phase (0: no such phase).
+    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u32).range(0..=16))]
+    flood: u32,
+    /// Internal (soak): run as one soak client of the server under this prefix.
+    #[arg(long, hide = true)]
+    client_of: Option<String>,
+    /// Internal (soak): the client's seed.
+    #[arg(long, hide = true, default_value_t = 1)]
+    seed: u64,
     /// ipc: server and client poll instead of waiting on events.
     #[arg(long)]
     spin: bool,
@@ -188,11 +219,46 @@ pub fn run(args: Args, process_start: Instant) -> anyhow::Result<()> {
     if let Some(prefix) = &args.worker_of {
         return super::bench_ipc::worker(prefix, 5.0);
     }
+    if let Some(prefix) = &args.client_of {
+        let plan = super::bench_soak::ClientPlan {
+            rate_hz: args.rate,
+            seconds: args.seconds,
+            seed: args.seed,
+        };
+        let report = super::bench_soak::run_client(prefix, plan)?;
+        println!("{}", serde_json::to_string(&report)?);
+        return Ok(());
+    }
     if args.keyframes < 2 || args.points < 100 {
         bail!("--keyframes must be at least 2 and --points at least 100");
     }
     let dir = args.dir.clone().unwrap_or_else(std::env::temp_dir);
     std::fs::create_dir_all(&dir).with_context(|| dir.display().to_string())?;
+    if args.what == "soak" {
+        if !(args.seconds.is_finite() && args.seconds >= 1.0) {
+            bail!("--seconds must be at least 1");
+        }
+        if !(args.rate.is_finite() && (0.0..=1000.0).contains(&args.rate)) {
+            bail!("--rate must be within 0 (back to back) to 1000 requests per second");
+        }
+        let map = dir.join(format!("kfmap-bench-soak-{}.kfmap", std::process::id()));
+        bake_synthetic(&map, 12, 40_000, &ProgressBar::hidden())?;
+        let passed = super::bench_soak::run(
+            &map,
+            args.clients as usize,
+            args.seconds,
+            args.rate,
+            args.flood as usize,
+            args.json,
+        );
+        let _ = std::fs::remove_file(&map);
+        if !passed? {
+            bail!(
+                "the soak failed: requests failed or were lost, or shared memory was left behind"
+            );
+        }
+        return Ok(());
+    }
     if args.what == "ipc" {
         return super::bench_ipc::run(&dir, args.spin, args.json, |map| {
             bake_synthetic(map, 12, 40_000, &ProgressBar::hidden()).map(|_| ())

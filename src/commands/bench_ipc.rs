@@ -26,7 +26,14 @@ fn p50_p99(mut v: Vec<f64>) -> (f64, f64) {
 }
 
 /// The server child: stopped, and every iceoryx2 file of its prefix removed, on drop.
-struct ServerChild(Child, String);
+pub(super) struct ServerChild(Child, String);
+
+impl ServerChild {
+    /// The server's process id.
+    pub(super) fn pid(&self) -> u32 {
+        self.0.id()
+    }
+}
 
 impl Drop for ServerChild {
     fn drop(&mut self) {
@@ -41,7 +48,7 @@ impl Drop for ServerChild {
     }
 }
 
-fn start_server(map: &Path, prefix: &str, spin: bool) -> anyhow::Result<ServerChild> {
+pub(super) fn start_server(map: &Path, prefix: &str, spin: bool) -> anyhow::Result<ServerChild> {
     let exe = std::env::current_exe()?;
     let mut cmd = Command::new(exe);
     cmd.args(["serve", "--map"]).arg(map);

@@ -3,6 +3,7 @@
 pub mod bake;
 pub mod bench;
 mod bench_ipc;
+mod bench_soak;
 mod connect_arg;
 pub mod demo;
 pub mod gravity;

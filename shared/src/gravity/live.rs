@@ -15,6 +15,10 @@ use crate::options::InvalidOption;
 
 /// Stamped poses kept, at most (a minute at 10 Hz).
 const MAX_POSES: usize = 600;
+/// Pool members kept, at most (an hour of one-second windows): beyond it the oldest
+/// member is forgotten, so a session's memory and answer time stay bounded however
+/// long a client streams.
+pub const MAX_MEMBERS: usize = 3600;
 /// Windows held for a later pose, at most; the oldest is left out beyond this.
 const MAX_PENDING: usize = 8;
 /// Stamped windows shorter than this are joined with the next: the platform's
@@ -62,6 +66,8 @@ pub struct LiveGravity {
     poses: BTreeMap<KeyframeId, Pose>,
     /// Whether each pooled member was compensated.
     compensated: BTreeMap<KeyframeId, bool>,
+    /// Pooled member ids, oldest first.
+    order: VecDeque<KeyframeId>,
     /// Stamped poses, oldest first.
     history: VecDeque<(f64, Pose)>,
     pending: VecDeque<Pending>,
@@ -79,6 +85,7 @@ impl LiveGravity {
             aligner: GravityAligner::new(params)?,
             poses: BTreeMap::new(),
             compensated: BTreeMap::new(),
+            order: VecDeque::new(),
             history: VecDeque::new(),
             pending: VecDeque::new(),
             building: None,
@@ -225,7 +232,15 @@ impl LiveGravity {
 
     fn insert(&mut self, p: &Pending, sample: KfAccSample, compensated: bool) {
         self.aligner.on_new_keyframe_raw(p.id, sample);
-        self.poses.insert(p.id, p.pose);
+        if self.poses.insert(p.id, p.pose).is_none() {
+            self.order.push_back(p.id);
+        }
         self.compensated.insert(p.id, compensated);
+        while self.order.len() > MAX_MEMBERS {
+            let oldest = self.order.pop_front().expect("longer than the cap");
+            self.aligner.on_keyframe_dropped(oldest);
+            self.poses.remove(&oldest);
+            self.compensated.remove(&oldest);
+        }
     }
 }

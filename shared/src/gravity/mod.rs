@@ -36,7 +36,7 @@ use serde::{Deserialize, Serialize};
 use crate::KeyframeId;
 use crate::geometry::Pose;
 use crate::options::{InvalidOption, ensure};
-pub use live::{LiveAnswer, LiveGravity};
+pub use live::{LiveAnswer, LiveGravity, MAX_MEMBERS};
 pub use motion::{MotionModel, compensated_sample};
 pub use pool::{KeyframeStamp, PoolFill, fill_pool};
 pub use window::{ImuWindow, KfAccSample, MIN_ACC_STD};

@@ -616,3 +616,38 @@ fn a_pool_fed_live_agrees_with_the_offline_pool() {
         (scans.len(), 0, 0, 0)
     );
 }
+
+/// A session streaming windows forever keeps the newest [`MAX_MEMBERS`]: the oracle is
+/// a pool fed only those.
+#[test]
+fn a_live_pool_keeps_the_newest_members_only() {
+    let window = |id: u64| {
+        let tilt = 0.01 * (id % 7) as f64;
+        ImuWindow::new(
+            (0..10)
+                .map(|k| ImuSample {
+                    t: id as f64 + k as f64 * 0.01,
+                    acc: [tilt, 0.0, G],
+                    gyro: [0.0; 3],
+                })
+                .collect(),
+        )
+    };
+    let extra = 50;
+    let mut streamed = LiveGravity::new(GravityParams::default()).unwrap();
+    let mut newest = LiveGravity::new(GravityParams::default()).unwrap();
+    for id in 0..(MAX_MEMBERS + extra) as u64 {
+        streamed.add_window(id, window(id), Pose::identity(), None);
+        if id >= extra as u64 {
+            newest.add_window(id, window(id), Pose::identity(), None);
+        }
+    }
+    let (a, b) = (streamed.answer(), newest.answer());
+    assert_eq!(a.members, MAX_MEMBERS);
+    assert_eq!(b.members, MAX_MEMBERS);
+    let (ga, gb) = (
+        a.correction.unwrap().estimate.g,
+        b.correction.unwrap().estimate.g,
+    );
+    assert!((ga - gb).norm() < 1e-12, "{ga:?} vs {gb:?}");
+}

@@ -37,6 +37,18 @@ pub enum TransportError {
     /// The map name makes an invalid service name.
     #[error("map name {0:?} cannot be used in an iceoryx2 service name")]
     BadMapName(String),
+    /// iceoryx2's files belong to another unix user.
+    #[error(
+        "permission denied on {path} (owner uid {owner}, mode {mode:o}): a kfmap server's iceoryx2 files are owner-only, so only the unix user that runs `kfmap serve` can connect to it; run this as uid {owner} (iceoryx2 0.10 has no setting for group access; see README, Access)"
+    )]
+    PermissionDenied {
+        /// The folder this process may not use.
+        path: String,
+        /// Its owner.
+        owner: u32,
+        /// Its permission bits.
+        mode: u32,
+    },
     /// iceoryx2 refused.
     #[error("iceoryx2: {what}: {message}")]
     Iceoryx {
@@ -75,7 +87,33 @@ pub fn create_node(config: &Config, name: &str) -> Result<Node<Transport>, Trans
         .config(config)
         .name(&name)
         .create::<Transport>()
-        .map_err(iox("create node"))
+        .map_err(|e| denied(config).unwrap_or_else(|| iox("create node")(e)))
+}
+
+/// The first of iceoryx2's folders this process may not enter or write, as the error
+/// that names it (iceoryx2 itself reports only an internal error).
+fn denied(config: &Config) -> Option<TransportError> {
+    use std::os::unix::ffi::OsStrExt;
+    use std::os::unix::fs::MetadataExt;
+    let root = std::path::PathBuf::from(config.global.root_path().to_string());
+    let dirs = [
+        root.clone(),
+        root.join("nodes"),
+        root.join("services"),
+        "/dev/shm".into(),
+    ];
+    dirs.into_iter().find_map(|dir| {
+        let meta = std::fs::metadata(&dir).ok()?;
+        let path = std::ffi::CString::new(dir.as_os_str().as_bytes()).ok()?;
+        // SAFETY: a valid C string; access(2) only reads it.
+        let allowed =
+            unsafe { libc::access(path.as_ptr(), libc::R_OK | libc::W_OK | libc::X_OK) } == 0;
+        (!allowed).then(|| TransportError::PermissionDenied {
+            path: dir.display().to_string(),
+            owner: meta.uid(),
+            mode: meta.mode() & 0o7777,
+        })
+    })
 }
 
 fn service_name(name: &str, map_name: &str) -> Result<ServiceName, TransportError> {
