@@ -477,9 +477,12 @@ fn print(s: &Soak, json_out: bool) -> anyhow::Result<()> {
         s.clients, s.seconds, r.requests, r.failed, r.lost, r.busy, overall_p99
     );
     for (kind, f) in &per_kind {
+        let ms = |key: &str| f[key].as_f64().unwrap_or(f64::NAN);
         println!(
             "  {kind:>8}: {} answered, p50 {:.1} ms, p99 {:.1} ms",
-            f["count"], f["p50_ms"], f["p99_ms"]
+            f["count"],
+            ms("p50_ms"),
+            ms("p99_ms")
         );
     }
     println!(

@@ -55,11 +55,11 @@ impl Requests<'_> {
                 continue;
             }
             // Refused at once when it is not the sender's session or over a budget.
-            let Some((job, process)) = context.admit(request) else {
+            let Some(job) = context.admit(request) else {
                 continue;
             };
-            // Processes take turns, however many clients each opened.
-            match queue.push(process as u128, job) {
+            // Processes share the workers, however many clients each opened.
+            match queue.push(job.process, job) {
                 Ok(()) => drained.queued += 1,
                 // Closed: the queue counts it as turned away.
                 Err(job) => context.refuse_shutting_down(job),
@@ -100,7 +100,11 @@ impl Requests<'_> {
 pub fn work(context: &WorkerContext, queue: &FairQueue<Job>, requests: &Requests) {
     loop {
         match queue.next() {
-            Turn::Work(job) => context.handle(job),
+            Turn::Work(job) => {
+                let (process, started) = (job.process, Instant::now());
+                context.handle(job);
+                queue.charge(process, started.elapsed());
+            }
             Turn::Lead => {
                 requests.lead(context, queue);
                 queue.resign();

@@ -1,15 +1,37 @@
-//! A fair work queue: one FIFO per client, served round-robin, so one client's burst
-//! of large scans never starves another client's small requests. It also hands out
+//! A fair work queue: one FIFO per client; the next request comes from the client
+//! that used the least of the workers' time lately (decayed with a 5 s half-life), so
+//! a client flooding the server with large scans waits behind one that asks now and
+//! then, and never starves it. It also hands out
 //! the leader's turn: one idle worker at a time waits for requests and queues them
 //! (leader/followers), so a request meets an awake worker with no thread hand-off.
 
 use std::collections::{HashMap, VecDeque};
 use std::sync::{Condvar, Mutex};
+use std::time::{Duration, Instant};
+
+/// Half-life of a client's recorded use of the workers.
+const USAGE_HALF_LIFE: Duration = Duration::from_secs(5);
+
+/// Workers' seconds a client used, decayed to `at`.
+#[derive(Clone, Copy)]
+struct Usage {
+    seconds: f64,
+    at: Instant,
+}
+
+impl Usage {
+    fn now(self, now: Instant) -> f64 {
+        let age = now.saturating_duration_since(self.at).as_secs_f64();
+        self.seconds * 0.5f64.powf(age / USAGE_HALF_LIFE.as_secs_f64())
+    }
+}
 
 struct State<T> {
     queues: HashMap<u128, VecDeque<T>>,
-    /// Clients with queued work, in serving order.
+    /// Clients with queued work, in arrival order (ties in usage go to the first).
     turn: VecDeque<u128>,
+    /// Recent use of the workers per client (forgotten once negligible).
+    usage: HashMap<u128, Usage>,
     /// A worker is waiting for requests.
     led: bool,
     closed: bool,
@@ -40,6 +62,7 @@ impl<T> Default for FairQueue<T> {
             state: Mutex::new(State {
                 queues: HashMap::new(),
                 turn: VecDeque::new(),
+                usage: HashMap::new(),
                 led: false,
                 closed: false,
                 turned_away: 0,
@@ -86,6 +109,22 @@ impl<T> FairQueue<T> {
         }
     }
 
+    /// Records that `client`'s request kept a worker busy for `spent`.
+    pub fn charge(&self, client: u128, spent: Duration) {
+        let now = Instant::now();
+        let mut s = self.lock();
+        let used = s.usage.get(&client).map_or(0.0, |u| u.now(now));
+        s.usage.insert(
+            client,
+            Usage {
+                seconds: used + spent.as_secs_f64(),
+                at: now,
+            },
+        );
+        // Forget clients whose use has decayed to nothing (dead or idle ones).
+        s.usage.retain(|_, u| u.now(now) > 1e-6);
+    }
+
     /// Ends the leader's turn (another worker may take it).
     pub fn resign(&self) {
         self.lock().led = false;
@@ -115,7 +154,14 @@ impl<T> FairQueue<T> {
     }
 
     fn pop(s: &mut State<T>) -> Option<T> {
-        let client = s.turn.pop_front()?;
+        let now = Instant::now();
+        let used = |c: &u128| s.usage.get(c).map_or(0.0, |u| u.now(now));
+        let (at, _) = s
+            .turn
+            .iter()
+            .enumerate()
+            .min_by(|(i, a), (j, b)| used(a).total_cmp(&used(b)).then(i.cmp(j)))?;
+        let client = s.turn.remove(at).expect("found above");
         let queue = s
             .queues
             .get_mut(&client)
@@ -154,6 +200,27 @@ mod tests {
         assert_eq!(q.next(), Turn::Closed);
         assert_eq!(q.push(1, ("a", 9)), Err(("a", 9)));
         assert_eq!(q.turned_away(), 1);
+    }
+
+    #[test]
+    fn a_client_that_used_the_workers_less_goes_first() {
+        let q = FairQueue::default();
+        q.charge(1, Duration::from_millis(900));
+        q.charge(2, Duration::from_millis(10));
+        q.push(1, "heavy").unwrap();
+        q.push(1, "heavy again").unwrap();
+        q.push(2, "light").unwrap();
+        q.push(3, "new").unwrap();
+        let order: Vec<_> = (0..4).map(|_| q.next()).collect();
+        let expected = ["new", "light", "heavy", "heavy again"].map(Turn::Work);
+        assert_eq!(order, expected);
+        // Use decays: by 5 s later half of it is left (the oracle: 0.5^(t / half-life)).
+        let now = Instant::now();
+        let u = Usage {
+            seconds: 1.0,
+            at: now,
+        };
+        assert!((u.now(now + USAGE_HALF_LIFE) - 0.5).abs() < 1e-12);
     }
 
     #[test]

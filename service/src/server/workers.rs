@@ -33,6 +33,8 @@ pub struct Job {
     request: Request,
     received: Instant,
     reservation: Option<Reservation>,
+    /// The process it came from: its turn in the queue and the workers' time it uses.
+    pub process: u128,
 }
 
 impl Job {
@@ -42,13 +44,15 @@ impl Job {
             request,
             received: Instant::now(),
             reservation: None,
+            process: 0,
         }
     }
 
-    /// The job holding `reservation` until it is answered.
-    pub fn holding(self, reservation: Reservation) -> Self {
+    /// The job of `process`, holding `reservation` until it is answered.
+    pub fn holding(self, process: u32, reservation: Reservation) -> Self {
         Self {
             reservation: Some(reservation),
+            process: process as u128,
             ..self
         }
     }
@@ -129,6 +133,7 @@ impl WorkerContext<'_> {
             request,
             received,
             reservation,
+            ..
         } = job;
         let refused;
         let answer = match fits_shared_memory(answer) {
@@ -181,8 +186,8 @@ impl WorkerContext<'_> {
     }
 
     /// Takes `request` in: checks who sent it and reserves its worst case. The job to
-    /// queue and the process whose turn it takes, or the job refused already.
-    pub fn admit(&self, request: Request) -> Option<(Job, u32)> {
+    /// queue, or `None` when it was refused already.
+    pub fn admit(&self, request: Request) -> Option<Job> {
         let header = *request.user_header();
         let job = Job::new(request);
         let claimed = client_of(header.client_node);
@@ -209,7 +214,7 @@ impl WorkerContext<'_> {
         let reserved = worst_case(kind, &header, points, self.budget.limits())
             .and_then(|cost| self.budget.reserve(owner.node, owner.process, cost));
         match reserved {
-            Ok(reservation) => Some((job.holding(reservation), owner.process)),
+            Ok(reservation) => Some(job.holding(owner.process, reservation)),
             Err(rejection) => {
                 self.refuse(job, &rejection);
                 None
