@@ -274,3 +274,53 @@ fn a_second_unix_user_is_told_permission_denied_with_the_path() {
     assert!(stderr.contains("permission denied on /"), "{stderr}");
     assert!(stderr.contains("owner uid 0"), "{stderr}");
 }
+
+/// Was: 20 lost client requests wrote 41 log lines, 229 KB (a dump of iceoryx2's
+/// receiver state per lost request). Now such events are rate-limited: one line per
+/// kind per 10 s, with a count. Clients that give up after 1 ms on a 100k-point
+/// request (its segment reallocated) and exit lose their requests.
+#[test]
+fn lost_requests_do_not_flood_the_log() {
+    let prefix = Prefix::new("lost-log");
+    let dir = temp_dir("lost-log");
+    let data = dir.join("sim");
+    simulate(&data, "courtyard", "3", "16", &[]);
+    let map = dir.join("court.kfmap");
+    bake_dataset(&data, &map);
+    write_bin(&dir.join("big.bin"), &grid(100_000));
+    let server = Server::start(&map, "court", &prefix.0, &[]);
+    let mut gave_up = 0;
+    for _ in 0..20 {
+        let out = std::process::Command::new(common::kfmap_bin())
+            .args([
+                "query",
+                "--map-name",
+                "court",
+                "--iceoryx-prefix",
+                &prefix.0,
+            ])
+            .args(["--timeout", "0.001", "--k", "20", "--points"])
+            .arg(dir.join("big.bin"))
+            .output()
+            .unwrap();
+        gave_up += usize::from(!out.status.success());
+    }
+    assert!(
+        gave_up >= 10,
+        "only {gave_up} of 20 clients gave up waiting"
+    );
+    // The server still answers, and then stops cleanly.
+    let mut client = Client::connect("court", options(&prefix)).unwrap();
+    client.nearest(&grid(10), &Pose::identity(), 1).unwrap();
+    drop(client);
+    let (status, stderr) = server.stop();
+    assert!(status.success(), "{stderr}");
+    let lines = stderr.lines().count();
+    println!(
+        "20 lost requests: server log {lines} lines, {} bytes",
+        stderr.len()
+    );
+    assert!(stderr.len() < 8 * 1024, "{} bytes:\n{stderr}", stderr.len());
+    assert!(lines <= 20, "{lines} lines:\n{stderr}");
+    let _site = site(prefix, dir);
+}

@@ -8,6 +8,7 @@ use std::time::Instant;
 use iceoryx2::active_request::ActiveRequest;
 use iceoryx2::port::notifier::Notifier;
 use kfmap_shared::gravity::LiveAnswer;
+use kfmap_shared::protocol::log_limit::warn_limited;
 use kfmap_shared::protocol::transport::Transport;
 use kfmap_shared::protocol::{
     Rejection, RequestHeader, RequestKind, ResponseHeader, StatusCode, WirePairing,
@@ -139,13 +140,17 @@ impl WorkerContext<'_> {
         let answer = match fits_shared_memory(answer) {
             Ok(()) => answer,
             Err(rejection) => {
-                warn!("{}", rejection.message);
+                warn_limited("shared memory full", &rejection.message);
                 refused = Answer::rejected(header.request_id, &rejection);
                 &refused
             }
         };
         if let Err(e) = send(&request, answer) {
-            warn!(error = %e, "could not send a response; sending the error instead");
+            // A client that stopped waiting (or died) makes this at will: rate-limited.
+            warn_limited(
+                "response not sent",
+                &format!("could not send a response ({e}); sending the error instead"),
+            );
             let error = Answer::rejected(
                 header.request_id,
                 &Rejection::new(

@@ -94,6 +94,23 @@ impl Log for Limited {
     }
 }
 
+/// Logs `message` as a warning unless a warning of `kind` was logged within the last
+/// 10 s; the next one let through says how many were held back. For events a client
+/// can repeat at will (answers it never reads, requests /dev/shm cannot back).
+pub fn warn_limited(kind: &str, message: &str) {
+    static LIMIT: std::sync::OnceLock<Mutex<RateLimit>> = std::sync::OnceLock::new();
+    let limit = LIMIT.get_or_init(|| Mutex::new(RateLimit::new(Duration::from_secs(10))));
+    let held = limit
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .admit(kind, Instant::now());
+    match held {
+        Some(0) => tracing::warn!("{message}"),
+        Some(n) => tracing::warn!("{message} ({n} more like it held back)"),
+        None => {}
+    }
+}
+
 /// Routes iceoryx2's log through [`RateLimit`] (one line per kind per 10 s) into
 /// `tracing`, at warnings and above unless `IOX2_LOG_LEVEL` says otherwise. Call once,
 /// before any iceoryx2 use; false when iceoryx2 already had a logger.
