@@ -35,12 +35,15 @@ pub fn pose_from_xyz_quat(v: [f64; 7]) -> Option<Pose> {
         return None;
     }
     let q = Quaternion::new(v[6], v[3], v[4], v[5]);
-    if q.norm() < 1e-12 {
+    // Scaled by its largest component first: the norm of a quaternion with entries
+    // near 1e200 would overflow to infinity and normalize it to zero.
+    let scale = q.coords.amax();
+    if scale == 0.0 || scale * (q.coords / scale).norm() < 1e-12 {
         return None;
     }
     Some(Isometry3::from_parts(
         Translation3::new(v[0], v[1], v[2]),
-        UnitQuaternion::from_quaternion(q),
+        UnitQuaternion::from_quaternion(q / scale),
     ))
 }
 
@@ -110,6 +113,22 @@ pub fn transform_point(pose: &Pose, p: &[f32; 3]) -> Vector3<f64> {
 mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    /// Fuzzing (`fuzz/regressions/tum_quaternion_norm_overflow.txt`): a quaternion with
+    /// an entry of 1e200 became the zero rotation. Oracle: it is (1, 0, 0, 0) scaled,
+    /// a half turn about x.
+    #[test]
+    fn a_huge_quaternion_is_normalized_not_zeroed() {
+        let pose = pose_from_xyz_quat([0.0, 0.0, 0.0, 1e200, 0.0, 0.0, 1.0]).unwrap();
+        let q = pose.rotation.quaternion();
+        assert!((q.norm() - 1.0).abs() < 1e-12, "{q:?}");
+        assert!((q.i.abs() - 1.0).abs() < 1e-12, "{q:?}");
+        assert_eq!(pose_from_xyz_quat([0.0; 7]), None);
+        assert_eq!(
+            pose_from_xyz_quat([0.0, 0.0, 0.0, 1e-300, 0.0, 0.0, 0.0]),
+            None
+        );
+    }
 
     fn pose_strategy() -> impl Strategy<Value = Pose> {
         (

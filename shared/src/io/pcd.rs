@@ -8,6 +8,8 @@ use super::fields::{Assembler, Scalar, output_value, push_ascii_row, push_binary
 use super::lzf;
 use crate::cloud::PointCloud;
 
+/// Values one point may carry over all fields (the sum of COUNT).
+pub const MAX_SCALARS_PER_POINT: usize = 4096;
 /// The storage mode of a PCD file's data section.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum PcdData {
@@ -142,6 +144,20 @@ fn parse_header(path: &Path, bytes: &[u8]) -> Result<Header, IoError> {
                         ),
                     ));
                 }
+                // Each scalar costs a name and a slot per point: bound them before any
+                // allocation (the widest PCL descriptor, VFH, has 308).
+                let scalars = counts
+                    .iter()
+                    .try_fold(0usize, |sum, c| sum.checked_add(*c))
+                    .filter(|s| *s <= MAX_SCALARS_PER_POINT);
+                if scalars.is_none() {
+                    return Err(bad(
+                        line_no,
+                        format!(
+                            "COUNT {counts:?} adds up to more than {MAX_SCALARS_PER_POINT} values per point"
+                        ),
+                    ));
+                }
                 let mut fields = Vec::with_capacity(n);
                 for i in 0..n {
                     let ty = parse_scalar(&types[i], sizes[i]).ok_or_else(|| {
@@ -161,7 +177,9 @@ fn parse_header(path: &Path, bytes: &[u8]) -> Result<Header, IoError> {
                 }
                 let points = match (points, width, height) {
                     (Some(p), _, _) => p,
-                    (None, Some(w), h) => w * h.unwrap_or(1),
+                    (None, Some(w), h) => w.checked_mul(h.unwrap_or(1)).ok_or_else(|| {
+                        bad(line_no, "WIDTH x HEIGHT overflows a point count".into())
+                    })?,
                     _ => return Err(bad(line_no, "header has neither POINTS nor WIDTH".into())),
                 };
                 return Ok(Header {

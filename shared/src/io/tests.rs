@@ -153,3 +153,26 @@ fn filter_is_applied_on_load_and_reported() {
     };
     assert_eq!(read_cloud(&path, &raw).unwrap().cloud.len(), 500);
 }
+
+/// Fuzzing (`fuzz/regressions/pcd_width_height_overflow.pcd`): WIDTH x HEIGHT without a
+/// POINTS line overflowed (a panic with overflow checks, a wrong count without).
+#[test]
+fn pcd_width_times_height_overflow_is_an_error() {
+    let bytes = b"FIELDS x\nWIDTH 2\nHEIGHT 9223372036854775808\nDATA ascii\n";
+    let e = read_pcd(Path::new("wh.pcd"), bytes).unwrap_err();
+    assert!(e.to_string().contains("WIDTH x HEIGHT"), "{e}");
+}
+
+/// Fuzzing (`fuzz/regressions/pcd_count_allocation.pcd`): a COUNT of 10^12 in a
+/// 60-byte file allocated a name per value and exhausted memory.
+#[test]
+fn pcd_count_is_bounded_before_allocating() {
+    let bytes = b"FIELDS x y z\nCOUNT 1 1 1000000000000\nPOINTS 0\nDATA binary\n";
+    let e = read_pcd(Path::new("count.pcd"), bytes).unwrap_err();
+    assert!(e.to_string().contains("COUNT"), "{e}");
+    let overflow = b"FIELDS x y\nCOUNT 18446744073709551615 2\nPOINTS 0\nDATA ascii\n";
+    assert!(read_pcd(Path::new("sum.pcd"), overflow).is_err());
+    // A wide descriptor (VFH: 308 values) still reads.
+    let vfh = b"FIELDS x y z vfh\nCOUNT 1 1 1 308\nPOINTS 0\nDATA ascii\n";
+    assert!(read_pcd(Path::new("vfh.pcd"), vfh).is_ok());
+}
