@@ -31,13 +31,19 @@ struct Site {
 
 fn served(test: &str) -> (Site, Server) {
     let prefix = Prefix::new(test);
+    let (dir, map) = baked(test);
+    let server = Server::start(&map, "court", &prefix.0, &[]);
+    (site(prefix, dir), server)
+}
+
+/// A test folder with a 3 s simulated courtyard baked into `court.kfmap`.
+fn baked(test: &str) -> (TestDir, PathBuf) {
     let dir = temp_dir(test);
-    let data: PathBuf = dir.join("sim");
+    let data = dir.join("sim");
     simulate(&data, "courtyard", "3", "16", &[]);
     let map = dir.join("court.kfmap");
     bake_dataset(&data, &map);
-    let server = Server::start(&map, "court", &prefix.0, &[]);
-    (site(prefix, dir), server)
+    (dir, map)
 }
 
 fn site(prefix: Prefix, dir: TestDir) -> Site {
@@ -182,11 +188,7 @@ fn a_full_dev_shm_refuses_the_answer_and_the_server_keeps_serving() {
         );
         return;
     }
-    let dir = temp_dir("shm-full");
-    let data = dir.join("sim");
-    simulate(&data, "courtyard", "3", "16", &[]);
-    let map = dir.join("court.kfmap");
-    bake_dataset(&data, &map);
+    let (dir, _map) = baked("shm-full");
     // 100 000 points x k = 20: up to 107 MiB of pairings, within max-answer-bytes, more than
     // the namespace's /dev/shm holds.
     write_bin(&dir.join("big.bin"), &grid(100_000));
@@ -282,11 +284,7 @@ fn a_second_unix_user_is_told_permission_denied_with_the_path() {
 #[test]
 fn lost_requests_do_not_flood_the_log() {
     let prefix = Prefix::new("lost-log");
-    let dir = temp_dir("lost-log");
-    let data = dir.join("sim");
-    simulate(&data, "courtyard", "3", "16", &[]);
-    let map = dir.join("court.kfmap");
-    bake_dataset(&data, &map);
+    let (dir, map) = baked("lost-log");
     write_bin(&dir.join("big.bin"), &grid(100_000));
     let server = Server::start(&map, "court", &prefix.0, &[]);
     let mut gave_up = 0;

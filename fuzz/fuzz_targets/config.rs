@@ -16,10 +16,15 @@ use kfmap_shared::map::KeyframeMapOptions;
 use libfuzzer_sys::fuzz_target;
 
 fn round_trip<C: ConfigFile + serde::Serialize>(config: &C, path: &Path) {
-    let text = toml::to_string(config).unwrap_or_else(|e| panic!("a valid config does not serialize: {e}"));
-    let again = C::from_toml(&text, path).unwrap_or_else(|e| panic!("a valid config, written back, does not load: {e}\n{text}"));
+    let text = toml::to_string(config)
+        .unwrap_or_else(|e| panic!("a valid config does not serialize: {e}"));
+    let again = C::from_toml(&text, path)
+        .unwrap_or_else(|e| panic!("a valid config, written back, does not load: {e}\n{text}"));
     let text_again = toml::to_string(&again).expect("serializes");
-    assert_eq!(text, text_again, "a valid config changes in a write/load round trip");
+    assert_eq!(
+        text, text_again,
+        "a valid config changes in a write/load round trip"
+    );
 }
 
 fn named(e: &ConfigError) {
@@ -49,10 +54,12 @@ fuzz_target!(|data: &[u8]| {
             if strict {
                 round_trip(&config, path);
                 assert!(options.validate().is_ok());
-                let stored = toml::to_string(&options)
-                    .unwrap_or_else(|e| panic!("map options of a valid bake.toml do not serialize: {e}"));
-                let read: KeyframeMapOptions = toml::from_str(&stored)
-                    .unwrap_or_else(|e| panic!("map options as stored do not parse: {e}\n{stored}"));
+                let stored = toml::to_string(&options).unwrap_or_else(|e| {
+                    panic!("map options of a valid bake.toml do not serialize: {e}")
+                });
+                let read: KeyframeMapOptions = toml::from_str(&stored).unwrap_or_else(|e| {
+                    panic!("map options as stored do not parse: {e}\n{stored}")
+                });
                 assert_eq!(toml::to_string(&read).expect("serializes"), stored);
             }
         }

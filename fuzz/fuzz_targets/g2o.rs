@@ -29,20 +29,33 @@ fuzz_target!(|data: &[u8]| {
             let pose = graph.pose(id).expect("listed id has a pose");
             let q = pose.rotation.quaternion();
             assert!(
-                pose.translation.vector.iter().chain(q.coords.iter()).all(|v| v.is_finite()),
+                pose.translation
+                    .vector
+                    .iter()
+                    .chain(q.coords.iter())
+                    .all(|v| v.is_finite()),
                 "vertex {id} is not finite: {pose:?}"
             );
-            assert!((q.norm() - 1.0).abs() < 1e-6, "vertex {id}: quaternion {q:?} is not unit");
+            assert!(
+                (q.norm() - 1.0).abs() < 1e-6,
+                "vertex {id}: quaternion {q:?} is not unit"
+            );
         }
         for e in graph.edges() {
             let q = e.measurement.rotation.quaternion();
-            assert!((q.norm() - 1.0).abs() < 1e-6, "edge {} -> {}: quaternion {q:?} is not unit", e.from, e.to);
+            assert!(
+                (q.norm() - 1.0).abs() < 1e-6,
+                "edge {} -> {}: quaternion {q:?} is not unit",
+                e.from,
+                e.to
+            );
         }
         let out = common::temp_path("graph-out", ".g2o");
         write_g2o(&out, &graph, fixed).unwrap_or_else(|e| panic!("write_g2o failed: {e}"));
         let again = read_g2o(&out);
         let _ = std::fs::remove_file(&out);
-        let (again, again_fixed) = again.unwrap_or_else(|e| panic!("write_g2o output does not read back: {e}"));
+        let (again, again_fixed) =
+            again.unwrap_or_else(|e| panic!("write_g2o output does not read back: {e}"));
         assert_eq!(again.ids(), graph.ids());
         assert_eq!(again.edges().len(), graph.edges().len());
         assert_eq!(again_fixed, fixed);

@@ -22,7 +22,10 @@ fuzz_target!(|data: &[u8]| {
         return;
     }
     for s in &samples {
-        assert!(s.t.is_finite() && s.acc.iter().chain(&s.gyro).all(|v| v.is_finite()), "{s:?}");
+        assert!(
+            s.t.is_finite() && s.acc.iter().chain(&s.gyro).all(|v| v.is_finite()),
+            "{s:?}"
+        );
     }
     let again = parse_imu_csv(path, &format_imu_csv(&samples))
         .unwrap_or_else(|e| panic!("format_imu_csv output does not parse: {e}"));

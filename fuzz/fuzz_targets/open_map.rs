@@ -12,7 +12,13 @@ fuzz_target!(|data: &[u8]| {
         return;
     }
     for trust in [false, true] {
-        if let Ok(opened) = open_map(&path, OpenOptions { trust, ..OpenOptions::default() }) {
+        if let Ok(opened) = open_map(
+            &path,
+            OpenOptions {
+                trust,
+                ..OpenOptions::default()
+            },
+        ) {
             let _ = opened.verify_keyframes(|_| {});
             let mut map = opened.map;
             let ids: Vec<u64> = map.keyframes().map(|k| k.id).collect();

@@ -22,7 +22,11 @@ fuzz_target!(|data: &[u8]| {
         if let Ok(cloud) = result {
             if common::strict() {
                 assert_eq!(cloud.len(), data.len() / layout.record_size());
-                assert_eq!(write_bin(&cloud, layout), data, "{layout:?} does not write back");
+                assert_eq!(
+                    write_bin(&cloud, layout),
+                    data,
+                    "{layout:?} does not write back"
+                );
             }
         }
     }

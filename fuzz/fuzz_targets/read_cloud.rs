@@ -18,7 +18,8 @@ fuzz_target!(|data: &[u8]| {
         return;
     };
     let ext = [".pcd", ".ply", ".bin", ".xyz"][(selector & 3) as usize];
-    let bin_layout = [None, Some(BinLayout::Xyzi), Some(BinLayout::Xyz), None][((selector >> 2) & 3) as usize];
+    let bin_layout =
+        [None, Some(BinLayout::Xyzi), Some(BinLayout::Xyz), None][((selector >> 2) & 3) as usize];
     let min_range = [0.0, 0.1, 1.0, 1e30][((selector >> 5) & 3) as usize];
     let options = ReadOptions {
         bin_layout,

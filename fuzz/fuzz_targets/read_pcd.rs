@@ -22,23 +22,18 @@ fuzz_target!(|data: &[u8]| {
         return;
     }
     assert!(fields.len() >= 3, "fields {fields:?}");
-    let n = cloud.len();
-    for (name, len) in [
-        ("view_dirs", cloud.view_dirs.as_ref().map(Vec::len)),
-        ("intensity", cloud.intensity.as_ref().map(Vec::len)),
-        ("time", cloud.time.as_ref().map(Vec::len)),
-    ] {
-        assert!(len.is_none_or(|l| l == n), "{name} has {len:?} entries for {n} points");
-    }
+    common::assert_attributes_match(&cloud);
     let _ = cloud.validate();
-    for out_mode in [mode, PcdData::Ascii, PcdData::Binary, PcdData::BinaryCompressed] {
+    for out_mode in [
+        mode,
+        PcdData::Ascii,
+        PcdData::Binary,
+        PcdData::BinaryCompressed,
+    ] {
         let bytes = write_pcd(&cloud, out_mode);
         let (again, again_mode, _) = read_pcd(path, &bytes)
             .unwrap_or_else(|e| panic!("write_pcd({out_mode:?}) output does not read back: {e}"));
         assert_eq!(again_mode, out_mode);
-        assert!(common::same_points(&cloud.points, &again.points), "{out_mode:?}: points differ");
-        assert!(common::same_opt(&cloud.view_dirs, &again.view_dirs, |a, b| common::same_points(&[*a], &[*b])));
-        assert!(common::same_opt(&cloud.intensity, &again.intensity, |a, b| common::same_f32(*a, *b)));
-        assert!(common::same_opt(&cloud.time, &again.time, |a, b| common::same_f32(*a, *b)));
+        common::assert_same_cloud(&cloud, &again, &format!("{out_mode:?}"));
     }
 });

@@ -21,22 +21,16 @@ fuzz_target!(|data: &[u8]| {
     if !common::strict() {
         return;
     }
-    let n = cloud.len();
-    for (name, len) in [
-        ("view_dirs", cloud.view_dirs.as_ref().map(Vec::len)),
-        ("intensity", cloud.intensity.as_ref().map(Vec::len)),
-        ("time", cloud.time.as_ref().map(Vec::len)),
+    common::assert_attributes_match(&cloud);
+    for out in [
+        encoding,
+        PlyEncoding::Ascii,
+        PlyEncoding::BinaryLittleEndian,
     ] {
-        assert!(len.is_none_or(|l| l == n), "{name} has {len:?} entries for {n} points");
-    }
-    for out in [encoding, PlyEncoding::Ascii, PlyEncoding::BinaryLittleEndian] {
         let bytes = write_ply(&cloud, out);
         let (again, again_encoding, _) = read_ply(path, &bytes)
             .unwrap_or_else(|e| panic!("write_ply({out:?}) output does not read back: {e}"));
         assert_eq!(again_encoding, out);
-        assert!(common::same_points(&cloud.points, &again.points), "{out:?}: points differ");
-        assert!(common::same_opt(&cloud.view_dirs, &again.view_dirs, |a, b| common::same_points(&[*a], &[*b])));
-        assert!(common::same_opt(&cloud.intensity, &again.intensity, |a, b| common::same_f32(*a, *b)));
-        assert!(common::same_opt(&cloud.time, &again.time, |a, b| common::same_f32(*a, *b)));
+        common::assert_same_cloud(&cloud, &again, &format!("{out:?}"));
     }
 });

@@ -138,11 +138,29 @@ fuzz_target!(|data: &[u8]| {
                     let n = header.point_count as usize;
                     assert!(version_ok && n >= 1 && n <= max);
                     assert_eq!(scan.points.len(), n);
-                    assert_eq!(scan.view_dirs.map(<[_]>::len), (header.flags & FLAG_VIEW_DIRS != 0).then_some(n));
-                    assert_eq!(scan.covariances.map(<[_]>::len), (header.flags & FLAG_COVARIANCES != 0).then_some(n));
+                    assert_eq!(
+                        scan.view_dirs.map(<[_]>::len),
+                        (header.flags & FLAG_VIEW_DIRS != 0).then_some(n)
+                    );
+                    assert_eq!(
+                        scan.covariances.map(<[_]>::len),
+                        (header.flags & FLAG_COVARIANCES != 0).then_some(n)
+                    );
                     assert!(scan.points.as_flattened().iter().all(|v| v.is_finite()));
-                    assert!(scan.view_dirs.unwrap_or(&[]).as_flattened().iter().all(|v| v.is_finite()));
-                    assert!(scan.covariances.unwrap_or(&[]).as_flattened().iter().all(|v| v.is_finite()));
+                    assert!(
+                        scan.view_dirs
+                            .unwrap_or(&[])
+                            .as_flattened()
+                            .iter()
+                            .all(|v| v.is_finite())
+                    );
+                    assert!(
+                        scan.covariances
+                            .unwrap_or(&[])
+                            .as_flattened()
+                            .iter()
+                            .all(|v| v.is_finite())
+                    );
                 }
             }
             Err(r) => {
@@ -183,18 +201,23 @@ fuzz_target!(|data: &[u8]| {
         let pairings: Vec<WirePairing> = input
             .pairings
             .iter()
-            .map(|&([query, local_index], keyframe, point, dist_sq, information)| WirePairing {
-                query,
-                local_index,
-                keyframe,
-                point,
-                dist_sq,
-                information,
-            })
+            .map(
+                |&([query, local_index], keyframe, point, dist_sq, information)| WirePairing {
+                    query,
+                    local_index,
+                    keyframe,
+                    point,
+                    dist_sq,
+                    information,
+                },
+            )
             .collect();
         let found = correspondences_from_wire(&pairings, scan.points);
         if strict {
-            let inside = pairings.iter().filter(|p| (p.query as usize) < scan.points.len()).count();
+            let inside = pairings
+                .iter()
+                .filter(|p| (p.query as usize) < scan.points.len())
+                .count();
             assert_eq!(found.len(), inside);
         }
     }

@@ -27,7 +27,11 @@ fn check_pose(what: &str, pose: &Pose) {
         t.iter().chain(q.coords.iter()).all(|v| v.is_finite()),
         "{what} is not finite: t {t:?} q {q:?}"
     );
-    assert!((q.norm() - 1.0).abs() < 1e-6, "{what}: quaternion {q:?} is not unit (norm {})", q.norm());
+    assert!(
+        (q.norm() - 1.0).abs() < 1e-6,
+        "{what}: quaternion {q:?} is not unit (norm {})",
+        q.norm()
+    );
 }
 
 fuzz_target!(|data: &[u8]| {
@@ -41,8 +45,9 @@ fuzz_target!(|data: &[u8]| {
             let again = parse_tum(path, &format_tum(&traj))
                 .unwrap_or_else(|e| panic!("format_tum output does not parse: {e}"));
             assert_eq!(again.poses.len(), traj.poses.len());
-            let again = parse_kitti_poses(path, &format_kitti_poses(&traj))
-                .unwrap_or_else(|e| panic!("format_kitti_poses output of a TUM file does not parse: {e}"));
+            let again = parse_kitti_poses(path, &format_kitti_poses(&traj)).unwrap_or_else(|e| {
+                panic!("format_kitti_poses output of a TUM file does not parse: {e}")
+            });
             assert_eq!(again.poses.len(), traj.poses.len());
         }
     }
@@ -53,8 +58,9 @@ fuzz_target!(|data: &[u8]| {
             let again = parse_kitti_poses(path, &format_kitti_poses(&traj))
                 .unwrap_or_else(|e| panic!("format_kitti_poses output does not parse: {e}"));
             assert_eq!(again.poses.len(), traj.poses.len());
-            let again = parse_tum(path, &format_tum(&traj))
-                .unwrap_or_else(|e| panic!("format_tum output of a KITTI file does not parse: {e}"));
+            let again = parse_tum(path, &format_tum(&traj)).unwrap_or_else(|e| {
+                panic!("format_tum output of a KITTI file does not parse: {e}")
+            });
             assert_eq!(again.poses.len(), traj.poses.len());
         }
     }

@@ -34,16 +34,18 @@ pub fn pose_from_xyz_quat(v: [f64; 7]) -> Option<Pose> {
     if v.iter().any(|x| !x.is_finite()) {
         return None;
     }
-    let q = Quaternion::new(v[6], v[3], v[4], v[5]);
-    // Scaled by its largest component first: the norm of a quaternion with entries
-    // near 1e200 would overflow to infinity and normalize it to zero.
-    let scale = q.coords.amax();
-    if scale == 0.0 || scale * (q.coords / scale).norm() < 1e-12 {
+    let mut q = Quaternion::new(v[6], v[3], v[4], v[5]);
+    if !q.norm().is_finite() {
+        // Entries near 1e200: the norm overflows and would normalize q to zero. Scaled
+        // only then, so that ordinary quaternions normalize bit for bit as always.
+        q /= q.coords.amax();
+    }
+    if q.norm() < 1e-12 {
         return None;
     }
     Some(Isometry3::from_parts(
         Translation3::new(v[0], v[1], v[2]),
-        UnitQuaternion::from_quaternion(q / scale),
+        UnitQuaternion::from_quaternion(q),
     ))
 }
 
