@@ -15,7 +15,7 @@ use kfmap_client::{Client, ClientError, ClientOptions, LocalizeOptions};
 use kfmap_service::server::percentile;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::imu::ImuSample;
-use kfmap_shared::protocol::transport::iceoryx_config;
+use kfmap_shared::protocol::transport::{iceoryx_config, prefix_files};
 use kfmap_shared::protocol::{Cov2CovMode, ScanPayload, StatusCode};
 use nalgebra::Vector3;
 use rand::rngs::SmallRng;
@@ -230,29 +230,6 @@ impl Rss {
     }
 }
 
-/// Shared-memory and iceoryx2 files whose names start with `prefix`.
-fn leftover_files(prefix: &str) -> Vec<String> {
-    let mut found = Vec::new();
-    let mut dirs = vec![std::path::PathBuf::from("/dev/shm")];
-    if let Ok(config) = iceoryx_config(Some(prefix)) {
-        dirs.push(config.global.root_path().to_string().into());
-    }
-    while let Some(dir) = dirs.pop() {
-        let Ok(entries) = std::fs::read_dir(&dir) else {
-            continue;
-        };
-        for e in entries.flatten() {
-            let name = e.file_name().to_string_lossy().into_owned();
-            if name.starts_with(prefix) {
-                found.push(e.path().display().to_string());
-            } else if e.path().is_dir() && dir != Path::new("/dev/shm") {
-                dirs.push(e.path());
-            }
-        }
-    }
-    found
-}
-
 /// The soak's figures.
 struct Soak {
     clients: usize,
@@ -294,16 +271,28 @@ fn spawn_clients(prefix: &str, plans: &[ClientPlan]) -> anyhow::Result<Vec<Child
         .collect()
 }
 
-fn collect(children: Vec<Child>) -> anyhow::Result<ClientReport> {
-    let mut all = ClientReport::default();
-    for child in children {
-        let out = child.wait_with_output()?;
-        if !out.status.success() {
-            bail!("a soak client failed ({})", out.status);
-        }
-        all.merge(serde_json::from_slice(&out.stdout)?);
-    }
-    Ok(all)
+/// Each client's report, in spawning order.
+fn reports(children: Vec<Child>) -> anyhow::Result<Vec<ClientReport>> {
+    children
+        .into_iter()
+        .map(|child| {
+            let out = child.wait_with_output()?;
+            if !out.status.success() {
+                bail!("a soak client failed ({})", out.status);
+            }
+            Ok(serde_json::from_slice(&out.stdout)?)
+        })
+        .collect()
+}
+
+/// The clients' reports merged into one.
+fn merged(reports: Vec<ClientReport>) -> ClientReport {
+    reports
+        .into_iter()
+        .fold(ClientReport::default(), |mut all, r| {
+            all.merge(r);
+            all
+        })
 }
 
 /// Samples the server's memory once a second for `seconds` (the clients' run); MiB.
@@ -357,7 +346,7 @@ pub fn run(
         .collect();
     let children = spawn_clients(&prefix, &plans)?;
     let samples = watch(&server, seconds, &bar);
-    let report = collect(children)?;
+    let report = merged(reports(children)?);
     // Start: after the first tenth of the run (every client has sent every kind of
     // request, the map's pages are in use and the segments have grown).
     let warm = samples
@@ -382,7 +371,7 @@ pub fn run(
             seconds: phase,
             seed: 100,
         };
-        let alone = collect(spawn_clients(&prefix, &[polite])?)?;
+        let alone = merged(reports(spawn_clients(&prefix, &[polite])?)?);
         bar.set_message(format!("overload: the 1 Hz client while {flood} flood"));
         let mut plans = vec![polite];
         plans.extend((0..flood).map(|i| ClientPlan {
@@ -392,19 +381,9 @@ pub fn run(
         }));
         let children = spawn_clients(&prefix, &plans)?;
         let flood_samples = watch(&server, phase, &bar);
-        let mut outcomes = Vec::new();
-        for child in children {
-            let out = child.wait_with_output()?;
-            if !out.status.success() {
-                bail!("an overload client failed ({})", out.status);
-            }
-            outcomes.push(serde_json::from_slice::<ClientReport>(&out.stdout)?);
-        }
-        let mut flooders = ClientReport::default();
+        let mut outcomes = reports(children)?;
         let polite_flooded = outcomes.remove(0);
-        for o in outcomes {
-            flooders.merge(o);
-        }
+        let flooders = merged(outcomes);
         let max = flood_samples
             .iter()
             .map(|r| r.total)
@@ -431,7 +410,12 @@ pub fn run(
         rss_start,
         rss_end,
         rss_max_mb,
-        leftover: leftover_files(&prefix),
+        leftover: iceoryx_config(Some(&prefix))
+            .map(|config| prefix_files(&config, &prefix))
+            .unwrap_or_default()
+            .iter()
+            .map(|p| p.display().to_string())
+            .collect(),
         overload,
     };
     print(&soak, json_out)?;

@@ -119,7 +119,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "imu": input.imu, "poses": input.poses, "pose_count": report.poses,
             "imu_samples": report.imu_samples, "pool": report.fill,
             "motion_compensation": params.motion_compensation,
-            "compensated": params.motion_compensation && report.fill.compensated > 0,
+            "compensated": report.fill.with_samples > 0 && report.fill.compensated == report.fill.with_samples,
             "accel_bias_mps2": correction.estimate.accel_bias.mps2.as_slice(),
             "bias_observable": correction.estimate.accel_bias.observable,
             "gravity": correction_json(&correction),

@@ -518,6 +518,8 @@ fn localize(
 ) -> Result<Answer, Rejection> {
     let (fine, expected) = localize_params(request)?;
     let exact = exact_mode(map, request.mode, limits)?;
+    // Checked before the work: a bad stamp must not throw away a solved pose.
+    let stamp = decode_stamp(request)?;
     let cloud = scan_cloud(scan);
     let covs = scan_covariances(scan, limits);
     // Built on the ladder's first coarse registration, then reused.
@@ -547,7 +549,7 @@ fn localize(
     })?;
     let active = against.active;
     // An adopted pose with its scan's time joins the session's motion for gravity.
-    if let Some(stamp) = decode_stamp(request)?
+    if let Some(stamp) = stamp
         && found.health.status != TrackingStatus::Lost
     {
         session.gravity.add_pose(stamp, found.pose);

@@ -137,7 +137,7 @@ pub struct ServeSummary {
 
 /// Checks that `/dev/shm` (when present) has [`MIN_SHM_FREE_BYTES`] free.
 pub fn check_shared_memory() -> Result<(), ServeError> {
-    let Some(free) = free_bytes(Path::new("/dev/shm")) else {
+    let Some(free) = shared_memory_free() else {
         return Ok(());
     };
     if free < MIN_SHM_FREE_BYTES {
@@ -255,6 +255,7 @@ pub fn serve(
         trust: options.trust,
         budget: Budget::new(BudgetLimits::of(&options.config.server)),
         ports: ClientPorts::new(&rpc),
+        largest_answer: Default::default(),
     };
     let current = slot.current();
     let exact = match options.config.server.cov2cov_mode {

@@ -17,11 +17,15 @@ use kfmap_shared::protocol::{
 use tracing::{debug, info, warn};
 
 use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 use super::answer::{Answer, AnswerPairings, Limits, PAIRING_BYTES, answer};
 use super::budget::{Budget, Reservation, worst_case};
 use super::ports::ClientPorts;
 use super::session::{Sessions, client_of};
+
+/// Free space `/dev/shm` keeps beyond an answer's segment: other processes' ports.
+const SHM_HEADROOM: u64 = 16 << 20;
 use super::state::MapSlot;
 use super::stats::Stats;
 
@@ -81,6 +85,9 @@ pub struct WorkerContext<'a> {
     pub budget: Arc<Budget>,
     /// Which node and process sent a request.
     pub ports: ClientPorts<'a>,
+    /// Pairings of the largest answer sent so far: the response segment holds that
+    /// much, so only a larger answer can make it grow.
+    pub largest_answer: AtomicUsize,
 }
 
 impl WorkerContext<'_> {
@@ -137,7 +144,7 @@ impl WorkerContext<'_> {
             ..
         } = job;
         let refused;
-        let answer = match fits_shared_memory(answer) {
+        let answer = match self.fits_shared_memory(answer) {
             Ok(()) => answer,
             Err(rejection) => {
                 warn_limited("shared memory full", &rejection.message);
@@ -165,6 +172,34 @@ impl WorkerContext<'_> {
         self.stats
             .record(header.kind, received.elapsed().as_secs_f64() as f32 * 1e6);
         let _ = self.notifier.notify();
+    }
+
+    /// Refuses an answer that would grow the response segment beyond what `/dev/shm`
+    /// can back: a segment grows by powers of two up to twice the answer, and a write
+    /// to a tmpfs page that cannot be backed kills the writer with SIGBUS. Answers no
+    /// larger than one sent before need no look at `/dev/shm`.
+    fn fits_shared_memory(&self, answer: &Answer) -> Result<(), Rejection> {
+        let pairings = answer.pairings.len();
+        if pairings <= self.largest_answer.load(Ordering::Relaxed) {
+            return Ok(());
+        }
+        let bytes = pairings as u64 * PAIRING_BYTES;
+        let needed = 2 * bytes + SHM_HEADROOM;
+        match super::shared_memory_free() {
+            Some(free) if free < needed => Err(Rejection::new(
+                StatusCode::Busy,
+                format!(
+                    "/dev/shm has {} MiB free; this answer ({} MiB) could need {} MiB of shared memory there; free space in /dev/shm (in a container, raise --shm-size) or ask for less",
+                    free >> 20,
+                    bytes >> 20,
+                    needed >> 20
+                ),
+            )),
+            _ => {
+                self.largest_answer.fetch_max(pairings, Ordering::Relaxed);
+                Ok(())
+            }
+        }
     }
 
     /// Answers a request that was queued but never started when shutting down.
@@ -303,35 +338,6 @@ impl WorkerContext<'_> {
             }
         }
     }
-}
-
-/// Free space `/dev/shm` keeps beyond an answer's segment: other processes' ports.
-const SHM_HEADROOM: u64 = 16 << 20;
-
-/// Refuses an answer whose shared-memory segment `/dev/shm` may not be able to back:
-/// a segment grows by powers of two up to twice the answer, and a write to a tmpfs
-/// page that cannot be backed kills the writer with SIGBUS.
-fn fits_shared_memory(answer: &Answer) -> Result<(), Rejection> {
-    let bytes = answer.pairings.len() as u64 * PAIRING_BYTES;
-    if bytes == 0 {
-        return Ok(());
-    }
-    let Some(free) = super::shared_memory_free() else {
-        return Ok(());
-    };
-    let needed = 2 * bytes + SHM_HEADROOM;
-    if free >= needed {
-        return Ok(());
-    }
-    Err(Rejection::new(
-        StatusCode::Busy,
-        format!(
-            "/dev/shm has {} MiB free; this answer ({} MiB) could need {} MiB of shared memory there; free space in /dev/shm (in a container, raise --shm-size) or ask for less",
-            free >> 20,
-            bytes >> 20,
-            needed >> 20
-        ),
-    ))
 }
 
 /// Loans a response of the answer's size, writes the pairings straight into it (no

@@ -3,6 +3,7 @@
 //! pooled once a later pose exists, so its platform acceleration is removed exactly as
 //! the offline pool does ([`super::fill_pool`]: velocities by central differences).
 
+use std::cell::OnceCell;
 use std::collections::{BTreeMap, VecDeque};
 
 use super::{
@@ -68,6 +69,9 @@ pub struct LiveGravity {
     compensated: BTreeMap<KeyframeId, bool>,
     /// Pooled member ids, oldest first.
     order: VecDeque<KeyframeId>,
+    /// The correction over the pool as it is: most requests add a window that is still
+    /// pending, and the joint estimate is the costly part of an answer.
+    correction: OnceCell<Option<GravityCorrection>>,
     /// Stamped poses, oldest first.
     history: VecDeque<(f64, Pose)>,
     pending: VecDeque<Pending>,
@@ -86,6 +90,7 @@ impl LiveGravity {
             poses: BTreeMap::new(),
             compensated: BTreeMap::new(),
             order: VecDeque::new(),
+            correction: OnceCell::new(),
             history: VecDeque::new(),
             pending: VecDeque::new(),
             building: None,
@@ -176,7 +181,9 @@ impl LiveGravity {
     /// The pool's state and correction.
     pub fn answer(&self) -> LiveAnswer {
         LiveAnswer {
-            correction: self.aligner.estimate_global_correction(&self.poses),
+            correction: *self
+                .correction
+                .get_or_init(|| self.aligner.estimate_global_correction(&self.poses)),
             members: self.aligner.size(),
             compensated: self.compensated.values().filter(|c| **c).count(),
             pending: self.pending.len() + self.building.is_some() as usize,
@@ -210,17 +217,24 @@ impl LiveGravity {
     /// by half the acceleration times the pose spacing) and no gap over
     /// [`MAX_POSE_GAP`].
     fn motion_around(&self, t0: f64, t1: f64) -> Option<MotionModel> {
-        let times: Vec<f64> = self.history.iter().map(|(t, _)| *t).collect();
-        let from = times.partition_point(|&t| t <= t0).checked_sub(2)?;
-        let to = times.partition_point(|&t| t < t1) + 1;
-        if to >= times.len()
-            || times[from..=to]
-                .windows(2)
-                .any(|w| w[1] - w[0] > MAX_POSE_GAP)
+        let from = self
+            .history
+            .partition_point(|(t, _)| *t <= t0)
+            .checked_sub(2)?;
+        let to = self.history.partition_point(|(t, _)| *t < t1) + 1;
+        if to >= self.history.len() {
+            return None;
+        }
+        let around = self.history.range(from..=to);
+        if around
+            .clone()
+            .zip(around.clone().skip(1))
+            .any(|(a, b)| b.0 - a.0 > MAX_POSE_GAP)
         {
             return None;
         }
-        MotionModel::new(self.history.iter().copied())
+        // Central differences are local: the poses around the window decide its motion.
+        MotionModel::new(around.copied())
     }
 
     /// Adds `window`'s raw mean to the pool.
@@ -231,6 +245,7 @@ impl LiveGravity {
     }
 
     fn insert(&mut self, p: &Pending, sample: KfAccSample, compensated: bool) {
+        self.correction = OnceCell::new();
         self.aligner.on_new_keyframe_raw(p.id, sample);
         if self.poses.insert(p.id, p.pose).is_none() {
             self.order.push_back(p.id);

@@ -362,18 +362,6 @@ impl GravityAligner {
         )
     }
 
-    /// Robust gravity over the keyframes `ids` (those pooled and with a pose), with
-    /// the bias of the whole pool's estimate (a few keyframes cannot tell it apart);
-    /// `None` with fewer than `max(2, min_pool)` of them.
-    pub fn estimate_gravity_vector_over_window(
-        &self,
-        poses: &BTreeMap<KeyframeId, Pose>,
-        ids: &[KeyframeId],
-        min_pool: usize,
-    ) -> Option<GravityEstimate> {
-        self.estimate_window(poses, ids, min_pool, self.pool_bias(poses))
-    }
-
     /// The bias of the whole pool's estimate (none when there is no estimate).
     fn pool_bias(&self, poses: &BTreeMap<KeyframeId, Pose>) -> AccelBias {
         self.estimate_gravity_vector(poses)

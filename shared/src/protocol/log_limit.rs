@@ -65,49 +65,45 @@ pub fn event_kind(level: LogLevel, origin: &str, message: &str) -> String {
     format!("{level:?} {source} {words}")
 }
 
-struct Limited(Mutex<RateLimit>);
-
-impl Log for Limited {
-    fn log(&self, level: LogLevel, origin: std::fmt::Arguments, message: std::fmt::Arguments) {
-        let (origin, message) = (origin.to_string(), message.to_string());
-        let kind = event_kind(level, &origin, &message);
-        let held = {
-            let mut limit = self.0.lock().unwrap_or_else(|e| e.into_inner());
-            limit.admit(&kind, Instant::now())
-        };
-        let Some(held) = held else {
-            return;
-        };
-        let source = kind.split(' ').nth(1).unwrap_or("");
-        let text: String = message.chars().take(MESSAGE_CHARS).collect();
-        let line = if held > 0 {
-            format!("iceoryx2 {source}: {text} ({held} more like it held back)")
-        } else {
-            format!("iceoryx2 {source}: {text}")
-        };
-        match level {
-            LogLevel::Trace | LogLevel::Debug => tracing::debug!("{line}"),
-            LogLevel::Info => tracing::info!("{line}"),
-            LogLevel::Warn => tracing::warn!("{line}"),
-            LogLevel::Error | LogLevel::Fatal => tracing::error!("{line}"),
-        }
-    }
-}
-
-/// Logs `message` as a warning unless a warning of `kind` was logged within the last
-/// 10 s; the next one let through says how many were held back. For events a client
-/// can repeat at will (answers it never reads, requests /dev/shm cannot back).
-pub fn warn_limited(kind: &str, message: &str) {
+/// Logs `line` at `level` unless an event of `kind` was logged within the last 10 s;
+/// the next line let through says how many were held back. One limit for iceoryx2's
+/// events and the server's own.
+fn log_limited(level: LogLevel, kind: &str, line: &str) {
     static LIMIT: std::sync::OnceLock<Mutex<RateLimit>> = std::sync::OnceLock::new();
     let limit = LIMIT.get_or_init(|| Mutex::new(RateLimit::new(Duration::from_secs(10))));
     let held = limit
         .lock()
         .unwrap_or_else(|e| e.into_inner())
         .admit(kind, Instant::now());
-    match held {
-        Some(0) => tracing::warn!("{message}"),
-        Some(n) => tracing::warn!("{message} ({n} more like it held back)"),
-        None => {}
+    let line = match held {
+        None => return,
+        Some(0) => line.to_string(),
+        Some(n) => format!("{line} ({n} more like it held back)"),
+    };
+    match level {
+        LogLevel::Trace | LogLevel::Debug => tracing::debug!("{line}"),
+        LogLevel::Info => tracing::info!("{line}"),
+        LogLevel::Warn => tracing::warn!("{line}"),
+        LogLevel::Error | LogLevel::Fatal => tracing::error!("{line}"),
+    }
+}
+
+/// A warning for an event a client can repeat at will (answers it never reads,
+/// requests /dev/shm cannot back), rate-limited per `kind` as [`log_limited`].
+pub fn warn_limited(kind: &str, message: &str) {
+    log_limited(LogLevel::Warn, kind, message);
+}
+
+/// iceoryx2's logger: its events, by [`event_kind`], through [`log_limited`].
+struct Limited;
+
+impl Log for Limited {
+    fn log(&self, level: LogLevel, origin: std::fmt::Arguments, message: std::fmt::Arguments) {
+        let message = message.to_string();
+        let kind = event_kind(level, &origin.to_string(), &message);
+        let source = kind.split(' ').nth(1).unwrap_or("");
+        let text: String = message.chars().take(MESSAGE_CHARS).collect();
+        log_limited(level, &kind, &format!("iceoryx2 {source}: {text}"));
     }
 }
 
@@ -115,9 +111,8 @@ pub fn warn_limited(kind: &str, message: &str) {
 /// `tracing`, at warnings and above unless `IOX2_LOG_LEVEL` says otherwise. Call once,
 /// before any iceoryx2 use; false when iceoryx2 already had a logger.
 pub fn install() -> bool {
-    static LOG: std::sync::OnceLock<Limited> = std::sync::OnceLock::new();
-    let log = LOG.get_or_init(|| Limited(Mutex::new(RateLimit::new(Duration::from_secs(10)))));
-    let installed = iceoryx2_log::set_logger(log);
+    static LOG: Limited = Limited;
+    let installed = iceoryx2_log::set_logger(&LOG);
     iceoryx2_log::set_log_level_from_env_or(LogLevel::Warn);
     installed
 }

@@ -161,34 +161,50 @@ fn open_event(node: &Node<Transport>, name: &str, map_name: &str) -> Result<Even
 /// The allocation strategy of both directions.
 pub const ALLOCATION: AllocationStrategy = AllocationStrategy::PowerOfTwo;
 
-/// Removes every file iceoryx2 made under `prefix` (shared memory in `/dev/shm`, sockets
-/// and service records under its root path): what a killed process leaves behind.
-/// Only for prefixes no live process uses.
-pub fn remove_prefix_files(config: &Config, prefix: &str) {
-    /// Removes matching files under `dir`; returns how many. A deepest-level directory
-    /// emptied by it (a dead node's own record folder) goes too, never the shared
-    /// `nodes/` or `services/` folders other processes may be writing into.
-    fn sweep(dir: &std::path::Path, prefix: &str, depth: usize) -> usize {
+/// Every file iceoryx2 made under `prefix`: shared memory in `/dev/shm`, sockets and
+/// service records under its root path (two folder levels deep).
+pub fn prefix_files(config: &Config, prefix: &str) -> Vec<std::path::PathBuf> {
+    fn walk(
+        dir: &std::path::Path,
+        prefix: &str,
+        depth: usize,
+        found: &mut Vec<std::path::PathBuf>,
+    ) {
         let Ok(entries) = std::fs::read_dir(dir) else {
-            return 0;
+            return;
         };
-        let mut removed = 0;
         for e in entries.flatten() {
             let path = e.path();
             if e.file_name().to_string_lossy().starts_with(prefix) {
-                removed += usize::from(std::fs::remove_file(&path).is_ok());
+                found.push(path);
             } else if depth > 0 && path.is_dir() {
-                let inner = sweep(&path, prefix, depth - 1);
-                if inner > 0 && depth == 1 {
-                    // Only succeeds when nothing else is left in it.
-                    let _ = std::fs::remove_dir(&path);
-                }
-                removed += inner;
+                walk(&path, prefix, depth - 1, found);
             }
         }
-        removed
     }
-    sweep(std::path::Path::new("/dev/shm"), prefix, 0);
+    let mut found = Vec::new();
+    walk(std::path::Path::new("/dev/shm"), prefix, 0, &mut found);
     let root = config.global.root_path().to_string();
-    sweep(std::path::Path::new(&root), prefix, 2);
+    walk(std::path::Path::new(&root), prefix, 2, &mut found);
+    found
+}
+
+/// Removes every file iceoryx2 made under `prefix` ([`prefix_files`]): what a killed
+/// process leaves behind. A deepest-level folder emptied by it (a dead node's own
+/// record folder) goes too, never the shared `nodes/` or `services/` folders other
+/// processes may be writing into. Only for prefixes no live process uses.
+pub fn remove_prefix_files(config: &Config, prefix: &str) {
+    let root = std::path::PathBuf::from(config.global.root_path().to_string());
+    for file in prefix_files(config, prefix) {
+        if std::fs::remove_file(&file).is_err() {
+            continue;
+        }
+        let Some(folder) = file.parent() else {
+            continue;
+        };
+        if folder.parent().and_then(|p| p.parent()) == Some(root.as_path()) {
+            // Only succeeds when nothing else is left in it.
+            let _ = std::fs::remove_dir(folder);
+        }
+    }
 }
