@@ -12,7 +12,10 @@ use common::{Prefix, Server, TestDir, bake_dataset, simulate, temp_dir};
 use kfmap_client::{Client, ClientOptions};
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::imu::ImuSample;
-use kfmap_shared::protocol::StatusCode;
+use kfmap_shared::protocol::transport::{
+    MAX_CLIENTS_PER_PROCESS, create_node, iceoryx_config, open_rpc,
+};
+use kfmap_shared::protocol::{RequestHeader, RequestKind, ScanPayload, StatusCode, pose_to_wire};
 
 fn options(prefix: &Prefix) -> ClientOptions {
     ClientOptions {
@@ -321,4 +324,300 @@ fn lost_requests_do_not_flood_the_log() {
     assert!(stderr.len() < 8 * 1024, "{} bytes:\n{stderr}", stderr.len());
     assert!(lines <= 20, "{lines} lines:\n{stderr}");
     let _site = site(prefix, dir);
+}
+
+/// Set in a child copy of this test binary: `MODE:N:PREFIX`, open N client ports under
+/// PREFIX (`library`: through `Client::connect`, as a careless user would; `raw`:
+/// straight through iceoryx2, past the library's own limit, as any process could),
+/// print `ports open: K`, and wait to be killed.
+const HOLD_PORTS: &str = "KFMAP_TEST_HOLD_PORTS";
+
+/// The child's side of the port tests. Returns whether this process is that child.
+fn hold_ports_if_asked() -> bool {
+    let Ok(spec) = std::env::var(HOLD_PORTS) else {
+        return false;
+    };
+    let mut fields = spec.splitn(3, ':');
+    let (mode, n, prefix) = (
+        fields.next().unwrap(),
+        fields.next().unwrap().parse::<usize>().unwrap(),
+        fields.next().unwrap(),
+    );
+    // Not a `Prefix`: dropping one would remove the parent's files.
+    let options = ClientOptions {
+        iceoryx_prefix: Some(prefix.to_string()),
+        timeout: Duration::from_secs(10),
+        spin: false,
+    };
+    let config = iceoryx_config(Some(prefix)).unwrap();
+    let mut clients = Vec::new();
+    let mut raw = Vec::new();
+    for _ in 0..n {
+        if mode == "unread" {
+            // Three answers of 22 MB (50k points x k = 8 pairings of 56 bytes) never
+            // read, each on its own port; then a fourth request, waited for.
+            let header = RequestHeader {
+                kind: RequestKind::Nearest as u32,
+                k: 8,
+                pose: pose_to_wire(&Pose::identity()),
+                ..Default::default()
+            };
+            let points = grid(50_000);
+            let mut c = Client::connect("court", options.clone()).unwrap();
+            if clients.len() < 3 {
+                let scan = ScanPayload {
+                    points: &points,
+                    view_dirs: None,
+                    covariances: None,
+                };
+                c.connection().send_unread(header, &scan).unwrap();
+                // Answered before the next one arrives.
+                std::thread::sleep(Duration::from_millis(500));
+            } else {
+                match c.nearest(&points, &Pose::identity(), 8) {
+                    Ok(_) => println!("fourth: answered"),
+                    Err(e) => println!("fourth: {e}"),
+                }
+            }
+            clients.push(c);
+        } else if mode == "library" {
+            match Client::connect("court", options.clone()) {
+                Ok(c) => clients.push(c),
+                Err(e) => {
+                    println!("connect refused: {e}");
+                    break;
+                }
+            }
+        } else {
+            let node = create_node(&config, "holder").unwrap();
+            let port = open_rpc(&node, "court")
+                .unwrap()
+                .client_builder()
+                .create()
+                .unwrap();
+            raw.push((port, node));
+        }
+    }
+    println!("ports open: {}", clients.len() + raw.len());
+    std::thread::sleep(Duration::from_secs(600));
+    true
+}
+
+/// A port-holding child process, killed when dropped (a failed test leaves none).
+struct Holder(std::process::Child);
+
+impl Holder {
+    /// SIGKILL, as a crash would.
+    fn kill(mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+impl Drop for Holder {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Runs this test binary's `test` as a port holder (see [`HOLD_PORTS`]) and returns
+/// it once its ports are open, with its output so far.
+fn spawn_port_holder(test: &str, spec: &str) -> (Holder, String) {
+    use std::io::BufRead;
+    let child = std::process::Command::new(std::env::current_exe().unwrap())
+        .args([test, "--exact", "--nocapture", "--test-threads", "1"])
+        .env(HOLD_PORTS, spec)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut holder = Holder(child);
+    let stdout = std::io::BufReader::new(holder.0.stdout.take().unwrap());
+    let mut said = String::new();
+    for line in stdout.lines().map_while(Result::ok) {
+        said.push_str(&line);
+        said.push('\n');
+        // libtest's "test NAME ... " comes first on the line.
+        if line.contains("ports open: ") {
+            return (holder, said);
+        }
+    }
+    panic!("the port holder exited before opening its ports: {said}");
+}
+
+/// Was: a client process with 63 ports SIGKILLed stalled every other client for
+/// 1.8-2.3 s (iceoryx2 scans its whole chunk table for each dead connection, on the
+/// request path). With one request and one answer per port that table is 16 times
+/// smaller: a polite client's requests keep being answered while the dead process's
+/// ports are cleaned up.
+#[test]
+fn a_killed_process_with_many_ports_does_not_stall_other_clients() {
+    if hold_ports_if_asked() {
+        return;
+    }
+    let (site, _server) = served("many-ports-killed");
+    // The case; the whole table (127) measured 256 ms.
+    let ports = 63;
+    let (holder, said) = spawn_port_holder(
+        "a_killed_process_with_many_ports_does_not_stall_other_clients",
+        &format!("raw:{ports}:{}", site.prefix.0),
+    );
+    assert!(said.contains(&format!("ports open: {ports}")), "{said}");
+    let mut polite = Client::connect("court", options(&site.prefix)).unwrap();
+    let points = grid(1000);
+    polite.nearest(&points, &Pose::identity(), 1).unwrap();
+    holder.kill();
+    let started = std::time::Instant::now();
+    let mut slowest = Duration::ZERO;
+    let mut answered = 0;
+    while started.elapsed() < Duration::from_secs(3) {
+        let t = std::time::Instant::now();
+        polite.nearest(&points, &Pose::identity(), 1).unwrap();
+        slowest = slowest.max(t.elapsed());
+        answered += 1;
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    println!("after killing {ports} ports: {answered} requests, slowest {slowest:?}");
+    // A stall is what is tested, not speed: 1.8-3.3 s before.
+    assert!(slowest < Duration::from_millis(500), "stalled {slowest:?}");
+}
+
+/// Was: one process opening 64 clients locked every other client out (the table held
+/// 64). Now the client library stops a process at 16 with an error naming the limit,
+/// the table holds 128, and another process's client connects and is served.
+#[test]
+fn one_process_cannot_take_every_client_port() {
+    if hold_ports_if_asked() {
+        return;
+    }
+    let (site, _server) = served("port-hoarder");
+    let (_holder, said) = spawn_port_holder(
+        "one_process_cannot_take_every_client_port",
+        &format!("library:64:{}", site.prefix.0),
+    );
+    assert!(
+        said.contains(&format!("ports open: {MAX_CLIENTS_PER_PROCESS}")),
+        "{said}"
+    );
+    assert!(
+        said.contains(&format!(
+            "already has {MAX_CLIENTS_PER_PROCESS} kfmap clients"
+        )),
+        "{said}"
+    );
+    let mut other = Client::connect("court", options(&site.prefix)).unwrap();
+    let answer = other.nearest(&grid(10), &Pose::identity(), 1).unwrap();
+    assert_eq!(answer.len(), 10);
+}
+
+/// A process over the server's `max-clients-per-process` (here 2) has requests through
+/// its further ports refused with a status naming the option, until one closes.
+#[test]
+fn ports_over_max_clients_per_process_are_refused_until_one_closes() {
+    let prefix = Prefix::new("ports-per-process");
+    let (dir, map) = baked("ports-per-process");
+    let config = dir.join("server.toml");
+    std::fs::write(&config, "[server]\nmax-clients-per-process = 2\n").unwrap();
+    let server = Server::start(
+        &map,
+        "court",
+        &prefix.0,
+        &["--config", config.to_str().unwrap()],
+    );
+    let points = grid(10);
+    let mut first = Client::connect("court", options(&prefix)).unwrap();
+    let mut second = Client::connect("court", options(&prefix)).unwrap();
+    let mut third = Client::connect("court", options(&prefix)).unwrap();
+    first.nearest(&points, &Pose::identity(), 1).unwrap();
+    second.nearest(&points, &Pose::identity(), 1).unwrap();
+    let e = third.nearest(&points, &Pose::identity(), 1).unwrap_err();
+    assert_eq!(e.status(), Some(StatusCode::Busy), "{e}");
+    assert!(e.to_string().contains("max-clients-per-process (2"), "{e}");
+    drop(first);
+    let answer = third.nearest(&points, &Pose::identity(), 1).unwrap();
+    assert_eq!(answer.len(), 10);
+    // Clients before the server, the server before its files.
+    drop((second, third, server));
+    drop(site(prefix, dir));
+}
+
+/// Bytes of shared memory `prefix`'s files hold (tmpfs pages, not their sparse size).
+fn shared_memory_bytes(prefix: &str) -> u64 {
+    use std::os::unix::fs::MetadataExt;
+    let config = iceoryx_config(Some(prefix)).unwrap();
+    kfmap_shared::protocol::transport::prefix_files(&config, prefix)
+        .iter()
+        .filter(|f| f.starts_with("/dev/shm"))
+        .filter_map(|f| std::fs::metadata(f).ok())
+        .map(|m| m.blocks() * 512)
+        .sum()
+}
+
+/// Was: four unread 45 MB answers pinned 175 MiB of the server's shared memory, still
+/// held 60 s later and after the client was killed, with nothing counting them. Now an
+/// unread answer stays charged to its process until the client lets go of it: a
+/// process whose unread answers fill `client-memory-budget` is refused more (Busy,
+/// naming it), and once it is killed its answers' memory goes back to the budget and
+/// is reused, not grown, by the next client's answers.
+#[test]
+fn unread_answers_are_charged_until_read_and_reused_after_the_client_dies() {
+    if hold_ports_if_asked() {
+        return;
+    }
+    let prefix = Prefix::new("unread");
+    let (dir, map) = baked("unread");
+    let config = dir.join("server.toml");
+    // A 22 MB answer's worst case is 70 MB (answer, its copy, scratch): three unread
+    // ones leave no room for a fourth, in the process or on the server.
+    std::fs::write(
+        &config,
+        "[server]\nmax-answer-bytes = 67108864\nclient-memory-budget = 134217728\nmemory-budget = 134217728\n",
+    )
+    .unwrap();
+    let server = Server::start(
+        &map,
+        "court",
+        &prefix.0,
+        &["--config", config.to_str().unwrap()],
+    );
+    let mib = |b: u64| b as f64 / (1 << 20) as f64;
+    let (holder, said) = spawn_port_holder(
+        "unread_answers_are_charged_until_read_and_reused_after_the_client_dies",
+        &format!("unread:4:{}", prefix.0),
+    );
+    assert!(said.contains("fourth: server refused"), "{said}");
+    assert!(said.contains("client-memory-budget"), "{said}");
+    assert!(said.contains("unread answers"), "{said}");
+    let mut other = Client::connect("court", options(&prefix)).unwrap();
+    let points = grid(50_000);
+    // The unread answers hold the server's budget too.
+    let e = other.nearest(&points, &Pose::identity(), 8).unwrap_err();
+    assert_eq!(e.status(), Some(StatusCode::Busy), "{e}");
+    assert!(e.to_string().contains("memory-budget"), "{e}");
+    let pinned = shared_memory_bytes(&prefix.0);
+    holder.kill();
+    // The server notices the dead process within its housekeeping period.
+    std::thread::sleep(Duration::from_secs(1));
+    for _ in 0..4 {
+        let answer = other.nearest(&points, &Pose::identity(), 8).unwrap();
+        assert_eq!(answer.len(), 8 * points.len());
+    }
+    let after = shared_memory_bytes(&prefix.0);
+    println!(
+        "shared memory: {:.1} MiB with 3 answers unread, {:.1} MiB after 4 more answers once their client died",
+        mib(pinned),
+        mib(after)
+    );
+    // Not reused, the four answers would add 4 x 21 MiB; each may touch a bucket's
+    // pages the dead client's answers did not.
+    let answer_bytes = (8 * points.len() * 56) as u64;
+    assert!(
+        after < pinned + 2 * answer_bytes,
+        "{} -> {} MiB",
+        mib(pinned),
+        mib(after)
+    );
+    drop((other, server));
+    drop(site(prefix, dir));
 }

@@ -11,7 +11,7 @@ use iceoryx2::port::notifier::Notifier;
 use iceoryx2::prelude::PortFactory;
 use kfmap_shared::protocol::transport::{
     ALLOCATION, INITIAL_SLICE_LEN, Transport, TransportError, create_node, iceoryx_config, iox,
-    open_request_event, open_response_event, open_rpc,
+    no_room_for_client, open_request_event, open_response_event, open_rpc,
 };
 use std::mem::MaybeUninit;
 
@@ -56,6 +56,14 @@ pub struct Response {
 }
 
 type Port = RpcClient<Transport, [f32], RequestHeader, [WirePairing], ResponseHeader>;
+/// A request sent and not yet answered.
+type Pending = iceoryx2::pending_response::PendingResponse<
+    Transport,
+    [f32],
+    RequestHeader,
+    [WirePairing],
+    ResponseHeader,
+>;
 
 struct Ports {
     rpc: Port,
@@ -117,12 +125,20 @@ impl Connection {
 
     fn ports(&mut self) -> Result<&Ports, TransportError> {
         if self.ports.is_none() {
-            let rpc = open_rpc(&self.node, &self.map_name)?
+            let service = open_rpc(&self.node, &self.map_name)?;
+            if let Some(e) = no_room_for_client(&service, &self.map_name, std::process::id()) {
+                return Err(e);
+            }
+            let rpc = service
                 .client_builder()
                 .initial_max_slice_len(INITIAL_SLICE_LEN)
                 .allocation_strategy(ALLOCATION)
                 .create()
-                .map_err(iox("create the client port"))?;
+                .map_err(|e| {
+                    // The table may have filled since the look above.
+                    no_room_for_client(&service, &self.map_name, std::process::id())
+                        .unwrap_or_else(|| iox("create the client port")(e))
+                })?;
             let requests = open_request_event(&self.node, &self.map_name)?
                 .notifier_builder()
                 .create()
@@ -203,20 +219,34 @@ impl Connection {
         )
     }
 
-    /// Loans `len` floats, lets `init` initialize all of them, sends, waits, and hands
-    /// an `Ok` answer to `read`.
-    fn send_and_wait<R>(
+    /// Sends a scan request and abandons it: its answer is never read and the port's
+    /// one request slot stays taken. Only for tests of what such a client costs the
+    /// server.
+    pub fn send_unread(
+        &mut self,
+        mut header: RequestHeader,
+        scan: &ScanPayload,
+    ) -> Result<(), ClientError> {
+        scan.check_lengths().map_err(ClientError::Invalid)?;
+        header.version = PROTOCOL_VERSION;
+        let (pending, _) = self.send(header, scan.float_len(), |h, payload| {
+            scan.write(h, payload)
+        })?;
+        std::mem::forget(pending);
+        Ok(())
+    }
+
+    /// Loans `len` floats, lets `init` initialize all of them, sends, and wakes the
+    /// server.
+    fn send(
         &mut self,
         mut header: RequestHeader,
         len: usize,
         init: impl FnOnce(&mut RequestHeader, &mut [MaybeUninit<f32>]),
-        read: impl FnOnce(&ResponseHeader, &[WirePairing]) -> R,
-    ) -> Result<R, ClientError> {
+    ) -> Result<(Pending, &Ports), ClientError> {
         header.client_node = self.client_node;
         header.request_id = self.next_request_id;
         self.next_request_id += 1;
-        let timeout = self.options.timeout;
-        let spin = self.options.spin;
         let ports = self.ports()?;
         let mut request = ports
             .rpc
@@ -230,6 +260,20 @@ impl Connection {
             .send()
             .map_err(|e| ClientError::Transport(iox("send a request")(e)))?;
         let _ = ports.requests.notify();
+        Ok((pending, ports))
+    }
+
+    /// Sends (see [`Self::send`]), waits, and hands an `Ok` answer to `read`.
+    fn send_and_wait<R>(
+        &mut self,
+        header: RequestHeader,
+        len: usize,
+        init: impl FnOnce(&mut RequestHeader, &mut [MaybeUninit<f32>]),
+        read: impl FnOnce(&ResponseHeader, &[WirePairing]) -> R,
+    ) -> Result<R, ClientError> {
+        let timeout = self.options.timeout;
+        let spin = self.options.spin;
+        let (pending, ports) = self.send(header, len, init)?;
         let sent = Instant::now();
         let deadline = sent + timeout;
         loop {

@@ -13,6 +13,7 @@ use kfmap_shared::map::{ActiveSetMode, KeyframeDecider, KeyframeMapOptions};
 use kfmap_shared::mapping::BuildParams;
 use kfmap_shared::options::{InvalidOption, ensure};
 use kfmap_shared::protocol::Cov2CovMode;
+use kfmap_shared::protocol::transport::{MAX_CLIENTS, MAX_CLIENTS_PER_PROCESS};
 use kfmap_shared::select::SelectionOptions;
 use kfmap_shared::tracking::TrackingParams;
 use serde::de::DeserializeOwned;
@@ -80,6 +81,9 @@ pub struct ServerSection {
     pub memory_budget: u64,
     /// Requests one process (all its clients together) may have queued or in flight.
     pub max_requests_per_process: u32,
+    /// Client ports of one process served at once; requests through its further
+    /// ports are refused (Busy) until some close.
+    pub max_clients_per_process: usize,
 }
 
 impl Default for ServerSection {
@@ -94,6 +98,7 @@ impl Default for ServerSection {
             client_memory_budget: 1 << 30,
             memory_budget: 2 << 30,
             max_requests_per_process: 16,
+            max_clients_per_process: MAX_CLIENTS_PER_PROCESS,
         }
     }
 }
@@ -152,6 +157,12 @@ impl ServerSection {
             "max-requests-per-process",
             self.max_requests_per_process,
             "1 to 4096",
+        )?;
+        ensure(
+            (1..=MAX_CLIENTS).contains(&self.max_clients_per_process),
+            "max-clients-per-process",
+            self.max_clients_per_process,
+            &format!("1 to {MAX_CLIENTS} (the map's client port table)"),
         )
     }
 }

@@ -2,7 +2,8 @@
 //! answer against `max-answer-bytes`, its worst-case memory against the client's and
 //! the server's budgets, and its process's share of the request slots. A request that
 //! could never fit is refused as too large; one that fits but finds the budget held by
-//! requests in flight is refused as busy. Reservations are released when dropped.
+//! requests in flight is refused as busy. Answers sent stay charged to their process
+//! until the client has read them. Reservations are released when dropped.
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
@@ -112,25 +113,37 @@ pub fn worst_case(
     })
 }
 
+/// What one process holds.
+#[derive(Default, Clone, Copy)]
+struct ProcessHeld {
+    /// Requests queued or in flight.
+    requests: u32,
+    /// Their worst-case memory, plus its answers sent and not yet read.
+    memory: u64,
+}
+
 #[derive(Default)]
 struct Held {
-    by_client: HashMap<u128, u64>,
-    by_process: HashMap<u32, u32>,
+    by_process: HashMap<u32, ProcessHeld>,
     total: u64,
 }
 
-/// Memory and request slots held by requests queued or in flight.
+/// Memory and request slots held by requests queued or in flight, and by answers sent
+/// but not yet read.
 pub struct Budget {
     limits: BudgetLimits,
     held: Mutex<Held>,
 }
 
-/// A request's share of the budget, given back when dropped.
+/// A request's share of the budget, given back when dropped: its worst case while it
+/// is queued or answered ([`Budget::reserve`]), then its answer's bytes until the
+/// client has read it ([`Reservation::settle`]).
 pub struct Reservation {
     budget: Arc<Budget>,
-    client: u128,
     process: u32,
     memory: u64,
+    /// Holds one of its process's request slots.
+    slot: bool,
 }
 
 impl Budget {
@@ -147,32 +160,27 @@ impl Budget {
         &self.limits
     }
 
-    /// Reserves `cost` for `client` of `process`, or says which budget is held.
-    pub fn reserve(
-        self: &Arc<Self>,
-        client: u128,
-        process: u32,
-        cost: Cost,
-    ) -> Result<Reservation, Rejection> {
+    /// Reserves `cost` for a request of `process` (all its client ports together), or
+    /// says which budget is held.
+    pub fn reserve(self: &Arc<Self>, process: u32, cost: Cost) -> Result<Reservation, Rejection> {
         let mut held = self.lock();
         let l = &self.limits;
-        let requests = held.by_process.get(&process).copied().unwrap_or(0);
-        if requests >= l.requests_per_process {
+        let mine = held.by_process.get(&process).copied().unwrap_or_default();
+        if mine.requests >= l.requests_per_process {
             return Err(Rejection::new(
                 StatusCode::Busy,
                 format!(
-                    "process {process} has {requests} requests queued or in flight, max-requests-per-process ({}, server.toml); wait for answers before sending more",
-                    l.requests_per_process
+                    "process {process} has {} requests queued or in flight, max-requests-per-process ({}, server.toml); wait for answers before sending more",
+                    mine.requests, l.requests_per_process
                 ),
             ));
         }
-        let client_held = held.by_client.get(&client).copied().unwrap_or(0);
-        if client_held + cost.memory_bytes > l.client_memory {
+        if mine.memory + cost.memory_bytes > l.client_memory {
             return Err(Rejection::new(
                 StatusCode::Busy,
                 format!(
-                    "this client's requests in flight hold {:.0} MiB; this one could need {:.0} MiB more, over client-memory-budget ({:.0} MiB, server.toml); retry when they are answered",
-                    mib(client_held),
+                    "process {process}'s requests in flight and unread answers hold {:.0} MiB; this one could need {:.0} MiB more, over client-memory-budget ({:.0} MiB, server.toml); read the answers, or retry when they are done",
+                    mib(mine.memory),
                     mib(cost.memory_bytes),
                     mib(l.client_memory)
                 ),
@@ -182,25 +190,26 @@ impl Budget {
             return Err(Rejection::new(
                 StatusCode::Busy,
                 format!(
-                    "requests in flight hold {:.0} MiB; this one could need {:.0} MiB more, over memory-budget ({:.0} MiB, server.toml); retry later",
+                    "requests in flight and unread answers hold {:.0} MiB; this one could need {:.0} MiB more, over memory-budget ({:.0} MiB, server.toml); retry later",
                     mib(held.total),
                     mib(cost.memory_bytes),
                     mib(l.total_memory)
                 ),
             ));
         }
-        *held.by_client.entry(client).or_default() += cost.memory_bytes;
-        *held.by_process.entry(process).or_default() += 1;
+        let entry = held.by_process.entry(process).or_default();
+        entry.requests += 1;
+        entry.memory += cost.memory_bytes;
         held.total += cost.memory_bytes;
         Ok(Reservation {
             budget: self.clone(),
-            client,
             process,
             memory: cost.memory_bytes,
+            slot: true,
         })
     }
 
-    /// Bytes held by requests queued or in flight.
+    /// Bytes held by requests queued or in flight and answers unread.
     #[cfg(test)]
     pub fn held_bytes(&self) -> u64 {
         self.lock().total
@@ -209,24 +218,49 @@ impl Budget {
     fn lock(&self) -> std::sync::MutexGuard<'_, Held> {
         self.held.lock().unwrap_or_else(|e| e.into_inner())
     }
+
+    /// Gives back `memory` bytes and, with `slot`, a request slot of `process`.
+    fn release(&self, process: u32, memory: u64, slot: bool) {
+        let mut held = self.lock();
+        held.total -= memory;
+        if let Some(p) = held.by_process.get_mut(&process) {
+            p.memory -= memory;
+            p.requests -= u32::from(slot);
+            if p.memory == 0 && p.requests == 0 {
+                held.by_process.remove(&process);
+            }
+        }
+    }
+}
+
+impl Reservation {
+    /// The request is answered: its slot and its scratch go back, and what stays held
+    /// is its answer's `answer_bytes` in shared memory, until the client reads it.
+    pub fn settle(mut self, answer_bytes: u64) -> Self {
+        let kept = answer_bytes.min(self.memory);
+        self.budget.release(
+            self.process,
+            self.memory - kept,
+            std::mem::take(&mut self.slot),
+        );
+        self.memory = kept;
+        self
+    }
+
+    /// Bytes it holds.
+    pub fn bytes(&self) -> u64 {
+        self.memory
+    }
+
+    /// The process it is charged to.
+    pub fn process(&self) -> u32 {
+        self.process
+    }
 }
 
 impl Drop for Reservation {
     fn drop(&mut self) {
-        let mut held = self.budget.lock();
-        held.total -= self.memory;
-        if let Some(c) = held.by_client.get_mut(&self.client) {
-            *c -= self.memory;
-            if *c == 0 {
-                held.by_client.remove(&self.client);
-            }
-        }
-        if let Some(p) = held.by_process.get_mut(&self.process) {
-            *p -= 1;
-            if *p == 0 {
-                held.by_process.remove(&self.process);
-            }
-        }
+        self.budget.release(self.process, self.memory, self.slot);
     }
 }
 
@@ -270,7 +304,7 @@ mod tests {
     }
 
     #[test]
-    fn reservations_are_bounded_per_client_process_and_server_and_given_back() {
+    fn reservations_are_bounded_per_process_and_server_and_given_back() {
         let l = BudgetLimits {
             client_memory: 100,
             total_memory: 130,
@@ -282,26 +316,52 @@ mod tests {
             answer_bytes: 0,
             memory_bytes,
         };
-        let a = budget.reserve(1, 10, cost(60)).unwrap();
-        let busy = budget.reserve(1, 10, cost(60)).err().unwrap();
+        let a = budget.reserve(10, cost(60)).unwrap();
+        let busy = budget.reserve(10, cost(60)).err().unwrap();
         assert!(
             busy.message.contains("client-memory-budget"),
             "{}",
             busy.message
         );
-        let b = budget.reserve(2, 20, cost(80)).err().unwrap();
+        let b = budget.reserve(20, cost(80)).err().unwrap();
         assert!(b.message.contains("memory-budget"), "{}", b.message);
-        let b = budget.reserve(2, 20, cost(50)).unwrap();
+        let b = budget.reserve(20, cost(50)).unwrap();
         assert_eq!(budget.held_bytes(), 110);
         drop(a);
         assert_eq!(budget.held_bytes(), 50);
-        let _c = budget.reserve(1, 10, cost(0)).unwrap();
-        let _d = budget.reserve(3, 10, cost(0)).unwrap();
-        let _e = budget.reserve(4, 10, cost(0)).unwrap();
-        let slots = budget.reserve(5, 10, cost(0)).err().unwrap();
+        let _c = budget.reserve(10, cost(0)).unwrap();
+        let _d = budget.reserve(10, cost(0)).unwrap();
+        let e = budget.reserve(10, cost(0)).unwrap();
+        let slots = budget.reserve(10, cost(0)).err().unwrap();
         assert_eq!(slots.status, StatusCode::Busy);
         assert!(slots.message.contains("max-requests-per-process"));
+        // An answered request gives its slot back; its answer's bytes stay held.
+        let e = e.settle(0);
+        let _f = budget.reserve(10, cost(0)).unwrap();
+        drop(e);
         drop(b);
         assert_eq!(budget.held_bytes(), 0);
+    }
+
+    #[test]
+    fn a_settled_reservation_keeps_only_its_answer_until_dropped() {
+        let budget = Budget::new(BudgetLimits {
+            client_memory: 100,
+            total_memory: 100,
+            ..limits()
+        });
+        let cost = Cost {
+            answer_bytes: 30,
+            memory_bytes: 90,
+        };
+        let answered = budget.reserve(1, cost).unwrap().settle(30);
+        assert_eq!(budget.held_bytes(), 30);
+        assert_eq!(answered.bytes(), 30);
+        // The unread answer still counts: a second request of 90 does not fit.
+        let busy = budget.reserve(1, cost).err().unwrap();
+        assert!(busy.message.contains("unread answers"), "{}", busy.message);
+        drop(answered);
+        assert_eq!(budget.held_bytes(), 0);
+        budget.reserve(1, cost).unwrap();
     }
 }

@@ -46,6 +46,9 @@ impl Requests<'_> {
     /// once the queue is closed they are refused.
     pub fn drain(&self, context: &WorkerContext, queue: &FairQueue<Job>) -> Drained {
         let mut drained = Drained::default();
+        // A client sends its next request only after letting go of its last one: that
+        // answer's memory goes back to the budget before the new one is admitted.
+        context.unread.sweep();
         while let Ok(Some(request)) = self.server.receive() {
             let header = request.user_header();
             if header.kind == RequestKind::Echo as u32 {

@@ -12,6 +12,7 @@ mod queue;
 pub mod session;
 pub mod state;
 mod stats;
+mod unread;
 mod workers;
 
 use std::collections::HashSet;
@@ -40,6 +41,7 @@ use queue::FairQueue;
 use session::Sessions;
 pub use state::{MapSlot, ServedMap};
 pub use stats::{KindFigures, Stats, percentile};
+use unread::UnreadAnswers;
 use workers::{Job, WorkerContext};
 
 /// Free space `/dev/shm` must have at start: iceoryx2 writes into shared memory that
@@ -220,6 +222,8 @@ pub fn serve(
         .server_builder()
         .initial_max_slice_len(INITIAL_SLICE_LEN)
         .allocation_strategy(ALLOCATION)
+        // One answer per request (and fewer chunks to scan when a client dies).
+        .max_loaned_responses_per_request(1)
         .create()
         .map_err(|_| ServeError::AlreadyServed(options.map_name.clone()))?;
     let listener = open_request_event(&node, &options.map_name)?
@@ -254,7 +258,8 @@ pub fn serve(
         started,
         trust: options.trust,
         budget: Budget::new(BudgetLimits::of(&options.config.server)),
-        ports: ClientPorts::new(&rpc),
+        ports: ClientPorts::new(&rpc, options.config.server.max_clients_per_process),
+        unread: &UnreadAnswers::default(),
         largest_answer: Default::default(),
     };
     let current = slot.current();
@@ -292,6 +297,7 @@ pub fn serve(
         }
         let housekeeping = || {
             let alive = live_nodes(&node, &config);
+            context.unread.sweep();
             let dropped = context.sessions.retain_alive(&alive);
             if dropped > 0 {
                 info!(dropped, "sessions of dead clients reclaimed");

@@ -21,8 +21,9 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use super::answer::{Answer, AnswerPairings, Limits, PAIRING_BYTES, answer};
 use super::budget::{Budget, Reservation, worst_case};
-use super::ports::ClientPorts;
+use super::ports::{ClientPorts, Sender};
 use super::session::{Sessions, client_of};
+use super::unread::UnreadAnswers;
 
 /// Free space `/dev/shm` keeps beyond an answer's segment: other processes' ports.
 const SHM_HEADROOM: u64 = 16 << 20;
@@ -85,6 +86,8 @@ pub struct WorkerContext<'a> {
     pub budget: Arc<Budget>,
     /// Which node and process sent a request.
     pub ports: ClientPorts<'a>,
+    /// Large answers sent and not yet read.
+    pub unread: &'a UnreadAnswers,
     /// Pairings of the largest answer sent so far: the response segment holds that
     /// much, so only a larger answer can make it grow.
     pub largest_answer: AtomicUsize,
@@ -167,8 +170,13 @@ impl WorkerContext<'_> {
             );
             let _ = send(&request, &error);
         }
-        drop(request);
-        drop(reservation);
+        match reservation {
+            Some(reservation) => {
+                let bytes = answer.pairings.len() as u64 * PAIRING_BYTES;
+                self.unread.hold(request, reservation, bytes);
+            }
+            None => drop(request),
+        }
         self.stats
             .record(header.kind, received.elapsed().as_secs_f64() as f32 * 1e6);
         let _ = self.notifier.notify();
@@ -231,12 +239,25 @@ impl WorkerContext<'_> {
         let header = *request.user_header();
         let job = Job::new(request);
         let claimed = client_of(header.client_node);
-        let owner = match self.ports.owner(job.request.origin()) {
-            Some(owner) if owner.node == claimed => owner,
+        let owner = match self.ports.sender(job.request.origin()) {
+            Sender::Served(owner) if owner.node == claimed => owner,
+            Sender::OverProcessLimit(owner) if owner.node == claimed => {
+                let limit = self.ports.per_process();
+                let message = format!(
+                    "process {} has {limit} other client ports open, max-clients-per-process ({limit}, server.toml); requests through its further ports are refused until some close",
+                    owner.process
+                );
+                warn_limited("client ports over max-clients-per-process", &message);
+                self.refuse(job, &Rejection::new(StatusCode::Busy, message));
+                return None;
+            }
             found => {
-                let sender = found.map_or("an unregistered port".to_string(), |o| {
-                    format!("node {:032x}", o.node)
-                });
+                let sender = match found {
+                    Sender::Served(o) | Sender::OverProcessLimit(o) => {
+                        format!("node {:032x}", o.node)
+                    }
+                    Sender::Unregistered => "an unregistered port".to_string(),
+                };
                 self.refuse(
                     job,
                     &Rejection::new(
@@ -252,7 +273,7 @@ impl WorkerContext<'_> {
         let points = (job.request.payload().len() / 3) as u64;
         let kind = RequestKind::from_code(header.kind);
         let reserved = worst_case(kind, &header, points, self.budget.limits())
-            .and_then(|cost| self.budget.reserve(owner.node, owner.process, cost));
+            .and_then(|cost| self.budget.reserve(owner.process, cost));
         match reserved {
             Ok(reservation) => Some(job.holding(owner.process, reservation)),
             Err(rejection) => {

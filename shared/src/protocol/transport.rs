@@ -4,7 +4,8 @@
 use iceoryx2::config::Config;
 use iceoryx2::node::Node;
 use iceoryx2::prelude::{
-    AllocationStrategy, FileName, NodeBuilder, SemanticString, ServiceName, ipc_threadsafe,
+    AllocationStrategy, CallbackProgression, FileName, NodeBuilder, PortFactory, SemanticString,
+    ServiceName, ipc_threadsafe,
 };
 use iceoryx2::service::port_factory::event::PortFactory as EventFactory;
 use iceoryx2::service::port_factory::request_response::PortFactory as RpcFactory;
@@ -22,8 +23,11 @@ pub type Rpc = RpcFactory<Transport, [f32], RequestHeader, [WirePairing], Respon
 /// An event service of a map.
 pub type Event = EventFactory<Transport>;
 
-/// Clients (processes, ports) a map's services admit.
-pub const MAX_CLIENTS: usize = 64;
+/// Client ports a map's services admit, over all processes.
+pub const MAX_CLIENTS: usize = 128;
+/// Client ports one process may open through this library (the server's default
+/// `max-clients-per-process`): one careless process cannot fill the table.
+pub const MAX_CLIENTS_PER_PROCESS: usize = 16;
 /// Slice length reserved for a first request or response; larger ones grow the
 /// segment once (power-of-two reallocation).
 pub const INITIAL_SLICE_LEN: usize = 16 * 1024;
@@ -48,6 +52,30 @@ pub enum TransportError {
         owner: u32,
         /// Its permission bits.
         mode: u32,
+    },
+    /// This process holds its share of the map's client ports already.
+    #[error(
+        "this process (pid {process}) already has {open} kfmap clients of map {map_name:?} open, the most one process may ({MAX_CLIENTS_PER_PROCESS}); drop clients it no longer uses (each Client holds a port until dropped)"
+    )]
+    TooManyClients {
+        /// The map.
+        map_name: String,
+        /// This process.
+        process: u32,
+        /// Its ports.
+        open: usize,
+    },
+    /// Every client port of the map's service is taken.
+    #[error(
+        "all {MAX_CLIENTS} client ports of map {map_name:?} are taken; process {busiest} holds {held} of them"
+    )]
+    ClientTableFull {
+        /// The map.
+        map_name: String,
+        /// The process holding most ports.
+        busiest: u32,
+        /// How many it holds.
+        held: usize,
     },
     /// iceoryx2 refused.
     #[error("iceoryx2: {what}: {message}")]
@@ -129,10 +157,77 @@ pub fn open_rpc(node: &Node<Transport>, map_name: &str) -> Result<Rpc, Transport
         .max_servers(1)
         .max_clients(MAX_CLIENTS)
         .max_nodes(MAX_CLIENTS + 2)
-        .max_active_requests_per_client(4)
-        .max_response_buffer_size(4)
+        // One request in flight and one answer per port: iceoryx2 sizes the server's
+        // chunk table by max_clients x these, and scans it whole whenever a dead client's
+        // connection is removed (with 4 and 4, 63 dead ports stalled the server 2.5 s).
+        .max_active_requests_per_client(1)
+        .max_response_buffer_size(1)
+        .max_borrowed_responses_per_pending_response(1)
         .open_or_create()
         .map_err(iox("open the request-response service"))
+}
+
+/// A client port registered with a map's service, and who owns it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RegisteredClient {
+    /// iceoryx2's `UniqueClientId` of the port.
+    pub port: u128,
+    /// Its node.
+    pub node: u128,
+    /// The node's process (0 when iceoryx2 cannot tell).
+    pub process: u32,
+}
+
+/// Every client port of `rpc` now, read from the service's registry.
+pub fn registered_clients(rpc: &Rpc) -> Vec<RegisteredClient> {
+    let mut found = Vec::new();
+    rpc.dynamic_config().list_clients(|details| {
+        let process = details
+            .node_id
+            .pid::<Transport>()
+            .map_or(0, |p| p.value() as u32);
+        found.push(RegisteredClient {
+            port: details.client_id.value(),
+            node: details.node_id.value(),
+            process,
+        });
+        CallbackProgression::Continue
+    });
+    found
+}
+
+/// Ports per process among `clients`.
+pub fn ports_per_process(clients: &[RegisteredClient]) -> std::collections::HashMap<u32, usize> {
+    let mut counts = std::collections::HashMap::new();
+    for c in clients {
+        *counts.entry(c.process).or_default() += 1;
+    }
+    counts
+}
+
+/// Why a new client port cannot be opened, when it is a kfmap limit: `process` holds
+/// [`MAX_CLIENTS_PER_PROCESS`] ports already, or the table is full (named with the
+/// process holding most). `None` while there is room.
+pub fn no_room_for_client(rpc: &Rpc, map_name: &str, process: u32) -> Option<TransportError> {
+    let clients = registered_clients(rpc);
+    let counts = ports_per_process(&clients);
+    let open = counts.get(&process).copied().unwrap_or(0);
+    if open >= MAX_CLIENTS_PER_PROCESS {
+        return Some(TransportError::TooManyClients {
+            map_name: map_name.to_string(),
+            process,
+            open,
+        });
+    }
+    if clients.len() < MAX_CLIENTS {
+        return None;
+    }
+    let (busiest, held) = counts.into_iter().max_by_key(|&(_, n)| n)?;
+    Some(TransportError::ClientTableFull {
+        map_name: map_name.to_string(),
+        busiest,
+        held,
+    })
 }
 
 /// Opens or creates the event service clients signal after a request.

@@ -1,0 +1,76 @@
+//! Answers sent and not yet read. iceoryx2 delivers an answer into the server's own
+//! shared memory, and a client that never reads it keeps that memory until it does or
+//! exits; nothing can take a delivered answer back. So a large answer stays charged to
+//! its process's budget until the client lets go of its request (it has read the
+//! answer, given up, or died): a client that never reads is refused more work once its
+//! unread answers fill `client-memory-budget`, and the server's shared memory stays
+//! within `memory-budget`.
+
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+use kfmap_shared::protocol::log_limit::warn_limited;
+
+use super::budget::Reservation;
+use super::workers::Request;
+
+/// Answers smaller than this are let go at once (at most one per client port is
+/// unread at a time: one request in flight per port).
+const TRACKED_BYTES: u64 = 1 << 20;
+/// An answer unread this long is reported (once).
+const REPORT_AFTER: Duration = Duration::from_secs(30);
+
+struct Unread {
+    request: Request,
+    reservation: Reservation,
+    sent: Instant,
+    reported: bool,
+}
+
+/// Large answers whose clients still hold their requests.
+#[derive(Default)]
+pub struct UnreadAnswers {
+    held: Mutex<Vec<Unread>>,
+}
+
+impl UnreadAnswers {
+    /// `request` was answered with `answer_bytes`: its reservation keeps those bytes
+    /// until the client lets go of the request.
+    pub fn hold(&self, request: Request, reservation: Reservation, answer_bytes: u64) {
+        if answer_bytes < TRACKED_BYTES {
+            return;
+        }
+        let unread = Unread {
+            request,
+            reservation: reservation.settle(answer_bytes),
+            sent: Instant::now(),
+            reported: false,
+        };
+        self.lock().push(unread);
+    }
+
+    /// Lets go of answers their clients are done with (the budget gets their bytes
+    /// back) and reports answers unread for long.
+    pub fn sweep(&self) {
+        let mut held = self.lock();
+        held.retain(|u| u.request.is_connected());
+        for u in held.iter_mut() {
+            if !u.reported && u.sent.elapsed() >= REPORT_AFTER {
+                u.reported = true;
+                warn_limited(
+                    "answers left unread",
+                    &format!(
+                        "process {} has left an answer of {:.0} MiB unread for {} s; it stays charged to the process's client-memory-budget until the client reads it, drops the request or exits",
+                        u.reservation.process(),
+                        u.reservation.bytes() as f64 / (1u64 << 20) as f64,
+                        REPORT_AFTER.as_secs()
+                    ),
+                );
+            }
+        }
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, Vec<Unread>> {
+        self.held.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
