@@ -74,10 +74,12 @@ pub struct ServerSection {
     /// Most map points one `Radius` query point may find; a point finding more stops
     /// the request with a status naming this limit.
     pub max_radius_points: u32,
-    /// Memory one client's requests in flight may hold at once (worst case from each
-    /// request's header: answer, its shared-memory copy and scratch), bytes.
+    /// Memory one client process's requests in flight (worst case from each request's
+    /// header: answer, its shared-memory copy and scratch) and its unread answers may
+    /// hold at once, bytes.
     pub client_memory_budget: u64,
-    /// Memory every client's requests in flight may hold at once, bytes.
+    /// Memory every client's requests in flight and unread answers may hold at once,
+    /// bytes.
     pub memory_budget: u64,
     /// Requests one process (all its clients together) may have queued or in flight.
     pub max_requests_per_process: u32,

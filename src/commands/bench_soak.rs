@@ -245,6 +245,8 @@ struct Soak {
 /// A polite client's latency alone and while others flood.
 struct Overload {
     flooders: usize,
+    polite_alone_p50_ms: f64,
+    polite_flooded_p50_ms: f64,
     polite_alone_p99_ms: f64,
     polite_flooded_p99_ms: f64,
     polite_flooded_failed: u64,
@@ -311,9 +313,13 @@ fn watch(server: &ServerChild, seconds: f64, bar: &ProgressBar) -> Vec<Rss> {
     samples
 }
 
-fn p99(mut v: Vec<f64>) -> f64 {
+fn p99(v: Vec<f64>) -> f64 {
+    percentile_ms(v, 0.99)
+}
+
+fn percentile_ms(mut v: Vec<f64>, q: f64) -> f64 {
     v.sort_by(f64::total_cmp);
-    percentile(&v, 0.99)
+    percentile(&v, q)
 }
 
 /// Runs the soak: `clients` processes at `rate` Hz for `seconds`, then, with
@@ -391,6 +397,8 @@ pub fn run(
         rss_max_mb = rss_max_mb.max(max);
         Some(Overload {
             flooders: flood,
+            polite_alone_p50_ms: percentile_ms(alone.all_latencies(), 0.5),
+            polite_flooded_p50_ms: percentile_ms(polite_flooded.all_latencies(), 0.5),
             polite_alone_p99_ms: p99(alone.all_latencies()),
             polite_flooded_p99_ms: p99(polite_flooded.all_latencies()),
             polite_flooded_failed: polite_flooded.failed + polite_flooded.lost,
@@ -437,7 +445,9 @@ fn print(s: &Soak, json_out: bool) -> anyhow::Result<()> {
     let overall_p99 = p99(r.all_latencies());
     if json_out {
         let overload = s.overload.as_ref().map(|o| {
-            json!({"flooders": o.flooders, "polite_alone_p99_ms": o.polite_alone_p99_ms,
+            json!({"flooders": o.flooders,
+                "polite_alone_p50_ms": o.polite_alone_p50_ms, "polite_flooded_p50_ms": o.polite_flooded_p50_ms,
+                "polite_alone_p99_ms": o.polite_alone_p99_ms,
                 "polite_flooded_p99_ms": o.polite_flooded_p99_ms,
                 "polite_flooded_failed": o.polite_flooded_failed,
                 "flood_requests": o.flood_requests, "flood_busy": o.flood_busy,
@@ -489,8 +499,10 @@ fn print(s: &Soak, json_out: bool) -> anyhow::Result<()> {
     }
     if let Some(o) = &s.overload {
         println!(
-            "overload: a 1 Hz client's p99 {:.1} ms alone, {:.1} ms while {} processes flood ({} failed); the flood sent {} requests, {} refused busy; server RSS at most {:.0} MiB",
+            "overload: a 1 Hz client's p50 / p99 {:.1} / {:.1} ms alone, {:.1} / {:.1} ms while {} processes flood ({} failed); the flood sent {} requests, {} refused busy; server RSS at most {:.0} MiB",
+            o.polite_alone_p50_ms,
             o.polite_alone_p99_ms,
+            o.polite_flooded_p50_ms,
             o.polite_flooded_p99_ms,
             o.flooders,
             o.polite_flooded_failed,
