@@ -32,6 +32,7 @@ pub mod mapping;
 pub mod motion;
 pub mod neighbourhoods;
 pub mod options;
+pub mod place;
 pub mod pose_graph;
 pub mod protocol;
 pub mod registration;
