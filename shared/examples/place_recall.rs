@@ -6,10 +6,11 @@
 //! the same queries against views of the merged map (scans 0-115 at their poses, 0.1 m
 //! voxels) from virtual positions every `GRID_M` metres around the map's keyframes,
 //! levelled at yaw 0: a descriptor per position instead of per scan, which tolerates
-//! the revisit's offset from the first pass.
+//! the revisit's offset from the first pass. With `occlude`, a view keeps only the
+//! nearest map point along each beam, as a scan from there would.
 //!
 //! ```sh
-//! cargo run --release -p kfmap-shared --example place_recall [SENSOR_HEIGHT] [MAX_RANGE]
+//! cargo run --release -p kfmap-shared --example place_recall [SENSOR_HEIGHT] [MAX_RANGE] [occlude]
 //! ```
 
 use kfmap_shared::cloud::PointCloud;
@@ -37,6 +38,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         ..Default::default()
     };
     params.validate()?;
+    // "occlude": a view keeps only the nearest point along each beam, as a scan would.
+    let occlude = args.next().is_some_and(|a| a == "occlude");
     let poses = read_trajectory(&dir.join("poses.txt"))?.poses;
     let mut descriptors = Vec::with_capacity(poses.len());
     for (i, pose) in poses.iter().enumerate() {
@@ -108,6 +111,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     ]
                 })
                 .collect();
+            let local = if occlude { visible(&local) } else { local };
             ScanContext::of_points(&local, params)
         })
         .collect();
@@ -121,12 +125,41 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         first_query,
     );
     report(
-        &format!("{} map views", sites.len()),
+        &format!(
+            "{} {}",
+            sites.len(),
+            if occlude {
+                "occluded map views"
+            } else {
+                "map views"
+            }
+        ),
         &params,
         queries.len(),
         by_view,
     );
     Ok(())
+}
+
+/// The points a 360 x 90 deg LiDAR at the origin would see: the nearest per beam of
+/// 0.5 deg azimuth x 1 deg elevation.
+fn visible(points: &[[f32; 3]]) -> Vec<[f32; 3]> {
+    let mut nearest: std::collections::HashMap<(i32, i32), (f32, [f32; 3])> =
+        std::collections::HashMap::new();
+    for p in points {
+        let range = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
+        if range < 0.3 {
+            continue;
+        }
+        let azimuth = p[1].atan2(p[0]).to_degrees();
+        let elevation = (p[2] / range).asin().to_degrees();
+        let beam = ((azimuth * 2.0).floor() as i32, elevation.floor() as i32);
+        let slot = nearest.entry(beam).or_insert((f32::INFINITY, *p));
+        if range < slot.0 {
+            *slot = (range, *p);
+        }
+    }
+    nearest.into_values().map(|(_, p)| p).collect()
 }
 
 /// For each query, whether a right candidate is among the best `TOP` of
