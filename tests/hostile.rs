@@ -479,8 +479,9 @@ fn a_killed_process_with_many_ports_does_not_stall_other_clients() {
         std::thread::sleep(Duration::from_millis(10));
     }
     println!("after killing {ports} ports: {answered} requests, slowest {slowest:?}");
-    // A stall is what is tested, not speed: 1.8-3.3 s before.
-    assert!(slowest < Duration::from_millis(500), "stalled {slowest:?}");
+    // A stall is what is tested, not speed: 1.8-3.3 s before; now 0.14-0.54 s, the
+    // most when other tests load both cores.
+    assert!(slowest < Duration::from_secs(1), "stalled {slowest:?}");
 }
 
 /// Was: one process opening 64 clients locked every other client out (the table held
