@@ -71,11 +71,13 @@ impl ScanContextParams {
     }
 }
 
-/// The descriptor of one scan: `rings` x `sectors` heights, ring-major.
+/// The descriptor of one scan: `rings` x `sectors` heights, stored sector by sector
+/// (a column per sector, what a comparison walks), with each column's norm.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ScanContext {
     params: ScanContextParams,
-    cells: Vec<f32>,
+    columns: Vec<f32>,
+    norms: Vec<f64>,
 }
 
 /// How well two descriptors match at their best yaw.
@@ -93,7 +95,8 @@ impl ScanContext {
     /// The descriptor of `points` (sensor frame, z up). Points that are not finite or
     /// lie beyond `max_range` are left out.
     pub fn of_points(points: &[[f32; 3]], params: ScanContextParams) -> Self {
-        let mut cells = vec![0.0f32; params.rings * params.sectors];
+        let rings = params.rings;
+        let mut columns = vec![0.0f32; rings * params.sectors];
         for p in points {
             let [x, y, z] = p.map(f64::from);
             if !(x.is_finite() && y.is_finite() && z.is_finite()) {
@@ -103,15 +106,23 @@ impl ScanContext {
             if range >= params.max_range {
                 continue;
             }
-            let ring = ((range / params.max_range) * params.rings as f64) as usize;
+            let ring = ((range / params.max_range) * rings as f64) as usize;
             let azimuth = y.atan2(x).rem_euclid(TAU);
             let sector = ((azimuth / params.sector_width()) as usize).min(params.sectors - 1);
             // Height above the floor; a point below it still marks its cell occupied.
             let height = (z + params.sensor_height).max(f64::EPSILON) as f32;
-            let cell = &mut cells[ring * params.sectors + sector];
+            let cell = &mut columns[sector * rings + ring];
             *cell = cell.max(height);
         }
-        Self { params, cells }
+        let norms = columns
+            .chunks(rings)
+            .map(|c| c.iter().map(|&h| f64::from(h * h)).sum::<f64>().sqrt())
+            .collect();
+        Self {
+            params,
+            columns,
+            norms,
+        }
     }
 
     /// The grid it was made with.
@@ -121,14 +132,17 @@ impl ScanContext {
 
     /// Height kept in cell (`ring`, `sector`), metres above the floor (0: empty).
     pub fn cell(&self, ring: usize, sector: usize) -> f32 {
-        self.cells[ring * self.params.sectors + sector]
+        self.columns[sector * self.params.rings + ring]
     }
 
     /// The share of occupied cells in each ring: the same whatever the yaw.
     pub fn ring_key(&self) -> Vec<f32> {
-        self.cells
-            .chunks(self.params.sectors)
-            .map(|ring| ring.iter().filter(|&&h| h > 0.0).count() as f32 / ring.len() as f32)
+        let sectors = self.params.sectors;
+        (0..self.params.rings)
+            .map(|r| {
+                let occupied = (0..sectors).filter(|&s| self.cell(r, s) > 0.0).count();
+                occupied as f32 / sectors as f32
+            })
             .collect()
     }
 
@@ -139,49 +153,37 @@ impl ScanContext {
         if self.params != candidate.params {
             return None;
         }
-        let sectors = self.params.sectors;
-        let columns_a = self.columns();
-        let columns_b = candidate.columns();
+        let (rings, sectors) = (self.params.rings, self.params.sectors);
         let mut best = PlaceMatch {
             distance: 1.0,
             yaw: 0.0,
         };
         for shift in 0..sectors {
             let (mut similarity, mut shared) = (0.0, 0usize);
-            for (j, a) in columns_a.iter().enumerate() {
-                let b = &columns_b[(j + shift) % sectors];
-                if let (Some((a, norm_a)), Some((b, norm_b))) = (a, b) {
-                    let dot: f64 = a.iter().zip(b).map(|(x, y)| f64::from(x * y)).sum();
-                    similarity += dot / (norm_a * norm_b);
-                    shared += 1;
+            for j in 0..sectors {
+                let k = (j + shift) % sectors;
+                let (norm_a, norm_b) = (self.norms[j], candidate.norms[k]);
+                if norm_a == 0.0 || norm_b == 0.0 {
+                    continue;
                 }
+                let a = &self.columns[j * rings..(j + 1) * rings];
+                let b = &candidate.columns[k * rings..(k + 1) * rings];
+                let dot: f64 = a.iter().zip(b).map(|(x, y)| f64::from(x * y)).sum();
+                similarity += dot / (norm_a * norm_b);
+                shared += 1;
             }
             if shared == 0 {
                 continue;
             }
             let distance = 1.0 - similarity / shared as f64;
             if distance < best.distance {
-                let yaw = shift as f64 * self.params.sector_width();
                 best = PlaceMatch {
                     distance,
-                    yaw: wrap_angle(yaw),
+                    yaw: wrap_angle(shift as f64 * self.params.sector_width()),
                 };
             }
         }
         Some(best)
-    }
-
-    /// Each sector's column of heights (one per ring) with its norm; `None` when the
-    /// column is empty.
-    fn columns(&self) -> Vec<Option<(Vec<f32>, f64)>> {
-        let (rings, sectors) = (self.params.rings, self.params.sectors);
-        (0..sectors)
-            .map(|s| {
-                let column: Vec<f32> = (0..rings).map(|r| self.cells[r * sectors + s]).collect();
-                let norm = column.iter().map(|&h| f64::from(h * h)).sum::<f64>().sqrt();
-                (norm > 0.0).then_some((column, norm))
-            })
-            .collect()
     }
 }
 

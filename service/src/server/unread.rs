@@ -7,6 +7,7 @@
 //! within `memory-budget`.
 
 use std::sync::Mutex;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
 use kfmap_shared::protocol::log_limit::warn_limited;
@@ -31,6 +32,9 @@ struct Unread {
 #[derive(Default)]
 pub struct UnreadAnswers {
     held: Mutex<Vec<Unread>>,
+    /// `held.len()`, read without the lock: the leader sweeps on every look at the
+    /// request port, and almost always there is nothing to sweep.
+    count: AtomicUsize,
 }
 
 impl UnreadAnswers {
@@ -46,14 +50,20 @@ impl UnreadAnswers {
             sent: Instant::now(),
             reported: false,
         };
-        self.lock().push(unread);
+        let mut held = self.lock();
+        held.push(unread);
+        self.count.store(held.len(), Ordering::Relaxed);
     }
 
     /// Lets go of answers their clients are done with (the budget gets their bytes
     /// back) and reports answers unread for long.
     pub fn sweep(&self) {
+        if self.count.load(Ordering::Relaxed) == 0 {
+            return;
+        }
         let mut held = self.lock();
         held.retain(|u| u.request.is_connected());
+        self.count.store(held.len(), Ordering::Relaxed);
         for u in held.iter_mut() {
             if !u.reported && u.sent.elapsed() >= REPORT_AFTER {
                 u.reported = true;
