@@ -28,6 +28,7 @@ enum Command {
     Gravity(commands::gravity::Args),
     Localize(commands::localize::Args),
     Query(commands::query::Args),
+    Relocalize(commands::relocalize::Args),
     Serve(commands::serve::Args),
     Status(commands::status::Args),
 }
@@ -72,6 +73,7 @@ fn main() -> ExitCode {
         Command::Gravity(args) => commands::gravity::run(args),
         Command::Localize(args) => commands::localize::run(args),
         Command::Query(args) => commands::query::run(args),
+        Command::Relocalize(args) => commands::relocalize::run(args),
         Command::Serve(args) => commands::serve::run(args),
         Command::Status(args) => commands::status::run(args),
     };

@@ -14,10 +14,17 @@ use kfmap_shared::gravity::{GravityParams, ImuWindow, LiveGravity};
 use kfmap_shared::io::read_trajectory;
 use kfmap_shared::sim::gravity_in_map;
 
-/// `kfmap localize --json` against a running server; returns the summary.
+/// `kfmap localize --json` against a running server from the dataset's reference start;
+/// returns the summary.
 fn localize(data: &Path, prefix: &str, out: &Path, extra: &[&str]) -> serde_json::Value {
     let output = Command::new(kfmap_bin())
-        .args(["localize", "--map-name", "campus", "--dataset"])
+        .args([
+            "localize",
+            "--initial-from-ground-truth",
+            "--map-name",
+            "campus",
+        ])
+        .arg("--dataset")
         .arg(data)
         .args(["--rate", "0", "--json", "--iceoryx-prefix", prefix, "--out"])
         .arg(out)

@@ -285,7 +285,11 @@ fn localize_process(
             data.to_str().unwrap(),
         ])
         .args(["--rate", "0", "--json", "--iceoryx-prefix", prefix])
-        .args(["--out", out.to_str().unwrap()])
+        .args([
+            "--out",
+            out.to_str().unwrap(),
+            "--initial-from-ground-truth",
+        ])
         .args(extra)
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())

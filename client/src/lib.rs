@@ -18,11 +18,13 @@
 mod connection;
 mod error;
 mod localize;
+mod relocalize;
 mod tracker;
 
 pub use connection::{ClientOptions, Connection, Response};
 pub use error::ClientError;
 pub use localize::{LocalizeOptions, Localized};
+pub use relocalize::{RelocalizeOptions, Relocalized};
 pub use tracker::{TrackedScan, Tracker, TrackerOptions};
 
 use kfmap_shared::KeyframeId;

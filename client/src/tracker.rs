@@ -12,7 +12,10 @@ use kfmap_shared::motion::{AdaptiveThreshold, AdaptiveThresholdParams, Gyro, Pos
 use kfmap_shared::protocol::ScanPayload;
 use kfmap_shared::tracking::{CORRECTION_RANGE_M, Reasons, ScanHealth, TrackingStatus};
 
-use crate::{Client, ClientError, LocalizeOptions, Localized};
+use kfmap_shared::geometry::translation_distance;
+use kfmap_shared::place::RelocalizeStatus;
+
+use crate::{Client, ClientError, LocalizeOptions, Localized, RelocalizeOptions};
 
 /// Tracker settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -31,6 +34,9 @@ pub struct TrackerOptions {
     pub recover_after: usize,
     /// Deskew scans that carry per-point times ([`Tracker::track_cloud`]).
     pub deskew: bool,
+    /// Ask the server where a scan is (`Relocalize`, no guess) when it is `lost`, and
+    /// restart tracking there when the server finds one place.
+    pub relocalize_when_lost: bool,
 }
 
 impl Default for TrackerOptions {
@@ -48,6 +54,7 @@ impl Default for TrackerOptions {
             },
             recover_after: 2,
             deskew: true,
+            relocalize_when_lost: false,
         }
     }
 }
@@ -71,8 +78,8 @@ pub struct TrackedScan {
 #[derive(Debug, Clone)]
 pub struct Tracker {
     options: TrackerOptions,
-    /// Where the first scan is localized from.
-    initial: Pose,
+    /// Where the first scan is localized from; `None`: it is relocalized.
+    initial: Option<Pose>,
     /// Adopted poses (at the scans' mid-scan times when deskewed).
     motion: PosePredictor,
     gate: AdaptiveThreshold,
@@ -88,6 +95,22 @@ impl Tracker {
     /// A tracker whose first scan is localized from `initial` (`T_map_sensor`, e.g. a
     /// relocalization or a known start), with no bound on its correction.
     pub fn new(initial: Pose, options: TrackerOptions) -> Self {
+        Self::starting(Some(initial), options)
+    }
+
+    /// A tracker with no idea where it starts: the first scan is relocalized (and so is
+    /// every `lost` scan after it, whatever `relocalize_when_lost` says).
+    pub fn relocalizing(options: TrackerOptions) -> Self {
+        Self::starting(
+            None,
+            TrackerOptions {
+                relocalize_when_lost: true,
+                ..options
+            },
+        )
+    }
+
+    fn starting(initial: Option<Pose>, options: TrackerOptions) -> Self {
         Self {
             options,
             initial,
@@ -116,9 +139,12 @@ impl Tracker {
     }
 
     /// The pose expected at time `t` (seconds): the last adopted pose carried forward
-    /// at the last velocity (the initial pose before any).
+    /// at the last velocity (the initial pose before any; identity without one).
     pub fn predict(&self, t: f64) -> Pose {
-        self.motion.predict(t).unwrap_or(self.initial)
+        self.motion
+            .predict(t)
+            .or(self.initial)
+            .unwrap_or_else(Pose::identity)
     }
 
     /// The correction bound for the next scan, metres: `None` until a pose was
@@ -145,12 +171,62 @@ impl Tracker {
             stamp: Some(t),
             ..self.options.localize
         };
+        if self.initial.is_none() && self.motion.last().is_none() {
+            // Nowhere to localize from yet: only the map can say where this is.
+            let lost = Localized {
+                pose: predicted,
+                health: ScanHealth::no_fit(0, 0),
+            };
+            return self.relocalize(client, scan, t, predicted, lost);
+        }
         let localized = if self.options.server_side {
             client.localize(scan, &predicted, &options)?
         } else {
             client.localize_client_side(scan, &predicted, &options)?
         };
+        if localized.health.status == TrackingStatus::Lost && self.options.relocalize_when_lost {
+            return self.relocalize(client, scan, t, predicted, localized);
+        }
         Ok(self.observe(t, predicted, max_correction, localized))
+    }
+
+    /// Asks the server where `scan` is; when it finds one place, tracking restarts
+    /// there (the scan `degraded`: relocalized, recovering); otherwise the scan is
+    /// `lost` as `lost` says.
+    fn relocalize(
+        &mut self,
+        client: &mut Client,
+        scan: &ScanPayload,
+        t: f64,
+        predicted: Pose,
+        lost: Localized,
+    ) -> Result<TrackedScan, ClientError> {
+        let options = RelocalizeOptions {
+            max_pair_dist: self.options.localize.max_pair_dist,
+            max_iterations: self.options.localize.max_iterations,
+            tilt: None,
+        };
+        let place = client.relocalize(scan, &options)?;
+        let (RelocalizeStatus::Found, Some(pose)) = (place.status, place.pose) else {
+            return Ok(self.observe(t, predicted, None, lost));
+        };
+        self.motion.restart();
+        self.adopted_streak = 0;
+        let localized = Localized {
+            pose,
+            health: ScanHealth {
+                status: TrackingStatus::Degraded,
+                reasons: Reasons::RELOCALIZED,
+                inlier_ratio: place.inlier_ratio,
+                rmse: place.rmse,
+                degenerate: place.degenerate,
+                converged: place.converged,
+                covariance: place.covariance,
+                correction: translation_distance(&predicted, &pose),
+                ..ScanHealth::no_fit(lost.health.registrations, lost.health.iterations)
+            },
+        };
+        Ok(self.observe(t, predicted, None, localized))
     }
 
     /// Localizes `cloud` (sensor frame, stamped `stamp` seconds): deskewed into its

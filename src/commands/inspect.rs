@@ -8,11 +8,12 @@ use kfmap_shared::archive::{OpenOptions, OpenedMap, open_map};
 use serde_json::json;
 
 /// Describe a baked map: header, options, keyframes, points, size breakdown, bounding
-/// box, covisibility statistics and gravity pool.
+/// box, covisibility statistics, gravity pool and the place grid relocalization
+/// searches.
 ///
 /// Opening reads only the header and the index. --verify also checks the whole-file
-/// checksum and every keyframe (its checksum, archive layout and KD-tree: each point
-/// must find itself); use it after copying a map to a robot.
+/// checksum, every keyframe (its checksum, archive layout and KD-tree: each point
+/// must find itself) and the place grid; use it after copying a map to a robot.
 ///
 /// Exit code 2 with a message naming the problem for a missing, truncated, corrupt,
 /// wrong-version or wrong-endianness file.
@@ -39,6 +40,7 @@ struct Breakdown {
     covariances: u64,
     trees_and_overhead: u64,
     index: u64,
+    place_grid: u64,
 }
 
 fn breakdown(m: &OpenedMap) -> Breakdown {
@@ -51,6 +53,7 @@ fn breakdown(m: &OpenedMap) -> Breakdown {
         covariances,
         trees_and_overhead: segments - points - covariances,
         index: m.header.index_len,
+        place_grid: m.index.place.map_or(0, |p| p.len),
     }
 }
 
@@ -74,6 +77,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 .progress_chars("=> "),
         );
         opened.verify_keyframes(|done| bar.set_position(done as u64))?;
+        if let Some(place) = &opened.place {
+            place.view()?;
+        }
         bar.finish_and_clear();
         verify_ms = Some(started.elapsed().as_secs_f64() * 1e3);
     }
@@ -107,6 +113,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     } else {
         Some(pool.iter().map(|g| g.std).sum::<f64>() / pool.len() as f64)
     };
+    let place = opened.place.as_ref().map(|p| p.view()).transpose()?;
     let h = &opened.header;
     if args.json {
         println!(
@@ -123,6 +130,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 "bytes_covariances": sizes.covariances,
                 "bytes_trees_and_overhead": sizes.trees_and_overhead,
                 "bytes_index": sizes.index,
+                "bytes_place_grid": sizes.place_grid,
+                "place_grid": place.map(|g| json!({
+                    "resolution_m": g.resolution(),
+                    "dims": g.dims(),
+                    "levels": g.levels(),
+                })),
                 "bbox_min": lo,
                 "bbox_max": hi,
                 "covisibility_edges": edges.len(),
@@ -165,6 +178,17 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         mean_degree,
         essential
     );
+    match place {
+        Some(g) => println!(
+            "  place grid (relocalization): {:?} voxels of {} m, {} levels, {:.3} MB ({:.2} % of the file)",
+            g.dims(),
+            g.resolution(),
+            g.levels(),
+            mb(sizes.place_grid),
+            100.0 * sizes.place_grid as f64 / opened.file_len() as f64
+        ),
+        None => println!("  place grid: none (relocalization refused; bake the map again)"),
+    }
     match pool_spread {
         Some(s) => println!(
             "  gravity pool: {} keyframes, mean accelerometer spread {s:.3} m/s^2",

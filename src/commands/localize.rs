@@ -26,9 +26,11 @@ use super::connect_arg::ConnectArgs;
 /// Replay a dataset's scans (and IMU) against a running `kfmap serve` and localize
 /// every scan, tracking it: each scan is localized from the pose a constant-velocity
 /// model predicts from the scans before (its rotation integrated from the gyro when the
-/// dataset has an IMU log and timestamped poses) (the first from --initial, or with
-/// --initial-from-ground-truth the dataset's reference pose of the first replayed scan;
-/// without either, that reference pose when the dataset has one, else identity).
+/// dataset has an IMU log and timestamped poses). The first scan is localized from
+/// --initial, or with --initial-from-ground-truth from the dataset's reference pose of
+/// the first replayed scan; without either, the server relocalizes it (finds where it
+/// is in the map with no guess, as `kfmap relocalize`), and relocalizes again every
+/// scan the tracker reports lost, restarting tracking where it finds one place.
 /// Ground truth is taken to be in the frame of the dataset the map was baked from; the
 /// rotation bake applied (gravity levelling) is read from the server.
 ///
@@ -275,9 +277,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .collect()
     });
     let initial = match (&args.initial, &truth) {
-        (Some(text), _) => super::pose_arg::parse_pose(text)?,
-        (None, Some(t)) => t[0],
-        (None, None) => Pose::identity(),
+        (Some(text), _) => Some(super::pose_arg::parse_pose(text)?),
+        (None, Some(t)) if args.initial_from_ground_truth => Some(t[0]),
+        _ => None,
     };
     let tracking = ServerConfig::load(args.config.as_deref())?.tracking;
     let options = TrackerOptions {
@@ -304,7 +306,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     );
     let config = BakeConfig::default();
     let period = (args.rate > 0.0).then(|| Duration::from_secs_f64(1.0 / args.rate));
-    let mut tracker = Tracker::new(initial, options);
+    let mut tracker = match initial {
+        Some(pose) => Tracker::new(pose, options),
+        None => Tracker::relocalizing(options),
+    };
     if let Some(gyro) = gyro {
         tracker = tracker.with_gyro(gyro);
     }

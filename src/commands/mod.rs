@@ -14,6 +14,7 @@ pub mod optimize_graph;
 mod pose_arg;
 pub mod query;
 pub mod register;
+pub mod relocalize;
 mod report;
 pub mod serve;
 pub mod simulate;

@@ -236,3 +236,13 @@ pub fn bake_dataset(dataset: &Path, map: &Path) {
         String::from_utf8_lossy(&out.stderr)
     );
 }
+
+/// A dataset of links to `scans` (renumbered from 0) with `pose_lines` as its pose file.
+pub fn linked_dataset(dir: &Path, scans: &[PathBuf], pose_lines: &[&str]) {
+    std::fs::create_dir_all(dir.join("scans")).unwrap();
+    for (i, scan) in scans.iter().enumerate() {
+        let name = format!("{i:06}.{}", scan.extension().unwrap().to_str().unwrap());
+        std::os::unix::fs::symlink(scan, dir.join("scans").join(name)).unwrap();
+    }
+    std::fs::write(dir.join("poses.txt"), pose_lines.join("\n") + "\n").unwrap();
+}

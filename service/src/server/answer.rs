@@ -22,6 +22,7 @@ use kfmap_shared::tracking::{
 };
 use rayon::prelude::*;
 
+use super::relocalize::relocalize;
 use super::session::Session;
 use super::state::ServedMap;
 use crate::config::ServerConfig;
@@ -179,7 +180,7 @@ pub fn answer(
     answer
 }
 
-fn bad(message: impl Into<String>) -> Rejection {
+pub(super) fn bad(message: impl Into<String>) -> Rejection {
     Rejection::new(StatusCode::BadRequest, message)
 }
 
@@ -226,6 +227,7 @@ fn compute(
                     )?;
                     Ok(with_active(AnswerPairings::Cov2Cov(pairings), &active))
                 }
+                RequestKind::Relocalize => relocalize(map, session, request, &scan, &pose, limits),
                 _ => localize(map, session, request, &scan, &pose, limits),
             }
         }
@@ -250,7 +252,7 @@ fn echo(request: &RequestHeader, payload: &[f32], limits: &Limits) -> Result<Ans
     })
 }
 
-fn with_active(pairings: AnswerPairings, active: &[u64]) -> Answer {
+pub(super) fn with_active(pairings: AnswerPairings, active: &[u64]) -> Answer {
     let mut header = ResponseHeader::default();
     let used = active.len().min(header.active.len());
     header.active[..used].copy_from_slice(&active[..used]);
@@ -264,7 +266,7 @@ fn map_error(e: MapError) -> Rejection {
 
 /// True when a request of wire mode `mode` is answered in exact mode: its own mode,
 /// else the server's (`server.toml`), else the map's (`bake.toml`).
-fn exact_mode(map: &ServedMap, mode: u32, limits: &Limits) -> Result<bool, Rejection> {
+pub(super) fn exact_mode(map: &ServedMap, mode: u32, limits: &Limits) -> Result<bool, Rejection> {
     let requested = Cov2CovMode::from_code(mode).ok_or_else(|| {
         bad(format!(
             "cov2cov mode {mode} is unknown (0 map default, 1 approximate, 2 exact)"
@@ -520,10 +522,7 @@ fn localize(
     let exact = exact_mode(map, request.mode, limits)?;
     // Checked before the work: a bad stamp must not throw away a solved pose.
     let stamp = decode_stamp(request)?;
-    let cloud = scan_cloud(scan);
-    let covs = scan_covariances(scan, limits);
-    // Built on the ladder's first coarse registration, then reused.
-    let mut coarse: Option<(PointCloud, Vec<[f32; 6]>)> = None;
+    let mut stages = ScanStages::new(scan, limits);
     let mut against = MapRegistration {
         map,
         session,
@@ -531,20 +530,7 @@ fn localize(
         active: Vec::new(),
     };
     let found = localize_scan(pose, &expected, fine, &limits.tracking, |start, stage| {
-        let (cloud, covs) = if stage.coarse {
-            if coarse.is_none() {
-                let c = limits
-                    .tracking
-                    .coarse_scan(scan.points, scan.view_dirs)
-                    .map_err(|e| bad(format!("coarse scan: {e}")))?;
-                let covs = estimate_covariances(&c.points, &limits.scan_covariance).values;
-                coarse = Some((c, covs));
-            }
-            let (c, v) = coarse.as_ref().expect("built above");
-            (c, v.as_slice())
-        } else {
-            (&cloud, covs.as_slice())
-        };
+        let (cloud, covs) = stages.for_stage(stage)?;
         against.register(cloud, covs, start, stage)
     })?;
     let active = against.active;
@@ -573,26 +559,80 @@ fn localize(
     Ok(answer)
 }
 
+/// A scan as registrations take it: as sent, and coarse (built on the first coarse
+/// registration, then reused), each with its covariances.
+pub(super) struct ScanStages<'s> {
+    scan: &'s DecodedScan<'s>,
+    limits: &'s Limits,
+    fine: Option<(PointCloud, Vec<[f32; 6]>)>,
+    coarse: Option<(PointCloud, Vec<[f32; 6]>)>,
+}
+
+impl<'s> ScanStages<'s> {
+    pub(super) fn new(scan: &'s DecodedScan<'s>, limits: &'s Limits) -> Self {
+        Self {
+            scan,
+            limits,
+            fine: None,
+            coarse: None,
+        }
+    }
+
+    /// The cloud and covariances `stage` registers (each built on first use).
+    pub(super) fn for_stage(
+        &mut self,
+        stage: &Stage,
+    ) -> Result<(&PointCloud, &[[f32; 6]]), Rejection> {
+        if !stage.coarse {
+            let (cloud, covs) = self.fine.get_or_insert_with(|| {
+                (
+                    scan_cloud(self.scan),
+                    scan_covariances(self.scan, self.limits),
+                )
+            });
+            return Ok((cloud, covs.as_slice()));
+        }
+        if self.coarse.is_none() {
+            self.coarse = Some(coarse_scan(self.scan, self.limits)?);
+        }
+        let (c, v) = self.coarse.as_ref().expect("built above");
+        Ok((c, v.as_slice()))
+    }
+}
+
+/// The coarse scan ([`TrackingParams::coarse_scan`]) with its covariances.
+pub(super) fn coarse_scan(
+    scan: &DecodedScan,
+    limits: &Limits,
+) -> Result<(PointCloud, Vec<[f32; 6]>), Rejection> {
+    let c = limits
+        .tracking
+        .coarse_scan(scan.points, scan.view_dirs)
+        .map_err(|e| bad(format!("coarse scan: {e}")))?;
+    let covs = estimate_covariances(&c.points, &limits.scan_covariance).values;
+    Ok((c, covs))
+}
+
 /// Registrations against the served map in one client's session.
-struct MapRegistration<'a> {
-    map: &'a ServedMap,
-    session: &'a mut Session,
-    exact: bool,
+pub(super) struct MapRegistration<'a> {
+    pub(super) map: &'a ServedMap,
+    pub(super) session: &'a mut Session,
+    pub(super) exact: bool,
     /// Keyframes of the last pairing.
-    active: Vec<u64>,
+    pub(super) active: Vec<u64>,
 }
 
 impl MapRegistration<'_> {
     /// One registration of `cloud` (with its covariances) from `start` over the map's
     /// cov2cov pairings; `None` when no scan point has a pair.
-    fn register(
+    pub(super) fn register(
         &mut self,
         cloud: &PointCloud,
         covs: &[[f32; 6]],
         start: &Pose,
         stage: &Stage,
     ) -> Result<Option<RegistrationResult>, Rejection> {
-        let result = solve_pose(start, &stage.params(), cloud.len(), |at| {
+        register_over(cloud, start, stage, |at| {
             let (pairings, ids) = cov2cov(
                 self.map,
                 self.session,
@@ -601,19 +641,50 @@ impl MapRegistration<'_> {
                 at,
                 stage.max_pair_dist as f32,
                 self.exact,
-            )
-            .map_err(LocalizeError::Rejected)?;
+            )?;
             self.active = ids;
-            Ok::<_, LocalizeError>(correspondences_from_pairings(&pairings, &cloud.points))
-        });
-        match result {
-            Ok(r) => Ok(Some(r)),
-            Err(LocalizeError::Registration(RegistrationError::NoCorrespondences { .. })) => {
-                Ok(None)
-            }
-            Err(LocalizeError::Registration(e)) => Err(bad(format!("localization: {e}"))),
-            Err(LocalizeError::Rejected(r)) => Err(r),
-        }
+            Ok(pairings)
+        })
+    }
+}
+
+/// As [`MapRegistration::register`] in approximate mode and outside any session (no
+/// merged-submap cache to share), so registrations may run on several threads.
+pub(super) fn register_approximate(
+    map: &ServedMap,
+    cloud: &PointCloud,
+    covs: &[[f32; 6]],
+    start: &Pose,
+    stage: &Stage,
+) -> Result<Option<RegistrationResult>, Rejection> {
+    register_over(cloud, start, stage, |at| {
+        let ids = map.map.select(at);
+        let active = map
+            .map
+            .activate_cached(ids, &mut None, false)
+            .map_err(map_error)?;
+        active
+            .cov2cov(cloud, at, stage.max_pair_dist, Some(covs))
+            .map_err(map_error)
+    })
+}
+
+/// The registration loop over `pairings_at(pose)`; `None` when no scan point has a pair.
+fn register_over(
+    cloud: &PointCloud,
+    start: &Pose,
+    stage: &Stage,
+    mut pairings_at: impl FnMut(&Pose) -> Result<Vec<Pairing>, Rejection>,
+) -> Result<Option<RegistrationResult>, Rejection> {
+    let result = solve_pose(start, &stage.params(), cloud.len(), |at| {
+        let pairings = pairings_at(at).map_err(LocalizeError::Rejected)?;
+        Ok::<_, LocalizeError>(correspondences_from_pairings(&pairings, &cloud.points))
+    });
+    match result {
+        Ok(r) => Ok(Some(r)),
+        Err(LocalizeError::Registration(RegistrationError::NoCorrespondences { .. })) => Ok(None),
+        Err(LocalizeError::Registration(e)) => Err(bad(format!("localization: {e}"))),
+        Err(LocalizeError::Rejected(r)) => Err(r),
     }
 }
 

@@ -9,6 +9,7 @@ mod budget;
 mod leader;
 mod ports;
 mod queue;
+mod relocalize;
 pub mod session;
 pub mod state;
 mod stats;

@@ -4,7 +4,7 @@
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, RwLock};
 
-use kfmap_shared::archive::{ArchiveError, OpenOptions, open_map};
+use kfmap_shared::archive::{ArchiveError, BakedPlaceGrid, OpenOptions, open_map};
 use kfmap_shared::map::KeyframeMap;
 
 /// A loaded map.
@@ -25,6 +25,8 @@ pub struct ServedMap {
     /// cov2cov-mode = "exact"`); the map itself is opened in approximate mode and
     /// exact requests build their merged submaps per session.
     pub exact_by_default: bool,
+    /// The place grid of relocalization; `None` for maps baked without one.
+    pub place: Option<BakedPlaceGrid>,
 }
 
 impl ServedMap {
@@ -39,6 +41,7 @@ impl ServedMap {
         )?;
         let map = opened.map;
         Ok(Self {
+            place: opened.place,
             exact_by_default: map.options().serve_exact,
             map_from_input: opened.index.map_from_input,
             keyframes: map.len(),

@@ -8,12 +8,15 @@ use std::sync::{Arc, OnceLock};
 use memmap2::Mmap;
 use nalgebra::{Quaternion, Translation3, UnitQuaternion};
 use rkyv::rancor;
-use rkyv::rend::{f32_le, u32_le};
+use rkyv::rend::{f32_le, u32_le, u64_le};
 use xxhash_rust::xxh3::xxh3_64;
 
 use super::ArchiveError;
 use super::header::{HEADER_LEN, Header, SEGMENT_ALIGN};
-use super::records::{ArchivedKeyframeRecord, ArchivedTreeRecord, KeyframeEntry, MapIndex};
+use super::records::{
+    ArchivedKeyframeRecord, ArchivedPlaceGridRecord, ArchivedTreeRecord, KeyframeEntry, MapIndex,
+    PlaceEntry,
+};
 use super::writer::MAX_KEYFRAME_POINTS;
 use crate::KeyframeId;
 use crate::cloud::Aabb;
@@ -21,6 +24,7 @@ use crate::cov::{CovOptions, estimate_covariances};
 use crate::covis::{CovisSnapshot, CovisibilityGraph};
 use crate::geometry::{PackedSym3, Pose};
 use crate::map::{Keyframe, KeyframeMap, KeyframeMapOptions, KeyframeView, weights_problem};
+use crate::place::{GridView, SearchRegion};
 use crate::spatial::{NodeWords, PointTree, TreeRef, build_tree};
 
 /// How to open a map file.
@@ -51,7 +55,97 @@ pub struct OpenedMap {
     pub header: Header,
     /// The index (keyframe entries, covisibility, gravity pool).
     pub index: MapIndex,
+    /// The place grid of relocalization, when the map has one.
+    pub place: Option<BakedPlaceGrid>,
     file: Arc<Mmap>,
+}
+
+/// The place grid's segment in the memory map, verified on first use.
+pub struct BakedPlaceGrid {
+    file: Arc<Mmap>,
+    start: usize,
+    byte_len: usize,
+    checksum: u64,
+    trust: bool,
+    checked: OnceLock<Result<(), ArchiveError>>,
+}
+
+impl std::fmt::Debug for BakedPlaceGrid {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("BakedPlaceGrid")
+            .field("bytes", &self.byte_len)
+            .field("verified", &self.checked.get().map(Result::is_ok))
+            .finish()
+    }
+}
+
+impl BakedPlaceGrid {
+    fn new(file: &Arc<Mmap>, entry: &PlaceEntry, trust: bool) -> Self {
+        Self {
+            file: Arc::clone(file),
+            start: HEADER_LEN + entry.offset as usize,
+            byte_len: entry.len as usize,
+            checksum: entry.checksum,
+            trust,
+            checked: OnceLock::new(),
+        }
+    }
+
+    /// Bytes of the segment.
+    pub fn byte_len(&self) -> usize {
+        self.byte_len
+    }
+
+    fn bytes(&self) -> &[u8] {
+        &self.file[self.start..self.start + self.byte_len]
+    }
+
+    fn check(&self) -> Result<(), ArchiveError> {
+        let corrupt = |reason: String| ArchiveError::IndexCorrupt(format!("place grid: {reason}"));
+        if xxh3_64(self.bytes()) != self.checksum {
+            return Err(corrupt("checksum mismatch".into()));
+        }
+        if !self.trust {
+            rkyv::access::<ArchivedPlaceGridRecord, rancor::Error>(self.bytes())
+                .map_err(|e| corrupt(format!("invalid archive: {e}")))?;
+        }
+        // SAFETY: checksum (and bytecheck unless trusted) passed above, 128-aligned.
+        let record = unsafe { rkyv::access_unchecked::<ArchivedPlaceGridRecord>(self.bytes()) };
+        view_of(record)
+            .map(|_| ())
+            .map_err(|e| corrupt(e.to_string()))
+    }
+
+    /// The grid, read in place; verified on the first call.
+    pub fn view(&self) -> Result<GridView<'_>, ArchiveError> {
+        self.checked
+            .get_or_init(|| self.check())
+            .as_ref()
+            .map_err(Clone::clone)?;
+        // SAFETY: check() passed on these bytes; the map is read-only.
+        let record = unsafe { rkyv::access_unchecked::<ArchivedPlaceGridRecord>(self.bytes()) };
+        Ok(view_of(record).expect("checked above"))
+    }
+}
+
+fn view_of<'f>(
+    r: &'f ArchivedPlaceGridRecord<'_>,
+) -> Result<GridView<'f>, crate::place::GridError> {
+    let f = |v: &[rkyv::rend::f64_le]| -> Vec<f64> { v.iter().map(|x| x.to_native()).collect() };
+    let three = |v: &[rkyv::rend::f64_le; 3]| -> [f64; 3] { v.map(|x| x.to_native()) };
+    let rotation = f(&r.grid_from_map);
+    GridView::new(
+        r.resolution.to_native(),
+        [rotation[0], rotation[1], rotation[2], rotation[3]],
+        three(&r.origin),
+        r.dims.map(|d| d.to_native()),
+        r.levels.to_native(),
+        native(&r.words),
+        SearchRegion {
+            min: three(&r.region_min),
+            max: three(&r.region_max),
+        },
+    )
 }
 
 impl OpenedMap {
@@ -135,6 +229,10 @@ unsafe impl SameBits for f32_le {
 // SAFETY: see the trait.
 unsafe impl SameBits for u32_le {
     type Native = u32;
+}
+// SAFETY: see the trait (8 aligned bytes).
+unsafe impl SameBits for u64_le {
+    type Native = u64;
 }
 // SAFETY: arrays of same-bits elements have the same layout.
 unsafe impl<T: SameBits, const N: usize> SameBits for [T; N] {
@@ -289,6 +387,12 @@ fn entry_pose(e: &KeyframeEntry) -> Result<Pose, ArchiveError> {
 /// Checks the index entries against the payload: ascending ids, aligned segments
 /// inside the payload before the index, sane sizes, poses and bounding boxes.
 fn check_index(index: &MapIndex, index_offset: u64) -> Result<(), ArchiveError> {
+    if let Some(place) = &index.place {
+        let end = place.offset.checked_add(place.len);
+        if place.offset % SEGMENT_ALIGN != 0 || end.is_none_or(|end| end > index_offset) {
+            return Err(index_error("place grid segment is out of bounds"));
+        }
+    }
     let mut previous: Option<KeyframeId> = None;
     for e in &index.keyframes {
         if previous.is_some_and(|p| p >= e.id) {
@@ -425,10 +529,14 @@ pub fn open_map(path: &Path, options: OpenOptions) -> Result<OpenedMap, ArchiveE
         },
     );
     let map = KeyframeMap::from_parts(map_options, keyframes, index.next_id, covis);
+    let place = index
+        .place
+        .map(|e| BakedPlaceGrid::new(&mmap, &e, options.trust));
     Ok(OpenedMap {
         map,
         header,
         index,
+        place,
         file: mmap,
     })
 }

@@ -18,9 +18,9 @@ mod header;
 mod records;
 mod writer;
 
-pub use baked::{BakedKeyframe, OpenOptions, OpenedMap, open_map};
+pub use baked::{BakedKeyframe, BakedPlaceGrid, OpenOptions, OpenedMap, open_map};
 pub use header::{FORMAT_VERSION, HEADER_LEN, Header, POINTER_WIDTH, SEGMENT_ALIGN};
-pub use records::{GravityRecord, KeyframeEntry, KeyframeRecord, MapIndex};
+pub use records::{GravityRecord, KeyframeEntry, KeyframeRecord, MapIndex, PlaceEntry};
 pub use writer::{MapWriter, WriteSummary, save_map};
 
 #[cfg(not(target_endian = "little"))]

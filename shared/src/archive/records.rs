@@ -82,6 +82,40 @@ pub struct KeyframeEntry {
     pub has_view_dirs: bool,
 }
 
+/// The place grid of relocalization ([`crate::place::PlaceGrid`]), archived on its own
+/// segment (its own checksum, verified on first use) so opening a map stays O(keyframes).
+#[derive(Archive, Serialize)]
+pub struct PlaceGridRecord<'a> {
+    /// Level-0 voxel edge, metres.
+    pub resolution: f64,
+    /// `R_grid_map` as qx qy qz qw.
+    pub grid_from_map: [f64; 4],
+    /// Grid-frame position of voxel (0, 0, 0)'s low corner.
+    pub origin: [f64; 3],
+    /// Voxels per axis.
+    pub dims: [u32; 3],
+    /// Levels, level 0 included.
+    pub levels: u32,
+    /// Searched translations, grid frame: low corner...
+    pub region_min: [f64; 3],
+    /// ... and high corner.
+    pub region_max: [f64; 3],
+    /// Bits of every level, level after level.
+    #[rkyv(with = InlineAsBox)]
+    pub words: &'a [u64],
+}
+
+/// Where the place grid's segment is.
+#[derive(Archive, Serialize, Deserialize, Debug, Clone, Copy, PartialEq)]
+pub struct PlaceEntry {
+    /// Segment offset from the start of the payload (a multiple of 128).
+    pub offset: u64,
+    /// Segment length, bytes.
+    pub len: u64,
+    /// xxh3-64 of the segment bytes.
+    pub checksum: u64,
+}
+
 /// One keyframe's accelerometer statistics (the gravity pool).
 #[derive(Archive, Serialize, Deserialize, Debug, Clone, Copy, PartialEq)]
 pub struct GravityRecord {
@@ -115,4 +149,6 @@ pub struct MapIndex {
     /// `T_map_input` (x y z qx qy qz qw): how bake moved the input poses into the map
     /// frame (the gravity levelling); identity when it kept them.
     pub map_from_input: [f64; 7],
+    /// The place grid's segment; `None` when the map has none (relocalization refused).
+    pub place: Option<PlaceEntry>,
 }

@@ -296,22 +296,22 @@ fn bad_files_are_named_errors() {
         ArchiveError::BadMagic
     ));
     let mut newer = good.clone();
-    newer[8] = 5;
+    newer[8] = 6;
     assert!(matches!(
         open_err(&write("newer", &newer)),
         ArchiveError::NewerVersion {
-            found: 5,
-            supported: 4
+            found: 6,
+            supported: 5
         }
     ));
-    // Version 1 held kiddo trees, version 2 no T_map_input, version 3 no point weights:
-    // such maps are baked again.
-    for old in [1u8, 2, 3] {
+    // Version 1 held kiddo trees, version 2 no T_map_input, version 3 no point weights,
+    // version 4 no place grid: such maps are baked again.
+    for old in [1u8, 2, 3, 4] {
         let mut older = good.clone();
         older[8] = old;
         assert!(matches!(
             open_err(&write("older", &older)),
-            ArchiveError::OldVersion { found, supported: 4 } if found == old as u32
+            ArchiveError::OldVersion { found, supported: 5 } if found == old as u32
         ));
     }
     let mut wide = good.clone();
@@ -437,4 +437,40 @@ proptest! {
             }
         }
     }
+}
+
+/// The place grid is baked beside the keyframes: its map points' voxels are marked
+/// (each point within half a half-resolution voxel's diagonal of one), and a damaged
+/// grid segment is refused by name when first used, while the map still opens and
+/// serves its keyframes.
+#[test]
+fn the_place_grid_is_baked_and_a_damaged_one_is_named() {
+    let dir = Scratch::new("archive-place");
+    let map = sample_map(KeyframeMapOptions::default());
+    let path = baked(&dir, &map);
+    let opened = open_map(&path, OpenOptions::default()).unwrap();
+    let view = opened.place.as_ref().expect("a place grid").view().unwrap();
+    let reach = [-0.22, 0.0, 0.22];
+    for keyframe in map.keyframes() {
+        for p in keyframe.map_points().unwrap().iter().step_by(7) {
+            let g = view.grid_from_map() * Vector3::from(*p);
+            let near = reach.iter().any(|dx| {
+                reach.iter().any(|dy| {
+                    reach
+                        .iter()
+                        .any(|dz| view.marked(0, view.voxel_of([g.x + dx, g.y + dy, g.z + dz])))
+                })
+            });
+            assert!(near, "{p:?}");
+        }
+    }
+    let entry = opened.index.place.unwrap();
+    let mut bytes = std::fs::read(&path).unwrap();
+    bytes[HEADER_LEN + entry.offset as usize + entry.len as usize / 2] ^= 0x10;
+    let damaged = dir.file("damaged.kfmap");
+    std::fs::write(&damaged, &bytes).unwrap();
+    let opened = open_map(&damaged, OpenOptions::default()).unwrap();
+    let error = opened.place.as_ref().unwrap().view().unwrap_err();
+    assert!(error.to_string().contains("place grid"), "{error}");
+    assert!(opened.map.keyframes().all(|k| k.view().is_ok()));
 }

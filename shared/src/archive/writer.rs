@@ -11,7 +11,9 @@ use xxhash_rust::xxh3::{Xxh3, xxh3_64};
 
 use super::ArchiveError;
 use super::header::{HEADER_LEN, Header, SEGMENT_ALIGN};
-use super::records::{GravityRecord, KeyframeEntry, KeyframeRecord, MapIndex};
+use super::records::{
+    GravityRecord, KeyframeEntry, KeyframeRecord, MapIndex, PlaceEntry, PlaceGridRecord,
+};
 
 /// The identity pose as stored.
 const IDENTITY: [f64; 7] = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0];
@@ -19,6 +21,7 @@ use crate::covis::CovisSnapshot;
 use crate::geometry::{Pose, pose_to_xyz_quat};
 use crate::io::temp_path_beside;
 use crate::map::{Keyframe, KeyframeMap, KeyframeMapOptions};
+use crate::place::{GridBuilder, GridParams, PlaceGrid};
 
 /// Points one keyframe segment may hold: its archive (about 70 bytes a point with tree
 /// and covariances) must stay well inside rkyv's 2 GiB relative-pointer reach.
@@ -45,6 +48,8 @@ pub struct MapWriter {
     offset: u64,
     options: KeyframeMapOptions,
     index: MapIndex,
+    /// Where the map's points are, for the place grid written at the end.
+    place: GridBuilder,
     finished: bool,
 }
 
@@ -69,6 +74,7 @@ impl MapWriter {
                 map_from_input: IDENTITY,
                 ..MapIndex::default()
             },
+            place: GridBuilder::new(&GridParams::default()),
             finished: false,
         };
         // Placeholder: the real header is written last, when the payload is known.
@@ -134,6 +140,9 @@ impl MapWriter {
         )
         .map_err(|e| ArchiveError::Serialize(format!("keyframe {}: {e}", keyframe.id)))?;
         let offset = self.append(&bytes, SEGMENT_ALIGN)?;
+        self.place
+            .add_anchor(keyframe.pose.translation.vector.into());
+        self.place.add_points(keyframe.map_points()?);
         let n = keyframe.len() as u64;
         let b = &keyframe.bbox;
         self.index.keyframes.push(KeyframeEntry {
@@ -175,6 +184,14 @@ impl MapWriter {
         self.index.covis_parents = covis.parents.clone();
         self.index.covis_in_tree = covis.in_tree.clone();
         self.index.gravity_pool = gravity_pool.to_vec();
+        self.index.place = match self.place.finish(&GridParams::default()) {
+            Ok(grid) => Some(self.write_place_grid(&grid)?),
+            Err(e) => {
+                // The map still serves; only relocalization is refused, naming this.
+                tracing::warn!("map written without a place grid (no relocalization): {e}");
+                None
+            }
+        };
         let index = std::mem::take(&mut self.index);
         let bytes = rkyv::to_bytes::<rancor::Error>(&index)
             .map_err(|e| ArchiveError::Serialize(format!("map index: {e}")))?;
@@ -212,6 +229,32 @@ impl Drop for MapWriter {
         if !self.finished {
             let _ = std::fs::remove_file(&self.tmp);
         }
+    }
+}
+
+impl MapWriter {
+    fn write_place_grid(&mut self, grid: &PlaceGrid) -> Result<PlaceEntry, ArchiveError> {
+        let record = PlaceGridRecord {
+            resolution: grid.resolution,
+            grid_from_map: grid.grid_from_map,
+            origin: grid.origin,
+            dims: grid.dims,
+            levels: grid.levels,
+            region_min: grid.region.min,
+            region_max: grid.region.max,
+            words: &grid.words,
+        };
+        let bytes = rkyv::api::high::to_bytes_in::<_, rancor::Error>(
+            &record,
+            AlignedVec::<{ SEGMENT_ALIGN as usize }>::new(),
+        )
+        .map_err(|e| ArchiveError::Serialize(format!("place grid: {e}")))?;
+        let offset = self.append(&bytes, SEGMENT_ALIGN)?;
+        Ok(PlaceEntry {
+            offset,
+            len: bytes.len() as u64,
+            checksum: xxh3_64(&bytes),
+        })
     }
 }
 

@@ -35,6 +35,12 @@ impl PosePredictor {
         }
     }
 
+    /// Forgets the poses and velocity (the gyro and its bias stay): the next pose
+    /// starts a new track (after a relocalization).
+    pub fn restart(&mut self) {
+        self.velocity = ConstantVelocity::new();
+    }
+
     /// The gyro, when there is one.
     pub fn gyro(&self) -> Option<&Gyro> {
         self.gyro.as_ref()

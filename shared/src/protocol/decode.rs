@@ -3,7 +3,9 @@
 
 use std::mem::MaybeUninit;
 
-use super::wire::{FLAG_COVARIANCES, FLAG_STAMPED, FLAG_VIEW_DIRS, RequestHeader, WirePairing};
+use super::wire::{
+    FLAG_COVARIANCES, FLAG_LEVELLED, FLAG_STAMPED, FLAG_VIEW_DIRS, RequestHeader, WirePairing,
+};
 use super::{IMU_SAMPLE_FLOATS, PROTOCOL_VERSION, StatusCode};
 use crate::geometry::{PackedSym3, to_vec3, unpack_sym3};
 use crate::imu::ImuSample;
@@ -74,7 +76,7 @@ impl ScanPayload<'_> {
     pub fn write(&self, header: &mut RequestHeader, out: &mut [MaybeUninit<f32>]) {
         header.point_count = self.points.len() as u32;
         // The payload's own flags are set here; a pose stamp is the caller's.
-        header.flags &= FLAG_STAMPED;
+        header.flags &= FLAG_STAMPED | FLAG_LEVELLED;
         let mut at = 0;
         let mut put = |values: &[f32]| {
             for (dst, &v) in out[at..at + values.len()].iter_mut().zip(values) {
@@ -153,7 +155,7 @@ pub fn decode_scan<'a>(
             detail: n as u64,
         });
     }
-    if header.flags & !(FLAG_VIEW_DIRS | FLAG_COVARIANCES | FLAG_STAMPED) != 0 {
+    if header.flags & !(FLAG_VIEW_DIRS | FLAG_COVARIANCES | FLAG_STAMPED | FLAG_LEVELLED) != 0 {
         return Err(Rejection::new(
             StatusCode::BadRequest,
             format!("unknown flag bits {:#x}", header.flags),

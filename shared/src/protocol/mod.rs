@@ -23,9 +23,9 @@ pub use decode::{
     correspondences_from_wire, decode_imu, decode_scan, decode_stamp, imu_payload,
 };
 pub use wire::{
-    FLAG_COVARIANCES, FLAG_STAMPED, FLAG_VIEW_DIRS, KIND_SLOTS, MESSAGE_LEN, NAME_LEN,
-    RequestHeader, ResponseHeader, STATUS_SESSIONS, WirePairing, WireSessionGravity, read_text,
-    write_text,
+    FLAG_COVARIANCES, FLAG_LEVELLED, FLAG_STAMPED, FLAG_VIEW_DIRS, KIND_SLOTS, MESSAGE_LEN,
+    NAME_LEN, RequestHeader, ResponseHeader, STATUS_SESSIONS, WirePairing, WireSessionGravity,
+    read_text, write_text,
 };
 
 use serde::{Deserialize, Serialize};
@@ -34,7 +34,7 @@ use crate::geometry::{Pose, pose_from_xyz_quat, pose_to_xyz_quat};
 use crate::tracking::Stage;
 
 /// Version of this protocol; a peer of another version gets `VersionMismatch`.
-pub const PROTOCOL_VERSION: u32 = 5;
+pub const PROTOCOL_VERSION: u32 = 6;
 /// Default limit on points per request.
 pub const DEFAULT_MAX_POINTS: usize = 1 << 20;
 /// Floats per IMU sample in an `ImuWindow` payload.
@@ -75,11 +75,13 @@ pub enum RequestKind {
     Echo = 7,
     /// Reopens the map file and switches to it; requests in flight finish on the old map.
     Reload = 8,
+    /// Where a scan was taken, with no pose guess: global relocalization.
+    Relocalize = 9,
 }
 
 impl RequestKind {
     /// Every kind, by code order.
-    pub const ALL: [RequestKind; 8] = [
+    pub const ALL: [RequestKind; 9] = [
         RequestKind::Nearest,
         RequestKind::Radius,
         RequestKind::Cov2Cov,
@@ -88,6 +90,7 @@ impl RequestKind {
         RequestKind::Status,
         RequestKind::Echo,
         RequestKind::Reload,
+        RequestKind::Relocalize,
     ];
 
     /// The kind of a wire code.
@@ -106,6 +109,7 @@ impl RequestKind {
             RequestKind::Status => "status",
             RequestKind::Echo => "echo",
             RequestKind::Reload => "reload",
+            RequestKind::Relocalize => "relocalize",
         }
     }
 
@@ -117,6 +121,7 @@ impl RequestKind {
                 | RequestKind::Radius
                 | RequestKind::Cov2Cov
                 | RequestKind::Localize
+                | RequestKind::Relocalize
         )
     }
 }

@@ -69,7 +69,10 @@ fn bad_scans_are_refused_by_name() {
     let e = decode_scan(&old, &good, 10).unwrap_err();
     assert_eq!(e.status, StatusCode::VersionMismatch);
     assert!(e.message.contains("protocol"));
-    let flags = RequestHeader { flags: 8, ..header };
+    let flags = RequestHeader {
+        flags: 16,
+        ..header
+    };
     assert_eq!(
         decode_scan(&flags, &good, 10).unwrap_err().status,
         StatusCode::BadRequest
@@ -193,7 +196,7 @@ fn header_layouts_are_the_documented_ones() {
     );
     layout!(
         ResponseHeader,
-        3160,
+        3184,
         version = 0,
         status = 4,
         request_id = 8,
@@ -213,32 +216,35 @@ fn header_layouts_are_the_documented_ones() {
         degenerate = 548,
         constraint = 552,
         pose_correction = 568,
-        has_gravity = 576,
-        gravity_members = 580,
-        gravity = 584,
-        roll_pitch = 608,
-        correction = 624,
-        gravity_inliers = 656,
-        gravity_compensated = 660,
-        gravity_pending = 664,
-        gravity_skipped = 668,
-        bias_observable = 672,
-        gravity_reserved = 676,
-        gravity_spread_deg = 680,
-        accel_bias = 688,
-        accel_bias_sigma = 712,
-        map_keyframes = 736,
-        map_points = 744,
-        uptime_s = 752,
-        counts = 760,
-        p50_us = 840,
-        p99_us = 880,
-        sessions = 920,
-        in_flight = 924,
-        map_name_len = 928,
-        map_name = 932,
-        message = 996,
-        session_gravity = 1240
+        relocalization = 576,
+        candidates = 580,
+        place_scores = 584,
+        has_gravity = 600,
+        gravity_members = 604,
+        gravity = 608,
+        roll_pitch = 632,
+        correction = 648,
+        gravity_inliers = 680,
+        gravity_compensated = 684,
+        gravity_pending = 688,
+        gravity_skipped = 692,
+        bias_observable = 696,
+        gravity_reserved = 700,
+        gravity_spread_deg = 704,
+        accel_bias = 712,
+        accel_bias_sigma = 736,
+        map_keyframes = 760,
+        map_points = 768,
+        uptime_s = 776,
+        counts = 784,
+        p50_us = 864,
+        p99_us = 904,
+        sessions = 944,
+        in_flight = 948,
+        map_name_len = 952,
+        map_name = 956,
+        message = 1020,
+        session_gravity = 1264
     );
     layout!(
         WireSessionGravity,

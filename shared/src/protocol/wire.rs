@@ -79,6 +79,9 @@ pub const FLAG_VIEW_DIRS: u32 = 1;
 pub const FLAG_COVARIANCES: u32 = 2;
 /// `stamp` holds the pose's time.
 pub const FLAG_STAMPED: u32 = 4;
+/// `Relocalize`: the pose guess's rotation gives the sensor's tilt (roll and pitch from
+/// an IMU), its yaw and position are ignored; without it, up is found from the scan.
+pub const FLAG_LEVELLED: u32 = 8;
 
 impl Default for RequestHeader {
     fn default() -> Self {
@@ -130,17 +133,19 @@ pub struct WirePairing {
 
 /// Header of every response; the payload is `[WirePairing]`.
 ///
-/// Layout (protocol 4, 3160 bytes, byte offsets): version 0, status 4, request_id 8,
+/// Layout (protocol 6, 3184 bytes, byte offsets): version 0, status 4, request_id 8,
 /// detail 16, message_len 24, active_len 28, active 32, server_us 160, pose 168,
 /// covariance 224, fitness 512, iterations 528, converged 532, tracking 536 (new in
 /// protocol 3, as the next five), reasons 540, registrations 544, degenerate 548,
-/// constraint 552, pose_correction 568, has_gravity 576, gravity_members 580, gravity
-/// 584, roll_pitch 608, correction 624, gravity_inliers 656 (new in protocol 4, as the
-/// next eight), gravity_compensated 660, gravity_pending 664, gravity_skipped 668,
-/// bias_observable 672, gravity_reserved 676, gravity_spread_deg 680, accel_bias 688,
-/// accel_bias_sigma 712, map_keyframes 736, map_points 744, uptime_s 752, counts 760,
-/// p50_us 840, p99_us 880, sessions 920, in_flight 924, map_name_len 928, map_name
-/// 932, message 996, session_gravity 1240 (new in protocol 4).
+/// constraint 552, pose_correction 568, relocalization 576 (new in protocol 6, as the
+/// next two), candidates 580, place_scores 584, has_gravity 600, gravity_members 604,
+/// gravity 608, roll_pitch 632, correction 648, gravity_inliers 680 (new in protocol
+/// 4, as the next eight), gravity_compensated 684, gravity_pending 688,
+/// gravity_skipped 692, bias_observable 696, gravity_reserved 700, gravity_spread_deg
+/// 704, accel_bias 712, accel_bias_sigma 736, map_keyframes 760, map_points 768,
+/// uptime_s 776, counts 784, p50_us 864, p99_us 904, sessions 944, in_flight 948,
+/// map_name_len 952, map_name 956, message 1020, session_gravity 1264 (new in
+/// protocol 4).
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
 #[repr(C)]
 #[type_name("kfmap::ResponseHeader")]
@@ -190,6 +195,14 @@ pub struct ResponseHeader {
     pub constraint: [f64; 2],
     /// `Localize`: correction from the pose guess, metres (as `max_correction`).
     pub pose_correction: f64,
+    /// `Relocalize`: [`crate::place::RelocalizeStatus`] code (0 found, 1 ambiguous,
+    /// 2 not-found). `pose`, `covariance`, `fitness` are the best place's.
+    pub relocalization: u32,
+    /// `Relocalize`: places the search proposed (each verified by registration).
+    pub candidates: u32,
+    /// `Relocalize`: the best place's verification score and the best other place's
+    /// (share of the coarse scan paired at the request's distance; 0: none).
+    pub place_scores: [f64; 2],
     /// `ImuWindow`: 1 when a correction is available.
     pub has_gravity: u32,
     /// `ImuWindow`: keyframes pooled in this session.
@@ -309,6 +322,9 @@ impl Default for ResponseHeader {
             degenerate: 0,
             constraint: [0.0; 2],
             pose_correction: 0.0,
+            relocalization: 0,
+            candidates: 0,
+            place_scores: [0.0; 2],
             has_gravity: 0,
             gravity_members: 0,
             gravity: [0.0; 3],

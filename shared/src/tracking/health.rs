@@ -67,8 +67,11 @@ impl Reasons {
     pub const SINGULAR: Self = Self(1 << 8);
     /// Inlier ratio well below that of the scans before (`fitness-drop`).
     pub const FITNESS_DROP: Self = Self(1 << 9);
+    /// The pose came from global relocalization (no prediction): the motion model
+    /// restarted there.
+    pub const RELOCALIZED: Self = Self(1 << 10);
 
-    const NAMES: [(Self, &'static str); 10] = [
+    const NAMES: [(Self, &'static str); 11] = [
         (Self::DEGENERATE, "degenerate"),
         (Self::NOT_CONVERGED, "not-converged"),
         (Self::LOW_FITNESS, "low-fitness"),
@@ -79,6 +82,7 @@ impl Reasons {
         (Self::RECOVERING, "recovering"),
         (Self::SINGULAR, "singular"),
         (Self::FITNESS_DROP, "fitness-drop"),
+        (Self::RELOCALIZED, "relocalized"),
     ];
 
     /// No reason.

@@ -1,0 +1,74 @@
+//! The up direction of a scan from its own geometry, for relocalizing without an IMU:
+//! floors, ceilings and roads are the large planes whose normals lie near the sensor's
+//! z axis (a hand-held or mounted sensor tilts, but not by more than `max_tilt`). The
+//! estimate is the dominant direction of those normals, re-gated around itself.
+
+use std::collections::HashMap;
+
+use nalgebra::{Matrix3, UnitQuaternion, Vector3};
+
+use crate::eigen::sorted_symmetric_eigen;
+use crate::surfel::Surfel;
+
+/// Voxel edge of the planes voted with, metres.
+const PLANE_VOXEL_M: f64 = 1.0;
+/// A voxel votes when it holds this many points...
+const MIN_PLANE_POINTS: u32 = 8;
+/// ... and its smallest spread is below this share of the middle one (flat).
+const MAX_FLATNESS: f64 = 0.05;
+
+/// The up direction of a sensor-frame scan, or `None` when too few planes lie within
+/// `max_tilt_deg` of the sensor's z axis to tell.
+pub fn estimate_up(points: &[[f32; 3]], max_tilt_deg: f64) -> Option<Vector3<f64>> {
+    let mut voxels: HashMap<[i32; 3], Surfel> = HashMap::new();
+    for p in points {
+        let v = Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+        if !v.iter().all(|c| c.is_finite()) {
+            continue;
+        }
+        let key = [0, 1, 2].map(|a| (v[a] / PLANE_VOXEL_M).floor() as i32);
+        voxels.entry(key).or_default().add_point(v);
+    }
+    let normals: Vec<(Vector3<f64>, f64)> = voxels
+        .values()
+        .filter(|s| s.num_points() >= MIN_PLANE_POINTS)
+        .filter_map(|s| {
+            let eigen = s.eigen();
+            let values = eigen.values;
+            (values[0] <= MAX_FLATNESS * values[1])
+                .then(|| (eigen.vectors.column(0).into(), f64::from(s.num_points())))
+        })
+        .collect();
+    let mut up = Vector3::z();
+    // Gates narrow as the estimate settles: the first admits the tilt allowed.
+    for gate_deg in [max_tilt_deg, max_tilt_deg / 2.0, max_tilt_deg / 4.0] {
+        let cos_gate = gate_deg.to_radians().cos();
+        let mut scatter = Matrix3::zeros();
+        let mut votes = 0.0;
+        for (n, w) in &normals {
+            if n.dot(&up).abs() >= cos_gate {
+                scatter += *w * n * n.transpose();
+                votes += w;
+            }
+        }
+        if votes < f64::from(MIN_PLANE_POINTS) * 4.0 {
+            return None;
+        }
+        let dominant: Vector3<f64> = sorted_symmetric_eigen(&scatter).vectors.column(2).into();
+        up = if dominant.dot(&up) < 0.0 {
+            -dominant
+        } else {
+            dominant
+        };
+    }
+    Some(up.normalize())
+}
+
+/// The smallest rotation taking `up` (sensor frame) to +z: applied to the scan, it
+/// levels it and keeps its heading as far as a tilt allows.
+pub fn levelling(up: &Vector3<f64>) -> UnitQuaternion<f64> {
+    UnitQuaternion::rotation_between(up, &Vector3::z()).unwrap_or_else(|| {
+        // Upside down: half a turn about x.
+        UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI)
+    })
+}

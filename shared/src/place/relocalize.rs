@@ -1,0 +1,328 @@
+//! Relocalization of one scan with no pose guess: level it, propose placements by the
+//! branch-and-bound search over the map's place grid, verify each by coarse-to-fine
+//! registration against the map, and answer `found`, `ambiguous` or `not-found`.
+
+use std::collections::HashMap;
+
+use nalgebra::{UnitQuaternion, Vector3};
+use rayon::prelude::*;
+use serde::Serialize;
+
+use super::grid::GridView;
+use super::level::{estimate_up, levelling};
+use super::search::{SearchParams, search};
+use crate::cloud::{CloudError, PointCloud};
+use crate::geometry::{Pose, rotation_distance, translation_distance};
+use crate::registration::RegistrationResult;
+use crate::tracking::{Stage, TrackingParams, pose_covariance};
+
+/// How relocalization runs.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RelocalizeParams {
+    /// Scan points farther than this (horizontally) are not searched with, metres,
+    /// unless fewer than `MIN_STRUCTURE_POINTS` off the ground lie within it (open
+    /// ground): the range then doubles, twice at most.
+    pub max_range: f64,
+    /// Nor nearer than this (the operator, the robot itself), metres.
+    pub min_range: f64,
+    /// The scan is thinned to about this many points for the search.
+    pub search_points: usize,
+    /// The sensor tilts less than this from the vertical (levelling gate), degrees.
+    pub max_tilt_deg: f64,
+    /// The place search.
+    pub search: SearchParams,
+    /// `found` needs this share of the scan paired at the request's distance...
+    pub found_inlier_ratio: f64,
+    /// ... and this share within `tight-distance` times it.
+    pub found_tight_ratio: f64,
+    /// See `found-tight-ratio`.
+    pub tight_distance: f64,
+    /// A runner-up scoring within this of the best makes the answer `ambiguous`.
+    pub ambiguity_margin: f64,
+    /// A runner-up is another place when farther than this from the best, metres...
+    pub distinct_m: f64,
+    /// ... or turned more than this, degrees.
+    pub distinct_deg: f64,
+}
+
+impl Default for RelocalizeParams {
+    fn default() -> Self {
+        Self {
+            max_range: 30.0,
+            min_range: 0.5,
+            search_points: 300,
+            max_tilt_deg: 40.0,
+            search: SearchParams {
+                candidates: 5,
+                ..SearchParams::default()
+            },
+            found_inlier_ratio: 0.5,
+            found_tight_ratio: 0.4,
+            tight_distance: 0.3,
+            ambiguity_margin: 0.05,
+            distinct_m: 1.0,
+            distinct_deg: 5.0,
+        }
+    }
+}
+
+/// The verdict of a relocalization.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize)]
+#[serde(rename_all = "kebab-case")]
+#[repr(u32)]
+pub enum RelocalizeStatus {
+    /// One place fits, clearly better than any other.
+    Found = 0,
+    /// Two places fit almost equally (symmetric corridors); the pose is the better one.
+    Ambiguous = 1,
+    /// No place fits: the scan is from elsewhere, or sees too little of the map.
+    NotFound = 2,
+}
+
+impl RelocalizeStatus {
+    /// Every status, by code.
+    pub const ALL: [Self; 3] = [Self::Found, Self::Ambiguous, Self::NotFound];
+
+    /// The status of a wire code.
+    pub fn from_code(code: u32) -> Option<Self> {
+        Self::ALL.into_iter().find(|s| *s as u32 == code)
+    }
+
+    /// Name, as in JSON output.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Found => "found",
+            Self::Ambiguous => "ambiguous",
+            Self::NotFound => "not-found",
+        }
+    }
+}
+
+/// Placements to verify, as `T_map_sensor` with the share of the scan they hit.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Proposal {
+    /// Best first.
+    pub poses: Vec<(Pose, f64)>,
+    /// Points searched with.
+    pub points: usize,
+    /// Search nodes bounded.
+    pub nodes: u64,
+    /// The search stopped at its work limit.
+    pub exhausted: bool,
+}
+
+/// The answer of [`relocalize`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Relocalization {
+    /// The verdict.
+    pub status: RelocalizeStatus,
+    /// `T_map_sensor` of the best place (identity when nothing was verified).
+    pub pose: Pose,
+    /// The best place's final registration, when any ran.
+    pub result: Option<RegistrationResult>,
+    /// Share of the scan paired at the fine distance, best place.
+    pub inlier_ratio: f64,
+    /// Share paired within `tight-distance` of the fine distance there.
+    pub tight_inlier_ratio: f64,
+    /// Score of the best place at the verification stage (coarse scan, fine distance).
+    pub score: f64,
+    /// Same score of the best other place; 0 when there is none.
+    pub runner_up: f64,
+    /// Places proposed by the search.
+    pub candidates: u32,
+    /// Registrations run.
+    pub registrations: u32,
+}
+
+/// Proposes placements of `scan` (sensor frame) over `grid`. `up` is the gravity's
+/// opposite in the sensor frame when an IMU gives it; otherwise it is estimated from
+/// the scan's floor-like planes.
+pub fn propose(
+    grid: &GridView<'_>,
+    scan: &[[f32; 3]],
+    up: Option<Vector3<f64>>,
+    params: &RelocalizeParams,
+) -> Result<Proposal, CloudError> {
+    let Some(up) = up.or_else(|| estimate_up(scan, params.max_tilt_deg)) else {
+        return Ok(Proposal::default());
+    };
+    let level = levelling(&up);
+    let structure = structure_points(scan, &level, grid.resolution(), params)?;
+    let stride = structure.len().div_ceil(params.search_points).max(1);
+    let points: Vec<[f64; 3]> = structure.into_iter().step_by(stride).collect();
+    let outcome = search(grid, &points, &grid.region(), &params.search);
+    let map_from_grid: UnitQuaternion<f64> = grid.grid_from_map().inverse();
+    Ok(Proposal {
+        poses: outcome
+            .placements
+            .iter()
+            .map(|p| (map_from_grid * p.pose * level, p.hit_ratio))
+            .collect(),
+        points: outcome.points,
+        nodes: outcome.nodes,
+        exhausted: outcome.exhausted,
+    })
+}
+
+/// Fewest points (voxels) off the ground a search is worth making with.
+const MIN_STRUCTURE_POINTS: usize = 100;
+
+/// The levelled scan's points a search places: voxelized at the grid's resolution,
+/// within range, off the ground.
+fn structure_points(
+    scan: &[[f32; 3]],
+    level: &UnitQuaternion<f64>,
+    resolution: f64,
+    params: &RelocalizeParams,
+) -> Result<Vec<[f64; 3]>, CloudError> {
+    let mut range = params.max_range;
+    loop {
+        let in_range: Vec<[f32; 3]> = scan
+            .iter()
+            .filter(|p| {
+                let r = f64::from(p[0]).hypot(f64::from(p[1]));
+                r >= params.min_range && r <= range
+            })
+            .copied()
+            .collect();
+        let thinned = PointCloud::from_points(in_range).voxel_downsample(resolution)?;
+        let levelled: Vec<[f64; 3]> = thinned
+            .points
+            .iter()
+            .map(|p| {
+                (level * Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]))).into()
+            })
+            .collect();
+        let structure = above_ground(&levelled, resolution);
+        tracing::debug!(
+            "relocalize: {} scan voxels within {range} m, {} off the ground",
+            levelled.len(),
+            structure.len()
+        );
+        if structure.len() >= MIN_STRUCTURE_POINTS {
+            return Ok(structure);
+        }
+        if range >= params.max_range * 4.0 {
+            return Ok(levelled);
+        }
+        range *= 2.0;
+    }
+}
+
+/// `points` (levelled sensor frame) without those of the ground: in each `cell` x
+/// `cell` column whose lowest point lies below the sensor, the points less than `cell`
+/// above that lowest one (terrain may roll; a column's floor is local). Ground lies
+/// under every placement at the right height, so it tells places apart by nothing while
+/// it fills most of an outdoor scan's sample.
+fn above_ground(points: &[[f64; 3]], cell: f64) -> Vec<[f64; 3]> {
+    let column = |p: &[f64; 3]| [(p[0] / cell).floor() as i64, (p[1] / cell).floor() as i64];
+    let mut lowest: HashMap<[i64; 2], f64> = HashMap::new();
+    for p in points {
+        let z = lowest.entry(column(p)).or_insert(f64::INFINITY);
+        *z = z.min(p[2]);
+    }
+    points
+        .iter()
+        .filter(|p| {
+            let floor = lowest[&column(p)];
+            floor >= 0.0 || p[2] >= floor + cell
+        })
+        .copied()
+        .collect()
+}
+
+/// Verifies `proposal` by registration and decides. `settle(start, stage)` runs one
+/// registration against the map for a proposed place (on any thread: places are
+/// verified in parallel); `register` runs the final one (as for
+/// [`crate::tracking::localize_scan`]); `fine` is the request's pairing distance and
+/// iterations.
+///
+/// Each place: coarse iterations from it, then one coarse linearization at the fine
+/// pairing distance scores it. The best-scoring place gets fine iterations and is
+/// `found` when it pairs at least `found-inlier-ratio` of the scan and no other place
+/// scores within `ambiguity-margin` of it (else `ambiguous`); `not-found` otherwise.
+pub fn verify<E: Send>(
+    proposal: &Proposal,
+    fine: Stage,
+    tracking: &TrackingParams,
+    params: &RelocalizeParams,
+    settle: impl Fn(&Pose, &Stage) -> Result<Option<RegistrationResult>, E> + Sync,
+    mut register: impl FnMut(&Pose, &Stage) -> Result<Option<RegistrationResult>, E>,
+) -> Result<Relocalization, E> {
+    let coarse = Stage {
+        coarse: true,
+        max_pair_dist: tracking.coarse_pair_dist.max(fine.max_pair_dist),
+        max_iterations: tracking.coarse_iterations,
+    };
+    let score_stage = Stage {
+        coarse: true,
+        max_pair_dist: fine.max_pair_dist,
+        max_iterations: 1,
+    };
+    let verified: Vec<(Option<(Pose, f64)>, u32)> = proposal
+        .poses
+        .par_iter()
+        .map(|(start, _)| {
+            let Some(settled) = settle(start, &coarse)? else {
+                return Ok((None, 1));
+            };
+            let score = settle(&settled.pose, &score_stage)?;
+            Ok((score.map(|s| (settled.pose, s.fitness.inlier_ratio)), 2))
+        })
+        .collect::<Result<_, E>>()?;
+    let registrations = verified.iter().map(|(_, n)| n).sum();
+    let mut scored: Vec<(Pose, f64)> = verified.into_iter().filter_map(|(s, _)| s).collect();
+    scored.sort_by(|a, b| b.1.total_cmp(&a.1));
+    let mut answer = Relocalization {
+        status: RelocalizeStatus::NotFound,
+        pose: Pose::identity(),
+        result: None,
+        inlier_ratio: 0.0,
+        tight_inlier_ratio: 0.0,
+        score: 0.0,
+        runner_up: 0.0,
+        candidates: proposal.poses.len() as u32,
+        registrations,
+    };
+    let Some(&(start, score)) = scored.first() else {
+        return Ok(answer);
+    };
+    answer.registrations += 1;
+    let Some(result) = register(&start, &fine)? else {
+        return Ok(answer);
+    };
+    let distinct = |p: &Pose| {
+        translation_distance(p, &result.pose) > params.distinct_m
+            || rotation_distance(p, &result.pose).to_degrees() > params.distinct_deg
+    };
+    answer.runner_up = scored
+        .iter()
+        .skip(1)
+        .filter(|(p, _)| distinct(p))
+        .map(|(_, s)| *s)
+        .fold(0.0, f64::max);
+    answer.pose = result.pose;
+    answer.score = score;
+    answer.inlier_ratio = result.fitness.inlier_ratio;
+    answer.result = Some(result);
+    // A place fits when the scan lies on its surfaces, not merely near them.
+    let tight = Stage {
+        coarse: false,
+        max_pair_dist: fine.max_pair_dist * params.tight_distance,
+        max_iterations: 1,
+    };
+    answer.registrations += 1;
+    answer.tight_inlier_ratio =
+        register(&result.pose, &tight)?.map_or(0.0, |r| r.fitness.inlier_ratio);
+    let fits = result.fitness.inlier_ratio >= params.found_inlier_ratio
+        && answer.tight_inlier_ratio >= params.found_tight_ratio
+        && pose_covariance(&result).is_some();
+    answer.status = if !fits {
+        RelocalizeStatus::NotFound
+    } else if answer.runner_up + params.ambiguity_margin >= score {
+        RelocalizeStatus::Ambiguous
+    } else {
+        RelocalizeStatus::Found
+    };
+    Ok(answer)
+}

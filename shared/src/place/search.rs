@@ -1,0 +1,349 @@
+//! Branch-and-bound search of a levelled scan over the place grid: every yaw on a step
+//! fine enough that the farthest point moves less than a voxel, every translation of a
+//! region on the voxel lattice. A node is a yaw and a cube of `2^l` translations per
+//! axis; its bound is the number of scan points that land on marked level-`l` voxels,
+//! at least the hits of any translation inside it. Nodes are expanded best bound first,
+//! so leaves (single translations, whose bound is their exact hit count) come out in
+//! falling order of hits and the first is the best placement on the lattice.
+
+use std::cmp::Ordering;
+use std::collections::BinaryHeap;
+use std::f64::consts::TAU;
+
+use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use rayon::prelude::*;
+
+use super::grid::GridView;
+use crate::geometry::Pose;
+
+/// Nodes expanded together (their children bounded in parallel): enough to keep
+/// every thread busy, few enough that little is expanded a best-first order would not.
+const EXPAND_BATCH: usize = 32;
+
+/// How the search runs.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SearchParams {
+    /// Distinct placements to return at most.
+    pub candidates: usize,
+    /// Placements hitting fewer than this fraction of the points are not returned.
+    pub min_hit_ratio: f64,
+    /// Placements hitting fewer than this fraction of the best one's hits are not
+    /// returned (they would not survive verification).
+    pub keep_ratio: f64,
+    /// Two placements closer than this (metres) and `separation_deg` are one place.
+    pub separation_m: f64,
+    /// See `separation_m`, degrees.
+    pub separation_deg: f64,
+    /// Most point lookups before the search stops with what it has (bounds the work
+    /// of a scan that fits nowhere or everywhere).
+    pub max_lookups: u64,
+    /// Yaws are tried on a step that moves a point this far away (metres, or the
+    /// farthest point when nearer) by one voxel; farther points move more.
+    pub yaw_range: f64,
+}
+
+impl Default for SearchParams {
+    fn default() -> Self {
+        Self {
+            candidates: 6,
+            min_hit_ratio: 0.3,
+            keep_ratio: 0.7,
+            separation_m: 2.0,
+            separation_deg: 20.0,
+            max_lookups: 400_000_000,
+            yaw_range: 30.0,
+        }
+    }
+}
+
+/// The translations searched: an axis-aligned box in the map frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SearchRegion {
+    /// Low corner, metres.
+    pub min: [f64; 3],
+    /// High corner, metres.
+    pub max: [f64; 3],
+}
+
+/// One placement of the scan.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Placement {
+    /// `T_map_levelled`: yaw about z and translation.
+    pub pose: Pose,
+    /// Yaw, radians in [0, 2 pi).
+    pub yaw: f64,
+    /// Scan points landing on marked voxels.
+    pub hits: u32,
+    /// `hits` over the points searched.
+    pub hit_ratio: f64,
+}
+
+/// What a search found and what it cost.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct SearchOutcome {
+    /// Distinct placements, most hits first.
+    pub placements: Vec<Placement>,
+    /// Points placed.
+    pub points: usize,
+    /// Yaws tried.
+    pub yaws: usize,
+    /// Nodes whose bound was computed.
+    pub nodes: u64,
+    /// True when `max-lookups` stopped the search before it was complete.
+    pub exhausted: bool,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Node {
+    bound: u32,
+    level: u8,
+    yaw: u16,
+    k: [i32; 3],
+}
+
+impl Ord for Node {
+    /// Higher bound first; on a tie the deeper node, which reaches a leaf sooner.
+    fn cmp(&self, other: &Self) -> Ordering {
+        self.bound
+            .cmp(&other.bound)
+            .then_with(|| other.level.cmp(&self.level))
+    }
+}
+
+impl PartialOrd for Node {
+    fn partial_cmp(&self, other: &Self) -> Option<Ordering> {
+        Some(self.cmp(other))
+    }
+}
+
+/// The yaw step that moves a point at `range` metres by at most `resolution`.
+pub fn yaw_step(resolution: f64, range: f64) -> f64 {
+    (resolution / range.max(resolution)).clamp(0.2_f64.to_radians(), 10.0_f64.to_radians())
+}
+
+/// Places `points` (levelled sensor frame: z up, yaw unknown) over `grid` at every yaw
+/// and every lattice translation inside `region`. The yaws are split between the
+/// threads of the current rayon pool, each searching its share best-first.
+pub fn search(
+    grid: &GridView<'_>,
+    points: &[[f64; 3]],
+    region: &SearchRegion,
+    params: &SearchParams,
+) -> SearchOutcome {
+    let n = points.len();
+    let r = grid.resolution();
+    let range = points
+        .iter()
+        .map(|p| p[0].hypot(p[1]))
+        .fold(0.0_f64, f64::max)
+        .min(params.yaw_range);
+    let yaws = (TAU / yaw_step(r, range)).ceil() as usize;
+    let mut outcome = SearchOutcome {
+        points: n,
+        yaws,
+        ..Default::default()
+    };
+    if n == 0 || !region.min.iter().zip(&region.max).all(|(a, b)| a <= b) {
+        return outcome;
+    }
+    let lattice = Lattice::new(grid, points, region, yaws);
+    let found = lattice.branch_and_bound(params);
+    outcome.placements = found.placements;
+    outcome.nodes = found.nodes;
+    outcome.exhausted = found.exhausted;
+    outcome
+}
+
+/// True when `placement` is within the separation of one of `kept`.
+fn same_place(kept: &[Placement], placement: &Placement, params: &SearchParams) -> bool {
+    let separation_rad = params.separation_deg.to_radians();
+    kept.iter().any(|p| {
+        (p.pose.translation.vector - placement.pose.translation.vector).norm() < params.separation_m
+            && angle_between(p.yaw, placement.yaw) < separation_rad
+    })
+}
+
+/// The scan's points on the grid's voxel lattice at every yaw.
+struct Lattice<'g> {
+    grid: &'g GridView<'g>,
+    region: SearchRegion,
+    yaws: usize,
+    /// Translations per axis: `region.min + k r`, `k` in `[0, spans)`.
+    spans: [i32; 3],
+    /// The top level searched.
+    top: usize,
+    /// Voxel of each point at each yaw with the region's low corner as translation;
+    /// translation `min + k r` moves every point by exactly `k` voxels.
+    voxels: Vec<Vec<[i64; 3]>>,
+}
+
+impl<'g> Lattice<'g> {
+    fn new(
+        grid: &'g GridView<'g>,
+        points: &[[f64; 3]],
+        region: &SearchRegion,
+        yaws: usize,
+    ) -> Self {
+        let r = grid.resolution();
+        let spans: [i32; 3] =
+            [0, 1, 2].map(|a| ((region.max[a] - region.min[a]) / r).floor() as i32 + 1);
+        let origin = grid.origin();
+        let voxels = (0..yaws)
+            .into_par_iter()
+            .map(|y| {
+                let rotation = yaw_rotation(y as f64 * TAU / yaws as f64);
+                points
+                    .iter()
+                    .map(|p| {
+                        let v = rotation * Vector3::from(*p);
+                        [0, 1, 2].map(|a| ((v[a] + region.min[a] - origin[a]) / r).floor() as i64)
+                    })
+                    .collect()
+            })
+            .collect();
+        let widest = *spans.iter().max().expect("three axes");
+        let top = (0..grid.levels())
+            .find(|&l| (1_i64 << l) >= i64::from(widest))
+            .unwrap_or(grid.levels() - 1);
+        Self {
+            grid,
+            region: *region,
+            yaws,
+            spans,
+            top,
+            voxels,
+        }
+    }
+
+    /// Points of yaw `yaw` landing on marked level-`level` voxels at translation `k`.
+    fn bound(&self, level: usize, yaw: usize, k: [i32; 3]) -> u32 {
+        let k = k.map(i64::from);
+        self.voxels[yaw]
+            .iter()
+            .filter(|v| {
+                self.grid
+                    .marked(level, [v[0] + k[0], v[1] + k[1], v[2] + k[2]])
+            })
+            .count() as u32
+    }
+
+    /// Best-first branch and bound over every yaw. Nodes are expanded in batches of
+    /// the best `EXPAND_BATCH` (their children bounded in parallel); a leaf is taken
+    /// only when it is the best node left, so leaves still come out best first.
+    fn branch_and_bound(&self, params: &SearchParams) -> SearchOutcome {
+        let n = self.voxels.first().map_or(0, Vec::len);
+        let r = self.grid.resolution();
+        let mut outcome = SearchOutcome::default();
+        let floor_hits = (params.min_hit_ratio * n as f64).ceil() as u32;
+        let side = 1_usize << self.top;
+        let mut tops = Vec::new();
+        for yaw in 0..self.yaws {
+            for kz in (0..self.spans[2]).step_by(side) {
+                for ky in (0..self.spans[1]).step_by(side) {
+                    for kx in (0..self.spans[0]).step_by(side) {
+                        tops.push((self.top, yaw as u16, [kx, ky, kz]));
+                    }
+                }
+            }
+        }
+        let mut heap = BinaryHeap::new();
+        let mut lookups: u64 = 0;
+        self.bound_all(&tops, floor_hits, &mut heap);
+        outcome.nodes += tops.len() as u64;
+        lookups += (tops.len() * n) as u64;
+        let mut batch = Vec::with_capacity(EXPAND_BATCH);
+        let mut children = Vec::with_capacity(EXPAND_BATCH * 8);
+        loop {
+            let best = outcome.placements.first().map_or(0, |p| p.hits);
+            let threshold = floor_hits.max((params.keep_ratio * f64::from(best)).ceil() as u32);
+            match heap.peek() {
+                None => break,
+                Some(node) if node.bound < threshold => break,
+                Some(_) if outcome.placements.len() >= params.candidates => break,
+                Some(_) if lookups > params.max_lookups => {
+                    outcome.exhausted = true;
+                    break;
+                }
+                Some(node) if node.level == 0 => {
+                    let node = heap.pop().expect("peeked");
+                    let yaw = node.yaw as f64 * TAU / self.yaws as f64;
+                    let t = [0, 1, 2].map(|a| self.region.min[a] + f64::from(node.k[a]) * r);
+                    let placement = Placement {
+                        pose: Isometry3::from_parts(
+                            Translation3::new(t[0], t[1], t[2]),
+                            yaw_rotation(yaw),
+                        ),
+                        yaw,
+                        hits: node.bound,
+                        hit_ratio: f64::from(node.bound) / n as f64,
+                    };
+                    if !same_place(&outcome.placements, &placement, params) {
+                        outcome.placements.push(placement);
+                    }
+                    continue;
+                }
+                Some(_) => {}
+            }
+            batch.clear();
+            while batch.len() < EXPAND_BATCH
+                && heap
+                    .peek()
+                    .is_some_and(|node| node.level > 0 && node.bound >= threshold)
+            {
+                batch.push(heap.pop().expect("peeked"));
+            }
+            children.clear();
+            for node in &batch {
+                let level = node.level as usize - 1;
+                let half = 1_i32 << level;
+                for dz in [0, half] {
+                    for dy in [0, half] {
+                        for dx in [0, half] {
+                            let k = [node.k[0] + dx, node.k[1] + dy, node.k[2] + dz];
+                            if (0..3).all(|a| k[a] < self.spans[a]) {
+                                children.push((level, node.yaw, k));
+                            }
+                        }
+                    }
+                }
+            }
+            self.bound_all(&children, threshold, &mut heap);
+            outcome.nodes += children.len() as u64;
+            lookups += (children.len() * n) as u64;
+        }
+        outcome
+    }
+
+    /// Bounds `nodes` in parallel and keeps those reaching `threshold`.
+    fn bound_all(
+        &self,
+        nodes: &[(usize, u16, [i32; 3])],
+        threshold: u32,
+        heap: &mut BinaryHeap<Node>,
+    ) {
+        let bounded: Vec<Node> = nodes
+            .par_iter()
+            .with_min_len(16)
+            .filter_map(|&(level, yaw, k)| {
+                let bound = self.bound(level, yaw as usize, k);
+                (bound >= threshold).then_some(Node {
+                    bound,
+                    level: level as u8,
+                    yaw,
+                    k,
+                })
+            })
+            .collect();
+        heap.extend(bounded);
+    }
+}
+
+fn yaw_rotation(yaw: f64) -> UnitQuaternion<f64> {
+    UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw)
+}
+
+/// Absolute difference of two angles, radians in [0, pi].
+fn angle_between(a: f64, b: f64) -> f64 {
+    let d = (a - b).rem_euclid(TAU);
+    d.min(TAU - d)
+}

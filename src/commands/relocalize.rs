@@ -1,0 +1,121 @@
+//! `kfmap relocalize`: where each scan was taken in a served map, with no pose guess.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Context;
+use kfmap_client::RelocalizeOptions;
+use kfmap_service::bake::load_raw_scan;
+use kfmap_service::config::BakeConfig;
+use kfmap_shared::geometry::pose_to_xyz_quat;
+use kfmap_shared::protocol::ScanPayload;
+use serde_json::json;
+
+use super::connect_arg::ConnectArgs;
+
+/// Find where each scan file was taken in the map a running server serves, with no
+/// initial pose: the server searches its baked place grid over every yaw and position
+/// near the map's keyframes, verifies the best places by registration and answers
+/// `found`, `ambiguous` (two places fit almost equally, e.g. a symmetric corridor) or
+/// `not-found` (the scan is from elsewhere or sees too little of the map). Up is found
+/// from the scan's floor-like planes.
+///
+/// Examples:
+///   kfmap relocalize --map-name site scan.pcd
+///   kfmap relocalize --map-name site scans/*.pcd --json > places.jsonl
+#[derive(clap::Args)]
+#[command(verbatim_doc_comment)]
+pub struct Args {
+    #[command(flatten)]
+    server: ConnectArgs,
+    /// Scan files, sensor frame (PCD, PLY, KITTI .bin, raw xyz .bin).
+    #[arg(required = true)]
+    scans: Vec<PathBuf>,
+    /// Voxel size applied to each scan before sending, metres (0 sends every point).
+    #[arg(long, default_value_t = 0.25)]
+    voxel: f64,
+    /// Largest pairing distance of the verifying registrations, metres.
+    #[arg(long, default_value_t = 1.0)]
+    max_pair_dist: f32,
+    /// One JSON object per scan: scan, status, pose [x,y,z,qx,qy,qz,qw] (map frame,
+    /// null when not-found), fitness (inlier ratio), rmse_m, score and runner_up (the
+    /// verification scores of the best and the best other place), candidates,
+    /// latency_ms, server_ms.
+    #[arg(long)]
+    json: bool,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let mut client = args.server.connect()?;
+    let options = RelocalizeOptions {
+        max_pair_dist: args.max_pair_dist,
+        ..RelocalizeOptions::default()
+    };
+    if !(options.max_pair_dist.is_finite() && options.max_pair_dist > 0.0) {
+        anyhow::bail!(
+            "--max-pair-dist must be a positive distance, got {}",
+            options.max_pair_dist
+        );
+    }
+    if !(args.voxel.is_finite() && args.voxel >= 0.0) {
+        anyhow::bail!(
+            "--voxel must be a size >= 0 m (0 sends every point), got {}",
+            args.voxel
+        );
+    }
+    let config = BakeConfig::default();
+    for path in &args.scans {
+        let cloud = load_raw_scan(path, &config)?;
+        let cloud = if args.voxel > 0.0 {
+            cloud
+                .voxel_downsample(args.voxel)
+                .with_context(|| path.display().to_string())?
+        } else {
+            cloud
+        };
+        let scan = ScanPayload {
+            points: &cloud.points,
+            view_dirs: cloud.view_dirs.as_deref(),
+            covariances: None,
+        };
+        let started = Instant::now();
+        let place = client.relocalize(&scan, &options)?;
+        let latency_ms = started.elapsed().as_secs_f64() * 1e3;
+        let pose = place.pose.map(|p| pose_to_xyz_quat(&p));
+        if args.json {
+            println!(
+                "{}",
+                json!({
+                    "scan": path.display().to_string(),
+                    "status": place.status.name(),
+                    "pose": pose,
+                    "fitness": place.inlier_ratio,
+                    "rmse_m": place.rmse,
+                    "tight_fitness": place.tight_inlier_ratio,
+                    "score": place.score,
+                    "runner_up": place.runner_up,
+                    "candidates": place.candidates,
+                    "latency_ms": latency_ms,
+                    "server_ms": place.server_us / 1e3,
+                })
+            );
+        } else {
+            let at = pose.map_or("-".to_string(), |p| {
+                format!(
+                    "x {:.2} y {:.2} z {:.2} (q {:.3} {:.3} {:.3} {:.3})",
+                    p[0], p[1], p[2], p[3], p[4], p[5], p[6]
+                )
+            });
+            println!(
+                "{}: {} at {at}; fitness {:.2}, score {:.2} vs runner-up {:.2}, {:.0} ms",
+                path.display(),
+                place.status.name(),
+                place.inlier_ratio,
+                place.score,
+                place.runner_up,
+                latency_ms
+            );
+        }
+    }
+    Ok(())
+}

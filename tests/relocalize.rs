@@ -1,0 +1,314 @@
+//! Global relocalization over IPC with real processes (`kfmap serve`, `kfmap
+//! relocalize`, `kfmap localize` without a start), every answer checked against an
+//! independent reference: the dataset's pose file (real data) or the simulator's
+//! ground truth.
+//!
+//! - Real data (`../shared/data/balm_os0`, handheld): map of scans 0-115 at their
+//!   reference poses, each of scans 116-176 relocalized with no guess; scans of other
+//!   places (KITTI, small_gicp's outdoor scans) must all be `not-found`; a replay that
+//!   starts with no pose and jumps 10 m and 120 deg (a kidnapped sensor) recovers.
+//! - Simulated corridor (a tunnel, repeated structure): no confident wrong answer;
+//!   outside the tunnel every scan is found.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+
+use common::{Prefix, Server, bake_dataset, json, kfmap, linked_dataset, simulate, temp_dir};
+use kfmap_client::{Client, ClientOptions};
+use kfmap_service::bake::find_scans;
+use kfmap_shared::datasets::require_test_data;
+use kfmap_shared::geometry::{Pose, pose_from_xyz_quat, rotation_distance, translation_distance};
+use kfmap_shared::io::read_trajectory;
+
+/// The issue's bounds: a relocalization within these is a success...
+const RIGHT_M: f64 = 0.3;
+const RIGHT_DEG: f64 = 3.0;
+/// ... and a `found` one beyond these is a confident wrong answer.
+const WRONG_M: f64 = 1.0;
+const WRONG_DEG: f64 = 5.0;
+
+/// One `kfmap relocalize --json` line.
+#[derive(Debug)]
+struct Place {
+    scan: PathBuf,
+    status: String,
+    pose: Option<Pose>,
+    server_ms: f64,
+}
+
+fn relocalize(map_name: &str, prefix: &Prefix, scans: &[PathBuf]) -> Vec<Place> {
+    let mut args = vec!["relocalize", "--map-name", map_name, "--json"];
+    args.extend(["--iceoryx-prefix", &prefix.0, "--timeout", "30"]);
+    let paths: Vec<&str> = scans.iter().map(|p| p.to_str().unwrap()).collect();
+    args.extend(&paths);
+    let out = kfmap(&args);
+    assert!(
+        out.status.success(),
+        "kfmap relocalize failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8(out.stdout)
+        .unwrap()
+        .lines()
+        .map(|line| {
+            let v: serde_json::Value = serde_json::from_str(line).unwrap();
+            let pose = v["pose"].as_array().map(|p| {
+                let p: Vec<f64> = p.iter().map(|x| x.as_f64().unwrap()).collect();
+                pose_from_xyz_quat(p.try_into().unwrap()).unwrap()
+            });
+            Place {
+                scan: PathBuf::from(v["scan"].as_str().unwrap()),
+                status: v["status"].as_str().unwrap().to_owned(),
+                pose,
+                server_ms: v["server_ms"].as_f64().unwrap(),
+            }
+        })
+        .collect()
+}
+
+/// Translation (m) and rotation (deg) from the reference.
+fn gap(pose: &Pose, reference: &Pose) -> (f64, f64) {
+    (
+        translation_distance(pose, reference),
+        rotation_distance(pose, reference).to_degrees(),
+    )
+}
+
+fn right(place: &Place, reference: &Pose) -> bool {
+    place.status == "found"
+        && place.pose.is_some_and(|p| {
+            let (m, deg) = gap(&p, reference);
+            m <= RIGHT_M && deg <= RIGHT_DEG
+        })
+}
+
+fn confidently_wrong(place: &Place, reference: &Pose) -> bool {
+    place.status == "found"
+        && place.pose.is_some_and(|p| {
+            let (m, deg) = gap(&p, reference);
+            m > WRONG_M || deg > WRONG_DEG
+        })
+}
+
+fn percentile(sorted: &[f64], q: f64) -> f64 {
+    sorted[((sorted.len() - 1) as f64 * q).round() as usize]
+}
+
+fn map_from_input(name: &str, prefix: &Prefix) -> Pose {
+    let options = ClientOptions {
+        iceoryx_prefix: Some(prefix.0.clone()),
+        ..ClientOptions::default()
+    };
+    Client::connect(name, options)
+        .unwrap()
+        .status()
+        .unwrap()
+        .map_from_input
+}
+
+/// Issue targets on balm_os0: at least 90 % of the 61 revisit scans relocalized within
+/// 0.3 m and 3 deg, no confident wrong answer, every foreign scan `not-found`. Then a
+/// replay with no start and a jump: the first scan and the scan after the jump are
+/// relocalized, every adopted pose is right, and the tracker is `ok` again within 3
+/// scans of each relocalization.
+#[test]
+fn balm_scans_are_relocalized_and_foreign_scans_are_not_found() {
+    let Some(balm) = require_test_data("balm_os0", "balm_relocalize") else {
+        return;
+    };
+    let Some(data) = balm.parent().map(Path::to_path_buf) else {
+        return;
+    };
+    let dir = temp_dir("balm-relocalize");
+    let scans = find_scans(&balm).unwrap();
+    let pose_text = std::fs::read_to_string(balm.join("poses.txt")).unwrap();
+    let pose_lines: Vec<&str> = pose_text.lines().collect();
+    let mapped = dir.join("mapped");
+    linked_dataset(&mapped, &scans[..116], &pose_lines[..116]);
+    let map = dir.join("balm.kfmap");
+    bake_dataset(&mapped, &map);
+    let reference = read_trajectory(&balm.join("poses.txt")).unwrap().poses;
+    let prefix = Prefix::new("balm-reloc");
+    let _server = Server::start(&map, "balm", &prefix.0, &[]);
+    let map_from_input = map_from_input("balm", &prefix);
+    let reference: Vec<Pose> = reference.iter().map(|p| map_from_input * p).collect();
+
+    let places = relocalize("balm", &prefix, &scans[116..]);
+    assert_eq!(places.len(), 61);
+    let count = |status: &str| places.iter().filter(|p| p.status == status).count();
+    let success = places
+        .iter()
+        .zip(&reference[116..])
+        .filter(|(p, r)| right(p, r))
+        .count();
+    let wrong: Vec<&Path> = places
+        .iter()
+        .zip(&reference[116..])
+        .filter(|(p, r)| confidently_wrong(p, r))
+        .map(|(p, _)| p.scan.as_path())
+        .collect();
+    let mut ms: Vec<f64> = places.iter().map(|p| p.server_ms).collect();
+    ms.sort_by(f64::total_cmp);
+    println!(
+        "balm revisit: {success} of 61 within {RIGHT_M} m / {RIGHT_DEG} deg; found {}, ambiguous {}, not-found {}, confident wrong {}; server p50 {:.1} ms, p99 {:.1} ms",
+        count("found"),
+        count("ambiguous"),
+        count("not-found"),
+        wrong.len(),
+        percentile(&ms, 0.5),
+        percentile(&ms, 0.99)
+    );
+    assert!(wrong.is_empty(), "confident wrong answers: {wrong:?}");
+    assert!(success * 10 >= 61 * 9, "{success} of 61");
+
+    let mut foreign: Vec<PathBuf> = find_scans(&data.join("kitti00")).unwrap();
+    foreign.extend(["source.ply", "target.ply"].map(|f| data.join("small_gicp").join(f)));
+    let places = relocalize("balm", &prefix, &foreign);
+    for place in &places {
+        println!("foreign {}: {}", place.scan.display(), place.status);
+    }
+    assert_eq!(places.len(), 8);
+    assert!(places.iter().all(|p| p.status == "not-found"));
+
+    // A replay with no start that jumps from scan 130 to 150 (10 m, 120 deg).
+    let jump: Vec<usize> = (116..=130)
+        .step_by(2)
+        .chain((150..177).step_by(2))
+        .collect();
+    let jumped = dir.join("jumped");
+    linked_dataset(
+        &jumped,
+        &jump.iter().map(|&i| scans[i].clone()).collect::<Vec<_>>(),
+        &jump.iter().map(|&i| pose_lines[i]).collect::<Vec<_>>(),
+    );
+    let out = kfmap(&[
+        "localize",
+        "--map-name",
+        "balm",
+        "--iceoryx-prefix",
+        &prefix.0,
+        "--dataset",
+        jumped.to_str().unwrap(),
+        "--rate",
+        "0",
+        "--json-lines",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let lines: Vec<serde_json::Value> = String::from_utf8(out.stdout)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .filter(|v: &serde_json::Value| v.get("index").is_some())
+        .collect();
+    assert_eq!(lines.len(), jump.len());
+    let mut relocalized = Vec::new();
+    for (k, line) in lines.iter().enumerate() {
+        let status = line["status"].as_str().unwrap();
+        let reasons: Vec<&str> = line["reasons"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|r| r.as_str().unwrap())
+            .collect();
+        println!("jumped scan {}: {status} {reasons:?}", jump[k]);
+        if reasons.contains(&"relocalized") {
+            relocalized.push(k);
+        }
+        if status != "lost" {
+            let p: Vec<f64> = line["pose"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|x| x.as_f64().unwrap())
+                .collect();
+            let pose = pose_from_xyz_quat(p.try_into().unwrap()).unwrap();
+            let (m, deg) = gap(&pose, &reference[jump[k]]);
+            assert!(
+                m <= RIGHT_M && deg <= RIGHT_DEG,
+                "scan {}: {m} m, {deg} deg",
+                jump[k]
+            );
+        }
+    }
+    let after_jump = jump.iter().position(|&i| i == 150).unwrap();
+    assert_eq!(
+        relocalized.first(),
+        Some(&0),
+        "the first scan is relocalized"
+    );
+    assert!(
+        relocalized
+            .iter()
+            .any(|&k| (after_jump..after_jump + 3).contains(&k)),
+        "relocalized within 3 scans of the jump: {relocalized:?}"
+    );
+    for &k in &relocalized {
+        let ok_again = lines[k..(k + 4).min(lines.len())]
+            .iter()
+            .any(|l| l["status"] == "ok");
+        assert!(ok_again, "not ok within 3 scans of scan {}", jump[k]);
+    }
+}
+
+/// The simulator's corridor: a 4 m wide, 80 m long tunnel (repeated structure) on a
+/// loop over open ground, mapped at 10 Hz and replayed at 3 Hz (new viewpoints). No
+/// scan gets a confident wrong answer; every scan outside the tunnel is found within
+/// 0.3 m and 3 deg; inside it the answers are `ambiguous` or right.
+#[test]
+fn a_corridor_is_never_answered_with_a_confident_wrong_place() {
+    let dir = temp_dir("corridor-relocalize");
+    let (mapped, replayed) = (dir.join("mapped"), dir.join("replayed"));
+    simulate(&mapped, "corridor", "90", "32", &[]);
+    simulate(&replayed, "corridor", "90", "32", &["--lidar-rate", "3"]);
+    let map = dir.join("corridor.kfmap");
+    bake_dataset(&mapped, &map);
+    let prefix = Prefix::new("corridor-reloc");
+    let _server = Server::start(&map, "corridor", &prefix.0, &[]);
+    let map_from_input = map_from_input("corridor", &prefix);
+    let input = read_trajectory(&replayed.join("poses_gt.txt"))
+        .unwrap()
+        .poses;
+    let truth: Vec<Pose> = input.iter().map(|p| map_from_input * p).collect();
+    let scans = find_scans(&replayed).unwrap();
+    let chosen: Vec<usize> = (0..scans.len()).step_by(6).collect();
+    let places = relocalize(
+        "corridor",
+        &prefix,
+        &chosen.iter().map(|&i| scans[i].clone()).collect::<Vec<_>>(),
+    );
+    let json_summary = json(&kfmap(&["inspect", map.to_str().unwrap(), "--json"]));
+    println!("place grid: {}", json_summary["place_grid"]);
+    let (mut outside, mut outside_found, mut inside, mut inside_ambiguous) = (0, 0, 0, 0);
+    for (place, &i) in places.iter().zip(&chosen) {
+        // In the simulator's frame the tunnel spans x in [-40, 40] at y = 0.
+        let t = input[i].translation.vector;
+        let in_tunnel = t.x.abs() < 38.0 && t.y.abs() < 2.0;
+        let open = t.x.abs() > 45.0 || t.y.abs() > 5.0;
+        println!(
+            "scan {i} at x {:.1} y {:.1}: {} {:?}",
+            t.x,
+            t.y,
+            place.status,
+            place.pose.map(|p| gap(&p, &truth[i]))
+        );
+        assert!(!confidently_wrong(place, &truth[i]), "scan {i}");
+        if open {
+            outside += 1;
+            outside_found += usize::from(right(place, &truth[i]));
+        }
+        if in_tunnel {
+            inside += 1;
+            inside_ambiguous += usize::from(place.status == "ambiguous");
+        }
+    }
+    println!(
+        "corridor: outside the tunnel {outside_found} of {outside} found; inside {inside_ambiguous} of {inside} ambiguous"
+    );
+    assert!(outside >= 20 && inside >= 10, "{outside} / {inside} scans");
+    assert_eq!(outside_found, outside);
+}
