@@ -279,6 +279,7 @@ fn every_subcommand_help_has_an_example() {
         "gravity",
         "serve",
         "localize",
+        "relocalize",
         "query",
         "status",
     ] {

@@ -99,7 +99,7 @@ impl Client {
             pose,
             inlier_ratio: h.fitness[0],
             rmse: h.fitness[1],
-            tight_inlier_ratio: h.pose_correction,
+            tight_inlier_ratio: h.tight_fitness,
             degenerate: h.degenerate == 1,
             converged: h.converged == 1,
             score: h.place_scores[0],

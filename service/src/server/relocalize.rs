@@ -80,7 +80,7 @@ pub fn relocalize(
     h.relocalization = found.status as u32;
     h.candidates = found.candidates;
     h.place_scores = [found.score, found.runner_up];
-    h.pose_correction = found.tight_inlier_ratio;
+    h.tight_fitness = found.tight_inlier_ratio;
     h.registrations = found.registrations;
     if let Some(result) = found
         .result

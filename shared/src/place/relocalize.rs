@@ -238,9 +238,11 @@ fn above_ground(points: &[[f64; 3]], cell: f64) -> Vec<[f64; 3]> {
 /// iterations.
 ///
 /// Each place: coarse iterations from it, then one coarse linearization at the fine
-/// pairing distance scores it. The best-scoring place gets fine iterations and is
-/// `found` when it pairs at least `found-inlier-ratio` of the scan and no other place
-/// scores within `ambiguity-margin` of it (else `ambiguous`); `not-found` otherwise.
+/// pairing distance scores it. The best-scoring place gets fine iterations; it fits
+/// when it pairs at least `found-inlier-ratio` of the scan at the fine distance and
+/// `found-tight-ratio` within `tight-distance` of it, with a covariance. A fitting
+/// place is `found` unless a place more than `distinct-m` / `distinct-deg` away scores
+/// within `ambiguity-margin` of it (`ambiguous`); else the answer is `not-found`.
 pub fn verify<E: Send>(
     proposal: &Proposal,
     fine: Stage,

@@ -133,19 +133,19 @@ pub struct WirePairing {
 
 /// Header of every response; the payload is `[WirePairing]`.
 ///
-/// Layout (protocol 6, 3184 bytes, byte offsets): version 0, status 4, request_id 8,
+/// Layout (protocol 6, 3192 bytes, byte offsets): version 0, status 4, request_id 8,
 /// detail 16, message_len 24, active_len 28, active 32, server_us 160, pose 168,
 /// covariance 224, fitness 512, iterations 528, converged 532, tracking 536 (new in
 /// protocol 3, as the next five), reasons 540, registrations 544, degenerate 548,
 /// constraint 552, pose_correction 568, relocalization 576 (new in protocol 6, as the
-/// next two), candidates 580, place_scores 584, has_gravity 600, gravity_members 604,
-/// gravity 608, roll_pitch 632, correction 648, gravity_inliers 680 (new in protocol
-/// 4, as the next eight), gravity_compensated 684, gravity_pending 688,
-/// gravity_skipped 692, bias_observable 696, gravity_reserved 700, gravity_spread_deg
-/// 704, accel_bias 712, accel_bias_sigma 736, map_keyframes 760, map_points 768,
-/// uptime_s 776, counts 784, p50_us 864, p99_us 904, sessions 944, in_flight 948,
-/// map_name_len 952, map_name 956, message 1020, session_gravity 1264 (new in
-/// protocol 4).
+/// next three), candidates 580, place_scores 584, tight_fitness 600, has_gravity 608,
+/// gravity_members 612, gravity 616, roll_pitch 640, correction 656, gravity_inliers
+/// 688 (new in protocol 4, as the next eight), gravity_compensated 692,
+/// gravity_pending 696, gravity_skipped 700, bias_observable 704, gravity_reserved
+/// 708, gravity_spread_deg 712, accel_bias 720, accel_bias_sigma 744, map_keyframes
+/// 768, map_points 776, uptime_s 784, counts 792, p50_us 872, p99_us 912, sessions
+/// 952, in_flight 956, map_name_len 960, map_name 964, message 1028, session_gravity
+/// 1272 (new in protocol 4).
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
 #[repr(C)]
 #[type_name("kfmap::ResponseHeader")]
@@ -203,6 +203,9 @@ pub struct ResponseHeader {
     /// `Relocalize`: the best place's verification score and the best other place's
     /// (share of the coarse scan paired at the request's distance; 0: none).
     pub place_scores: [f64; 2],
+    /// `Relocalize`: share of the scan paired within 0.3 times the request's distance
+    /// at the answered pose (`found` needs 0.4).
+    pub tight_fitness: f64,
     /// `ImuWindow`: 1 when a correction is available.
     pub has_gravity: u32,
     /// `ImuWindow`: keyframes pooled in this session.
@@ -325,6 +328,7 @@ impl Default for ResponseHeader {
             relocalization: 0,
             candidates: 0,
             place_scores: [0.0; 2],
+            tight_fitness: 0.0,
             has_gravity: 0,
             gravity_members: 0,
             gravity: [0.0; 3],
