@@ -11,6 +11,7 @@ use kfmap_service::config::{BakeConfig, ConfigFile, ServerConfig};
 use kfmap_service::gravity::{IMU_FILES, POSE_FILES, find_in, read_imu};
 use kfmap_service::scan_range::ScanRange;
 use kfmap_service::server::percentile;
+use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::geometry::{Pose, pose_to_xyz_quat, rotation_distance, translation_distance};
 use kfmap_shared::gravity::ImuWindow;
 use kfmap_shared::imu::ImuSample;
@@ -191,6 +192,23 @@ fn gyro_from(path: &Path, samples: &[ImuSample], rpy: &str) -> anyhow::Result<Gy
         .with_context(|| format!("{}: cannot drive the gyro", path.display()))
 }
 
+/// A scan file as clients send it: invalid returns dropped, downsampled at `voxel`
+/// metres (0 keeps every point).
+pub(super) fn load_scan(
+    path: &Path,
+    config: &BakeConfig,
+    voxel: f64,
+) -> anyhow::Result<PointCloud> {
+    let cloud = load_raw_scan(path, config)?;
+    if voxel > 0.0 {
+        Ok(cloud
+            .voxel_downsample(voxel)
+            .with_context(|| path.display().to_string())?)
+    } else {
+        Ok(cloud)
+    }
+}
+
 /// One replayed scan's line of `--json-lines`.
 fn scan_line(
     index: usize,
@@ -322,14 +340,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     for (k, path) in scans.iter().enumerate() {
         let index = range.start + k;
         let tick = Instant::now();
-        let cloud = load_raw_scan(path, &config)?;
-        let cloud = if args.voxel > 0.0 {
-            cloud
-                .voxel_downsample(args.voxel)
-                .with_context(|| path.display().to_string())?
-        } else {
-            cloud
-        };
+        let cloud = load_scan(path, &config, args.voxel)?;
         let t = stamps[k];
         let sent = Instant::now();
         let result = tracker.track_cloud(&mut client, &cloud, t);

@@ -3,9 +3,7 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::Context;
 use kfmap_client::RelocalizeOptions;
-use kfmap_service::bake::load_raw_scan;
 use kfmap_service::config::BakeConfig;
 use kfmap_shared::geometry::pose_to_xyz_quat;
 use kfmap_shared::protocol::ScanPayload;
@@ -65,14 +63,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     let config = BakeConfig::default();
     for path in &args.scans {
-        let cloud = load_raw_scan(path, &config)?;
-        let cloud = if args.voxel > 0.0 {
-            cloud
-                .voxel_downsample(args.voxel)
-                .with_context(|| path.display().to_string())?
-        } else {
-            cloud
-        };
+        let cloud = super::localize::load_scan(path, &config, args.voxel)?;
         let scan = ScanPayload {
             points: &cloud.points,
             view_dirs: cloud.view_dirs.as_deref(),

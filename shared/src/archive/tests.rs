@@ -450,18 +450,9 @@ fn the_place_grid_is_baked_and_a_damaged_one_is_named() {
     let path = baked(&dir, &map);
     let opened = open_map(&path, OpenOptions::default()).unwrap();
     let view = opened.place.as_ref().expect("a place grid").view().unwrap();
-    let reach = [-0.22, 0.0, 0.22];
     for keyframe in map.keyframes() {
         for p in keyframe.map_points().unwrap().iter().step_by(7) {
-            let g = view.grid_from_map() * Vector3::from(*p);
-            let near = reach.iter().any(|dx| {
-                reach.iter().any(|dy| {
-                    reach
-                        .iter()
-                        .any(|dz| view.marked(0, view.voxel_of([g.x + dx, g.y + dy, g.z + dz])))
-                })
-            });
-            assert!(near, "{p:?}");
+            assert!(crate::place::tests::marked_near(&view, p), "{p:?}");
         }
     }
     let entry = opened.index.place.unwrap();

@@ -25,4 +25,4 @@ pub use relocalize::{
 pub use search::{Placement, SearchOutcome, SearchParams, SearchRegion, search};
 
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;

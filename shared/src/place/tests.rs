@@ -5,9 +5,26 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
-use super::grid::{GridParams, PlaceGrid};
+use super::grid::{GridParams, GridView, PlaceGrid};
 use super::search::{SearchParams, SearchRegion, search, yaw_step};
 use super::{GridBuilder, estimate_up};
+
+/// True when a marked level-0 voxel lies within half a half-resolution voxel's
+/// diagonal (0.43 times the resolution) of map point `p`: the grid holds map points by
+/// the centres of their voxels of half its resolution. The reach is under half a
+/// voxel, so its cube's corners and centre touch every voxel it does.
+pub(crate) fn marked_near(view: &GridView<'_>, p: &[f64; 3]) -> bool {
+    let g = view.grid_from_map() * Vector3::from(*p);
+    let r = 0.44 * view.resolution();
+    let reach = [-r, 0.0, r];
+    reach.iter().any(|dx| {
+        reach.iter().any(|dy| {
+            reach
+                .iter()
+                .any(|dz| view.marked(0, view.voxel_of([g.x + dx, g.y + dy, g.z + dz])))
+        })
+    })
+}
 
 fn params(levels: usize) -> GridParams {
     GridParams {
@@ -235,19 +252,8 @@ fn a_grid_levels_the_map_and_marks_every_point() {
     let view = grid.view();
     let levelled_up = view.grid_from_map() * (tilt * Vector3::z());
     assert!(levelled_up.angle(&Vector3::z()).to_degrees() < 0.5);
-    // The grid holds map points by their voxels of half its resolution: each point
-    // is within half such a voxel's diagonal (0.22 m) of a marked voxel.
-    let reach = [-0.22, 0.0, 0.22];
     for p in &in_map {
-        let g = view.grid_from_map() * Vector3::from(*p);
-        let near = reach.iter().any(|dx| {
-            reach.iter().any(|dy| {
-                reach
-                    .iter()
-                    .any(|dz| view.marked(0, view.voxel_of([g.x + dx, g.y + dy, g.z + dz])))
-            })
-        });
-        assert!(near, "{p:?}");
+        assert!(marked_near(&view, p), "{p:?}");
     }
     // Far from the room nothing is marked.
     assert!(!view.marked(0, view.voxel_of([30.0, 30.0, 1.0])));
