@@ -12,6 +12,7 @@ use kfmap_shared::io::BinLayout;
 use kfmap_shared::map::{ActiveSetMode, KeyframeDecider, KeyframeMapOptions};
 use kfmap_shared::mapping::BuildParams;
 use kfmap_shared::options::{InvalidOption, ensure};
+use kfmap_shared::place::RelocalizeParams;
 use kfmap_shared::protocol::Cov2CovMode;
 use kfmap_shared::protocol::transport::{MAX_CLIENTS, MAX_CLIENTS_PER_PROCESS};
 use kfmap_shared::select::SelectionOptions;
@@ -307,6 +308,8 @@ pub struct ServerConfig {
     pub covariance: CovOptions,
     /// Checks and retry ladder of server-side localization.
     pub tracking: TrackingParams,
+    /// Global relocalization: the place search and the verdict's thresholds.
+    pub relocalize: RelocalizeParams,
 }
 
 /// `bake.toml`.
@@ -402,7 +405,8 @@ impl ConfigFile for ServerConfig {
         self.server.validate().map_err(|e| ("server", e))?;
         validate_filter(&self.filter).map_err(|e| ("filter", e))?;
         self.covariance.validate().map_err(|e| ("covariance", e))?;
-        self.tracking.validate().map_err(|e| ("tracking", e))
+        self.tracking.validate().map_err(|e| ("tracking", e))?;
+        self.relocalize.validate().map_err(|e| ("relocalize", e))
     }
 }
 
@@ -553,6 +557,16 @@ mod tests {
             err.contains("[tracking]") && err.contains("coarse-voxel"),
             "{err}"
         );
+        for (text, key) in [
+            ("[relocalize]\nfound-tight-ratio = 2\n", "found-tight-ratio"),
+            ("[relocalize]\nmin-range = 40\n", "min-range"),
+            ("[relocalize.search]\ncandidates = 0\n", "candidates"),
+        ] {
+            let err = ServerConfig::from_toml(text, Path::new("s.toml"))
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains("[relocalize]") && err.contains(key), "{err}");
+        }
         let err =
             bake_error("[keyframes]\nvoxel-size = 0\n[map]\nfuse-overlapping-keyframes = true\n");
         assert!(

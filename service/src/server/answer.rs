@@ -11,6 +11,7 @@ use kfmap_shared::cov::{CovOptions, estimate_covariances};
 use kfmap_shared::geometry::{Pose, to_point, transform_point};
 use kfmap_shared::gravity::ImuWindow;
 use kfmap_shared::map::{ActiveSet, MapError, MapHit, Pairing};
+use kfmap_shared::place::RelocalizeParams;
 use kfmap_shared::protocol::{
     Cov2CovMode, DecodedScan, Rejection, RequestHeader, RequestKind, ResponseHeader, StatusCode,
     WirePairing, check_version, correspondences_from_pairings, decode_imu, decode_scan,
@@ -53,6 +54,8 @@ pub struct Limits {
     pub scan_covariance: CovOptions,
     /// Checks and retry ladder of `Localize`.
     pub tracking: TrackingParams,
+    /// Search and verdict of `Relocalize`.
+    pub relocalize: RelocalizeParams,
     /// What `Cov2CovMode::MapDefault` requests get (`server.toml`); `MapDefault` here
     /// means the map's own choice (`bake.toml`).
     pub cov2cov_mode: Cov2CovMode,
@@ -67,6 +70,7 @@ impl Limits {
             max_answer_bytes: config.server.max_answer_bytes,
             scan_covariance: config.covariance,
             tracking: config.tracking,
+            relocalize: config.relocalize,
             cov2cov_mode: config.server.cov2cov_mode,
         }
     }

@@ -3,7 +3,7 @@
 //! as `Localize`, against the served map in the client's session.
 
 use kfmap_shared::geometry::Pose;
-use kfmap_shared::place::{RelocalizeParams, RelocalizeStatus, propose, verify};
+use kfmap_shared::place::{RelocalizeStatus, propose, verify};
 use kfmap_shared::protocol::{
     DecodedScan, FLAG_LEVELLED, Rejection, RequestHeader, StatusCode, pose_to_wire,
 };
@@ -40,7 +40,7 @@ pub fn relocalize(
         })?
         .view()
         .map_err(|e| Rejection::new(StatusCode::Internal, format!("map: {e}")))?;
-    let params = RelocalizeParams::default();
+    let params = limits.relocalize;
     // The sensor's up in its own frame: the guess's tilt when the client knows it.
     let up = (request.flags & FLAG_LEVELLED != 0).then(|| pose.rotation.inverse() * Vector3::z());
     let started = std::time::Instant::now();

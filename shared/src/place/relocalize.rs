@@ -6,18 +6,20 @@ use std::collections::HashMap;
 
 use nalgebra::{UnitQuaternion, Vector3};
 use rayon::prelude::*;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::grid::GridView;
 use super::level::{estimate_up, levelling};
 use super::search::{SearchParams, search};
 use crate::cloud::{CloudError, PointCloud};
 use crate::geometry::{Pose, rotation_distance, translation_distance};
+use crate::options::{InvalidOption, ensure};
 use crate::registration::RegistrationResult;
 use crate::tracking::{Stage, TrackingParams, pose_covariance};
 
-/// How relocalization runs.
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// How relocalization runs (`server.toml [relocalize]`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
 pub struct RelocalizeParams {
     /// Scan points farther than this (horizontally) are not searched with, metres,
     /// unless fewer than `MIN_STRUCTURE_POINTS` off the ground lie within it (open
@@ -43,6 +45,75 @@ pub struct RelocalizeParams {
     pub distinct_m: f64,
     /// ... or turned more than this, degrees.
     pub distinct_deg: f64,
+}
+
+impl RelocalizeParams {
+    /// Checks every value; the error names the option.
+    pub fn validate(&self) -> Result<(), InvalidOption> {
+        let ratio = |v: f64| (0.0..=1.0).contains(&v);
+        let positive = |v: f64| v.is_finite() && v > 0.0;
+        ensure(
+            positive(self.max_range) && self.max_range <= 1000.0,
+            "max-range",
+            self.max_range,
+            "a range > 0 and <= 1000 m",
+        )?;
+        ensure(
+            self.min_range.is_finite() && self.min_range >= 0.0 && self.min_range < self.max_range,
+            "min-range",
+            self.min_range,
+            "0 m up to max-range",
+        )?;
+        ensure(
+            (10..=100_000).contains(&self.search_points),
+            "search-points",
+            self.search_points,
+            "10 to 100000",
+        )?;
+        ensure(
+            self.max_tilt_deg.is_finite() && (1.0..=90.0).contains(&self.max_tilt_deg),
+            "max-tilt-deg",
+            self.max_tilt_deg,
+            "1 to 90 degrees",
+        )?;
+        ensure(
+            ratio(self.found_inlier_ratio),
+            "found-inlier-ratio",
+            self.found_inlier_ratio,
+            "0 to 1",
+        )?;
+        ensure(
+            ratio(self.found_tight_ratio),
+            "found-tight-ratio",
+            self.found_tight_ratio,
+            "0 to 1",
+        )?;
+        ensure(
+            positive(self.tight_distance) && self.tight_distance <= 1.0,
+            "tight-distance",
+            self.tight_distance,
+            "a fraction > 0 and <= 1 of the pairing distance",
+        )?;
+        ensure(
+            ratio(self.ambiguity_margin),
+            "ambiguity-margin",
+            self.ambiguity_margin,
+            "0 to 1",
+        )?;
+        ensure(
+            positive(self.distinct_m),
+            "distinct-m",
+            self.distinct_m,
+            "> 0 m",
+        )?;
+        ensure(
+            positive(self.distinct_deg),
+            "distinct-deg",
+            self.distinct_deg,
+            "> 0 degrees",
+        )?;
+        self.search.validate()
+    }
 }
 
 impl Default for RelocalizeParams {

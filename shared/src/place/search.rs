@@ -12,16 +12,19 @@ use std::f64::consts::TAU;
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
 
 use super::grid::GridView;
 use crate::geometry::Pose;
+use crate::options::{InvalidOption, ensure};
 
 /// Nodes expanded together (their children bounded in parallel): enough to keep
 /// every thread busy, few enough that little is expanded a best-first order would not.
 const EXPAND_BATCH: usize = 32;
 
-/// How the search runs.
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// How the search runs (`server.toml [relocalize.search]`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
 pub struct SearchParams {
     /// Distinct placements to return at most.
     pub candidates: usize,
@@ -40,6 +43,56 @@ pub struct SearchParams {
     /// Yaws are tried on a step that moves a point this far away (metres, or the
     /// farthest point when nearer) by one voxel; farther points move more.
     pub yaw_range: f64,
+}
+
+impl SearchParams {
+    /// Checks every value; the error names the option.
+    pub fn validate(&self) -> Result<(), InvalidOption> {
+        let ratio = |v: f64| (0.0..=1.0).contains(&v);
+        let positive = |v: f64| v.is_finite() && v > 0.0;
+        ensure(
+            (1..=64).contains(&self.candidates),
+            "candidates",
+            self.candidates,
+            "1 to 64",
+        )?;
+        ensure(
+            ratio(self.min_hit_ratio),
+            "min-hit-ratio",
+            self.min_hit_ratio,
+            "0 to 1",
+        )?;
+        ensure(
+            ratio(self.keep_ratio),
+            "keep-ratio",
+            self.keep_ratio,
+            "0 to 1",
+        )?;
+        ensure(
+            positive(self.separation_m),
+            "separation-m",
+            self.separation_m,
+            "> 0 m",
+        )?;
+        ensure(
+            positive(self.separation_deg),
+            "separation-deg",
+            self.separation_deg,
+            "> 0 degrees",
+        )?;
+        ensure(
+            self.max_lookups >= 1_000_000,
+            "max-lookups",
+            self.max_lookups,
+            "at least 1000000",
+        )?;
+        ensure(
+            positive(self.yaw_range) && self.yaw_range <= 1000.0,
+            "yaw-range",
+            self.yaw_range,
+            "a range > 0 and <= 1000 m",
+        )
+    }
 }
 
 impl Default for SearchParams {
