@@ -13,7 +13,7 @@ use super::level::{estimate_up, levelling};
 use super::search::{SearchParams, search};
 use crate::cloud::{CloudError, PointCloud};
 use crate::geometry::{Pose, rotation_distance, translation_distance};
-use crate::options::{InvalidOption, ensure};
+use crate::options::{InvalidOption, ensure, ensure_ratio};
 use crate::registration::RegistrationResult;
 use crate::tracking::{Stage, TrackingParams, pose_covariance};
 
@@ -50,7 +50,6 @@ pub struct RelocalizeParams {
 impl RelocalizeParams {
     /// Checks every value; the error names the option.
     pub fn validate(&self) -> Result<(), InvalidOption> {
-        let ratio = |v: f64| (0.0..=1.0).contains(&v);
         let positive = |v: f64| v.is_finite() && v > 0.0;
         ensure(
             positive(self.max_range) && self.max_range <= 1000.0,
@@ -76,30 +75,15 @@ impl RelocalizeParams {
             self.max_tilt_deg,
             "1 to 90 degrees",
         )?;
-        ensure(
-            ratio(self.found_inlier_ratio),
-            "found-inlier-ratio",
-            self.found_inlier_ratio,
-            "0 to 1",
-        )?;
-        ensure(
-            ratio(self.found_tight_ratio),
-            "found-tight-ratio",
-            self.found_tight_ratio,
-            "0 to 1",
-        )?;
+        ensure_ratio("found-inlier-ratio", self.found_inlier_ratio)?;
+        ensure_ratio("found-tight-ratio", self.found_tight_ratio)?;
         ensure(
             positive(self.tight_distance) && self.tight_distance <= 1.0,
             "tight-distance",
             self.tight_distance,
             "a fraction > 0 and <= 1 of the pairing distance",
         )?;
-        ensure(
-            ratio(self.ambiguity_margin),
-            "ambiguity-margin",
-            self.ambiguity_margin,
-            "0 to 1",
-        )?;
+        ensure_ratio("ambiguity-margin", self.ambiguity_margin)?;
         ensure(
             positive(self.distinct_m),
             "distinct-m",

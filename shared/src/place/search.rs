@@ -16,7 +16,7 @@ use serde::{Deserialize, Serialize};
 
 use super::grid::GridView;
 use crate::geometry::Pose;
-use crate::options::{InvalidOption, ensure};
+use crate::options::{InvalidOption, ensure, ensure_ratio};
 
 /// Nodes expanded together (their children bounded in parallel): enough to keep
 /// every thread busy, few enough that little is expanded a best-first order would not.
@@ -48,7 +48,6 @@ pub struct SearchParams {
 impl SearchParams {
     /// Checks every value; the error names the option.
     pub fn validate(&self) -> Result<(), InvalidOption> {
-        let ratio = |v: f64| (0.0..=1.0).contains(&v);
         let positive = |v: f64| v.is_finite() && v > 0.0;
         ensure(
             (1..=64).contains(&self.candidates),
@@ -56,18 +55,8 @@ impl SearchParams {
             self.candidates,
             "1 to 64",
         )?;
-        ensure(
-            ratio(self.min_hit_ratio),
-            "min-hit-ratio",
-            self.min_hit_ratio,
-            "0 to 1",
-        )?;
-        ensure(
-            ratio(self.keep_ratio),
-            "keep-ratio",
-            self.keep_ratio,
-            "0 to 1",
-        )?;
+        ensure_ratio("min-hit-ratio", self.min_hit_ratio)?;
+        ensure_ratio("keep-ratio", self.keep_ratio)?;
         ensure(
             positive(self.separation_m),
             "separation-m",
