@@ -678,9 +678,11 @@ fn sigterm_answers_queued_requests_with_shutting_down() {
     let (site, server) = served("term", "[server]\nworker-threads = 1\n");
     let (data, prefix) = (&site.data, &site.prefix);
     let (_, truth) = scan(data, 6);
-    // Heavy requests (every raw point, twelve times over, jittered) from three clients on
-    // one worker: one runs, two wait in the queue.
-    let cloud = heavy_cloud(data, 6, 12);
+    // Heavy requests (every raw point, thirty times over, jittered) from three clients on
+    // one worker: one runs, two wait in the queue. The running one must outlast the wait
+    // below: at twelve copies it once took 0.57 s, finished before the signal, and the
+    // server refused the last queued request and exited before its client read it.
+    let cloud = heavy_cloud(data, 6, 30);
     let guess = truth * Pose::translation(0.3, 0.0, 0.0);
     let heavy = LocalizeOptions {
         max_iterations: 100,
