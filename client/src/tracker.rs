@@ -8,11 +8,12 @@
 
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::geometry::Pose;
-use kfmap_shared::motion::{AdaptiveThreshold, AdaptiveThresholdParams, Gyro, PosePredictor};
+use kfmap_shared::motion::{
+    AdaptiveThreshold, AdaptiveThresholdParams, Gyro, PosePredictor, point_displacement,
+};
 use kfmap_shared::protocol::ScanPayload;
 use kfmap_shared::tracking::{CORRECTION_RANGE_M, Reasons, ScanHealth, TrackingStatus};
 
-use kfmap_shared::geometry::translation_distance;
 use kfmap_shared::place::RelocalizeStatus;
 
 use crate::{Client, ClientError, LocalizeOptions, Localized, RelocalizeOptions};
@@ -177,7 +178,7 @@ impl Tracker {
                 pose: predicted,
                 health: ScanHealth::no_fit(0, 0),
             };
-            return self.relocalize(client, scan, t, predicted, lost);
+            return self.relocalize(client, scan, t, predicted, None, lost);
         }
         let localized = if self.options.server_side {
             client.localize(scan, &predicted, &options)?
@@ -185,7 +186,7 @@ impl Tracker {
             client.localize_client_side(scan, &predicted, &options)?
         };
         if localized.health.status == TrackingStatus::Lost && self.options.relocalize_when_lost {
-            return self.relocalize(client, scan, t, predicted, localized);
+            return self.relocalize(client, scan, t, predicted, max_correction, localized);
         }
         Ok(self.observe(t, predicted, max_correction, localized))
     }
@@ -199,6 +200,7 @@ impl Tracker {
         scan: &ScanPayload,
         t: f64,
         predicted: Pose,
+        max_correction: Option<f64>,
         lost: Localized,
     ) -> Result<TrackedScan, ClientError> {
         let options = RelocalizeOptions {
@@ -208,7 +210,7 @@ impl Tracker {
         };
         let place = client.relocalize(scan, &options)?;
         let (RelocalizeStatus::Found, Some(pose)) = (place.status, place.pose) else {
-            return Ok(self.observe(t, predicted, None, lost));
+            return Ok(self.observe(t, predicted, max_correction, lost));
         };
         self.motion.restart();
         self.adopted_streak = 0;
@@ -222,7 +224,7 @@ impl Tracker {
                 degenerate: place.degenerate,
                 converged: place.converged,
                 covariance: place.covariance,
-                correction: translation_distance(&predicted, &pose),
+                correction: point_displacement(&predicted, &pose, CORRECTION_RANGE_M),
                 ..ScanHealth::no_fit(lost.health.registrations, lost.health.iterations)
             },
         };

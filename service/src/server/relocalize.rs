@@ -67,10 +67,15 @@ pub fn relocalize(
         },
     )?;
     tracing::debug!(
-        "relocalize: search {:.1} ms ({} points, {} nodes), verify {:.1} ms ({} registrations): {}",
+        "relocalize: search {:.1} ms ({} points, {} nodes{}), verify {:.1} ms ({} registrations): {}",
         searched.as_secs_f64() * 1e3,
         proposal.points,
         proposal.nodes,
+        if proposal.exhausted {
+            ", stopped at max-lookups"
+        } else {
+            ""
+        },
         (started.elapsed() - searched).as_secs_f64() * 1e3,
         found.registrations,
         found.status.name()
@@ -82,24 +87,17 @@ pub fn relocalize(
     h.place_scores = [found.score, found.runner_up];
     h.tight_fitness = found.tight_inlier_ratio;
     h.registrations = found.registrations;
-    if let Some(result) = found
-        .result
-        .filter(|_| found.status != RelocalizeStatus::NotFound)
-    {
+    let result = found.result;
+    h.fitness = [found.inlier_ratio, result.map_or(0.0, |r| r.fitness.rmse)];
+    if let Some(result) = result.filter(|_| found.status != RelocalizeStatus::NotFound) {
         h.pose = pose_to_wire(&found.pose);
         h.covariance = covariance_to_wire(pose_covariance(&result).as_ref());
-        h.fitness = [result.fitness.inlier_ratio, result.fitness.rmse];
         h.iterations = result.iterations as u32;
         h.converged = result.converged as u32;
         h.degenerate = result.degenerate as u32;
         h.constraint = [
             result.constraint.rotation_ratio,
             result.constraint.translation_ratio,
-        ];
-    } else {
-        h.fitness = [
-            found.inlier_ratio,
-            found.result.map_or(0.0, |r| r.fitness.rmse),
         ];
     }
     Ok(answer)

@@ -164,8 +164,8 @@ pub fn yaw_step(resolution: f64, range: f64) -> f64 {
 }
 
 /// Places `points` (levelled sensor frame: z up, yaw unknown) over `grid` at every yaw
-/// and every lattice translation inside `region`. The yaws are split between the
-/// threads of the current rayon pool, each searching its share best-first.
+/// and every lattice translation inside `region`, best bound first (see
+/// `Lattice::branch_and_bound`).
 pub fn search(
     grid: &GridView<'_>,
     points: &[[f64; 3]],
@@ -173,27 +173,22 @@ pub fn search(
     params: &SearchParams,
 ) -> SearchOutcome {
     let n = points.len();
-    let r = grid.resolution();
     let range = points
         .iter()
         .map(|p| p[0].hypot(p[1]))
         .fold(0.0_f64, f64::max)
         .min(params.yaw_range);
-    let yaws = (TAU / yaw_step(r, range)).ceil() as usize;
-    let mut outcome = SearchOutcome {
+    let yaws = (TAU / yaw_step(grid.resolution(), range)).ceil() as usize;
+    let searched = if n == 0 || !region.min.iter().zip(&region.max).all(|(a, b)| a <= b) {
+        SearchOutcome::default()
+    } else {
+        Lattice::new(grid, points, region, yaws).branch_and_bound(params)
+    };
+    SearchOutcome {
         points: n,
         yaws,
-        ..Default::default()
-    };
-    if n == 0 || !region.min.iter().zip(&region.max).all(|(a, b)| a <= b) {
-        return outcome;
+        ..searched
     }
-    let lattice = Lattice::new(grid, points, region, yaws);
-    let found = lattice.branch_and_bound(params);
-    outcome.placements = found.placements;
-    outcome.nodes = found.nodes;
-    outcome.exhausted = found.exhausted;
-    outcome
 }
 
 /// True when `placement` is within the separation of one of `kept`.
