@@ -22,6 +22,7 @@ enum Command {
     Inspect(commands::inspect::Args),
     InspectCloud(commands::inspect_cloud::Args),
     OptimizeGraph(commands::optimize_graph::Args),
+    Plot(commands::plot::Args),
     Register(commands::register::Args),
     Simulate(commands::simulate::Args),
     Demo(commands::demo::Args),
@@ -42,6 +43,8 @@ fn main() -> ExitCode {
         .unwrap_or(tracing::Level::INFO);
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
+        // Colour codes only for a person at a terminal, never in a log file or pipe.
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         // A closed stderr must not panic a server: its own report of the failed write
         // would go to the same stderr.
         .log_internal_errors(false)
@@ -67,6 +70,7 @@ fn main() -> ExitCode {
         Command::Inspect(args) => commands::inspect::run(args),
         Command::InspectCloud(args) => commands::inspect_cloud::run(args),
         Command::OptimizeGraph(args) => commands::optimize_graph::run(args),
+        Command::Plot(args) => commands::plot::run(args),
         Command::Register(args) => commands::register::run(args),
         Command::Simulate(args) => commands::simulate::run(args),
         Command::Demo(args) => commands::demo::run(args),

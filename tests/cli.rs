@@ -124,56 +124,6 @@ fn bad_input_exits_2_with_a_message_naming_the_problem() {
 }
 
 #[test]
-fn demo_simulates_and_uses_a_courtyard_without_data() {
-    let child = Command::new(common::kfmap_bin())
-        .arg("demo")
-        .env("KFMAP_DATA_DIR", "/nonexistent")
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .expect("run kfmap");
-    let pid = child.id();
-    let out = child.wait_with_output().unwrap();
-    assert!(out.status.success(), "{}", stderr(&out));
-    // The demo's server stopped and its shared memory is gone.
-    let leftovers = std::fs::read_dir("/dev/shm")
-        .map(|d| {
-            d.flatten()
-                .filter(|e| {
-                    let name = e.file_name().to_string_lossy().into_owned();
-                    name.starts_with(&format!("kfdemo{pid}_"))
-                })
-                .count()
-        })
-        .unwrap_or(0);
-    assert_eq!(leftovers, 0);
-    let text = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        text.contains("100 scans")
-            && text.contains("recovered roll")
-            && text.contains("poses built from the raw scans")
-            && text.contains("map levelled")
-            && text.contains("scans/000010.pcd")
-            && text.contains("no real scan")
-            && text.contains("reopened by mmap")
-            && text.contains("approximate mode")
-            && text.contains("exact mode")
-            && text.contains("kfmap serve (child process")
-            && text.contains("0 failed")
-            && text.contains("shared memory removed"),
-        "{text}"
-    );
-    // The second drive localized over IPC against the map built from the first.
-    let ate: f64 = text
-        .split("ATE ")
-        .nth(2)
-        .and_then(|rest| rest.split(' ').next())
-        .and_then(|v| v.parse().ok())
-        .unwrap_or_else(|| panic!("no localization ATE in {text}"));
-    assert!(ate < 0.05, "{ate}");
-}
-
-#[test]
 fn simulate_writes_a_readable_dataset() {
     let tmp = temp_dir("simulate");
     let dir = tmp.join("out");
@@ -252,20 +202,6 @@ fn simulate_writes_a_readable_dataset() {
 }
 
 #[test]
-fn demo_runs_on_real_data() {
-    if require_test_data("kitti00/000000.bin", "demo_runs_on_real_data").is_none() {
-        return;
-    }
-    let out = kfmap(&["demo"]);
-    assert!(out.status.success(), "{}", stderr(&out));
-    let text = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        text.contains("000000.bin") && text.contains("points:           124668"),
-        "{text}"
-    );
-}
-
-#[test]
 fn every_subcommand_help_has_an_example() {
     for sub in [
         "inspect-cloud",
@@ -276,6 +212,7 @@ fn every_subcommand_help_has_an_example() {
         "bench",
         "register",
         "optimize-graph",
+        "plot",
         "gravity",
         "serve",
         "localize",

@@ -18,8 +18,21 @@ use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 use serde_json::json;
 
-/// Benchmarks. `load`: cold start of a baked map against rebuilding it. `ipc`: the map
-/// server's round trips and throughput. `soak`: many clients for minutes.
+/// Benchmarks. With no subcommand: the system benchmarks in one table. `load`: cold
+/// start of a baked map against rebuilding it. `ipc`: the map server's round trips and
+/// throughput. `soak`: many clients for minutes.
+///
+/// `kfmap bench` (no subcommand) measures, each row naming its data and threads, with
+/// the anchor's figure (small_gicp, GTSAM) beside it where one was measured on the same
+/// data: per-point covariances, cov2cov per scan (approximate, exact on a new active
+/// set, exact cached), GICP per scan pair, pose-graph optimization, cold start against
+/// rebuild and bake throughput (`load`), IPC round trips of 1k/10k/100k points and
+/// cov2cov throughput (`ipc`), and localization per scan with its error on the real
+/// sequence balm_os0. Real data comes from ../shared/data (or $KFMAP_DATA_DIR); without
+/// it, synthetic scans stand in and rows that need it are listed as skipped. About 4
+/// minutes on 2 cores; --quick (fewer repetitions, a 40-keyframe generated map) under a
+/// minute, with noisier figures. --json: {"rows": [{name, data, threads, value, unit,
+/// anchor: {tool, value, script} | null}], "skipped": [...]}.
 ///
 /// `kfmap bench load` generates a map (default 500 keyframes x 40 000 points, about
 /// 1.3 GB, under --dir), then measures: the time from starting a fresh `kfmap` process
@@ -47,6 +60,8 @@ use serde_json::json;
 /// when any request failed or was lost, or shared memory was left behind.
 ///
 /// Examples:
+///   kfmap bench
+///   kfmap bench --quick --json
 ///   kfmap bench load --dir /var/tmp/kfmap-bench
 ///   kfmap bench ipc --spin --json
 ///   kfmap bench soak --clients 8 --seconds 300 --json
@@ -54,9 +69,12 @@ use serde_json::json;
 #[derive(clap::Args)]
 #[command(verbatim_doc_comment)]
 pub struct Args {
-    /// What to measure: load, ipc or soak.
+    /// What to measure: load, ipc or soak (none: the whole table).
     #[arg(value_parser = ["load", "ipc", "soak"])]
-    what: String,
+    what: Option<String>,
+    /// Table and ipc: fewer repetitions and a smaller generated map (a smoke run).
+    #[arg(long)]
+    quick: bool,
     /// soak: client processes.
     #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=32))]
     clients: u32,
@@ -217,7 +235,7 @@ pub fn run(args: Args, process_start: Instant) -> anyhow::Result<()> {
         return probe(path, process_start);
     }
     if let Some(prefix) = &args.worker_of {
-        return super::bench_ipc::worker(prefix, 5.0);
+        return super::bench_ipc::worker(prefix, args.seconds);
     }
     if let Some(prefix) = &args.client_of {
         let plan = super::bench_soak::ClientPlan {
@@ -234,7 +252,10 @@ pub fn run(args: Args, process_start: Instant) -> anyhow::Result<()> {
     }
     let dir = args.dir.clone().unwrap_or_else(std::env::temp_dir);
     std::fs::create_dir_all(&dir).with_context(|| dir.display().to_string())?;
-    if args.what == "soak" {
+    let Some(what) = args.what.as_deref() else {
+        return super::bench_table::run(args.quick, args.json, &dir);
+    };
+    if what == "soak" {
         if !(args.seconds.is_finite() && args.seconds >= 1.0) {
             bail!("--seconds must be at least 1");
         }
@@ -259,8 +280,8 @@ pub fn run(args: Args, process_start: Instant) -> anyhow::Result<()> {
         }
         return Ok(());
     }
-    if args.what == "ipc" {
-        return super::bench_ipc::run(&dir, args.spin, args.json, |map| {
+    if what == "ipc" {
+        return super::bench_ipc::run(&dir, args.spin, args.quick, args.json, |map| {
             bake_synthetic(map, 12, 40_000, &ProgressBar::hidden()).map(|_| ())
         });
     }

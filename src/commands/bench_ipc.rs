@@ -1,23 +1,22 @@
 //! `kfmap bench ipc`: round trips, cov2cov overhead and multi-client throughput of a
 //! real `kfmap serve` child process.
 
-use std::io::{BufRead, BufReader};
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use anyhow::{Context, bail};
+use anyhow::bail;
 use indicatif::ProgressBar;
 use kfmap_client::{Client, ClientOptions};
 use kfmap_service::server::answer::{Limits, answer};
 use kfmap_service::server::session::Session;
 use kfmap_service::server::{ServedMap, percentile};
 use kfmap_shared::cov::CovOptions;
-use kfmap_shared::protocol::transport::{iceoryx_config, remove_prefix_files};
 use kfmap_shared::protocol::{Cov2CovMode, RequestHeader, RequestKind, ScanPayload, pose_to_wire};
 use serde_json::json;
 
 use super::bench::{keyframe_pose, synthetic_cloud};
+use super::server_child::ServerChild;
 
 /// Median and 99th percentile of microsecond samples.
 fn p50_p99(mut v: Vec<f64>) -> (f64, f64) {
@@ -25,49 +24,8 @@ fn p50_p99(mut v: Vec<f64>) -> (f64, f64) {
     (percentile(&v, 0.5), percentile(&v, 0.99))
 }
 
-/// The server child: stopped, and every iceoryx2 file of its prefix removed, on drop.
-pub(super) struct ServerChild(Child, String);
-
-impl ServerChild {
-    /// The server's process id.
-    pub(super) fn pid(&self) -> u32 {
-        self.0.id()
-    }
-}
-
-impl Drop for ServerChild {
-    fn drop(&mut self) {
-        // SAFETY: kill(2) on our own child; SIGTERM lets it remove its resources.
-        unsafe {
-            libc::kill(self.0.id() as i32, libc::SIGTERM);
-        }
-        let _ = self.0.wait();
-        if let Ok(config) = iceoryx_config(Some(&self.1)) {
-            remove_prefix_files(&config, &self.1);
-        }
-    }
-}
-
 pub(super) fn start_server(map: &Path, prefix: &str, spin: bool) -> anyhow::Result<ServerChild> {
-    let exe = std::env::current_exe()?;
-    let mut cmd = Command::new(exe);
-    cmd.args(["serve", "--map"]).arg(map);
-    cmd.args(["--map-name", "bench", "--iceoryx-prefix", prefix]);
-    if spin {
-        cmd.arg("--spin");
-    }
-    let mut child = cmd
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .context("start kfmap serve")?;
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().context("server stdout")?).read_line(&mut line)?;
-    if !line.starts_with("ready:") {
-        let _ = child.kill();
-        bail!("the server did not start: {line:?}");
-    }
-    Ok(ServerChild(child, prefix.to_string()))
+    ServerChild::start(map, "bench", prefix, if spin { &["--spin"] } else { &[] })
 }
 
 fn client(prefix: &str, spin: bool) -> anyhow::Result<Client> {
@@ -237,22 +195,62 @@ pub fn worker(prefix: &str, seconds: f64) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// How much each measurement repeats: the full run, or a smoke run (`--quick`) whose
+/// figures are noisier.
+struct Effort {
+    /// Echo round trips of 1k and 10k points, and of 100k.
+    echo_reps: [usize; 2],
+    /// Isolated echo round trips per size.
+    isolated_reps: usize,
+    /// Seconds of alternating IPC and in-process cov2cov calls.
+    alternate_seconds: f64,
+    /// Seconds of each throughput phase.
+    throughput_seconds: f64,
+}
+
+impl Effort {
+    fn new(quick: bool) -> Self {
+        if quick {
+            Self {
+                echo_reps: [100, 30],
+                isolated_reps: 30,
+                alternate_seconds: 1.0,
+                throughput_seconds: 1.0,
+            }
+        } else {
+            Self {
+                echo_reps: [1000, 200],
+                isolated_reps: 200,
+                alternate_seconds: 6.0,
+                throughput_seconds: 5.0,
+            }
+        }
+    }
+}
+
 /// Runs the IPC benchmarks against a synthetic map in `dir`.
 pub fn run(
     dir: &Path,
     spin: bool,
+    quick: bool,
     json_out: bool,
     bake: impl FnOnce(&Path) -> anyhow::Result<()>,
 ) -> anyhow::Result<()> {
     let map = dir.join(format!("kfmap-bench-ipc-{}.kfmap", std::process::id()));
     bake(&map)?;
     let prefix = format!("kfbench{}_", std::process::id());
-    let result = measure(&map, &prefix, spin, json_out);
+    let result = measure(&map, &prefix, spin, &Effort::new(quick), json_out);
     let _ = std::fs::remove_file(&map);
     result
 }
 
-fn measure(map: &Path, prefix: &str, spin: bool, json_out: bool) -> anyhow::Result<()> {
+fn measure(
+    map: &Path,
+    prefix: &str,
+    spin: bool,
+    effort: &Effort,
+    json_out: bool,
+) -> anyhow::Result<()> {
     let bar = if json_out {
         ProgressBar::hidden()
     } else {
@@ -265,28 +263,30 @@ fn measure(map: &Path, prefix: &str, spin: bool, json_out: bool) -> anyhow::Resu
     for n in [1_000usize, 10_000, 100_000] {
         bar.set_message(format!("echo round trips, {n} points"));
         let points = synthetic_cloud(7, n).points;
-        let reps = if n >= 100_000 { 200 } else { 1000 };
+        let reps = effort.echo_reps[usize::from(n >= 100_000)];
         for _ in 0..20 {
             c.echo(&points)?;
         }
         let back_to_back = echo_round_trips(&mut c, &points, reps, Duration::ZERO)?;
-        let isolated = echo_round_trips(&mut c, &points, 200, ISOLATION)?;
+        let isolated = echo_round_trips(&mut c, &points, effort.isolated_reps, ISOLATION)?;
         echo.push((n, back_to_back, isolated));
     }
 
     bar.set_message("cov2cov over IPC vs in process, alternated");
-    let sent = ipc_against_in_process(&mut c, map, 6.0, true)?;
-    let estimated = ipc_against_in_process(&mut c, map, 6.0, false)?;
+    let sent = ipc_against_in_process(&mut c, map, effort.alternate_seconds, true)?;
+    let estimated = ipc_against_in_process(&mut c, map, effort.alternate_seconds, false)?;
 
     bar.set_message("throughput: 1 client, then 4 client processes");
-    let one = hammer(&mut c, 5.0)?;
-    let one_rate = one.len() as f64 / 5.0;
+    let seconds = effort.throughput_seconds;
+    let one = hammer(&mut c, seconds)?;
+    let one_rate = one.len() as f64 / seconds;
     let one_p99 = p50_p99(one).1;
     let exe = std::env::current_exe()?;
     let workers: Vec<Child> = (0..4)
         .map(|_| {
             Command::new(&exe)
-                .args(["bench", "ipc", "--worker-of", prefix])
+                .args(["bench", "ipc", "--worker-of", prefix, "--seconds"])
+                .arg(seconds.to_string())
                 .stdout(Stdio::piped())
                 .stderr(Stdio::inherit())
                 .spawn()
@@ -301,7 +301,7 @@ fn measure(map: &Path, prefix: &str, spin: bool, json_out: bool) -> anyhow::Resu
         let v: Vec<f64> = serde_json::from_slice(&out.stdout)?;
         all.extend(v);
     }
-    let four_rate = all.len() as f64 / 5.0;
+    let four_rate = all.len() as f64 / seconds;
     let four_p99 = p50_p99(all).1;
     bar.finish_and_clear();
     drop(c);

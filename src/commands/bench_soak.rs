@@ -24,7 +24,8 @@ use serde::{Deserialize, Serialize};
 use serde_json::json;
 
 use super::bench::{keyframe_pose, synthetic_cloud};
-use super::bench_ipc::{ServerChild, start_server};
+use super::bench_ipc::start_server;
+use super::server_child::ServerChild;
 
 /// What one soak client did.
 #[derive(Debug, Default, Serialize, Deserialize)]

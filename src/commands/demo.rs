@@ -1,62 +1,87 @@
-//! `kfmap demo`: the main job on built-in defaults. It simulates a small courtyard
-//! (LiDAR + IMU with ground truth), loads a simulated scan back through the readers,
-//! downsamples it and estimates its covariances, bakes a map file and reopens it by
-//! mmap, starts `kfmap serve` on it as a child process and localizes a second simulated
-//! run against it with `kfmap localize` as another process; with the real data beside
-//! the checkout it analyzes a real Velodyne scan too.
+//! `kfmap demo`: the main job on built-in defaults, end to end: a dataset (simulated, or
+//! the real handheld sequence with `--real`), a map built from its raw scans and baked,
+//! the map served by `kfmap serve` as a child process, a second pass localized against
+//! it by `kfmap localize` as another process, and pictures of both. Progress goes to
+//! stderr; stdout gets one table, also written to the output folder as `report.md`.
 
 use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
 use std::time::Instant;
 
-use anyhow::Context;
+use anyhow::{Context, bail};
 use kfmap_service::bake::{BakeInput, BakeOutput, bake};
 use kfmap_service::config::BakeConfig;
+use kfmap_service::scan_range::ScanRange;
 use kfmap_shared::archive::{OpenOptions, open_map};
 use kfmap_shared::datasets::shared_data_dir;
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::gravity::roll_pitch_from_gravity;
-use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
-use kfmap_shared::protocol::transport::{iceoryx_config, remove_prefix_files};
+use kfmap_shared::geometry::{Pose, rotation_distance, translation_distance};
+use kfmap_shared::gravity::{GravityCorrection, roll_pitch_from_gravity};
+use kfmap_shared::io::{
+    ReadOptions, Trajectory, format_tum, read_cloud, read_trajectory, write_atomic,
+};
+use kfmap_shared::mapping::rigid_alignment;
 use kfmap_shared::sim::{LidarParams, Preset, SimConfig, gravity_in_map, write_dataset};
 use kfmap_shared::summary::summarize;
 use nalgebra::Vector3;
 
-use super::report::print_summary;
+use super::plot::{MapPlotOptions, TrajectoryPlotInputs, render_map, render_trajectory};
+use super::server_child::ServerChild;
 
-/// Run the kfmap pipeline end to end on built-in defaults.
+/// Run the kfmap pipeline end to end on built-in defaults and draw the result.
 ///
-/// 1. Simulates 10 s of a 32-beam LiDAR and an IMU driving around the courtyard preset,
-///    in a world tilted by roll 2 deg and pitch -3 deg against the map frame (into a
-///    temporary folder, or --out DIR to keep it).
-/// 2. Reads a simulated scan back, downsamples it, estimates per-point covariances.
-///    Bakes the simulated scans at their true poses into a .kfmap file (keyframes, trees,
-///    covariances, covisibility, gravity pool), levelling the map by the gravity the IMU
-///    shows (recovered tilt printed next to the true one), reopens it by mmap and pairs
-///    the last scan against it (cov2cov, approximate and exact mode).
-/// 3. Starts `kfmap serve` on the map (a child process, its own iceoryx2 prefix) and
-///    runs `kfmap localize` (another process) on a second drive of the courtyard
-///    recorded at 7 Hz: prints its ATE, per-scan latency and the gravity correction its
-///    IMU windows gave over IPC, then stops the server.
-/// 4. When ../shared/data is beside the checkout (or $KFMAP_DATA_DIR names it), does the
-///    same on a real Velodyne HDL-64E scan (kitti00/000000.bin), or on --scan FILE.
+/// Simulated (default; about 15 s on 2 cores):
+///   1. simulates 10 s of a 32-beam LiDAR and an IMU driving around a courtyard whose
+///      world is tilted roll 2 deg / pitch -3 deg against the map frame;
+///   2. builds the poses from the raw scans (GICP odometry, loop closure, pose graph)
+///      and bakes the map file, levelled by the gravity the IMU shows;
+///   3. reopens it by mmap and pairs a scan against it in process (cov2cov);
+///   4. starts `kfmap serve` on it (a child process, its own iceoryx2 prefix) and runs
+///      `kfmap localize` (another process) on a second drive recorded at 7 Hz, sending
+///      its IMU windows for a gravity correction;
+///   5. draws map.png (the map from above) and trajectory.png (the second drive against
+///      the simulator's ground truth, error as colour).
 ///
-/// Example: cargo run --release -- demo
+/// --real: the same pipeline on the real handheld sequence balm_os0 from the shared
+/// data beside the checkout (or $KFMAP_DATA_DIR): the map from scans 0-115 (poses
+/// built from the scans), scans 116-176 (a revisit) localized against it, the first one
+/// placed by relocalization with no pose guess; errors against the dataset's reference
+/// poses.
+///
+/// Written to --out DIR (default ./kfmap-demo; files of an earlier demo overwritten):
+///   report.md        the table printed on stdout
+///   map.kfmap        the baked map            map.png         the map from above
+///   map_poses.tum    every mapped scan's built pose, map frame
+///   localized.tum    the localized pass       reference.tum   its reference, map frame
+///   localize.jsonl   one line per localized scan (status, fitness, error, latency)
+///   trajectory.png   localized against reference, error as colour, lost scans marked
+///
+/// Examples:
+///   cargo run --release -- demo
+///   kfmap demo --real --out /tmp/balm-demo
 #[derive(clap::Args)]
 #[command(verbatim_doc_comment)]
 pub struct Args {
-    /// Keep the simulated dataset in this folder (must be empty or absent).
+    /// Output folder (created when absent).
+    #[arg(long, default_value = "kfmap-demo")]
+    out: PathBuf,
+    /// Run on the real sequence balm_os0 of the shared data instead of the simulator.
     #[arg(long)]
-    out: Option<PathBuf>,
-    /// Also analyze this cloud file instead of the default real scan.
+    real: bool,
+    /// Keep the simulated datasets in OUT/dataset and OUT/second-drive (they must not
+    /// exist yet).
     #[arg(long)]
-    scan: Option<PathBuf>,
+    keep_dataset: bool,
 }
 
 /// Tilt of the simulated world against the map frame, roll and pitch in degrees: the
 /// bake recovers it from the IMU.
 const DEMO_TILT_DEG: [f64; 2] = [2.0, -3.0];
 
-/// Removes the temporary dataset folder when the demo ends, however it ends.
+/// balm_os0: the scans mapped (the first pass) and the revisit localized against them.
+const BALM_MAPPED: std::ops::Range<usize> = 0..116;
+const BALM_REPLAYED: std::ops::Range<usize> = 116..177;
+
+/// Removes a temporary folder when the demo ends, however it ends.
 struct TempDir(PathBuf);
 
 impl Drop for TempDir {
@@ -65,20 +90,96 @@ impl Drop for TempDir {
     }
 }
 
+/// The report: one row per step, printed as a table at the end.
+#[derive(Default)]
+struct Report {
+    title: String,
+    rows: Vec<(String, String, f64)>,
+}
+
+impl Report {
+    /// Runs a step, logs its start and records the line it returns with its duration.
+    fn step<T>(
+        &mut self,
+        name: &str,
+        work: impl FnOnce() -> anyhow::Result<(T, String)>,
+    ) -> anyhow::Result<T> {
+        tracing::info!("{name} ...");
+        let started = Instant::now();
+        let (value, line) = work().with_context(|| format!("demo step '{name}'"))?;
+        self.rows
+            .push((name.to_string(), line, started.elapsed().as_secs_f64()));
+        Ok(value)
+    }
+
+    /// A markdown table: readable in a terminal, pasteable into a document.
+    fn table(&self) -> String {
+        let width = |f: &dyn Fn(&(String, String, f64)) -> usize, header: &str| {
+            self.rows.iter().map(f).max().unwrap_or(0).max(header.len())
+        };
+        let (w0, w1) = (
+            width(&|r| r.0.chars().count(), "step"),
+            width(&|r| r.1.chars().count(), "result"),
+        );
+        let mut out = format!("{}\n\n", self.title);
+        out += &format!("| {:w0$} | {:w1$} | {:>7} |\n", "step", "result", "seconds");
+        out += &format!(
+            "|{}|{}|{}:|\n",
+            "-".repeat(w0 + 2),
+            "-".repeat(w1 + 2),
+            "-".repeat(8)
+        );
+        for (step, result, seconds) in &self.rows {
+            out += &format!("| {step:w0$} | {result:w1$} | {seconds:>7.2} |\n");
+        }
+        out
+    }
+}
+
+/// A pass of scans to map and a pass to localize against the map, with references.
+struct Passes {
+    /// Dataset the map is built from, and which of its scans.
+    mapped: PathBuf,
+    mapped_scans: ScanRange,
+    /// Reference poses of the mapped scans, in the reference's frame.
+    mapped_reference: Vec<Pose>,
+    /// Dataset localized against the map, which of its scans, and their reference poses.
+    replayed: PathBuf,
+    replayed_scans: ScanRange,
+    replayed_reference: Trajectory,
+    /// Start the localized pass by relocalization (no pose guess) instead of at the map
+    /// frame's origin.
+    relocalize_first: bool,
+    /// The simulated world's tilt when the map is levelled by a simulated IMU.
+    sim_tilt_deg: Option<[f64; 2]>,
+}
+
 /// Runs the subcommand.
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let config = BakeConfig::default();
-    let (dataset, _cleanup) = match args.out {
-        Some(dir) => (dir, None),
-        None => {
-            let dir = std::env::temp_dir().join(format!("kfmap-demo-{}", std::process::id()));
-            (dir.clone(), Some(TempDir(dir)))
-        }
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("create the output folder {}", args.out.display()))?;
+    let out = args.out.canonicalize()?;
+    let mut report = Report::default();
+    let temp = std::env::temp_dir().join(format!("kfmap-demo-{}", std::process::id()));
+    let _cleanup = TempDir(temp.clone());
+    let passes = if args.real {
+        real_passes(&mut report)?
+    } else {
+        let data = if args.keep_dataset { out.clone() } else { temp };
+        simulated_passes(&mut report, &data)?
     };
+    run_pipeline(&mut report, &passes, &out)?;
+    let table = report.table();
+    write_atomic(&out.join("report.md"), table.as_bytes())?;
+    print!("{table}");
+    Ok(())
+}
 
+/// Simulates the mapping drive and the second drive into `data`.
+fn simulated_passes(report: &mut Report, data: &Path) -> anyhow::Result<Passes> {
     let sim = SimConfig {
         preset: Preset::Courtyard,
-        seconds: 10.0,
+        seconds: 52.0,
         tilt_deg: DEMO_TILT_DEG,
         lidar: LidarParams {
             beams: 32,
@@ -86,202 +187,27 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         },
         ..SimConfig::default()
     };
-    println!(
-        "kfmap demo: simulating {} s of the courtyard ({} beams, seed {}) into {}",
-        sim.seconds,
-        sim.lidar.beams,
-        sim.seed,
-        dataset.display()
+    report.title = format!(
+        "kfmap demo: simulated courtyard ({} s of a {}-beam LiDAR + IMU, world tilted roll {} / pitch {} deg, seed {})",
+        sim.seconds, sim.lidar.beams, sim.tilt_deg[0], sim.tilt_deg[1], sim.seed
     );
-    let started = Instant::now();
-    let summary = write_dataset(sim.clone(), &dataset, false, &|_, _| {})?;
-    println!(
-        "  {} scans, {} points, {} IMU samples, {:.1} m driven in {:.2} s",
-        summary.scans,
-        summary.points,
-        summary.imu_samples,
-        summary.distance_m,
-        started.elapsed().as_secs_f64()
-    );
-    let truth = read_trajectory(&dataset.join("poses_gt.txt"))?;
-    println!(
-        "  ground truth: {} poses in poses_gt.txt",
-        truth.poses.len()
-    );
-    analyze(&dataset.join("scans/000010.pcd"), &config)?;
-    // The built map's frame is the first scan's: the simulated tilt, seen from it.
-    let up_map = -gravity_in_map(sim.tilt_deg[0].to_radians(), sim.tilt_deg[1].to_radians());
-    let up_built = truth.poses[0].rotation.inverse() * up_map;
-    let level = baked_map_stage(&dataset, &truth, &sim, &up_built)?;
-    serve_and_localize(&dataset, &sim, &level, &(level.rotation * up_built))?;
-
-    let real = args.scan.or_else(|| {
-        shared_data_dir()
-            .map(|d| d.join("kitti00/000000.bin"))
-            .filter(|p| p.is_file())
-    });
-    match real {
-        Some(path) => analyze(&path, &config)?,
-        None => {
-            println!("(no real scan: put the shared data beside the checkout or pass --scan FILE)")
-        }
-    }
-    println!("done.");
-    Ok(())
-}
-
-/// Bakes the simulated scans (poses built from the scans) into a map file, reopens it
-/// by mmap and pairs the last scan against it (cov2cov), in approximate and exact mode.
-/// Returns the levelling rotation the bake applied to the built poses.
-fn baked_map_stage(
-    dataset: &Path,
-    truth: &kfmap_shared::io::Trajectory,
-    sim: &SimConfig,
-    up_built: &Vector3<f64>,
-) -> anyhow::Result<Pose> {
-    let config = BakeConfig::default();
-    let map_path = dataset.join("courtyard.kfmap");
-    // The poses are built from the raw scans; poses_gt.txt only measures them.
-    let input = BakeInput {
-        build_poses: true,
-        ..BakeInput::dataset(dataset)
-    };
-    let report = bake(&input, &config, &BakeOutput::map(&map_path), |_| {})?;
-    println!(
-        "baked {}: {} keyframes, {} points ({} m voxels), {:.1} MB in {:.2} s ({:.2} M points/s)",
-        map_path.display(),
-        report.written.keyframes,
-        report.written.points,
-        config.keyframes.voxel_size,
-        report.written.bytes as f64 / 1e6,
-        report.seconds,
-        report.points_per_second() / 1e6
-    );
-    let mapping = report
-        .mapping
-        .as_ref()
-        .context("the demo builds its poses from the scans")?;
-    println!(
-        "  poses built from the raw scans (GICP odometry, {} graph keyframes, loops {} found / {} accepted): keyframe ATE {:.3} m against poses_gt.txt (odometry alone {:.3} m)",
-        mapping.keyframes,
-        mapping.loops_found,
-        mapping.loops_accepted(),
-        mapping.ate.unwrap_or(f64::NAN),
-        mapping.ate_odometry.unwrap_or(f64::NAN)
-    );
-    // The baked poses are levelled: the query pose gets the same rotation.
-    let mut level = Pose::identity();
-    match report.gravity.as_ref().and_then(|g| g.correction.as_ref()) {
-        Some(c) => {
-            let (roll, pitch) = roll_pitch_from_gravity(up_built, 1e-9);
-            println!(
-                "  gravity: recovered roll {:.2}°, pitch {:.2}° from {} keyframes' IMU windows; true {:.2}°, {:.2}° (the simulated {:.0}°/{:.0}° world tilt seen from the first scan's frame); map levelled",
-                c.roll_deg(),
-                c.pitch_deg(),
-                c.estimate.health.members,
-                roll.to_degrees(),
-                pitch.to_degrees(),
-                sim.tilt_deg[0],
-                sim.tilt_deg[1]
-            );
-            level = Pose::from_parts(Default::default(), c.rotation.into());
-        }
-        None => println!("  gravity: too few keyframes with IMU samples for an estimate"),
-    }
-    let started = Instant::now();
-    let mut map = open_map(&map_path, OpenOptions::default())?.map;
-    println!(
-        "  reopened by mmap in {:.2} ms (no tree or covariance rebuilt)",
-        started.elapsed().as_secs_f64() * 1e3
-    );
-    let last = truth.poses.len() - 1;
-    let scan = read_cloud(
-        &dataset.join(format!("scans/{last:06}.pcd")),
-        &ReadOptions::default(),
-    )?
-    .cloud
-    .voxel_downsample(0.5)?;
-    let at = level * mapping.poses[last];
-    for approximate in [true, false] {
-        map.set_approximate_cov(approximate);
-        let started = Instant::now();
-        let active = map.activate(&at)?;
-        let pairs = active.cov2cov(&scan, &at, 1.0, None)?;
-        let mean = pairs.iter().map(|p| (p.dist_sq as f64).sqrt()).sum::<f64>()
-            / pairs.len().max(1) as f64;
-        println!(
-            "  scan {last} ({} points at 0.5 m) vs keyframes {:?}, {} mode: {} pairings ({:.1} %), mean distance {:.3} m, {:.1} ms",
-            scan.len(),
-            active.ids(),
-            if approximate { "approximate" } else { "exact" },
-            pairs.len(),
-            100.0 * pairs.len() as f64 / scan.len() as f64,
-            mean,
-            started.elapsed().as_secs_f64() * 1e3
+    let mapped = data.join("dataset");
+    let summary = report.step("simulate", || {
+        let s = write_dataset(sim.clone(), &mapped, false, &|_, _| {})?;
+        let line = format!(
+            "{} scans at {} Hz, {:.2} M points, {} IMU samples, {:.1} m driven",
+            s.scans,
+            sim.lidar.rate_hz,
+            s.points as f64 / 1e6,
+            s.imu_samples,
+            s.distance_m
         );
-    }
-    Ok(level)
-}
-
-/// The `kfmap serve` child: SIGTERM and its shared-memory files removed when dropped.
-struct ServerChild {
-    child: std::process::Child,
-    prefix: String,
-}
-
-impl Drop for ServerChild {
-    fn drop(&mut self) {
-        // SAFETY: kill(2) on our own child.
-        unsafe {
-            libc::kill(self.child.id() as i32, libc::SIGTERM);
-        }
-        let _ = self.child.wait();
-        if let Ok(config) = iceoryx_config(Some(&self.prefix)) {
-            remove_prefix_files(&config, &self.prefix);
-        }
-    }
-}
-
-/// Serves the baked map from a child process and localizes a second drive against it
-/// from another process.
-/// `true_up`: the simulator's up in the levelled map, what the served correction is
-/// checked against.
-fn serve_and_localize(
-    dataset: &Path,
-    sim: &SimConfig,
-    level: &Pose,
-    true_up: &Vector3<f64>,
-) -> anyhow::Result<()> {
-    use std::io::BufRead;
-    use std::process::{Command, Stdio};
-    let exe = std::env::current_exe()?;
-    let map = dataset.join("courtyard.kfmap");
-    let prefix = format!("kfdemo{}_", std::process::id());
-    let name = format!("demo{}", std::process::id());
-    let mut child = Command::new(&exe)
-        .args(["serve", "--map"])
-        .arg(&map)
-        .args(["--map-name", &name, "--iceoryx-prefix", &prefix])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .context("start kfmap serve")?;
-    let stdout = child.stdout.take().context("server stdout")?;
-    let server = ServerChild { child, prefix };
-    let mut ready = String::new();
-    std::io::BufReader::new(stdout).read_line(&mut ready)?;
-    anyhow::ensure!(
-        ready.starts_with("ready:"),
-        "kfmap serve did not start: {ready:?}"
-    );
-    println!(
-        "kfmap serve (child process {}): {}",
-        server.child.id(),
-        ready.trim()
-    );
-
+        Ok((s, line))
+    })?;
+    let scan = mapped.join(format!("scans/{:06}.pcd", summary.scans / 10));
+    report.step("covariances", || Ok(((), analyze(&scan)?)))?;
     // The same drive recorded at 7 Hz: every scan a new viewpoint of the mapped site.
-    let second = dataset.join("second-drive");
+    let replayed = data.join("second-drive");
     let replay = SimConfig {
         lidar: LidarParams {
             rate_hz: 7.0,
@@ -289,10 +215,356 @@ fn serve_and_localize(
         },
         ..sim.clone()
     };
-    write_dataset(replay, &second, false, &|_, _| {})?;
-    // The built map's frame is the first scan's, levelled; both drives start there.
-    let initial = second.join("initial.txt");
-    let m = level.to_homogeneous();
+    let replayed_reference = report.step("simulate again", || {
+        let s = write_dataset(replay, &replayed, false, &|_, _| {})?;
+        let reference = read_trajectory(&replayed.join("poses_gt.txt"))?;
+        let line = format!("the same drive at 7 Hz, to localize: {} scans", s.scans);
+        Ok((reference, line))
+    })?;
+    let mapped_reference = read_trajectory(&mapped.join("poses_gt.txt"))?.poses;
+    Ok(Passes {
+        mapped,
+        mapped_scans: ScanRange::ALL,
+        mapped_reference,
+        replayed,
+        replayed_scans: ScanRange::ALL,
+        replayed_reference,
+        // Both drives start where the map's frame is: the first scan's pose.
+        relocalize_first: false,
+        sim_tilt_deg: Some(sim.tilt_deg),
+    })
+}
+
+/// balm_os0 from the shared data: the first pass mapped, the revisit localized.
+fn real_passes(report: &mut Report) -> anyhow::Result<Passes> {
+    let balm = shared_data_dir()
+        .map(|d| d.join("balm_os0"))
+        .filter(|d| d.join("poses.txt").is_file())
+        .context(
+            "demo --real needs the shared data beside the checkout (../shared/data/balm_os0) or $KFMAP_DATA_DIR naming the data folder",
+        )?;
+    report.title = format!(
+        "kfmap demo --real: balm_os0 (handheld 64-ring LiDAR, 2 Hz, fast turns; {})",
+        balm.display()
+    );
+    let reference = read_trajectory(&balm.join("poses.txt"))?;
+    if reference.poses.len() < BALM_REPLAYED.end {
+        bail!(
+            "{} has {} poses, the demo needs {}",
+            balm.join("poses.txt").display(),
+            reference.poses.len(),
+            BALM_REPLAYED.end
+        );
+    }
+    report.rows.push((
+        "dataset".into(),
+        format!(
+            "{} scans: {}-{} mapped, {}-{} localized (a revisit 2.3-4 m from the first pass)",
+            reference.poses.len(),
+            BALM_MAPPED.start,
+            BALM_MAPPED.end - 1,
+            BALM_REPLAYED.start,
+            BALM_REPLAYED.end - 1
+        ),
+        0.0,
+    ));
+    let replayed_reference = Trajectory {
+        stamps: reference.stamps.as_ref().map(|s| s[BALM_REPLAYED].to_vec()),
+        poses: reference.poses[BALM_REPLAYED].to_vec(),
+    };
+    Ok(Passes {
+        mapped: balm.clone(),
+        mapped_scans: ScanRange {
+            start: BALM_MAPPED.start,
+            end: Some(BALM_MAPPED.end),
+        },
+        mapped_reference: reference.poses[BALM_MAPPED].to_vec(),
+        replayed: balm,
+        replayed_scans: ScanRange {
+            start: BALM_REPLAYED.start,
+            end: Some(BALM_REPLAYED.end),
+        },
+        replayed_reference,
+        // No pose guess: the first scan is relocalized, as any lost one would be.
+        relocalize_first: true,
+        sim_tilt_deg: None,
+    })
+}
+
+/// Map, serve, localize, draw: the same for simulated and real data.
+fn run_pipeline(report: &mut Report, passes: &Passes, out: &Path) -> anyhow::Result<()> {
+    let map = out.join("map.kfmap");
+    let map_poses = out.join("map_poses.tum");
+    let level = report.step("build and bake the map", || {
+        build_map(passes, &map, &map_poses)
+    })?;
+    // The simulator's up in the built map's frame: before and after levelling.
+    let true_up = passes.sim_tilt_deg.map(|tilt| {
+        let up_world = -gravity_in_map(tilt[0].to_radians(), tilt[1].to_radians());
+        let up_built: Vector3<f64> = passes.mapped_reference[0].rotation.inverse() * up_world;
+        let levelled = level.as_ref().map_or(up_built, |c| c.rotation * up_built);
+        (up_built, levelled)
+    });
+    if let Some((up_built, _)) = true_up {
+        let line = match &level {
+            Some(c) => {
+                let (roll, pitch) = roll_pitch_from_gravity(&up_built, 1e-9);
+                format!(
+                    "recovered roll {:.2} deg, pitch {:.2} deg from the IMU; truth {:.2} / {:.2} deg; map levelled",
+                    c.roll_deg(),
+                    c.pitch_deg(),
+                    roll.to_degrees(),
+                    pitch.to_degrees()
+                )
+            }
+            None => "too few keyframes with IMU samples for an estimate".into(),
+        };
+        report.rows.push(("level by gravity".into(), line, 0.0));
+    }
+    report.step("reopen by mmap", || reopen(&map))?;
+    // The built map's frame against the reference's: the rigid fit of the mapped scans'
+    // reference positions onto their built ones.
+    let built = read_trajectory(&map_poses)?;
+    let map_from_reference = rigid_alignment(&passes.mapped_reference, &built.poses);
+    let reference = Trajectory {
+        stamps: passes.replayed_reference.stamps.clone(),
+        poses: passes
+            .replayed_reference
+            .poses
+            .iter()
+            .map(|p| map_from_reference * p)
+            .collect(),
+    };
+    let reference_path = out.join("reference.tum");
+    write_atomic(&reference_path, format_tum(&reference).as_bytes())?;
+    let server = report.step("kfmap serve", || {
+        let id = std::process::id();
+        let server = ServerChild::start(&map, &format!("demo{id}"), &format!("kfdemo{id}_"), &[])?;
+        let ready = server.ready.trim_start_matches("ready: ");
+        let line = format!("child process {}, {ready}", server.pid());
+        Ok((server, line))
+    })?;
+    let localized = out.join("localized.tum");
+    let log = out.join("localize.jsonl");
+    let initial = out.join("initial.txt");
+    let summary = report.step("kfmap localize", || {
+        let mut extra = Vec::new();
+        if !passes.relocalize_first {
+            // The map frame's origin is the first mapped scan's built pose.
+            write_matrix(&initial, &built.poses[0])?;
+            extra = vec!["--initial".into(), initial.display().to_string()];
+        }
+        let (s, relocalized) = localize(&server, passes, &extra, &localized, &log)?;
+        let line = format!(
+            "{} scans: {} ok / {} degraded / {} lost / {} failed, {relocalized} relocalized with no guess; per scan p50 {:.1} ms, p99 {:.1} ms",
+            s["scans"],
+            s["ok"],
+            s["degraded"],
+            s["lost"],
+            s["failed"],
+            number(&s["p50_ms"]),
+            number(&s["p99_ms"]),
+        );
+        Ok((s, line))
+    })?;
+    drop(server);
+    let _ = std::fs::remove_file(&initial);
+    report.step("error vs reference", || {
+        let line = error_line(&read_trajectory(&localized)?, &reference)?;
+        let ate = number(&summary["ate_m"]);
+        Ok(((), format!("{line}; aligned on itself (ATE) {ate:.3} m")))
+    })?;
+    if let (Some(g), Some((_, levelled))) = (summary["gravity"].as_object(), true_up) {
+        let (roll, pitch) = (number(&g["roll_deg"]), number(&g["pitch_deg"]));
+        let (true_roll, true_pitch) = roll_pitch_from_gravity(&levelled, 1e-9);
+        report.rows.push((
+            "gravity over IPC".into(),
+            format!(
+                "{} IMU windows: roll {roll:.3} / pitch {pitch:.3} deg left in the levelled map; residual against the truth {:.3} / {:.3} deg",
+                g["members"],
+                roll - true_roll.to_degrees(),
+                pitch - true_pitch.to_degrees()
+            ),
+            0.0,
+        ));
+    }
+    let map_png = out.join("map.png");
+    report.step("picture of the map", || {
+        render_map(&map, &map_png, &MapPlotOptions::default())?;
+        Ok(((), map_png.display().to_string()))
+    })?;
+    let trajectory_png = out.join("trajectory.png");
+    report.step("picture of the trajectory", || {
+        let inputs = TrajectoryPlotInputs {
+            estimate: &localized,
+            reference: &reference_path,
+            scan_log: Some(&log),
+            title: Some("localized pass against its reference (map frame)"),
+        };
+        render_trajectory(&inputs, &trajectory_png, 1600, 1200)?;
+        Ok(((), trajectory_png.display().to_string()))
+    })?;
+    report.rows.push((
+        "files".into(),
+        format!(
+            "{}/: map.kfmap, map_poses.tum, localized.tum, reference.tum, localize.jsonl, report.md",
+            out.display()
+        ),
+        0.0,
+    ));
+    Ok(())
+}
+
+/// Builds the poses from the raw scans and bakes the map; returns the levelling the
+/// gravity stage applied when there was an IMU log.
+fn build_map(
+    passes: &Passes,
+    map: &Path,
+    map_poses: &Path,
+) -> anyhow::Result<(Option<GravityCorrection>, String)> {
+    let input = BakeInput {
+        build_poses: true,
+        scans: passes.mapped_scans,
+        ..BakeInput::dataset(&passes.mapped)
+    };
+    let output = BakeOutput {
+        trajectory: Some(map_poses.to_path_buf()),
+        ..BakeOutput::map(map)
+    };
+    let r = bake(&input, &BakeConfig::default(), &output, |_| {})?;
+    let mapping = r
+        .mapping
+        .as_ref()
+        .context("the demo builds its poses from the scans")?;
+    let line = format!(
+        "{} scans -> {} keyframes, {:.2} M points, {:.0} MB; {} of {} loops accepted; keyframe ATE {:.3} m (odometry alone {:.3} m)",
+        r.scans.len(),
+        r.written.keyframes,
+        r.written.points as f64 / 1e6,
+        r.written.bytes as f64 / 1e6,
+        mapping.loops_accepted(),
+        mapping.loops_found,
+        mapping.ate.unwrap_or(f64::NAN),
+        mapping.ate_odometry.unwrap_or(f64::NAN),
+    );
+    let level = r.gravity.filter(|g| g.applied).and_then(|g| g.correction);
+    Ok((level, line))
+}
+
+/// Reopens the map by mmap and times it.
+fn reopen(map: &Path) -> anyhow::Result<((), String)> {
+    let started = Instant::now();
+    let opened = open_map(map, OpenOptions::default())?;
+    let ms = started.elapsed().as_secs_f64() * 1e3;
+    Ok((
+        (),
+        format!(
+            "{} keyframes ready in {ms:.2} ms: trees and covariances read in place, none rebuilt",
+            opened.map.len()
+        ),
+    ))
+}
+
+/// Covariance statistics of one scan.
+fn analyze(path: &Path) -> anyhow::Result<String> {
+    let config = BakeConfig::default();
+    let cloud = read_cloud(
+        path,
+        &ReadOptions {
+            bin_layout: None,
+            filter: config.filter,
+        },
+    )?
+    .cloud;
+    cloud
+        .validate()
+        .with_context(|| path.display().to_string())?;
+    let s = summarize(&cloud, &config.covariance)?;
+    Ok(format!(
+        "one scan, {} points: covariances in {:.1} ms on {} threads, {:.1} % isotropic fallback, mean planarity {:.2}",
+        s.points,
+        s.covariances_ms,
+        s.threads,
+        100.0 * s.fallback_fraction,
+        s.mean_planarity.unwrap_or(f64::NAN)
+    ))
+}
+
+/// Position and rotation error of `estimate` against `reference`, pose by pose (the
+/// same scans in the same order; both in the map frame, the pass itself not aligned).
+fn error_line(estimate: &Trajectory, reference: &Trajectory) -> anyhow::Result<String> {
+    if estimate.poses.len() != reference.poses.len() || estimate.poses.is_empty() {
+        bail!(
+            "the localized pass has {} poses, its reference {}",
+            estimate.poses.len(),
+            reference.poses.len()
+        );
+    }
+    let pairs = estimate.poses.iter().zip(&reference.poses);
+    let metres: Vec<f64> = pairs
+        .clone()
+        .map(|(e, r)| translation_distance(e, r))
+        .collect();
+    let max_deg = pairs
+        .map(|(e, r)| rotation_distance(e, r).to_degrees())
+        .fold(0.0, f64::max);
+    let rms = (metres.iter().map(|m| m * m).sum::<f64>() / metres.len() as f64).sqrt();
+    let max = metres.iter().copied().fold(0.0, f64::max);
+    Ok(format!(
+        "map frame fitted to the reference's on the mapped scans: RMS {rms:.3} m, max {max:.3} m, max {max_deg:.2} deg"
+    ))
+}
+
+/// Runs `kfmap localize` on the replayed pass; returns its summary (the last JSON line)
+/// and how many scans were relocalized.
+fn localize(
+    server: &ServerChild,
+    passes: &Passes,
+    extra: &[String],
+    trajectory: &Path,
+    log: &Path,
+) -> anyhow::Result<(serde_json::Value, usize)> {
+    let scans = passes.replayed_scans;
+    let range = format!(
+        "{}..{}",
+        scans.start,
+        scans.end.map_or(String::new(), |e| e.to_string())
+    );
+    let out = Command::new(std::env::current_exe()?)
+        .args(["localize", "--map-name", &server.name, "--iceoryx-prefix"])
+        .arg(&server.prefix)
+        .arg("--dataset")
+        .arg(&passes.replayed)
+        .args(["--scans", &range, "--rate", "0", "--json-lines", "--out"])
+        .arg(trajectory)
+        .args(extra)
+        .stderr(Stdio::inherit())
+        .output()
+        .context("run kfmap localize")?;
+    if !out.status.success() {
+        bail!("kfmap localize failed (exit {})", out.status);
+    }
+    write_atomic(log, &out.stdout)?;
+    let text = String::from_utf8_lossy(&out.stdout);
+    let last = text
+        .lines()
+        .last()
+        .context("kfmap localize printed nothing")?;
+    let relocalized = text
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .filter(|scan| {
+            scan["reasons"]
+                .as_array()
+                .is_some_and(|r| r.iter().any(|x| x == "relocalized"))
+        })
+        .count();
+    Ok((serde_json::from_str(last)?, relocalized))
+}
+
+/// Writes `pose` as a 4x4 matrix file, what `kfmap localize --initial` reads.
+fn write_matrix(path: &Path, pose: &Pose) -> anyhow::Result<()> {
+    let m = pose.to_homogeneous();
     let rows: Vec<String> = (0..4)
         .map(|r| {
             (0..4)
@@ -301,98 +573,10 @@ fn serve_and_localize(
                 .join(" ")
         })
         .collect();
-    std::fs::write(&initial, rows.join("\n"))?;
-    let started = Instant::now();
-    let out = Command::new(&exe)
-        .args(["localize", "--map-name", &name, "--dataset"])
-        .arg(&second)
-        .args([
-            "--rate",
-            "0",
-            "--json",
-            "--iceoryx-prefix",
-            &server.prefix,
-            "--initial",
-        ])
-        .arg(&initial)
-        .output()
-        .context("run kfmap localize")?;
-    anyhow::ensure!(
-        out.status.success(),
-        "kfmap localize failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let s: serde_json::Value = serde_json::from_slice(&out.stdout)?;
-    println!(
-        "kfmap localize (child process) on a second drive ({} scans at 7 Hz) in {:.1} s: ATE {:.4} m, RPE {:.4} m, {} ok / {} degraded / {} lost, {} failed; latency per scan p50 {:.1} ms, p99 {:.1} ms ({:.1} GICP iterations on average)",
-        s["scans"],
-        started.elapsed().as_secs_f64(),
-        s["ate_m"].as_f64().unwrap_or(f64::NAN),
-        s["rpe_m"].as_f64().unwrap_or(f64::NAN),
-        s["ok"],
-        s["degraded"],
-        s["lost"],
-        s["failed"],
-        s["p50_ms"].as_f64().unwrap_or(f64::NAN),
-        s["p99_ms"].as_f64().unwrap_or(f64::NAN),
-        s["mean_iterations"].as_f64().unwrap_or(f64::NAN)
-    );
-    match s["gravity"].as_object() {
-        Some(g) => {
-            let number = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
-            let (roll, pitch) = (number(&g["roll_deg"]), number(&g["pitch_deg"]));
-            let (true_roll, true_pitch) = roll_pitch_from_gravity(true_up, 1e-9);
-            let bias: Vec<f64> = g["accel_bias_mps2"]
-                .as_array()
-                .map(|b| b.iter().map(number).collect())
-                .unwrap_or_default();
-            println!(
-                "  gravity over IPC from {} IMU windows ({} motion-compensated): roll {roll:.3}°, pitch {pitch:.3}° left in the levelled map; the truth {:.3}°, {:.3}°: residual {:.3}° / {:.3}°; accelerometer bias {bias:.3?} m/s^2",
-                g["members"],
-                g["compensated_members"],
-                true_roll.to_degrees(),
-                true_pitch.to_degrees(),
-                roll - true_roll.to_degrees(),
-                pitch - true_pitch.to_degrees(),
-            )
-        }
-        None => println!("  gravity over IPC: too few IMU windows for an estimate"),
-    }
-    drop(server);
-    println!("kfmap serve stopped; its shared memory removed");
+    write_atomic(path, rows.join("\n").as_bytes())?;
     Ok(())
 }
 
-/// Loads `path`, downsamples it and prints its covariance statistics.
-fn analyze(path: &Path, config: &BakeConfig) -> anyhow::Result<()> {
-    let started = Instant::now();
-    let loaded = read_cloud(
-        path,
-        &ReadOptions {
-            bin_layout: None,
-            filter: config.filter,
-        },
-    )?;
-    let dropped = loaded.filter.map_or(0, |f| f.dropped());
-    println!(
-        "{} ({}, {} invalid returns dropped, read in {:.1} ms)",
-        path.display(),
-        loaded.format,
-        dropped,
-        started.elapsed().as_secs_f64() * 1e3
-    );
-    let cloud = loaded.cloud;
-    cloud
-        .validate()
-        .with_context(|| path.display().to_string())?;
-    let started = Instant::now();
-    let downsampled = cloud.voxel_downsample(0.25)?;
-    println!(
-        "  voxel 0.25 m:     {} -> {} points in {:.1} ms",
-        cloud.len(),
-        downsampled.len(),
-        started.elapsed().as_secs_f64() * 1e3
-    );
-    print_summary(&summarize(&cloud, &config.covariance)?);
-    Ok(())
+fn number(v: &serde_json::Value) -> f64 {
+    v.as_f64().unwrap_or(f64::NAN)
 }

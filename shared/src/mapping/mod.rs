@@ -7,7 +7,7 @@ mod odometry;
 #[cfg(test)]
 mod tests;
 
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::{Matrix3, Point3, Rotation3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::cloud::PointCloud;
@@ -184,11 +184,31 @@ pub fn build_trajectory<E: From<RegistrationError> + From<GlobalError>>(
 }
 
 /// Absolute trajectory error: RMS position difference after the rigid alignment
-/// (Umeyama/Horn, no scale) of `estimate` onto `truth`, metres.
+/// ([`rigid_alignment`]) of `estimate` onto `truth`, metres.
 pub fn absolute_trajectory_error(estimate: &[Pose], truth: &[Pose]) -> f64 {
     let n = estimate.len().min(truth.len());
     if n == 0 {
         return 0.0;
+    }
+    let align = rigid_alignment(&estimate[..n], &truth[..n]);
+    let sum_sq: f64 = estimate[..n]
+        .iter()
+        .zip(&truth[..n])
+        .map(|(e, t)| {
+            (align * Point3::from(e.translation.vector) - Point3::from(t.translation.vector))
+                .norm_squared()
+        })
+        .sum();
+    (sum_sq / n as f64).sqrt()
+}
+
+/// The rigid transform (Umeyama/Horn, no scale) that moves the positions of `estimate`
+/// closest to those of `truth` in the least-squares sense, pose by pose over the
+/// shorter of the two: `T_truth_estimate`. Identity for fewer than one pair.
+pub fn rigid_alignment(estimate: &[Pose], truth: &[Pose]) -> Pose {
+    let n = estimate.len().min(truth.len());
+    if n == 0 {
+        return Pose::identity();
     }
     let p: Vec<Vector3<f64>> = estimate[..n].iter().map(|x| x.translation.vector).collect();
     let q: Vec<Vector3<f64>> = truth[..n].iter().map(|x| x.translation.vector).collect();
@@ -207,14 +227,8 @@ pub fn absolute_trajectory_error(estimate: &[Pose], truth: &[Pose]) -> f64 {
     if (u * v_t).determinant() < 0.0 {
         d[(2, 2)] = -1.0;
     }
-    let r = u * d * v_t;
-    let t = mq - r * mp;
-    let sum_sq: f64 = p
-        .iter()
-        .zip(&q)
-        .map(|(a, b)| (r * a + t - b).norm_squared())
-        .sum();
-    (sum_sq / n as f64).sqrt()
+    let r = Rotation3::from_matrix_unchecked(u * d * v_t);
+    Pose::from_parts((mq - r * mp).into(), r.into())
 }
 
 /// Relative pose error over consecutive poses: RMS translation error of each step's

@@ -1,0 +1,67 @@
+"""Python client of the kfmap LiDAR keyframe map server.
+
+Talks to a running ``kfmap serve`` over iceoryx2 zero-copy shared memory::
+
+    import kfmap
+    with kfmap.Client("site") as client:
+        found = client.nearest(points, pose, k=1)
+"""
+
+from .client import Client
+from .errors import (
+    DisconnectedError,
+    InvalidArgument,
+    KfmapError,
+    NoServerError,
+    RequestTimeout,
+    ServerError,
+    TooManyClientsError,
+    TransportError,
+)
+from .geometry import pose_from_wire, pose_to_wire
+from .results import (
+    GravityAnswer,
+    KindStats,
+    Localized,
+    Pairings,
+    Relocalized,
+    SessionGravity,
+    StatusReport,
+)
+from .wire import (
+    PROTOCOL_VERSION,
+    Cov2CovMode,
+    RelocalizeStatus,
+    RequestKind,
+    StatusCode,
+    TrackingStatus,
+)
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Client",
+    "Cov2CovMode",
+    "DisconnectedError",
+    "GravityAnswer",
+    "InvalidArgument",
+    "KfmapError",
+    "KindStats",
+    "Localized",
+    "NoServerError",
+    "PROTOCOL_VERSION",
+    "Pairings",
+    "RelocalizeStatus",
+    "Relocalized",
+    "RequestKind",
+    "RequestTimeout",
+    "ServerError",
+    "SessionGravity",
+    "StatusCode",
+    "StatusReport",
+    "TooManyClientsError",
+    "TrackingStatus",
+    "TransportError",
+    "pose_from_wire",
+    "pose_to_wire",
+]

@@ -1,0 +1,659 @@
+//! `kfmap bench` with no subcommand: the system benchmarks in one table. Each row names
+//! its data and threads; the anchor's figure stands beside it where one was measured on
+//! the same data, with the script that measured it.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Instant;
+
+use anyhow::{Context, bail};
+use indicatif::{ProgressBar, ProgressStyle};
+use kfmap_service::bake::{BakeInput, BakeOutput, bake};
+use kfmap_service::config::BakeConfig;
+use kfmap_service::scan_range::ScanRange;
+use kfmap_shared::cloud::PointCloud;
+use kfmap_shared::cov::{CovOptions, estimate_covariances};
+use kfmap_shared::datasets::shared_data_dir;
+use kfmap_shared::geometry::Pose;
+use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
+use kfmap_shared::map::{KeyframeMap, KeyframeMapOptions};
+use kfmap_shared::pose_graph::{GraphParams, read_g2o};
+use kfmap_shared::registration::{PreparedCloud, RegistrationParams, align, register};
+use serde_json::json;
+
+use super::bench::{keyframe_pose, synthetic_cloud};
+use super::server_child::ServerChild;
+
+/// An anchor's figure for the same measurement on the same data and machine.
+#[derive(Clone, Copy)]
+struct Anchor {
+    tool: &'static str,
+    value: f64,
+    script: &'static str,
+}
+
+/// One measured figure.
+struct Row {
+    name: String,
+    data: String,
+    threads: usize,
+    value: f64,
+    unit: &'static str,
+    anchor: Option<Anchor>,
+}
+
+/// The rows measured so far, and the progress shown while measuring.
+struct Table {
+    rows: Vec<Row>,
+    skipped: Vec<String>,
+    bar: ProgressBar,
+    /// Repetitions per in-process timing (the median is kept).
+    reps: usize,
+    quick: bool,
+}
+
+impl Table {
+    fn push(&mut self, name: &str, data: &str, threads: usize, value: f64, unit: &'static str) {
+        self.rows.push(Row {
+            name: name.into(),
+            data: data.into(),
+            threads,
+            value,
+            unit,
+            anchor: None,
+        });
+    }
+
+    /// Sets the anchor of the last row pushed.
+    fn anchored(&mut self, anchor: Option<Anchor>) {
+        if let Some(row) = self.rows.last_mut() {
+            row.anchor = anchor;
+        }
+    }
+
+    fn stage(&self, what: &str) {
+        self.bar.set_message(what.to_string());
+        self.bar.tick();
+    }
+
+    /// Median milliseconds of `reps` runs of `work` on a pool of `threads`.
+    fn time_ms<T: Send>(
+        &self,
+        threads: usize,
+        mut work: impl FnMut() -> T + Send,
+    ) -> anyhow::Result<f64> {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()?;
+        std::hint::black_box(pool.install(&mut work)); // Warm caches and the pool.
+        let mut samples = Vec::with_capacity(self.reps);
+        for _ in 0..self.reps {
+            let started = Instant::now();
+            std::hint::black_box(pool.install(&mut work));
+            samples.push(started.elapsed().as_secs_f64() * 1e3);
+        }
+        samples.sort_by(f64::total_cmp);
+        Ok(samples[samples.len() / 2])
+    }
+}
+
+/// small_gicp 1.0.1 and GTSAM 4.3.0 (PyPI) on this project's 2-core machine, by the
+/// named scripts (2026-11-24; docs/BENCHMARKS.md). GTSAM runs with its own threading.
+const SMALL_GICP_COV: [f64; 2] = [74.6, 38.9];
+const SMALL_GICP_REGISTER: [f64; 2] = [21.6, 16.0];
+const SMALL_GICP_ALIGN: [f64; 2] = [4.68, 2.42];
+const GTSAM_PARKING_GARAGE_MS: f64 = 69.7;
+/// small_gicp localizing balm_os0 scans 116-176 against the merged map of scans 0-115
+/// (`small_gicp_localize.py --motion-model`, 2 threads): per scan p50 and RMS error.
+const SMALL_GICP_LOCALIZE: [f64; 2] = [24.0, 0.183];
+
+fn anchor(tool: &'static str, value: f64, script: &'static str) -> Option<Anchor> {
+    Some(Anchor {
+        tool,
+        value,
+        script,
+    })
+}
+
+/// Runs every benchmark and prints the table (or JSON rows).
+pub fn run(quick: bool, json_out: bool, dir: &Path) -> anyhow::Result<()> {
+    let bar = if json_out {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new_spinner()
+    };
+    bar.set_style(ProgressStyle::with_template("{spinner} {elapsed} {msg}")?);
+    bar.enable_steady_tick(std::time::Duration::from_millis(200));
+    let mut table = Table {
+        rows: Vec::new(),
+        skipped: Vec::new(),
+        bar,
+        reps: if quick { 3 } else { 15 },
+        quick,
+    };
+    let data = shared_data_dir();
+    covariances(&mut table, data.as_deref())?;
+    cov2cov(&mut table, data.as_deref())?;
+    registration(&mut table, data.as_deref())?;
+    pose_graph(&mut table, data.as_deref())?;
+    load(&mut table, dir)?;
+    ipc(&mut table, dir)?;
+    localization(&mut table, data.as_deref(), dir)?;
+    table.bar.finish_and_clear();
+    if json_out {
+        println!("{}", serde_json::to_string_pretty(&to_json(&table))?);
+    } else {
+        print!("{}", to_text(&table));
+    }
+    Ok(())
+}
+
+/// The real file `relative` of the shared data, when it is there.
+fn data_file(data: Option<&Path>, relative: &str) -> Option<PathBuf> {
+    data.map(|d| d.join(relative)).filter(|p| p.exists())
+}
+
+fn read(path: &Path) -> anyhow::Result<PointCloud> {
+    Ok(read_cloud(path, &ReadOptions::default())?.cloud)
+}
+
+fn covariances(table: &mut Table, data: Option<&Path>) -> anyhow::Result<()> {
+    table.stage("covariances");
+    let real = data_file(data, "small_gicp/target.ply");
+    let (cloud, name) = match &real {
+        Some(p) => (read(p)?, "small_gicp/target.ply"),
+        None => (synthetic_cloud(1, 64_000), "synthetic scan"),
+    };
+    let label = format!("{name}, {} points", cloud.len());
+    let options = CovOptions::default();
+    for threads in [1, 2] {
+        let ms = table.time_ms(threads, || estimate_covariances(&cloud.points, &options))?;
+        table.push(
+            "covariances, k = 20 (index included)",
+            &label,
+            threads,
+            ms,
+            "ms",
+        );
+        let script = "tools/anchors/small_gicp_cov.py";
+        table.anchored(
+            real.as_ref()
+                .and_then(|_| anchor("small_gicp", SMALL_GICP_COV[threads - 1], script)),
+        );
+    }
+    Ok(())
+}
+
+fn cov2cov(table: &mut Table, data: Option<&Path>) -> anyhow::Result<()> {
+    table.stage("cov2cov per scan");
+    let (keyframes, query, at, label) = match data_file(data, "kitti00") {
+        Some(dir) => {
+            let poses = read_trajectory(&dir.join("poses_velo_kitti.txt"))?.poses;
+            let frames = [0, 2, 4]
+                .iter()
+                .map(|i| Ok((read(&dir.join(format!("{i:06}.bin")))?, poses[*i])))
+                .collect::<anyhow::Result<Vec<_>>>()?;
+            // The smallest voxel giving at most ~10 000 points, as the criterion bench.
+            let frame = read(&dir.join("000003.bin"))?;
+            let query = (1..40)
+                .map(|k| frame.voxel_downsample(0.05 * k as f64))
+                .find(|c| c.as_ref().map_or(true, |c| c.len() <= 10_500))
+                .context("no voxel size thins KITTI 00 frame 3 to 10 000 points")??;
+            let label = format!(
+                "KITTI 00: frames 0, 2, 4 as keyframes, frame 3 ({} points)",
+                query.len()
+            );
+            (frames, query, poses[3], label)
+        }
+        None => {
+            let frames = (0..3)
+                .map(|i| (synthetic_cloud(i, 120_000), keyframe_pose(2 * i as usize)))
+                .collect();
+            let query = synthetic_cloud(99, 10_000);
+            let label = format!("synthetic: 3 keyframes, scan of {} points", query.len());
+            (frames, query, keyframe_pose(3), label)
+        }
+    };
+    let covariances = estimate_covariances(&query.points, &CovOptions::default()).values;
+    for approximate in [true, false] {
+        let mut map = KeyframeMap::new(KeyframeMapOptions {
+            approximate_cov: approximate,
+            ..KeyframeMapOptions::default()
+        })?;
+        for (i, (cloud, pose)) in keyframes.iter().enumerate() {
+            map.insert(cloud.clone(), *pose, i as f64)?;
+        }
+        if !approximate {
+            // A new active set: the merged submap, its tree and covariances, built once.
+            let one = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
+            let started = Instant::now();
+            one.install(|| -> anyhow::Result<()> {
+                let active = map.activate(&at)?;
+                active.cov2cov(&query, &at, 1.0, Some(&covariances))?;
+                Ok(())
+            })?;
+            let ms = started.elapsed().as_secs_f64() * 1e3;
+            table.push(
+                "cov2cov per scan, exact, new active set",
+                &label,
+                1,
+                ms,
+                "ms",
+            );
+        }
+        let active = map.activate(&at)?;
+        let ms = table.time_ms(1, || active.cov2cov(&query, &at, 1.0, Some(&covariances)))?;
+        let name = if approximate {
+            "cov2cov per scan, approximate"
+        } else {
+            "cov2cov per scan, exact, cached submap"
+        };
+        table.push(name, &label, 1, ms, "ms");
+    }
+    Ok(())
+}
+
+fn registration(table: &mut Table, data: Option<&Path>) -> anyhow::Result<()> {
+    table.stage("GICP per scan pair");
+    let real = data_file(data, "small_gicp");
+    let (target, source, label) = match &real {
+        Some(dir) => (
+            read(&dir.join("target.ply"))?,
+            read(&dir.join("source.ply"))?,
+            "small_gicp/{target,source}.ply".to_string(),
+        ),
+        None => (
+            synthetic_cloud(1, 64_000),
+            synthetic_cloud(2, 64_000),
+            "two synthetic scans of one site".to_string(),
+        ),
+    };
+    let params = RegistrationParams::default();
+    let identity = Pose::identity();
+    for threads in [1, 2] {
+        let ms = table.time_ms(threads, || register(&target, &source, &identity, &params))?;
+        table.push(
+            "GICP from raw clouds (voxels, covariances, trees, solve)",
+            &label,
+            threads,
+            ms,
+            "ms",
+        );
+        let script = "tools/anchors/small_gicp_reg.py";
+        table.anchored(
+            real.as_ref()
+                .and_then(|_| anchor("small_gicp", SMALL_GICP_REGISTER[threads - 1], script)),
+        );
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()?;
+        let (t, s) = pool.install(|| {
+            rayon::join(
+                || PreparedCloud::new(&target, &params, "target"),
+                || PreparedCloud::new(&source, &params, "source"),
+            )
+        });
+        let (t, s) = (t?, s?);
+        let ms = table.time_ms(threads, || align(&t, &s, &identity, &params))?;
+        table.push("GICP on preprocessed clouds", &label, threads, ms, "ms");
+        table.anchored(
+            real.as_ref()
+                .and_then(|_| anchor("small_gicp", SMALL_GICP_ALIGN[threads - 1], script)),
+        );
+    }
+    Ok(())
+}
+
+fn pose_graph(table: &mut Table, data: Option<&Path>) -> anyhow::Result<()> {
+    table.stage("pose graph");
+    let Some(path) = data_file(data, "g2o/parking-garage.g2o") else {
+        table
+            .skipped
+            .push("pose graph: needs g2o/parking-garage.g2o of the shared data".into());
+        return Ok(());
+    };
+    let (graph, fixed) = read_g2o(&path)?;
+    let params = GraphParams {
+        fixed,
+        ..GraphParams::default()
+    };
+    let label = format!("parking-garage.g2o, {} poses", graph.len());
+    for threads in [1, 2] {
+        let ms = table.time_ms(threads, || graph.clone().optimize(&params))?;
+        table.push(
+            "pose-graph optimization (Gauss-Newton)",
+            &label,
+            threads,
+            ms,
+            "ms",
+        );
+        table.anchored(anchor(
+            "GTSAM 4.3",
+            GTSAM_PARKING_GARAGE_MS,
+            "tools/anchors/gtsam_pose_graph.py",
+        ));
+    }
+    Ok(())
+}
+
+/// Runs `kfmap bench ARGS --json` as a child process and returns its JSON.
+fn child_bench(args: &[&str]) -> anyhow::Result<serde_json::Value> {
+    let out = Command::new(std::env::current_exe()?)
+        .arg("bench")
+        .args(args)
+        .arg("--json")
+        .output()
+        .with_context(|| format!("run kfmap bench {}", args.join(" ")))?;
+    if !out.status.success() {
+        bail!(
+            "kfmap bench {} failed: {}",
+            args.join(" "),
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    Ok(serde_json::from_slice(&out.stdout)?)
+}
+
+fn number(v: &serde_json::Value) -> f64 {
+    v.as_f64().unwrap_or(f64::NAN)
+}
+
+fn load(table: &mut Table, dir: &Path) -> anyhow::Result<()> {
+    table.stage("cold start vs rebuild (generating a map)");
+    let (keyframes, points) = if table.quick {
+        (40, 20_000)
+    } else {
+        (500, 40_000)
+    };
+    let dir = dir.display().to_string();
+    let v = child_bench(&[
+        "load",
+        "--keyframes",
+        &keyframes.to_string(),
+        "--points",
+        &points.to_string(),
+        "--dir",
+        &dir,
+    ])?;
+    let label = format!(
+        "synthetic map, {keyframes} keyframes x {points} points, {:.2} GB",
+        number(&v["bytes"]) / 1e9
+    );
+    let threads = number(&v["threads"]) as usize;
+    table.push(
+        "cold start: new process to first NN answer (mmap)",
+        &label,
+        1,
+        number(&v["cold_start_ms"]),
+        "ms",
+    );
+    table.push(
+        "rebuild instead: every tree and covariance",
+        &label,
+        threads,
+        number(&v["rebuild_ms"]),
+        "ms",
+    );
+    for (threads, key) in [
+        (1, "bake_points_per_second_1_thread"),
+        (2, "bake_points_per_second_2_threads"),
+    ] {
+        table.push(
+            "bake throughput (trees, covariances, write)",
+            &label,
+            threads,
+            number(&v[key]) / 1e6,
+            "M points/s",
+        );
+    }
+    table.push(
+        "NN queries on the mmapped map, time vs heap",
+        &label,
+        1,
+        100.0 * number(&v["archived_over_heap_time"]),
+        "%",
+    );
+    Ok(())
+}
+
+fn ipc(table: &mut Table, dir: &Path) -> anyhow::Result<()> {
+    table.stage("IPC round trips and throughput (kfmap serve child)");
+    let dir = dir.display().to_string();
+    let mut args = vec!["ipc", "--dir", &dir];
+    if table.quick {
+        args.push("--quick");
+    }
+    let v = child_bench(&args)?;
+    let label = "synthetic map, 12 keyframes x 40 000 points; kfmap serve child";
+    for echo in v["echo"].as_array().into_iter().flatten() {
+        let name = format!("IPC round trip (echo), {} points, median", echo["points"]);
+        table.push(&name, label, 1, number(&echo["p50_us"]), "us");
+    }
+    let c = &v["cov2cov_10k"];
+    table.push(
+        "cov2cov of a 10k-point scan over IPC, median",
+        label,
+        1,
+        number(&c["ipc_p50_us"]) / 1e3,
+        "ms",
+    );
+    table.push(
+        "  the same call in process, median",
+        label,
+        1,
+        number(&c["in_process_p50_us"]) / 1e3,
+        "ms",
+    );
+    let t = &v["throughput_10k_cov2cov"];
+    table.push(
+        "cov2cov throughput, 1 client",
+        label,
+        1,
+        number(&t["one_client_scans_per_s"]),
+        "scans/s",
+    );
+    table.push(
+        "cov2cov throughput, 4 client processes",
+        label,
+        4,
+        number(&t["four_clients_scans_per_s"]),
+        "scans/s",
+    );
+    Ok(())
+}
+
+/// balm_os0: a map of scans 0-115 at their reference poses, scans 116-176 tracked
+/// against it by `kfmap localize` over IPC, as tests/health.rs checks.
+fn localization(table: &mut Table, data: Option<&Path>, dir: &Path) -> anyhow::Result<()> {
+    table.stage("localization on real data (balm_os0)");
+    let Some(balm) = data_file(data, "balm_os0") else {
+        table
+            .skipped
+            .push("localization on real data: needs balm_os0 of the shared data".into());
+        return Ok(());
+    };
+    let map = dir.join(format!("kfmap-bench-balm-{}.kfmap", std::process::id()));
+    let input = BakeInput {
+        scans: ScanRange {
+            start: 0,
+            end: Some(116),
+        },
+        ..BakeInput::dataset(&balm)
+    };
+    bake(
+        &input,
+        &BakeConfig::default(),
+        &BakeOutput::map(&map),
+        |_| {},
+    )?;
+    let id = std::process::id();
+    let served = ServerChild::start(
+        &map,
+        &format!("benchbalm{id}"),
+        &format!("kfbalm{id}_"),
+        &[],
+    );
+    let _ = std::fs::remove_file(&map); // The server holds it mapped.
+    let server = served?;
+    let out = Command::new(std::env::current_exe()?)
+        .args([
+            "localize",
+            "--map-name",
+            &server.name,
+            "--iceoryx-prefix",
+            &server.prefix,
+        ])
+        .arg("--dataset")
+        .arg(&balm)
+        .args([
+            "--scans",
+            "116..177",
+            "--initial-from-ground-truth",
+            "--rate",
+            "0",
+            "--json",
+        ])
+        .output()
+        .context("run kfmap localize")?;
+    drop(server);
+    if !out.status.success() {
+        bail!(
+            "kfmap localize failed: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout)?;
+    let label = "balm_os0: map of scans 0-115, scans 116-176 tracked";
+    let script = "tools/anchors/small_gicp_localize.py --motion-model";
+    table.push(
+        "localization per scan, client-side GICP over IPC, median",
+        label,
+        2,
+        number(&v["p50_ms"]),
+        "ms",
+    );
+    table.anchored(anchor(
+        "small_gicp (in process)",
+        SMALL_GICP_LOCALIZE[0],
+        script,
+    ));
+    table.push(
+        "localization error vs reference poses, RMS",
+        label,
+        2,
+        number(&v["rms_error_m"]),
+        "m",
+    );
+    table.anchored(anchor("small_gicp", SMALL_GICP_LOCALIZE[1], script));
+    Ok(())
+}
+
+fn to_json(table: &Table) -> serde_json::Value {
+    let rows: Vec<_> = table
+        .rows
+        .iter()
+        .map(|r| {
+            json!({
+                "name": r.name.trim(),
+                "data": r.data,
+                "threads": r.threads,
+                "value": r.value,
+                "unit": r.unit,
+                "anchor": r.anchor.map(|a| json!({"tool": a.tool, "value": a.value, "script": a.script})),
+            })
+        })
+        .collect();
+    json!({
+        "quick": table.quick,
+        "cores": std::thread::available_parallelism().map_or(0, |n| n.get()),
+        "rows": rows,
+        "skipped": table.skipped,
+    })
+}
+
+/// A figure with about three significant digits.
+fn figure(value: f64, unit: &str) -> String {
+    let digits = match value.abs() {
+        v if v >= 100.0 => 0,
+        v if v >= 10.0 => 1,
+        v if v >= 1.0 => 2,
+        _ => 3,
+    };
+    format!("{value:.digits$} {unit}")
+}
+
+fn to_text(table: &Table) -> String {
+    let header = ["benchmark", "data", "threads", "kfmap", "anchor"];
+    let cells: Vec<[String; 5]> = table
+        .rows
+        .iter()
+        .map(|r| {
+            [
+                r.name.clone(),
+                r.data.clone(),
+                r.threads.to_string(),
+                figure(r.value, r.unit),
+                r.anchor.map_or(String::new(), |a| {
+                    format!("{} {}", a.tool, figure(a.value, r.unit))
+                }),
+            ]
+        })
+        .collect();
+    let widths: Vec<usize> = (0..5)
+        .map(|c| {
+            cells
+                .iter()
+                .map(|r| r[c].chars().count())
+                .chain([header[c].len()])
+                .max()
+                .unwrap_or(0)
+        })
+        .collect();
+    let line = |r: [&str; 5]| {
+        let mut s = String::from("|");
+        for c in 0..5 {
+            if c == 2 || c == 3 {
+                s += &format!(" {:>w$} |", r[c], w = widths[c]);
+            } else {
+                s += &format!(" {:w$} |", r[c], w = widths[c]);
+            }
+        }
+        s + "\n"
+    };
+    let mut out = line(header);
+    out += &format!(
+        "|{}|\n",
+        widths
+            .iter()
+            .enumerate()
+            .map(|(c, w)| if c == 2 || c == 3 {
+                format!("{}:", "-".repeat(w + 1))
+            } else {
+                "-".repeat(w + 2)
+            })
+            .collect::<Vec<_>>()
+            .join("|")
+    );
+    for r in &cells {
+        out += &line([&r[0], &r[1], &r[2], &r[3], &r[4]]);
+    }
+    let mut scripts: Vec<&str> = table
+        .rows
+        .iter()
+        .filter_map(|r| r.anchor.map(|a| a.script))
+        .collect();
+    scripts.dedup();
+    if !scripts.is_empty() {
+        out += &format!(
+            "\nAnchor figures: recorded on this project's 2-core machine by {} (see docs/BENCHMARKS.md).\n",
+            scripts.join(", ")
+        );
+    }
+    if table.quick {
+        out += "Quick run: fewer repetitions and a smaller generated map; figures are noisier.\n";
+    }
+    for s in &table.skipped {
+        out += &format!("skipped: {s}\n");
+    }
+    out
+}

@@ -1,0 +1,598 @@
+//! The trajectory picture: an estimate against its reference, coloured by position
+//! error, with the scans a localization run lost or degraded marked.
+
+use std::path::Path;
+
+use anyhow::Context;
+use kfmap_shared::geometry::Pose;
+use kfmap_shared::io::read_trajectory;
+use kfmap_shared::mapping::rigid_alignment;
+use plotters::coord::Shift;
+use plotters::prelude::*;
+
+use super::TrajectoryPlotInputs;
+use super::draw::{
+    DEGRADED_ORANGE, Figure, GREY, LOST_RED, Sizes, Symbol, centred_text, colour_bar, draw_error,
+    legend, legend_height, ms_label, padded_bounds, quantile, tick_label, top_down_chart, viridis,
+};
+
+/// Default largest stamp difference between an estimated pose and its reference, s.
+pub(super) const DEFAULT_MAX_DT: f64 = 0.005;
+/// Error colours saturate at this quantile of the errors.
+const ERROR_QUANTILE: f64 = 0.98;
+
+/// What the picture shows, for the one-line report.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrajectorySummary {
+    /// Poses of the estimate.
+    pub estimate_poses: usize,
+    /// Of them, with a reference pose within the stamp tolerance.
+    pub matched: usize,
+    /// Root mean square of the position errors, metres.
+    pub rmse: f64,
+    /// Largest position error, metres.
+    pub max: f64,
+    /// Scans of the log (lines with an `index`), when one was given.
+    pub logged_scans: Option<usize>,
+    /// Logged scans lost or failed.
+    pub lost: usize,
+    /// Logged scans degraded.
+    pub degraded: usize,
+    /// With `--align`: `T_reference_estimate`, applied to the estimate.
+    pub alignment: Option<Pose>,
+}
+
+/// How to compare the estimate with the reference.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrajectoryOptions {
+    /// Largest stamp difference between an estimated pose and its reference, s.
+    pub max_dt: f64,
+    /// Move the estimate rigidly onto the reference (no scale) first.
+    pub align: bool,
+}
+
+impl Default for TrajectoryOptions {
+    fn default() -> Self {
+        Self {
+            max_dt: DEFAULT_MAX_DT,
+            align: false,
+        }
+    }
+}
+
+/// A pose of the estimate with its reference: seconds from the first estimated stamp,
+/// estimated position, error.
+struct Matched {
+    t: f64,
+    x: f64,
+    y: f64,
+    error: f64,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum MarkKind {
+    LostOrFailed,
+    Degraded,
+}
+
+/// A logged scan that was not `ok`.
+struct Mark {
+    t: f64,
+    x: f64,
+    y: f64,
+    /// Its position error: the matched estimate's at its stamp, else the log's
+    /// `error_m`; `None` when neither is known.
+    error: Option<f64>,
+    kind: MarkKind,
+}
+
+pub(super) struct TrajectoryFigure {
+    title: String,
+    stats: String,
+    reference: Vec<(f64, f64)>,
+    matched: Vec<Matched>,
+    marks: Vec<Mark>,
+    error_range: (f64, f64),
+    has_log: bool,
+    summary: TrajectorySummary,
+}
+
+/// Stamped poses of a TUM file, in time order.
+fn read_stamped(path: &Path, what: &str) -> anyhow::Result<Vec<(f64, Pose)>> {
+    let traj = read_trajectory(path).with_context(|| format!("cannot read the {what}"))?;
+    let stamps = traj.stamps.ok_or_else(|| {
+        anyhow::anyhow!(
+            "{}: the {what} has no timestamps (KITTI format); poses are matched by time, \
+             so pass a TUM file (t x y z qx qy qz qw)",
+            path.display()
+        )
+    })?;
+    anyhow::ensure!(
+        !traj.poses.is_empty(),
+        "{}: the {what} is empty (no poses)",
+        path.display()
+    );
+    let mut out: Vec<(f64, Pose)> = stamps.into_iter().zip(traj.poses).collect();
+    out.sort_by(|a, b| a.0.total_cmp(&b.0));
+    Ok(out)
+}
+
+/// A length for people: millimetres below 0.1 m, else metres to the millimetre.
+fn length_label(metres: f64) -> String {
+    if metres < 0.1 {
+        format!("{:.1} mm", metres * 1e3)
+    } else {
+        format!("{metres:.3} m")
+    }
+}
+
+/// Index of the entry of `sorted` (by stamp) nearest to `t`, if within `max_dt`.
+fn nearest<T>(sorted: &[(f64, T)], t: f64, max_dt: f64) -> Option<usize> {
+    let i = sorted.partition_point(|(s, _)| *s < t);
+    [i.checked_sub(1), (i < sorted.len()).then_some(i)]
+        .into_iter()
+        .flatten()
+        .filter(|&j| (sorted[j].0 - t).abs() <= max_dt)
+        .min_by(|&a, &b| (sorted[a].0 - t).abs().total_cmp(&(sorted[b].0 - t).abs()))
+}
+
+/// One scan of a `kfmap localize --json-lines` log.
+struct LoggedScan {
+    t: f64,
+    status: String,
+    position: Option<[f64; 3]>,
+    error_m: Option<f64>,
+}
+
+/// The scans of a `--json-lines` log; lines without `index` (the summary) are skipped.
+fn read_scan_log(path: &Path) -> anyhow::Result<Vec<LoggedScan>> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("cannot read the scan log {}", path.display()))?;
+    let mut scans = Vec::new();
+    for (k, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() {
+            continue;
+        }
+        let value: serde_json::Value = serde_json::from_str(line).with_context(|| {
+            format!(
+                "{} line {}: not a JSON object (expected `kfmap localize --json-lines` output)",
+                path.display(),
+                k + 1
+            )
+        })?;
+        if value.get("index").is_none() {
+            continue;
+        }
+        let field = |name: &str| {
+            anyhow::anyhow!(
+                "{} line {}: a scan without a valid \"{name}\"",
+                path.display(),
+                k + 1
+            )
+        };
+        let t = value["t"].as_f64().ok_or_else(|| field("t"))?;
+        let status = value["status"].as_str().ok_or_else(|| field("status"))?;
+        let position = value["pose"].as_array().and_then(|p| {
+            let x = p.first()?.as_f64()?;
+            let y = p.get(1)?.as_f64()?;
+            let z = p.get(2)?.as_f64()?;
+            Some([x, y, z])
+        });
+        scans.push(LoggedScan {
+            t,
+            status: status.to_string(),
+            position,
+            error_m: value["error_m"].as_f64(),
+        });
+    }
+    Ok(scans)
+}
+
+impl TrajectoryFigure {
+    pub(super) fn summary(&self) -> &TrajectorySummary {
+        &self.summary
+    }
+
+    /// Reads and matches the inputs: each estimated pose to the reference pose nearest
+    /// in time, within `max_dt` seconds.
+    pub(super) fn load(
+        inputs: &TrajectoryPlotInputs,
+        options: &TrajectoryOptions,
+    ) -> anyhow::Result<Self> {
+        let max_dt = options.max_dt;
+        anyhow::ensure!(
+            max_dt.is_finite() && max_dt >= 0.0,
+            "the stamp tolerance must be >= 0 s, got {max_dt}"
+        );
+        let reference = read_stamped(inputs.reference, "reference trajectory")?;
+        let mut estimate = read_stamped(inputs.estimate, "estimated trajectory")?;
+        let t0 = estimate[0].0;
+        // Pairs (estimate index, reference index) by stamp.
+        let pairs: Vec<(usize, usize)> = estimate
+            .iter()
+            .enumerate()
+            .filter_map(|(i, (t, _))| Some((i, nearest(&reference, *t, max_dt)?)))
+            .collect();
+        // --align: the estimate moved rigidly onto the reference (least squares over
+        // the matched positions, no scale) before anything is measured or drawn.
+        let alignment = if options.align && !pairs.is_empty() {
+            anyhow::ensure!(
+                pairs.len() >= 3,
+                "--align needs at least 3 matched poses, found {}",
+                pairs.len()
+            );
+            let est: Vec<Pose> = pairs.iter().map(|&(i, _)| estimate[i].1).collect();
+            let refs: Vec<Pose> = pairs.iter().map(|&(_, j)| reference[j].1).collect();
+            let align = rigid_alignment(&est, &refs);
+            for (_, pose) in &mut estimate {
+                *pose = align * *pose;
+            }
+            Some(align)
+        } else {
+            None
+        };
+        let matched: Vec<Matched> = pairs
+            .iter()
+            .map(|&(i, j)| {
+                let (t, p) = &estimate[i];
+                let p = p.translation.vector;
+                Matched {
+                    t: t - t0,
+                    x: p.x,
+                    y: p.y,
+                    error: (p - reference[j].1.translation.vector).norm(),
+                }
+            })
+            .collect();
+        if matched.is_empty() {
+            anyhow::bail!(
+                "no estimated pose has a reference pose within {} ms: estimate stamps {:.3}..{:.3} s, \
+                 reference {:.3}..{:.3} s (are they on the same clock?)",
+                ms_label(max_dt),
+                estimate[0].0,
+                estimate[estimate.len() - 1].0,
+                reference[0].0,
+                reference[reference.len() - 1].0
+            );
+        }
+        let mut errors: Vec<f64> = matched.iter().map(|m| m.error).collect();
+        errors.sort_by(f64::total_cmp);
+        let rmse = (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt();
+        let max = errors[errors.len() - 1];
+        let top = quantile(&errors, ERROR_QUANTILE).unwrap_or(max).max(1e-3);
+
+        // Reference within the estimate's time span (1 s either side).
+        let (first, last) = (t0 - 1.0, estimate[estimate.len() - 1].0 + 1.0);
+        let reference_xy: Vec<(f64, f64)> = reference
+            .iter()
+            .filter(|(t, _)| (first..=last).contains(t))
+            .map(|(_, p)| (p.translation.x, p.translation.y))
+            .collect();
+
+        let mut marks = Vec::new();
+        let mut logged = None;
+        let (mut lost, mut degraded) = (0, 0);
+        if let Some(log) = inputs.scan_log {
+            let scans = read_scan_log(log)?;
+            logged = Some(scans.len());
+            let by_stamp: Vec<(f64, usize)> = {
+                let mut v: Vec<(f64, usize)> = matched
+                    .iter()
+                    .enumerate()
+                    .map(|(i, m)| (m.t + t0, i))
+                    .collect();
+                v.sort_by(|a, b| a.0.total_cmp(&b.0));
+                v
+            };
+            let estimate_at = |t: f64| {
+                nearest(&estimate, t, max_dt).map(|j| {
+                    let v = estimate[j].1.translation.vector;
+                    [v.x, v.y]
+                })
+            };
+            for scan in &scans {
+                let kind = match scan.status.as_str() {
+                    "lost" | "failed" => MarkKind::LostOrFailed,
+                    "degraded" => MarkKind::Degraded,
+                    _ => continue,
+                };
+                match kind {
+                    MarkKind::LostOrFailed => lost += 1,
+                    MarkKind::Degraded => degraded += 1,
+                }
+                // The logged pose is in the estimate's frame: aligned with it.
+                let logged = scan.position.map(|p| match &alignment {
+                    Some(a) => {
+                        let q = a * nalgebra::Point3::new(p[0], p[1], p[2]);
+                        [q.x, q.y]
+                    }
+                    None => [p[0], p[1]],
+                });
+                let Some([x, y]) = logged.or_else(|| estimate_at(scan.t)) else {
+                    continue;
+                };
+                let error = nearest(&by_stamp, scan.t, max_dt)
+                    .map(|j| matched[by_stamp[j].1].error)
+                    .or(scan.error_m);
+                marks.push(Mark {
+                    t: scan.t - t0,
+                    x,
+                    y,
+                    error,
+                    kind,
+                });
+            }
+        }
+
+        let name = |p: &Path| {
+            p.file_name()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_else(|| p.display().to_string())
+        };
+        let title = inputs.title.map(str::to_string).unwrap_or_else(|| {
+            format!(
+                "{} against {}",
+                name(inputs.estimate),
+                name(inputs.reference)
+            )
+        });
+        let mut stats = format!(
+            "{} of {} poses matched within {} ms  ·  position error RMSE {}, max {}",
+            matched.len(),
+            estimate.len(),
+            ms_label(max_dt),
+            length_label(rmse),
+            length_label(max)
+        );
+        if let Some(a) = &alignment {
+            stats.push_str(&format!(
+                "  ·  aligned: rotated {:.2}°, moved {:.3} m",
+                a.rotation.angle().to_degrees(),
+                a.translation.vector.norm()
+            ));
+        }
+        if let Some(n) = logged {
+            stats.push_str(&format!(
+                "  ·  {lost} lost/failed, {degraded} degraded of {n} scans"
+            ));
+        }
+        Ok(Self {
+            title,
+            stats,
+            reference: reference_xy,
+            error_range: (0.0, top),
+            has_log: logged.is_some(),
+            summary: TrajectorySummary {
+                estimate_poses: estimate.len(),
+                matched: matched.len(),
+                rmse,
+                max,
+                logged_scans: logged,
+                lost,
+                degraded,
+                alignment,
+            },
+            matched,
+            marks,
+        })
+    }
+
+    fn legend_entries(&self) -> Vec<(Symbol, String)> {
+        let mut entries = vec![
+            (Symbol::Line(GREY, 1.0, 3), "reference".to_string()),
+            (
+                Symbol::Gradient(viridis),
+                "estimate, coloured by position error".to_string(),
+            ),
+            (Symbol::Ring(BLACK), "start".to_string()),
+        ];
+        if self.has_log {
+            entries.push((
+                Symbol::Cross(LOST_RED),
+                format!("lost or failed scan ({})", self.summary.lost),
+            ));
+            entries.push((
+                Symbol::Triangle(DEGRADED_ORANGE),
+                format!("degraded scan ({})", self.summary.degraded),
+            ));
+        }
+        entries
+    }
+
+    fn colour(&self, error: f64) -> RGBColor {
+        viridis(error / self.error_range.1)
+    }
+
+    fn draw_marks<DB: DrawingBackend>(
+        &self,
+        chart: &mut super::draw::Chart2d<'_, DB>,
+        at: impl Fn(&Mark) -> Option<(f64, f64)>,
+        sizes: &Sizes,
+    ) -> anyhow::Result<()> {
+        let r = (0.45 * sizes.text) as i32;
+        chart
+            .draw_series(
+                self.marks
+                    .iter()
+                    .filter(|m| m.kind == MarkKind::Degraded)
+                    .filter_map(&at)
+                    .map(|c| TriangleMarker::new(c, r, DEGRADED_ORANGE.filled())),
+            )
+            .map_err(draw_error)?;
+        chart
+            .draw_series(
+                self.marks
+                    .iter()
+                    .filter(|m| m.kind == MarkKind::LostOrFailed)
+                    .filter_map(&at)
+                    .map(|c| Cross::new(c, r, LOST_RED.stroke_width(3))),
+            )
+            .map_err(draw_error)?;
+        Ok(())
+    }
+}
+
+impl Figure for TrajectoryFigure {
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> anyhow::Result<()> {
+        let (width, height) = root.dim_in_pixel();
+        let sizes = Sizes::of(width, height);
+        root.fill(&WHITE).map_err(draw_error)?;
+        let title_h = (1.5 * sizes.title + 1.6 * sizes.text) as u32 + 2 * sizes.pad;
+        let (title_band, rest) = root.split_vertically(title_h);
+        centred_text(
+            &title_band,
+            &self.title,
+            sizes.title,
+            BLACK,
+            sizes.pad as i32,
+        )?;
+        centred_text(
+            &title_band,
+            &self.stats,
+            sizes.text,
+            RGBColor(60, 60, 60),
+            (1.4 * sizes.title) as i32 + sizes.pad as i32,
+        )?;
+        let entries = self.legend_entries();
+        let legend_h = legend_height(root, &entries, width, &sizes)?;
+        let (_, rest_h) = rest.dim_in_pixel();
+        let top_h = ((rest_h.saturating_sub(legend_h)) as f64 * 0.66) as u32;
+        let (top, rest) = rest.split_vertically(top_h);
+        let (legend_band, bottom) = rest.split_vertically(legend_h);
+        let bar_w = (9.0 * sizes.tick) as u32;
+        let (map_area, bar_area) = top.split_horizontally(width.saturating_sub(bar_w));
+
+        // Top: the view from above.
+        let (xr, yr) = padded_bounds(
+            self.reference
+                .iter()
+                .copied()
+                .chain(self.matched.iter().map(|m| (m.x, m.y)))
+                .chain(self.marks.iter().map(|m| (m.x, m.y))),
+            1.0,
+        );
+        let (mut chart, _) = top_down_chart(&map_area, xr, yr, &sizes)?;
+        chart
+            .draw_series(std::iter::once(PathElement::new(
+                self.reference.clone(),
+                GREY.stroke_width(3),
+            )))
+            .map_err(draw_error)?;
+        let line_w = (0.2 * sizes.text).max(2.0) as u32;
+        chart
+            .draw_series(self.matched.windows(2).map(|w| {
+                let c = self.colour(0.5 * (w[0].error + w[1].error));
+                PathElement::new(
+                    vec![(w[0].x, w[0].y), (w[1].x, w[1].y)],
+                    c.stroke_width(line_w),
+                )
+            }))
+            .map_err(draw_error)?;
+        chart
+            .draw_series(
+                self.matched
+                    .iter()
+                    .map(|m| Circle::new((m.x, m.y), line_w, self.colour(m.error).filled())),
+            )
+            .map_err(draw_error)?;
+        let start = &self.matched[0];
+        chart
+            .draw_series(std::iter::once(Circle::new(
+                (start.x, start.y),
+                (0.45 * sizes.text) as u32,
+                BLACK.stroke_width(2),
+            )))
+            .map_err(draw_error)?;
+        self.draw_marks(&mut chart, |m| Some((m.x, m.y)), &sizes)?;
+        let (top_rows, main_rows) = (
+            chart.plotting_area().get_pixel_range().1,
+            top.get_pixel_range().1,
+        );
+        colour_bar(
+            &bar_area,
+            self.error_range,
+            viridis,
+            "position error (m)",
+            &sizes,
+            (top_rows.start - main_rows.start).max(0) as u32,
+            (main_rows.end - top_rows.end).max(0) as u32,
+        )?;
+        legend(&legend_band, &entries, &sizes)?;
+
+        // Bottom: the error over time.
+        let t_end = self
+            .matched
+            .iter()
+            .map(|m| m.t)
+            .chain(self.marks.iter().map(|m| m.t))
+            .fold(0.0f64, f64::max)
+            .max(1e-3);
+        let t_start = self.marks.iter().map(|m| m.t).fold(0.0f64, f64::min);
+        let e_max = self
+            .matched
+            .iter()
+            .map(|m| m.error)
+            .chain(self.marks.iter().filter_map(|m| m.error))
+            .fold(0.0f64, f64::max)
+            .max(1e-3)
+            * 1.08;
+        let (time_label, error_label) = (tick_label(t_end - t_start), tick_label(e_max));
+        let mut chart = ChartBuilder::on(&bottom)
+            .margin(sizes.pad)
+            .margin_right(bar_w + 2 * sizes.pad)
+            .x_label_area_size((2.6 * sizes.tick) as u32)
+            .y_label_area_size((4.2 * sizes.tick) as u32)
+            .build_cartesian_2d(t_start..t_end, 0.0..e_max)
+            .map_err(draw_error)?;
+        chart
+            .configure_mesh()
+            .x_desc("time since the first estimated pose (s)")
+            .y_desc("position error (m)")
+            .x_label_formatter(&time_label)
+            .y_label_formatter(&error_label)
+            .label_style(Sizes::font(sizes.tick))
+            .axis_desc_style(Sizes::font(sizes.text))
+            .bold_line_style(RGBColor(215, 215, 215).stroke_width(1))
+            .light_line_style(RGBColor(240, 240, 240).stroke_width(1))
+            .x_labels(12)
+            .y_labels(6)
+            .draw()
+            .map_err(draw_error)?;
+        chart
+            .draw_series(std::iter::once(PathElement::new(
+                self.matched
+                    .iter()
+                    .map(|m| (m.t, m.error))
+                    .collect::<Vec<_>>(),
+                RGBColor(90, 90, 90).stroke_width(1),
+            )))
+            .map_err(draw_error)?;
+        chart
+            .draw_series(
+                self.matched
+                    .iter()
+                    .map(|m| Circle::new((m.t, m.error), line_w, self.colour(m.error).filled())),
+            )
+            .map_err(draw_error)?;
+        // A mark with no known error sits on the time axis.
+        self.draw_marks(&mut chart, |m| Some((m.t, m.error.unwrap_or(0.0))), &sizes)?;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn nearest_respects_the_tolerance() {
+        let v = [(0.0, ()), (0.1, ()), (0.2, ())];
+        assert_eq!(nearest(&v, 0.104, 0.005), Some(1));
+        assert_eq!(nearest(&v, 0.096, 0.005), Some(1));
+        assert_eq!(nearest(&v, 0.15, 0.005), None);
+        assert_eq!(nearest(&v, 0.2049, 0.005), Some(2));
+        assert_eq!(nearest(&v, -0.01, 0.005), None);
+        assert_eq!(nearest::<()>(&[], 0.0, 1.0), None);
+    }
+}

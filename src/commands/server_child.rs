@@ -1,0 +1,66 @@
+//! A `kfmap serve` child process, for the commands that run a server of their own
+//! (demo, benchmarks).
+
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+
+use anyhow::{Context, bail};
+use kfmap_shared::protocol::transport::{iceoryx_config, remove_prefix_files};
+
+/// The server child: stopped, and every iceoryx2 file of its prefix removed, on drop.
+pub(super) struct ServerChild {
+    child: Child,
+    /// Its iceoryx2 prefix, this process's own.
+    pub prefix: String,
+    /// The map name it serves.
+    pub name: String,
+    /// The line it printed when ready.
+    pub ready: String,
+}
+
+impl ServerChild {
+    /// Starts `kfmap serve` on `map` as `name` under `prefix`, with `extra` arguments,
+    /// and waits until it answers.
+    pub fn start(map: &Path, name: &str, prefix: &str, extra: &[&str]) -> anyhow::Result<Self> {
+        let mut child = Command::new(std::env::current_exe()?)
+            .args(["serve", "--map"])
+            .arg(map)
+            .args(["--map-name", name, "--iceoryx-prefix", prefix])
+            .args(extra)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .context("start kfmap serve")?;
+        let mut ready = String::new();
+        BufReader::new(child.stdout.take().context("server stdout")?).read_line(&mut ready)?;
+        let server = Self {
+            child,
+            prefix: prefix.to_string(),
+            name: name.to_string(),
+            ready: ready.trim().to_string(),
+        };
+        if !server.ready.starts_with("ready:") {
+            bail!("kfmap serve did not start: {:?}", server.ready);
+        }
+        Ok(server)
+    }
+
+    /// The server's process id.
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+}
+
+impl Drop for ServerChild {
+    fn drop(&mut self) {
+        // SAFETY: kill(2) on our own child; SIGTERM lets it remove its resources.
+        unsafe {
+            libc::kill(self.child.id() as i32, libc::SIGTERM);
+        }
+        let _ = self.child.wait();
+        if let Ok(config) = iceoryx_config(Some(&self.prefix)) {
+            remove_prefix_files(&config, &self.prefix);
+        }
+    }
+}
