@@ -165,7 +165,9 @@ fn map_pictures_of_a_baked_simulation() {
     assert!(line.contains(": 1 keyframe,"), "{line}");
     let one = Picture::read(&single_png);
     one.assert_drawn(1600, 1200);
-    assert_ne!(one.pixels, full.pixels);
+    // One scan's points cover less of the chart (left of the colour bar) than 30 scans'.
+    let chart = 1400;
+    assert!(one.coloured_left_of(chart) < full.coloured_left_of(chart));
 
     // Another size, no edges: the requested dimensions.
     let small = tmp.join("small.png");
@@ -373,6 +375,30 @@ fn trajectory_picture_with_a_scan_log() {
     assert!(svg.starts_with("<svg"));
     assert!(svg.contains("<circle") && svg.contains("<text"));
     assert!(svg.contains("position error (m)"));
+
+    // A log of another run (its stamps 1000 s later) marks nothing: it is refused.
+    let other = tmp.join("other.jsonl");
+    let lines: Vec<String> = poses
+        .iter()
+        .enumerate()
+        .map(|(i, p)| scan_line(i, p[0] + 1000.0, &p[1..8], "lost"))
+        .collect();
+    std::fs::write(&other, lines.join("\n")).unwrap();
+    let refused = tmp.join("refused.png");
+    let out = kfmap(&[
+        "plot",
+        "--trajectory",
+        estimate.to_str().unwrap(),
+        "--ground-truth",
+        reference.to_str().unwrap(),
+        "--scan-log",
+        other.to_str().unwrap(),
+        "--out",
+        refused.to_str().unwrap(),
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(stderr(&out).contains("no logged scan is stamped within"));
+    assert!(!refused.exists());
 }
 
 #[test]

@@ -242,13 +242,21 @@ class Connection:
                 ports["notifier"].notify()
             except Exception:
                 pass  # the server also polls; a lost wake-up costs latency only
+            lost = False
             try:
                 return self._wait(pending, ports["listener"])
+            except (DisconnectedError, RequestTimeout):
+                lost = True
+                raise
             finally:
                 try:
                     pending.delete()
                 except Exception:
                     pass
+                if lost:
+                    # The pending request goes before the port it belongs to, as in the
+                    # Rust client; the next call finds a restarted server.
+                    self.reconnect()
 
     def _wait(self, pending: Any, listener: Any) -> Reply:
         deadline = time.monotonic() + self.timeout
@@ -263,11 +271,9 @@ class Connection:
                 finally:
                     response.delete()
             if gone:
-                self.reconnect()
                 raise DisconnectedError(self.map_name)
             left = deadline - time.monotonic()
             if left <= 0:
-                self.reconnect()
                 raise RequestTimeout(self.map_name, self.timeout)
             wait = iox2.Duration.from_secs_f64(min(left, WAIT_SLICE_S))
             try:

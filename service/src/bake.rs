@@ -24,6 +24,7 @@ use rayon::prelude::*;
 
 use kfmap_shared::mapping::{
     GlobalError, OdometryOutcome, Stage, absolute_trajectory_error, build_trajectory,
+    rigid_alignment,
 };
 use kfmap_shared::registration::{Fitness, RegistrationError};
 
@@ -211,6 +212,9 @@ pub struct MappingSummary {
     pub poses: Vec<Pose>,
     /// Keyframe ATE against the dataset's pose file, metres, when there is one.
     pub ate: Option<f64>,
+    /// The pose file's frame seen from the built poses' (`T_built_file`: the rigid fit
+    /// of the file's positions onto the built ones), when there is a pose file.
+    pub built_from_file: Option<Pose>,
     /// ATE of every scan's pose against the pose file, metres.
     pub ate_scans: Option<f64>,
     /// Every loop candidate verified, in scan indices, with its fitness.
@@ -253,6 +257,10 @@ pub struct BakeReport {
     pub dataset_scans: usize,
     /// The scans baked (indices in the dataset's sorted scan list).
     pub scans: Range<usize>,
+    /// The input frame (the pose file's; with built poses, the pose file they are
+    /// measured against) seen from the written map's: `T_map_input`, also stored in
+    /// the map for clients comparing with ground truth.
+    pub map_from_input: Pose,
     /// Pose building, when the poses came from the scans.
     pub mapping: Option<MappingSummary>,
     /// The gravity stage, when the dataset has an IMU log.
@@ -428,6 +436,7 @@ fn build_poses(
         graph_error: (built.graph.initial_error, built.graph.final_error),
         graph,
         ate: ate(&built.poses),
+        built_from_file: truth.map(|t| rigid_alignment(&t.poses, &built.poses)),
         ate_scans: truth.map(|t| absolute_trajectory_error(&built.poses, &t.poses)),
         loop_checks: built
             .loop_checks
@@ -583,15 +592,21 @@ pub fn bake(
         stamped.then_some(&stamps),
         &keyframe_scans,
     )?;
-    let mut map_from_input = Pose::identity();
+    let mut level = Pose::identity();
     if let Some(g) = gravity.as_mut().filter(|_| config.map.align_gravity)
         && let Some(c) = &g.correction
     {
         // Rotating about the map origin keeps every relative pose (and graph edge).
-        map_from_input = Pose::from_parts(Default::default(), c.rotation.into());
-        poses.iter_mut().for_each(|p| *p = map_from_input * *p);
+        level = Pose::from_parts(Default::default(), c.rotation.into());
+        poses.iter_mut().for_each(|p| *p = level * *p);
         g.applied = true;
     }
+    // The input frame is the pose file's: given, or the reference of built poses.
+    let map_from_input = level
+        * mapping
+            .as_ref()
+            .and_then(|m| m.built_from_file)
+            .unwrap_or_else(Pose::identity);
     let options: KeyframeMapOptions = config.map_options();
     let mut writer = MapWriter::create(&output.map, &options)?;
     writer.set_map_from_input(&map_from_input);
@@ -639,7 +654,7 @@ pub fn bake(
     if let (Some(path), Some(m)) = (&output.graph, &mapping) {
         let mut graph = m.graph.clone();
         for &id in m.graph.ids() {
-            let levelled = map_from_input * m.graph.pose(id).expect("a listed vertex");
+            let levelled = level * m.graph.pose(id).expect("a listed vertex");
             graph.set_pose(id, levelled)?;
         }
         write_g2o(path, &graph, m.graph.ids().first().copied())?;
@@ -647,6 +662,7 @@ pub fn bake(
     Ok(BakeReport {
         dataset_scans: all_scans.len(),
         scans: range,
+        map_from_input,
         mapping,
         gravity,
         written,

@@ -29,8 +29,8 @@ use serde_json::json;
 /// rebuild and bake throughput (`load`), IPC round trips of 1k/10k/100k points and
 /// cov2cov throughput (`ipc`), and localization per scan with its error on the real
 /// sequence balm_os0. Real data comes from ../shared/data (or $KFMAP_DATA_DIR); without
-/// it, synthetic scans stand in and rows that need it are listed as skipped. About 4
-/// minutes on 2 cores; --quick (fewer repetitions, a 40-keyframe generated map) under a
+/// it, synthetic scans stand in and rows that need it are listed as skipped. About 75 s
+/// on 2 cores; --quick (fewer repetitions, a 40-keyframe generated map) under a
 /// minute, with noisier figures. --json: {"rows": [{name, data, threads, value, unit,
 /// anchor: {tool, value, script} | null}], "skipped": [...]}.
 ///
@@ -207,7 +207,7 @@ fn probe(path: &Path, started: Instant) -> anyhow::Result<()> {
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
+    kfmap_service::server::percentile(&v, 0.5)
 }
 
 /// Nearest-neighbour queries around 20 poses: seconds for all of them.

@@ -4,8 +4,8 @@
 //! it by `kfmap localize` as another process, and pictures of both. Progress goes to
 //! stderr; stdout gets one table, also written to the output folder as `report.md`.
 
+use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
 use std::time::Instant;
 
 use anyhow::{Context, bail};
@@ -14,27 +14,28 @@ use kfmap_service::config::BakeConfig;
 use kfmap_service::scan_range::ScanRange;
 use kfmap_shared::archive::{OpenOptions, open_map};
 use kfmap_shared::datasets::shared_data_dir;
-use kfmap_shared::geometry::{Pose, rotation_distance, translation_distance};
+use kfmap_shared::geometry::Pose;
 use kfmap_shared::gravity::{GravityCorrection, roll_pitch_from_gravity};
 use kfmap_shared::io::{
     ReadOptions, Trajectory, format_tum, read_cloud, read_trajectory, write_atomic,
 };
-use kfmap_shared::mapping::rigid_alignment;
 use kfmap_shared::sim::{LidarParams, Preset, SimConfig, gravity_in_map, write_dataset};
 use kfmap_shared::summary::summarize;
-use nalgebra::Vector3;
 
+use super::localize::LocalizeLog;
 use super::plot::{MapPlotOptions, TrajectoryPlotInputs, render_map, render_trajectory};
-use super::server_child::ServerChild;
+use super::report::json_number;
+use super::server_child::{ServerChild, run_localize};
 
 /// Run the kfmap pipeline end to end on built-in defaults and draw the result.
 ///
-/// Simulated (default; about 15 s on 2 cores):
-///   1. simulates 10 s of a 32-beam LiDAR and an IMU driving around a courtyard whose
-///      world is tilted roll 2 deg / pitch -3 deg against the map frame;
+/// Simulated (default; about 35 s on 2 cores):
+///   1. simulates 52 s (a lap) of a 32-beam LiDAR and an IMU driving around a courtyard
+///      whose world is tilted roll 2 deg / pitch -3 deg against the map frame, and the
+///      covariances of one scan;
 ///   2. builds the poses from the raw scans (GICP odometry, loop closure, pose graph)
 ///      and bakes the map file, levelled by the gravity the IMU shows;
-///   3. reopens it by mmap and pairs a scan against it in process (cov2cov);
+///   3. reopens it by mmap (nothing rebuilt);
 ///   4. starts `kfmap serve` on it (a child process, its own iceoryx2 prefix) and runs
 ///      `kfmap localize` (another process) on a second drive recorded at 7 Hz, sending
 ///      its IMU windows for a gravity correction;
@@ -69,7 +70,7 @@ pub struct Args {
     real: bool,
     /// Keep the simulated datasets in OUT/dataset and OUT/second-drive (they must not
     /// exist yet).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "real")]
     keep_dataset: bool,
 }
 
@@ -94,7 +95,8 @@ impl Drop for TempDir {
 #[derive(Default)]
 struct Report {
     title: String,
-    rows: Vec<(String, String, f64)>,
+    /// Step, result, seconds (none for a line that is not a step of its own).
+    rows: Vec<(String, String, Option<f64>)>,
 }
 
 impl Report {
@@ -107,14 +109,22 @@ impl Report {
         tracing::info!("{name} ...");
         let started = Instant::now();
         let (value, line) = work().with_context(|| format!("demo step '{name}'"))?;
-        self.rows
-            .push((name.to_string(), line, started.elapsed().as_secs_f64()));
+        self.rows.push((
+            name.to_string(),
+            line,
+            Some(started.elapsed().as_secs_f64()),
+        ));
         Ok(value)
+    }
+
+    /// Records a line that is not a step of its own (no time).
+    fn note(&mut self, name: &str, line: String) {
+        self.rows.push((name.to_string(), line, None));
     }
 
     /// A markdown table: readable in a terminal, pasteable into a document.
     fn table(&self) -> String {
-        let width = |f: &dyn Fn(&(String, String, f64)) -> usize, header: &str| {
+        let width = |f: &dyn Fn(&(String, String, Option<f64>)) -> usize, header: &str| {
             self.rows.iter().map(f).max().unwrap_or(0).max(header.len())
         };
         let (w0, w1) = (
@@ -130,7 +140,8 @@ impl Report {
             "-".repeat(8)
         );
         for (step, result, seconds) in &self.rows {
-            out += &format!("| {step:w0$} | {result:w1$} | {seconds:>7.2} |\n");
+            let seconds = seconds.map_or(String::new(), |s| format!("{s:.2}"));
+            out += &format!("| {step:w0$} | {result:w1$} | {seconds:>7} |\n");
         }
         out
     }
@@ -141,8 +152,6 @@ struct Passes {
     /// Dataset the map is built from, and which of its scans.
     mapped: PathBuf,
     mapped_scans: ScanRange,
-    /// Reference poses of the mapped scans, in the reference's frame.
-    mapped_reference: Vec<Pose>,
     /// Dataset localized against the map, which of its scans, and their reference poses.
     replayed: PathBuf,
     replayed_scans: ScanRange,
@@ -221,11 +230,9 @@ fn simulated_passes(report: &mut Report, data: &Path) -> anyhow::Result<Passes> 
         let line = format!("the same drive at 7 Hz, to localize: {} scans", s.scans);
         Ok((reference, line))
     })?;
-    let mapped_reference = read_trajectory(&mapped.join("poses_gt.txt"))?.poses;
     Ok(Passes {
         mapped,
         mapped_scans: ScanRange::ALL,
-        mapped_reference,
         replayed,
         replayed_scans: ScanRange::ALL,
         replayed_reference,
@@ -256,8 +263,8 @@ fn real_passes(report: &mut Report) -> anyhow::Result<Passes> {
             BALM_REPLAYED.end
         );
     }
-    report.rows.push((
-        "dataset".into(),
+    report.note(
+        "dataset",
         format!(
             "{} scans: {}-{} mapped, {}-{} localized (a revisit 2.3-4 m from the first pass)",
             reference.poses.len(),
@@ -266,8 +273,7 @@ fn real_passes(report: &mut Report) -> anyhow::Result<Passes> {
             BALM_REPLAYED.start,
             BALM_REPLAYED.end - 1
         ),
-        0.0,
-    ));
+    );
     let replayed_reference = Trajectory {
         stamps: reference.stamps.as_ref().map(|s| s[BALM_REPLAYED].to_vec()),
         poses: reference.poses[BALM_REPLAYED].to_vec(),
@@ -278,7 +284,6 @@ fn real_passes(report: &mut Report) -> anyhow::Result<Passes> {
             start: BALM_MAPPED.start,
             end: Some(BALM_MAPPED.end),
         },
-        mapped_reference: reference.poses[BALM_MAPPED].to_vec(),
         replayed: balm,
         replayed_scans: ScanRange {
             start: BALM_REPLAYED.start,
@@ -295,20 +300,19 @@ fn real_passes(report: &mut Report) -> anyhow::Result<Passes> {
 fn run_pipeline(report: &mut Report, passes: &Passes, out: &Path) -> anyhow::Result<()> {
     let map = out.join("map.kfmap");
     let map_poses = out.join("map_poses.tum");
-    let level = report.step("build and bake the map", || {
+    let baked = report.step("build and bake the map", || {
         build_map(passes, &map, &map_poses)
     })?;
-    // The simulator's up in the built map's frame: before and after levelling.
+    // The simulator's up (its input frame's) in the built map's frame, levelled.
     let true_up = passes.sim_tilt_deg.map(|tilt| {
-        let up_world = -gravity_in_map(tilt[0].to_radians(), tilt[1].to_radians());
-        let up_built: Vector3<f64> = passes.mapped_reference[0].rotation.inverse() * up_world;
-        let levelled = level.as_ref().map_or(up_built, |c| c.rotation * up_built);
-        (up_built, levelled)
+        let up_input = -gravity_in_map(tilt[0].to_radians(), tilt[1].to_radians());
+        baked.map_from_input.rotation * up_input
     });
-    if let Some((up_built, _)) = true_up {
-        let line = match &level {
+    if let Some(up) = true_up {
+        let line = match &baked.level {
             Some(c) => {
-                let (roll, pitch) = roll_pitch_from_gravity(&up_built, 1e-9);
+                // What the levelling had to undo: the true up before it.
+                let (roll, pitch) = roll_pitch_from_gravity(&(c.rotation.inverse() * up), 1e-9);
                 format!(
                     "recovered roll {:.2} deg, pitch {:.2} deg from the IMU; truth {:.2} / {:.2} deg; map levelled",
                     c.roll_deg(),
@@ -319,20 +323,17 @@ fn run_pipeline(report: &mut Report, passes: &Passes, out: &Path) -> anyhow::Res
             }
             None => "too few keyframes with IMU samples for an estimate".into(),
         };
-        report.rows.push(("level by gravity".into(), line, 0.0));
+        report.note("level by gravity", line);
     }
     report.step("reopen by mmap", || reopen(&map))?;
-    // The built map's frame against the reference's: the rigid fit of the mapped scans'
-    // reference positions onto their built ones.
-    let built = read_trajectory(&map_poses)?;
-    let map_from_reference = rigid_alignment(&passes.mapped_reference, &built.poses);
+    // The replayed pass's reference poses in the map frame, as the server reports it.
     let reference = Trajectory {
         stamps: passes.replayed_reference.stamps.clone(),
         poses: passes
             .replayed_reference
             .poses
             .iter()
-            .map(|p| map_from_reference * p)
+            .map(|p| baked.map_from_input * p)
             .collect(),
     };
     let reference_path = out.join("reference.tum");
@@ -346,47 +347,67 @@ fn run_pipeline(report: &mut Report, passes: &Passes, out: &Path) -> anyhow::Res
     })?;
     let localized = out.join("localized.tum");
     let log = out.join("localize.jsonl");
-    let initial = out.join("initial.txt");
     let summary = report.step("kfmap localize", || {
-        let mut extra = Vec::new();
-        if !passes.relocalize_first {
-            // The map frame's origin is the first mapped scan's built pose.
-            write_matrix(&initial, &built.poses[0])?;
-            extra = vec!["--initial".into(), initial.display().to_string()];
-        }
-        let (s, relocalized) = localize(&server, passes, &extra, &localized, &log)?;
-        let line = format!(
-            "{} scans: {} ok / {} degraded / {} lost / {} failed, {relocalized} relocalized with no guess; per scan p50 {:.1} ms, p99 {:.1} ms",
-            s["scans"],
-            s["ok"],
-            s["degraded"],
-            s["lost"],
-            s["failed"],
-            number(&s["p50_ms"]),
-            number(&s["p99_ms"]),
+        // Without a guess the first scan is relocalized, as any lost one would be.
+        let start: &[&str] = if passes.relocalize_first {
+            &[]
+        } else {
+            &["--initial-from-ground-truth"]
+        };
+        let scans = passes.replayed_scans;
+        let range = format!(
+            "{}..{}",
+            scans.start,
+            scans.end.map_or(String::new(), |e| e.to_string())
         );
-        Ok((s, line))
+        let mut args: Vec<&std::ffi::OsStr> = vec!["--scans".as_ref(), range.as_ref()];
+        args.extend(["--json-lines".as_ref(), "--out".as_ref(), localized.as_os_str()]);
+        args.extend(start.iter().map(OsStr::new));
+        let lines = run_localize(&server, &passes.replayed, &args)?;
+        write_atomic(&log, lines.as_bytes())?;
+        let s = LocalizeLog::parse(&lines)?;
+        let relocalized = s.scans_with_reason("relocalized");
+        let v = &s.summary;
+        let line = format!(
+            "{} scans: {} ok / {} degraded / {} lost / {} failed{}; per scan p50 {:.1} ms, p99 {:.1} ms",
+            v["scans"],
+            v["ok"],
+            v["degraded"],
+            v["lost"],
+            v["failed"],
+            match relocalized {
+                0 => String::new(),
+                n => format!(", {n} relocalized with no guess"),
+            },
+            json_number(&v["p50_ms"]),
+            json_number(&v["p99_ms"]),
+        );
+        Ok((s.summary, line))
     })?;
     drop(server);
-    let _ = std::fs::remove_file(&initial);
-    report.step("error vs reference", || {
-        let line = error_line(&read_trajectory(&localized)?, &reference)?;
-        let ate = number(&summary["ate_m"]);
-        Ok(((), format!("{line}; aligned on itself (ATE) {ate:.3} m")))
-    })?;
-    if let (Some(g), Some((_, levelled))) = (summary["gravity"].as_object(), true_up) {
-        let (roll, pitch) = (number(&g["roll_deg"]), number(&g["pitch_deg"]));
-        let (true_roll, true_pitch) = roll_pitch_from_gravity(&levelled, 1e-9);
-        report.rows.push((
-            "gravity over IPC".into(),
+    report.note(
+        "error vs reference",
+        format!(
+            "in the map frame: RMS {:.3} m, max {:.3} m / {:.2} deg, {} scans over 0.5 m reported ok; aligned on itself (ATE) {:.3} m",
+            json_number(&summary["rms_error_m"]),
+            json_number(&summary["max_error_m"]),
+            json_number(&summary["max_error_deg"]),
+            summary["wrong_ok"],
+            json_number(&summary["ate_m"]),
+        ),
+    );
+    if let (Some(g), Some(up)) = (summary["gravity"].as_object(), true_up) {
+        let (roll, pitch) = (json_number(&g["roll_deg"]), json_number(&g["pitch_deg"]));
+        let (true_roll, true_pitch) = roll_pitch_from_gravity(&up, 1e-9);
+        report.note(
+            "gravity over IPC",
             format!(
                 "{} IMU windows: roll {roll:.3} / pitch {pitch:.3} deg left in the levelled map; residual against the truth {:.3} / {:.3} deg",
                 g["members"],
                 roll - true_roll.to_degrees(),
                 pitch - true_pitch.to_degrees()
             ),
-            0.0,
-        ));
+        );
     }
     let map_png = out.join("map.png");
     report.step("picture of the map", || {
@@ -404,24 +425,26 @@ fn run_pipeline(report: &mut Report, passes: &Passes, out: &Path) -> anyhow::Res
         render_trajectory(&inputs, &trajectory_png, 1600, 1200)?;
         Ok(((), trajectory_png.display().to_string()))
     })?;
-    report.rows.push((
-        "files".into(),
+    report.note(
+        "files",
         format!(
             "{}/: map.kfmap, map_poses.tum, localized.tum, reference.tum, localize.jsonl, report.md",
             out.display()
         ),
-        0.0,
-    ));
+    );
     Ok(())
 }
 
-/// Builds the poses from the raw scans and bakes the map; returns the levelling the
-/// gravity stage applied when there was an IMU log.
-fn build_map(
-    passes: &Passes,
-    map: &Path,
-    map_poses: &Path,
-) -> anyhow::Result<(Option<GravityCorrection>, String)> {
+/// What baking the demo's map gave the later steps.
+struct Baked {
+    /// The levelling the gravity stage applied, when there was an IMU log.
+    level: Option<GravityCorrection>,
+    /// The dataset's reference frame seen from the map's.
+    map_from_input: Pose,
+}
+
+/// Builds the poses from the raw scans and bakes the map.
+fn build_map(passes: &Passes, map: &Path, map_poses: &Path) -> anyhow::Result<(Baked, String)> {
     let input = BakeInput {
         build_poses: true,
         scans: passes.mapped_scans,
@@ -447,8 +470,11 @@ fn build_map(
         mapping.ate.unwrap_or(f64::NAN),
         mapping.ate_odometry.unwrap_or(f64::NAN),
     );
-    let level = r.gravity.filter(|g| g.applied).and_then(|g| g.correction);
-    Ok((level, line))
+    let baked = Baked {
+        level: r.gravity.filter(|g| g.applied).and_then(|g| g.correction),
+        map_from_input: r.map_from_input,
+    };
+    Ok((baked, line))
 }
 
 /// Reopens the map by mmap and times it.
@@ -488,95 +514,4 @@ fn analyze(path: &Path) -> anyhow::Result<String> {
         100.0 * s.fallback_fraction,
         s.mean_planarity.unwrap_or(f64::NAN)
     ))
-}
-
-/// Position and rotation error of `estimate` against `reference`, pose by pose (the
-/// same scans in the same order; both in the map frame, the pass itself not aligned).
-fn error_line(estimate: &Trajectory, reference: &Trajectory) -> anyhow::Result<String> {
-    if estimate.poses.len() != reference.poses.len() || estimate.poses.is_empty() {
-        bail!(
-            "the localized pass has {} poses, its reference {}",
-            estimate.poses.len(),
-            reference.poses.len()
-        );
-    }
-    let pairs = estimate.poses.iter().zip(&reference.poses);
-    let metres: Vec<f64> = pairs
-        .clone()
-        .map(|(e, r)| translation_distance(e, r))
-        .collect();
-    let max_deg = pairs
-        .map(|(e, r)| rotation_distance(e, r).to_degrees())
-        .fold(0.0, f64::max);
-    let rms = (metres.iter().map(|m| m * m).sum::<f64>() / metres.len() as f64).sqrt();
-    let max = metres.iter().copied().fold(0.0, f64::max);
-    Ok(format!(
-        "map frame fitted to the reference's on the mapped scans: RMS {rms:.3} m, max {max:.3} m, max {max_deg:.2} deg"
-    ))
-}
-
-/// Runs `kfmap localize` on the replayed pass; returns its summary (the last JSON line)
-/// and how many scans were relocalized.
-fn localize(
-    server: &ServerChild,
-    passes: &Passes,
-    extra: &[String],
-    trajectory: &Path,
-    log: &Path,
-) -> anyhow::Result<(serde_json::Value, usize)> {
-    let scans = passes.replayed_scans;
-    let range = format!(
-        "{}..{}",
-        scans.start,
-        scans.end.map_or(String::new(), |e| e.to_string())
-    );
-    let out = Command::new(std::env::current_exe()?)
-        .args(["localize", "--map-name", &server.name, "--iceoryx-prefix"])
-        .arg(&server.prefix)
-        .arg("--dataset")
-        .arg(&passes.replayed)
-        .args(["--scans", &range, "--rate", "0", "--json-lines", "--out"])
-        .arg(trajectory)
-        .args(extra)
-        .stderr(Stdio::inherit())
-        .output()
-        .context("run kfmap localize")?;
-    if !out.status.success() {
-        bail!("kfmap localize failed (exit {})", out.status);
-    }
-    write_atomic(log, &out.stdout)?;
-    let text = String::from_utf8_lossy(&out.stdout);
-    let last = text
-        .lines()
-        .last()
-        .context("kfmap localize printed nothing")?;
-    let relocalized = text
-        .lines()
-        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
-        .filter(|scan| {
-            scan["reasons"]
-                .as_array()
-                .is_some_and(|r| r.iter().any(|x| x == "relocalized"))
-        })
-        .count();
-    Ok((serde_json::from_str(last)?, relocalized))
-}
-
-/// Writes `pose` as a 4x4 matrix file, what `kfmap localize --initial` reads.
-fn write_matrix(path: &Path, pose: &Pose) -> anyhow::Result<()> {
-    let m = pose.to_homogeneous();
-    let rows: Vec<String> = (0..4)
-        .map(|r| {
-            (0..4)
-                .map(|c| m[(r, c)].to_string())
-                .collect::<Vec<_>>()
-                .join(" ")
-        })
-        .collect();
-    write_atomic(path, rows.join("\n").as_bytes())?;
-    Ok(())
-}
-
-fn number(v: &serde_json::Value) -> f64 {
-    v.as_f64().unwrap_or(f64::NAN)
 }

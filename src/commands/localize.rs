@@ -502,3 +502,34 @@ impl ReferenceErrors {
         }
     }
 }
+
+/// What `kfmap localize --json-lines` printed: one object per scan, then the summary.
+pub struct LocalizeLog {
+    pub scans: Vec<serde_json::Value>,
+    pub summary: serde_json::Value,
+}
+
+impl LocalizeLog {
+    /// Parses the printed lines.
+    pub fn parse(text: &str) -> anyhow::Result<Self> {
+        let mut scans = text
+            .lines()
+            .map(serde_json::from_str)
+            .collect::<Result<Vec<serde_json::Value>, _>>()
+            .context("kfmap localize --json-lines printed a line that is not JSON")?;
+        let summary = scans.pop().context("kfmap localize printed nothing")?;
+        Ok(Self { scans, summary })
+    }
+
+    /// Scans whose health names `reason`.
+    pub fn scans_with_reason(&self, reason: &str) -> usize {
+        self.scans
+            .iter()
+            .filter(|scan| {
+                scan["reasons"]
+                    .as_array()
+                    .is_some_and(|r| r.iter().any(|x| x == reason))
+            })
+            .count()
+    }
+}

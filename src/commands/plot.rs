@@ -97,7 +97,7 @@ pub struct Args {
     #[arg(
         long,
         value_name = "MS",
-        default_value_t = 5.0,
+        default_value_t = trajectory::DEFAULT_MAX_DT * 1e3,
         requires = "trajectory"
     )]
     max_dt_ms: f64,

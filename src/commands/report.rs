@@ -30,3 +30,8 @@ pub fn print_summary(s: &CloudSummary) {
         s.points as f64 / s.covariances_ms / 1e3
     );
 }
+
+/// A number of a JSON report (NaN when absent), for printing.
+pub fn json_number(value: &serde_json::Value) -> f64 {
+    value.as_f64().unwrap_or(f64::NAN)
+}

@@ -1,6 +1,7 @@
 //! A `kfmap serve` child process, for the commands that run a server of their own
 //! (demo, benchmarks).
 
+use std::ffi::OsStr;
 use std::io::{BufRead, BufReader};
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
@@ -23,7 +24,7 @@ impl ServerChild {
     /// Starts `kfmap serve` on `map` as `name` under `prefix`, with `extra` arguments,
     /// and waits until it answers.
     pub fn start(map: &Path, name: &str, prefix: &str, extra: &[&str]) -> anyhow::Result<Self> {
-        let mut child = Command::new(std::env::current_exe()?)
+        let child = Command::new(std::env::current_exe()?)
             .args(["serve", "--map"])
             .arg(map)
             .args(["--map-name", name, "--iceoryx-prefix", prefix])
@@ -32,14 +33,17 @@ impl ServerChild {
             .stderr(Stdio::null())
             .spawn()
             .context("start kfmap serve")?;
-        let mut ready = String::new();
-        BufReader::new(child.stdout.take().context("server stdout")?).read_line(&mut ready)?;
-        let server = Self {
+        // Owned from here: any failure below stops it and removes its shared memory.
+        let mut server = Self {
             child,
             prefix: prefix.to_string(),
             name: name.to_string(),
-            ready: ready.trim().to_string(),
+            ready: String::new(),
         };
+        let stdout = server.child.stdout.take().context("server stdout")?;
+        // The server prints its ready line or exits (its stdout then closes).
+        BufReader::new(stdout).read_line(&mut server.ready)?;
+        server.ready = server.ready.trim().to_string();
         if !server.ready.starts_with("ready:") {
             bail!("kfmap serve did not start: {:?}", server.ready);
         }
@@ -63,4 +67,32 @@ impl Drop for ServerChild {
             remove_prefix_files(&config, &self.prefix);
         }
     }
+}
+
+/// Runs `kfmap localize` against `server` on `dataset` with `args` (stderr shown) and
+/// returns what it printed.
+pub(super) fn run_localize(
+    server: &ServerChild,
+    dataset: &Path,
+    args: &[&OsStr],
+) -> anyhow::Result<String> {
+    let out = Command::new(std::env::current_exe()?)
+        .args([
+            "localize",
+            "--map-name",
+            &server.name,
+            "--iceoryx-prefix",
+            &server.prefix,
+        ])
+        .arg("--dataset")
+        .arg(dataset)
+        .args(["--rate", "0"])
+        .args(args)
+        .stderr(Stdio::inherit())
+        .output()
+        .context("run kfmap localize")?;
+    if !out.status.success() {
+        bail!("kfmap localize failed ({})", out.status);
+    }
+    Ok(String::from_utf8(out.stdout)?)
 }

@@ -204,7 +204,8 @@ pub fn absolute_trajectory_error(estimate: &[Pose], truth: &[Pose]) -> f64 {
 
 /// The rigid transform (Umeyama/Horn, no scale) that moves the positions of `estimate`
 /// closest to those of `truth` in the least-squares sense, pose by pose over the
-/// shorter of the two: `T_truth_estimate`. Identity for fewer than one pair.
+/// shorter of the two: `T_truth_estimate`. Identity with no pair; the rotation about a
+/// straight path's line is left undetermined (positions alone cannot fix it).
 pub fn rigid_alignment(estimate: &[Pose], truth: &[Pose]) -> Pose {
     let n = estimate.len().min(truth.len());
     if n == 0 {

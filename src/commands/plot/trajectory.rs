@@ -80,8 +80,7 @@ struct Mark {
     t: f64,
     x: f64,
     y: f64,
-    /// Its position error: the matched estimate's at its stamp, else the log's
-    /// `error_m`; `None` when neither is known.
+    /// Its position error: the matched estimate's at its stamp (`None`: no match).
     error: Option<f64>,
     kind: MarkKind,
 }
@@ -141,7 +140,6 @@ struct LoggedScan {
     t: f64,
     status: String,
     position: Option<[f64; 3]>,
-    error_m: Option<f64>,
 }
 
 /// The scans of a `--json-lines` log; lines without `index` (the summary) are skipped.
@@ -183,7 +181,6 @@ fn read_scan_log(path: &Path) -> anyhow::Result<Vec<LoggedScan>> {
             t,
             status: status.to_string(),
             position,
-            error_m: value["error_m"].as_f64(),
         });
     }
     Ok(scans)
@@ -203,7 +200,8 @@ impl TrajectoryFigure {
         let max_dt = options.max_dt;
         anyhow::ensure!(
             max_dt.is_finite() && max_dt >= 0.0,
-            "the stamp tolerance must be >= 0 s, got {max_dt}"
+            "--max-dt-ms must be >= 0, got {}",
+            max_dt * 1e3
         );
         let reference = read_stamped(inputs.reference, "reference trajectory")?;
         let mut estimate = read_stamped(inputs.estimate, "estimated trajectory")?;
@@ -274,7 +272,18 @@ impl TrajectoryFigure {
         let mut logged = None;
         let (mut lost, mut degraded) = (0, 0);
         if let Some(log) = inputs.scan_log {
-            let scans = read_scan_log(log)?;
+            let all = read_scan_log(log)?;
+            // Only the estimate's scans: a log of another run or clock marks nothing.
+            let (start, end) = (t0 - max_dt, estimate[estimate.len() - 1].0 + max_dt);
+            let scans: Vec<_> = all
+                .into_iter()
+                .filter(|s| (start..=end).contains(&s.t))
+                .collect();
+            anyhow::ensure!(
+                !scans.is_empty(),
+                "{}: no logged scan is stamped within the estimate's {start:.3}..{end:.3} s (a log of another run?)",
+                log.display()
+            );
             logged = Some(scans.len());
             let by_stamp: Vec<(f64, usize)> = {
                 let mut v: Vec<(f64, usize)> = matched
@@ -312,9 +321,8 @@ impl TrajectoryFigure {
                 let Some([x, y]) = logged.or_else(|| estimate_at(scan.t)) else {
                     continue;
                 };
-                let error = nearest(&by_stamp, scan.t, max_dt)
-                    .map(|j| matched[by_stamp[j].1].error)
-                    .or(scan.error_m);
+                let error =
+                    nearest(&by_stamp, scan.t, max_dt).map(|j| matched[by_stamp[j].1].error);
                 marks.push(Mark {
                     t: scan.t - t0,
                     x,
