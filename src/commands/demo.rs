@@ -95,8 +95,14 @@ impl Drop for TempDir {
 #[derive(Default)]
 struct Report {
     title: String,
-    /// Step, result, seconds (none for a line that is not a step of its own).
-    rows: Vec<(String, String, Option<f64>)>,
+    rows: Vec<ReportRow>,
+}
+
+struct ReportRow {
+    step: String,
+    result: String,
+    /// Its duration; none for a line that is not a step of its own.
+    seconds: Option<f64>,
 }
 
 impl Report {
@@ -108,29 +114,31 @@ impl Report {
     ) -> anyhow::Result<T> {
         tracing::info!("{name} ...");
         let started = Instant::now();
-        let (value, line) = work().with_context(|| format!("demo step '{name}'"))?;
-        self.rows.push((
-            name.to_string(),
-            line,
-            Some(started.elapsed().as_secs_f64()),
-        ));
+        let (value, result) = work().with_context(|| format!("demo step '{name}'"))?;
+        self.rows.push(ReportRow {
+            step: name.to_string(),
+            result,
+            seconds: Some(started.elapsed().as_secs_f64()),
+        });
         Ok(value)
     }
 
     /// Records a line that is not a step of its own (no time).
-    fn note(&mut self, name: &str, line: String) {
-        self.rows.push((name.to_string(), line, None));
+    fn note(&mut self, name: &str, result: String) {
+        self.rows.push(ReportRow {
+            step: name.to_string(),
+            result,
+            seconds: None,
+        });
     }
 
     /// A markdown table: readable in a terminal, pasteable into a document.
     fn table(&self) -> String {
-        let width = |f: &dyn Fn(&(String, String, Option<f64>)) -> usize, header: &str| {
-            self.rows.iter().map(f).max().unwrap_or(0).max(header.len())
+        let width = |cell: fn(&ReportRow) -> &str, header: &str| {
+            let widest = self.rows.iter().map(|r| cell(r).chars().count()).max();
+            widest.unwrap_or(0).max(header.len())
         };
-        let (w0, w1) = (
-            width(&|r| r.0.chars().count(), "step"),
-            width(&|r| r.1.chars().count(), "result"),
-        );
+        let (w0, w1) = (width(|r| &r.step, "step"), width(|r| &r.result, "result"));
         let mut out = format!("{}\n\n", self.title);
         out += &format!("| {:w0$} | {:w1$} | {:>7} |\n", "step", "result", "seconds");
         out += &format!(
@@ -139,9 +147,9 @@ impl Report {
             "-".repeat(w1 + 2),
             "-".repeat(8)
         );
-        for (step, result, seconds) in &self.rows {
-            let seconds = seconds.map_or(String::new(), |s| format!("{s:.2}"));
-            out += &format!("| {step:w0$} | {result:w1$} | {seconds:>7} |\n");
+        for row in &self.rows {
+            let seconds = row.seconds.map_or(String::new(), |s| format!("{s:.2}"));
+            out += &format!("| {:w0$} | {:w1$} | {seconds:>7} |\n", row.step, row.result);
         }
         out
     }
