@@ -7,6 +7,8 @@ Talks to a running ``kfmap serve`` over iceoryx2 zero-copy shared memory::
         found = client.nearest(points, pose, k=1)
 """
 
+from importlib import metadata as _metadata
+
 from .client import Client
 from .errors import (
     DisconnectedError,
@@ -37,7 +39,10 @@ from .wire import (
     TrackingStatus,
 )
 
-__version__ = "0.1.0"
+try:
+    __version__ = _metadata.version("kfmap")
+except _metadata.PackageNotFoundError:  # imported from a source tree, not installed
+    __version__ = "0+unknown"
 
 __all__ = [
     "Client",

@@ -103,8 +103,8 @@ class Connection:
         #: This client's node id as written into every request (high word first).
         self.client_node = (node_id >> 64, node_id & 0xFFFF_FFFF_FFFF_FFFF)
         try:
-            self._open_ports()
-            if self._rpc_service().dynamic_config.number_of_servers == 0:
+            rpc = self._open_ports()["services"][0]
+            if rpc.dynamic_config.number_of_servers == 0:
                 raise NoServerError(map_name)
         except BaseException:
             self.close()

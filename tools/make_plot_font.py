@@ -2,7 +2,8 @@
 """Makes DejaVuSans-subset.ttf, the font `kfmap plot` embeds (not run by the build).
 
     pip install fonttools
-    python3 make_font.py /usr/share/fonts/truetype/dejavu/DejaVuSans.ttf DejaVuSans-subset.ttf
+    python3 tools/make_plot_font.py /usr/share/fonts/truetype/dejavu/DejaVuSans.ttf \
+        src/commands/plot/DejaVuSans-subset.ttf
 
 1. Subset DejaVu Sans to the characters the pictures use, without hinting or OpenType
    layout tables (the legacy `kern` table is kept).
