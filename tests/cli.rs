@@ -863,3 +863,46 @@ fn a_closed_output_pipe_ends_quietly() {
         out.status
     );
 }
+
+/// `kfmap bench --quick --json` without the shared data: every row names its data,
+/// threads and unit with a positive finite value, synthetic scans carry no anchor (an
+/// anchor's figure stands only beside the same data), and the rows that need real data
+/// are listed as skipped, not faked.
+#[test]
+fn bench_table_json_rows_without_data() {
+    let out = Command::new(common::kfmap_bin())
+        .args(["bench", "--quick", "--json"])
+        .env("KFMAP_DATA_DIR", "/nonexistent")
+        .output()
+        .expect("run kfmap bench");
+    let report = json(&out);
+    let rows = report["rows"].as_array().unwrap();
+    let names: Vec<&str> = rows.iter().map(|r| r["name"].as_str().unwrap()).collect();
+    for wanted in [
+        "covariances",
+        "cov2cov per scan, approximate",
+        "GICP from raw clouds",
+        "cold start",
+        "bake throughput",
+        "IPC round trip (echo), 100000 points",
+        "cov2cov throughput, 4 client processes",
+    ] {
+        assert!(
+            names.iter().any(|n| n.starts_with(wanted)),
+            "{wanted}: {names:?}"
+        );
+    }
+    for row in rows {
+        let value = row["value"].as_f64().unwrap();
+        assert!(value.is_finite() && value > 0.0, "{row}");
+        assert!(row["threads"].as_u64().unwrap() >= 1, "{row}");
+        assert!(!row["data"].as_str().unwrap().is_empty(), "{row}");
+        assert!(!row["unit"].as_str().unwrap().is_empty(), "{row}");
+        assert!(
+            row["anchor"].is_null(),
+            "an anchor beside synthetic data: {row}"
+        );
+    }
+    let skipped = report["skipped"].as_array().unwrap();
+    assert_eq!(skipped.len(), 2, "{skipped:?}");
+}

@@ -6,6 +6,7 @@ mod common;
 use std::path::Path;
 use std::process::{Command, Output, Stdio};
 
+use common::picture::Picture;
 use common::temp_dir;
 use kfmap_shared::datasets::require_test_data;
 use kfmap_shared::geometry::{Pose, translation_distance};
@@ -34,24 +35,6 @@ fn run_demo(out: &Path, extra: &[&str], data_dir: Option<&str>) -> (Output, u32)
         String::from_utf8_lossy(&output.stderr)
     );
     (output, pid)
-}
-
-/// Width and height of a PNG, after checking it is a picture and not a blank canvas.
-fn picture(path: &Path) -> (u32, u32) {
-    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
-    let mut reader = decoder.read_info().unwrap();
-    let mut buffer = vec![0; reader.output_buffer_size().unwrap()];
-    let info = reader.next_frame(&mut buffer).unwrap();
-    let pixels = &buffer[..info.buffer_size()];
-    let step = info.color_type.samples();
-    let colours: std::collections::HashSet<&[u8]> = pixels.chunks(step).collect();
-    assert!(
-        colours.len() > 50,
-        "{}: {} colours",
-        path.display(),
-        colours.len()
-    );
-    (info.width, info.height)
 }
 
 /// Position errors of the localized pass against `reference` (the dataset's own poses,
@@ -96,8 +79,8 @@ fn check_report(output: &Output, out: &Path) -> String {
     ] {
         assert!(out.join(file).is_file(), "{file}");
     }
-    assert_eq!(picture(&out.join("map.png")), (1600, 1200));
-    assert_eq!(picture(&out.join("trajectory.png")), (1600, 1200));
+    Picture::read(&out.join("map.png")).assert_drawn(1600, 1200);
+    Picture::read(&out.join("trajectory.png")).assert_drawn(1600, 1200);
     assert!(stdout.contains("map.png") && stdout.contains("trajectory.png"));
     stdout
 }

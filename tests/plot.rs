@@ -4,10 +4,10 @@
 
 mod common;
 
-use std::collections::HashSet;
 use std::path::Path;
 use std::process::Output;
 
+use common::picture::Picture;
 use common::{kfmap, temp_dir};
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::geometry::Pose;
@@ -34,78 +34,16 @@ fn run_ok(args: &[&str]) -> String {
     stdout(&out)
 }
 
-/// A decoded RGB picture.
-struct Picture {
-    width: u32,
-    height: u32,
-    pixels: Vec<[u8; 3]>,
-}
-
-impl Picture {
-    fn read(path: &Path) -> Self {
-        let bytes = std::fs::read(path).unwrap();
-        let decoder = png::Decoder::new(std::io::Cursor::new(bytes));
-        let mut reader = decoder.read_info().expect("a PNG file");
-        let mut buf = vec![0; reader.output_buffer_size().unwrap()];
-        let info = reader.next_frame(&mut buf).unwrap();
-        assert_eq!(info.color_type, png::ColorType::Rgb);
-        assert_eq!(info.bit_depth, png::BitDepth::Eight);
-        let pixels = buf[..info.buffer_size()]
-            .chunks_exact(3)
-            .map(|c| [c[0], c[1], c[2]])
-            .collect();
-        Self {
-            width: info.width,
-            height: info.height,
-            pixels,
-        }
-    }
-
-    fn distinct_colours(&self) -> usize {
-        self.pixels.iter().collect::<HashSet<_>>().len()
-    }
-
-    /// Fraction of pixels that are not the white background.
-    fn ink(&self) -> f64 {
-        let n = self
-            .pixels
-            .iter()
-            .filter(|p| **p != [255, 255, 255])
-            .count();
-        n as f64 / self.pixels.len() as f64
-    }
-
-    /// Pixels of a saturated colour (not white, grey or black: data colours) in the
-    /// columns left of `x`.
-    fn coloured_left_of(&self, x: u32) -> usize {
-        self.pixels
-            .chunks_exact(self.width as usize)
-            .flat_map(|row| &row[..x as usize])
-            .filter(|p| {
-                let (lo, hi) = (p.iter().min().unwrap(), p.iter().max().unwrap());
-                hi - lo > 80
-            })
-            .count()
-    }
-
-    fn count(&self, colour: [u8; 3]) -> usize {
-        self.pixels.iter().filter(|p| **p == colour).count()
-    }
-
-    /// Checks the size and that the picture is not blank.
-    fn assert_drawn(&self, width: u32, height: u32) {
-        assert_eq!((self.width, self.height), (width, height));
-        assert_eq!(self.pixels.len(), (width * height) as usize);
-        let distinct = self.distinct_colours();
-        assert!(distinct >= 100, "only {distinct} distinct colours");
-        let ink = self.ink();
-        assert!(
-            ink > 0.05,
-            "only {:.1} % of the pixels are drawn",
-            100.0 * ink
-        );
-        assert!(ink < 0.95, "{:.1} % drawn: no background left", 100.0 * ink);
-    }
+/// `kfmap plot MAP --out OUT EXTRA...`, which must succeed; its printed line.
+fn plot_map(map: &Path, out: &Path, extra: &[&str]) -> String {
+    let mut args = vec![
+        "plot",
+        map.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    args.extend_from_slice(extra);
+    run_ok(&args)
 }
 
 /// Simulates 3 s of the courtyard and bakes it (poses from the dataset) with its
@@ -138,12 +76,7 @@ fn map_pictures_of_a_baked_simulation() {
     let tmp = temp_dir("plot-map");
     let (map, _) = baked(&tmp, "court", None);
     let png_path = tmp.join("court.png");
-    let line = run_ok(&[
-        "plot",
-        map.to_str().unwrap(),
-        "--out",
-        png_path.to_str().unwrap(),
-    ]);
+    let line = plot_map(&map, &png_path, &[]);
     assert!(line.contains("court.png:"), "{line}");
     assert!(
         line.contains("keyframes") && line.contains("drawn"),
@@ -156,12 +89,7 @@ fn map_pictures_of_a_baked_simulation() {
     // A map of the first scan alone is another picture.
     let (single, _) = baked(&tmp, "single", Some("0..1"));
     let single_png = tmp.join("single.png");
-    let line = run_ok(&[
-        "plot",
-        single.to_str().unwrap(),
-        "--out",
-        single_png.to_str().unwrap(),
-    ]);
+    let line = plot_map(&single, &single_png, &[]);
     assert!(line.contains(": 1 keyframe,"), "{line}");
     let one = Picture::read(&single_png);
     one.assert_drawn(1600, 1200);
@@ -171,25 +99,12 @@ fn map_pictures_of_a_baked_simulation() {
 
     // Another size, no edges: the requested dimensions.
     let small = tmp.join("small.png");
-    run_ok(&[
-        "plot",
-        map.to_str().unwrap(),
-        "--out",
-        small.to_str().unwrap(),
-        "--no-edges",
-        "--size",
-        "900x700",
-    ]);
+    plot_map(&map, &small, &["--no-edges", "--size", "900x700"]);
     Picture::read(&small).assert_drawn(900, 700);
 
     // SVG: text with drawing elements, points as rectangles, labels as text.
     let svg_path = tmp.join("court.svg");
-    let line = run_ok(&[
-        "plot",
-        map.to_str().unwrap(),
-        "--out",
-        svg_path.to_str().unwrap(),
-    ]);
+    let line = plot_map(&map, &svg_path, &[]);
     assert!(line.contains("court.svg:"), "{line}");
     let svg = std::fs::read_to_string(&svg_path).unwrap();
     assert!(svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
@@ -240,12 +155,7 @@ fn more_points_colour_more_of_the_map() {
     common::bake_map(&four, &clouds, 0.05);
     let picture = |map: &Path, name: &str| {
         let out = tmp.join(name);
-        let line = run_ok(&[
-            "plot",
-            map.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-        ]);
+        let line = plot_map(map, &out, &[]);
         (line, Picture::read(&out))
     };
     let (line, one) = picture(&one, "one.png");
