@@ -50,6 +50,8 @@ use workers::{Job, WorkerContext};
 pub const MIN_SHM_FREE_BYTES: u64 = 64 << 20;
 /// How often dead clients are looked for and reload signals checked.
 const HOUSEKEEPING: Duration = Duration::from_millis(250);
+/// How long a stopping server waits for its clients to read their last answers.
+const SHUTDOWN_LINGER: Duration = Duration::from_secs(2);
 
 /// How to serve.
 #[derive(Debug, Clone)]
@@ -333,6 +335,7 @@ pub fn serve(
             }
         }
         info!("shutting down: refusing queued requests, finishing those in flight");
+        context.unread.close();
         let left = queue.close();
         let never_started = left.len();
         for job in left {
@@ -344,6 +347,11 @@ pub fn serve(
     });
     // Requests that arrived while the workers stopped are refused by name too.
     requests.drain(&context, &queue);
+    // The last answers live in this process's shared memory: exiting removes them.
+    let unread = context.unread.wait_until_read(SHUTDOWN_LINGER);
+    if unread > 0 {
+        warn!(unread, "exiting with answers their clients have not read");
+    }
     let refused = never_started + queue.turned_away();
     let figures = context.stats.figures().to_vec();
     Ok(ServeSummary {

@@ -4,10 +4,11 @@
 //! its process's budget until the client lets go of its request (it has read the
 //! answer, given up, or died): a client that never reads is refused more work once its
 //! unread answers fill `client-memory-budget`, and the server's shared memory stays
-//! within `memory-budget`.
+//! within `memory-budget`. From shutdown on every answer is held, so the server does
+//! not exit (removing that memory) before its clients have read their last answers.
 
 use std::sync::Mutex;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
 use kfmap_shared::protocol::log_limit::warn_limited;
@@ -23,7 +24,8 @@ const REPORT_AFTER: Duration = Duration::from_secs(30);
 
 struct Unread {
     request: Request,
-    reservation: Reservation,
+    /// The budget it is charged to; `None` for an answer held only for shutdown.
+    reservation: Option<Reservation>,
     sent: Instant,
     reported: bool,
 }
@@ -35,18 +37,22 @@ pub struct UnreadAnswers {
     /// `held.len()`, read without the lock: the leader sweeps on every look at the
     /// request port, and almost always there is nothing to sweep.
     count: AtomicUsize,
+    /// Set at shutdown: every answer is held until read.
+    closing: AtomicBool,
 }
 
 impl UnreadAnswers {
     /// `request` was answered with `answer_bytes`: its reservation keeps those bytes
-    /// until the client lets go of the request.
-    pub fn hold(&self, request: Request, reservation: Reservation, answer_bytes: u64) {
-        if answer_bytes < TRACKED_BYTES {
+    /// until the client lets go of the request (after shutdown began, any answer is
+    /// kept until then).
+    pub fn hold(&self, request: Request, reservation: Option<Reservation>, answer_bytes: u64) {
+        let charged = reservation.is_some() && answer_bytes >= TRACKED_BYTES;
+        if !charged && !self.closing.load(Ordering::Relaxed) {
             return;
         }
         let unread = Unread {
             request,
-            reservation: reservation.settle(answer_bytes),
+            reservation: reservation.map(|r| r.settle(answer_bytes)),
             sent: Instant::now(),
             reported: false,
         };
@@ -65,18 +71,40 @@ impl UnreadAnswers {
         held.retain(|u| u.request.is_connected());
         self.count.store(held.len(), Ordering::Relaxed);
         for u in held.iter_mut() {
+            let Some(reservation) = u.reservation.as_ref() else {
+                continue;
+            };
             if !u.reported && u.sent.elapsed() >= REPORT_AFTER {
                 u.reported = true;
                 warn_limited(
                     "answers left unread",
                     &format!(
                         "process {} has left an answer of {:.0} MiB unread for {} s; it stays charged to the process's client-memory-budget until the client reads it, drops the request or exits",
-                        u.reservation.process(),
-                        u.reservation.bytes() as f64 / (1u64 << 20) as f64,
+                        reservation.process(),
+                        reservation.bytes() as f64 / (1u64 << 20) as f64,
                         REPORT_AFTER.as_secs()
                     ),
                 );
             }
+        }
+    }
+
+    /// Shutdown began: from now on every answer is held until its client reads it.
+    pub fn close(&self) {
+        self.closing.store(true, Ordering::Relaxed);
+    }
+
+    /// Waits until every held answer is read (or its client gone), at most `limit`;
+    /// returns how many are still unread.
+    pub fn wait_until_read(&self, limit: Duration) -> usize {
+        let deadline = Instant::now() + limit;
+        loop {
+            self.sweep();
+            let left = self.count.load(Ordering::Relaxed);
+            if left == 0 || Instant::now() >= deadline {
+                return left;
+            }
+            std::thread::sleep(Duration::from_millis(1));
         }
     }
 

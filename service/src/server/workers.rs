@@ -170,13 +170,8 @@ impl WorkerContext<'_> {
             );
             let _ = send(&request, &error);
         }
-        match reservation {
-            Some(reservation) => {
-                let bytes = answer.pairings.len() as u64 * PAIRING_BYTES;
-                self.unread.hold(request, reservation, bytes);
-            }
-            None => drop(request),
-        }
+        let bytes = answer.pairings.len() as u64 * PAIRING_BYTES;
+        self.unread.hold(request, reservation, bytes);
         self.stats
             .record(header.kind, received.elapsed().as_secs_f64() as f32 * 1e6);
         let _ = self.notifier.notify();
