@@ -10,7 +10,7 @@ use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use kfmap_shared::datasets::require_test_data;
 use kfmap_shared::geometry::{to_point, transform_point};
 use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
-use kfmap_shared::spatial::{LEAF_SIZE, build_tree_with_leaf, morton_order};
+use kfmap_shared::spatial::{LANES, LEAF_SIZE, build_tree_with_leaf, morton_order};
 use kiddo::Eytzinger;
 use kiddo::SquaredEuclidean;
 use kiddo::kd_tree::KdTree;
@@ -48,6 +48,8 @@ fn bench_kdtree(c: &mut Criterion) {
         .build()
         .expect("pool");
 
+    print_search_cost(&target, &queries, &sorted);
+
     let mut group = c.benchmark_group("kitti00_frame0_vs_frame1");
     group.sample_size(10);
     for leaf in [8, LEAF_SIZE, 32] {
@@ -79,16 +81,19 @@ fn bench_kdtree(c: &mut Criterion) {
                         .count()
                 })
             });
-            group.bench_function(format!("k20_leaf{leaf}_scan_order"), |b| {
-                b.iter(|| {
-                    queries
-                        .iter()
-                        .map(|q| tree.nearest_n(q, k20).len())
-                        .sum::<usize>()
-                })
-            });
+            for (order, qs) in [("scan", &queries), ("morton", &sorted)] {
+                group.bench_function(format!("k20_leaf{leaf}_{order}_order"), |b| {
+                    b.iter(|| {
+                        qs.iter()
+                            .map(|q| tree.nearest_n(q, k20).len())
+                            .sum::<usize>()
+                    })
+                });
+            }
         }
     }
+    bench_floors(&mut group, &target, &queries);
+
     let kiddo = KiddoFlat16::new_from_slice(&target).expect("tree");
     group.bench_function("nn_kiddo_flat16_scan_order", |b| {
         b.iter(|| {
@@ -120,6 +125,85 @@ fn bench_kdtree(c: &mut Criterion) {
         })
     });
     group.finish();
+}
+
+/// Floors of the 1-NN scan-order benchmark (see docs/BENCHMARKS.md): its distance
+/// evaluations alone, computed over blocks read in order, and its bytes alone (the
+/// nodes and blocks the searches read), streamed from a tree-sized buffer that stays
+/// in cache like the tree does.
+fn bench_floors(
+    group: &mut criterion::BenchmarkGroup<'_, criterion::measurement::WallTime>,
+    target: &[[f32; 3]],
+    queries: &[[f32; 3]],
+) {
+    let tree = build_tree_with_leaf(target, LEAF_SIZE).expect("tree");
+    let tree = tree.view();
+    let (nodes, blocks) = queries.iter().fold((0, 0), |(n, b), q| {
+        let cost = tree.nearest_one_cost(q);
+        (n + cost.nodes, b + cost.blocks)
+    });
+    let all = tree.blocks();
+    group.bench_function("nn_floor_distances_scan_order", |b| {
+        b.iter(|| {
+            let mut nearest = 0.0f32;
+            for (j, q) in queries.iter().enumerate() {
+                // Query j's share of the counted blocks, taken in order from the tree.
+                let from = j * blocks / queries.len();
+                let to = (j + 1) * blocks / queries.len();
+                let mut best = f32::INFINITY;
+                for block in from..to {
+                    let [xs, ys, zs] = &all[block % all.len()];
+                    for lane in 0..LANES {
+                        let (dx, dy, dz) = (xs[lane] - q[0], ys[lane] - q[1], zs[lane] - q[2]);
+                        let d = dx * dx + dy * dy + dz * dz;
+                        best = if d < best { d } else { best };
+                    }
+                }
+                nearest += best;
+            }
+            nearest
+        })
+    });
+    let bytes = nodes * size_of::<[u32; 4]>() + blocks * size_of::<[[f32; LANES]; 3]>();
+    let footprint = size_of_val(all) + size_of_val(tree.nodes());
+    let buffer: Vec<u64> = (0..footprint / 8).map(|i| i as u64).collect();
+    group.bench_function("nn_floor_bytes_scan_order", |b| {
+        b.iter(|| {
+            let mut sum = 0u64;
+            let mut left = bytes / 8;
+            while left > 0 {
+                let take = left.min(buffer.len());
+                sum = buffer[..take].iter().fold(sum, |s, &x| s.wrapping_add(x));
+                left -= take;
+            }
+            sum
+        })
+    });
+}
+
+/// The work behind the 1-NN figures, for the physical-limit estimate in
+/// docs/BENCHMARKS.md: nodes read and blocks of points whose distances are computed.
+fn print_search_cost(target: &[[f32; 3]], queries: &[[f32; 3]], sorted: &[[f32; 3]]) {
+    let tree = build_tree_with_leaf(target, LEAF_SIZE).expect("tree");
+    let tree = tree.view();
+    for (order, qs) in [("scan", queries), ("morton", sorted)] {
+        let (nodes, blocks) = qs.iter().fold((0, 0), |(n, b), q| {
+            let cost = tree.nearest_one_cost(q);
+            (n + cost.nodes, b + cost.blocks)
+        });
+        let per = |x: usize| x as f64 / qs.len() as f64;
+        let bytes = nodes * size_of::<[u32; 4]>() + blocks * size_of::<[[f32; LANES]; 3]>();
+        println!(
+            "nn {order}: {:.1} nodes and {:.1} blocks of {LANES} points ({:.1} distances, {:.0} bytes) \
+             per query; {} nodes and {} blocks in the tree",
+            per(nodes),
+            per(blocks),
+            per(blocks * LANES),
+            per(bytes),
+            tree.nodes().len(),
+            tree.blocks().len()
+        );
+    }
 }
 
 criterion_group!(benches, bench_kdtree);

@@ -39,7 +39,7 @@ struct Index {
 
 impl Index {
     fn new(points: &[[f32; 3]]) -> Self {
-        let BoxTree { nodes, order } = BoxTree::build(points, LEAF);
+        let BoxTree { nodes, order } = BoxTree::build(points, LEAF, 1);
         Self {
             points: order.iter().map(|o| o.1).collect(),
             xs: order.iter().map(|o| o.1[0]).collect(),

@@ -3,6 +3,7 @@
 //! the same data, with the script that measured it.
 
 use std::ffi::OsStr;
+use std::num::NonZeroUsize;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
@@ -16,11 +17,12 @@ use kfmap_service::server::percentile;
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::cov::{CovOptions, estimate_covariances};
 use kfmap_shared::datasets::shared_data_dir;
-use kfmap_shared::geometry::Pose;
+use kfmap_shared::geometry::{Pose, to_point, transform_point};
 use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
 use kfmap_shared::map::{KeyframeMap, KeyframeMapOptions};
 use kfmap_shared::pose_graph::{GraphParams, read_g2o};
 use kfmap_shared::registration::{PreparedCloud, RegistrationParams, align, register};
+use kfmap_shared::spatial::{build_tree, morton_order};
 use serde_json::json;
 
 use super::bench::{keyframe_pose, synthetic_cloud};
@@ -106,6 +108,12 @@ const SMALL_GICP_COV: [f64; 2] = [74.6, 38.9];
 const SMALL_GICP_REGISTER: [f64; 2] = [21.6, 16.0];
 const SMALL_GICP_ALIGN: [f64; 2] = [4.68, 2.42];
 const GTSAM_PARKING_GARAGE_MS: f64 = 69.7;
+/// small_gicp 1.0.1 KD-tree on KITTI 00 frame 1 against frame 0, one thread
+/// (`small_gicp_knn.py`, 2026-11-24): 1-NN and k = 20 in scan order, then in Morton
+/// order, then the tree build.
+const SMALL_GICP_KNN: [f64; 5] = [22.6, 147.4, 22.2, 144.9, 13.6];
+/// small_gicp 1.0.1 voxel grid, 0.25 m, target.ply, 1 and 2 threads (`small_gicp_cov.py`).
+const SMALL_GICP_VOXEL: [f64; 2] = [2.8, 1.5];
 /// small_gicp localizing balm_os0 scans 116-176 against the merged map of scans 0-115
 /// (`small_gicp_localize.py --motion-model`, 2 threads): per scan p50, p99, RMS error.
 const SMALL_GICP_LOCALIZE: [f64; 3] = [24.0, 73.0, 0.183];
@@ -136,6 +144,7 @@ pub fn run(quick: bool, json_out: bool, dir: &Path) -> anyhow::Result<()> {
     };
     let data = shared_data_dir();
     covariances(&mut table, data.as_deref())?;
+    kernels(&mut table, data.as_deref())?;
     cov2cov(&mut table, data.as_deref())?;
     registration(&mut table, data.as_deref())?;
     pose_graph(&mut table, data.as_deref())?;
@@ -182,6 +191,90 @@ fn covariances(table: &mut Table, data: Option<&Path>) -> anyhow::Result<()> {
         table.anchored(
             real.as_ref()
                 .and_then(|_| anchor("small_gicp", SMALL_GICP_COV[threads - 1], script)),
+        );
+    }
+    Ok(())
+}
+
+/// The hot kernels every answer pays for: KD-tree queries (1-NN and k = 20, in scan
+/// and Morton order) and the build, then the voxel grid.
+fn kernels(table: &mut Table, data: Option<&Path>) -> anyhow::Result<()> {
+    table.stage("KD-tree and voxel grid");
+    let kitti = data_file(data, "kitti00");
+    let (target, queries) = match &kitti {
+        Some(dir) => {
+            let poses = read_trajectory(&dir.join("poses_velo_kitti.txt"))?.poses;
+            let relative = poses[0].inverse() * poses[1];
+            let moved = read(&dir.join("000001.bin"))?
+                .points
+                .iter()
+                .map(|p| to_point(&transform_point(&relative, p)))
+                .collect();
+            (read(&dir.join("000000.bin"))?.points, moved)
+        }
+        None => (
+            synthetic_cloud(1, 120_000).points,
+            synthetic_cloud(2, 120_000).points,
+        ),
+    };
+    let label = format!(
+        "{}: {} queries against {} points",
+        if kitti.is_some() {
+            "KITTI 00 frame 1 into frame 0"
+        } else {
+            "synthetic scans"
+        },
+        queries.len(),
+        target.len()
+    );
+    let sorted: Vec<[f32; 3]> = morton_order(&queries)
+        .iter()
+        .map(|&i| queries[i as usize])
+        .collect();
+    let tree = build_tree(&target)?;
+    let tree = tree.view();
+    let k20 = NonZeroUsize::new(20).expect("k");
+    let knn_anchor = |i: usize| {
+        let script = "tools/anchors/small_gicp_knn.py";
+        kitti
+            .as_ref()
+            .and_then(|_| anchor("small_gicp", SMALL_GICP_KNN[i], script))
+    };
+    for (order, qs, column) in [("scan", &queries, 0), ("Morton", &sorted, 2)] {
+        let ms = table.time_ms(1, || qs.iter().map(|q| tree.nearest_one(q).1).sum::<f32>())?;
+        table.push(&format!("KD-tree 1-NN, {order} order"), &label, 1, ms, "ms");
+        table.anchored(knn_anchor(column));
+        let ms = table.time_ms(1, || {
+            qs.iter()
+                .map(|q| tree.nearest_n(q, k20).len())
+                .sum::<usize>()
+        })?;
+        table.push(
+            &format!("KD-tree k = 20, {order} order"),
+            &label,
+            1,
+            ms,
+            "ms",
+        );
+        table.anchored(knn_anchor(column + 1));
+    }
+    let ms = table.time_ms(1, || build_tree(&target).map(|t| t.len()))?;
+    table.push("KD-tree build", &label, 1, ms, "ms");
+    table.anchored(knn_anchor(4));
+
+    let real = data_file(data, "small_gicp/target.ply");
+    let (cloud, name) = match &real {
+        Some(p) => (read(p)?, "small_gicp/target.ply"),
+        None => (synthetic_cloud(1, 64_000), "synthetic scan"),
+    };
+    let label = format!("{name}, {} points", cloud.len());
+    for threads in [1, 2] {
+        let ms = table.time_ms(threads, || cloud.voxel_downsample(0.25))?;
+        table.push("voxel grid, 0.25 m", &label, threads, ms, "ms");
+        let script = "tools/anchors/small_gicp_cov.py";
+        table.anchored(
+            real.as_ref()
+                .and_then(|_| anchor("small_gicp", SMALL_GICP_VOXEL[threads - 1], script)),
         );
     }
     Ok(())

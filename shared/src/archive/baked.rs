@@ -25,7 +25,7 @@ use crate::covis::{CovisSnapshot, CovisibilityGraph};
 use crate::geometry::{PackedSym3, Pose};
 use crate::map::{Keyframe, KeyframeMap, KeyframeMapOptions, KeyframeView, weights_problem};
 use crate::place::{GridView, SearchRegion};
-use crate::spatial::{NodeWords, PointTree, TreeRef, build_tree};
+use crate::spatial::{NodeWords, PointBlock, PointTree, TreeRef, build_tree};
 
 /// How to open a map file.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -250,8 +250,8 @@ fn native<T: SameBits>(v: &[T]) -> &[T::Native] {
 }
 
 /// An archived tree's arrays, not yet checked.
-fn tree_parts<'f>(t: &'f ArchivedTreeRecord<'_>) -> (&'f [NodeWords], &'f [[f32; 3]], &'f [u32]) {
-    (native(&t.nodes), native(&t.points), native(&t.items))
+fn tree_parts<'f>(t: &'f ArchivedTreeRecord<'_>) -> (&'f [NodeWords], &'f [PointBlock], &'f [u32]) {
+    (native(&t.nodes), native(&t.blocks), native(&t.items))
 }
 
 impl BakedKeyframe {
@@ -299,10 +299,6 @@ impl BakedKeyframe {
                 .covariances
                 .as_ref()
                 .is_some_and(|c| bad_len(c.len()))
-            || record
-                .tree
-                .as_ref()
-                .is_some_and(|t| bad_len(t.points.len()))
         {
             return Err(self.corrupt("attribute lengths differ from the point count"));
         }
@@ -315,9 +311,12 @@ impl BakedKeyframe {
         }
         let points = native(&record.points);
         if let Some(t) = record.tree.as_ref() {
-            let (nodes, tree_points, items) = tree_parts(t);
-            TreeRef::from_parts(nodes, tree_points, items)
+            let (nodes, blocks, items) = tree_parts(t);
+            let tree = TreeRef::from_parts(nodes, blocks, items)
                 .map_err(|e| self.corrupt(e.to_string()))?;
+            if tree.len() != n {
+                return Err(self.corrupt("attribute lengths differ from the point count"));
+            }
         }
         Ok(Rebuilt {
             tree: match record.tree.as_ref() {
@@ -348,8 +347,8 @@ impl BakedKeyframe {
         };
         let tree = match (record.tree.as_ref(), &rebuilt.tree) {
             (Some(t), _) => {
-                let (nodes, points, items) = tree_parts(t);
-                TreeRef::from_checked_parts(nodes, points, items)
+                let (nodes, blocks, items) = tree_parts(t);
+                TreeRef::from_checked_parts(nodes, blocks, items, record.points.len())
             }
             (None, Some(t)) => t.view(),
             (None, None) => unreachable!("prepare() rebuilds a missing tree"),

@@ -5,7 +5,7 @@ use rkyv::with::{InlineAsBox, Map};
 use rkyv::{Archive, Deserialize, Serialize};
 
 use crate::geometry::PackedSym3;
-use crate::spatial::{NodeWords, TreeRef};
+use crate::spatial::{NodeWords, PointBlock, TreeRef};
 
 /// One keyframe's local data, archived on its own at a 128-byte aligned offset.
 /// Written from borrowed data (no copy of points or tree); read as
@@ -37,10 +37,10 @@ pub struct TreeRecord<'a> {
     /// Nodes in depth-first order.
     #[rkyv(with = InlineAsBox)]
     pub nodes: &'a [NodeWords],
-    /// Points in leaf order.
+    /// Points in leaf order, in blocks of lanes.
     #[rkyv(with = InlineAsBox)]
-    pub points: &'a [[f32; 3]],
-    /// The keyframe point index of each leaf-ordered point.
+    pub blocks: &'a [PointBlock],
+    /// The keyframe point index of each lane (`PAD_ITEM` for unused lanes).
     #[rkyv(with = InlineAsBox)]
     pub items: &'a [u32],
 }
@@ -49,7 +49,7 @@ impl<'a> From<TreeRef<'a>> for TreeRecord<'a> {
     fn from(tree: TreeRef<'a>) -> Self {
         Self {
             nodes: tree.nodes(),
-            points: tree.points(),
+            blocks: tree.blocks(),
             items: tree.items(),
         }
     }

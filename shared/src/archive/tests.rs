@@ -296,22 +296,22 @@ fn bad_files_are_named_errors() {
         ArchiveError::BadMagic
     ));
     let mut newer = good.clone();
-    newer[8] = 6;
+    newer[8] = 7;
     assert!(matches!(
         open_err(&write("newer", &newer)),
         ArchiveError::NewerVersion {
-            found: 6,
-            supported: 5
+            found: 7,
+            supported: 6
         }
     ));
     // Version 1 held kiddo trees, version 2 no T_map_input, version 3 no point weights,
-    // version 4 no place grid: such maps are baked again.
-    for old in [1u8, 2, 3, 4] {
+    // version 4 no place grid, version 5 unblocked tree leaves: such maps are baked again.
+    for old in [1u8, 2, 3, 4, 5] {
         let mut older = good.clone();
         older[8] = old;
         assert!(matches!(
             open_err(&write("older", &older)),
-            ArchiveError::OldVersion { found, supported: 5 } if found == old as u32
+            ArchiveError::OldVersion { found, supported: 6 } if found == old as u32
         ));
     }
     let mut wide = good.clone();

@@ -5,19 +5,13 @@ use rayon::prelude::*;
 use super::{CloudError, PointCloud};
 use crate::geometry::{Pose, transform_point};
 
-/// Cells per axis that fit in a packed key (21 bits each, x in the high bits).
+/// Cells per axis of a grid: the dense cell number of the widest allowed grid,
+/// `MAX_CELLS^3`, fits in a u64.
 const MAX_CELLS: i64 = 1 << 21;
 
 fn cell(c: f64, inv_size: f64) -> i64 {
     // `as i64` saturates, so far-away points cannot overflow.
     (c * inv_size).floor() as i64
-}
-
-/// Packs a cell, relative to the cell `origin`, into one sortable u64 whose order
-/// equals the lexicographic order of (x, y, z) cells.
-fn packed_key(cell: &[i64; 3], origin: &[i64; 3]) -> u64 {
-    let rel = |axis: usize| (cell[axis] - origin[axis]) as u64;
-    rel(0) << 42 | rel(1) << 21 | rel(2)
 }
 
 /// Where point `p` falls on the grid of the frame `grid_from_points` maps it into
@@ -32,7 +26,8 @@ pub(crate) fn grid_position(p: &[f32; 3], grid_from_points: Option<&Pose>) -> Op
 
 /// Point indices `0..n` grouped by voxel (edge `voxel_size` metres, grid aligned with
 /// the origin), each at `position(i)` (`None` skips it): `(voxel key, index)` sorted by
-/// key, then index. Slice it with `chunk_by` on the key.
+/// key, then index; keys follow the lexicographic order of (x, y, z) cells. Slice it
+/// with `chunk_by` on the key.
 pub(crate) fn voxel_groups(
     n: usize,
     voxel_size: f64,
@@ -43,7 +38,7 @@ pub(crate) fn voxel_groups(
     }
     let inv_size = 1.0 / voxel_size;
     let cell_of = |i: usize| Some(position(i)?.map(|c| cell(c, inv_size)));
-    // The occupied cells' range: keys are packed relative to its low corner.
+    // The occupied cells' range: cells are numbered densely inside it.
     let bounds = (0..n)
         .into_par_iter()
         .filter_map(cell_of)
@@ -57,20 +52,26 @@ pub(crate) fn voxel_groups(
     let Some((low, high)) = bounds else {
         return Ok(Vec::new());
     };
-    let widest = (0..3)
-        .map(|axis| high[axis].saturating_sub(low[axis]).saturating_add(1))
-        .max();
-    if let Some(widest) = widest.filter(|&n| n > MAX_CELLS) {
+    let extent: [i64; 3] =
+        std::array::from_fn(|axis| high[axis].saturating_sub(low[axis]).saturating_add(1));
+    if let Some(&widest) = extent.iter().filter(|&&n| n > MAX_CELLS).max() {
         return Err(CloudError::VoxelGridTooFine {
             voxel_size,
             cells: widest,
         });
     }
+    // x slowest, z fastest: the order of (x, y, z), in as few bits as the grid needs,
+    // so the radix sort below makes few passes.
+    let number = |c: [i64; 3]| {
+        let rel = |axis: usize| (c[axis] - low[axis]) as u64;
+        (rel(0) * extent[1] as u64 + rel(1)) * extent[2] as u64 + rel(2)
+    };
     let mut keyed: Vec<(u64, u32)> = (0..n)
         .into_par_iter()
-        .filter_map(|i| Some((packed_key(&cell_of(i)?, &low), i as u32)))
+        .filter_map(|i| Some((number(cell_of(i)?), i as u32)))
         .collect();
-    keyed.par_sort_unstable();
+    // Stable, so a voxel's indices stay ascending.
+    radsort::sort_by_key(&mut keyed, |k| k.0);
     Ok(keyed)
 }
 
@@ -127,28 +128,32 @@ impl PointCloud {
         let keyed = voxel_groups(self.len(), voxel_size, |i| {
             grid_position(&self.points[i], grid_from_cloud)
         })?;
-        let mut out = PointCloud {
-            points: Vec::new(),
-            view_dirs: self.view_dirs.as_ref().map(|_| Vec::new()),
-            intensity: self.intensity.as_ref().map(|_| Vec::new()),
-            time: self.time.as_ref().map(|_| Vec::new()),
+        let groups: Vec<&[(u64, u32)]> = keyed.chunk_by(|a, b| a.0 == b.0).collect();
+        let average = |values: &[[f32; 3]]| -> Vec<[f64; 3]> {
+            groups
+                .par_iter()
+                .map(|group| mean_of(group.iter().map(|&(_, i)| values[i as usize])))
+                .collect()
         };
-        let mut counts = Vec::new();
-        for group in keyed.chunk_by(|a, b| a.0 == b.0) {
-            let members = || group.iter().map(|&(_, i)| i as usize);
-            let centroid = mean_of(members().map(|i| self.points[i]));
-            out.points.push(centroid.map(|c| c as f32));
-            counts.push(group.len() as u32);
-            if let (Some(src), Some(dst)) = (&self.view_dirs, &mut out.view_dirs) {
-                dst.push(unit_or_zero(mean_of(members().map(|i| src[i]))));
-            }
-            if let (Some(src), Some(dst)) = (&self.intensity, &mut out.intensity) {
-                dst.push(mean_of(members().map(|i| [src[i]]))[0] as f32);
-            }
-            if let (Some(src), Some(dst)) = (&self.time, &mut out.time) {
-                dst.push(mean_of(members().map(|i| [src[i]]))[0] as f32);
-            }
-        }
+        let average_scalar = |values: &[f32]| -> Vec<f32> {
+            groups
+                .par_iter()
+                .map(|group| mean_of(group.iter().map(|&(_, i)| [values[i as usize]]))[0] as f32)
+                .collect()
+        };
+        let out = PointCloud {
+            points: average(&self.points)
+                .into_iter()
+                .map(|c| c.map(|c| c as f32))
+                .collect(),
+            view_dirs: self
+                .view_dirs
+                .as_ref()
+                .map(|v| average(v).into_iter().map(unit_or_zero).collect()),
+            intensity: self.intensity.as_deref().map(average_scalar),
+            time: self.time.as_deref().map(average_scalar),
+        };
+        let counts = groups.iter().map(|g| g.len() as u32).collect();
         Ok(Voxelized { cloud: out, counts })
     }
 
@@ -239,6 +244,29 @@ mod tests {
                 assert!((got[axis] as f64 - want).abs() < 1e-5);
             }
         }
+    }
+
+    #[test]
+    fn the_same_output_on_any_thread_count() {
+        let points: Vec<[f32; 3]> = (0..20_000)
+            .map(|i| {
+                let t = i as f32 * 0.013;
+                [t.sin() * 9.0, (t * 2.3).cos() * 5.0, (t * 0.7).sin()]
+            })
+            .collect();
+        let mut cloud = PointCloud::from_points(points);
+        cloud.intensity = Some((0..20_000).map(|i| (i % 97) as f32).collect());
+        let on = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| cloud.voxelize(0.3, None).unwrap())
+        };
+        let (one, two) = (on(1), on(2));
+        assert_eq!(one.cloud.points, two.cloud.points);
+        assert_eq!(one.cloud.intensity, two.cloud.intensity);
+        assert_eq!(one.counts, two.counts);
     }
 
     #[test]

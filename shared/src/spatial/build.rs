@@ -32,14 +32,16 @@ pub(crate) struct BoxTree {
 
 impl BoxTree {
     /// Splits at the median of the widest axis (ties by input index, so the tree is the
-    /// same for any thread count) until a node holds at most `leaf` points.
-    pub fn build(points: &[[f32; 3]], leaf: usize) -> Self {
+    /// same for any thread count) until a node holds at most `leaf` points. The left
+    /// side of a split gets the median rounded up to a multiple of `align` when that
+    /// leaves points on the right, so leaves fill blocks of `align` points.
+    pub fn build(points: &[[f32; 3]], leaf: usize, align: usize) -> Self {
         let mut order: Vec<(u32, [f32; 3])> = points
             .iter()
             .enumerate()
             .map(|(i, p)| (i as u32, *p))
             .collect();
-        let nodes = build(&mut order, 0, leaf.max(1));
+        let nodes = build(&mut order, 0, leaf.max(1), align.max(1));
         Self { nodes, order }
     }
 }
@@ -58,7 +60,7 @@ fn bounds(items: &[(u32, [f32; 3])]) -> ([f32; 3], [f32; 3]) {
 
 /// Builds the subtree over `items` (whose first point has global slot `offset`) in
 /// depth-first order; `right` links are relative to the returned vector's start.
-fn build(items: &mut [(u32, [f32; 3])], offset: usize, leaf: usize) -> Vec<BoxNode> {
+fn build(items: &mut [(u32, [f32; 3])], offset: usize, leaf: usize, align: usize) -> Vec<BoxNode> {
     let (min, max) = bounds(items);
     let axis = (0..3)
         .max_by(|&a, &b| (max[a] - min[a]).total_cmp(&(max[b] - min[b])))
@@ -74,18 +76,25 @@ fn build(items: &mut [(u32, [f32; 3])], offset: usize, leaf: usize) -> Vec<BoxNo
     if items.len() <= leaf {
         return nodes;
     }
-    let mid = items.len() / 2;
+    let half = items.len() / 2;
+    let mid = match half.next_multiple_of(align) {
+        aligned if aligned < items.len() => aligned,
+        _ => half,
+    };
     items.select_nth_unstable_by(mid, |a, b| {
         a.1[axis].total_cmp(&b.1[axis]).then(a.0.cmp(&b.0))
     });
     let (left, right) = items.split_at_mut(mid);
     let (left_nodes, right_nodes) = if mid >= PARALLEL_BUILD {
         rayon::join(
-            || build(left, offset, leaf),
-            || build(right, offset + mid, leaf),
+            || build(left, offset, leaf, align),
+            || build(right, offset + mid, leaf, align),
         )
     } else {
-        (build(left, offset, leaf), build(right, offset + mid, leaf))
+        (
+            build(left, offset, leaf, align),
+            build(right, offset + mid, leaf, align),
+        )
     };
     let shift = |base: usize, mut n: BoxNode| {
         if n.right != 0 {

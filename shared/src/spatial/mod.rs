@@ -1,11 +1,14 @@
 //! The map's KD-tree over `f32` points: a balanced median-split tree whose nodes,
-//! leaf-ordered points and item ids are three plain arrays, so a baked map reads it in
-//! place from the memory-mapped file exactly as a tree built in this process.
+//! leaf points and item ids are three plain arrays, so a baked map reads it in place
+//! from the memory-mapped file exactly as a tree built in this process.
 //!
-//! Searches descend nanoflann-style: nearer child first, the other child only when the
-//! incremental distance to its cell can still beat the current bound. On KITTI 00
-//! (frame 1 queried against frame 0, one thread) that answers 1-NN in about half the
-//! time kiddo 6.3's `ImmutableKdTree` takes (`cargo bench -p kfmap-shared --bench kdtree`).
+//! Leaves store their points in blocks of [`LANES`], axis by axis, so one block's
+//! distances take a few vector instructions; splits fall on multiples of [`LANES`], so
+//! nearly every block is full. Searches descend nanoflann-style, without recursion:
+//! nearer child first, the other child kept on a small stack and visited only when the
+//! incremental distance to its cell can still beat the bound. On KITTI 00 (frame 1
+//! queried against frame 0, one thread) that answers 1-NN and k = 20 about 1.3x faster
+//! than small_gicp (`cargo bench -p kfmap-shared --bench kdtree`, docs/BENCHMARKS.md).
 //!
 //! ```
 //! use kfmap_shared::spatial::build_tree;
@@ -25,11 +28,22 @@ use std::num::NonZeroUsize;
 
 use build::BoxTree;
 pub use morton::morton_order;
-use search::{KNearest, Nearest, Within};
+use search::{Counted, KNearest, Nearest, Within};
 
 /// Points per leaf. On KITTI 00 (frame 1 against frame 0, one thread) leaves of 16
-/// answered 1-NN faster than 8 or 32 (`cargo bench --bench kdtree`).
+/// (two blocks) answered 1-NN faster than 8 or 32 (`cargo bench --bench kdtree`).
 pub const LEAF_SIZE: usize = 16;
+
+/// Points a leaf stores side by side: leaves hold blocks of this many, axis by axis, so
+/// one block's distances are computed in a few vector instructions.
+pub const LANES: usize = 8;
+
+/// `LANES` leaf-ordered points as `[xs, ys, zs]`. Lanes past the end of a leaf hold NaN,
+/// which is within no bound, and the item id [`PAD_ITEM`].
+pub type PointBlock = [[f32; LANES]; 3];
+
+/// Item id of an unused lane.
+pub const PAD_ITEM: u32 = u32::MAX;
 
 /// First word of a leaf node; a split node holds its axis (0, 1 or 2) there.
 const LEAF_TAG: u32 = u32::MAX;
@@ -40,8 +54,8 @@ const MAX_DEPTH: usize = 40;
 
 /// One node in four words. Split: `[axis, right child, low, high]` where the left child
 /// follows the node, `low` (f32 bits) is the largest left coordinate and `high` the
-/// smallest right coordinate on the axis. Leaf: `[LEAF_TAG, start, end, 0]`, a range of
-/// the leaf-ordered points.
+/// smallest right coordinate on the axis. Leaf: `[LEAF_TAG, first block, end block,
+/// points]`, a range of blocks whose first `points` lanes are used.
 pub type NodeWords = [u32; 4];
 
 /// A KD-tree built in this process; item ids are indices into the points it was built
@@ -49,8 +63,9 @@ pub type NodeWords = [u32; 4];
 #[derive(Debug, Clone)]
 pub struct PointTree {
     nodes: Vec<NodeWords>,
-    points: Vec<[f32; 3]>,
+    blocks: Vec<PointBlock>,
     items: Vec<u32>,
+    len: usize,
 }
 
 impl PointTree {
@@ -58,19 +73,20 @@ impl PointTree {
     pub fn view(&self) -> TreeRef<'_> {
         TreeRef {
             nodes: &self.nodes,
-            points: &self.points,
+            blocks: &self.blocks,
             items: &self.items,
+            len: self.len,
         }
     }
 
     /// Number of indexed points.
     pub fn len(&self) -> usize {
-        self.points.len()
+        self.len
     }
 
     /// True for no points (never the case for a built tree).
     pub fn is_empty(&self) -> bool {
-        self.points.is_empty()
+        self.len == 0
     }
 }
 
@@ -78,8 +94,10 @@ impl PointTree {
 #[derive(Debug, Clone, Copy)]
 pub struct TreeRef<'a> {
     nodes: &'a [NodeWords],
-    points: &'a [[f32; 3]],
+    blocks: &'a [PointBlock],
+    /// One id per lane of `blocks`.
     items: &'a [u32],
+    len: usize,
 }
 
 /// Why a tree could not be built or read.
@@ -113,90 +131,119 @@ pub fn build_tree_with_leaf(points: &[[f32; 3]], leaf: usize) -> Result<PointTre
     if points.is_empty() {
         return Err(TreeError::Empty);
     }
-    if points.len() >= u32::MAX as usize {
+    if points.len() >= PAD_ITEM as usize {
         return Err(TreeError::TooManyPoints(points.len()));
     }
     if let Some(i) = points.iter().position(|p| p.iter().any(|c| !c.is_finite())) {
         return Err(TreeError::NonFinite(i));
     }
-    let BoxTree { nodes, order } = BoxTree::build(points, leaf);
-    let words = nodes
-        .iter()
-        .enumerate()
-        .map(|(i, n)| {
-            if n.is_leaf() {
-                return [LEAF_TAG, n.start, n.end, 0];
+    // Splits at a multiple of LANES so nearly every block is full.
+    let BoxTree { nodes, order } = BoxTree::build(points, leaf, LANES);
+    let mut words = Vec::with_capacity(nodes.len());
+    let mut blocks = Vec::with_capacity(points.len() / LANES + nodes.len());
+    let mut items = Vec::with_capacity(blocks.capacity() * LANES);
+    for (i, n) in nodes.iter().enumerate() {
+        if n.is_leaf() {
+            let first = blocks.len() as u32;
+            for chunk in order[n.start as usize..n.end as usize].chunks(LANES) {
+                let mut block = [[f32::NAN; LANES]; 3];
+                let mut ids = [PAD_ITEM; LANES];
+                for (lane, (id, p)) in chunk.iter().enumerate() {
+                    for axis in 0..3 {
+                        block[axis][lane] = p[axis];
+                    }
+                    ids[lane] = *id;
+                }
+                blocks.push(block);
+                items.extend(ids);
             }
-            let axis = n.axis as usize;
-            let low = nodes[i + 1].max[axis];
-            let high = nodes[n.right as usize].min[axis];
-            [n.axis, n.right, low.to_bits(), high.to_bits()]
-        })
-        .collect();
+            words.push([LEAF_TAG, first, blocks.len() as u32, n.end - n.start]);
+            continue;
+        }
+        let axis = n.axis as usize;
+        let low = nodes[i + 1].max[axis];
+        let high = nodes[n.right as usize].min[axis];
+        words.push([n.axis, n.right, low.to_bits(), high.to_bits()]);
+    }
     Ok(PointTree {
         nodes: words,
-        points: order.iter().map(|o| o.1).collect(),
-        items: order.iter().map(|o| o.0).collect(),
+        blocks,
+        items,
+        len: points.len(),
     })
 }
 
 impl<'a> TreeRef<'a> {
     /// A tree from stored arrays (e.g. a memory-mapped map), checked to be one: every
-    /// node reachable once, in depth-first order, leaves covering the points in order,
-    /// items a permutation, depth bounded. Searches on it then never index out of range.
+    /// node reachable once, in depth-first order, leaves covering the blocks in order,
+    /// unused lanes padded, item ids a permutation, depth bounded. Searches on it then
+    /// never index out of range nor return an id outside `0..len()`.
     pub fn from_parts(
         nodes: &'a [NodeWords],
-        points: &'a [[f32; 3]],
+        blocks: &'a [PointBlock],
         items: &'a [u32],
     ) -> Result<Self, TreeError> {
-        let tree = Self {
+        let mut tree = Self {
             nodes,
-            points,
+            blocks,
             items,
+            len: 0,
         };
-        tree.check()?;
+        tree.len = tree.check()?;
         Ok(tree)
     }
 
-    /// Arrays that passed [`TreeRef::from_parts`] before (a memory-mapped map checks
-    /// each keyframe once, then reads it many times).
+    /// Arrays that passed [`TreeRef::from_parts`] before, with the point count it found
+    /// (a memory-mapped map checks each keyframe once, then reads it many times).
     pub(crate) fn from_checked_parts(
         nodes: &'a [NodeWords],
-        points: &'a [[f32; 3]],
+        blocks: &'a [PointBlock],
         items: &'a [u32],
+        len: usize,
     ) -> Self {
         Self {
             nodes,
-            points,
+            blocks,
             items,
+            len,
         }
     }
 
-    fn check(&self) -> Result<(), TreeError> {
+    /// Checks the arrays; returns the number of points.
+    fn check(&self) -> Result<usize, TreeError> {
         let malformed = |why: String| Err(TreeError::Malformed(why));
-        let n = self.points.len();
-        if n == 0 || self.nodes.is_empty() {
+        if self.blocks.is_empty() || self.nodes.is_empty() {
             return Err(TreeError::Empty);
         }
-        if self.items.len() != n {
-            return malformed(format!("{} item ids for {n} points", self.items.len()));
+        if self.items.len() != self.blocks.len() * LANES {
+            return malformed(format!(
+                "{} item ids for {} blocks of {LANES}",
+                self.items.len(),
+                self.blocks.len()
+            ));
         }
+        let mut walk = Walk {
+            block: 0,
+            points: 0,
+        };
+        let end = self.check_subtree(0, 0, &mut walk)?;
+        if end != self.nodes.len() || walk.block != self.blocks.len() {
+            return malformed(format!(
+                "the nodes reach {end} of {} nodes and {} of {} blocks",
+                self.nodes.len(),
+                walk.block,
+                self.blocks.len()
+            ));
+        }
+        let n = walk.points;
         let mut seen = vec![false; n];
-        for &item in self.items {
+        for &item in self.items.iter().filter(|&&i| i != PAD_ITEM) {
             match seen.get_mut(item as usize) {
                 Some(s) if !*s => *s = true,
                 _ => return malformed(format!("item id {item} is out of range or repeated")),
             }
         }
-        let mut next_point = 0u32;
-        let end = self.check_subtree(0, 0, &mut next_point)?;
-        if end != self.nodes.len() || next_point as usize != n {
-            return malformed(format!(
-                "the nodes reach {end} of {} nodes and {next_point} of {n} points",
-                self.nodes.len()
-            ));
-        }
-        Ok(())
+        Ok(n)
     }
 
     /// Checks the subtree at `node`; returns the index just past it.
@@ -204,7 +251,7 @@ impl<'a> TreeRef<'a> {
         &self,
         node: usize,
         depth: usize,
-        next_point: &mut u32,
+        walk: &mut Walk,
     ) -> Result<usize, TreeError> {
         let malformed = |why: String| Err(TreeError::Malformed(why));
         if depth > MAX_DEPTH {
@@ -214,21 +261,42 @@ impl<'a> TreeRef<'a> {
             return malformed(format!("node {node} is missing"));
         };
         if tag == LEAF_TAG {
-            if a != *next_point || b <= a || b as usize > self.points.len() {
-                return malformed(format!("leaf {node} has a bad point range {a}..{b}"));
+            let (first, end, points) = (a as usize, b as usize, c as usize);
+            let lanes = end.saturating_sub(first) * LANES;
+            if first != walk.block
+                || end > self.blocks.len()
+                || points == 0
+                || points > lanes
+                || points + LANES <= lanes
+            {
+                return malformed(format!(
+                    "leaf {node} has a bad block range {a}..{b} for {c} points"
+                ));
             }
-            *next_point = b;
+            let slots = first * LANES..end * LANES;
+            for (slot, &item) in slots.clone().zip(&self.items[slots]) {
+                let used = slot - first * LANES < points;
+                let [xs, ys, zs] = &self.blocks[slot / LANES];
+                let lane = slot % LANES;
+                let padded = item == PAD_ITEM
+                    && (xs[lane].is_nan() || ys[lane].is_nan() || zs[lane].is_nan());
+                if used == (item == PAD_ITEM) || (!used && !padded) {
+                    return malformed(format!("leaf {node} has a bad lane {slot}"));
+                }
+            }
+            walk.block = end;
+            walk.points += points;
             return Ok(node + 1);
         }
         let (low, high) = (f32::from_bits(b), f32::from_bits(c));
         if tag > 2 || low.is_nan() || high.is_nan() {
             return malformed(format!("split node {node} has axis {tag} or a NaN bound"));
         }
-        let left_end = self.check_subtree(node + 1, depth + 1, next_point)?;
+        let left_end = self.check_subtree(node + 1, depth + 1, walk)?;
         if a as usize != left_end {
             return malformed(format!("node {node} links its right child out of order"));
         }
-        self.check_subtree(left_end, depth + 1, next_point)
+        self.check_subtree(left_end, depth + 1, walk)
     }
 
     /// The node array (for archiving).
@@ -236,24 +304,24 @@ impl<'a> TreeRef<'a> {
         self.nodes
     }
 
-    /// The points in leaf order (for archiving).
-    pub fn points(&self) -> &'a [[f32; 3]] {
-        self.points
+    /// The points in leaf order, a block of lanes at a time (for archiving).
+    pub fn blocks(&self) -> &'a [PointBlock] {
+        self.blocks
     }
 
-    /// The item id of each leaf-ordered point (for archiving).
+    /// The item id of each lane of [`TreeRef::blocks`] (for archiving).
     pub fn items(&self) -> &'a [u32] {
         self.items
     }
 
     /// Number of indexed points.
     pub fn len(&self) -> usize {
-        self.points.len()
+        self.len
     }
 
     /// True for no points.
     pub fn is_empty(&self) -> bool {
-        self.points.is_empty()
+        self.len == 0
     }
 
     /// The nearest point: `(item, squared distance)`; ties go to the smaller item.
@@ -271,14 +339,27 @@ impl<'a> TreeRef<'a> {
         best.found()
     }
 
+    /// What finding the nearest point costs: the nodes read and the blocks of
+    /// [`LANES`] points whose distances are computed (the physical-limit estimate of
+    /// `cargo bench --bench kdtree` counts them).
+    pub fn nearest_one_cost(&self, query: &[f32; 3]) -> SearchCost {
+        let mut counted = Counted {
+            inner: Nearest::within(f32::INFINITY),
+            nodes: 0,
+            blocks: 0,
+        };
+        self.search(query, &mut counted);
+        SearchCost {
+            nodes: counted.nodes,
+            blocks: counted.blocks,
+        }
+    }
+
     /// The `n` nearest points, nearest first (ties by item): `(item, squared distance)`.
     pub fn nearest_n(&self, query: &[f32; 3], n: NonZeroUsize) -> Vec<(u32, f32)> {
-        let mut best = KNearest {
-            k: n.get(),
-            hits: Vec::with_capacity(n.get().min(self.len()) + 1),
-        };
+        let mut best = KNearest::new(n.get().min(self.len()));
         self.search(query, &mut best);
-        best.hits
+        best.hits()
     }
 
     /// Every point with squared distance <= `radius_sq`, nearest first (ties by item).
@@ -290,4 +371,20 @@ impl<'a> TreeRef<'a> {
         self.search(query, &mut found);
         found.sorted()
     }
+}
+
+/// The work of one search (see [`TreeRef::nearest_one_cost`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct SearchCost {
+    /// Nodes read, leaves included.
+    pub nodes: usize,
+    /// Blocks of [`LANES`] points whose distances were computed.
+    pub blocks: usize,
+}
+
+/// Where [`TreeRef::check_subtree`] has got to: the next leaf's first block and the
+/// points seen so far.
+struct Walk {
+    block: usize,
+    points: usize,
 }

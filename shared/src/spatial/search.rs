@@ -2,7 +2,9 @@
 //! other child only when the incremental box distance can still beat the current
 //! bound), three ways of collecting what the leaves offer.
 
-use super::{LEAF_TAG, TreeRef};
+use std::mem::MaybeUninit;
+
+use super::{LANES, LEAF_TAG, MAX_DEPTH, PAD_ITEM, TreeRef};
 
 /// Slack on the pruning test: the incremental box distance is a lower bound up to f32
 /// rounding, and a point exactly on the bound must still be found (ties by index).
@@ -14,6 +16,51 @@ pub(super) trait Collector {
     fn bound(&self) -> f32;
     /// A point within the bound.
     fn offer(&mut self, dist_sq: f32, item: u32);
+    /// The points of one block, at least one of them within the bound (NaN lanes are
+    /// padding).
+    #[inline(always)]
+    fn offer_block(&mut self, dist_sq: &[f32; LANES], items: &[u32]) {
+        for (&d, &item) in dist_sq.iter().zip(items) {
+            if d <= self.bound() {
+                self.offer(d, item);
+            }
+        }
+    }
+    /// The search reads a node (counted by [`Counted`]).
+    #[inline(always)]
+    fn visit_node(&mut self) {}
+    /// The search computes the distances of one block of points (counted by [`Counted`]).
+    #[inline(always)]
+    fn scan_block(&mut self) {}
+}
+
+/// Another collector, counting the nodes and blocks the search reads.
+pub(super) struct Counted<C> {
+    pub inner: C,
+    pub nodes: usize,
+    pub blocks: usize,
+}
+
+impl<C: Collector> Collector for Counted<C> {
+    fn bound(&self) -> f32 {
+        self.inner.bound()
+    }
+
+    fn offer(&mut self, dist_sq: f32, item: u32) {
+        self.inner.offer(dist_sq, item);
+    }
+
+    fn offer_block(&mut self, dist_sq: &[f32; LANES], items: &[u32]) {
+        self.inner.offer_block(dist_sq, items);
+    }
+
+    fn visit_node(&mut self) {
+        self.nodes += 1;
+    }
+
+    fn scan_block(&mut self) {
+        self.blocks += 1;
+    }
 }
 
 /// The single nearest point within an inclusive bound; ties by smaller item.
@@ -48,32 +95,72 @@ impl Collector for Nearest {
             self.item = item;
         }
     }
+
+    /// Without a branch per lane: the block's smallest distance, then the smallest
+    /// item at that distance.
+    #[inline(always)]
+    fn offer_block(&mut self, dist_sq: &[f32; LANES], items: &[u32]) {
+        let nearest = dist_sq
+            .iter()
+            .fold(f32::INFINITY, |m, &d| if d < m { d } else { m });
+        let item =
+            dist_sq.iter().zip(items).fold(
+                PAD_ITEM,
+                |m, (&d, &i)| if d == nearest { m.min(i) } else { m },
+            );
+        self.offer(nearest, item);
+    }
 }
 
-/// The `k` nearest points, sorted by (squared distance, item).
+/// A candidate's (squared distance, item) order as one integer: the bits of a
+/// non-negative `f32` sort as the number does.
+#[inline(always)]
+fn rank(dist_sq: f32, item: u32) -> u64 {
+    (u64::from(dist_sq.to_bits()) << 32) | u64::from(item)
+}
+
+/// The `k` nearest points, sorted by (squared distance, item). Slots not yet filled
+/// rank as an infinite distance with [`PAD_ITEM`].
 pub(super) struct KNearest {
-    pub k: usize,
-    pub hits: Vec<(u32, f32)>,
+    ranks: Vec<u64>,
 }
 
-impl Collector for KNearest {
-    fn bound(&self) -> f32 {
-        if self.hits.len() < self.k {
-            f32::INFINITY
-        } else {
-            self.hits[self.k - 1].1
+impl KNearest {
+    pub fn new(k: usize) -> Self {
+        Self {
+            ranks: vec![rank(f32::INFINITY, PAD_ITEM); k],
         }
     }
 
+    pub fn hits(self) -> Vec<(u32, f32)> {
+        self.ranks
+            .into_iter()
+            .map(|r| (r as u32, f32::from_bits((r >> 32) as u32)))
+            .filter(|&(item, _)| item != PAD_ITEM)
+            .collect()
+    }
+}
+
+impl Collector for KNearest {
+    #[inline(always)]
+    fn bound(&self) -> f32 {
+        f32::from_bits((self.ranks[self.ranks.len() - 1] >> 32) as u32)
+    }
+
+    #[inline]
     fn offer(&mut self, dist_sq: f32, item: u32) {
-        let before = |h: &(u32, f32)| h.1 < dist_sq || (h.1 == dist_sq && h.0 < item);
-        let at = self.hits.partition_point(before);
-        if at < self.k {
-            if self.hits.len() == self.k {
-                self.hits.pop();
-            }
-            self.hits.insert(at, (item, dist_sq));
+        let new = rank(dist_sq, item);
+        let ranks = &mut self.ranks[..];
+        let mut at = ranks.len() - 1;
+        if new >= ranks[at] {
+            return;
         }
+        // Shift the worse tail one slot back, dropping the last.
+        while at > 0 && ranks[at - 1] > new {
+            ranks[at] = ranks[at - 1];
+            at -= 1;
+        }
+        ranks[at] = new;
     }
 }
 
@@ -101,54 +188,98 @@ impl Collector for Within {
     }
 }
 
+/// A subtree still to visit: its node, a lower bound on the squared distance from the
+/// query to its points, and the per-axis squared gaps to its cell that sum to it.
+#[derive(Debug, Clone, Copy)]
+struct Pending {
+    node: u32,
+    min_dist_sq: f32,
+    axis_dist: [f32; 3],
+}
+
 impl TreeRef<'_> {
-    /// Offers every point of the tree that can be within `collector`'s bound.
+    /// Offers every point of the tree that can be within `collector`'s bound: down the
+    /// nearer children to a leaf, the farther ones kept on a stack and visited while
+    /// their cell can still beat the bound.
     #[inline]
     pub(super) fn search<C: Collector>(&self, query: &[f32; 3], collector: &mut C) {
-        let mut axis_dist = [0.0f32; 3];
-        self.descend(0, query, 0.0, &mut axis_dist, collector);
+        // A checked tree is at most MAX_DEPTH deep; the stack holds one far child per
+        // level of the current path. Left uninitialized: zeroing it costs more than a
+        // short search.
+        let mut stack = [const { MaybeUninit::<Pending>::uninit() }; MAX_DEPTH + 1];
+        let mut pending = 0;
+        let mut next = Pending {
+            node: 0,
+            min_dist_sq: 0.0,
+            axis_dist: [0.0; 3],
+        };
+        loop {
+            let Pending {
+                mut node,
+                min_dist_sq,
+                axis_dist,
+            } = next;
+            while min_dist_sq * PRUNE_SLACK <= collector.bound() {
+                collector.visit_node();
+                let [tag, a, b, c] = self.nodes[node as usize];
+                if tag == LEAF_TAG {
+                    for block in a as usize..b as usize {
+                        self.scan_block(block, query, collector);
+                    }
+                    break;
+                }
+                let axis = tag as usize;
+                let (low, high) = (f32::from_bits(b), f32::from_bits(c));
+                let v = query[axis];
+                let (below, above) = (v - low, v - high);
+                // Nearer child first; the gap to the other child's cell along the axis.
+                let (near, far, gap) = if below + above < 0.0 {
+                    (node + 1, a, above * above)
+                } else {
+                    (a, node + 1, below * below)
+                };
+                let far_dist_sq = min_dist_sq + gap - axis_dist[axis];
+                if far_dist_sq * PRUNE_SLACK <= collector.bound() {
+                    let mut far_axis_dist = axis_dist;
+                    far_axis_dist[axis] = gap;
+                    stack[pending].write(Pending {
+                        node: far,
+                        min_dist_sq: far_dist_sq,
+                        axis_dist: far_axis_dist,
+                    });
+                    pending += 1;
+                }
+                node = near;
+            }
+            if pending == 0 {
+                return;
+            }
+            pending -= 1;
+            // SAFETY: every slot below `pending` was written by a push above.
+            next = unsafe { stack[pending].assume_init_read() };
+        }
     }
 
-    /// `min_dist_sq` is a lower bound on the squared distance from `query` to any point
-    /// under `node`, the sum of `axis_dist` (per-axis squared gaps to the node's cell).
-    fn descend<C: Collector>(
-        &self,
-        node: usize,
-        query: &[f32; 3],
-        min_dist_sq: f32,
-        axis_dist: &mut [f32; 3],
-        collector: &mut C,
-    ) {
-        let [tag, a, b, c] = self.nodes[node];
-        if tag == LEAF_TAG {
-            let range = a as usize..b as usize;
-            for (p, &item) in self.points[range.clone()].iter().zip(&self.items[range]) {
-                let d = (p[0] - query[0]) * (p[0] - query[0])
-                    + (p[1] - query[1]) * (p[1] - query[1])
-                    + (p[2] - query[2]) * (p[2] - query[2]);
-                if d <= collector.bound() {
-                    collector.offer(d, item);
-                }
-            }
+    /// Offers the points of one block within the bound. The distances are computed for
+    /// all lanes at once (the loop vectorizes); most blocks offer nothing.
+    #[inline(always)]
+    fn scan_block<C: Collector>(&self, block: usize, query: &[f32; 3], collector: &mut C) {
+        collector.scan_block();
+        let [xs, ys, zs] = &self.blocks[block];
+        let mut dist_sq = [0.0f32; LANES];
+        for lane in 0..LANES {
+            let (dx, dy, dz) = (
+                xs[lane] - query[0],
+                ys[lane] - query[1],
+                zs[lane] - query[2],
+            );
+            dist_sq[lane] = dx * dx + dy * dy + dz * dz;
+        }
+        let bound = collector.bound();
+        // NaN lanes (padding) compare false.
+        if !dist_sq.iter().fold(false, |any, &d| any | (d <= bound)) {
             return;
         }
-        let axis = tag as usize;
-        let (low, high) = (f32::from_bits(b), f32::from_bits(c));
-        let v = query[axis];
-        let (below, above) = (v - low, v - high);
-        // Nearer child first; the gap to the other child's cell along the split axis.
-        let (near, far, gap) = if below + above < 0.0 {
-            (node + 1, a as usize, above * above)
-        } else {
-            (a as usize, node + 1, below * below)
-        };
-        self.descend(near, query, min_dist_sq, axis_dist, collector);
-        let saved = axis_dist[axis];
-        let far_dist_sq = min_dist_sq + gap - saved;
-        if far_dist_sq * PRUNE_SLACK <= collector.bound() {
-            axis_dist[axis] = gap;
-            self.descend(far, query, far_dist_sq, axis_dist, collector);
-            axis_dist[axis] = saved;
-        }
+        collector.offer_block(&dist_sq, &self.items[block * LANES..][..LANES]);
     }
 }

@@ -121,52 +121,123 @@ fn the_same_tree_for_any_thread_count() {
 
 #[test]
 fn stored_arrays_are_checked_before_searching() {
-    let points = awkward_cloud(7);
+    // One point more than a multiple of LANES, so some lanes are padding.
+    let mut points = awkward_cloud(7);
+    points.push([0.5, 0.5, 0.5]);
     let tree = build_tree(&points).unwrap();
-    let (nodes, pts, items) = (tree.nodes.clone(), tree.points.clone(), tree.items.clone());
-    assert!(TreeRef::from_parts(&nodes, &pts, &items).is_ok());
+    let (nodes, blocks, items) = (tree.nodes.clone(), tree.blocks.clone(), tree.items.clone());
+    assert_eq!(
+        TreeRef::from_parts(&nodes, &blocks, &items).map(|t| t.len()),
+        Ok(points.len())
+    );
 
-    let malformed = |nodes: &[NodeWords], items: &[u32]| {
+    let malformed = |nodes: &[NodeWords], blocks: &[PointBlock], items: &[u32]| {
         matches!(
-            TreeRef::from_parts(nodes, &pts, items),
+            TreeRef::from_parts(nodes, blocks, items),
             Err(TreeError::Malformed(_))
         )
     };
     let mut repeated = items.clone();
     repeated[1] = repeated[0];
-    assert!(malformed(&nodes, &repeated));
-    assert!(malformed(&nodes, &items[1..]));
+    assert!(malformed(&nodes, &blocks, &repeated));
+    assert!(malformed(&nodes, &blocks, &items[1..]));
     let mut out_of_range = items.clone();
     out_of_range[0] = points.len() as u32;
-    assert!(malformed(&nodes, &out_of_range));
+    assert!(malformed(&nodes, &blocks, &out_of_range));
+    // An unused lane must be padding: NaN (never within a bound) and PAD_ITEM.
+    let pad = items
+        .iter()
+        .position(|&i| i == PAD_ITEM)
+        .expect("a padded lane");
+    let mut pad_as_point = blocks.clone();
+    for coordinates in &mut pad_as_point[pad / LANES] {
+        coordinates[pad % LANES] = 0.0;
+    }
+    assert!(malformed(&nodes, &pad_as_point, &items));
+    let mut used_pad = items.clone();
+    used_pad[0] = PAD_ITEM;
+    assert!(malformed(&nodes, &blocks, &used_pad));
 
     let leaf = nodes.iter().position(|n| n[0] == LEAF_TAG).unwrap();
     let split = 0;
-    let edits: [(usize, usize, u32); 5] = [
+    let edits: [(usize, usize, u32); 8] = [
         (split, 0, 3),                  // axis 3
         (split, 1, nodes.len() as u32), // right child beyond the end
         (split, 1, 1),                  // right child is the left child
-        (leaf, 2, points.len() as u32 + 5),
         (split, 2, f32::NAN.to_bits()),
+        (leaf, 2, blocks.len() as u32 + 5), // blocks beyond the end
+        (leaf, 3, 0),                       // no points
+        (leaf, 3, 3 * LANES as u32),        // more points than lanes
+        (leaf, 3, 1),                       // a whole block unused
     ];
     for (node, word, value) in edits {
         let mut bad = nodes.clone();
         bad[node][word] = value;
-        assert!(malformed(&bad, &items), "node {node} word {word} = {value}");
+        assert!(
+            malformed(&bad, &blocks, &items),
+            "node {node} word {word} = {value}"
+        );
     }
-    assert!(malformed(&nodes[..nodes.len() - 1], &items));
+    assert!(malformed(&nodes[..nodes.len() - 1], &blocks, &items));
     // A caterpillar of 50 splits (a leaf left, the next split right) is well formed
     // but nests deeper than any balanced tree.
     let mut chain: Vec<NodeWords> = Vec::new();
     for i in 0..50u32 {
         chain.push([0, 2 * i + 2, 0, 0]);
-        chain.push([LEAF_TAG, i, i + 1, 0]);
+        chain.push([LEAF_TAG, i, i + 1, LANES as u32]);
     }
-    chain.push([LEAF_TAG, 50, 51, 0]);
-    let line = [[0.0f32; 3]; 51];
-    let ids: Vec<u32> = (0..51).collect();
+    chain.push([LEAF_TAG, 50, 51, LANES as u32]);
+    let line = [[[0.0f32; LANES]; 3]; 51];
+    let ids: Vec<u32> = (0..51 * LANES as u32).collect();
     assert!(matches!(
         TreeRef::from_parts(&chain, &line, &ids),
         Err(TreeError::Malformed(why)) if why.contains("deeper")
     ));
+}
+
+#[test]
+fn leaves_fill_their_blocks() {
+    // Splits at multiples of LANES: all but a few blocks are full.
+    for n in [1usize, 7, 8, 9, 100, 3640, 50_000] {
+        let points: Vec<[f32; 3]> = (0..n)
+            .map(|i| {
+                [
+                    (i * 7919 % 1000) as f32,
+                    (i * 104_729 % 997) as f32,
+                    i as f32,
+                ]
+            })
+            .collect();
+        let tree = build_tree(&points).unwrap();
+        let full_blocks = n.div_ceil(LANES);
+        assert!(tree.blocks.len() <= full_blocks + n / 512 + 1, "{n} points");
+        assert_eq!(tree.items.iter().filter(|&&i| i != PAD_ITEM).count(), n);
+    }
+}
+
+#[test]
+fn search_cost_counts_the_work_of_a_search() {
+    // One leaf: the root is the leaf, its blocks are all read.
+    let few: Vec<[f32; 3]> = (0..LEAF_SIZE).map(|i| [i as f32, 0.0, 0.0]).collect();
+    let one_leaf = build_tree(&few).unwrap();
+    let cost = one_leaf.view().nearest_one_cost(&[3.2, 0.0, 0.0]);
+    assert_eq!(
+        cost,
+        SearchCost {
+            nodes: 1,
+            blocks: LEAF_SIZE.div_ceil(LANES)
+        }
+    );
+    // Far from a large cloud, a search reads more than a leaf but far less than all.
+    let points = awkward_cloud(11);
+    let tree = build_tree(&points).unwrap();
+    let cost = tree.view().nearest_one_cost(&[0.3, 0.2, 0.1]);
+    assert!(
+        cost.blocks >= 1 && cost.blocks < tree.blocks.len() / 4,
+        "{cost:?}"
+    );
+    assert!(
+        cost.nodes > 1 && cost.nodes < tree.nodes.len() / 4,
+        "{cost:?}"
+    );
 }
