@@ -9,9 +9,15 @@ use crate::geometry::{Pose, transform_point};
 /// `MAX_CELLS^3`, fits in a u64.
 const MAX_CELLS: i64 = 1 << 21;
 
+/// Points per parallel task: smaller pieces cost more in scheduling than they save.
+const CHUNK: usize = 4096;
+
 fn cell(c: f64, inv_size: f64) -> i64 {
-    // `as i64` saturates, so far-away points cannot overflow.
-    (c * inv_size).floor() as i64
+    // floor() without a libm call (baseline x86-64 has no rounding instruction); `as
+    // i64` saturates, so far-away points cannot overflow.
+    let x = c * inv_size;
+    let truncated = x as i64;
+    truncated.saturating_sub(i64::from((truncated as f64) > x))
 }
 
 /// Where point `p` falls on the grid of the frame `grid_from_points` maps it into
@@ -41,6 +47,7 @@ pub(crate) fn voxel_groups(
     // The occupied cells' range: cells are numbered densely inside it.
     let bounds = (0..n)
         .into_par_iter()
+        .with_min_len(CHUNK)
         .filter_map(cell_of)
         .map(|c| (c, c))
         .reduce_with(|(low, high), (a, b)| {
@@ -66,11 +73,23 @@ pub(crate) fn voxel_groups(
         let rel = |axis: usize| (c[axis] - low[axis]) as u64;
         (rel(0) * extent[1] as u64 + rel(1)) * extent[2] as u64 + rel(2)
     };
-    let mut keyed: Vec<(u64, u32)> = (0..n)
+    let keys = (0..n)
         .into_par_iter()
-        .filter_map(|i| Some((number(cell_of(i)?), i as u32)))
-        .collect();
-    // Stable, so a voxel's indices stay ascending.
+        .with_min_len(CHUNK)
+        .filter_map(|i| Some((number(cell_of(i)?), i as u32)));
+    let cells = extent.iter().map(|&e| e as u128).product::<u128>();
+    if cells <= 1 << 32 {
+        // Usually: 8-byte pairs sort faster than 16-byte ones.
+        let mut keyed: Vec<(u32, u32)> = keys.map(|(k, i)| (k as u32, i)).collect();
+        // Stable, so a voxel's indices stay ascending.
+        radsort::sort_by_key(&mut keyed, |k| k.0);
+        return Ok(keyed
+            .par_iter()
+            .with_min_len(CHUNK)
+            .map(|&(k, i)| (u64::from(k), i))
+            .collect());
+    }
+    let mut keyed: Vec<(u64, u32)> = keys.collect();
     radsort::sort_by_key(&mut keyed, |k| k.0);
     Ok(keyed)
 }
@@ -132,6 +151,7 @@ impl PointCloud {
         let average = |values: &[[f32; 3]]| -> Vec<[f64; 3]> {
             groups
                 .par_iter()
+                .with_min_len(CHUNK / 4)
                 .map(|group| mean_of(group.iter().map(|&(_, i)| values[i as usize])))
                 .collect()
         };
@@ -243,6 +263,17 @@ mod tests {
                     members.iter().map(|p| p[axis] as f64).sum::<f64>() / members.len() as f64;
                 assert!((got[axis] as f64 - want).abs() < 1e-5);
             }
+        }
+    }
+
+    #[test]
+    fn cells_are_floors() {
+        let values = [
+            0.0, -0.0, 0.5, -0.5, 1.0, -1.0, 2.999_999, -2.000_001, 1e17, -1e17, 1e30, -1e30,
+        ];
+        for x in values {
+            assert_eq!(cell(x, 1.0), x.floor() as i64, "{x}");
+            assert_eq!(cell(x, 4.0), (x * 4.0).floor() as i64, "{x} / 0.25");
         }
     }
 
