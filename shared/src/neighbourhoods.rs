@@ -8,6 +8,7 @@
 use rayon::prelude::*;
 
 use crate::spatial::build::{BoxNode, BoxTree};
+use crate::spatial::{rank, rank_dist_sq};
 
 /// One neighbour of a query: its index in the input, squared distance (m^2) and
 /// coordinates.
@@ -62,18 +63,15 @@ fn box_box_dist_sq(a: &BoxNode, bmin: &[f32; 3], bmax: &[f32; 3]) -> f32 {
 
 /// The best `k` candidates of one query, sorted by (squared distance, original index).
 struct Best {
-    /// (squared distance, original index, slot in the index's permuted arrays).
-    items: Vec<(f32, u32, u32)>,
+    /// [`rank`]s of (squared distance, original index): one compare orders them.
+    ranks: Vec<u64>,
+    /// Each candidate's slot in the index's permuted arrays.
+    slots: Vec<u32>,
     k: usize,
     max_dist_sq: f32,
     /// Candidates beyond this squared distance cannot enter: `max_dist_sq` until `k`
     /// are held, then the k-th distance.
     bound: f32,
-}
-
-/// Strict order of candidates: distance, then index (f32 distances are never NaN here).
-fn before(a: (f32, u32, u32), b: (f32, u32, u32)) -> bool {
-    a.0 < b.0 || (a.0 == b.0 && a.1 < b.1)
 }
 
 impl Best {
@@ -82,23 +80,26 @@ impl Best {
     }
 
     fn offer(&mut self, d2: f32, index: u32, slot: u32) {
-        let entry = (d2, index, slot);
-        let full = self.items.len() == self.k;
-        if d2 >= self.max_dist_sq || (full && !before(entry, self.items[self.k - 1])) {
+        let new = rank(d2, index);
+        let full = self.ranks.len() == self.k;
+        if d2 >= self.max_dist_sq || (full && new >= self.ranks[self.k - 1]) {
             return;
         }
         if !full {
-            self.items.push(entry);
+            self.ranks.push(new);
+            self.slots.push(slot);
         }
         // Shift larger entries up one slot (cheaper than a memmove call for small k).
-        let mut j = self.items.len() - 1;
-        while j > 0 && before(entry, self.items[j - 1]) {
-            self.items[j] = self.items[j - 1];
+        let mut j = self.ranks.len() - 1;
+        while j > 0 && new < self.ranks[j - 1] {
+            self.ranks[j] = self.ranks[j - 1];
+            self.slots[j] = self.slots[j - 1];
             j -= 1;
         }
-        self.items[j] = entry;
-        if self.items.len() == self.k {
-            self.bound = self.items[self.k - 1].0;
+        self.ranks[j] = new;
+        self.slots[j] = slot;
+        if self.ranks.len() == self.k {
+            self.bound = rank_dist_sq(self.ranks[self.k - 1]);
         }
     }
 }
@@ -244,7 +245,8 @@ where
     let mut best: Vec<Best> = queries
         .iter()
         .map(|_| Best {
-            items: Vec::with_capacity(k + 1),
+            ranks: Vec::with_capacity(k),
+            slots: Vec::with_capacity(k),
             k,
             max_dist_sq,
             bound: max_dist_sq,
@@ -287,9 +289,9 @@ where
         .zip(best)
         .map(|(q, b)| {
             scratch.clear();
-            scratch.extend(b.items.iter().map(|&(dist_sq, original, slot)| Found {
-                index: original,
-                dist_sq,
+            scratch.extend(b.ranks.iter().zip(&b.slots).map(|(&r, &slot)| Found {
+                index: r as u32,
+                dist_sq: rank_dist_sq(r),
                 point: index.points[slot as usize],
             }));
             let original = index.original[q];

@@ -44,7 +44,7 @@ def main():
             cov = median_ms(lambda: small_gicp.estimate_covariances(cloud, tree, num_neighbors=20, num_threads=threads))
             vox = median_ms(lambda: small_gicp.voxelgrid_sampling(cloud, 0.25, num_threads=threads))
             print(f"{label:10s} n={n} threads={threads}: kdtree {build:.1f} ms, "
-                  f"covariances {cov:.1f} ms ({n / cov / 1e3:.2f} M pts/s), voxel 0.25 {vox:.1f} ms")
+                  f"covariances {cov:.1f} ms ({n / cov / 1e3:.2f} M pts/s), voxel 0.25 {vox:.2f} ms")
 
 
 if __name__ == "__main__":

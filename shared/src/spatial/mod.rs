@@ -120,6 +120,20 @@ pub enum TreeError {
     Malformed(String),
 }
 
+/// A candidate's (squared distance, item) order as one integer: the bits of a
+/// non-negative `f32` sort as the number does, so one compare orders by distance and
+/// breaks ties by item.
+#[inline(always)]
+pub(crate) fn rank(dist_sq: f32, item: u32) -> u64 {
+    (u64::from(dist_sq.to_bits()) << 32) | u64::from(item)
+}
+
+/// The squared distance of a [`rank`].
+#[inline(always)]
+pub(crate) fn rank_dist_sq(rank: u64) -> f32 {
+    f32::from_bits((rank >> 32) as u32)
+}
+
 /// Builds a tree over `points`; item `i` is `points[i]`. The same tree for any thread
 /// count.
 pub fn build_tree(points: &[[f32; 3]]) -> Result<PointTree, TreeError> {

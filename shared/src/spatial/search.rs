@@ -4,7 +4,7 @@
 
 use std::mem::MaybeUninit;
 
-use super::{LANES, LEAF_TAG, MAX_DEPTH, PAD_ITEM, TreeRef};
+use super::{LANES, LEAF_TAG, MAX_DEPTH, PAD_ITEM, TreeRef, rank, rank_dist_sq};
 
 /// Slack on the pruning test: the incremental box distance is a lower bound up to f32
 /// rounding, and a point exactly on the bound must still be found (ties by index).
@@ -112,13 +112,6 @@ impl Collector for Nearest {
     }
 }
 
-/// A candidate's (squared distance, item) order as one integer: the bits of a
-/// non-negative `f32` sort as the number does.
-#[inline(always)]
-fn rank(dist_sq: f32, item: u32) -> u64 {
-    (u64::from(dist_sq.to_bits()) << 32) | u64::from(item)
-}
-
 /// The `k` nearest points, sorted by (squared distance, item). Slots not yet filled
 /// rank as an infinite distance with [`PAD_ITEM`].
 pub(super) struct KNearest {
@@ -135,7 +128,7 @@ impl KNearest {
     pub fn hits(self) -> Vec<(u32, f32)> {
         self.ranks
             .into_iter()
-            .map(|r| (r as u32, f32::from_bits((r >> 32) as u32)))
+            .map(|r| (r as u32, rank_dist_sq(r)))
             .filter(|&(item, _)| item != PAD_ITEM)
             .collect()
     }
@@ -144,7 +137,7 @@ impl KNearest {
 impl Collector for KNearest {
     #[inline(always)]
     fn bound(&self) -> f32 {
-        f32::from_bits((self.ranks[self.ranks.len() - 1] >> 32) as u32)
+        rank_dist_sq(self.ranks[self.ranks.len() - 1])
     }
 
     #[inline]
