@@ -10,7 +10,9 @@ use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use kfmap_shared::datasets::require_test_data;
 use kfmap_shared::geometry::{to_point, transform_point};
 use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
-use kfmap_shared::spatial::{LANES, LEAF_SIZE, build_tree_with_leaf, morton_order};
+use kfmap_shared::spatial::{
+    LANES, LEAF_SIZE, NodeWords, PointBlock, TreeRef, build_tree_with_leaf, morton_order,
+};
 use kiddo::Eytzinger;
 use kiddo::SquaredEuclidean;
 use kiddo::kd_tree::KdTree;
@@ -48,7 +50,8 @@ fn bench_kdtree(c: &mut Criterion) {
         .build()
         .expect("pool");
 
-    print_search_cost(&target, &queries, &sorted);
+    let tree16 = build_tree_with_leaf(&target, LEAF_SIZE).expect("tree");
+    print_search_cost(tree16.view(), &queries, &sorted);
 
     let mut group = c.benchmark_group("kitti00_frame0_vs_frame1");
     group.sample_size(10);
@@ -92,7 +95,7 @@ fn bench_kdtree(c: &mut Criterion) {
             }
         }
     }
-    bench_floors(&mut group, &target, &queries);
+    bench_floors(&mut group, tree16.view(), &queries);
 
     let kiddo = KiddoFlat16::new_from_slice(&target).expect("tree");
     group.bench_function("nn_kiddo_flat16_scan_order", |b| {
@@ -133,15 +136,10 @@ fn bench_kdtree(c: &mut Criterion) {
 /// in cache like the tree does.
 fn bench_floors(
     group: &mut criterion::BenchmarkGroup<'_, criterion::measurement::WallTime>,
-    target: &[[f32; 3]],
+    tree: TreeRef<'_>,
     queries: &[[f32; 3]],
 ) {
-    let tree = build_tree_with_leaf(target, LEAF_SIZE).expect("tree");
-    let tree = tree.view();
-    let (nodes, blocks) = queries.iter().fold((0, 0), |(n, b), q| {
-        let cost = tree.nearest_one_cost(q);
-        (n + cost.nodes, b + cost.blocks)
-    });
+    let (_, blocks, bytes) = search_cost(tree, queries);
     let all = tree.blocks();
     group.bench_function("nn_floor_distances_scan_order", |b| {
         b.iter(|| {
@@ -164,7 +162,6 @@ fn bench_floors(
             nearest
         })
     });
-    let bytes = nodes * size_of::<[u32; 4]>() + blocks * size_of::<[[f32; LANES]; 3]>();
     let footprint = size_of_val(all) + size_of_val(tree.nodes());
     let buffer: Vec<u64> = (0..footprint / 8).map(|i| i as u64).collect();
     group.bench_function("nn_floor_bytes_scan_order", |b| {
@@ -181,18 +178,23 @@ fn bench_floors(
     });
 }
 
+/// Nodes read, blocks of points scanned and bytes read by the 1-NN searches of
+/// `queries`.
+fn search_cost(tree: TreeRef<'_>, queries: &[[f32; 3]]) -> (usize, usize, usize) {
+    let (nodes, blocks) = queries.iter().fold((0, 0), |(n, b), q| {
+        let cost = tree.nearest_one_cost(q);
+        (n + cost.nodes, b + cost.blocks)
+    });
+    let bytes = nodes * size_of::<NodeWords>() + blocks * size_of::<PointBlock>();
+    (nodes, blocks, bytes)
+}
+
 /// The work behind the 1-NN figures, for the physical-limit estimate in
-/// docs/BENCHMARKS.md: nodes read and blocks of points whose distances are computed.
-fn print_search_cost(target: &[[f32; 3]], queries: &[[f32; 3]], sorted: &[[f32; 3]]) {
-    let tree = build_tree_with_leaf(target, LEAF_SIZE).expect("tree");
-    let tree = tree.view();
+/// docs/BENCHMARKS.md.
+fn print_search_cost(tree: TreeRef<'_>, queries: &[[f32; 3]], sorted: &[[f32; 3]]) {
     for (order, qs) in [("scan", queries), ("morton", sorted)] {
-        let (nodes, blocks) = qs.iter().fold((0, 0), |(n, b), q| {
-            let cost = tree.nearest_one_cost(q);
-            (n + cost.nodes, b + cost.blocks)
-        });
+        let (nodes, blocks, bytes) = search_cost(tree, qs);
         let per = |x: usize| x as f64 / qs.len() as f64;
-        let bytes = nodes * size_of::<[u32; 4]>() + blocks * size_of::<[[f32; LANES]; 3]>();
         println!(
             "nn {order}: {:.1} nodes and {:.1} blocks of {LANES} points ({:.1} distances, {:.0} bytes) \
              per query; {} nodes and {} blocks in the tree",

@@ -8,7 +8,7 @@
 use rayon::prelude::*;
 
 use crate::spatial::build::{BoxNode, BoxTree};
-use crate::spatial::{rank, rank_dist_sq};
+use crate::spatial::{rank, rank_dist_sq, rank_item};
 
 /// One neighbour of a query: its index in the input, squared distance (m^2) and
 /// coordinates.
@@ -290,7 +290,7 @@ where
         .map(|(q, b)| {
             scratch.clear();
             scratch.extend(b.ranks.iter().zip(&b.slots).map(|(&r, &slot)| Found {
-                index: r as u32,
+                index: rank_item(r),
                 dist_sq: rank_dist_sq(r),
                 point: index.points[slot as usize],
             }));

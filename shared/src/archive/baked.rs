@@ -315,7 +315,11 @@ impl BakedKeyframe {
             let tree = TreeRef::from_parts(nodes, blocks, items)
                 .map_err(|e| self.corrupt(e.to_string()))?;
             if tree.len() != n {
-                return Err(self.corrupt("attribute lengths differ from the point count"));
+                let why = format!(
+                    "its KD-tree indexes {} points, the keyframe {n}",
+                    tree.len()
+                );
+                return Err(self.corrupt(why));
             }
         }
         Ok(Rebuilt {

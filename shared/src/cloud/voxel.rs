@@ -5,13 +5,14 @@ use rayon::prelude::*;
 use super::{CloudError, PointCloud};
 use crate::geometry::{Pose, transform_point};
 
-/// Cells per axis of a grid: the dense cell number of the widest allowed grid,
-/// `MAX_CELLS^3`, fits in a u64.
+/// At most this many cells per axis, so the dense number of a cell in the widest grid
+/// (2^63 cells) fits in a u64.
 const MAX_CELLS: i64 = 1 << 21;
 
 /// Points per parallel task: smaller pieces cost more in scheduling than they save.
 const CHUNK: usize = 4096;
 
+/// `floor(c * inv_size)`, saturated to the i64 range.
 fn cell(c: f64, inv_size: f64) -> i64 {
     // floor() without a libm call (baseline x86-64 has no rounding instruction); `as
     // i64` saturates, so far-away points cannot overflow.
@@ -32,8 +33,8 @@ pub(crate) fn grid_position(p: &[f32; 3], grid_from_points: Option<&Pose>) -> Op
 
 /// Point indices `0..n` grouped by voxel (edge `voxel_size` metres, grid aligned with
 /// the origin), each at `position(i)` (`None` skips it): `(voxel key, index)` sorted by
-/// key, then index; keys follow the lexicographic order of (x, y, z) cells. Slice it
-/// with `chunk_by` on the key.
+/// key, then index; keys follow the lexicographic order of (x, y, z) cells and mean
+/// nothing outside one call. Slice it with `chunk_by` on the key.
 pub(crate) fn voxel_groups(
     n: usize,
     voxel_size: f64,
@@ -158,6 +159,7 @@ impl PointCloud {
         let average_scalar = |values: &[f32]| -> Vec<f32> {
             groups
                 .par_iter()
+                .with_min_len(CHUNK / 4)
                 .map(|group| mean_of(group.iter().map(|&(_, i)| [values[i as usize]]))[0] as f32)
                 .collect()
         };

@@ -4,7 +4,7 @@
 //!
 //! Leaves store their points in blocks of [`LANES`], axis by axis, so one block's
 //! distances take a few vector instructions; splits fall on multiples of [`LANES`], so
-//! nearly every block is full. Searches descend nanoflann-style, without recursion:
+//! with leaves of [`LEAF_SIZE`] only the last block can be part empty. Searches descend nanoflann-style, without recursion:
 //! nearer child first, the other child kept on a small stack and visited only when the
 //! incremental distance to its cell can still beat the bound. On KITTI 00 (frame 1
 //! queried against frame 0, one thread) that answers 1-NN and k = 20 about 1.3x faster
@@ -49,7 +49,7 @@ pub const PAD_ITEM: u32 = u32::MAX;
 const LEAF_TAG: u32 = u32::MAX;
 
 /// Deeper than any balanced tree over `u32` points: a stored tree deeper than this is
-/// malformed (and would recurse without bound).
+/// malformed. It bounds the search's fixed stack (one far child per level).
 const MAX_DEPTH: usize = 40;
 
 /// One node in four words. Split: `[axis, right child, low, high]` where the left child
@@ -132,6 +132,12 @@ pub(crate) fn rank(dist_sq: f32, item: u32) -> u64 {
 #[inline(always)]
 pub(crate) fn rank_dist_sq(rank: u64) -> f32 {
     f32::from_bits((rank >> 32) as u32)
+}
+
+/// The item of a [`rank`].
+#[inline(always)]
+pub(crate) fn rank_item(rank: u64) -> u32 {
+    rank as u32
 }
 
 /// Builds a tree over `points`; item `i` is `points[i]`. The same tree for any thread
@@ -276,7 +282,7 @@ impl<'a> TreeRef<'a> {
         };
         if tag == LEAF_TAG {
             let (first, end, points) = (a as usize, b as usize, c as usize);
-            let lanes = end.saturating_sub(first) * LANES;
+            let lanes = end.saturating_sub(first).saturating_mul(LANES);
             if first != walk.block
                 || end > self.blocks.len()
                 || points == 0
@@ -291,10 +297,15 @@ impl<'a> TreeRef<'a> {
             for (slot, &item) in slots.clone().zip(&self.items[slots]) {
                 let used = slot - first * LANES < points;
                 let [xs, ys, zs] = &self.blocks[slot / LANES];
-                let lane = slot % LANES;
-                let padded = item == PAD_ITEM
-                    && (xs[lane].is_nan() || ys[lane].is_nan() || zs[lane].is_nan());
-                if used == (item == PAD_ITEM) || (!used && !padded) {
+                let lane = [xs[slot % LANES], ys[slot % LANES], zs[slot % LANES]];
+                // A used lane holds a point as build_tree takes it; an unused one
+                // must never be within a bound.
+                let well_formed = if used {
+                    item != PAD_ITEM && lane.iter().all(|c| c.is_finite())
+                } else {
+                    item == PAD_ITEM && lane.iter().any(|c| c.is_nan())
+                };
+                if !well_formed {
                     return malformed(format!("leaf {node} has a bad lane {slot}"));
                 }
             }

@@ -1,14 +1,11 @@
 //! Nearest-neighbour searches on a [`TreeRef`]: one descent (nearer child first, the
 //! other child only when the incremental box distance can still beat the current
-//! bound), three ways of collecting what the leaves offer.
+//! bound), three ways of collecting what the leaves offer (and [`Counted`], which
+//! counts the work of any of them).
 
 use std::mem::MaybeUninit;
 
-use super::{LANES, LEAF_TAG, MAX_DEPTH, PAD_ITEM, TreeRef, rank, rank_dist_sq};
-
-/// Slack on the pruning test: the incremental box distance is a lower bound up to f32
-/// rounding, and a point exactly on the bound must still be found (ties by index).
-const PRUNE_SLACK: f32 = 1.0 - 1e-6;
+use super::{LANES, LEAF_TAG, MAX_DEPTH, PAD_ITEM, TreeRef, rank, rank_dist_sq, rank_item};
 
 /// What a search keeps of the points the leaves offer.
 pub(super) trait Collector {
@@ -73,12 +70,12 @@ impl Nearest {
     pub fn within(bound_sq: f32) -> Self {
         Self {
             dist_sq: bound_sq,
-            item: u32::MAX,
+            item: PAD_ITEM,
         }
     }
 
     pub fn found(&self) -> Option<(u32, f32)> {
-        (self.item != u32::MAX).then_some((self.item, self.dist_sq))
+        (self.item != PAD_ITEM).then_some((self.item, self.dist_sq))
     }
 }
 
@@ -128,7 +125,7 @@ impl KNearest {
     pub fn hits(self) -> Vec<(u32, f32)> {
         self.ranks
             .into_iter()
-            .map(|r| (r as u32, rank_dist_sq(r)))
+            .map(|r| (rank_item(r), rank_dist_sq(r)))
             .filter(|&(item, _)| item != PAD_ITEM)
             .collect()
     }
@@ -212,7 +209,7 @@ impl TreeRef<'_> {
                 min_dist_sq,
                 axis_dist,
             } = next;
-            while min_dist_sq * PRUNE_SLACK <= collector.bound() {
+            while min_dist_sq <= collector.bound() {
                 collector.visit_node();
                 let [tag, a, b, c] = self.nodes[node as usize];
                 if tag == LEAF_TAG {
@@ -231,10 +228,13 @@ impl TreeRef<'_> {
                 } else {
                     (a, node + 1, below * below)
                 };
-                let far_dist_sq = min_dist_sq + gap - axis_dist[axis];
-                if far_dist_sq * PRUNE_SLACK <= collector.bound() {
-                    let mut far_axis_dist = axis_dist;
-                    far_axis_dist[axis] = gap;
+                let mut far_axis_dist = axis_dist;
+                far_axis_dist[axis] = gap;
+                // Summed in the order a point's distance is, from per-axis terms no
+                // larger than that point's: never above it, even after rounding.
+                let [gx, gy, gz] = far_axis_dist;
+                let far_dist_sq = gx + gy + gz;
+                if far_dist_sq <= collector.bound() {
                     stack[pending].write(Pending {
                         node: far,
                         min_dist_sq: far_dist_sq,
@@ -248,7 +248,8 @@ impl TreeRef<'_> {
                 return;
             }
             pending -= 1;
-            // SAFETY: every slot below `pending` was written by a push above.
+            // SAFETY: every slot below `pending` was written by a push above (the
+            // bounds-checked `write`: at most one far child per level, MAX_DEPTH levels).
             next = unsafe { stack[pending].assume_init_read() };
         }
     }

@@ -157,6 +157,12 @@ fn stored_arrays_are_checked_before_searching() {
     let mut used_pad = items.clone();
     used_pad[0] = PAD_ITEM;
     assert!(malformed(&nodes, &blocks, &used_pad));
+    // A used lane holds a finite point, as build_tree requires.
+    for bad in [f32::NAN, f32::INFINITY] {
+        let mut non_finite = blocks.clone();
+        non_finite[0][1][0] = bad;
+        assert!(malformed(&nodes, &non_finite, &items), "{bad}");
+    }
 
     let leaf = nodes.iter().position(|n| n[0] == LEAF_TAG).unwrap();
     let split = 0;
@@ -168,7 +174,7 @@ fn stored_arrays_are_checked_before_searching() {
         (leaf, 2, blocks.len() as u32 + 5), // blocks beyond the end
         (leaf, 3, 0),                       // no points
         (leaf, 3, 3 * LANES as u32),        // more points than lanes
-        (leaf, 3, 1),                       // a whole block unused
+        (leaf, 3, 1),                       // used lanes marked as padding
     ];
     for (node, word, value) in edits {
         let mut bad = nodes.clone();
@@ -197,8 +203,9 @@ fn stored_arrays_are_checked_before_searching() {
 
 #[test]
 fn leaves_fill_their_blocks() {
-    // Splits at multiples of LANES: all but a few blocks are full.
-    for n in [1usize, 7, 8, 9, 100, 3640, 50_000] {
+    // Splits at multiples of LANES: with leaves of LEAF_SIZE only the last block can be
+    // part empty.
+    for n in [1usize, 7, 8, 9, 100, 3640, 50_001] {
         let points: Vec<[f32; 3]> = (0..n)
             .map(|i| {
                 [
@@ -209,10 +216,57 @@ fn leaves_fill_their_blocks() {
             })
             .collect();
         let tree = build_tree(&points).unwrap();
-        let full_blocks = n.div_ceil(LANES);
-        assert!(tree.blocks.len() <= full_blocks + n / 512 + 1, "{n} points");
+        assert_eq!(tree.blocks.len(), n.div_ceil(LANES), "{n} points");
         assert_eq!(tree.items.iter().filter(|&&i| i != PAD_ITEM).count(), n);
     }
+}
+
+#[test]
+fn a_stored_tree_that_passes_the_check_never_answers_outside_its_points() {
+    // Random edits of a valid tree's words, lanes and ids: each is refused, or every
+    // search on it stays in range (no panic, no id outside 0..len).
+    let points = awkward_cloud(13);
+    let tree = build_tree_with_leaf(&points, 12).unwrap();
+    let mut rng = StdRng::seed_from_u64(14);
+    let probes = queries(&points, 15);
+    let mut accepted = 0;
+    for _ in 0..3000 {
+        let (mut nodes, mut blocks, mut items) =
+            (tree.nodes.clone(), tree.blocks.clone(), tree.items.clone());
+        match rng.random_range(0..3) {
+            0 => {
+                let n = rng.random_range(0..nodes.len());
+                nodes[n][rng.random_range(0..4)] = match rng.random_range(0..3) {
+                    0 => rng.random(),
+                    1 => rng.random_range(0..nodes.len() as u32 + 2),
+                    _ => rng.random_range(-10.0f32..10.0).to_bits(),
+                };
+            }
+            1 => {
+                let b = rng.random_range(0..blocks.len());
+                blocks[b][rng.random_range(0..3)][rng.random_range(0..LANES)] =
+                    [f32::NAN, 1e30, rng.random_range(-10.0..10.0)][rng.random_range(0..3)];
+            }
+            _ => {
+                let i = rng.random_range(0..items.len());
+                items[i] = [PAD_ITEM, rng.random_range(0..points.len() as u32 + 2)]
+                    [rng.random_range(0..2)];
+            }
+        }
+        let Ok(stored) = TreeRef::from_parts(&nodes, &blocks, &items) else {
+            continue;
+        };
+        accepted += 1;
+        let n = stored.len() as u32;
+        for q in probes.iter().step_by(7) {
+            assert!(stored.nearest_one_within(q, 4.0).is_none_or(|(i, _)| i < n));
+            let k = NonZeroUsize::new(5).unwrap();
+            assert!(stored.nearest_n(q, k).iter().all(|&(i, _)| i < n));
+            assert!(stored.within(q, 1.0).iter().all(|&(i, _)| i < n));
+        }
+    }
+    // Some edits keep a tree (a coordinate moved, a split bound changed).
+    assert!(accepted > 100, "{accepted} accepted");
 }
 
 #[test]
