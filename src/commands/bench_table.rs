@@ -47,6 +47,9 @@ struct Row {
     anchor: Option<Anchor>,
 }
 
+/// How long each in-process timing runs its work before sampling.
+const WARM_UP: std::time::Duration = std::time::Duration::from_millis(300);
+
 /// The rows measured so far, and the progress shown while measuring.
 struct Table {
     rows: Vec<Row>,
@@ -81,7 +84,8 @@ impl Table {
         self.bar.tick();
     }
 
-    /// Median milliseconds of `reps` runs of `work` on a pool of `threads`.
+    /// Median milliseconds of `reps` runs of `work` on a pool of `threads`, after
+    /// [`WARM_UP`] of runs.
     fn time_ms<T: Send>(
         &self,
         threads: usize,
@@ -90,7 +94,13 @@ impl Table {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
             .build()?;
-        std::hint::black_box(pool.install(&mut work)); // Warm caches and the pool.
+        // Warm caches, the pool and the cores: after a single run, a new pool's second
+        // thread on this VM still ran cold (2-thread rows up to 2x slow, criterion not).
+        let warming = Instant::now();
+        let warm_up = if self.quick { WARM_UP / 3 } else { WARM_UP };
+        while warming.elapsed() < warm_up {
+            std::hint::black_box(pool.install(&mut work));
+        }
         let mut samples = Vec::with_capacity(self.reps);
         for _ in 0..self.reps {
             let started = Instant::now();
