@@ -3,17 +3,13 @@
 mod common;
 
 use std::path::PathBuf;
-use std::process::{Command, Output};
+use std::process::Command;
 
-use common::{TestDir, json, kfmap, temp_dir};
+use common::{TestDir, json, kfmap, stderr, temp_dir};
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::datasets::require_test_data;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::io::{CloudFormat, PcdData, write_cloud};
-
-fn stderr(out: &Output) -> String {
-    String::from_utf8_lossy(&out.stderr).into_owned()
-}
 
 #[test]
 fn inspect_cloud_json_on_a_written_pcd() {

@@ -8,7 +8,7 @@ use std::path::Path;
 use std::process::Output;
 
 use common::picture::Picture;
-use common::{kfmap, temp_dir};
+use common::{kfmap, run_ok, stderr, stdout, temp_dir};
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::geometry::Pose;
 
@@ -16,22 +16,19 @@ use kfmap_shared::geometry::Pose;
 const LOST_RED: [u8; 3] = [228, 26, 28];
 const DEGRADED_ORANGE: [u8; 3] = [255, 140, 0];
 
-fn stderr(out: &Output) -> String {
-    String::from_utf8_lossy(&out.stderr).into_owned()
-}
-
-fn stdout(out: &Output) -> String {
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
-
-fn run_ok(args: &[&str]) -> String {
-    let out = kfmap(args);
-    assert!(
-        out.status.success(),
-        "kfmap {args:?} failed: {}",
-        stderr(&out)
-    );
-    stdout(&out)
+/// `kfmap plot --trajectory EST --ground-truth REF --out OUT EXTRA...`.
+fn plot_trajectory(estimate: &Path, reference: &Path, out: &Path, extra: &[&str]) -> Output {
+    let mut args = vec![
+        "plot",
+        "--trajectory",
+        estimate.to_str().unwrap(),
+        "--ground-truth",
+        reference.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    args.extend_from_slice(extra);
+    kfmap(&args)
 }
 
 /// `kfmap plot MAP --out OUT EXTRA...`, which must succeed; its printed line.
@@ -236,19 +233,13 @@ fn trajectory_picture_with_a_scan_log() {
     let marked_log = write_log("marked.jsonl", true);
     let ok_log = write_log("ok.jsonl", false);
     let plot_with = |log: &Path, out: &Path| {
-        kfmap(&[
-            "plot",
-            "--trajectory",
-            estimate.to_str().unwrap(),
-            "--ground-truth",
-            reference.to_str().unwrap(),
-            "--scan-log",
-            log.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-            "--size",
-            "1200x1000",
-        ])
+        let log = log.to_str().unwrap();
+        plot_trajectory(
+            &estimate,
+            &reference,
+            out,
+            &["--scan-log", log, "--size", "1200x1000"],
+        )
     };
     let plot = |log: &Path, out: &Path| {
         let done = plot_with(log, out);
@@ -333,15 +324,12 @@ fn trajectory_poses_are_matched_by_time_not_by_index() {
     )
     .unwrap();
     let out_path = tmp.join("t.png");
-    let line = run_ok(&[
-        "plot",
-        "--trajectory",
-        est.to_str().unwrap(),
-        "--ground-truth",
-        gt.to_str().unwrap(),
-        "--out",
-        out_path.to_str().unwrap(),
-    ]);
+    let plot = |extra: &[&str]| {
+        let done = plot_trajectory(&est, &gt, &out_path, extra);
+        assert!(done.status.success(), "{}", stderr(&done));
+        stdout(&done)
+    };
+    let line = plot(&[]);
     // The shift of 3 ms moves the circle by 9 mm: errors stay 0.2 m within a few mm.
     assert!(line.contains("67 of 67 estimated poses matched"), "{line}");
     assert!(line.contains("RMSE 0.20"), "{line}");
@@ -350,31 +338,12 @@ fn trajectory_poses_are_matched_by_time_not_by_index() {
 
     // --align moves the estimate onto the reference first: the 0.2 m offset goes, the
     // motion is printed, what is left is the 3 ms lag (under 1 cm on this circle).
-    let line = run_ok(&[
-        "plot",
-        "--trajectory",
-        est.to_str().unwrap(),
-        "--ground-truth",
-        gt.to_str().unwrap(),
-        "--align",
-        "--out",
-        out_path.to_str().unwrap(),
-    ]);
+    let line = plot(&["--align"]);
     assert!(line.contains("moved 0.20"), "{line}");
     assert!(line.contains("RMSE 0.00"), "{line}");
 
     // A tolerance below the 3 ms offset matches nothing: an error naming the clocks.
-    let out = kfmap(&[
-        "plot",
-        "--trajectory",
-        est.to_str().unwrap(),
-        "--ground-truth",
-        gt.to_str().unwrap(),
-        "--out",
-        out_path.to_str().unwrap(),
-        "--max-dt-ms",
-        "1",
-    ]);
+    let out = plot_trajectory(&est, &gt, &out_path, &["--max-dt-ms", "1"]);
     assert_eq!(out.status.code(), Some(2));
     assert!(stderr(&out).contains("no estimated pose has a reference pose within 1 ms"));
 }

@@ -17,6 +17,27 @@ use kfmap_shared::geometry::Pose;
 use kfmap_shared::map::{Keyframe, KeyframeMap, KeyframeMapOptions};
 use kfmap_shared::protocol::transport::{iceoryx_config, remove_prefix_files};
 
+/// A finished command's standard error as text.
+pub fn stderr(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+/// A finished command's standard output as text.
+pub fn stdout(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// Runs `kfmap ARGS`, which must succeed; its standard output.
+pub fn run_ok(args: &[&str]) -> String {
+    let out = kfmap(args);
+    assert!(
+        out.status.success(),
+        "kfmap {args:?} failed: {}",
+        stderr(&out)
+    );
+    stdout(&out)
+}
+
 /// The kfmap binary.
 pub fn kfmap_bin() -> &'static str {
     env!("CARGO_BIN_EXE_kfmap")

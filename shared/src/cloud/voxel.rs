@@ -74,23 +74,12 @@ pub(crate) fn voxel_groups(
         let rel = |axis: usize| (c[axis] - low[axis]) as u64;
         (rel(0) * extent[1] as u64 + rel(1)) * extent[2] as u64 + rel(2)
     };
-    let keys = (0..n)
+    let mut keyed: Vec<(u64, u32)> = (0..n)
         .into_par_iter()
         .with_min_len(CHUNK)
-        .filter_map(|i| Some((number(cell_of(i)?), i as u32)));
-    let cells = extent.iter().map(|&e| e as u128).product::<u128>();
-    if cells <= 1 << 32 {
-        // Usually: 8-byte pairs sort faster than 16-byte ones.
-        let mut keyed: Vec<(u32, u32)> = keys.map(|(k, i)| (k as u32, i)).collect();
-        // Stable, so a voxel's indices stay ascending.
-        radsort::sort_by_key(&mut keyed, |k| k.0);
-        return Ok(keyed
-            .par_iter()
-            .with_min_len(CHUNK)
-            .map(|&(k, i)| (u64::from(k), i))
-            .collect());
-    }
-    let mut keyed: Vec<(u64, u32)> = keys.collect();
+        .filter_map(|i| Some((number(cell_of(i)?), i as u32)))
+        .collect();
+    // Stable, so a voxel's indices stay ascending.
     radsort::sort_by_key(&mut keyed, |k| k.0);
     Ok(keyed)
 }

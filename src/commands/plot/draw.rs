@@ -348,6 +348,32 @@ pub(super) fn equal_aspect(
 
 pub(super) type Chart2d<'a, DB> = ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>;
 
+/// Axis titles, tick labels (about `ticks` per axis, as many decimals as the span
+/// needs) and the light grid of every chart here.
+pub(super) fn draw_grid<DB: DrawingBackend>(
+    chart: &mut Chart2d<'_, DB>,
+    titles: [&str; 2],
+    spans: (f64, f64),
+    ticks: (usize, usize),
+    sizes: &Sizes,
+) -> anyhow::Result<()> {
+    let (x_label, y_label) = (tick_label(spans.0), tick_label(spans.1));
+    chart
+        .configure_mesh()
+        .x_desc(titles[0])
+        .y_desc(titles[1])
+        .x_label_formatter(&x_label)
+        .y_label_formatter(&y_label)
+        .label_style(Sizes::font(sizes.tick))
+        .axis_desc_style(Sizes::font(sizes.text))
+        .bold_line_style(RGBColor(215, 215, 215).stroke_width(1))
+        .light_line_style(RGBColor(240, 240, 240).stroke_width(1))
+        .x_labels(ticks.0)
+        .y_labels(ticks.1)
+        .draw()
+        .map_err(draw_error)
+}
+
 /// A top-down chart on `area`: x right, y up, equal aspect, metre labels and grid.
 /// Returns it with its scale, metres per pixel.
 pub(super) fn top_down_chart<'a, DB: DrawingBackend>(
@@ -381,21 +407,13 @@ pub(super) fn top_down_chart<'a, DB: DrawingBackend>(
     drop(probe);
     let (x, y) = equal_aspect(x, y, pixels);
     let mut chart = build(x, y)?;
-    let (x_label, y_label) = (tick_label(x.1 - x.0), tick_label(y.1 - y.0));
-    chart
-        .configure_mesh()
-        .x_desc("x (m)")
-        .y_desc("y (m)")
-        .x_label_formatter(&x_label)
-        .y_label_formatter(&y_label)
-        .label_style(Sizes::font(sizes.tick))
-        .axis_desc_style(Sizes::font(sizes.text))
-        .bold_line_style(RGBColor(215, 215, 215).stroke_width(1))
-        .light_line_style(RGBColor(240, 240, 240).stroke_width(1))
-        .x_labels(10)
-        .y_labels(10)
-        .draw()
-        .map_err(draw_error)?;
+    draw_grid(
+        &mut chart,
+        ["x (m)", "y (m)"],
+        (x.1 - x.0, y.1 - y.0),
+        (10, 10),
+        sizes,
+    )?;
     let metres_per_pixel = (x.1 - x.0) / pixels.0.max(1) as f64;
     Ok((chart, metres_per_pixel))
 }

@@ -13,7 +13,7 @@ use plotters::prelude::*;
 use super::TrajectoryPlotInputs;
 use super::draw::{
     DEGRADED_ORANGE, Figure, GREY, LOST_RED, Sizes, Symbol, centred_text, colour_bar, draw_error,
-    legend, legend_height, ms_label, padded_bounds, quantile, tick_label, top_down_chart, viridis,
+    draw_grid, legend, legend_height, ms_label, padded_bounds, quantile, top_down_chart, viridis,
 };
 
 /// Default largest stamp difference between an estimated pose and its reference, s.
@@ -545,7 +545,6 @@ impl Figure for TrajectoryFigure {
             .fold(0.0f64, f64::max)
             .max(1e-3)
             * 1.08;
-        let (time_label, error_label) = (tick_label(t_end - t_start), tick_label(e_max));
         let mut chart = ChartBuilder::on(&bottom)
             .margin(sizes.pad)
             .margin_right(bar_w + 2 * sizes.pad)
@@ -553,20 +552,16 @@ impl Figure for TrajectoryFigure {
             .y_label_area_size((4.2 * sizes.tick) as u32)
             .build_cartesian_2d(t_start..t_end, 0.0..e_max)
             .map_err(draw_error)?;
-        chart
-            .configure_mesh()
-            .x_desc("time since the first estimated pose (s)")
-            .y_desc("position error (m)")
-            .x_label_formatter(&time_label)
-            .y_label_formatter(&error_label)
-            .label_style(Sizes::font(sizes.tick))
-            .axis_desc_style(Sizes::font(sizes.text))
-            .bold_line_style(RGBColor(215, 215, 215).stroke_width(1))
-            .light_line_style(RGBColor(240, 240, 240).stroke_width(1))
-            .x_labels(12)
-            .y_labels(6)
-            .draw()
-            .map_err(draw_error)?;
+        draw_grid(
+            &mut chart,
+            [
+                "time since the first estimated pose (s)",
+                "position error (m)",
+            ],
+            (t_end - t_start, e_max),
+            (12, 6),
+            &sizes,
+        )?;
         chart
             .draw_series(std::iter::once(PathElement::new(
                 self.matched
