@@ -2,6 +2,7 @@
 //! itself is in the `kfmap-shared`, `kfmap-service` and `kfmap-client` crates.
 
 mod commands;
+mod data_dir;
 
 use std::process::ExitCode;
 
@@ -51,7 +52,7 @@ fn main() -> ExitCode {
         .with_max_level(level)
         .init();
     // iceoryx2's own warnings, one line per kind of event with a count, never per event.
-    kfmap_shared::protocol::log_limit::install();
+    kfmap_protocol::log_limit::install();
     // A closed output pipe (`kfmap ... | head`) ends the process quietly (status 141)
     // instead of a panic on the failed print.
     set_sigpipe(libc::SIG_DFL);

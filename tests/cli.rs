@@ -7,9 +7,9 @@ use std::process::Command;
 
 use common::{TestDir, json, kfmap, stderr, temp_dir};
 use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::datasets::require_test_data;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::io::{CloudFormat, PcdData, write_cloud};
+use kfmap_testdata::require_test_data;
 
 #[test]
 fn inspect_cloud_json_on_a_written_pcd() {

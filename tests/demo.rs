@@ -8,10 +8,10 @@ use std::process::{Command, Output, Stdio};
 
 use common::picture::Picture;
 use common::temp_dir;
-use kfmap_shared::datasets::require_test_data;
 use kfmap_shared::geometry::{Pose, translation_distance};
 use kfmap_shared::io::read_trajectory;
-use kfmap_shared::mapping::rigid_alignment;
+use kfmap_shared::trajectory_error::rigid_alignment;
+use kfmap_testdata::require_test_data;
 
 /// Runs the demo into `out` with `extra` arguments; returns its output and pid.
 fn run_demo(out: &Path, extra: &[&str], data_dir: Option<&str>) -> (Output, u32) {

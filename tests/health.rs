@@ -15,14 +15,14 @@ mod common;
 use std::path::Path;
 
 use common::{Prefix, Server, bake_dataset, kfmap, linked_dataset, simulate, temp_dir};
+use kfmap_bake::config::BakeConfig;
+use kfmap_bake::pipeline::{find_scans, load_raw_scan};
 use kfmap_client::{Client, ClientOptions, LocalizeOptions};
-use kfmap_service::bake::{find_scans, load_raw_scan};
-use kfmap_service::config::BakeConfig;
-use kfmap_shared::datasets::require_test_data;
+use kfmap_protocol::ScanPayload;
 use kfmap_shared::geometry::{Pose, pose_from_xyz_quat, rotation_distance, translation_distance};
 use kfmap_shared::io::read_trajectory;
-use kfmap_shared::protocol::ScanPayload;
 use kfmap_shared::tracking::TrackingStatus;
+use kfmap_testdata::require_test_data;
 
 /// A pose farther than this from its reference is wrong (the bound), metres.
 const WRONG_M: f64 = 0.5;

@@ -10,12 +10,10 @@ use std::time::Duration;
 
 use common::{Prefix, Server, TestDir, bake_dataset, simulate, temp_dir};
 use kfmap_client::{Client, ClientOptions};
+use kfmap_protocol::transport::{MAX_CLIENTS_PER_PROCESS, create_node, iceoryx_config, open_rpc};
+use kfmap_protocol::{RequestHeader, RequestKind, ScanPayload, StatusCode, pose_to_wire};
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::imu::ImuSample;
-use kfmap_shared::protocol::transport::{
-    MAX_CLIENTS_PER_PROCESS, create_node, iceoryx_config, open_rpc,
-};
-use kfmap_shared::protocol::{RequestHeader, RequestKind, ScanPayload, StatusCode, pose_to_wire};
 
 fn options(prefix: &Prefix) -> ClientOptions {
     ClientOptions {
@@ -547,7 +545,7 @@ fn ports_over_max_clients_per_process_are_refused_until_one_closes() {
 fn shared_memory_bytes(prefix: &str) -> u64 {
     use std::os::unix::fs::MetadataExt;
     let config = iceoryx_config(Some(prefix)).unwrap();
-    kfmap_shared::protocol::transport::prefix_files(&config, prefix)
+    kfmap_protocol::transport::prefix_files(&config, prefix)
         .iter()
         .filter(|f| f.starts_with("/dev/shm"))
         .filter_map(|f| std::fs::metadata(f).ok())

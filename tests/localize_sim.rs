@@ -7,12 +7,12 @@ use std::path::Path;
 use std::process::{Command, Stdio};
 
 use common::{Prefix, Server, bake_dataset, kfmap_bin, simulate, temp_dir};
+use kfmap_bake::gravity::read_imu;
+use kfmap_bake::pipeline::{dataset_poses, find_scans};
 use kfmap_client::{Client, ClientOptions};
-use kfmap_service::bake::{dataset_poses, find_scans};
-use kfmap_service::gravity::read_imu;
 use kfmap_shared::gravity::{GravityParams, ImuWindow, LiveGravity};
 use kfmap_shared::io::read_trajectory;
-use kfmap_shared::sim::gravity_in_map;
+use kfmap_sim::gravity_in_map;
 
 /// `kfmap localize --json` against a running server from the dataset's reference start;
 /// returns the summary.

@@ -15,11 +15,11 @@ mod common;
 use std::path::{Path, PathBuf};
 
 use common::{Prefix, Server, bake_dataset, json, kfmap, linked_dataset, simulate, temp_dir};
+use kfmap_bake::pipeline::find_scans;
 use kfmap_client::{Client, ClientOptions};
-use kfmap_service::bake::find_scans;
-use kfmap_shared::datasets::require_test_data;
 use kfmap_shared::geometry::{Pose, pose_from_xyz_quat, rotation_distance, translation_distance};
 use kfmap_shared::io::read_trajectory;
+use kfmap_testdata::require_test_data;
 
 /// The bounds: a relocalization within these is a success...
 const RIGHT_M: f64 = 0.3;

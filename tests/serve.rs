@@ -9,18 +9,18 @@ use std::time::{Duration, Instant};
 use std::path::PathBuf;
 
 use common::{Prefix, Server, TestDir, bake_dataset, json, kfmap, kfmap_bin, simulate, temp_dir};
+use kfmap_bake::config::BakeConfig;
+use kfmap_bake::pipeline::{dataset_poses, find_scans, load_raw_scan};
 use kfmap_client::{Client, ClientError, ClientOptions, LocalizeOptions};
-use kfmap_service::bake::{dataset_poses, find_scans, load_raw_scan};
-use kfmap_service::config::BakeConfig;
+use kfmap_protocol::{
+    Cov2CovMode, PROTOCOL_VERSION, RequestHeader, RequestKind, ScanPayload, StatusCode,
+    WirePairing, pose_to_wire,
+};
 use kfmap_service::server::ServedMap;
 use kfmap_service::server::answer::{Limits, answer};
 use kfmap_service::server::session::Session;
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::geometry::Pose;
-use kfmap_shared::protocol::{
-    Cov2CovMode, PROTOCOL_VERSION, RequestHeader, RequestKind, ScanPayload, StatusCode,
-    WirePairing, pose_to_wire,
-};
 
 fn options(prefix: &Prefix) -> ClientOptions {
     ClientOptions {

@@ -9,13 +9,13 @@ use iceoryx2::port::client::Client as RpcClient;
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::prelude::PortFactory;
-use kfmap_shared::protocol::transport::{
+use kfmap_protocol::transport::{
     ALLOCATION, INITIAL_SLICE_LEN, Transport, TransportError, create_node, iceoryx_config, iox,
     no_room_for_client, open_request_event, open_response_event, open_rpc,
 };
 use std::mem::MaybeUninit;
 
-use kfmap_shared::protocol::{
+use kfmap_protocol::{
     PROTOCOL_VERSION, RequestHeader, ResponseHeader, ScanPayload, StatusCode, WirePairing,
 };
 

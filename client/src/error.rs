@@ -2,8 +2,8 @@
 
 use std::time::Duration;
 
-use kfmap_shared::protocol::StatusCode;
-use kfmap_shared::protocol::transport::TransportError;
+use kfmap_protocol::StatusCode;
+use kfmap_protocol::transport::TransportError;
 use kfmap_shared::registration::RegistrationError;
 
 /// Why a call failed.

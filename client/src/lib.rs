@@ -27,13 +27,13 @@ pub use localize::{LocalizeOptions, Localized};
 pub use relocalize::{RelocalizeOptions, Relocalized};
 pub use tracker::{TrackedScan, Tracker, TrackerOptions};
 
-use kfmap_shared::KeyframeId;
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::imu::ImuSample;
-use kfmap_shared::protocol::{
+use kfmap_protocol::{
     Cov2CovMode, KIND_SLOTS, RequestHeader, RequestKind, ScanPayload, WirePairing,
     WireSessionGravity, imu_payload, pose_from_wire, pose_to_wire,
 };
+use kfmap_shared::KeyframeId;
+use kfmap_shared::geometry::Pose;
+use kfmap_shared::imu::ImuSample;
 
 /// Cov2cov pairings and the keyframes they came from.
 #[derive(Debug, Clone)]

@@ -4,13 +4,13 @@
 //! ([`kfmap_shared::tracking::localize_scan`]) on the same pairings, so they land on the
 //! same pose with the same health.
 
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::cov::{CovOptions, estimate_covariances};
-use kfmap_shared::geometry::{PackedSym3, Pose};
-use kfmap_shared::protocol::{
+use kfmap_protocol::{
     Cov2CovMode, FLAG_STAMPED, RequestHeader, RequestKind, ScanPayload, correspondences_from_wire,
     localize_stage, pose_from_wire, pose_to_wire,
 };
+use kfmap_shared::cloud::PointCloud;
+use kfmap_shared::cov::{CovOptions, estimate_covariances};
+use kfmap_shared::geometry::{PackedSym3, Pose};
 use kfmap_shared::registration::{Constraint, RegistrationError, solve_pose};
 use kfmap_shared::tracking::{
     Expectation, Reasons, ScanHealth, TrackingParams, TrackingStatus, covariance_from_wire,

@@ -1,10 +1,10 @@
 //! Global relocalization of one scan by the server (`Relocalize`): no pose guess.
 
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::place::RelocalizeStatus;
-use kfmap_shared::protocol::{
+use kfmap_protocol::{
     FLAG_LEVELLED, RequestHeader, RequestKind, ScanPayload, pose_from_wire, pose_to_wire,
 };
+use kfmap_shared::geometry::Pose;
+use kfmap_shared::place::RelocalizeStatus;
 use kfmap_shared::tracking::covariance_from_wire;
 use nalgebra::{Matrix6, UnitQuaternion};
 

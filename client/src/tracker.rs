@@ -6,12 +6,12 @@
 //! tracker keeps predicting; it is `ok` again once scans agree with the prediction for
 //! `recover-after` scans in a row.
 
+use kfmap_protocol::ScanPayload;
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::motion::{
     AdaptiveThreshold, AdaptiveThresholdParams, Gyro, PosePredictor, point_displacement,
 };
-use kfmap_shared::protocol::ScanPayload;
 use kfmap_shared::tracking::{CORRECTION_RANGE_M, Reasons, ScanHealth, TrackingStatus};
 
 use kfmap_shared::place::RelocalizeStatus;

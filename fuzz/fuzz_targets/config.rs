@@ -11,7 +11,9 @@ mod common;
 
 use std::path::Path;
 
-use kfmap_service::config::{BakeConfig, ConfigError, ConfigFile, ServerConfig};
+use kfmap_bake::config::BakeConfig;
+use kfmap_service::config::ServerConfig;
+use kfmap_shared::options::{ConfigError, ConfigFile};
 use kfmap_shared::map::KeyframeMapOptions;
 use libfuzzer_sys::fuzz_target;
 

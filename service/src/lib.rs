@@ -1,6 +1,5 @@
-//! Server runtime of kfmap: the server and bake configuration files, the baking
-//! pipeline (`kfmap bake`), dataset scan ranges (`--scans`), and the map server
-//! (`kfmap serve`).
+//! Server runtime of kfmap (`kfmap serve`): its configuration file and the map server
+//! that answers clients over iceoryx2.
 //!
 //! ```
 //! let config = kfmap_service::config::ServerConfig::default();
@@ -8,8 +7,5 @@
 //! ```
 #![warn(missing_docs)]
 
-pub mod bake;
 pub mod config;
-pub mod gravity;
-pub mod scan_range;
 pub mod server;

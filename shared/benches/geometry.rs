@@ -5,9 +5,9 @@
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use kfmap_shared::cov::{CovOptions, estimate_covariances};
-use kfmap_shared::datasets::require_test_data;
 use kfmap_shared::io::{ReadOptions, read_cloud};
 use kfmap_shared::spatial::build_tree;
+use kfmap_testdata::require_test_data;
 
 fn pool(threads: usize) -> rayon::ThreadPool {
     rayon::ThreadPoolBuilder::new()

@@ -7,12 +7,12 @@
 use std::num::NonZeroUsize;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
-use kfmap_shared::datasets::require_test_data;
 use kfmap_shared::geometry::{to_point, transform_point};
 use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
 use kfmap_shared::spatial::{
     LANES, LEAF_SIZE, NodeWords, PointBlock, TreeRef, build_tree_with_leaf, morton_order,
 };
+use kfmap_testdata::require_test_data;
 use kiddo::Eytzinger;
 use kiddo::SquaredEuclidean;
 use kiddo::kd_tree::KdTree;

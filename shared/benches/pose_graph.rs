@@ -2,8 +2,8 @@
 //! one thread; anchor: GTSAM 4.3 via `tools/anchors/gtsam_pose_graph.py`.
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use kfmap_shared::datasets::require_test_data;
 use kfmap_shared::pose_graph::{GraphParams, read_g2o};
+use kfmap_testdata::require_test_data;
 
 fn bench_pose_graph(c: &mut Criterion) {
     let Some(path) = require_test_data("g2o/parking-garage.g2o", "pose_graph bench") else {

@@ -5,10 +5,10 @@
 
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::datasets::require_test_data;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::io::{ReadOptions, read_cloud};
 use kfmap_shared::registration::{PreparedCloud, RegistrationParams, align, register};
+use kfmap_testdata::require_test_data;
 
 fn read(path: &std::path::Path) -> PointCloud {
     read_cloud(path, &ReadOptions::default())

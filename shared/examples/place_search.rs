@@ -10,10 +10,10 @@
 
 use std::time::Instant;
 
-use kfmap_shared::datasets::shared_data_dir;
 use kfmap_shared::geometry::{rotation_distance, translation_distance};
 use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
 use kfmap_shared::place::{GridBuilder, GridParams, RelocalizeParams, propose};
+use kfmap_testdata::shared_data_dir;
 use nalgebra::Point3;
 
 const MAP_SCANS: usize = 116;

@@ -1,5 +1,7 @@
 //! Core library of kfmap: geometry, point clouds, surfels, per-point covariances,
-//! point-cloud and trajectory I/O, and configuration types.
+//! KD-trees, the keyframe map, registration, the pose graph, gravity, tracking, place
+//! search and the baked archive; point-cloud and trajectory I/O and configuration types.
+//! Nothing here talks to other processes (that is `kfmap-protocol`) or knows about tests.
 //!
 //! ```
 //! use kfmap_shared::cloud::PointCloud;
@@ -21,26 +23,20 @@ pub mod archive;
 pub mod cloud;
 pub mod cov;
 pub mod covis;
-pub mod datasets;
 pub mod eigen;
 pub mod geometry;
 pub mod gravity;
 pub mod imu;
 pub mod io;
 pub mod map;
-pub mod mapping;
 pub mod motion;
 pub mod neighbourhoods;
 pub mod options;
 pub mod place;
 pub mod pose_graph;
-pub mod protocol;
 pub mod registration;
-#[cfg(test)]
-mod scratch;
 pub mod select;
-pub mod sim;
 pub mod spatial;
-pub mod summary;
 pub mod surfel;
 pub mod tracking;
+pub mod trajectory_error;

@@ -1,4 +1,9 @@
-//! The error every option validation returns: which option, what value, what is allowed.
+//! Configuration files: the error every option validation returns (which option, what
+//! value, what is allowed), and the TOML file type the server and bake configurations share.
+
+use std::path::{Path, PathBuf};
+
+use serde::de::DeserializeOwned;
 
 /// An option value outside its allowed range.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -54,4 +59,74 @@ pub fn ensure_distance(option: &'static str, value: f64) -> Result<(), InvalidOp
 /// Fails unless `value` is a share from 0 to 1.
 pub fn ensure_ratio(option: &'static str, value: f64) -> Result<(), InvalidOption> {
     ensure((0.0..=1.0).contains(&value), option, value, "0 to 1")
+}
+
+/// A configuration file could not be used.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    /// The file could not be read.
+    #[error("{}: {source}", path.display())]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// What the OS said.
+        source: std::io::Error,
+    },
+    /// Not valid TOML, an unknown key, or a value of the wrong type.
+    #[error("{}: {message}", path.display())]
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// The parser's message: line, column and key.
+        message: String,
+    },
+    /// A value outside its allowed range.
+    #[error("{}: [{section}] {source}", path.display())]
+    Invalid {
+        /// The file.
+        path: PathBuf,
+        /// The section holding the key.
+        section: &'static str,
+        /// Which key, what value, what is allowed.
+        source: InvalidOption,
+    },
+}
+
+/// A configuration file type: parsed from TOML, then validated section by section.
+pub trait ConfigFile: DeserializeOwned + Default {
+    /// The shipped defaults (the file in `config/`).
+    const DEFAULT_TOML: &'static str;
+
+    /// Checks every value; the error names the section and key.
+    fn validate(&self) -> Result<(), (&'static str, InvalidOption)>;
+
+    /// Parses and validates TOML text; `path` only names the source in errors.
+    fn from_toml(text: &str, path: &Path) -> Result<Self, ConfigError> {
+        let config: Self = toml::from_str(text).map_err(|e| ConfigError::Parse {
+            path: path.to_path_buf(),
+            message: e.to_string().trim_end().to_string(),
+        })?;
+        config
+            .validate()
+            .map_err(|(section, source)| ConfigError::Invalid {
+                path: path.to_path_buf(),
+                section,
+                source,
+            })?;
+        Ok(config)
+    }
+
+    /// Loads `path`, or the built-in defaults when `None`.
+    fn load(path: Option<&Path>) -> Result<Self, ConfigError> {
+        match path {
+            None => Ok(Self::default()),
+            Some(path) => {
+                let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+                    path: path.to_path_buf(),
+                    source,
+                })?;
+                Self::from_toml(&text, path)
+            }
+        }
+    }
 }

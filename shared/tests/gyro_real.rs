@@ -3,11 +3,11 @@
 //! own rotation between poses: predicting it by integrating the gyro must beat
 //! extrapolating the last motion (constant velocity) at every scan rate.
 
-use kfmap_shared::datasets::require_test_data;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::imu::{ImuSample, read_imu_csv};
 use kfmap_shared::io::read_trajectory;
 use kfmap_shared::motion::{Gyro, GyroParams, PosePredictor};
+use kfmap_testdata::require_test_data;
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
 
 /// `R_traj_imu` by Kabsch on paired rotation vectors of the same intervals: the

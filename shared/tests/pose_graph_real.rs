@@ -3,9 +3,9 @@
 //! pose 0, Gauss-Newton goes from 8363.601948 to 0.634192 in 4 iterations; GTSAM's
 //! error is half the chi2, as kfmap's).
 
-use kfmap_shared::datasets::require_test_data;
 use kfmap_shared::pose_graph::{GraphParams, read_g2o};
 use kfmap_shared::registration::Optimizer;
+use kfmap_testdata::require_test_data;
 
 #[test]
 fn parking_garage_reaches_gtsams_final_error() {

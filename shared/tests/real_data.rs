@@ -3,11 +3,11 @@
 //! bounding boxes as computed independently with numpy from the raw bytes.
 
 use kfmap_shared::cloud::FilterOptions;
-use kfmap_shared::datasets::require_test_data;
 use kfmap_shared::geometry::translation_distance;
 use kfmap_shared::io::{
     BinLayout, CloudFormat, PcdData, PlyEncoding, ReadOptions, read_cloud, read_trajectory,
 };
+use kfmap_testdata::require_test_data;
 
 type Bbox = ([f32; 3], [f32; 3]);
 

@@ -2,10 +2,11 @@
 //! against small_gicp 1.0.1's figures on the same pairs (`tools/anchors/small_gicp_reg.py`).
 
 use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::datasets::{read_keyframe_graph, require_test_data};
 use kfmap_shared::geometry::{Pose, transform_point};
+use kfmap_shared::io::read_keyframe_graph;
 use kfmap_shared::io::{BinLayout, ReadOptions, read_cloud, read_trajectory};
 use kfmap_shared::registration::{RegistrationParams, RegistrationResult, register};
+use kfmap_testdata::require_test_data;
 use nalgebra::{Matrix4, UnitQuaternion, Vector3};
 
 fn read(path: &std::path::Path, layout: Option<BinLayout>) -> PointCloud {

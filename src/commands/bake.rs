@@ -4,11 +4,12 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
-use kfmap_service::bake::{BakeInput, BakeOutput, BakeReport, BakeStage, MappingSummary, bake};
-use kfmap_service::config::{BakeConfig, ConfigFile};
-use kfmap_service::gravity::BakeGravity;
-use kfmap_service::scan_range::ScanRange;
+use kfmap_bake::config::BakeConfig;
+use kfmap_bake::gravity::BakeGravity;
+use kfmap_bake::pipeline::{BakeInput, BakeOutput, BakeReport, BakeStage, MappingSummary, bake};
+use kfmap_bake::scan_range::ScanRange;
 use kfmap_shared::gravity::GravityCorrection;
+use kfmap_shared::options::ConfigFile;
 use serde_json::json;
 
 /// Bake a map: choose keyframes from a scan sequence with poses, build each keyframe's

@@ -8,11 +8,11 @@ use std::time::{Duration, Instant};
 use anyhow::bail;
 use indicatif::ProgressBar;
 use kfmap_client::{Client, ClientOptions};
+use kfmap_protocol::{Cov2CovMode, RequestHeader, RequestKind, ScanPayload, pose_to_wire};
 use kfmap_service::server::answer::{Limits, answer};
 use kfmap_service::server::session::Session;
 use kfmap_service::server::{ServedMap, percentile};
 use kfmap_shared::cov::CovOptions;
-use kfmap_shared::protocol::{Cov2CovMode, RequestHeader, RequestKind, ScanPayload, pose_to_wire};
 use serde_json::json;
 
 use super::bench::{keyframe_pose, synthetic_cloud};

@@ -8,19 +8,19 @@ use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use crate::commands::cloud_summary::summarize;
+use crate::data_dir::shared_data_dir;
 use anyhow::{Context, bail};
-use kfmap_service::bake::{BakeInput, BakeOutput, bake};
-use kfmap_service::config::BakeConfig;
-use kfmap_service::scan_range::ScanRange;
+use kfmap_bake::config::BakeConfig;
+use kfmap_bake::pipeline::{BakeInput, BakeOutput, bake};
+use kfmap_bake::scan_range::ScanRange;
 use kfmap_shared::archive::{OpenOptions, open_map};
-use kfmap_shared::datasets::shared_data_dir;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::gravity::{GravityCorrection, roll_pitch_from_gravity};
 use kfmap_shared::io::{
     ReadOptions, Trajectory, format_tum, read_cloud, read_trajectory, write_atomic,
 };
-use kfmap_shared::sim::{LidarParams, Preset, SimConfig, gravity_in_map, write_dataset};
-use kfmap_shared::summary::summarize;
+use kfmap_sim::{LidarParams, Preset, SimConfig, gravity_in_map, write_dataset};
 
 use super::localize::LocalizeLog;
 use super::plot::{MapPlotOptions, TrajectoryPlotInputs, render_map, render_trajectory};

@@ -3,10 +3,11 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
+use kfmap_bake::config::BakeConfig;
+use kfmap_bake::gravity::{GravityInput, PerKeyframe, estimate_dataset_gravity};
 use kfmap_client::GravityAnswer;
-use kfmap_service::config::{BakeConfig, ConfigFile};
-use kfmap_service::gravity::{GravityInput, PerKeyframe, estimate_dataset_gravity};
 use kfmap_shared::gravity::{AccelBias, GravityCorrection};
+use kfmap_shared::options::ConfigFile;
 use serde_json::{Value, json};
 
 /// Estimate gravity in a trajectory's frame from its IMU log: every --keyframe-interval

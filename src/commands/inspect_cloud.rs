@@ -2,10 +2,11 @@
 
 use std::path::PathBuf;
 
+use crate::commands::cloud_summary::summarize;
 use anyhow::Context;
-use kfmap_service::config::{BakeConfig, ConfigFile};
+use kfmap_bake::config::BakeConfig;
 use kfmap_shared::io::{BinLayout, ReadOptions, read_cloud};
-use kfmap_shared::summary::summarize;
+use kfmap_shared::options::ConfigFile;
 use serde_json::json;
 
 use super::report::print_summary;

@@ -5,6 +5,7 @@ pub mod bench;
 mod bench_ipc;
 mod bench_soak;
 mod bench_table;
+mod cloud_summary;
 mod connect_arg;
 pub mod demo;
 pub mod gravity;

@@ -3,10 +3,10 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
+use kfmap_bake::config::BakeConfig;
 use kfmap_client::RelocalizeOptions;
-use kfmap_service::config::BakeConfig;
+use kfmap_protocol::ScanPayload;
 use kfmap_shared::geometry::pose_to_xyz_quat;
-use kfmap_shared::protocol::ScanPayload;
 use serde_json::json;
 
 use super::connect_arg::ConnectArgs;

@@ -1,6 +1,6 @@
 //! Human-readable printing shared by subcommands.
 
-use kfmap_shared::summary::CloudSummary;
+use crate::commands::cloud_summary::CloudSummary;
 
 fn opt(value: Option<f64>, unit: &str, digits: usize) -> String {
     value.map_or_else(|| "n/a".to_string(), |v| format!("{v:.digits$} {unit}"))

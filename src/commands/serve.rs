@@ -5,9 +5,10 @@ use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
 
 use anyhow::Context;
-use kfmap_service::config::{ConfigFile, ServerConfig};
+use kfmap_protocol::RequestKind;
+use kfmap_service::config::ServerConfig;
 use kfmap_service::server::{ServeOptions, serve};
-use kfmap_shared::protocol::RequestKind;
+use kfmap_shared::options::ConfigFile;
 
 /// Serve a baked map (`kfmap bake`) to client processes on this host over iceoryx2
 /// zero-copy shared memory, until SIGINT or SIGTERM.

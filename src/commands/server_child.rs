@@ -7,7 +7,7 @@ use std::path::Path;
 use std::process::{Child, Command, Stdio};
 
 use anyhow::{Context, bail};
-use kfmap_shared::protocol::transport::{iceoryx_config, remove_prefix_files};
+use kfmap_protocol::transport::{iceoryx_config, remove_prefix_files};
 
 /// The server child: stopped, and every iceoryx2 file of its prefix removed, on drop.
 pub(super) struct ServerChild {

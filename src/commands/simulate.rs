@@ -4,7 +4,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use indicatif::{ProgressBar, ProgressStyle};
-use kfmap_shared::sim::{Preset, SimConfig, write_dataset};
+use kfmap_sim::{Preset, SimConfig, write_dataset};
 use serde_json::json;
 
 /// Simulate a site, a looping drive through it, a spinning LiDAR and an IMU.

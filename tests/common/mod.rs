@@ -11,11 +11,11 @@ use std::process::{Child, Command, Output, Stdio};
 use std::sync::mpsc;
 use std::time::Duration;
 
+use kfmap_protocol::transport::{iceoryx_config, remove_prefix_files};
 use kfmap_shared::archive::save_map;
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::map::{Keyframe, KeyframeMap, KeyframeMapOptions};
-use kfmap_shared::protocol::transport::{iceoryx_config, remove_prefix_files};
 
 /// A finished command's standard error as text.
 pub fn stderr(out: &Output) -> String {

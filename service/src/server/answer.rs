@@ -6,17 +6,17 @@ use std::mem::MaybeUninit;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::time::Instant;
 
+use kfmap_protocol::{
+    Cov2CovMode, DecodedScan, Rejection, RequestHeader, RequestKind, ResponseHeader, StatusCode,
+    WirePairing, check_version, correspondences_from_pairings, decode_imu, decode_scan,
+    decode_stamp, localize_stage, pose_from_wire, pose_to_wire,
+};
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::cov::{CovOptions, estimate_covariances};
 use kfmap_shared::geometry::{Pose, to_point, transform_point};
 use kfmap_shared::gravity::ImuWindow;
 use kfmap_shared::map::{ActiveSet, MapError, MapHit, Pairing};
 use kfmap_shared::place::RelocalizeParams;
-use kfmap_shared::protocol::{
-    Cov2CovMode, DecodedScan, Rejection, RequestHeader, RequestKind, ResponseHeader, StatusCode,
-    WirePairing, check_version, correspondences_from_pairings, decode_imu, decode_scan,
-    decode_stamp, localize_stage, pose_from_wire, pose_to_wire,
-};
 use kfmap_shared::registration::{RegistrationError, RegistrationResult, solve_pose};
 use kfmap_shared::tracking::{
     Expectation, Stage, TrackingParams, TrackingStatus, covariance_to_wire, localize_scan,

@@ -8,7 +8,7 @@
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
-use kfmap_shared::protocol::{Rejection, RequestHeader, RequestKind, StatusCode};
+use kfmap_protocol::{Rejection, RequestHeader, RequestKind, StatusCode};
 
 use super::answer::{MAX_K, PAIRING_BYTES};
 use crate::config::ServerSection;

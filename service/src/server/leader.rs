@@ -7,8 +7,8 @@ use std::time::{Duration, Instant};
 
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::server::Server;
-use kfmap_shared::protocol::transport::Transport;
-use kfmap_shared::protocol::{RequestHeader, RequestKind, ResponseHeader, WirePairing};
+use kfmap_protocol::transport::Transport;
+use kfmap_protocol::{RequestHeader, RequestKind, ResponseHeader, WirePairing};
 
 use super::queue::{FairQueue, Turn};
 use super::workers::{Job, WorkerContext};

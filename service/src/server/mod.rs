@@ -25,12 +25,12 @@ use std::time::{Duration, Instant};
 use iceoryx2::node::{Node, NodeView};
 use iceoryx2::prelude::{CallbackProgression, NodeState, PortFactory, WaitSetBuilder};
 use iceoryx2::waitset::WaitSetRunResult;
-use kfmap_shared::archive::ArchiveError;
-use kfmap_shared::protocol::Cov2CovMode;
-use kfmap_shared::protocol::transport::{
+use kfmap_protocol::Cov2CovMode;
+use kfmap_protocol::transport::{
     ALLOCATION, INITIAL_SLICE_LEN, Transport, TransportError, create_node, iceoryx_config, iox,
     open_request_event, open_response_event, open_rpc,
 };
+use kfmap_shared::archive::ArchiveError;
 use tracing::{info, warn};
 
 use crate::config::ServerConfig;

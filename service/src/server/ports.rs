@@ -9,7 +9,7 @@ use std::collections::HashMap;
 use std::sync::Mutex;
 
 use iceoryx2::identifiers::UniqueClientId;
-use kfmap_shared::protocol::transport::{Rpc, registered_clients};
+use kfmap_protocol::transport::{Rpc, registered_clients};
 
 /// The node and process behind a client port.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

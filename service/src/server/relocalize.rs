@@ -2,11 +2,11 @@
 //! map's baked place grid; each proposed place is verified by the same registrations
 //! as `Localize`, against the served map in the client's session.
 
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::place::{RelocalizeStatus, propose, verify};
-use kfmap_shared::protocol::{
+use kfmap_protocol::{
     DecodedScan, FLAG_LEVELLED, Rejection, RequestHeader, StatusCode, pose_to_wire,
 };
+use kfmap_shared::geometry::Pose;
+use kfmap_shared::place::{RelocalizeStatus, propose, verify};
 use kfmap_shared::tracking::{covariance_to_wire, pose_covariance};
 use nalgebra::Vector3;
 

@@ -3,7 +3,7 @@
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicU32, Ordering};
 
-use kfmap_shared::protocol::KIND_SLOTS;
+use kfmap_protocol::KIND_SLOTS;
 
 /// Latencies kept per kind for the percentiles (the most recent ones).
 const WINDOW: usize = 4096;

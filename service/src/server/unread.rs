@@ -11,7 +11,7 @@ use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
-use kfmap_shared::protocol::log_limit::warn_limited;
+use kfmap_protocol::log_limit::warn_limited;
 
 use super::budget::Reservation;
 use super::workers::Request;

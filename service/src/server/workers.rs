@@ -7,13 +7,13 @@ use std::time::Instant;
 
 use iceoryx2::active_request::ActiveRequest;
 use iceoryx2::port::notifier::Notifier;
-use kfmap_shared::gravity::LiveAnswer;
-use kfmap_shared::protocol::log_limit::warn_limited;
-use kfmap_shared::protocol::transport::Transport;
-use kfmap_shared::protocol::{
+use kfmap_protocol::log_limit::warn_limited;
+use kfmap_protocol::transport::Transport;
+use kfmap_protocol::{
     Rejection, RequestHeader, RequestKind, ResponseHeader, StatusCode, WirePairing,
     WireSessionGravity, check_version, write_text,
 };
+use kfmap_shared::gravity::LiveAnswer;
 use tracing::{debug, info, warn};
 
 use std::sync::Arc;

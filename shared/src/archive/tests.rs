@@ -9,7 +9,7 @@ use super::*;
 use crate::cloud::PointCloud;
 use crate::geometry::Pose;
 use crate::map::{Keyframe, KeyframeMap, KeyframeMapOptions, MapError};
-use crate::scratch::Scratch;
+use kfmap_testdata::Scratch;
 
 fn pose(x: f64, y: f64, yaw: f64) -> Pose {
     Pose::new(Vector3::new(x, y, 0.0), Vector3::new(0.0, 0.0, yaw))

@@ -4,6 +4,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::PointCloud;
+use crate::options::{InvalidOption, ensure};
 
 /// Options of the invalid-return filter, applied on load by default.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -13,6 +14,19 @@ pub struct FilterOptions {
     pub enabled: bool,
     /// Points closer than this to the sensor origin are dropped, metres (>= 0).
     pub min_range: f64,
+}
+
+impl FilterOptions {
+    /// Checks `min-range`; the error names it.
+    pub fn validate(&self) -> Result<(), InvalidOption> {
+        let r = self.min_range;
+        ensure(
+            r.is_finite() && r >= 0.0,
+            "min-range",
+            r,
+            "a finite distance >= 0 m",
+        )
+    }
 }
 
 impl Default for FilterOptions {

@@ -17,7 +17,8 @@ pub use error::{IoError, Location};
 pub use pcd::{PcdData, read_pcd, write_pcd};
 pub use ply::{PlyEncoding, read_ply, write_ply};
 pub use trajectory::{
-    Trajectory, format_kitti_poses, format_tum, parse_kitti_poses, parse_tum, read_trajectory,
+    Trajectory, format_kitti_poses, format_tum, parse_kitti_poses, parse_tum, read_keyframe_graph,
+    read_trajectory,
 };
 
 use crate::cloud::{FilterOptions, FilterReport, PointCloud};

@@ -1,5 +1,5 @@
 use super::*;
-use crate::scratch::Scratch;
+use kfmap_testdata::Scratch;
 
 fn sample_cloud(with_attributes: bool) -> PointCloud {
     let points: Vec<[f32; 3]> = (0..500)

@@ -139,6 +139,31 @@ pub fn read_trajectory(path: &Path) -> Result<Trajectory, IoError> {
     }
 }
 
+/// The keyframe poses of a `graph.txt` (gtsam_points' dump, as in `kitti07/`): one
+/// `vN x y z qx qy qz qw` line per keyframe, in file order; other lines are ignored.
+pub fn read_keyframe_graph(path: &Path) -> Result<Vec<Pose>, IoError> {
+    let text = std::fs::read_to_string(path).map_err(|e| IoError::os(path, e))?;
+    text.lines()
+        .enumerate()
+        .filter(|(_, l)| l.starts_with('v'))
+        .map(|(n, l)| {
+            let bad = |why: &str| IoError::malformed(path, Location::Line(n + 1), why);
+            let values: Vec<f64> = l
+                .split_whitespace()
+                .skip(1)
+                .map(|w| {
+                    w.parse()
+                        .map_err(|_| bad(&format!("'{w}' is not a number")))
+                })
+                .collect::<Result<_, _>>()?;
+            let values: [f64; 7] = values
+                .try_into()
+                .map_err(|_| bad("expected vN x y z qx qy qz qw"))?;
+            pose_from_xyz_quat(values).ok_or_else(|| bad("invalid pose"))
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -13,7 +13,7 @@ use std::sync::Arc;
 pub use active::{ActiveFrame, ActiveSet, MapHit, MergedSubmap, Pairing};
 pub(crate) use keyframe::weights_problem;
 pub use keyframe::{HeapKeyframe, Keyframe, KeyframeDecider, KeyframeView};
-pub use options::{ActiveSetMode, KeyframeMapOptions};
+pub use options::{ActiveSetMode, Cov2CovMode, KeyframeMapOptions};
 
 use crate::KeyframeId;
 use crate::archive::ArchiveError;

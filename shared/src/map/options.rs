@@ -106,3 +106,35 @@ impl KeyframeMapOptions {
         self.use_view_direction_filter && self.max_view_angle_deg < 180.0
     }
 }
+
+/// Cov2cov search mode of a request or a map (in config files: "map-default",
+/// "approximate", "exact"; on the wire its `u32` code).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+#[repr(u32)]
+pub enum Cov2CovMode {
+    /// The map's own setting.
+    MapDefault = 0,
+    /// Keyframe by keyframe (no merged submap).
+    Approximate = 1,
+    /// In the merged submap of the active set (built once per set and session).
+    Exact = 2,
+}
+
+impl Cov2CovMode {
+    /// The mode of a wire code.
+    pub fn from_code(code: u32) -> Option<Self> {
+        [Self::MapDefault, Self::Approximate, Self::Exact]
+            .into_iter()
+            .find(|m| *m as u32 == code)
+    }
+
+    /// Lower-case name, as in config files.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::MapDefault => "map-default",
+            Self::Approximate => "approximate",
+            Self::Exact => "exact",
+        }
+    }
+}

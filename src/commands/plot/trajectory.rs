@@ -6,7 +6,7 @@ use std::path::Path;
 use anyhow::Context;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::io::read_trajectory;
-use kfmap_shared::mapping::rigid_alignment;
+use kfmap_shared::trajectory_error::rigid_alignment;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 

@@ -1,0 +1,220 @@
+use super::*;
+use kfmap_shared::trajectory_error::absolute_trajectory_error;
+use kfmap_sim::{LidarParams, Preset, SimConfig, Simulation};
+
+/// Where the run comes back to its start: the scan in the second half nearest to the
+/// first scan's true position.
+fn lap_closing_scan(truth: &[Pose]) -> usize {
+    let start = truth[0].translation.vector;
+    (truth.len() / 2..truth.len())
+        .min_by(|&a, &b| {
+            let d = |i: usize| (truth[i].translation.vector - start).norm();
+            d(a).total_cmp(&d(b))
+        })
+        .expect("a run of at least two scans")
+}
+
+/// Translation error of the pose of scan `end` relative to the first scan, metres.
+fn end_to_start_drift(estimate: &[Pose], truth: &[Pose], end: usize) -> f64 {
+    let e = estimate[0].inverse() * estimate[end];
+    let t = truth[0].inverse() * truth[end];
+    (e.inverse() * t).translation.vector.norm()
+}
+
+#[derive(Debug, thiserror::Error)]
+enum TestError {
+    #[error(transparent)]
+    Registration(#[from] RegistrationError),
+    #[error(transparent)]
+    Global(#[from] GlobalError),
+}
+
+struct LapFigures {
+    ate: f64,
+    ate_odometry: f64,
+    drift: f64,
+    drift_odometry: f64,
+    loops: usize,
+}
+
+/// Builds the trajectory of a simulated run from its raw scans alone and compares it
+/// with the simulator's ground truth.
+fn lap(preset: Preset, seconds: f64, beams: u32) -> LapFigures {
+    let sim = Simulation::new(SimConfig {
+        preset,
+        seconds,
+        lidar: LidarParams {
+            beams,
+            horizontal_resolution_deg: 0.4,
+            ..LidarParams::default()
+        },
+        ..SimConfig::default()
+    })
+    .unwrap();
+    let count = sim.config().scan_count();
+    let started = std::time::Instant::now();
+    let stamps: Vec<f64> = (0..count)
+        .map(|i| i as f64 / sim.config().lidar.rate_hz)
+        .collect();
+    let built = build_trajectory::<TestError>(
+        &stamps,
+        Vec::new(),
+        |i| Ok(sim.scan(i).cloud),
+        &BuildParams::default(),
+        |_| {},
+    )
+    .unwrap();
+    let truth: Vec<Pose> = (0..count).map(|i| sim.scan_pose(i)).collect();
+    let kf =
+        |poses: &[Pose]| -> Vec<Pose> { built.keyframe_scans.iter().map(|&i| poses[i]).collect() };
+    let closing = lap_closing_scan(&truth);
+    let figures = LapFigures {
+        ate: absolute_trajectory_error(&kf(&built.poses), &kf(&truth)),
+        ate_odometry: absolute_trajectory_error(&kf(&built.odometry), &kf(&truth)),
+        drift: end_to_start_drift(&built.poses, &truth, closing),
+        drift_odometry: end_to_start_drift(&built.odometry, &truth, closing),
+        loops: built.loops_accepted().len(),
+    };
+    println!(
+        "{preset:?} {seconds} s, {beams} beams, {count} scans, {} keyframes in {:.1} s: loops {} \
+         found / {} accepted; graph error {:.3} -> {:.3}; keyframe ATE {:.3} m (odometry alone \
+         {:.3} m); end-to-start drift at scan {closing} {:.3} m (odometry alone {:.3} m)",
+        built.keyframe_scans.len(),
+        started.elapsed().as_secs_f64(),
+        built.loops_found,
+        figures.loops,
+        built.graph.initial_error,
+        built.graph.final_error,
+        figures.ate,
+        figures.ate_odometry,
+        figures.drift,
+        figures.drift_odometry
+    );
+    figures
+}
+
+/// A full lap of the simulated campus (778 m, 32 beams) and a little more, built from
+/// the raw scans alone. Keyframe ATE under 10 cm (measured 0.3 cm, 0.8 cm from odometry
+/// alone). Loop closure must cut the end-to-start drift, to under 2 cm: measured 3.4 cm
+/// -> 1.2 cm. (The earlier "at least 5x" held against an odometry that drifted 8.8 cm;
+/// with the motion model odometry drifts 3.4 cm and closure still ends at 1.2 cm.)
+#[test]
+fn campus_lap_from_raw_scans() {
+    let f = lap(Preset::Campus, 165.0, 32);
+    assert!(f.loops > 0);
+    assert!(
+        f.ate < 0.10 && f.ate < f.ate_odometry,
+        "ATE {} (odometry {})",
+        f.ate,
+        f.ate_odometry
+    );
+    assert!(
+        f.drift * 2.0 <= f.drift_odometry && f.drift < 0.02,
+        "{} vs {}",
+        f.drift,
+        f.drift_odometry
+    );
+}
+
+/// How the courtyard drive is followed.
+#[derive(Clone, Copy)]
+struct Drive {
+    /// Cruise speed, m/s.
+    speed: f64,
+    /// Deskew the raw scans.
+    deskew: bool,
+    /// Give odometry the simulated IMU (noise and bias on).
+    gyro: bool,
+    /// Use every this many scans (1: 10 Hz).
+    stride: usize,
+}
+
+/// Odometry ATE on a simulated courtyard drive with motion-distorted (raw) scans.
+fn raw_drive_ate(drive: Drive) -> f64 {
+    let sim = Simulation::new(SimConfig {
+        preset: Preset::Courtyard,
+        seconds: 12.0,
+        cruise_speed: Some(drive.speed),
+        lidar: LidarParams {
+            beams: 16,
+            deskew: false,
+            ..LidarParams::default()
+        },
+        ..SimConfig::default()
+    })
+    .unwrap();
+    let picked: Vec<usize> = (0..sim.config().scan_count())
+        .step_by(drive.stride)
+        .collect();
+    let stamps: Vec<f64> = picked
+        .iter()
+        .map(|&i| i as f64 / sim.config().lidar.rate_hz)
+        .collect();
+    let mut params = BuildParams::default();
+    params.odometry.deskew = drive.deskew;
+    let imu = if drive.gyro { sim.imu() } else { Vec::new() };
+    let built = build_trajectory::<TestError>(
+        &stamps,
+        imu,
+        |k| Ok(sim.scan(picked[k]).cloud),
+        &params,
+        |_| {},
+    )
+    .unwrap();
+    assert_eq!(built.gyro_bias.is_some(), drive.gyro);
+    let truth: Vec<Pose> = picked.iter().map(|&i| sim.scan_pose(i)).collect();
+    absolute_trajectory_error(&built.odometry, &truth)
+}
+
+/// Deskewing raw scans with the motion model's twist: never worse, and clearly better
+/// at 4 m/s. Measured odometry ATE without / with: 1 m/s 1.5 / 0.3 cm, 2 m/s 5.5 / 1.5
+/// cm, 4 m/s 16.2 / 11.7 cm (the 4 m/s error comes from one sharp corner, deskewed or
+/// not).
+#[test]
+fn deskewing_raw_scans_lowers_the_odometry_error() {
+    for speed in [1.0, 2.0, 4.0] {
+        let drive = |deskew| Drive {
+            speed,
+            deskew,
+            gyro: false,
+            stride: 1,
+        };
+        let (raw, deskewed) = (raw_drive_ate(drive(false)), raw_drive_ate(drive(true)));
+        println!(
+            "raw courtyard at {speed} m/s: ATE {raw:.4} m without deskew, {deskewed:.4} m with"
+        );
+        assert!(
+            deskewed <= raw * 1.05 + 1e-3,
+            "{speed} m/s: {deskewed} vs {raw}"
+        );
+        if speed >= 4.0 {
+            assert!(deskewed < raw * 0.8, "{speed} m/s: {deskewed} vs {raw}");
+        }
+    }
+}
+
+/// The gyro in the motion model on the fast-turn drives (noisy, biased simulated IMU):
+/// at 4 m/s, and with every second or third scan (5 and 3.3 Hz), where constant
+/// velocity mispredicts the turns most. The oracle is the simulator's trajectory.
+#[test]
+fn the_gyro_keeps_fast_turns_on_track() {
+    for (speed, stride) in [(4.0, 1), (4.0, 2), (4.0, 3), (2.0, 1), (1.0, 1)] {
+        let drive = |gyro| Drive {
+            speed,
+            deskew: true,
+            gyro,
+            stride,
+        };
+        let (without, with) = (raw_drive_ate(drive(false)), raw_drive_ate(drive(true)));
+        println!(
+            "raw courtyard at {speed} m/s, every {stride} scans: ATE {without:.4} m constant velocity, {with:.4} m with the gyro"
+        );
+        // Measured at 4 m/s: 11.7 / 9.8 / 30.6 cm without, 0.7 / 0.8 / 1.0 cm with; at
+        // 2 and 1 m/s 1.5 / 0.2 and 0.3 / 0.1 cm.
+        let gain = if speed >= 4.0 { 3.0 } else { 1.0 };
+        assert!(
+            with < 0.02 && with * gain < without,
+            "{speed} m/s every {stride}: {with} with the gyro vs {without}"
+        );
+    }
+}

@@ -1,0 +1,670 @@
+//! `kfmap bake`: a scan sequence with poses -> one `.kfmap` file. Keyframes are chosen
+//! by the decider on the poses alone, then read, downsampled, indexed (tree +
+//! covariances, in parallel) and written a chunk at a time, so memory stays bounded by
+//! one chunk of keyframes plus the covisibility index, whatever the map's size. Beside
+//! the map a bake can write the trajectory it used (TUM) and, when it built the poses,
+//! its keyframe pose graph (g2o).
+
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use kfmap_shared::KeyframeId;
+use kfmap_shared::archive::{ArchiveError, MapWriter, WriteSummary};
+use kfmap_shared::cloud::{PointCloud, Twist, deskew};
+use kfmap_shared::covis::CovisibilityGraph;
+use kfmap_shared::geometry::Pose;
+use kfmap_shared::imu::ImuSample;
+use kfmap_shared::io::{
+    IoError, ReadOptions, Trajectory, format_tum, read_cloud, read_trajectory, write_atomic,
+};
+use kfmap_shared::map::{Keyframe, KeyframeMapOptions};
+use kfmap_shared::pose_graph::{G2oError, GraphError, PoseEdge, PoseGraph, write_g2o};
+use rayon::prelude::*;
+
+use kfmap_shared::registration::{Fitness, RegistrationError};
+use kfmap_shared::trajectory_error::{absolute_trajectory_error, rigid_alignment};
+
+use crate::mapping::{GlobalError, OdometryOutcome, Stage, build_trajectory};
+
+use crate::config::BakeConfig;
+use crate::gravity::{
+    BakeGravity, GravityError, IMU_FILES, POSE_FILES, bake_gravity, check_overlap, find_in,
+    read_imu,
+};
+use crate::scan_range::{ScanRange, ScanRangeError};
+
+/// Scan file extensions a dataset may hold.
+const SCAN_EXTENSIONS: [&str; 3] = ["pcd", "ply", "bin"];
+
+/// Why a bake failed.
+#[derive(Debug, thiserror::Error)]
+pub enum BakeError {
+    /// The dataset directory has no scans.
+    #[error("{0}: no scans (*.pcd, *.ply, *.bin) in it or in its scans/ folder")]
+    NoScans(PathBuf),
+    /// Poses and scans cannot be matched.
+    #[error(
+        "{poses}: {count} poses for {scans} scans; scans named by frame number need a pose per number, others exactly one pose each"
+    )]
+    PoseCount {
+        /// The pose file.
+        poses: PathBuf,
+        /// Poses in it.
+        count: usize,
+        /// Scans found.
+        scans: usize,
+    },
+    /// A scan or pose file could not be read.
+    #[error(transparent)]
+    Io(#[from] IoError),
+    /// A scan is unusable (empty after filtering and downsampling, ...).
+    #[error("{path}: {message}")]
+    Scan {
+        /// The scan.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+    /// The map file could not be written.
+    #[error(transparent)]
+    Archive(#[from] ArchiveError),
+    /// The dataset's IMU log could not be used.
+    #[error(transparent)]
+    Gravity(#[from] GravityError),
+    /// Building poses from the scans failed (registration).
+    #[error("building poses from the scans: {0}")]
+    Registration(#[from] RegistrationError),
+    /// Building poses from the scans failed (loops, graph).
+    #[error("building poses from the scans: {0}")]
+    Mapping(#[from] GlobalError),
+    /// The scan range does not fit the dataset.
+    #[error(transparent)]
+    ScanRange(#[from] ScanRangeError),
+    /// A pose graph was asked for, but the poses come from a pose file.
+    #[error(
+        "--graph-out: the poses come from {}, so no pose graph is built; pass --build-poses to build the poses (and their graph) from the scans, the pose file then serving as ground truth",
+        .0.display()
+    )]
+    NoPoseGraph(PathBuf),
+    /// The pose graph could not be assembled or written.
+    #[error("writing the pose graph: {0}")]
+    Graph(#[from] G2oError),
+}
+
+impl From<GraphError> for BakeError {
+    fn from(error: GraphError) -> Self {
+        Self::Mapping(error.into())
+    }
+}
+
+/// Where a bake reads from.
+#[derive(Debug, Clone)]
+pub struct BakeInput {
+    /// Dataset directory (simulator output, or scans + a pose file).
+    pub dataset: PathBuf,
+    /// Pose file; default: the first of [`POSE_FILES`] in the dataset.
+    pub poses: Option<PathBuf>,
+    /// Build the poses from the scans (odometry, loops, pose graph) even when a pose
+    /// file exists; it then serves as ground truth for the ATE. Without any pose file
+    /// the poses are always built.
+    pub build_poses: bool,
+    /// Only these scans of the dataset's sorted scan list ([`find_scans`]); scans named
+    /// by frame number keep their number's pose, others their place in the pose file.
+    pub scans: ScanRange,
+}
+
+impl BakeInput {
+    /// Reads `dataset` (every scan, its own pose file, poses built only without one).
+    pub fn dataset(dataset: impl Into<PathBuf>) -> Self {
+        Self {
+            dataset: dataset.into(),
+            poses: None,
+            build_poses: false,
+            scans: ScanRange::ALL,
+        }
+    }
+
+    /// The pose file the bake reads: `poses`, else the first of [`POSE_FILES`] in the
+    /// dataset; `None` when there is none.
+    pub fn pose_file(&self) -> Option<PathBuf> {
+        self.poses
+            .clone()
+            .or_else(|| find_in(&self.dataset, &POSE_FILES))
+    }
+
+    /// True when the bake builds the poses from the scans (no pose file, or
+    /// `build_poses`), so that it has a pose graph.
+    pub fn builds_poses(&self) -> bool {
+        self.build_poses || self.pose_file().is_none()
+    }
+}
+
+/// What a bake writes.
+#[derive(Debug, Clone)]
+pub struct BakeOutput {
+    /// The map file (`.kfmap`).
+    pub map: PathBuf,
+    /// A TUM trajectory (`t x y z qx qy qz qw`, seconds and metres): one pose
+    /// `T_map_scan` per baked scan, in the map frame of the written map (after any
+    /// gravity levelling), stamped with the dataset's times (its scan index where it has
+    /// none).
+    pub trajectory: Option<PathBuf>,
+    /// The keyframe pose graph as g2o (`VERTEX_SE3:QUAT` per graph keyframe, id = its
+    /// scan index in the dataset, pose in the map frame of the written map;
+    /// `EDGE_SE3:QUAT` per consecutive and loop edge with its information; `FIX` on the
+    /// first). Only when the poses are built from the scans.
+    pub graph: Option<PathBuf>,
+}
+
+impl BakeOutput {
+    /// The map file alone.
+    pub fn map(path: impl Into<PathBuf>) -> Self {
+        Self {
+            map: path.into(),
+            trajectory: None,
+            graph: None,
+        }
+    }
+}
+
+/// Which part of a bake is running.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BakeStage {
+    /// Odometry over the scans (building poses).
+    Odometry,
+    /// Keyframe-to-keyframe edges (building poses).
+    Keyframes,
+    /// Loop detection and pose-graph optimization (building poses).
+    Optimizing,
+    /// Keyframes indexed and written.
+    Writing,
+}
+
+/// Progress of a bake.
+#[derive(Debug, Clone, Copy)]
+pub struct BakeProgress {
+    /// The stage.
+    pub stage: BakeStage,
+    /// Items of the stage done (scans, keyframes).
+    pub done: usize,
+    /// Items of the stage in total.
+    pub total: usize,
+    /// Points written so far.
+    pub points_done: u64,
+}
+
+/// What building the poses from the scans did.
+#[derive(Debug, Clone)]
+pub struct MappingSummary {
+    /// Graph keyframes.
+    pub keyframes: usize,
+    /// Loop candidates examined.
+    pub loops_found: usize,
+    /// Pose-graph error before and after optimization.
+    pub graph_error: (f64, f64),
+    /// The optimized keyframe pose graph: vertex id = the keyframe's scan index in the
+    /// dataset, poses as in [`MappingSummary::poses`]; consecutive and loop edges.
+    pub graph: PoseGraph,
+    /// Every baked scan's built pose (`T_map_scan`, map = the first baked scan's frame,
+    /// before any gravity levelling).
+    pub poses: Vec<Pose>,
+    /// Keyframe ATE against the dataset's pose file, metres, when there is one.
+    pub ate: Option<f64>,
+    /// The pose file's frame seen from the built poses' (`T_built_file`: the rigid fit
+    /// of the file's positions onto the built ones), when there is a pose file.
+    pub built_from_file: Option<Pose>,
+    /// ATE of every scan's pose against the pose file, metres.
+    pub ate_scans: Option<f64>,
+    /// Every loop candidate verified, in scan indices, with its fitness.
+    pub loop_checks: Vec<LoopSummary>,
+    /// Scans odometry found only after retrying wider hypotheses.
+    pub recovered_scans: Vec<usize>,
+    /// Scans no hypothesis registered well (their pose may be off).
+    pub poor_scans: Vec<usize>,
+    /// The same for odometry alone.
+    pub ate_odometry: Option<f64>,
+    /// The gyro bias odometry learned, IMU frame, rad/s (`None`: no IMU log used).
+    pub gyro_bias: Option<[f64; 3]>,
+}
+
+impl MappingSummary {
+    /// Loops verified and added to the graph.
+    pub fn loops_accepted(&self) -> usize {
+        self.loop_checks.iter().filter(|c| c.accepted).count()
+    }
+}
+
+/// One verified loop candidate, in scan indices.
+#[derive(Debug, Clone, Copy)]
+pub struct LoopSummary {
+    /// The older scan (a graph keyframe).
+    pub older_scan: usize,
+    /// The newer scan (a graph keyframe).
+    pub newer_scan: usize,
+    /// How the newer keyframe lay on the older one's neighbourhood (`None`: the
+    /// registration could not run).
+    pub fitness: Option<Fitness>,
+    /// Became a graph edge.
+    pub accepted: bool,
+}
+
+/// What a bake produced.
+#[derive(Debug, Clone)]
+pub struct BakeReport {
+    /// Scans in the dataset.
+    pub dataset_scans: usize,
+    /// The scans baked (indices in the dataset's sorted scan list).
+    pub scans: Range<usize>,
+    /// The input frame (the pose file's; with built poses, the pose file they are
+    /// measured against) seen from the written map's: `T_map_input`, also stored in
+    /// the map for clients comparing with ground truth.
+    pub map_from_input: Pose,
+    /// Pose building, when the poses came from the scans.
+    pub mapping: Option<MappingSummary>,
+    /// The gravity stage, when the dataset has an IMU log.
+    pub gravity: Option<BakeGravity>,
+    /// The file written.
+    pub written: WriteSummary,
+    /// Wall time, seconds.
+    pub seconds: f64,
+}
+
+impl BakeReport {
+    /// Points baked per second.
+    pub fn points_per_second(&self) -> f64 {
+        self.written.points as f64 / self.seconds.max(1e-9)
+    }
+}
+
+/// Scan files of a dataset, sorted by name: `DIR/scans/` if it exists, else `DIR`.
+pub fn find_scans(dataset: &Path) -> Result<Vec<PathBuf>, BakeError> {
+    let dir = if dataset.join("scans").is_dir() {
+        dataset.join("scans")
+    } else {
+        dataset.to_path_buf()
+    };
+    let entries = std::fs::read_dir(&dir).map_err(|e| IoError::os(&dir, e))?;
+    let mut scans: Vec<PathBuf> = entries
+        .filter_map(Result::ok)
+        .map(|e| e.path())
+        .filter(|p| {
+            p.is_file()
+                && p.extension()
+                    .and_then(|e| e.to_str())
+                    .is_some_and(|e| SCAN_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
+        })
+        .collect();
+    scans.sort();
+    if scans.is_empty() {
+        return Err(BakeError::NoScans(dataset.to_path_buf()));
+    }
+    Ok(scans)
+}
+
+/// Every scan's pose and time from the dataset's pose file (the first of
+/// [`POSE_FILES`]), or `None` when it has none.
+pub fn dataset_poses(dataset: &Path, scans: &[PathBuf]) -> Result<Option<ScanPoses>, BakeError> {
+    find_in(dataset, &POSE_FILES)
+        .map(|path| scan_poses(&path, scans))
+        .transpose()
+}
+
+/// Every scan's pose and time (the pose index when the file has no timestamps).
+#[derive(Debug, Clone)]
+pub struct ScanPoses {
+    /// `T_map_scan` of each scan.
+    pub poses: Vec<Pose>,
+    /// Each scan's time, seconds.
+    pub stamps: Vec<f64>,
+    /// True when the stamps come from the pose file.
+    pub stamped: bool,
+}
+
+impl ScanPoses {
+    /// The poses and times of scans `range` only.
+    pub fn select(mut self, range: Range<usize>) -> Self {
+        self.poses.truncate(range.end);
+        self.stamps.truncate(range.end);
+        self.poses.drain(..range.start);
+        self.stamps.drain(..range.start);
+        self
+    }
+}
+
+/// The pose of every scan: by frame number when every scan is named by one (KITTI
+/// `000123.bin`), else one pose per scan in order.
+fn scan_poses(path: &Path, scans: &[PathBuf]) -> Result<ScanPoses, BakeError> {
+    let path = path.to_path_buf();
+    let trajectory = read_trajectory(&path)?;
+    let count_error = || BakeError::PoseCount {
+        poses: path.clone(),
+        count: trajectory.poses.len(),
+        scans: scans.len(),
+    };
+    let frames: Option<Vec<usize>> = scans
+        .iter()
+        .map(|s| s.file_stem()?.to_str()?.parse().ok())
+        .collect();
+    let indices: Vec<usize> = match frames {
+        Some(f) if trajectory.poses.len() != scans.len() => f,
+        _ if trajectory.poses.len() == scans.len() => (0..scans.len()).collect(),
+        _ => return Err(count_error()),
+    };
+    if indices.iter().any(|&i| i >= trajectory.poses.len()) {
+        return Err(count_error());
+    }
+    let poses = indices.iter().map(|&i| trajectory.poses[i]).collect();
+    let stamps = indices
+        .iter()
+        .map(|&i| trajectory.stamps.as_ref().map_or(i as f64, |s| s[i]))
+        .collect();
+    Ok(ScanPoses {
+        poses,
+        stamps,
+        stamped: trajectory.stamps.is_some(),
+    })
+}
+
+/// Reads one scan and drops invalid returns (the bake configuration's filter).
+pub fn load_raw_scan(path: &Path, config: &BakeConfig) -> Result<PointCloud, BakeError> {
+    let sidecar = path.with_extension("bin.layout").is_file();
+    let options = ReadOptions {
+        bin_layout: (!sidecar).then_some(config.input.bin_layout),
+        filter: config.filter,
+    };
+    Ok(read_cloud(path, &options)?.cloud)
+}
+
+/// Poses built from `scans` (dataset indices from `first`); `truth` (a pose file, the
+/// same scans) gives stamps and the ATE.
+fn build_poses(
+    scans: &[PathBuf],
+    first: usize,
+    config: &BakeConfig,
+    truth: Option<&ScanPoses>,
+    imu: Vec<ImuSample>,
+    progress: &mut impl FnMut(BakeProgress),
+) -> Result<(ScanPoses, MappingSummary), BakeError> {
+    let report = |stage, done, total| BakeProgress {
+        stage,
+        done,
+        total,
+        points_done: 0,
+    };
+    // Without a pose file the scans are taken to be evenly spaced (the motion model
+    // then predicts per scan instead of per second).
+    let stamps: Vec<f64> = truth.map_or_else(
+        || (first..first + scans.len()).map(|i| i as f64).collect(),
+        |t| t.stamps.clone(),
+    );
+    let built = build_trajectory::<BakeError>(
+        &stamps,
+        imu,
+        |i| load_raw_scan(&scans[i], config),
+        &config.build,
+        |stage| {
+            progress(match stage {
+                Stage::Odometry(d, t) => report(BakeStage::Odometry, d, t),
+                Stage::Keyframes(d, t) => report(BakeStage::Keyframes, d, t),
+                Stage::Optimizing => report(BakeStage::Optimizing, 0, 1),
+            })
+        },
+    )?;
+    let at_keyframes =
+        |poses: &[Pose]| -> Vec<Pose> { built.keyframe_scans.iter().map(|&i| poses[i]).collect() };
+    let ate = |poses: &[Pose]| {
+        truth.map(|t| absolute_trajectory_error(&at_keyframes(poses), &at_keyframes(&t.poses)))
+    };
+    // A keyframe's vertex is named by its scan's index in the dataset.
+    let vertex = |k: u64| (first + built.keyframe_scans[k as usize]) as u64;
+    let mut graph = PoseGraph::default();
+    for &scan in &built.keyframe_scans {
+        graph.add_pose((first + scan) as u64, built.poses[scan])?;
+    }
+    for edge in &built.edges {
+        graph.add_edge(PoseEdge {
+            from: vertex(edge.from),
+            to: vertex(edge.to),
+            ..*edge
+        })?;
+    }
+    let summary = MappingSummary {
+        keyframes: built.keyframe_scans.len(),
+        loops_found: built.loops_found,
+        graph_error: (built.graph.initial_error, built.graph.final_error),
+        graph,
+        ate: ate(&built.poses),
+        built_from_file: truth.map(|t| rigid_alignment(&t.poses, &built.poses)),
+        ate_scans: truth.map(|t| absolute_trajectory_error(&built.poses, &t.poses)),
+        loop_checks: built
+            .loop_checks
+            .iter()
+            .map(|c| LoopSummary {
+                older_scan: first + built.keyframe_scans[c.older],
+                newer_scan: first + built.keyframe_scans[c.newer],
+                fitness: c.verdict.map(|v| v.fitness),
+                accepted: c.verdict.is_some_and(|v| v.accepted),
+            })
+            .collect(),
+        recovered_scans: scans_where(&built.outcomes, OdometryOutcome::Recovered, first),
+        poor_scans: scans_where(&built.outcomes, OdometryOutcome::Poor, first),
+        ate_odometry: ate(&built.odometry),
+        poses: built.poses.clone(),
+        gyro_bias: built.gyro_bias.map(Into::into),
+    };
+    let poses = ScanPoses {
+        poses: built.poses,
+        stamps,
+        stamped: truth.is_some_and(|t| t.stamped),
+    };
+    Ok((poses, summary))
+}
+
+/// The dataset's IMU log for the odometry's motion model: read when the gyro is enabled
+/// and the scans have timestamps (from the pose file) to place it on; empty otherwise.
+fn odometry_imu(
+    dataset: &Path,
+    config: &BakeConfig,
+    truth: Option<&ScanPoses>,
+) -> Result<Vec<ImuSample>, BakeError> {
+    let stamps = truth.filter(|t| t.stamped).map(|t| &t.stamps);
+    let path = find_in(dataset, &IMU_FILES).filter(|_| config.build.odometry.gyro.enabled);
+    let (Some(path), Some(stamps)) = (path, stamps) else {
+        return Ok(Vec::new());
+    };
+    let imu = read_imu(&path)?;
+    check_overlap(&path, &imu, stamps)?;
+    Ok(imu)
+}
+
+/// Dataset indices of the scans (the first at `first`) whose odometry outcome was `which`.
+fn scans_where(outcomes: &[OdometryOutcome], which: OdometryOutcome, first: usize) -> Vec<usize> {
+    (0..outcomes.len())
+        .filter(|&i| outcomes[i] == which)
+        .map(|i| first + i)
+        .collect()
+}
+
+/// The sensor's twist at scan `i` from its poses and times: towards the next scan (the
+/// previous one for the last), for deskewing scans that carry per-point times.
+fn scan_twist(poses: &[Pose], stamps: &[f64], i: usize) -> Option<Twist> {
+    let (a, b) = if i + 1 < poses.len() {
+        (i, i + 1)
+    } else {
+        (i.checked_sub(1)?, i)
+    };
+    Twist::between(&poses[a], &poses[b], stamps[b] - stamps[a])
+}
+
+/// Reads, filters and downsamples one scan taken at `pose` (map frame): on the map's
+/// voxel grid, with each point's raw count, when keyframes are fused.
+fn load_scan(
+    path: &Path,
+    config: &BakeConfig,
+    pose: &Pose,
+    twist: Option<Twist>,
+) -> Result<(PointCloud, Option<Vec<u32>>), BakeError> {
+    let fused = config.map.fuse_overlapping_keyframes;
+    let mut raw = load_raw_scan(path, config)?;
+    if let Some(twist) = twist.filter(|_| config.build.odometry.deskew) {
+        deskew(&mut raw, &twist, 0.0).map_err(|e| BakeError::Scan {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        })?;
+    }
+    let (cloud, weights) = raw
+        .into_keyframe_points(config.keyframes.voxel_size, fused.then_some(pose))
+        .map_err(|e| BakeError::Scan {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        })?;
+    if cloud.is_empty() {
+        return Err(BakeError::Scan {
+            path: path.to_path_buf(),
+            message: "no valid points left after filtering".into(),
+        });
+    }
+    Ok((cloud, weights))
+}
+
+/// Bakes `input` into `output` with `config`; `progress` is called after each keyframe.
+/// Runs on the current rayon pool. The trajectory and graph files are written (each
+/// atomically) after the map is complete.
+pub fn bake(
+    input: &BakeInput,
+    config: &BakeConfig,
+    output: &BakeOutput,
+    mut progress: impl FnMut(BakeProgress),
+) -> Result<BakeReport, BakeError> {
+    let started = Instant::now();
+    let all_scans = find_scans(&input.dataset)?;
+    let range = input.scans.within(all_scans.len())?;
+    let scans = &all_scans[range.clone()];
+    let pose_file = input.pose_file();
+    let given_poses = pose_file.as_ref().filter(|_| !input.build_poses);
+    if let Some(path) = given_poses.filter(|_| output.graph.is_some()) {
+        return Err(BakeError::NoPoseGraph(path.clone()));
+    }
+    // Poses are matched against the whole dataset, so a range keeps each scan's pose.
+    let (scan_poses, mapping) = match pose_file {
+        Some(path) if !input.build_poses => {
+            (scan_poses(&path, &all_scans)?.select(range.clone()), None)
+        }
+        truth => {
+            let truth = truth
+                .map(|p| scan_poses(&p, &all_scans).map(|t| t.select(range.clone())))
+                .transpose()?;
+            let imu = odometry_imu(&input.dataset, config, truth.as_ref())?;
+            let (built, summary) = build_poses(
+                scans,
+                range.start,
+                config,
+                truth.as_ref(),
+                imu,
+                &mut progress,
+            )?;
+            (built, Some(summary))
+        }
+    };
+    let ScanPoses {
+        mut poses,
+        stamps,
+        stamped,
+    } = scan_poses;
+    let decider = config.keyframes.decider();
+    let mut chosen: Vec<usize> = Vec::new();
+    for (i, pose) in poses.iter().enumerate() {
+        if decider.should_create(chosen.iter().map(|&c| &poses[c]), pose) {
+            chosen.push(i);
+        }
+    }
+    let keyframe_scans: Vec<(KeyframeId, usize)> = chosen
+        .iter()
+        .enumerate()
+        .map(|(id, &scan)| (id as KeyframeId, scan))
+        .collect();
+    let mut gravity = bake_gravity(
+        &input.dataset,
+        &config.gravity,
+        &poses,
+        stamped.then_some(&stamps),
+        &keyframe_scans,
+    )?;
+    let mut level = Pose::identity();
+    if let Some(g) = gravity.as_mut().filter(|_| config.map.align_gravity)
+        && let Some(c) = &g.correction
+    {
+        // Rotating about the map origin keeps every relative pose (and graph edge).
+        level = Pose::from_parts(Default::default(), c.rotation.into());
+        poses.iter_mut().for_each(|p| *p = level * *p);
+        g.applied = true;
+    }
+    // The input frame is the pose file's: given, or the reference of built poses.
+    let map_from_input = level
+        * mapping
+            .as_ref()
+            .and_then(|m| m.built_from_file)
+            .unwrap_or_else(Pose::identity);
+    let options: KeyframeMapOptions = config.map_options();
+    let mut writer = MapWriter::create(&output.map, &options)?;
+    writer.set_map_from_input(&map_from_input);
+    let mut covis = CovisibilityGraph::new(options.covisibility);
+    let chunk = 2 * rayon::current_num_threads();
+    let mut done = BakeProgress {
+        stage: BakeStage::Writing,
+        done: 0,
+        total: chosen.len(),
+        points_done: 0,
+    };
+    for (chunk_index, batch) in chosen.chunks(chunk).enumerate() {
+        let keyframes: Vec<Keyframe> = batch
+            .par_iter()
+            .enumerate()
+            .map(|(j, &scan)| {
+                let twist = stamped.then(|| scan_twist(&poses, &stamps, scan)).flatten();
+                let (cloud, weights) = load_scan(&scans[scan], config, &poses[scan], twist)?;
+                let id = (chunk_index * chunk + j) as u64;
+                let (pose, stamp) = (poses[scan], stamps[scan]);
+                Keyframe::build_weighted(id, pose, stamp, cloud, weights, &options.covariance)
+                    .map_err(|e| BakeError::Scan {
+                        path: scans[scan].clone(),
+                        message: e.to_string(),
+                    })
+            })
+            .collect::<Result<_, _>>()?;
+        for k in &keyframes {
+            covis.set_keyframe(k.id, k.map_points()?);
+            writer.write_keyframe(k)?;
+            done.done += 1;
+            done.points_done += k.len() as u64;
+            progress(done);
+        }
+    }
+    let pool = gravity.as_ref().map_or(&[][..], |g| &g.pool[..]);
+    let written = writer.finish(chosen.len() as u64, &covis.snapshot(), pool)?;
+    if let Some(path) = &output.trajectory {
+        let trajectory = Trajectory {
+            stamps: Some(stamps),
+            poses,
+        };
+        write_atomic(path, format_tum(&trajectory).as_bytes())?;
+    }
+    if let (Some(path), Some(m)) = (&output.graph, &mapping) {
+        let mut graph = m.graph.clone();
+        for &id in m.graph.ids() {
+            let levelled = level * m.graph.pose(id).expect("a listed vertex");
+            graph.set_pose(id, levelled)?;
+        }
+        write_g2o(path, &graph, m.graph.ids().first().copied())?;
+    }
+    Ok(BakeReport {
+        dataset_scans: all_scans.len(),
+        scans: range,
+        map_from_input,
+        mapping,
+        gravity,
+        written,
+        seconds: started.elapsed().as_secs_f64(),
+    })
+}

@@ -1,0 +1,188 @@
+//! Map building on the real handheld sequence `balm_os0` (../shared/data; see
+//! PROVENANCE.txt): 177 scans of an Ouster OS0-class LiDAR at 2 Hz along a 74.5 m loop
+//! with fast turns, built from the raw scans alone and compared with the dataset's
+//! reference poses (odometry-quality, consistent to a few cm locally).
+
+use kfmap_bake::mapping::{BuildParams, BuiltTrajectory, GlobalError, build_trajectory};
+use kfmap_shared::cloud::FilterOptions;
+use kfmap_shared::geometry::Pose;
+use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
+use kfmap_shared::registration::RegistrationError;
+use kfmap_shared::trajectory_error::absolute_trajectory_error;
+use kfmap_testdata::require_test_data;
+
+#[derive(Debug, thiserror::Error)]
+enum TestError {
+    #[error(transparent)]
+    Registration(#[from] RegistrationError),
+    #[error(transparent)]
+    Global(#[from] GlobalError),
+    #[error(transparent)]
+    Io(#[from] kfmap_shared::io::IoError),
+}
+
+struct Sequence {
+    scans: Vec<std::path::PathBuf>,
+    stamps: Vec<f64>,
+    truth: Vec<Pose>,
+}
+
+fn balm() -> Option<Sequence> {
+    let dir = require_test_data("balm_os0", "mapping_real")?;
+    let mut scans: Vec<_> = std::fs::read_dir(dir.join("scans"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    scans.sort();
+    let trajectory = read_trajectory(&dir.join("poses.txt")).unwrap();
+    assert_eq!(scans.len(), trajectory.poses.len());
+    Some(Sequence {
+        scans,
+        stamps: trajectory.stamps.unwrap(),
+        truth: trajectory.poses,
+    })
+}
+
+/// Builds the trajectory of the scans `pick` selects (indices into the sequence).
+fn build(seq: &Sequence, pick: &[usize]) -> BuiltTrajectory {
+    let options = ReadOptions {
+        bin_layout: None,
+        filter: FilterOptions::default(),
+    };
+    let stamps: Vec<f64> = pick.iter().map(|&i| seq.stamps[i]).collect();
+    let started = std::time::Instant::now();
+    let built = build_trajectory::<TestError>(
+        &stamps,
+        Vec::new(),
+        |i| Ok(read_cloud(&seq.scans[pick[i]], &options)?.cloud),
+        &BuildParams::default(),
+        |_| {},
+    )
+    .unwrap();
+    let truth: Vec<Pose> = pick.iter().map(|&i| seq.truth[i]).collect();
+    // Steps whose motion odometry got wrong: (index, outcome, true turn deg, error m, deg).
+    let bad_steps: Vec<String> = (1..pick.len())
+        .filter_map(|i| {
+            let e = built.odometry[i - 1].inverse() * built.odometry[i];
+            let t = truth[i - 1].inverse() * truth[i];
+            let d = e.inverse() * t;
+            let (m, deg) = (d.translation.vector.norm(), d.rotation.angle().to_degrees());
+            (m > 0.1 || deg > 1.0).then(|| {
+                format!(
+                    "{}:{:?} turn {:.0} -> {m:.2} m {deg:.1} deg",
+                    pick[i],
+                    built.outcomes[i],
+                    t.rotation.angle().to_degrees()
+                )
+            })
+        })
+        .collect();
+    println!("bad steps: {bad_steps:?}");
+    for check in &built.loop_checks {
+        let scan = |k: usize| pick[built.keyframe_scans[k]];
+        println!(
+            "loop scans {} - {}: {:?}",
+            scan(check.older),
+            scan(check.newer),
+            check
+                .verdict
+                .map(|v| (v.accepted, v.converged, v.degenerate, v.fitness))
+        );
+    }
+    println!(
+        "{} scans in {:.1} s: ATE {:.3} m (odometry alone {:.3} m); {} keyframes, loops {} \
+         found / {} accepted {:?}; outcomes {:?}",
+        pick.len(),
+        started.elapsed().as_secs_f64(),
+        absolute_trajectory_error(&built.poses, &truth),
+        absolute_trajectory_error(&built.odometry, &truth),
+        built.keyframe_scans.len(),
+        built.loops_found,
+        built.loops_accepted().len(),
+        built.loops_accepted(),
+        built
+            .outcomes
+            .iter()
+            .enumerate()
+            .filter(|(_, o)| **o != kfmap_bake::mapping::OdometryOutcome::Tracked)
+            .collect::<Vec<_>>(),
+    );
+    built
+}
+
+#[test]
+fn balm_built_from_raw_scans_at_2hz() {
+    let Some(seq) = balm() else { return };
+    let all: Vec<usize> = (0..seq.scans.len()).collect();
+    let built = build(&seq, &all);
+    let ate = absolute_trajectory_error(&built.poses, &seq.truth);
+    assert!(ate < 0.25, "ATE {ate} m");
+    // The revisit of the start area (scans 0-7 seen again from 116 on) is closed.
+    let scan = |k: usize| built.keyframe_scans[k];
+    assert!(
+        built
+            .loops_accepted()
+            .iter()
+            .any(|&(older, newer)| scan(older) <= 7 && scan(newer) >= 116),
+        "{:?}",
+        built.loops_accepted()
+    );
+}
+
+#[test]
+fn balm_built_from_every_second_scan_at_1hz() {
+    let Some(seq) = balm() else { return };
+    let pick: Vec<usize> = (0..seq.scans.len()).step_by(2).collect();
+    let built = build(&seq, &pick);
+    let truth: Vec<Pose> = pick.iter().map(|&i| seq.truth[i]).collect();
+    let ate = absolute_trajectory_error(&built.poses, &truth);
+    assert!(ate < 0.25, "ATE {ate} m");
+}
+
+#[test]
+fn balm_built_from_a_moving_start() {
+    let Some(seq) = balm() else { return };
+    let pick: Vec<usize> = (40..seq.scans.len()).collect();
+    let built = build(&seq, &pick);
+    let truth: Vec<Pose> = pick.iter().map(|&i| seq.truth[i]).collect();
+    let ate = absolute_trajectory_error(&built.poses, &truth);
+    assert!(ate < 0.25, "ATE {ate} m");
+}
+
+/// Another sensor: KITTI 00 frames 0-5 (Velodyne HDL-64E, 10 Hz, 0.86 m per frame, not
+/// deskewed). Pairwise GICP and small_gicp recover only 81-83 % of each step's forward
+/// motion on these frames (PROVENANCE.txt: 12-18 cm short per step), so odometry must
+/// stay within that: aligned ATE under what a 15 cm-per-step shortfall leaves (0.26 m).
+#[test]
+fn kitti00_frames_built_from_raw_scans() {
+    let Some(dir) = require_test_data("kitti00", "mapping_real") else {
+        return;
+    };
+    let truth = read_trajectory(&dir.join("poses_velo_kitti.txt"))
+        .unwrap()
+        .poses;
+    let stamps: Vec<f64> = (0..6).map(|i| i as f64 * 0.1).collect();
+    let options = ReadOptions {
+        bin_layout: None,
+        filter: FilterOptions::default(),
+    };
+    let built = build_trajectory::<TestError>(
+        &stamps,
+        Vec::new(),
+        |i| Ok(read_cloud(&dir.join(format!("{i:06}.bin")), &options)?.cloud),
+        &BuildParams::default(),
+        |_| {},
+    )
+    .unwrap();
+    // Closed form of the shortfall: steps of 0.86 m estimated 0.15 m short each.
+    let short: Vec<Pose> = (0..6)
+        .map(|i| Pose::translation(0.71 * i as f64, 0.0, 0.0))
+        .collect();
+    let straight: Vec<Pose> = (0..6)
+        .map(|i| Pose::translation(0.86 * i as f64, 0.0, 0.0))
+        .collect();
+    let bound = absolute_trajectory_error(&short, &straight);
+    let ate = absolute_trajectory_error(&built.poses, &truth);
+    println!("KITTI 00 frames 0-5: ATE {ate:.3} m (a 15 cm-per-step shortfall: {bound:.3} m)");
+    assert!(ate < bound, "ATE {ate} m, bound {bound} m");
+}

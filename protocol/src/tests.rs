@@ -1,0 +1,267 @@
+use super::*;
+use kfmap_shared::imu::ImuSample;
+
+fn scan_header(kind: RequestKind) -> RequestHeader {
+    RequestHeader {
+        kind: kind as u32,
+        ..Default::default()
+    }
+}
+
+#[test]
+fn scan_round_trip_with_every_optional_array() {
+    let points = [[1.0f32, 2.0, 3.0], [4.0, 5.0, 6.0], [7.0, 8.0, 9.0]];
+    let views = [[1.0f32, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    let covs = [[1.0, 0.1, 0.2, 2.0, 0.3, 3.0]; 3];
+    let mut header = scan_header(RequestKind::Cov2Cov);
+    let payload = ScanPayload {
+        points: &points,
+        view_dirs: Some(&views),
+        covariances: Some(&covs),
+    }
+    .encode(&mut header);
+    assert_eq!(payload.len(), 36);
+    assert_eq!(header.flags, FLAG_VIEW_DIRS | FLAG_COVARIANCES);
+    let d = decode_scan(&header, &payload, 10).unwrap();
+    assert_eq!(d.points, &points);
+    assert_eq!(d.view_dirs.unwrap(), &views);
+    let got = d.covariances.unwrap();
+    for (g, w) in got.iter().zip(&covs) {
+        for (a, b) in g.iter().zip(w) {
+            assert!((a - b).abs() < 1e-6);
+        }
+    }
+}
+
+#[test]
+fn bad_scans_are_refused_by_name() {
+    let points = [[0.0f32; 3]; 4];
+    let mut header = scan_header(RequestKind::Nearest);
+    let good = ScanPayload {
+        points: &points,
+        view_dirs: None,
+        covariances: None,
+    }
+    .encode(&mut header);
+    assert_eq!(
+        decode_scan(&header, &good, 3).unwrap_err().status,
+        StatusCode::TooManyPoints
+    );
+    let mut nan = good.clone();
+    nan[7] = f32::NAN;
+    let e = decode_scan(&header, &nan, 10).unwrap_err();
+    assert_eq!((e.status, e.detail), (StatusCode::NonFinitePoint, 2));
+    assert!(e.message.contains("point 2"), "{}", e.message);
+    let e = decode_scan(&header, &good[..6], 10).unwrap_err();
+    assert_eq!(e.status, StatusCode::BadRequest);
+    let empty = RequestHeader {
+        point_count: 0,
+        ..header
+    };
+    assert_eq!(
+        decode_scan(&empty, &[], 10).unwrap_err().status,
+        StatusCode::EmptyScan
+    );
+    let old = RequestHeader {
+        version: PROTOCOL_VERSION + 1,
+        ..header
+    };
+    let e = decode_scan(&old, &good, 10).unwrap_err();
+    assert_eq!(e.status, StatusCode::VersionMismatch);
+    assert!(e.message.contains("protocol"));
+    let flags = RequestHeader {
+        flags: 16,
+        ..header
+    };
+    assert_eq!(
+        decode_scan(&flags, &good, 10).unwrap_err().status,
+        StatusCode::BadRequest
+    );
+}
+
+#[test]
+fn non_finite_view_direction_and_covariance_are_located() {
+    let points = [[0.0f32; 3]; 2];
+    let views = [[1.0f32, 0.0, 0.0]; 2];
+    let covs = [[1.0, 0.0, 0.0, 1.0, 0.0, 1.0]; 2];
+    let mut header = scan_header(RequestKind::Cov2Cov);
+    let mut payload = ScanPayload {
+        points: &points,
+        view_dirs: Some(&views),
+        covariances: Some(&covs),
+    }
+    .encode(&mut header);
+    payload[6 + 4] = f32::INFINITY;
+    let e = decode_scan(&header, &payload, 10).unwrap_err();
+    assert!(e.message.starts_with("view direction 1"), "{}", e.message);
+    payload[6 + 4] = 0.0;
+    payload[12 + 6 + 5] = f32::NAN;
+    let e = decode_scan(&header, &payload, 10).unwrap_err();
+    assert!(e.message.starts_with("covariance 1"), "{}", e.message);
+}
+
+#[test]
+fn imu_round_trip_and_refusals() {
+    let samples: Vec<ImuSample> = (0..5)
+        .map(|i| ImuSample {
+            t: 1000.0 + i as f64 * 0.01,
+            acc: [0.1, -0.2, 9.8],
+            gyro: [0.0, 0.01, 0.0],
+        })
+        .collect();
+    let header = RequestHeader {
+        kind: RequestKind::ImuWindow as u32,
+        point_count: 5,
+        imu_t0: 1000.0,
+        ..Default::default()
+    };
+    let payload = imu_payload(&samples, 1000.0);
+    let back = decode_imu(&header, &payload, 100).unwrap();
+    for (a, b) in back.iter().zip(&samples) {
+        assert!((a.t - b.t).abs() < 1e-6 && (a.acc[2] - b.acc[2]).abs() < 1e-6);
+    }
+    let mut bad = payload.clone();
+    bad[7 * 3 + 2] = f32::NAN;
+    assert_eq!(decode_imu(&header, &bad, 100).unwrap_err().detail, 3);
+    assert_eq!(
+        decode_imu(&header, &payload, 4).unwrap_err().status,
+        StatusCode::TooManyPoints
+    );
+}
+
+#[test]
+fn codes_round_trip_and_unknown_codes_are_safe() {
+    for kind in RequestKind::ALL {
+        assert_eq!(RequestKind::from_code(kind as u32), Some(kind));
+    }
+    assert_eq!(RequestKind::from_code(99), None);
+    assert_eq!(StatusCode::from_code(3), StatusCode::TooManyPoints);
+    assert_eq!(StatusCode::from_code(1234), StatusCode::Internal);
+    let pose = pose_from_wire(&[1.0, 2.0, 3.0, 0.0, 0.0, 0.6, 0.8]).unwrap();
+    assert_eq!(pose_to_wire(&pose), [1.0, 2.0, 3.0, 0.0, 0.0, 0.6, 0.8]);
+    assert!(pose_from_wire(&[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0]).is_none());
+    assert!(pose_from_wire(&[f64::NAN, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]).is_none());
+}
+
+#[test]
+fn message_text_is_cut_at_a_character_boundary() {
+    let mut h = ResponseHeader::default();
+    let long = "é".repeat(MESSAGE_LEN);
+    h.set_message(&long);
+    assert!(h.message_len as usize <= MESSAGE_LEN && h.message_len % 2 == 0);
+    assert!(h.message().chars().all(|c| c == 'é'));
+}
+
+/// The offsets documented on the wire types (foreign clients rely on them).
+#[test]
+fn header_layouts_are_the_documented_ones() {
+    use std::mem::{offset_of, size_of};
+    macro_rules! layout {
+        ($t:ty, $size:expr, $($f:ident = $at:expr),*) => {
+            assert_eq!(size_of::<$t>(), $size, "size of {}", stringify!($t));
+            $(assert_eq!(offset_of!($t, $f), $at, "{}::{}", stringify!($t), stringify!($f));)*
+        };
+    }
+    layout!(
+        RequestHeader,
+        152,
+        version = 0,
+        kind = 4,
+        request_id = 8,
+        client_node = 16,
+        pose = 32,
+        point_count = 88,
+        flags = 92,
+        k = 96,
+        mode = 100,
+        radius = 104,
+        max_pair_dist = 108,
+        max_iterations = 112,
+        max_correction = 116,
+        keyframe_or_scan_id = 120,
+        imu_t0 = 128,
+        expected_inlier_ratio = 136,
+        reserved = 140,
+        stamp = 144
+    );
+    layout!(
+        WirePairing,
+        56,
+        query = 0,
+        local_index = 4,
+        keyframe = 8,
+        point = 16,
+        dist_sq = 28,
+        information = 32
+    );
+    layout!(
+        ResponseHeader,
+        3192,
+        version = 0,
+        status = 4,
+        request_id = 8,
+        detail = 16,
+        message_len = 24,
+        active_len = 28,
+        active = 32,
+        server_us = 160,
+        pose = 168,
+        covariance = 224,
+        fitness = 512,
+        iterations = 528,
+        converged = 532,
+        tracking = 536,
+        reasons = 540,
+        registrations = 544,
+        degenerate = 548,
+        constraint = 552,
+        pose_correction = 568,
+        relocalization = 576,
+        candidates = 580,
+        place_scores = 584,
+        tight_fitness = 600,
+        has_gravity = 608,
+        gravity_members = 612,
+        gravity = 616,
+        roll_pitch = 640,
+        correction = 656,
+        gravity_inliers = 688,
+        gravity_compensated = 692,
+        gravity_pending = 696,
+        gravity_skipped = 700,
+        bias_observable = 704,
+        gravity_reserved = 708,
+        gravity_spread_deg = 712,
+        accel_bias = 720,
+        accel_bias_sigma = 744,
+        map_keyframes = 768,
+        map_points = 776,
+        uptime_s = 784,
+        counts = 792,
+        p50_us = 872,
+        p99_us = 912,
+        sessions = 952,
+        in_flight = 956,
+        map_name_len = 960,
+        map_name = 964,
+        message = 1028,
+        session_gravity = 1272
+    );
+    layout!(
+        WireSessionGravity,
+        120,
+        client_node = 0,
+        members = 16,
+        compensated = 20,
+        pending = 24,
+        skipped = 28,
+        inliers = 32,
+        has_gravity = 36,
+        bias_observable = 40,
+        busy = 44,
+        roll_pitch = 48,
+        spread_deg = 64,
+        accel_bias = 72,
+        gravity = 96
+    );
+}

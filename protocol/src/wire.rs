@@ -1,0 +1,394 @@
+//! The `#[repr(C)]` types on the wire. Layouts and type names are stable within a
+//! protocol version, so clients built on iceoryx2's C, C++ or Python bindings can speak
+//! the protocol (ARCHITECTURE section 11).
+
+use iceoryx2::prelude::ZeroCopySend;
+
+/// Bytes of a response's status message (UTF-8, zero padded).
+pub const MESSAGE_LEN: usize = 240;
+/// Request kinds counted in a status report (index = kind code).
+pub const KIND_SLOTS: usize = 10;
+/// Bytes of the map name in a status report.
+pub const NAME_LEN: usize = 64;
+/// Sessions whose gravity pool a status report lists, at most.
+pub const STATUS_SESSIONS: usize = 16;
+
+/// Header of every request. The payload is `[f32]`: for scan requests `3 n` point
+/// coordinates (sensor frame, metres), then `3 n` view directions when
+/// `flags & FLAG_VIEW_DIRS`, then `6 n` packed covariances (xx xy xz yy yz zz, m^2) when
+/// `flags & FLAG_COVARIANCES`; for IMU windows `7 n` values per sample (seconds after
+/// `imu_t0`, specific force xyz m/s^2, angular rate xyz rad/s).
+///
+/// Layout (protocol 4, 152 bytes, byte offsets): version 0, kind 4, request_id 8,
+/// client_node 16, pose 32, point_count 88, flags 92, k 96, mode 100, radius 104,
+/// max_pair_dist 108, max_iterations 112, max_correction 116 (was `reserved` in
+/// protocol 2), keyframe_or_scan_id 120, imu_t0 128, expected_inlier_ratio 136 (new
+/// in protocol 3), reserved 140, stamp 144 (new in protocol 4).
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("kfmap::RequestHeader")]
+pub struct RequestHeader {
+    /// [`super::PROTOCOL_VERSION`] of the sender.
+    pub version: u32,
+    /// [`super::RequestKind`] code.
+    pub kind: u32,
+    /// Chosen by the client, echoed in the response.
+    pub request_id: u64,
+    /// The client's iceoryx2 node id (high word first): its session (active set, gravity
+    /// pool) lives until that node is gone.
+    pub client_node: [u64; 2],
+    /// Pose guess `T_map_sensor`: x, y, z (metres), qx, qy, qz, qw.
+    pub pose: [f64; 7],
+    /// Points (or IMU samples) in the payload.
+    pub point_count: u32,
+    /// `FLAG_*` bits: which optional arrays follow the points.
+    pub flags: u32,
+    /// Neighbours per point (`Nearest`).
+    pub k: u32,
+    /// [`super::Cov2CovMode`] code (`Cov2Cov`, `Localize`).
+    pub mode: u32,
+    /// Search radius, metres (`Radius`).
+    pub radius: f32,
+    /// Largest pairing distance, metres (`Cov2Cov`, `Localize`).
+    pub max_pair_dist: f32,
+    /// Iterations at most (`Localize`).
+    pub max_iterations: u32,
+    /// `Localize`: the largest correction from the pose guess (the client's prediction)
+    /// its motion model allows, metres of translation plus the chord a point at
+    /// [`kfmap_shared::tracking::CORRECTION_RANGE_M`] sweeps; 0 = no motion model (no bound).
+    pub max_correction: f32,
+    /// Keyframe or scan the IMU window belongs to (`ImuWindow`).
+    pub keyframe_or_scan_id: u64,
+    /// Time origin of the IMU samples, seconds (`ImuWindow`).
+    pub imu_t0: f64,
+    /// `Localize`: the inlier ratio the client's tracker expects (that of its scans
+    /// before); a first registration well below it is retried. 0 = unknown.
+    pub expected_inlier_ratio: f32,
+    /// Reserved, zero.
+    pub reserved: u32,
+    /// With `FLAG_STAMPED`: the time `pose` was taken at, seconds on the IMU's clock
+    /// (`Localize`: the scan's; `ImuWindow`: the window's end, its keyframe's). The
+    /// session keeps these stamped poses to remove the platform's own acceleration
+    /// from its IMU windows.
+    pub stamp: f64,
+}
+
+/// View directions follow the points.
+pub const FLAG_VIEW_DIRS: u32 = 1;
+/// Packed covariances follow the points (and view directions).
+pub const FLAG_COVARIANCES: u32 = 2;
+/// `stamp` holds the pose's time.
+pub const FLAG_STAMPED: u32 = 4;
+/// `Relocalize`: the pose guess's rotation gives the sensor's tilt (roll and pitch from
+/// an IMU), its yaw and position are ignored; without it, up is found from the scan.
+pub const FLAG_LEVELLED: u32 = 8;
+
+impl Default for RequestHeader {
+    fn default() -> Self {
+        Self {
+            version: super::PROTOCOL_VERSION,
+            kind: 0,
+            request_id: 0,
+            client_node: [0; 2],
+            pose: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+            point_count: 0,
+            flags: 0,
+            k: 1,
+            mode: 0,
+            radius: 0.0,
+            max_pair_dist: 0.0,
+            max_iterations: 0,
+            max_correction: 0.0,
+            keyframe_or_scan_id: 0,
+            imu_t0: 0.0,
+            expected_inlier_ratio: 0.0,
+            reserved: 0,
+            stamp: 0.0,
+        }
+    }
+}
+
+/// One answer element: a map point found for query point `query`. Nearest and radius
+/// answers leave `information` zero; cov2cov answers carry `(C_map + R C_q R^T)^-1`.
+///
+/// Layout (56 bytes): query 0, local_index 4, keyframe 8, point 16, dist_sq 28,
+/// information 32.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("kfmap::WirePairing")]
+pub struct WirePairing {
+    /// Index of the query point in the request.
+    pub query: u32,
+    /// Local index of the map point in its keyframe.
+    pub local_index: u32,
+    /// Keyframe holding the map point.
+    pub keyframe: u64,
+    /// The map point, map frame, metres.
+    pub point: [f32; 3],
+    /// Squared distance to the (moved) query point, m^2.
+    pub dist_sq: f32,
+    /// Packed information matrix (xx xy xz yy yz zz), 1/m^2, map frame.
+    pub information: [f32; 6],
+}
+
+/// Header of every response; the payload is `[WirePairing]`.
+///
+/// Layout (protocol 6, 3192 bytes, byte offsets): version 0, status 4, request_id 8,
+/// detail 16, message_len 24, active_len 28, active 32, server_us 160, pose 168,
+/// covariance 224, fitness 512, iterations 528, converged 532, tracking 536 (new in
+/// protocol 3, as the next five), reasons 540, registrations 544, degenerate 548,
+/// constraint 552, pose_correction 568, relocalization 576 (new in protocol 6, as the
+/// next three), candidates 580, place_scores 584, tight_fitness 600, has_gravity 608,
+/// gravity_members 612, gravity 616, roll_pitch 640, correction 656, gravity_inliers
+/// 688 (new in protocol 4, as the next eight), gravity_compensated 692,
+/// gravity_pending 696, gravity_skipped 700, bias_observable 704, gravity_reserved
+/// 708, gravity_spread_deg 712, accel_bias 720, accel_bias_sigma 744, map_keyframes
+/// 768, map_points 776, uptime_s 784, counts 792, p50_us 872, p99_us 912, sessions
+/// 952, in_flight 956, map_name_len 960, map_name 964, message 1028, session_gravity
+/// 1272 (new in protocol 4).
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("kfmap::ResponseHeader")]
+pub struct ResponseHeader {
+    /// [`super::PROTOCOL_VERSION`] of the server.
+    pub version: u32,
+    /// [`super::StatusCode`] code.
+    pub status: u32,
+    /// The request's id.
+    pub request_id: u64,
+    /// Error detail, e.g. the index of the first non-finite point.
+    pub detail: u64,
+    /// Bytes used in `message`.
+    pub message_len: u32,
+    /// Active keyframes used (first `active_len` of `active`).
+    pub active_len: u32,
+    /// Active keyframe ids.
+    pub active: [u64; 16],
+    /// Server compute time, microseconds.
+    pub server_us: f64,
+    /// `Localize`: solved `T_map_sensor` (x y z qx qy qz qw). `Status`: `T_map_input`,
+    /// how bake moved the input poses into the map frame (gravity levelling).
+    pub pose: [f64; 7],
+    /// `Localize`: 6x6 pose covariance, row-major, all zero when unknown: the inverse
+    /// Hessian scaled by the residual variance, of the perturbation `T exp(d)` with `d`
+    /// = (rotation rad, translation m) in the sensor frame, rotation first
+    /// ([`kfmap_shared::tracking::pose_covariance`]).
+    pub covariance: [f64; 36],
+    /// `Localize`: inlier ratio and RMSE (metres).
+    pub fitness: [f64; 2],
+    /// `Localize`: solver iterations over every registration run; 1 in `converged`
+    /// when the registration the pose came from converged.
+    pub iterations: u32,
+    /// See `iterations`.
+    pub converged: u32,
+    /// `Localize`: [`kfmap_shared::tracking::TrackingStatus`] code (0 ok, 1 degraded, 2 lost;
+    /// lost answers carry the pose guess).
+    pub tracking: u32,
+    /// `Localize`: [`kfmap_shared::tracking::Reasons`] bits.
+    pub reasons: u32,
+    /// `Localize`: registrations run (1 when the first passed every check).
+    pub registrations: u32,
+    /// `Localize`: 1 when the Hessian is degenerate.
+    pub degenerate: u32,
+    /// `Localize`: min/max eigenvalue ratios of the Hessian's rotation and translation
+    /// blocks.
+    pub constraint: [f64; 2],
+    /// `Localize`: correction from the pose guess, metres (as `max_correction`).
+    pub pose_correction: f64,
+    /// `Relocalize`: [`kfmap_shared::place::RelocalizeStatus`] code (0 found, 1 ambiguous,
+    /// 2 not-found). `pose`, `covariance`, `fitness` are the best place's.
+    pub relocalization: u32,
+    /// `Relocalize`: places the search proposed (each verified by registration).
+    pub candidates: u32,
+    /// `Relocalize`: the best place's verification score and the best other place's
+    /// (share of the coarse scan paired at the request's distance; 0: none).
+    pub place_scores: [f64; 2],
+    /// `Relocalize`: share of the scan paired within 0.3 times the request's distance
+    /// at the answered pose (`found` needs 0.4).
+    pub tight_fitness: f64,
+    /// `ImuWindow`: 1 when a correction is available.
+    pub has_gravity: u32,
+    /// `ImuWindow`: keyframes pooled in this session.
+    pub gravity_members: u32,
+    /// `ImuWindow`: gravity estimate in the map frame, m/s^2.
+    pub gravity: [f64; 3],
+    /// `ImuWindow`: roll and pitch of the correction, radians.
+    pub roll_pitch: [f64; 2],
+    /// `ImuWindow`: correction rotation (qx qy qz qw).
+    pub correction: [f64; 4],
+    /// `ImuWindow`: pool members within the Huber threshold of the estimate.
+    pub gravity_inliers: u32,
+    /// `ImuWindow`: pool members whose platform acceleration was removed (the rest
+    /// are raw means: the session's stamped poses did not cover them closely enough).
+    /// The correction is only as good as a raw mean unless this equals
+    /// `gravity_members`.
+    pub gravity_compensated: u32,
+    /// `ImuWindow`: windows held until a stamped pose after them arrives (their
+    /// platform acceleration needs the motion on both sides); pooled then.
+    pub gravity_pending: u32,
+    /// `ImuWindow`: stamped windows left out because the session's stamped poses did
+    /// not bracket them (two on each side, at most 1 s apart).
+    pub gravity_skipped: u32,
+    /// `ImuWindow`: 1 when the motion so far determines every axis of the bias.
+    pub bias_observable: u32,
+    /// Reserved, zero.
+    pub gravity_reserved: u32,
+    /// `ImuWindow`: weighted RMS angle of the members about the estimate, degrees.
+    pub gravity_spread_deg: f64,
+    /// `ImuWindow`: accelerometer bias estimated with gravity, body frame, m/s^2.
+    pub accel_bias: [f64; 3],
+    /// `ImuWindow`: its standard deviation per axis, m/s^2 (zero when unknown).
+    pub accel_bias_sigma: [f64; 3],
+    /// `Status`: keyframes and points of the map.
+    pub map_keyframes: u64,
+    /// See `map_keyframes`.
+    pub map_points: u64,
+    /// `Status`: seconds since the server started.
+    pub uptime_s: f64,
+    /// `Status`: requests answered per kind code.
+    pub counts: [u64; KIND_SLOTS],
+    /// `Status`: median latency per kind, microseconds.
+    pub p50_us: [f32; KIND_SLOTS],
+    /// `Status`: 99th percentile latency per kind, microseconds.
+    pub p99_us: [f32; KIND_SLOTS],
+    /// `Status`: open sessions.
+    pub sessions: u32,
+    /// `Status`: requests being answered right now (taken by a worker, not yet sent).
+    pub in_flight: u32,
+    /// `Status`: bytes used in `map_name`.
+    pub map_name_len: u32,
+    /// `Status`: the served map's name.
+    pub map_name: [u8; NAME_LEN],
+    /// Status message (UTF-8).
+    pub message: [u8; MESSAGE_LEN],
+    /// `Status`: the gravity pool of each session (the first `min(sessions, 16)`, by
+    /// client id); unused slots are zero.
+    pub session_gravity: [WireSessionGravity; STATUS_SESSIONS],
+}
+
+/// One session's gravity pool in a status report.
+///
+/// Layout (120 bytes): client_node 0, members 16, compensated 20, pending 24, skipped
+/// 28, inliers 32, has_gravity 36, bias_observable 40, busy 44, roll_pitch 48,
+/// spread_deg 64, accel_bias 72, gravity 96.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("kfmap::WireSessionGravity")]
+pub struct WireSessionGravity {
+    /// The client's node id (as in requests); zero for an unused slot.
+    pub client_node: [u64; 2],
+    /// Pool members, and those motion-compensated.
+    pub members: u32,
+    /// See `members`.
+    pub compensated: u32,
+    /// Windows waiting for a later pose, and stamped windows left out.
+    pub pending: u32,
+    /// See `pending`.
+    pub skipped: u32,
+    /// Members within the Huber threshold.
+    pub inliers: u32,
+    /// 1 when the pool gives a correction.
+    pub has_gravity: u32,
+    /// 1 when the motion so far determines the accelerometer bias.
+    pub bias_observable: u32,
+    /// 1 when the session was answering a request and was not read.
+    pub busy: u32,
+    /// Roll and pitch of the correction, radians.
+    pub roll_pitch: [f64; 2],
+    /// Weighted RMS angle of the members about the estimate, degrees.
+    pub spread_deg: f64,
+    /// Accelerometer bias, body frame, m/s^2.
+    pub accel_bias: [f64; 3],
+    /// Gravity estimate in the map frame, m/s^2.
+    pub gravity: [f64; 3],
+}
+
+impl Default for ResponseHeader {
+    fn default() -> Self {
+        Self {
+            version: super::PROTOCOL_VERSION,
+            status: 0,
+            request_id: 0,
+            detail: 0,
+            message_len: 0,
+            active_len: 0,
+            active: [0; 16],
+            server_us: 0.0,
+            pose: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+            covariance: [0.0; 36],
+            fitness: [0.0; 2],
+            iterations: 0,
+            converged: 0,
+            tracking: 0,
+            reasons: 0,
+            registrations: 0,
+            degenerate: 0,
+            constraint: [0.0; 2],
+            pose_correction: 0.0,
+            relocalization: 0,
+            candidates: 0,
+            place_scores: [0.0; 2],
+            tight_fitness: 0.0,
+            has_gravity: 0,
+            gravity_members: 0,
+            gravity: [0.0; 3],
+            roll_pitch: [0.0; 2],
+            correction: [0.0, 0.0, 0.0, 1.0],
+            gravity_inliers: 0,
+            gravity_compensated: 0,
+            gravity_pending: 0,
+            gravity_skipped: 0,
+            bias_observable: 0,
+            gravity_reserved: 0,
+            gravity_spread_deg: 0.0,
+            accel_bias: [0.0; 3],
+            accel_bias_sigma: [0.0; 3],
+            map_keyframes: 0,
+            map_points: 0,
+            uptime_s: 0.0,
+            counts: [0; KIND_SLOTS],
+            p50_us: [0.0; KIND_SLOTS],
+            p99_us: [0.0; KIND_SLOTS],
+            sessions: 0,
+            in_flight: 0,
+            map_name_len: 0,
+            map_name: [0; NAME_LEN],
+            message: [0; MESSAGE_LEN],
+            session_gravity: [WireSessionGravity::default(); STATUS_SESSIONS],
+        }
+    }
+}
+
+/// Copies `text` into a fixed buffer, cut at a character boundary; returns bytes used.
+pub fn write_text<const N: usize>(buffer: &mut [u8; N], text: &str) -> u32 {
+    let mut end = text.len().min(N);
+    while !text.is_char_boundary(end) {
+        end -= 1;
+    }
+    buffer[..end].copy_from_slice(&text.as_bytes()[..end]);
+    buffer[end..].fill(0);
+    end as u32
+}
+
+/// The text in a fixed buffer (lossy on invalid UTF-8 from a foreign client).
+pub fn read_text(buffer: &[u8], len: u32) -> String {
+    let len = (len as usize).min(buffer.len());
+    String::from_utf8_lossy(&buffer[..len]).into_owned()
+}
+
+impl ResponseHeader {
+    /// The status message.
+    pub fn message(&self) -> String {
+        read_text(&self.message, self.message_len)
+    }
+
+    /// The map name of a status report.
+    pub fn map_name(&self) -> String {
+        read_text(&self.map_name, self.map_name_len)
+    }
+
+    /// Sets the status message.
+    pub fn set_message(&mut self, text: &str) {
+        self.message_len = write_text(&mut self.message, text);
+    }
+}
