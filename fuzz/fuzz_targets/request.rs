@@ -12,7 +12,7 @@
 mod common;
 
 use arbitrary::{Arbitrary, Unstructured};
-use kfmap_service::server::answer::localize_params;
+use kfmap_service::server::localize_params;
 use kfmap_protocol::{
     Cov2CovMode, FLAG_COVARIANCES, FLAG_STAMPED, FLAG_VIEW_DIRS, IMU_SAMPLE_FLOATS, MESSAGE_LEN,
     PROTOCOL_VERSION, RequestHeader, RequestKind, StatusCode, WirePairing, check_version,

@@ -10,7 +10,7 @@ use std::sync::{Arc, Mutex};
 
 use kfmap_protocol::{Rejection, RequestHeader, RequestKind, StatusCode};
 
-use super::answer::{MAX_K, PAIRING_BYTES};
+use super::limits::{MAX_K, PAIRING_BYTES};
 use crate::config::ServerSection;
 
 /// Scratch a request needs per scan point besides its answer: the decoded and moved

@@ -4,11 +4,17 @@
 //! main thread reclaims the sessions of clients that died, ends the loop gracefully on
 //! SIGINT/SIGTERM, and swaps in a new map file on SIGHUP (or a `Reload` request).
 
-pub mod answer;
+mod answer;
 mod budget;
+mod dispatch;
+mod imu;
 mod leader;
+mod limits;
+mod localize;
 mod ports;
+mod queries;
 mod queue;
+mod register;
 mod relocalize;
 pub mod session;
 pub mod state;
@@ -34,9 +40,12 @@ use kfmap_shared::archive::ArchiveError;
 use tracing::{info, warn};
 
 use crate::config::ServerConfig;
-use answer::Limits;
+pub use answer::{Answer, AnswerPairings};
 use budget::{Budget, BudgetLimits};
+pub use dispatch::answer;
 use leader::Requests;
+pub use limits::Limits;
+pub use localize::localize_params;
 use ports::ClientPorts;
 use queue::FairQueue;
 use session::Sessions;

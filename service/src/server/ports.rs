@@ -8,8 +8,13 @@
 use std::collections::HashMap;
 use std::sync::Mutex;
 
+use iceoryx2::active_request::ActiveRequest;
 use iceoryx2::identifiers::UniqueClientId;
-use kfmap_protocol::transport::{Rpc, registered_clients};
+use kfmap_protocol::transport::{Rpc, Transport, registered_clients};
+use kfmap_protocol::{RequestHeader, ResponseHeader, WirePairing};
+
+/// A request as the server port hands it over.
+pub type Request = ActiveRequest<Transport, [f32], RequestHeader, [WirePairing], ResponseHeader>;
 
 /// The node and process behind a client port.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -10,10 +10,10 @@ use kfmap_shared::place::{RelocalizeStatus, propose, verify};
 use kfmap_shared::tracking::{covariance_to_wire, pose_covariance};
 use nalgebra::Vector3;
 
-use super::answer::{
-    Answer, AnswerPairings, Limits, MapRegistration, ScanStages, bad, coarse_scan, exact_mode,
-    localize_params, register_approximate, with_active,
-};
+use super::answer::{Answer, AnswerPairings, bad, exact_mode, with_active};
+use super::limits::Limits;
+use super::localize::localize_params;
+use super::register::{MapRegistration, ScanStages, coarse_scan, register_approximate};
 use super::session::Session;
 use super::state::ServedMap;
 

@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 use kfmap_protocol::log_limit::warn_limited;
 
 use super::budget::Reservation;
-use super::workers::Request;
+use super::ports::Request;
 
 /// Answers smaller than this are let go at once (at most one per client port is
 /// unread at a time: one request in flight per port).

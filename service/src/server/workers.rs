@@ -3,35 +3,33 @@
 //! find its slot still taken and stall).
 
 use std::panic::AssertUnwindSafe;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
-use iceoryx2::active_request::ActiveRequest;
 use iceoryx2::port::notifier::Notifier;
 use kfmap_protocol::log_limit::warn_limited;
 use kfmap_protocol::transport::Transport;
 use kfmap_protocol::{
-    Rejection, RequestHeader, RequestKind, ResponseHeader, StatusCode, WirePairing,
-    WireSessionGravity, check_version, write_text,
+    Rejection, RequestHeader, RequestKind, ResponseHeader, StatusCode, WireSessionGravity,
+    check_version, write_text,
 };
+use kfmap_shared::archive::ArchiveError;
 use kfmap_shared::gravity::LiveAnswer;
 use tracing::{debug, info, warn};
 
-use std::sync::Arc;
-use std::sync::atomic::{AtomicUsize, Ordering};
-
-use super::answer::{Answer, AnswerPairings, Limits, PAIRING_BYTES, answer};
+use super::answer::{Answer, AnswerPairings};
 use super::budget::{Budget, Reservation, worst_case};
-use super::ports::{ClientPorts, Sender};
+use super::dispatch::answer;
+use super::limits::{Limits, PAIRING_BYTES};
+use super::ports::{ClientPorts, Request, Sender};
 use super::session::{Sessions, client_of};
+use super::state::MapSlot;
+use super::stats::Stats;
 use super::unread::UnreadAnswers;
 
 /// Free space `/dev/shm` keeps beyond an answer's segment: other processes' ports.
 const SHM_HEADROOM: u64 = 16 << 20;
-use super::state::MapSlot;
-use super::stats::Stats;
-
-/// A request as the server port hands it over.
-pub type Request = ActiveRequest<Transport, [f32], RequestHeader, [WirePairing], ResponseHeader>;
 
 /// A received request, when it arrived, and its share of the budget (given back when
 /// the job is dropped, after the response is sent).
@@ -326,15 +324,15 @@ impl WorkerContext<'_> {
                     pairings: AnswerPairings::default(),
                 }
             }
-            Err(message) => Answer::rejected(
+            Err(failed) => Answer::rejected(
                 request.request_id,
-                &Rejection::new(StatusCode::Internal, message),
+                &Rejection::new(StatusCode::Internal, failed.to_string()),
             ),
         }
     }
 
-    /// Reopens the map file and switches to it.
-    pub fn reload(&self) -> Result<String, String> {
+    /// Reopens the map file and switches to it; the message says what is served now.
+    pub fn reload(&self) -> Result<String, ReloadFailed> {
         match self.slot.reload(None, self.trust) {
             Ok(map) => {
                 let message = format!(
@@ -348,20 +346,22 @@ impl WorkerContext<'_> {
                 Ok(message)
             }
             Err(e) => {
-                let message = format!("reload failed, still serving the previous map: {e}");
-                warn!("{message}");
-                Err(message)
+                let failed = ReloadFailed(e);
+                warn!("{failed}");
+                Err(failed)
             }
         }
     }
 }
 
+/// A map reload that failed: the server keeps serving the map it had.
+#[derive(Debug, thiserror::Error)]
+#[error("reload failed, still serving the previous map: {0}")]
+pub struct ReloadFailed(pub ArchiveError);
+
 /// Loans a response of the answer's size, writes the pairings straight into it (no
 /// intermediate buffer) and sends it.
-fn send(
-    request: &ActiveRequest<Transport, [f32], RequestHeader, [WirePairing], ResponseHeader>,
-    answer: &Answer,
-) -> Result<(), String> {
+fn send(request: &Request, answer: &Answer) -> Result<(), String> {
     let mut response = request
         .loan_slice_uninit(answer.pairings.len())
         .map_err(|e| format!("{e:?}"))?;

@@ -10,8 +10,16 @@ use std::collections::HashSet;
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
 use super::level::{estimate_up, levelling};
-use super::search::SearchRegion;
 use crate::options::{InvalidOption, ensure};
+
+/// The translations searched: an axis-aligned box in the map frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SearchRegion {
+    /// Low corner, metres.
+    pub min: [f64; 3],
+    /// High corner, metres.
+    pub max: [f64; 3],
+}
 
 /// Maps tilt less than this from their frame's z (baked from gravity-levelled or
 /// reference poses); their floors are found within it.

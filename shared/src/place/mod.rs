@@ -17,12 +17,12 @@ pub mod level;
 pub mod relocalize;
 pub mod search;
 
-pub use grid::{GridBuilder, GridError, GridParams, GridView, PlaceGrid};
+pub use grid::{GridBuilder, GridError, GridParams, GridView, PlaceGrid, SearchRegion};
 pub use level::{estimate_up, levelling};
 pub use relocalize::{
     Proposal, Relocalization, RelocalizeParams, RelocalizeStatus, propose, verify,
 };
-pub use search::{Placement, SearchOutcome, SearchParams, SearchRegion, search};
+pub use search::{Placement, SearchOutcome, SearchParams, search};
 
 #[cfg(test)]
 pub(crate) mod tests;

@@ -14,7 +14,7 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::grid::GridView;
+use super::grid::{GridView, SearchRegion};
 use crate::geometry::Pose;
 use crate::options::{InvalidOption, ensure, ensure_ratio};
 
@@ -96,15 +96,6 @@ impl Default for SearchParams {
             yaw_range: 30.0,
         }
     }
-}
-
-/// The translations searched: an axis-aligned box in the map frame.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct SearchRegion {
-    /// Low corner, metres.
-    pub min: [f64; 3],
-    /// High corner, metres.
-    pub max: [f64; 3],
 }
 
 /// One placement of the scan.

@@ -5,8 +5,9 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
+use super::grid::SearchRegion;
 use super::grid::{GridParams, GridView, PlaceGrid};
-use super::search::{SearchParams, SearchRegion, search, yaw_step};
+use super::search::{SearchParams, search, yaw_step};
 use super::{GridBuilder, estimate_up};
 
 /// True when a marked level-0 voxel lies within half a half-resolution voxel's

@@ -1,0 +1,156 @@
+//! Registrations of a scan against the served map: the shared GICP loop iterated over
+//! the map's cov2cov pairings, in a client's session or outside any (in parallel).
+
+use kfmap_protocol::{DecodedScan, Rejection, correspondences_from_pairings};
+use kfmap_shared::cloud::PointCloud;
+use kfmap_shared::cov::estimate_covariances;
+use kfmap_shared::geometry::Pose;
+use kfmap_shared::map::Pairing;
+use kfmap_shared::registration::{RegistrationError, RegistrationResult, solve_pose};
+use kfmap_shared::tracking::Stage;
+
+use super::answer::{bad, map_error};
+use super::limits::Limits;
+use super::queries::{cov2cov, scan_cloud, scan_covariances};
+use super::session::Session;
+use super::state::ServedMap;
+
+/// A scan as registrations take it: as sent, and coarse (built on the first coarse
+/// registration, then reused), each with its covariances.
+pub(super) struct ScanStages<'s> {
+    scan: &'s DecodedScan<'s>,
+    limits: &'s Limits,
+    fine: Option<(PointCloud, Vec<[f32; 6]>)>,
+    coarse: Option<(PointCloud, Vec<[f32; 6]>)>,
+}
+
+impl<'s> ScanStages<'s> {
+    pub(super) fn new(scan: &'s DecodedScan<'s>, limits: &'s Limits) -> Self {
+        Self {
+            scan,
+            limits,
+            fine: None,
+            coarse: None,
+        }
+    }
+
+    /// The cloud and covariances `stage` registers (each built on first use).
+    pub(super) fn for_stage(
+        &mut self,
+        stage: &Stage,
+    ) -> Result<(&PointCloud, &[[f32; 6]]), Rejection> {
+        if !stage.coarse {
+            let (cloud, covs) = self.fine.get_or_insert_with(|| {
+                (
+                    scan_cloud(self.scan),
+                    scan_covariances(self.scan, self.limits),
+                )
+            });
+            return Ok((cloud, covs.as_slice()));
+        }
+        if self.coarse.is_none() {
+            self.coarse = Some(coarse_scan(self.scan, self.limits)?);
+        }
+        let (c, v) = self.coarse.as_ref().expect("built above");
+        Ok((c, v.as_slice()))
+    }
+}
+
+/// The coarse scan ([`TrackingParams::coarse_scan`]) with its covariances.
+pub(super) fn coarse_scan(
+    scan: &DecodedScan,
+    limits: &Limits,
+) -> Result<(PointCloud, Vec<[f32; 6]>), Rejection> {
+    let c = limits
+        .tracking
+        .coarse_scan(scan.points, scan.view_dirs)
+        .map_err(|e| bad(format!("coarse scan: {e}")))?;
+    let covs = estimate_covariances(&c.points, &limits.scan_covariance).values;
+    Ok((c, covs))
+}
+
+/// Registrations against the served map in one client's session.
+pub(super) struct MapRegistration<'a> {
+    pub(super) map: &'a ServedMap,
+    pub(super) session: &'a mut Session,
+    pub(super) exact: bool,
+    /// Keyframes of the last pairing.
+    pub(super) active: Vec<u64>,
+}
+
+impl MapRegistration<'_> {
+    /// One registration of `cloud` (with its covariances) from `start` over the map's
+    /// cov2cov pairings; `None` when no scan point has a pair.
+    pub(super) fn register(
+        &mut self,
+        cloud: &PointCloud,
+        covs: &[[f32; 6]],
+        start: &Pose,
+        stage: &Stage,
+    ) -> Result<Option<RegistrationResult>, Rejection> {
+        register_over(cloud, start, stage, |at| {
+            let (pairings, ids) = cov2cov(
+                self.map,
+                self.session,
+                cloud,
+                covs,
+                at,
+                stage.max_pair_dist as f32,
+                self.exact,
+            )?;
+            self.active = ids;
+            Ok(pairings)
+        })
+    }
+}
+
+/// As [`MapRegistration::register`] in approximate mode and outside any session (no
+/// merged-submap cache to share), so registrations may run on several threads.
+pub(super) fn register_approximate(
+    map: &ServedMap,
+    cloud: &PointCloud,
+    covs: &[[f32; 6]],
+    start: &Pose,
+    stage: &Stage,
+) -> Result<Option<RegistrationResult>, Rejection> {
+    register_over(cloud, start, stage, |at| {
+        let ids = map.map.select(at);
+        let active = map
+            .map
+            .activate_cached(ids, &mut None, false)
+            .map_err(map_error)?;
+        active
+            .cov2cov(cloud, at, stage.max_pair_dist, Some(covs))
+            .map_err(map_error)
+    })
+}
+
+/// The registration loop over `pairings_at(pose)`; `None` when no scan point has a pair.
+fn register_over(
+    cloud: &PointCloud,
+    start: &Pose,
+    stage: &Stage,
+    mut pairings_at: impl FnMut(&Pose) -> Result<Vec<Pairing>, Rejection>,
+) -> Result<Option<RegistrationResult>, Rejection> {
+    let result = solve_pose(start, &stage.params(), cloud.len(), |at| {
+        let pairings = pairings_at(at).map_err(LocalizeError::Rejected)?;
+        Ok::<_, LocalizeError>(correspondences_from_pairings(&pairings, &cloud.points))
+    });
+    match result {
+        Ok(r) => Ok(Some(r)),
+        Err(LocalizeError::Registration(RegistrationError::NoCorrespondences { .. })) => Ok(None),
+        Err(LocalizeError::Registration(e)) => Err(bad(format!("localization: {e}"))),
+        Err(LocalizeError::Rejected(r)) => Err(r),
+    }
+}
+
+enum LocalizeError {
+    Rejected(Rejection),
+    Registration(RegistrationError),
+}
+
+impl From<RegistrationError> for LocalizeError {
+    fn from(e: RegistrationError) -> Self {
+        Self::Registration(e)
+    }
+}
