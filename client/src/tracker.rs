@@ -1,4 +1,4 @@
-//! The client-side tracker (ARCHITECTURE section 12): predicts each scan's pose with a
+//! The client-side tracker (docs/DESIGN.md#tracking): predicts each scan's pose with a
 //! constant-velocity model (rotation from the gyro when it has an IMU log), deskews
 //! scans that carry per-point times into their mid-scan frame, bounds the correction
 //! localization may make by how wrong the predictions have been (an adaptive gate,

@@ -1,4 +1,4 @@
-//! The map server's wire protocol over iceoryx2 (ARCHITECTURE section 11): service
+//! The map server's wire protocol over iceoryx2 (docs/DESIGN.md#protocol): service
 //! names, request kinds, status codes, the `#[repr(C)]` headers and the payload layout,
 //! and the checks a server applies to every request before touching the map.
 //!

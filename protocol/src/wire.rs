@@ -1,6 +1,6 @@
 //! The `#[repr(C)]` types on the wire. Layouts and type names are stable within a
 //! protocol version, so clients built on iceoryx2's C, C++ or Python bindings can speak
-//! the protocol (ARCHITECTURE section 11).
+//! the protocol (docs/DESIGN.md#protocol).
 
 use iceoryx2::prelude::ZeroCopySend;
 

@@ -828,7 +828,7 @@ fn source_const(text: &str, name: &str) -> Option<f64> {
 
 /// The value a limit's source gives, or why it cannot be read.
 fn limit_source(source: &str) -> Result<f64, String> {
-    if source.starts_with("kfmap_shared::") {
+    if source.starts_with("kfmap_shared::") || source.starts_with("kfmap_protocol::") {
         return constants()
             .into_iter()
             .find(|(n, _)| *n == source)
@@ -921,7 +921,7 @@ fn service_settings_match_the_sources() {
         }
     }
     // Every limit the services are built with is in the table.
-    let transport = repo_file("shared/src/protocol/transport.rs");
+    let transport = repo_file("protocol/src/transport.rs");
     for function in ["open_rpc", "open_event"] {
         for line in function_body(&transport, function).lines() {
             let line = line.trim();
@@ -938,7 +938,7 @@ fn service_settings_match_the_sources() {
 
 /// The iceoryx2 type name each wire struct declares (`#[type_name(...)]` in wire.rs).
 fn declared_type_names() -> BTreeMap<String, String> {
-    let wire = repo_file("shared/src/protocol/wire.rs");
+    let wire = repo_file("protocol/src/wire.rs");
     let mut names = BTreeMap::new();
     let mut pending: Option<String> = None;
     for line in wire.lines().map(str::trim) {
@@ -1028,7 +1028,7 @@ fn payload_types_match_the_doc() {
     // The service carries these types in these roles.
     c.truth(
         "transport::Rpc is [f32] + RequestHeader -> [WirePairing] + ResponseHeader",
-        squeeze(&repo_file("shared/src/protocol/transport.rs")).contains(&squeeze(
+        squeeze(&repo_file("protocol/src/transport.rs")).contains(&squeeze(
             "RpcFactory<Transport, [f32], RequestHeader, [WirePairing], ResponseHeader>",
         )),
     );

@@ -1,5 +1,5 @@
 """Poses as they travel: 4x4 ``T_map_sensor`` matrices in Python, ``x y z qx qy qz qw``
-on the wire (``pose_to_wire`` / ``pose_from_wire`` in ``shared/src/protocol/mod.rs``).
+on the wire (``pose_to_wire`` / ``pose_from_wire`` in ``protocol/src/lib.rs``).
 """
 
 from __future__ import annotations

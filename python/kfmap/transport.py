@@ -1,5 +1,5 @@
 """The iceoryx2 side of a connection: the map's services opened with the settings the
-server uses (``shared/src/protocol/transport.rs``), one request at a time with a
+server uses (``protocol/src/transport.rs``), one request at a time with a
 timeout, and reconnection after a timeout (``client/src/connection.rs``).
 """
 

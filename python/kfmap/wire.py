@@ -1,7 +1,7 @@
 """The kfmap wire protocol (protocol 6): the ``#[repr(C)]`` headers as ctypes
 structures, request kinds, flags and status codes.
 
-Mirrors ``shared/src/protocol/wire.rs`` and ``mod.rs``. iceoryx2 refuses to open a
+Mirrors ``protocol/src/wire.rs`` and ``lib.rs``. iceoryx2 refuses to open a
 service whose payload or header types differ from the server's in name, size or
 alignment, so every type here carries the type name the Rust side declares with
 ``#[type_name(...)]`` and the same layout (checked at import).

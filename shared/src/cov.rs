@@ -1,4 +1,4 @@
-//! Per-point covariance estimation (ARCHITECTURE section 5), as MOLA's
+//! Per-point covariance estimation (docs/DESIGN.md#covariances), as MOLA's
 //! `KeyframePointCloudMap` with its defects fixed: never a zero matrix, optional
 //! mean or query centring, plane regularization or eigenvalue flooring.
 
@@ -135,7 +135,7 @@ pub fn estimate_covariances(points: &[[f32; 3]], options: &CovOptions) -> Covari
     }
 }
 
-/// Steps 2-5 of ARCHITECTURE section 5 on the `neighbours` found for `query` in a
+/// Steps 2-5 of docs/DESIGN.md#covariances on the `neighbours` found for `query` in a
 /// cloud of `cloud_len` points.
 fn from_neighbours(
     cloud_len: usize,
@@ -184,7 +184,7 @@ fn from_neighbours(
     regularize(&scatter, options.lambda)
 }
 
-/// Step 4 of ARCHITECTURE section 5: plane regularization (`lambda > 0`) or eigenvalue
+/// Step 4 of docs/DESIGN.md#covariances: plane regularization (`lambda > 0`) or eigenvalue
 /// flooring (`lambda < 0`); `None` when the scatter is zero (coincident neighbours).
 fn regularize(scatter: &Matrix3<f64>, lambda: f64) -> PointEstimate {
     let s = symmetric_eigenvalues(scatter);

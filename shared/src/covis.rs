@@ -1,4 +1,4 @@
-//! Covisibility graph between keyframes, as ORB-SLAM2's (ARCHITECTURE section 7) but for
+//! Covisibility graph between keyframes, as ORB-SLAM2's (docs/DESIGN.md#covisibility) but for
 //! point clouds and symmetric: two keyframes are covisible by the number of occupied
 //! voxels (map frame) they share. Also the spanning tree and the essential graph.
 

@@ -1,6 +1,6 @@
 //! Pose helpers over `nalgebra::Isometry3<f64>` and packed symmetric 3x3 matrices.
 //!
-//! Conventions (ARCHITECTURE section 3): a pose `T_a_b` maps points expressed in frame
+//! Conventions (docs/DESIGN.md#conventions): a pose `T_a_b` maps points expressed in frame
 //! `b` into frame `a`; translations are in metres, angles in radians.
 
 use nalgebra::{Isometry3, Matrix3, Quaternion, Translation3, UnitQuaternion, Vector3};

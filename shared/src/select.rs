@@ -1,4 +1,4 @@
-//! Choosing the active keyframes for a query pose (ARCHITECTURE section 6, as MOLA
+//! Choosing the active keyframes for a query pose (docs/DESIGN.md#keyframe-selection, as MOLA
 //! `KeyframePointCloudMap`): the nearest by a translation + rotation metric, plus
 //! "diverse" slots that prefer a different relative heading.
 

@@ -1,5 +1,5 @@
 //! Incremental sufficient statistics of a point set, as UFO's `Surfel`
-//! (ARCHITECTURE section 4): count, sum and scatter matrix, with exact add, remove and
+//! (docs/DESIGN.md#surfels): count, sum and scatter matrix, with exact add, remove and
 //! merge, all in f64.
 
 use std::ops::{Add, AddAssign, Sub, SubAssign};

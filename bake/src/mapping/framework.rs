@@ -1,4 +1,4 @@
-//! The registration framework (ARCHITECTURE section 9, after PCL's design): algorithms
+//! The registration framework (docs/DESIGN.md#registration, after PCL's design): algorithms
 //! apart from data. Clouds are never moved; only their poses change.
 
 use nalgebra::{Matrix6, Vector6};

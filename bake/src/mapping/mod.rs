@@ -1,4 +1,4 @@
-//! Map building from raw scans (ARCHITECTURE section 9): scan-to-local-map odometry,
+//! Map building from raw scans (docs/DESIGN.md#map-building): scan-to-local-map odometry,
 //! keyframes, keyframe-to-keyframe registration, distance loop detection verified by
 //! GICP, pose-graph optimization; every scan's pose follows its keyframe.
 

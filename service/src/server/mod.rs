@@ -1,5 +1,5 @@
 //! `kfmap serve`: one process owns a baked map and answers clients over iceoryx2
-//! (ARCHITECTURE sections 1 and 11). A worker pool takes turns waiting for requests
+//! (docs/DESIGN.md#overview, docs/DESIGN.md#protocol). A worker pool takes turns waiting for requests
 //! (or spinning) and queues them per client; the workers answer them round-robin; the
 //! main thread reclaims the sessions of clients that died, ends the loop gracefully on
 //! SIGINT/SIGTERM, and swaps in a new map file on SIGHUP (or a `Reload` request).

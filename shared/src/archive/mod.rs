@@ -1,4 +1,4 @@
-//! Baked maps (ARCHITECTURE section 10): one `.kfmap` file, memory-mapped read-only and
+//! Baked maps (docs/DESIGN.md#archive): one `.kfmap` file, memory-mapped read-only and
 //! queried in place.
 //!
 //! Layout: a fixed 4096-byte [`Header`] (magic, format version, endianness, pointer

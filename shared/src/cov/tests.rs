@@ -3,7 +3,7 @@ use crate::geometry::unpack_sym3;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
-/// Oracle: the specification of ARCHITECTURE section 5 written as plainly as possible,
+/// Oracle: the specification of docs/DESIGN.md#covariances written as plainly as possible,
 /// with a linear scan instead of a tree.
 pub(crate) fn brute_force(points: &[[f32; 3]], options: &CovOptions) -> Vec<PackedSym3> {
     let as_f64 = |p: &[f32; 3]| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64);

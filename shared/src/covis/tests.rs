@@ -156,7 +156,7 @@ fn op(extent: i64) -> impl Strategy<Value = Op> {
     ]
 }
 
-/// The graph of ARCHITECTURE section 7 computed from scratch: `a`-`b` is an edge when
+/// The graph of docs/DESIGN.md#covisibility computed from scratch: `a`-`b` is an edge when
 /// they share at least `min_weight` voxels, or when one of them has no such partner
 /// and the other is its strongest (ties: lower id).
 fn brute_force_edges(

@@ -1,5 +1,5 @@
 //! Gravity from a pool of per-keyframe accelerometer means (MOLA's `GravityMapAligner`,
-//! ARCHITECTURE section 8), plus motion compensation: the platform's own acceleration,
+//! docs/DESIGN.md#gravity), plus motion compensation: the platform's own acceleration,
 //! known from the pose trajectory, is removed from each mean before pooling.
 //!
 //! ```
@@ -41,7 +41,7 @@ pub use motion::{MotionModel, compensated_sample};
 pub use pool::{KeyframeStamp, PoolFill, fill_pool};
 pub use window::{ImuWindow, KfAccSample, MIN_ACC_STD};
 
-/// Aligner parameters (defaults from ARCHITECTURE section 8).
+/// Aligner parameters (defaults from docs/DESIGN.md#gravity).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
 pub struct GravityParams {

@@ -39,7 +39,7 @@ enum KeyframeData {
 pub struct HeapKeyframe {
     /// Local points.
     pub points: Vec<[f32; 3]>,
-    /// Local view directions (sensor to point, unit), if the scan had them.
+    /// Local view directions (unit, from the point towards the sensor), if the scan had them.
     pub view_dirs: Option<Vec<[f32; 3]>>,
     /// Local per-point covariances.
     pub covariances: Vec<PackedSym3>,

@@ -1,4 +1,4 @@
-//! The keyframe map, as MOLA `KeyframePointCloudMap` (ARCHITECTURE section 6):
+//! The keyframe map, as MOLA `KeyframePointCloudMap` (docs/DESIGN.md#keyframe-map):
 //! keyframes with local trees and covariances, active-set selection, nearest-neighbour
 //! and cov2cov queries in exact (merged submap) or approximate (per-keyframe) mode,
 //! eviction, and a covisibility graph kept up to date.

@@ -1,4 +1,4 @@
-//! `KeyframeMapOptions`: every option of ARCHITECTURE section 6 (MOLA
+//! `KeyframeMapOptions`: every option of docs/DESIGN.md#keyframe-map (MOLA
 //! `TCreationOptions` names and defaults), grouped by concern.
 
 use serde::{Deserialize, Serialize};
@@ -49,7 +49,7 @@ pub struct KeyframeMapOptions {
     pub remove_frames_farther_than: f64,
     /// Exact mode: fuse the merged submap's points that share a map-frame voxel of this
     /// edge (metres) into their centroid weighted by the keyframes' point weights; 0 =
-    /// off (plain concatenation, ARCHITECTURE section 6).
+    /// off (plain concatenation, docs/DESIGN.md#keyframe-map).
     pub fuse_voxel_size: f64,
 }
 

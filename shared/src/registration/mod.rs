@@ -1,4 +1,4 @@
-//! Registration (ARCHITECTURE section 9): pairwise GICP / ICP on a shared pose solver.
+//! Registration (docs/DESIGN.md#registration): pairwise GICP / ICP on a shared pose solver.
 //!
 //! ```
 //! use kfmap_shared::cloud::PointCloud;

@@ -1,5 +1,5 @@
 //! What a localized scan reports about itself: status, fitness, degeneracy and the
-//! pose covariance (ARCHITECTURE section 12).
+//! pose covariance (docs/DESIGN.md#tracking).
 
 use nalgebra::Matrix6;
 use serde::Serialize;

@@ -253,7 +253,7 @@ impl<E, F: FnMut(&Pose, &Stage) -> Result<Option<RegistrationResult>, E>> Runner
 }
 
 /// Localizes one scan from `prediction` (`T_map_sensor`) with the checks and retry
-/// ladder of ARCHITECTURE section 12. `register(start, stage)` runs one registration
+/// ladder of docs/DESIGN.md#tracking. `register(start, stage)` runs one registration
 /// (e.g. GICP over a map server's cov2cov pairings) and returns `None` when it found no
 /// correspondences. `fine` holds the request's pairing distance and iteration limit.
 ///

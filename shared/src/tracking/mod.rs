@@ -1,4 +1,4 @@
-//! Localization that knows when it is wrong (ARCHITECTURE section 12): every localized
+//! Localization that knows when it is wrong (docs/DESIGN.md#tracking): every localized
 //! scan gets its fitness, degeneracy, 6x6 covariance and a status `ok` / `degraded` /
 //! `lost`; a correction the motion model does not allow is retried from wider
 //! hypotheses and never adopted silently. Client-side and server-side localization
