@@ -184,9 +184,11 @@ impl Connection {
     ) -> Result<Response, ClientError> {
         let init = |h: &mut RequestHeader, payload: &mut [MaybeUninit<f32>]| {
             payload.fill(MaybeUninit::new(0.0));
-            // SAFETY: every element was just initialized.
+            // SAFETY: the line above initialized every element of `payload`, and
+            // `MaybeUninit<f32>` has the layout of `f32`.
             let floats = unsafe { &mut *(payload as *mut [MaybeUninit<f32>] as *mut [f32]) };
             fill(h, floats);
+            floats.len()
         };
         self.send_and_wait(header, len, init, copy_out)
     }
@@ -236,13 +238,13 @@ impl Connection {
         Ok(())
     }
 
-    /// Loans `len` floats, lets `init` initialize all of them, sends, and wakes the
-    /// server.
+    /// Loans `len` floats, lets `init` initialize them (it returns how many it wrote),
+    /// sends, and wakes the server.
     fn send(
         &mut self,
         mut header: RequestHeader,
         len: usize,
-        init: impl FnOnce(&mut RequestHeader, &mut [MaybeUninit<f32>]),
+        init: impl FnOnce(&mut RequestHeader, &mut [MaybeUninit<f32>]) -> usize,
     ) -> Result<(Pending, &Ports), ClientError> {
         header.client_node = self.client_node;
         header.request_id = self.next_request_id;
@@ -252,9 +254,12 @@ impl Connection {
             .rpc
             .loan_slice_uninit(len)
             .map_err(|e| ClientError::Transport(iox("loan a request")(e)))?;
-        init(&mut header, request.payload_mut());
+        let written = init(&mut header, request.payload_mut());
+        assert_eq!(written, len, "a request's payload is written whole");
         *request.user_header_mut() = header;
-        // SAFETY: `init` initialized every float (both callers guarantee it).
+        // SAFETY: `init` wrote the first `written` floats of the `len`-float loan (it
+        // counts its writes: `ScanPayload::write`, or `call_raw`'s zero-fill), and the
+        // assertion above checked `written == len`: every float is initialized.
         let request = unsafe { request.assume_init() };
         let pending = request
             .send()
@@ -268,7 +273,7 @@ impl Connection {
         &mut self,
         header: RequestHeader,
         len: usize,
-        init: impl FnOnce(&mut RequestHeader, &mut [MaybeUninit<f32>]),
+        init: impl FnOnce(&mut RequestHeader, &mut [MaybeUninit<f32>]) -> usize,
         read: impl FnOnce(&ResponseHeader, &[WirePairing]) -> R,
     ) -> Result<R, ClientError> {
         let timeout = self.options.timeout;

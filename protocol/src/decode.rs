@@ -72,8 +72,9 @@ impl ScanPayload<'_> {
     }
 
     /// Sets the header's count and flags, and writes exactly [`Self::float_len`] floats
-    /// to the front of `out`, e.g. a loaned shared-memory slice.
-    pub fn write(&self, header: &mut RequestHeader, out: &mut [MaybeUninit<f32>]) {
+    /// to the front of `out`, e.g. a loaned shared-memory slice; returns how many it
+    /// wrote, counted as it writes them (callers check it before `assume_init`).
+    pub fn write(&self, header: &mut RequestHeader, out: &mut [MaybeUninit<f32>]) -> usize {
         header.point_count = self.points.len() as u32;
         // The payload's own flags are set here; a pose stamp is the caller's.
         header.flags &= FLAG_STAMPED | FLAG_LEVELLED;
@@ -93,14 +94,17 @@ impl ScanPayload<'_> {
             header.flags |= FLAG_COVARIANCES;
             put(c.as_flattened());
         }
+        at
     }
 
     /// [`Self::write`] into a new vector.
     pub fn encode(&self, header: &mut RequestHeader) -> Vec<f32> {
         let mut out = vec![MaybeUninit::uninit(); self.float_len()];
-        self.write(header, &mut out);
+        let written = self.write(header, &mut out);
+        assert_eq!(written, out.len(), "write covers the whole payload");
         out.into_iter()
-            // SAFETY: `write` initialized every element (float_len of them).
+            // SAFETY: `write` wrote the first `written` elements, one by one, and the
+            // assertion above checked that this is every element of `out`.
             .map(|v| unsafe { v.assume_init() })
             .collect()
     }

@@ -54,6 +54,9 @@ pub struct Args {
     #[arg(long)]
     spin: bool,
     /// Skip bytechecks of keyframe archives on first use (checksums are still verified).
+    /// Only for files you baked yourself: the checksum catches accidental damage, not a
+    /// crafted file, and a crafted or malformed file served with --trust is undefined
+    /// behaviour (reads out of bounds, a crash or wrong answers). See docs/DESIGN.md#archive.
     #[arg(long)]
     trust: bool,
     /// iceoryx2 prefix of every shared-memory name; clients must use the same.
