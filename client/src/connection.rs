@@ -13,6 +13,7 @@ use kfmap_protocol::transport::{
     ALLOCATION, INITIAL_SLICE_LEN, Transport, TransportError, create_node, iceoryx_config, iox,
     no_room_for_client, open_request_event, open_response_event, open_rpc,
 };
+use kfmap_shared::cov::CovOptions;
 use std::mem::MaybeUninit;
 
 use kfmap_protocol::{
@@ -79,6 +80,9 @@ pub struct Connection {
     ports: Option<Ports>,
     client_node: [u64; 2],
     next_request_id: u64,
+    /// The server's `[covariance]` from its status report, once asked; forgotten on
+    /// reconnection (a restarted server may be configured otherwise).
+    pub(crate) served_covariance: Option<CovOptions>,
 }
 
 impl Connection {
@@ -94,6 +98,7 @@ impl Connection {
             ports: None,
             client_node: [(id >> 64) as u64, id as u64],
             next_request_id: 1,
+            served_covariance: None,
         };
         connection.ports()?;
         if !connection.server_present()? {
@@ -324,6 +329,7 @@ impl Connection {
     /// Cleans up dead nodes (e.g. a killed server) and rebuilds the ports on next use.
     pub fn reconnect(&mut self) {
         self.ports = None;
+        self.served_covariance = None;
         self.node.try_cleanup_dead_nodes();
     }
 }

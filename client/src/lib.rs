@@ -32,6 +32,7 @@ use kfmap_protocol::{
     WireSessionGravity, imu_payload, pose_from_wire, pose_to_wire,
 };
 use kfmap_shared::KeyframeId;
+use kfmap_shared::cov::CovOptions;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::imu::ImuSample;
 
@@ -126,6 +127,9 @@ pub struct StatusReport {
     pub map_from_input: Pose,
     /// The gravity pool of each session (at most 16, by client id).
     pub session_gravity: Vec<SessionGravity>,
+    /// How the server estimates covariances of scans sent without them (its
+    /// `server.toml` `[covariance]`).
+    pub scan_covariance: CovOptions,
 }
 
 /// One session's gravity pool in a status report.
@@ -280,6 +284,13 @@ impl Client {
             self.connection
                 .call(header(RequestKind::Status, &Pose::identity()), 0, |_, _| {})?;
         let h = r.header;
+        let scan_covariance = h.scan_covariance.to_options().ok_or_else(|| {
+            ClientError::Invalid(format!(
+                "the server sent invalid covariance options {:?}",
+                h.scan_covariance
+            ))
+        })?;
+        self.connection.served_covariance = Some(scan_covariance);
         let kinds = RequestKind::ALL
             .into_iter()
             .filter(|k| (*k as usize) < KIND_SLOTS && h.counts[*k as usize] > 0)
@@ -308,7 +319,18 @@ impl Client {
                     pool: GravityAnswer::from_session(g),
                 })
                 .collect(),
+            scan_covariance,
         })
+    }
+
+    /// How the server estimates the covariances of scans: its `[covariance]`, from a
+    /// status report (asked once per connection). Client-side localization estimates
+    /// with these, so it registers the same scan as the server would.
+    pub fn served_covariance_options(&mut self) -> Result<CovOptions, ClientError> {
+        match self.connection.served_covariance {
+            Some(options) => Ok(options),
+            None => Ok(self.status()?.scan_covariance),
+        }
     }
 
     /// Asks the server to reopen its map file; returns its message.

@@ -8,13 +8,11 @@ use kfmap_protocol::{
     Cov2CovMode, FLAG_STAMPED, RequestHeader, RequestKind, ScanPayload, correspondences_from_wire,
     localize_stage, pose_from_wire, pose_to_wire,
 };
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::cov::{CovOptions, estimate_covariances};
-use kfmap_shared::geometry::{PackedSym3, Pose};
+use kfmap_shared::geometry::Pose;
 use kfmap_shared::registration::{Constraint, RegistrationError, solve_pose};
 use kfmap_shared::tracking::{
-    Expectation, Reasons, ScanHealth, TrackingParams, TrackingStatus, covariance_from_wire,
-    localize_scan,
+    Expectation, PreparedScan, Reasons, ScanHealth, TrackingParams, TrackingStatus,
+    covariance_from_wire, localize_scan,
 };
 
 use crate::{Client, ClientError};
@@ -37,7 +35,8 @@ pub struct LocalizeOptions {
     /// registration well below it is retried from wider hypotheses. Sent as f32.
     pub expected_inlier_ratio: Option<f64>,
     /// Checks and retry ladder of client-side localization (server-side localization
-    /// uses the server's `[tracking]`, the same defaults).
+    /// uses the server's `[tracking]`, the same defaults). Scan covariances are
+    /// estimated with the server's `[covariance]` either way.
     pub tracking: TrackingParams,
     /// The scan's time, seconds on the IMU's clock: server-side localization then adds
     /// the adopted pose to the session's motion, which its gravity pool removes from
@@ -139,42 +138,29 @@ impl Client {
         tracking
             .validate()
             .map_err(|e| ClientError::Invalid(format!("tracking: {e}")))?;
-        // Estimated once here rather than by the server at every iterate; the server's
-        // shipped [covariance] settings are these defaults, so both solvers agree.
-        let estimated;
-        let covariances = match scan.covariances {
-            Some(c) => c,
-            None => {
-                estimated = estimate_covariances(scan.points, &CovOptions::default()).values;
-                &estimated
-            }
-        };
-        let fine = ScanPayload {
-            covariances: Some(covariances),
-            ..*scan
-        };
-        // The coarse scan as the server builds it, on the ladder's first coarse stage.
-        let mut coarse: Option<(PointCloud, Vec<PackedSym3>)> = None;
+        // Covariances estimated once here rather than by the server at every iterate,
+        // with the server's own [covariance], as server-side localization prepares it.
+        let served = self.served_covariance_options()?;
+        let mut prepared = PreparedScan::new(
+            scan.points,
+            scan.view_dirs,
+            scan.covariances,
+            served,
+            *tracking,
+        );
         let found = localize_scan(
             guess,
             &options.expectation(),
             localize_stage(options.max_pair_dist, options.max_iterations),
             tracking,
             |start, stage| {
-                if stage.coarse && coarse.is_none() {
-                    let c = tracking
-                        .coarse_scan(scan.points, scan.view_dirs)
-                        .map_err(|e| ClientError::Invalid(format!("coarse scan: {e}")))?;
-                    let covs = estimate_covariances(&c.points, &CovOptions::default()).values;
-                    coarse = Some((c, covs));
-                }
-                let payload = match (&coarse, stage.coarse) {
-                    (Some((cloud, covs)), true) => ScanPayload {
-                        points: &cloud.points,
-                        view_dirs: cloud.view_dirs.as_deref(),
-                        covariances: Some(covs),
-                    },
-                    _ => fine,
+                let (cloud, covariances) = prepared
+                    .for_stage(stage)
+                    .map_err(|e| ClientError::Invalid(format!("coarse scan: {e}")))?;
+                let payload = ScanPayload {
+                    points: &cloud.points,
+                    view_dirs: cloud.view_dirs.as_deref(),
+                    covariances: Some(covariances),
                 };
                 let result = solve_pose(start, &stage.params(), payload.points.len(), |pose| {
                     self.cov2cov_with(

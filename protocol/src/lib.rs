@@ -24,8 +24,8 @@ pub use decode::{
 };
 pub use wire::{
     FLAG_COVARIANCES, FLAG_LEVELLED, FLAG_STAMPED, FLAG_VIEW_DIRS, KIND_SLOTS, MESSAGE_LEN,
-    NAME_LEN, RequestHeader, ResponseHeader, STATUS_SESSIONS, WirePairing, WireSessionGravity,
-    read_text, write_text,
+    NAME_LEN, RequestHeader, ResponseHeader, STATUS_SESSIONS, WireCovOptions, WirePairing,
+    WireSessionGravity, read_text, write_text,
 };
 
 use kfmap_shared::geometry::{Pose, pose_from_xyz_quat, pose_to_xyz_quat};
@@ -33,7 +33,7 @@ pub use kfmap_shared::map::Cov2CovMode;
 use kfmap_shared::tracking::Stage;
 
 /// Version of this protocol; a peer of another version gets `VersionMismatch`.
-pub const PROTOCOL_VERSION: u32 = 6;
+pub const PROTOCOL_VERSION: u32 = 7;
 /// Default limit on points per request.
 pub const DEFAULT_MAX_POINTS: usize = 1 << 20;
 /// Floats per IMU sample in an `ImuWindow` payload.

@@ -196,7 +196,7 @@ fn header_layouts_are_the_documented_ones() {
     );
     layout!(
         ResponseHeader,
-        3192,
+        3232,
         version = 0,
         status = 4,
         request_id = 8,
@@ -245,7 +245,19 @@ fn header_layouts_are_the_documented_ones() {
         map_name_len = 960,
         map_name = 964,
         message = 1028,
-        session_gravity = 1272
+        session_gravity = 1272,
+        scan_covariance = 3192
+    );
+    layout!(
+        WireCovOptions,
+        40,
+        k_correspondences = 0,
+        min_correspondences = 4,
+        center = 8,
+        reserved = 12,
+        max_distance = 16,
+        lambda = 24,
+        max_plane_deviation = 32
     );
     layout!(
         WireSessionGravity,
@@ -263,5 +275,35 @@ fn header_layouts_are_the_documented_ones() {
         spread_deg = 64,
         accel_bias = 72,
         gravity = 96
+    );
+}
+
+#[test]
+fn covariance_options_round_trip_through_a_status_report() {
+    use kfmap_shared::cov::{CovCenter, CovOptions};
+    // Every field off its default, so a swapped or dropped field fails.
+    let options = CovOptions {
+        k_correspondences_for_cov: 12,
+        min_correspondences_for_cov: 7,
+        max_distance_for_cov: 2.5,
+        lambda: -0.01,
+        cov_center: CovCenter::Query,
+        max_plane_deviation_for_cov: 0.2,
+    };
+    let wire = WireCovOptions::from(&options);
+    assert_eq!(wire.to_options(), Some(options));
+    assert_eq!(
+        WireCovOptions::from(&CovOptions::default()).to_options(),
+        Some(CovOptions::default())
+    );
+    // An unknown centre code or a value the options refuse gives no options.
+    assert_eq!(WireCovOptions { center: 2, ..wire }.to_options(), None);
+    assert_eq!(
+        WireCovOptions {
+            k_correspondences: 1,
+            ..wire
+        }
+        .to_options(),
+        None
     );
 }

@@ -3,6 +3,7 @@
 //! the protocol (docs/DESIGN.md#protocol).
 
 use iceoryx2::prelude::ZeroCopySend;
+use kfmap_shared::cov::{CovCenter, CovOptions};
 
 /// Bytes of a response's status message (UTF-8, zero padded).
 pub const MESSAGE_LEN: usize = 240;
@@ -133,7 +134,7 @@ pub struct WirePairing {
 
 /// Header of every response; the payload is `[WirePairing]`.
 ///
-/// Layout (protocol 6, 3192 bytes, byte offsets): version 0, status 4, request_id 8,
+/// Layout (protocol 7, 3232 bytes, byte offsets): version 0, status 4, request_id 8,
 /// detail 16, message_len 24, active_len 28, active 32, server_us 160, pose 168,
 /// covariance 224, fitness 512, iterations 528, converged 532, tracking 536 (new in
 /// protocol 3, as the next five), reasons 540, registrations 544, degenerate 548,
@@ -145,7 +146,7 @@ pub struct WirePairing {
 /// 708, gravity_spread_deg 712, accel_bias 720, accel_bias_sigma 744, map_keyframes
 /// 768, map_points 776, uptime_s 784, counts 792, p50_us 872, p99_us 912, sessions
 /// 952, in_flight 956, map_name_len 960, map_name 964, message 1028, session_gravity
-/// 1272 (new in protocol 4).
+/// 1272 (new in protocol 4), scan_covariance 3192 (new in protocol 7).
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
 #[repr(C)]
 #[type_name("kfmap::ResponseHeader")]
@@ -264,6 +265,72 @@ pub struct ResponseHeader {
     /// `Status`: the gravity pool of each session (the first `min(sessions, 16)`, by
     /// client id); unused slots are zero.
     pub session_gravity: [WireSessionGravity; STATUS_SESSIONS],
+    /// `Status`: how the server estimates the covariances of scans sent without them
+    /// (`server.toml` `[covariance]`). A client that estimates its own (client-side
+    /// localization) uses these, so both sides register the same scan alike.
+    pub scan_covariance: WireCovOptions,
+}
+
+/// Covariance-estimation options as a status report carries them
+/// ([`kfmap_shared::cov::CovOptions`]).
+///
+/// Layout (40 bytes): k_correspondences 0, min_correspondences 4, center 8, reserved
+/// 12, max_distance 16, lambda 24, max_plane_deviation 32.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("kfmap::WireCovOptions")]
+pub struct WireCovOptions {
+    /// Neighbours searched per point (k).
+    pub k_correspondences: u32,
+    /// Fewer neighbours than this give the isotropic fallback.
+    pub min_correspondences: u32,
+    /// Centre of the scatter: 0 the neighbourhood mean, 1 the query point.
+    pub center: u32,
+    /// Reserved, zero.
+    pub reserved: u32,
+    /// Neighbours lie strictly closer than this, metres.
+    pub max_distance: f64,
+    /// Regularization (see `CovOptions::lambda`).
+    pub lambda: f64,
+    /// Plane-deviation gate, metres (0: off).
+    pub max_plane_deviation: f64,
+}
+
+impl From<&CovOptions> for WireCovOptions {
+    fn from(o: &CovOptions) -> Self {
+        Self {
+            k_correspondences: o.k_correspondences_for_cov as u32,
+            min_correspondences: o.min_correspondences_for_cov as u32,
+            center: match o.cov_center {
+                CovCenter::Mean => 0,
+                CovCenter::Query => 1,
+            },
+            reserved: 0,
+            max_distance: o.max_distance_for_cov,
+            lambda: o.lambda,
+            max_plane_deviation: o.max_plane_deviation_for_cov,
+        }
+    }
+}
+
+impl WireCovOptions {
+    /// The options, when they are valid ones (`None` for an unknown centre code or a
+    /// value `CovOptions::validate` refuses).
+    pub fn to_options(&self) -> Option<CovOptions> {
+        let options = CovOptions {
+            k_correspondences_for_cov: self.k_correspondences as usize,
+            min_correspondences_for_cov: self.min_correspondences as usize,
+            max_distance_for_cov: self.max_distance,
+            lambda: self.lambda,
+            cov_center: match self.center {
+                0 => CovCenter::Mean,
+                1 => CovCenter::Query,
+                _ => return None,
+            },
+            max_plane_deviation_for_cov: self.max_plane_deviation,
+        };
+        options.validate().ok().map(|()| options)
+    }
 }
 
 /// One session's gravity pool in a status report.
@@ -355,6 +422,7 @@ impl Default for ResponseHeader {
             map_name: [0; NAME_LEN],
             message: [0; MESSAGE_LEN],
             session_gravity: [WireSessionGravity::default(); STATUS_SESSIONS],
+            scan_covariance: WireCovOptions::default(),
         }
     }
 }

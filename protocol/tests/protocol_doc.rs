@@ -12,8 +12,8 @@ use kfmap_protocol::transport::{INITIAL_SLICE_LEN, MAX_CLIENTS, MAX_CLIENTS_PER_
 use kfmap_protocol::{
     Cov2CovMode, DEFAULT_MAX_POINTS, FLAG_COVARIANCES, FLAG_LEVELLED, FLAG_STAMPED, FLAG_VIEW_DIRS,
     IMU_SAMPLE_FLOATS, KIND_SLOTS, MESSAGE_LEN, NAME_LEN, PROTOCOL_VERSION, RequestHeader,
-    RequestKind, ResponseHeader, STATUS_SESSIONS, ScanPayload, StatusCode, WirePairing,
-    WireSessionGravity, decode_scan, imu_payload,
+    RequestKind, ResponseHeader, STATUS_SESSIONS, ScanPayload, StatusCode, WireCovOptions,
+    WirePairing, WireSessionGravity, decode_scan, imu_payload,
 };
 use kfmap_shared::imu::ImuSample;
 use kfmap_shared::place::RelocalizeStatus;
@@ -392,6 +392,16 @@ fn wire_layouts() -> Vec<Layout> {
             map_name,
             message,
             session_gravity,
+            scan_covariance,
+        }),
+        layout!(WireCovOptions {
+            k_correspondences,
+            min_correspondences,
+            center,
+            reserved,
+            max_distance,
+            lambda,
+            max_plane_deviation,
         }),
         layout!(WireSessionGravity {
             client_node,

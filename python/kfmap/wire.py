@@ -1,4 +1,4 @@
-"""The kfmap wire protocol (protocol 6): the ``#[repr(C)]`` headers as ctypes
+"""The kfmap wire protocol (protocol 7): the ``#[repr(C)]`` headers as ctypes
 structures, request kinds, flags and status codes.
 
 Mirrors ``protocol/src/wire.rs`` and ``lib.rs``. iceoryx2 refuses to open a
@@ -15,7 +15,7 @@ import enum
 import numpy as np
 
 #: Version of the protocol; a server of another version answers VERSION_MISMATCH.
-PROTOCOL_VERSION = 6
+PROTOCOL_VERSION = 7
 #: Bytes of a response's status message.
 MESSAGE_LEN = 240
 #: Request kinds counted in a status report (index = kind code).
@@ -213,8 +213,23 @@ class WireSessionGravity(C.Structure):
     ]
 
 
+class WireCovOptions(C.Structure):
+    """The server's covariance options in a status report (40 bytes)."""
+
+    _fields_ = [
+        ("k_correspondences", u32), ("min_correspondences", u32), ("center", u32),
+        ("reserved", u32), ("max_distance", f64), ("lambda_", f64),
+        ("max_plane_deviation", f64),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        """The type name in the Rust sources (iceoryx2 checks only the outer header)."""
+        return "kfmap::WireCovOptions"
+
+
 class ResponseHeader(C.Structure):
-    """Header of every response (3192 bytes); the payload is ``[WirePairing]``."""
+    """Header of every response (3232 bytes); the payload is ``[WirePairing]``."""
 
     _fields_ = [
         ("version", u32), ("status", u32), ("request_id", u64), ("detail", u64),
@@ -234,6 +249,7 @@ class ResponseHeader(C.Structure):
         ("map_name_len", u32), ("map_name", C.c_uint8 * NAME_LEN),
         ("message", C.c_uint8 * MESSAGE_LEN),
         ("session_gravity", WireSessionGravity * STATUS_SESSIONS),
+        ("scan_covariance", WireCovOptions),
     ]
 
     @staticmethod
@@ -277,7 +293,9 @@ def _check_layouts() -> None:
         (C.sizeof(WirePairing), 56),
         (WirePairing.information.offset, 32),
         (C.sizeof(WireSessionGravity), 120),
-        (C.sizeof(ResponseHeader), 3192),
+        (C.sizeof(WireCovOptions), 40),
+        (C.sizeof(ResponseHeader), 3232),
+        (ResponseHeader.scan_covariance.offset, 3192),
         (ResponseHeader.relocalization.offset, 576),
         (ResponseHeader.map_keyframes.offset, 768),
         (ResponseHeader.message.offset, 1028),

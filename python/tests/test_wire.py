@@ -12,7 +12,7 @@ import pytest
 import kfmap
 from kfmap import geometry, wire
 
-RUST_SIDE = Path(__file__).resolve().parents[2] / "shared" / "src" / "protocol"
+RUST_SIDE = Path(__file__).resolve().parents[2] / "protocol" / "src"
 
 
 def rust_layouts() -> dict[str, tuple[int, dict[str, int]]]:
@@ -45,9 +45,9 @@ def test_type_names_and_protocol_match_the_rust_side() -> None:
     wire_rs = (RUST_SIDE / "wire.rs").read_text()
     names = re.findall(r'#\[type_name\("([^"]+)"\)\]\s*pub struct (\w+)', wire_rs)
     declared = {struct: name for name, struct in names}
-    for t in (wire.RequestHeader, wire.ResponseHeader, wire.WirePairing):
+    for t in (wire.RequestHeader, wire.ResponseHeader, wire.WirePairing, wire.WireCovOptions):
         assert t.type_name() == declared[t.__name__]
-    mod_rs = (RUST_SIDE / "mod.rs").read_text()
+    mod_rs = (RUST_SIDE / "lib.rs").read_text()
     assert f"PROTOCOL_VERSION: u32 = {wire.PROTOCOL_VERSION};" in mod_rs
     for status in wire.StatusCode:
         assert f"{status.wire_name} = {int(status)}," in mod_rs

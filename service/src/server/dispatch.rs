@@ -12,7 +12,8 @@ use super::answer::{Answer, AnswerPairings, bad, exact_mode, with_active};
 use super::imu::imu_window;
 use super::limits::Limits;
 use super::localize::localize;
-use super::queries::{cov2cov, echo, nearest, radius, scan_cloud, scan_covariances};
+use super::queries::{cov2cov, echo, nearest, radius};
+use super::register::prepare;
 use super::relocalize::relocalize;
 use super::session::Session;
 use super::state::ServedMap;
@@ -67,12 +68,13 @@ fn compute(
                 RequestKind::Radius => radius(map, session, request, &scan, &pose, limits),
                 RequestKind::Cov2Cov => {
                     let exact = exact_mode(map, request.mode, limits)?;
-                    let covs = scan_covariances(&scan, limits);
+                    let mut prepared = prepare(&scan, limits);
+                    let (cloud, covs) = prepared.fine();
                     let (pairings, active) = cov2cov(
                         map,
                         session,
-                        &scan_cloud(&scan),
-                        &covs,
+                        cloud,
+                        covs,
                         &pose,
                         request.max_pair_dist,
                         exact,

@@ -11,7 +11,7 @@ use kfmap_shared::tracking::{
 
 use super::answer::{Answer, AnswerPairings, bad, exact_mode, with_active};
 use super::limits::{Limits, MAX_CORRECTION, MAX_ITERATIONS, MAX_PAIR_DIST};
-use super::register::{MapRegistration, ScanStages};
+use super::register::{MapRegistration, coarse_error, prepare};
 use super::session::Session;
 use super::state::ServedMap;
 
@@ -64,7 +64,7 @@ pub(super) fn localize(
     let exact = exact_mode(map, request.mode, limits)?;
     // Checked before the work: a bad stamp must not throw away a solved pose.
     let stamp = decode_stamp(request)?;
-    let mut stages = ScanStages::new(scan, limits);
+    let mut stages = prepare(scan, limits);
     let mut against = MapRegistration {
         map,
         session,
@@ -72,7 +72,7 @@ pub(super) fn localize(
         active: Vec::new(),
     };
     let found = localize_scan(pose, &expected, fine, &limits.tracking, |start, stage| {
-        let (cloud, covs) = stages.for_stage(stage)?;
+        let (cloud, covs) = stages.for_stage(stage).map_err(coarse_error)?;
         against.register(cloud, covs, start, stage)
     })?;
     let active = against.active;

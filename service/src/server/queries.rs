@@ -8,7 +8,6 @@ use kfmap_protocol::{
     DecodedScan, Rejection, RequestHeader, ResponseHeader, StatusCode, WirePairing,
 };
 use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::cov::estimate_covariances;
 use kfmap_shared::geometry::{Pose, to_point, transform_point};
 use kfmap_shared::map::{ActiveSet, MapHit, Pairing};
 use rayon::prelude::*;
@@ -191,24 +190,6 @@ pub(super) fn radius(
             ),
         ),
     })
-}
-
-/// The scan's covariances: the client's, or estimated with the server's options.
-pub(super) fn scan_covariances(scan: &DecodedScan, limits: &Limits) -> Vec<[f32; 6]> {
-    match scan.covariances {
-        Some(c) => c.to_vec(),
-        None => estimate_covariances(scan.points, &limits.scan_covariance).values,
-    }
-}
-
-/// The scan as the map takes it, built once per request (`Localize` iterates on it).
-pub(super) fn scan_cloud(scan: &DecodedScan) -> PointCloud {
-    PointCloud {
-        points: scan.points.to_vec(),
-        view_dirs: scan.view_dirs.map(<[_]>::to_vec),
-        intensity: None,
-        time: None,
-    }
 }
 
 /// Cov2cov pairings at `pose` and the active keyframes used.

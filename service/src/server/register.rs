@@ -2,71 +2,34 @@
 //! the map's cov2cov pairings, in a client's session or outside any (in parallel).
 
 use kfmap_protocol::{DecodedScan, Rejection, correspondences_from_pairings};
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::cov::estimate_covariances;
+use kfmap_shared::cloud::{CloudError, PointCloud};
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::map::Pairing;
 use kfmap_shared::registration::{RegistrationError, RegistrationResult, solve_pose};
-use kfmap_shared::tracking::Stage;
+use kfmap_shared::tracking::{PreparedScan, Stage};
 
 use super::answer::{bad, map_error};
 use super::limits::Limits;
-use super::queries::{cov2cov, scan_cloud, scan_covariances};
+use super::queries::cov2cov;
 use super::session::Session;
 use super::state::ServedMap;
 
-/// A scan as registrations take it: as sent, and coarse (built on the first coarse
-/// registration, then reused), each with its covariances.
-pub(super) struct ScanStages<'s> {
-    scan: &'s DecodedScan<'s>,
-    limits: &'s Limits,
-    fine: Option<(PointCloud, Vec<[f32; 6]>)>,
-    coarse: Option<(PointCloud, Vec<[f32; 6]>)>,
+/// The scan of a request prepared as every localization prepares it: covariances it
+/// lacks estimated with the server's `[covariance]`, the coarse copy with its
+/// `[tracking]` ([`PreparedScan`], shared with client-side localization).
+pub(super) fn prepare<'s>(scan: &DecodedScan<'s>, limits: &Limits) -> PreparedScan<'s> {
+    PreparedScan::new(
+        scan.points,
+        scan.view_dirs,
+        scan.covariances,
+        limits.scan_covariance,
+        limits.tracking,
+    )
 }
 
-impl<'s> ScanStages<'s> {
-    pub(super) fn new(scan: &'s DecodedScan<'s>, limits: &'s Limits) -> Self {
-        Self {
-            scan,
-            limits,
-            fine: None,
-            coarse: None,
-        }
-    }
-
-    /// The cloud and covariances `stage` registers (each built on first use).
-    pub(super) fn for_stage(
-        &mut self,
-        stage: &Stage,
-    ) -> Result<(&PointCloud, &[[f32; 6]]), Rejection> {
-        if !stage.coarse {
-            let (cloud, covs) = self.fine.get_or_insert_with(|| {
-                (
-                    scan_cloud(self.scan),
-                    scan_covariances(self.scan, self.limits),
-                )
-            });
-            return Ok((cloud, covs.as_slice()));
-        }
-        if self.coarse.is_none() {
-            self.coarse = Some(coarse_scan(self.scan, self.limits)?);
-        }
-        let (c, v) = self.coarse.as_ref().expect("built above");
-        Ok((c, v.as_slice()))
-    }
-}
-
-/// The coarse scan ([`TrackingParams::coarse_scan`]) with its covariances.
-pub(super) fn coarse_scan(
-    scan: &DecodedScan,
-    limits: &Limits,
-) -> Result<(PointCloud, Vec<[f32; 6]>), Rejection> {
-    let c = limits
-        .tracking
-        .coarse_scan(scan.points, scan.view_dirs)
-        .map_err(|e| bad(format!("coarse scan: {e}")))?;
-    let covs = estimate_covariances(&c.points, &limits.scan_covariance).values;
-    Ok((c, covs))
+/// A scan whose coarse copy cannot be built.
+pub(super) fn coarse_error(e: CloudError) -> Rejection {
+    bad(format!("coarse scan: {e}"))
 }
 
 /// Registrations against the served map in one client's session.

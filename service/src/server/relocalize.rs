@@ -13,7 +13,7 @@ use nalgebra::Vector3;
 use super::answer::{Answer, AnswerPairings, bad, exact_mode, with_active};
 use super::limits::Limits;
 use super::localize::localize_params;
-use super::register::{MapRegistration, ScanStages, coarse_scan, register_approximate};
+use super::register::{MapRegistration, coarse_error, prepare, register_approximate};
 use super::session::Session;
 use super::state::ServedMap;
 
@@ -47,22 +47,25 @@ pub fn relocalize(
     let proposal =
         propose(&grid, scan.points, up, &params).map_err(|e| bad(format!("scan: {e}")))?;
     let searched = started.elapsed();
-    let mut stages = ScanStages::new(scan, limits);
+    let mut stages = prepare(scan, limits);
     let mut against = MapRegistration {
         map,
         session,
         exact,
         active: Vec::new(),
     };
-    let (coarse_cloud, coarse_covs) = coarse_scan(scan, limits)?;
+    // The candidates' coarse registrations run in parallel, so they share a coarse
+    // scan of their own; the ladder's stages build theirs on first use.
+    let mut candidates = prepare(scan, limits);
+    let (coarse_cloud, coarse_covs) = candidates.coarse().map_err(coarse_error)?;
     let found = verify(
         &proposal,
         fine,
         &limits.tracking,
         &params,
-        |start, stage| register_approximate(map, &coarse_cloud, &coarse_covs, start, stage),
+        |start, stage| register_approximate(map, coarse_cloud, coarse_covs, start, stage),
         |start, stage| {
-            let (cloud, covs) = stages.for_stage(stage)?;
+            let (cloud, covs) = stages.for_stage(stage).map_err(coarse_error)?;
             against.register(cloud, covs, start, stage)
         },
     )?;

@@ -11,8 +11,8 @@ use iceoryx2::port::notifier::Notifier;
 use kfmap_protocol::log_limit::warn_limited;
 use kfmap_protocol::transport::Transport;
 use kfmap_protocol::{
-    Rejection, RequestHeader, RequestKind, ResponseHeader, StatusCode, WireSessionGravity,
-    check_version, write_text,
+    Rejection, RequestHeader, RequestKind, ResponseHeader, StatusCode, WireCovOptions,
+    WireSessionGravity, check_version, write_text,
 };
 use kfmap_shared::archive::ArchiveError;
 use kfmap_shared::gravity::LiveAnswer;
@@ -290,6 +290,7 @@ impl WorkerContext<'_> {
             // Less this status request itself.
             in_flight: self.stats.in_flight().saturating_sub(1),
             pose: map.map_from_input,
+            scan_covariance: WireCovOptions::from(&self.limits.scan_covariance),
             ..Default::default()
         };
         for (slot, f) in self.stats.figures().iter().enumerate() {

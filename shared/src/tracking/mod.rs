@@ -43,6 +43,7 @@
 
 mod health;
 mod ladder;
+mod prepared;
 #[cfg(test)]
 mod tests;
 
@@ -52,3 +53,4 @@ pub use health::{
 pub use ladder::{
     CORRECTION_RANGE_M, Expectation, Localization, Stage, TrackingParams, localize_scan,
 };
+pub use prepared::PreparedScan;
