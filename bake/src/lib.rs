@@ -9,6 +9,8 @@
 #![warn(missing_docs)]
 
 pub mod config;
+pub mod dataset;
+pub mod error;
 pub mod gravity;
 pub mod mapping;
 pub mod pipeline;

@@ -10,93 +10,26 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use kfmap_shared::KeyframeId;
-use kfmap_shared::archive::{ArchiveError, MapWriter, WriteSummary};
+use kfmap_shared::archive::{MapWriter, WriteSummary};
 use kfmap_shared::cloud::{PointCloud, Twist, deskew};
 use kfmap_shared::covis::CovisibilityGraph;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::imu::ImuSample;
-use kfmap_shared::io::{
-    IoError, ReadOptions, Trajectory, format_tum, read_cloud, read_trajectory, write_atomic,
-};
+use kfmap_shared::io::{Trajectory, format_tum, write_atomic};
 use kfmap_shared::map::{Keyframe, KeyframeMapOptions};
-use kfmap_shared::pose_graph::{G2oError, GraphError, PoseEdge, PoseGraph, write_g2o};
+use kfmap_shared::pose_graph::{PoseEdge, PoseGraph, write_g2o};
+use kfmap_shared::registration::Fitness;
+use kfmap_shared::trajectory_error::{absolute_trajectory_error, rigid_alignment};
 use rayon::prelude::*;
 
-use kfmap_shared::registration::{Fitness, RegistrationError};
-use kfmap_shared::trajectory_error::{absolute_trajectory_error, rigid_alignment};
-
-use crate::mapping::{GlobalError, OdometryOutcome, Stage, build_trajectory};
-
 use crate::config::BakeConfig;
+use crate::dataset::{ScanPoses, find_scans, load_raw_scan, scan_poses};
+use crate::error::BakeError;
 use crate::gravity::{
-    BakeGravity, GravityError, IMU_FILES, POSE_FILES, bake_gravity, check_overlap, find_in,
-    read_imu,
+    BakeGravity, IMU_FILES, POSE_FILES, bake_gravity, check_overlap, find_in, read_imu,
 };
-use crate::scan_range::{ScanRange, ScanRangeError};
-
-/// Scan file extensions a dataset may hold.
-const SCAN_EXTENSIONS: [&str; 3] = ["pcd", "ply", "bin"];
-
-/// Why a bake failed.
-#[derive(Debug, thiserror::Error)]
-pub enum BakeError {
-    /// The dataset directory has no scans.
-    #[error("{0}: no scans (*.pcd, *.ply, *.bin) in it or in its scans/ folder")]
-    NoScans(PathBuf),
-    /// Poses and scans cannot be matched.
-    #[error(
-        "{poses}: {count} poses for {scans} scans; scans named by frame number need a pose per number, others exactly one pose each"
-    )]
-    PoseCount {
-        /// The pose file.
-        poses: PathBuf,
-        /// Poses in it.
-        count: usize,
-        /// Scans found.
-        scans: usize,
-    },
-    /// A scan or pose file could not be read.
-    #[error(transparent)]
-    Io(#[from] IoError),
-    /// A scan is unusable (empty after filtering and downsampling, ...).
-    #[error("{path}: {message}")]
-    Scan {
-        /// The scan.
-        path: PathBuf,
-        /// What is wrong.
-        message: String,
-    },
-    /// The map file could not be written.
-    #[error(transparent)]
-    Archive(#[from] ArchiveError),
-    /// The dataset's IMU log could not be used.
-    #[error(transparent)]
-    Gravity(#[from] GravityError),
-    /// Building poses from the scans failed (registration).
-    #[error("building poses from the scans: {0}")]
-    Registration(#[from] RegistrationError),
-    /// Building poses from the scans failed (loops, graph).
-    #[error("building poses from the scans: {0}")]
-    Mapping(#[from] GlobalError),
-    /// The scan range does not fit the dataset.
-    #[error(transparent)]
-    ScanRange(#[from] ScanRangeError),
-    /// A pose graph was asked for, but the poses come from a pose file.
-    #[error(
-        "--graph-out: the poses come from {}, so no pose graph is built; pass --build-poses to build the poses (and their graph) from the scans, the pose file then serving as ground truth",
-        .0.display()
-    )]
-    NoPoseGraph(PathBuf),
-    /// The pose graph could not be assembled or written.
-    #[error("writing the pose graph: {0}")]
-    Graph(#[from] G2oError),
-}
-
-impl From<GraphError> for BakeError {
-    fn from(error: GraphError) -> Self {
-        Self::Mapping(error.into())
-    }
-}
+use crate::mapping::{OdometryOutcome, Stage, build_trajectory};
+use crate::scan_range::ScanRange;
 
 /// Where a bake reads from.
 #[derive(Debug, Clone)]
@@ -277,105 +210,6 @@ impl BakeReport {
     }
 }
 
-/// Scan files of a dataset, sorted by name: `DIR/scans/` if it exists, else `DIR`.
-pub fn find_scans(dataset: &Path) -> Result<Vec<PathBuf>, BakeError> {
-    let dir = if dataset.join("scans").is_dir() {
-        dataset.join("scans")
-    } else {
-        dataset.to_path_buf()
-    };
-    let entries = std::fs::read_dir(&dir).map_err(|e| IoError::os(&dir, e))?;
-    let mut scans: Vec<PathBuf> = entries
-        .filter_map(Result::ok)
-        .map(|e| e.path())
-        .filter(|p| {
-            p.is_file()
-                && p.extension()
-                    .and_then(|e| e.to_str())
-                    .is_some_and(|e| SCAN_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
-        })
-        .collect();
-    scans.sort();
-    if scans.is_empty() {
-        return Err(BakeError::NoScans(dataset.to_path_buf()));
-    }
-    Ok(scans)
-}
-
-/// Every scan's pose and time from the dataset's pose file (the first of
-/// [`POSE_FILES`]), or `None` when it has none.
-pub fn dataset_poses(dataset: &Path, scans: &[PathBuf]) -> Result<Option<ScanPoses>, BakeError> {
-    find_in(dataset, &POSE_FILES)
-        .map(|path| scan_poses(&path, scans))
-        .transpose()
-}
-
-/// Every scan's pose and time (the pose index when the file has no timestamps).
-#[derive(Debug, Clone)]
-pub struct ScanPoses {
-    /// `T_map_scan` of each scan.
-    pub poses: Vec<Pose>,
-    /// Each scan's time, seconds.
-    pub stamps: Vec<f64>,
-    /// True when the stamps come from the pose file.
-    pub stamped: bool,
-}
-
-impl ScanPoses {
-    /// The poses and times of scans `range` only.
-    pub fn select(mut self, range: Range<usize>) -> Self {
-        self.poses.truncate(range.end);
-        self.stamps.truncate(range.end);
-        self.poses.drain(..range.start);
-        self.stamps.drain(..range.start);
-        self
-    }
-}
-
-/// The pose of every scan: by frame number when every scan is named by one (KITTI
-/// `000123.bin`), else one pose per scan in order.
-fn scan_poses(path: &Path, scans: &[PathBuf]) -> Result<ScanPoses, BakeError> {
-    let path = path.to_path_buf();
-    let trajectory = read_trajectory(&path)?;
-    let count_error = || BakeError::PoseCount {
-        poses: path.clone(),
-        count: trajectory.poses.len(),
-        scans: scans.len(),
-    };
-    let frames: Option<Vec<usize>> = scans
-        .iter()
-        .map(|s| s.file_stem()?.to_str()?.parse().ok())
-        .collect();
-    let indices: Vec<usize> = match frames {
-        Some(f) if trajectory.poses.len() != scans.len() => f,
-        _ if trajectory.poses.len() == scans.len() => (0..scans.len()).collect(),
-        _ => return Err(count_error()),
-    };
-    if indices.iter().any(|&i| i >= trajectory.poses.len()) {
-        return Err(count_error());
-    }
-    let poses = indices.iter().map(|&i| trajectory.poses[i]).collect();
-    let stamps = indices
-        .iter()
-        .map(|&i| trajectory.stamps.as_ref().map_or(i as f64, |s| s[i]))
-        .collect();
-    Ok(ScanPoses {
-        poses,
-        stamps,
-        stamped: trajectory.stamps.is_some(),
-    })
-}
-
-/// Reads one scan and drops invalid returns (the bake configuration's filter).
-pub fn load_raw_scan(path: &Path, config: &BakeConfig) -> Result<PointCloud, BakeError> {
-    let sidecar = path.with_extension("bin.layout").is_file();
-    let options = ReadOptions {
-        bin_layout: (!sidecar).then_some(config.input.bin_layout),
-        filter: config.filter,
-    };
-    Ok(read_cloud(path, &options)?.cloud)
-}
-
 /// Poses built from `scans` (dataset indices from `first`); `truth` (a pose file, the
 /// same scans) gives stamps and the ATE.
 fn build_poses(
@@ -541,44 +375,20 @@ pub fn bake(
     let all_scans = find_scans(&input.dataset)?;
     let range = input.scans.within(all_scans.len())?;
     let scans = &all_scans[range.clone()];
-    let pose_file = input.pose_file();
-    let given_poses = pose_file.as_ref().filter(|_| !input.build_poses);
-    if let Some(path) = given_poses.filter(|_| output.graph.is_some()) {
-        return Err(BakeError::NoPoseGraph(path.clone()));
-    }
-    // Poses are matched against the whole dataset, so a range keeps each scan's pose.
-    let (scan_poses, mapping) = match pose_file {
-        Some(path) if !input.build_poses => {
-            (scan_poses(&path, &all_scans)?.select(range.clone()), None)
-        }
-        truth => {
-            let truth = truth
-                .map(|p| scan_poses(&p, &all_scans).map(|t| t.select(range.clone())))
-                .transpose()?;
-            let imu = odometry_imu(&input.dataset, config, truth.as_ref())?;
-            let (built, summary) = build_poses(
-                scans,
-                range.start,
-                config,
-                truth.as_ref(),
-                imu,
-                &mut progress,
-            )?;
-            (built, Some(summary))
-        }
-    };
+    let (scan_poses, mapping) = poses_of_scans(
+        input,
+        config,
+        output,
+        &all_scans,
+        range.clone(),
+        &mut progress,
+    )?;
     let ScanPoses {
         mut poses,
         stamps,
         stamped,
     } = scan_poses;
-    let decider = config.keyframes.decider();
-    let mut chosen: Vec<usize> = Vec::new();
-    for (i, pose) in poses.iter().enumerate() {
-        if decider.should_create(chosen.iter().map(|&c| &poses[c]), pose) {
-            chosen.push(i);
-        }
-    }
+    let chosen = choose_keyframes(config, &poses);
     let keyframe_scans: Vec<(KeyframeId, usize)> = chosen
         .iter()
         .enumerate()
@@ -591,24 +401,140 @@ pub fn bake(
         stamped.then_some(&stamps),
         &keyframe_scans,
     )?;
-    let mut level = Pose::identity();
-    if let Some(g) = gravity.as_mut().filter(|_| config.map.align_gravity)
-        && let Some(c) = &g.correction
-    {
-        // Rotating about the map origin keeps every relative pose (and graph edge).
-        level = Pose::from_parts(Default::default(), c.rotation.into());
-        poses.iter_mut().for_each(|p| *p = level * *p);
-        g.applied = true;
-    }
+    let level = level_by_gravity(config, gravity.as_mut(), &mut poses);
     // The input frame is the pose file's: given, or the reference of built poses.
     let map_from_input = level
         * mapping
             .as_ref()
             .and_then(|m| m.built_from_file)
             .unwrap_or_else(Pose::identity);
+    let sequence = Sequence {
+        scans,
+        poses: &poses,
+        stamps: &stamps,
+        stamped,
+    };
+    let written = write_map(
+        &sequence,
+        &chosen,
+        config,
+        &output.map,
+        &map_from_input,
+        gravity.as_ref(),
+        &mut progress,
+    )?;
+    write_trajectory_and_graph(output, poses, stamps, mapping.as_ref(), &level)?;
+    Ok(BakeReport {
+        dataset_scans: all_scans.len(),
+        scans: range,
+        map_from_input,
+        mapping,
+        gravity,
+        written,
+        seconds: started.elapsed().as_secs_f64(),
+    })
+}
+
+/// The pose of every scan in `range`: from the pose file, or built from the scans
+/// (odometry, loops, pose graph) with the pose file, if any, as ground truth. Poses are
+/// matched against the whole dataset, so a range keeps each scan's pose.
+fn poses_of_scans(
+    input: &BakeInput,
+    config: &BakeConfig,
+    output: &BakeOutput,
+    all_scans: &[PathBuf],
+    range: Range<usize>,
+    progress: &mut impl FnMut(BakeProgress),
+) -> Result<(ScanPoses, Option<MappingSummary>), BakeError> {
+    let pose_file = input.pose_file();
+    match pose_file {
+        Some(path) if !input.build_poses => {
+            if output.graph.is_some() {
+                return Err(BakeError::NoPoseGraph(path));
+            }
+            Ok((scan_poses(&path, all_scans)?.select(range), None))
+        }
+        truth => {
+            let truth = truth
+                .map(|p| scan_poses(&p, all_scans).map(|t| t.select(range.clone())))
+                .transpose()?;
+            let imu = odometry_imu(&input.dataset, config, truth.as_ref())?;
+            let (built, summary) = build_poses(
+                &all_scans[range.clone()],
+                range.start,
+                config,
+                truth.as_ref(),
+                imu,
+                progress,
+            )?;
+            Ok((built, Some(summary)))
+        }
+    }
+}
+
+/// The scans that become keyframes: the decider on the poses alone.
+fn choose_keyframes(config: &BakeConfig, poses: &[Pose]) -> Vec<usize> {
+    let decider = config.keyframes.decider();
+    let mut chosen: Vec<usize> = Vec::new();
+    for (i, pose) in poses.iter().enumerate() {
+        if decider.should_create(chosen.iter().map(|&c| &poses[c]), pose) {
+            chosen.push(i);
+        }
+    }
+    chosen
+}
+
+/// Levels the map by the IMU's gravity when `[map] align-gravity` asks and the pool
+/// gives a correction: every pose is rotated about the map origin (relative poses and
+/// graph edges unchanged). Returns the levelling applied (identity when none).
+fn level_by_gravity(
+    config: &BakeConfig,
+    gravity: Option<&mut BakeGravity>,
+    poses: &mut [Pose],
+) -> Pose {
+    let Some(g) = gravity.filter(|_| config.map.align_gravity) else {
+        return Pose::identity();
+    };
+    let Some(c) = &g.correction else {
+        return Pose::identity();
+    };
+    let level = Pose::from_parts(Default::default(), c.rotation.into());
+    poses.iter_mut().for_each(|p| *p = level * *p);
+    g.applied = true;
+    level
+}
+
+/// The scans being baked with their (map-frame) poses and times.
+struct Sequence<'a> {
+    scans: &'a [PathBuf],
+    poses: &'a [Pose],
+    stamps: &'a [f64],
+    /// The times come from the pose file (else they are scan numbers, and no scan is
+    /// deskewed from them).
+    stamped: bool,
+}
+
+/// Writes the map file: the `chosen` scans read, downsampled and indexed into
+/// keyframes a chunk at a time (in parallel within a chunk), the covisibility graph
+/// and the gravity pool.
+fn write_map(
+    sequence: &Sequence,
+    chosen: &[usize],
+    config: &BakeConfig,
+    path: &Path,
+    map_from_input: &Pose,
+    gravity: Option<&BakeGravity>,
+    progress: &mut impl FnMut(BakeProgress),
+) -> Result<WriteSummary, BakeError> {
+    let Sequence {
+        scans,
+        poses,
+        stamps,
+        stamped,
+    } = *sequence;
     let options: KeyframeMapOptions = config.map_options();
-    let mut writer = MapWriter::create(&output.map, &options)?;
-    writer.set_map_from_input(&map_from_input);
+    let mut writer = MapWriter::create(path, &options)?;
+    writer.set_map_from_input(map_from_input);
     let mut covis = CovisibilityGraph::new(options.covisibility);
     let chunk = 2 * rayon::current_num_threads();
     let mut done = BakeProgress {
@@ -622,7 +548,7 @@ pub fn bake(
             .par_iter()
             .enumerate()
             .map(|(j, &scan)| {
-                let twist = stamped.then(|| scan_twist(&poses, &stamps, scan)).flatten();
+                let twist = stamped.then(|| scan_twist(poses, stamps, scan)).flatten();
                 let (cloud, weights) = load_scan(&scans[scan], config, &poses[scan], twist)?;
                 let id = (chunk_index * chunk + j) as u64;
                 let (pose, stamp) = (poses[scan], stamps[scan]);
@@ -641,8 +567,19 @@ pub fn bake(
             progress(done);
         }
     }
-    let pool = gravity.as_ref().map_or(&[][..], |g| &g.pool[..]);
-    let written = writer.finish(chosen.len() as u64, &covis.snapshot(), pool)?;
+    let pool = gravity.map_or(&[][..], |g| &g.pool[..]);
+    Ok(writer.finish(chosen.len() as u64, &covis.snapshot(), pool)?)
+}
+
+/// The files beside the map, each written atomically: the trajectory used (TUM) and,
+/// when the poses were built, the keyframe pose graph (g2o), both levelled like the map.
+fn write_trajectory_and_graph(
+    output: &BakeOutput,
+    poses: Vec<Pose>,
+    stamps: Vec<f64>,
+    mapping: Option<&MappingSummary>,
+    level: &Pose,
+) -> Result<(), BakeError> {
     if let Some(path) = &output.trajectory {
         let trajectory = Trajectory {
             stamps: Some(stamps),
@@ -650,7 +587,7 @@ pub fn bake(
         };
         write_atomic(path, format_tum(&trajectory).as_bytes())?;
     }
-    if let (Some(path), Some(m)) = (&output.graph, &mapping) {
+    if let (Some(path), Some(m)) = (&output.graph, mapping) {
         let mut graph = m.graph.clone();
         for &id in m.graph.ids() {
             let levelled = level * m.graph.pose(id).expect("a listed vertex");
@@ -658,13 +595,5 @@ pub fn bake(
         }
         write_g2o(path, &graph, m.graph.ids().first().copied())?;
     }
-    Ok(BakeReport {
-        dataset_scans: all_scans.len(),
-        scans: range,
-        map_from_input,
-        mapping,
-        gravity,
-        written,
-        seconds: started.elapsed().as_secs_f64(),
-    })
+    Ok(())
 }

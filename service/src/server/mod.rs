@@ -29,12 +29,14 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use iceoryx2::node::{Node, NodeView};
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
 use iceoryx2::prelude::{CallbackProgression, NodeState, PortFactory, WaitSetBuilder};
-use iceoryx2::waitset::WaitSetRunResult;
+use iceoryx2::waitset::{WaitSet, WaitSetGuard, WaitSetRunResult};
 use kfmap_protocol::Cov2CovMode;
 use kfmap_protocol::transport::{
-    ALLOCATION, INITIAL_SLICE_LEN, Transport, TransportError, create_node, iceoryx_config, iox,
-    open_request_event, open_response_event, open_rpc,
+    ALLOCATION, INITIAL_SLICE_LEN, Rpc, Transport, TransportError, create_node, iceoryx_config,
+    iox, open_request_event, open_response_event, open_rpc,
 };
 use kfmap_shared::archive::ArchiveError;
 use tracing::{info, warn};
@@ -43,7 +45,7 @@ use crate::config::ServerConfig;
 pub use answer::{Answer, AnswerPairings};
 use budget::{Budget, BudgetLimits};
 pub use dispatch::answer;
-use leader::Requests;
+use leader::{RequestServer, Requests};
 pub use limits::Limits;
 pub use localize::localize_params;
 use ports::ClientPorts;
@@ -227,37 +229,11 @@ pub fn serve(
     let slot = MapSlot::new(map);
     let config = iceoryx_config(options.iceoryx_prefix.as_deref())?;
     let node = create_node(&config, "kfmap-server")?;
-    // A server killed earlier leaves its port behind; free it before counting servers.
-    node.try_cleanup_dead_nodes();
-    let rpc = open_rpc(&node, &options.map_name)?;
-    if rpc.dynamic_config().number_of_servers() > 0 {
-        return Err(ServeError::AlreadyServed(options.map_name.clone()));
-    }
-    let server = rpc
-        .server_builder()
-        .initial_max_slice_len(INITIAL_SLICE_LEN)
-        .allocation_strategy(ALLOCATION)
-        // One answer per request (and fewer chunks to scan when a client dies).
-        .max_loaned_responses_per_request(1)
-        .create()
-        .map_err(|_| ServeError::AlreadyServed(options.map_name.clone()))?;
-    let listener = open_request_event(&node, &options.map_name)?
-        .listener_builder()
-        .create()
-        .map_err(iox("create the request listener"))?;
-    let notifier = open_response_event(&node, &options.map_name)?
-        .notifier_builder()
-        .create()
-        .map_err(iox("create the response notifier"))?;
-    let wake_leader = open_request_event(&node, &options.map_name)?
-        .notifier_builder()
-        .create()
-        .map_err(iox("create the shutdown notifier"))?;
+    let ports = ServerPorts::open(&node, &options.map_name)?;
     let hangup = Arc::new(AtomicBool::new(false));
     if let Err(e) = signal_hook::flag::register(signal_hook::consts::SIGHUP, hangup.clone()) {
         warn!(error = %e, "SIGHUP reload is unavailable");
     }
-
     let workers = match options.config.server.worker_threads {
         0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
         n => n,
@@ -268,15 +244,123 @@ pub fn serve(
         sessions: &Sessions::default(),
         stats: &Stats::default(),
         limits: Limits::of(&options.config),
-        notifier: &notifier,
+        notifier: &ports.notifier,
         map_name: &options.map_name,
         started,
         trust: options.trust,
         budget: Budget::new(BudgetLimits::of(&options.config.server)),
-        ports: ClientPorts::new(&rpc, options.config.server.max_clients_per_process),
+        ports: ClientPorts::new(&ports.rpc, options.config.server.max_clients_per_process),
         unread: &UnreadAnswers::default(),
         largest_answer: Default::default(),
     };
+    ready(&announce(options, &slot, workers, started));
+    let requests = Requests {
+        server: &ports.server,
+        listener: &ports.listener,
+        spin: options.spin,
+    };
+    // Made before the workers start: a failure must not leave them running.
+    let waitset = WaitSetBuilder::new()
+        .create::<Transport>()
+        .map_err(iox("create the WaitSet"))?;
+    let tick = waitset
+        .attach_interval(HOUSEKEEPING)
+        .map_err(iox("attach the housekeeping interval"))?;
+    let housekeeping = || {
+        let alive = live_nodes(&node, &config);
+        context.unread.sweep();
+        let dropped = context.sessions.retain_alive(&alive);
+        if dropped > 0 {
+            info!(dropped, "sessions of dead clients reclaimed");
+        }
+        if hangup.swap(false, Ordering::Relaxed) {
+            // The outcome is logged; the old map stays on failure.
+            let _ = context.reload();
+        }
+    };
+    let never_started = std::thread::scope(|scope| {
+        for _ in 0..workers {
+            scope.spawn(|| leader::work(&context, &queue, &requests));
+        }
+        wait_for_stop(&waitset, &tick, stop, &hangup, housekeeping);
+        info!("shutting down: refusing queued requests, finishing those in flight");
+        context.unread.close();
+        let left = queue.close();
+        let never_started = left.len();
+        for job in left {
+            context.refuse_shutting_down(job);
+        }
+        // The leader may be asleep on the listener.
+        let _ = ports.wake_leader.notify();
+        never_started
+    });
+    // Requests that arrived while the workers stopped are refused by name too.
+    requests.drain(&context, &queue);
+    // The last answers live in this process's shared memory: exiting removes them.
+    let unread = context.unread.wait_until_read(SHUTDOWN_LINGER);
+    if unread > 0 {
+        warn!(unread, "exiting with answers their clients have not read");
+    }
+    Ok(ServeSummary {
+        figures: context.stats.figures().to_vec(),
+        refused_at_shutdown: never_started + queue.turned_away(),
+        uptime_s: started.elapsed().as_secs_f64(),
+    })
+}
+
+/// The server's iceoryx2 ports on a map's services: the request-response server (one
+/// per map name), the request listener, the response notifier, and a notifier on the
+/// request event that wakes the leader at shutdown.
+struct ServerPorts {
+    rpc: Rpc,
+    server: RequestServer,
+    listener: Listener<Transport>,
+    notifier: Notifier<Transport>,
+    wake_leader: Notifier<Transport>,
+}
+
+impl ServerPorts {
+    /// Opens the ports; fails when another server already serves `map_name`.
+    fn open(node: &Node<Transport>, map_name: &str) -> Result<Self, ServeError> {
+        // A server killed earlier leaves its port behind; free it before counting servers.
+        node.try_cleanup_dead_nodes();
+        let rpc = open_rpc(node, map_name)?;
+        if rpc.dynamic_config().number_of_servers() > 0 {
+            return Err(ServeError::AlreadyServed(map_name.to_string()));
+        }
+        let server = rpc
+            .server_builder()
+            .initial_max_slice_len(INITIAL_SLICE_LEN)
+            .allocation_strategy(ALLOCATION)
+            // One answer per request (and fewer chunks to scan when a client dies).
+            .max_loaned_responses_per_request(1)
+            .create()
+            .map_err(|_| ServeError::AlreadyServed(map_name.to_string()))?;
+        let listener = open_request_event(node, map_name)?
+            .listener_builder()
+            .create()
+            .map_err(iox("create the request listener"))?;
+        let notifier = open_response_event(node, map_name)?
+            .notifier_builder()
+            .create()
+            .map_err(iox("create the response notifier"))?;
+        let wake_leader = open_request_event(node, map_name)?
+            .notifier_builder()
+            .create()
+            .map_err(iox("create the shutdown notifier"))?;
+        Ok(Self {
+            rpc,
+            server,
+            listener,
+            notifier,
+            wake_leader,
+        })
+    }
+}
+
+/// What the ready line says: the map served, the workers, the start-up time and the
+/// default cov2cov mode (the server's, else the map's); logged as well.
+fn announce(options: &ServeOptions, slot: &MapSlot, workers: usize, started: Instant) -> ServeInfo {
     let current = slot.current();
     let exact = match options.config.server.cov2cov_mode {
         Cov2CovMode::MapDefault => current.exact_by_default,
@@ -290,85 +374,41 @@ pub fn serve(
         startup_ms: started.elapsed().as_secs_f64() * 1e3,
         default_mode: if exact { "exact" } else { "approximate" },
     };
-    drop(current);
     info!(map = %options.map_name, keyframes = info_line.keyframes, points = info_line.points, workers, cov2cov = info_line.default_mode, "serving");
-    ready(&info_line);
+    info_line
+}
 
-    let requests = Requests {
-        server: &server,
-        listener: &listener,
-        spin: options.spin,
-    };
-    // Made before the workers start: a failure must not leave them running.
-    let waitset = WaitSetBuilder::new()
-        .create::<Transport>()
-        .map_err(iox("create the WaitSet"))?;
-    let tick = waitset
-        .attach_interval(HOUSEKEEPING)
-        .map_err(iox("attach the housekeeping interval"))?;
-    let never_started = std::thread::scope(|scope| {
-        for _ in 0..workers {
-            scope.spawn(|| leader::work(&context, &queue, &requests));
-        }
-        let housekeeping = || {
-            let alive = live_nodes(&node, &config);
-            context.unread.sweep();
-            let dropped = context.sessions.retain_alive(&alive);
-            if dropped > 0 {
-                info!(dropped, "sessions of dead clients reclaimed");
+/// The main thread's loop while the workers serve: housekeeping on every tick (and on
+/// SIGHUP), until SIGINT/SIGTERM set `stop` or the WaitSet fails.
+fn wait_for_stop(
+    waitset: &WaitSet<Transport>,
+    tick: &WaitSetGuard<Transport>,
+    stop: &AtomicBool,
+    hangup: &AtomicBool,
+    housekeeping: impl Fn(),
+) {
+    loop {
+        let result = waitset.wait_and_process_once(|id| {
+            if id.has_event_from(tick) {
+                housekeeping();
             }
-            if hangup.swap(false, Ordering::Relaxed) {
-                // The outcome is logged; the old map stays on failure.
-                let _ = context.reload();
-            }
-        };
-        loop {
-            let result = waitset.wait_and_process_once(|id| {
-                if id.has_event_from(&tick) {
+            CallbackProgression::Continue
+        });
+        match result {
+            Ok(WaitSetRunResult::AllEventsHandled) if !stop.load(Ordering::Relaxed) => {}
+            // Any signal interrupts the wait (SIGCONT after SIGSTOP, SIGWINCH, SIGHUP);
+            // only SIGINT and SIGTERM stop the server, seen by the next wait as a
+            // termination request. A SIGHUP asks for a reload.
+            Ok(WaitSetRunResult::Interrupt) if !stop.load(Ordering::Relaxed) => {
+                if hangup.load(Ordering::Relaxed) {
                     housekeeping();
                 }
-                CallbackProgression::Continue
-            });
-            match result {
-                Ok(WaitSetRunResult::AllEventsHandled) if !stop.load(Ordering::Relaxed) => {}
-                // Any signal interrupts the wait (SIGCONT after SIGSTOP, SIGWINCH, SIGHUP);
-                // only SIGINT and SIGTERM stop the server, seen by the next wait as a
-                // termination request. A SIGHUP asks for a reload.
-                Ok(WaitSetRunResult::Interrupt) if !stop.load(Ordering::Relaxed) => {
-                    if hangup.load(Ordering::Relaxed) {
-                        housekeeping();
-                    }
-                }
-                Ok(_) => break,
-                Err(e) => {
-                    warn!(error = ?e, "WaitSet failed; shutting down");
-                    break;
-                }
+            }
+            Ok(_) => break,
+            Err(e) => {
+                warn!(error = ?e, "WaitSet failed; shutting down");
+                break;
             }
         }
-        info!("shutting down: refusing queued requests, finishing those in flight");
-        context.unread.close();
-        let left = queue.close();
-        let never_started = left.len();
-        for job in left {
-            context.refuse_shutting_down(job);
-        }
-        // The leader may be asleep on the listener.
-        let _ = wake_leader.notify();
-        never_started
-    });
-    // Requests that arrived while the workers stopped are refused by name too.
-    requests.drain(&context, &queue);
-    // The last answers live in this process's shared memory: exiting removes them.
-    let unread = context.unread.wait_until_read(SHUTDOWN_LINGER);
-    if unread > 0 {
-        warn!(unread, "exiting with answers their clients have not read");
     }
-    let refused = never_started + queue.turned_away();
-    let figures = context.stats.figures().to_vec();
-    Ok(ServeSummary {
-        figures,
-        refused_at_shutdown: refused,
-        uptime_s: started.elapsed().as_secs_f64(),
-    })
 }

@@ -1,0 +1,115 @@
+//! Reading a dataset: its scan files, the pose of every scan from its pose file, and
+//! one scan with invalid returns dropped.
+
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+
+use kfmap_shared::cloud::PointCloud;
+use kfmap_shared::geometry::Pose;
+use kfmap_shared::io::{IoError, ReadOptions, read_cloud, read_trajectory};
+
+use crate::config::BakeConfig;
+use crate::error::BakeError;
+use crate::gravity::{POSE_FILES, find_in};
+
+/// Scan file extensions a dataset may hold.
+const SCAN_EXTENSIONS: [&str; 3] = ["pcd", "ply", "bin"];
+
+/// Scan files of a dataset, sorted by name: `DIR/scans/` if it exists, else `DIR`.
+pub fn find_scans(dataset: &Path) -> Result<Vec<PathBuf>, BakeError> {
+    let dir = if dataset.join("scans").is_dir() {
+        dataset.join("scans")
+    } else {
+        dataset.to_path_buf()
+    };
+    let entries = std::fs::read_dir(&dir).map_err(|e| IoError::os(&dir, e))?;
+    let mut scans: Vec<PathBuf> = entries
+        .filter_map(Result::ok)
+        .map(|e| e.path())
+        .filter(|p| {
+            p.is_file()
+                && p.extension()
+                    .and_then(|e| e.to_str())
+                    .is_some_and(|e| SCAN_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
+        })
+        .collect();
+    scans.sort();
+    if scans.is_empty() {
+        return Err(BakeError::NoScans(dataset.to_path_buf()));
+    }
+    Ok(scans)
+}
+
+/// Every scan's pose and time from the dataset's pose file (the first of
+/// [`POSE_FILES`]), or `None` when it has none.
+pub fn dataset_poses(dataset: &Path, scans: &[PathBuf]) -> Result<Option<ScanPoses>, BakeError> {
+    find_in(dataset, &POSE_FILES)
+        .map(|path| scan_poses(&path, scans))
+        .transpose()
+}
+
+/// Every scan's pose and time (the pose index when the file has no timestamps).
+#[derive(Debug, Clone)]
+pub struct ScanPoses {
+    /// `T_map_scan` of each scan.
+    pub poses: Vec<Pose>,
+    /// Each scan's time, seconds.
+    pub stamps: Vec<f64>,
+    /// True when the stamps come from the pose file.
+    pub stamped: bool,
+}
+
+impl ScanPoses {
+    /// The poses and times of scans `range` only.
+    pub fn select(mut self, range: Range<usize>) -> Self {
+        self.poses.truncate(range.end);
+        self.stamps.truncate(range.end);
+        self.poses.drain(..range.start);
+        self.stamps.drain(..range.start);
+        self
+    }
+}
+
+/// The pose of every scan: by frame number when every scan is named by one (KITTI
+/// `000123.bin`), else one pose per scan in order.
+pub(crate) fn scan_poses(path: &Path, scans: &[PathBuf]) -> Result<ScanPoses, BakeError> {
+    let path = path.to_path_buf();
+    let trajectory = read_trajectory(&path)?;
+    let count_error = || BakeError::PoseCount {
+        poses: path.clone(),
+        count: trajectory.poses.len(),
+        scans: scans.len(),
+    };
+    let frames: Option<Vec<usize>> = scans
+        .iter()
+        .map(|s| s.file_stem()?.to_str()?.parse().ok())
+        .collect();
+    let indices: Vec<usize> = match frames {
+        Some(f) if trajectory.poses.len() != scans.len() => f,
+        _ if trajectory.poses.len() == scans.len() => (0..scans.len()).collect(),
+        _ => return Err(count_error()),
+    };
+    if indices.iter().any(|&i| i >= trajectory.poses.len()) {
+        return Err(count_error());
+    }
+    let poses = indices.iter().map(|&i| trajectory.poses[i]).collect();
+    let stamps = indices
+        .iter()
+        .map(|&i| trajectory.stamps.as_ref().map_or(i as f64, |s| s[i]))
+        .collect();
+    Ok(ScanPoses {
+        poses,
+        stamps,
+        stamped: trajectory.stamps.is_some(),
+    })
+}
+
+/// Reads one scan and drops invalid returns (the bake configuration's filter).
+pub fn load_raw_scan(path: &Path, config: &BakeConfig) -> Result<PointCloud, BakeError> {
+    let sidecar = path.with_extension("bin.layout").is_file();
+    let options = ReadOptions {
+        bin_layout: (!sidecar).then_some(config.input.bin_layout),
+        filter: config.filter,
+    };
+    Ok(read_cloud(path, &options)?.cloud)
+}
