@@ -16,7 +16,7 @@ use std::path::Path;
 
 use common::{Prefix, Server, bake_dataset, kfmap, linked_dataset, simulate, temp_dir};
 use kfmap_bake::config::BakeConfig;
-use kfmap_bake::pipeline::{find_scans, load_raw_scan};
+use kfmap_bake::dataset::{find_scans, load_raw_scan};
 use kfmap_client::{Client, ClientOptions, LocalizeOptions};
 use kfmap_protocol::ScanPayload;
 use kfmap_shared::geometry::{Pose, pose_from_xyz_quat, rotation_distance, translation_distance};
@@ -111,11 +111,22 @@ fn assert_targets(what: &str, lines: &[Line], reference: &[Pose]) -> f64 {
     rms
 }
 
+/// The README's row for the revisit of balm_os0 tracked at 2 Hz: 61 ok, 0 lost (beside
+/// RMS 0.060 m, asserted under 0.08 m, the issue's target and 1.33 times the figure).
+/// One scan of slack: at least 60 `ok`, none `lost`.
+fn assert_claimed_statuses(what: &str, lines: &[Line]) {
+    let count = |s: &str| lines.iter().filter(|l| l.status == s).count();
+    let (ok, lost) = (count("ok"), count("lost"));
+    println!("{what}: {ok} ok, {lost} lost of {}", lines.len());
+    assert!(ok >= 60 && lost == 0, "{what}: {ok} ok, {lost} lost");
+}
+
 /// Issue targets on balm_os0 (map of scans 0-115 at their reference poses, scans
 /// 116-176 replayed from the reference pose of 116): every scan within 0.25 m and 2
-/// deg, RMS under 0.08 m, no pose off by more than 0.5 m reported ok; client-side and
-/// server-side alike. Every second scan (1 Hz, turns up to 54 deg between scans) meets
-/// the same bounds.
+/// deg, RMS under 0.08 m (README: 0.060 m), no pose off by more than 0.5 m reported ok,
+/// at least 60 of the 61 scans `ok` and none `lost` (README: 61 ok, 0 lost);
+/// client-side and server-side alike. Every second scan (1 Hz, turns up to 54 deg
+/// between scans) meets the same error bounds.
 #[test]
 fn balm_replay_is_accurate_and_reports_no_wrong_pose_ok() {
     let Some(balm) = require_test_data("balm_os0", "balm_replay") else {
@@ -149,10 +160,12 @@ fn balm_replay_is_accurate_and_reports_no_wrong_pose_ok() {
     assert_eq!(client[0].index, 116);
     let rms = assert_targets("client-side", &client, &reference);
     assert!(rms < 0.08, "client-side RMS {rms} m");
+    assert_claimed_statuses("client-side", &client);
     let (server, summary) = run(&balm, "116..177", &["--server-side"]);
     println!("server-side: {summary}");
     let rms = assert_targets("server-side", &server, &reference);
     assert!(rms < 0.08, "server-side RMS {rms} m");
+    assert_claimed_statuses("server-side", &server);
     // One algorithm on the same pairings: the same decisions, poses within 1 mm.
     for (a, b) in client.iter().zip(&server) {
         assert_eq!(a.status, b.status, "scan {}", a.index);

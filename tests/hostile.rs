@@ -14,6 +14,7 @@ use kfmap_protocol::transport::{MAX_CLIENTS_PER_PROCESS, create_node, iceoryx_co
 use kfmap_protocol::{RequestHeader, RequestKind, ScanPayload, StatusCode, pose_to_wire};
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::imu::ImuSample;
+use kfmap_testdata::{require_capability, skip_or_fail};
 
 fn options(prefix: &Prefix) -> ClientOptions {
     ClientOptions {
@@ -172,21 +173,25 @@ fn write_bin(path: &std::path::Path, points: &[[f32; 3]]) {
 /// Was: a `/dev/shm` too small for an answer's segment killed the server with SIGBUS
 /// (exit 135) and its clients only timed out. Now the answer is refused with a status
 /// naming `/dev/shm` and the server keeps serving. Runs in a mount namespace of its own
-/// with a 96 MiB tmpfs on /dev/shm (needs root or user namespaces; skipped otherwise).
+/// with a 96 MiB tmpfs on /dev/shm (needs `unshare` and root or user namespaces;
+/// skipped otherwise, failing under CI=true: CI runs as root).
 #[test]
 fn a_full_dev_shm_refuses_the_answer_and_the_server_keeps_serving() {
+    let test = "a_full_dev_shm_refuses_the_answer_and_the_server_keeps_serving";
     let probe = std::process::Command::new("unshare")
         .args(["--mount", "--propagation", "private", "sh", "-c"])
         .arg("mount -t tmpfs -o size=1m tmpfs /dev/shm")
         .output();
-    if !probe.as_ref().is_ok_and(|o| o.status.success()) {
-        println!(
-            "skipped: cannot mount a small tmpfs on /dev/shm in a private mount namespace ({})",
-            probe.map_or_else(
-                |e| e.to_string(),
-                |o| String::from_utf8_lossy(&o.stderr).into_owned()
-            )
-        );
+    let why = match &probe {
+        Ok(o) => String::from_utf8_lossy(&o.stderr).into_owned(),
+        Err(e) => e.to_string(),
+    };
+    let available = probe.is_ok_and(|o| o.status.success());
+    let missing = format!(
+        "cannot mount a small tmpfs on /dev/shm in a private mount namespace ({})",
+        why.trim()
+    );
+    if require_capability(available, &missing, test).is_none() {
         return;
     }
     let (dir, _map) = baked("shm-full");
@@ -236,13 +241,16 @@ echo $? > "$D/serve.rc"
 
 /// Was: a second unix user got `InternalError`, with nothing about permissions. Now the
 /// error says "permission denied", names the folder, its owner and why (iceoryx2 keeps a
-/// server's files owner-only). Runs `kfmap status` as uid 65534 (nobody); needs root.
+/// server's files owner-only). Runs `kfmap status` as uid 65534 (nobody); needs root
+/// (skipped otherwise, failing under CI=true: CI runs as root).
 #[test]
 fn a_second_unix_user_is_told_permission_denied_with_the_path() {
     use std::os::unix::process::CommandExt;
+    let test = "a_second_unix_user_is_told_permission_denied_with_the_path";
     // SAFETY: geteuid has no preconditions.
-    if unsafe { libc::geteuid() } != 0 {
-        println!("skipped: starting a process as another unix user needs root");
+    let root = unsafe { libc::geteuid() } == 0;
+    let needs_root = "starting a process as another unix user needs root";
+    if require_capability(root, needs_root, test).is_none() {
         return;
     }
     let (site, _server) = served("other-user");
@@ -260,7 +268,7 @@ fn a_second_unix_user_is_told_permission_denied_with_the_path() {
     let out = match out {
         Ok(out) => out,
         Err(e) => {
-            println!("skipped: cannot run kfmap as uid 65534 ({e})");
+            skip_or_fail(test, &format!("cannot run kfmap as uid 65534 ({e})"));
             return;
         }
     };
@@ -270,7 +278,7 @@ fn a_second_unix_user_is_told_permission_denied_with_the_path() {
         && stderr.contains("os error 13")
         && !stderr.contains("iceoryx2")
     {
-        println!("skipped: uid 65534 cannot run the kfmap binary here");
+        skip_or_fail(test, "uid 65534 cannot run the kfmap binary here");
         return;
     }
     assert_eq!(out.status.code(), Some(2), "{stderr}");

@@ -15,11 +15,16 @@ mod common;
 use std::path::{Path, PathBuf};
 
 use common::{Prefix, Server, bake_dataset, json, kfmap, linked_dataset, simulate, temp_dir};
-use kfmap_bake::pipeline::find_scans;
+use kfmap_bake::dataset::find_scans;
 use kfmap_client::{Client, ClientOptions};
 use kfmap_shared::geometry::{Pose, pose_from_xyz_quat, rotation_distance, translation_distance};
 use kfmap_shared::io::read_trajectory;
+use kfmap_shared::percentile::{is_maximum, percentile};
 use kfmap_testdata::require_test_data;
+
+/// The README's figure: revisit scans of balm_os0 relocalized within [`RIGHT_M`] and
+/// [`RIGHT_DEG`] with no guess, of 61.
+const CLAIMED_FOUND: usize = 57;
 
 /// The issue's bounds: a relocalization within these is a success...
 const RIGHT_M: f64 = 0.3;
@@ -91,10 +96,6 @@ fn confidently_wrong(place: &Place, reference: &Pose) -> bool {
         })
 }
 
-fn percentile(sorted: &[f64], q: f64) -> f64 {
-    sorted[((sorted.len() - 1) as f64 * q).round() as usize]
-}
-
 fn map_from_input(name: &str, prefix: &Prefix) -> Pose {
     let options = ClientOptions {
         iceoryx_prefix: Some(prefix.0.clone()),
@@ -107,17 +108,23 @@ fn map_from_input(name: &str, prefix: &Prefix) -> Pose {
         .map_from_input
 }
 
-/// Issue targets on balm_os0: at least 90 % of the 61 revisit scans relocalized within
-/// 0.3 m and 3 deg, no confident wrong answer, every foreign scan `not-found`. Then a
+/// Issue targets on balm_os0: the 61 revisit scans relocalized within 0.3 m and 3 deg
+/// as the README claims (57 of 61; at least 56 here, the issue's floor was 90 %, 55),
+/// no confident wrong answer, every foreign scan `not-found`. Then a
 /// replay with no start and a jump: the first scan and the scan after the jump are
 /// relocalized, every adopted pose is right, and the tracker is `ok` again within 3
 /// scans of each relocalization.
 #[test]
 fn balm_scans_are_relocalized_and_foreign_scans_are_not_found() {
-    let Some(balm) = require_test_data("balm_os0", "balm_relocalize") else {
+    let test = "balm_relocalize";
+    let Some(balm) = require_test_data("balm_os0", test) else {
         return;
     };
-    let Some(data) = balm.parent().map(Path::to_path_buf) else {
+    // The foreign scans, needed as much as balm's (under CI=true a missing one fails).
+    let (Some(kitti00), Some(small_gicp)) = (
+        require_test_data("kitti00", test),
+        require_test_data("small_gicp", test),
+    ) else {
         return;
     };
     let dir = temp_dir("balm-relocalize");
@@ -151,19 +158,25 @@ fn balm_scans_are_relocalized_and_foreign_scans_are_not_found() {
     let mut ms: Vec<f64> = places.iter().map(|p| p.server_ms).collect();
     ms.sort_by(f64::total_cmp);
     println!(
-        "balm revisit: {success} of 61 within {RIGHT_M} m / {RIGHT_DEG} deg; found {}, ambiguous {}, not-found {}, confident wrong {}; server p50 {:.1} ms, p99 {:.1} ms",
+        "balm revisit: {success} of 61 within {RIGHT_M} m / {RIGHT_DEG} deg; found {}, ambiguous {}, not-found {}, confident wrong {}; server p50 {:.1} ms, p99 {:.1} ms{}",
         count("found"),
         count("ambiguous"),
         count("not-found"),
         wrong.len(),
         percentile(&ms, 0.5),
-        percentile(&ms, 0.99)
+        percentile(&ms, 0.99),
+        if is_maximum(ms.len(), 0.99) {
+            format!(" (over {} scans the p99 is the slowest)", ms.len())
+        } else {
+            String::new()
+        }
     );
     assert!(wrong.is_empty(), "confident wrong answers: {wrong:?}");
-    assert!(success * 10 >= 61 * 9, "{success} of 61");
+    // README and DESIGN.md: 57 of 61 (the 4 others `ambiguous`, at the right place).
+    assert!(success >= CLAIMED_FOUND - 1, "{success} of 61");
 
-    let mut foreign: Vec<PathBuf> = find_scans(&data.join("kitti00")).unwrap();
-    foreign.extend(["source.ply", "target.ply"].map(|f| data.join("small_gicp").join(f)));
+    let mut foreign: Vec<PathBuf> = find_scans(&kitti00).unwrap();
+    foreign.extend(["source.ply", "target.ply"].map(|f| small_gicp.join(f)));
     let places = relocalize("balm", &prefix, &foreign);
     for place in &places {
         println!("foreign {}: {}", place.scan.display(), place.status);

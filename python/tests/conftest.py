@@ -23,6 +23,8 @@ import kfmap
 
 REPO = Path(__file__).resolve().parents[2]
 READY_TIMEOUT_S = 60.0
+# Roll and pitch (deg) of the world of ``tilted_dataset`` against the dataset's frame.
+TILT_DEG = (4.0, -3.0)
 
 
 @dataclass(frozen=True)
@@ -95,6 +97,21 @@ def dataset(kfmap_bin: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
         **run,
     )
     subprocess.run([kfmap_bin, "bake", "--dataset", data, "--out", out / "map.kfmap"], **run)
+    return data
+
+
+@pytest.fixture(scope="session")
+def tilted_dataset(kfmap_bin: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 10 s courtyard drive (16 beams, 1.5 s to simulate) in a world tilted roll 4 /
+    pitch -3 deg against the dataset's frame (``--tilt-deg``; gravity in that frame in
+    ``meta.toml``), not baked: its poses and IMU windows feed a session's gravity pool on
+    the test server (10 s: the pool takes a stamped window per 0.5 s and needs 10)."""
+    data = tmp_path_factory.mktemp("kfmap-tilted") / "dataset"
+    subprocess.run(
+        [kfmap_bin, "simulate", "--preset", "courtyard", "--seconds", "10", "--beams", "16",
+         f"--tilt-deg={TILT_DEG[0]},{TILT_DEG[1]}", "--out", data],
+        check=True, capture_output=True, text=True, timeout=300,
+    )
     return data
 
 

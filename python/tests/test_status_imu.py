@@ -53,16 +53,29 @@ def test_status_counts_grow_with_requests(client) -> None:
     assert client.client_node in {s.client for s in after.session_gravity}
 
 
-def test_push_imu_window_pools_the_dataset_imu(client, server) -> None:
-    """Windows of imu.csv between every other scan (unstamped: raw means) fill the
-    session's pool; from 10 members on the server gives gravity, which must point
-    along the simulated gravity (meta.toml), within the platform's acceleration."""
-    gt = ground_truth(server.dataset)
-    imu = imu_samples(server.dataset)
-    meta = (server.dataset / "meta.toml").read_text()
+def gravity_map(dataset) -> np.ndarray:
+    """The simulated gravity in the dataset's frame, m/s^2 (``gravity-map`` of meta.toml)."""
+    meta = (dataset / "meta.toml").read_text()
     found = re.search(r"^gravity-map = \[([^\]]*)\]", meta, re.MULTILINE)
     assert found, "meta.toml has no gravity-map"
-    down = np.array([float(v) for v in found.group(1).split(",")])
+    return np.array([float(v) for v in found.group(1).split(",")])
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle between two vectors, degrees (signed: opposite vectors are 180 deg apart)."""
+    cos = float(a @ b) / np.linalg.norm(a) / np.linalg.norm(b)
+    return math.degrees(math.acos(max(-1.0, min(1.0, cos))))
+
+
+def test_push_imu_window_pools_raw_means_of_unstamped_windows(client, server) -> None:
+    """Windows of imu.csv between every other scan, unstamped, are pooled at once as raw
+    means: the pool counts them and from 10 members on the server gives gravity. Raw
+    means keep the drive's acceleration (2.8 deg off the truth here, 5.3 deg on the
+    tilted 10 s drive), so only the direction's sense is checked; the direction itself
+    is asserted on motion-compensated windows below."""
+    gt = ground_truth(server.dataset)
+    imu = imu_samples(server.dataset)
+    up = -gravity_map(server.dataset)
     previous, answer = gt[0, 0], None
     for n, i in enumerate(range(2, len(gt), 2), start=1):
         window = imu[(imu[:, 0] > previous) & (imu[:, 0] <= gt[i, 0])]
@@ -71,13 +84,44 @@ def test_push_imu_window_pools_the_dataset_imu(client, server) -> None:
         assert answer.members == n
         assert (answer.gravity is None) == (n < 10)
     assert answer is not None and answer.gravity is not None
-    angle = math.degrees(math.acos(abs(answer.gravity @ down)
-                                   / np.linalg.norm(answer.gravity) / np.linalg.norm(down)))
-    assert angle < 5.0
-    assert abs(np.linalg.norm(answer.gravity) - np.linalg.norm(down)) < 0.3
+    assert answer.compensated == 0
+    assert angle_deg(answer.gravity, up) < 90.0
+    assert abs(np.linalg.norm(answer.gravity) - np.linalg.norm(up)) < 0.3
     assert answer.inliers <= answer.members and answer.correction.shape == (4,)
     pools = {s.client: s.pool for s in client.status().session_gravity}
     assert pools[client.client_node].members == answer.members
+
+
+# Measured 0.039 deg between the served gravity and the simulated one (tilted 10 s
+# drive, stamped windows of every scan); asserted within 1.5 times that. A level
+# answer is 5.0 deg off.
+GRAVITY_BOUND_DEG = 0.06
+
+
+def test_push_imu_window_with_stamps_finds_the_tilted_gravity(client, tilted_dataset) -> None:
+    """The windows of every scan of a drive in a world tilted 4 / -3 deg, stamped (as
+    ``kfmap localize`` sends them), with the true poses: the server joins them into
+    0.5 s windows, removes the platform's acceleration from the stamped poses and pools
+    them; every member is compensated and the gravity is the simulated one (meta.toml,
+    in the dataset's frame) within GRAVITY_BOUND_DEG."""
+    gt = ground_truth(tilted_dataset)
+    imu = imu_samples(tilted_dataset)
+    up = -gravity_map(tilted_dataset)
+    # The oracle itself is tilted: a constant level answer is 5 deg off.
+    assert angle_deg(up, np.array([0.0, 0.0, 1.0])) > 4.9
+    previous, answer = gt[0, 0], None
+    for i in range(1, len(gt)):
+        window = imu[(imu[:, 0] > previous) & (imu[:, 0] <= gt[i, 0])]
+        previous = gt[i, 0]
+        answer = client.push_imu_window(i, kfmap.pose_from_wire(gt[i, 1:]), window,
+                                        stamp=float(gt[i, 0]))
+    assert answer is not None and answer.gravity is not None
+    assert answer.members >= 10 and answer.compensated == answer.members
+    angle = angle_deg(answer.gravity, up)
+    print(f"gravity {answer.gravity} vs simulated {up}: {angle:.4f} deg, "
+          f"{answer.members} members")
+    assert angle < GRAVITY_BOUND_DEG
+    assert abs(np.linalg.norm(answer.gravity) - np.linalg.norm(up)) < 0.05
 
 
 def test_push_imu_window_with_stamp_waits_for_poses(client, server) -> None:

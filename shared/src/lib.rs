@@ -32,6 +32,7 @@ pub mod map;
 pub mod motion;
 pub mod neighbourhoods;
 pub mod options;
+pub mod percentile;
 pub mod place;
 pub mod pose_graph;
 pub mod registration;

@@ -106,24 +106,54 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         trajectory: args.trajectory_out.clone(),
         graph: args.graph_out.clone(),
     };
+    refuse_existing_outputs(&output, args.force)?;
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(args.threads)
+        .build()
+        .context("cannot start worker threads")?;
+    let input = BakeInput {
+        dataset: args.dataset.clone(),
+        poses: args.poses.clone(),
+        build_poses: args.build_poses,
+        scans: args.scans.unwrap_or(ScanRange::ALL),
+    };
+    let report = bake_with_progress(&pool, &input, &config, &output, args.json)?;
+    let threads = pool.current_num_threads();
+    if args.json {
+        println!("{}", summary_json(&args, &output, &report, threads));
+    } else {
+        print_summary(&args, &output, &report, threads);
+    }
+    Ok(())
+}
+
+/// An error when an output file exists and `--force` was not given.
+fn refuse_existing_outputs(output: &BakeOutput, force: bool) -> anyhow::Result<()> {
     let paths = [
         ("--out", Some(&output.map)),
         ("--trajectory-out", output.trajectory.as_ref()),
         ("--graph-out", output.graph.as_ref()),
     ];
     for (flag, path) in paths {
-        if let Some(path) = path.filter(|p| p.exists() && !args.force) {
+        if let Some(path) = path.filter(|p| p.exists() && !force) {
             anyhow::bail!(
                 "{flag} {} exists; pass --force to replace it",
                 path.display()
             );
         }
     }
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(args.threads)
-        .build()
-        .context("cannot start worker threads")?;
-    let bar = if args.json {
+    Ok(())
+}
+
+/// Bakes on `pool`, showing the stage and progress (hidden with `json`).
+fn bake_with_progress(
+    pool: &rayon::ThreadPool,
+    input: &BakeInput,
+    config: &BakeConfig,
+    output: &BakeOutput,
+    json: bool,
+) -> anyhow::Result<BakeReport> {
+    let bar = if json {
         ProgressBar::hidden()
     } else {
         ProgressBar::new(0)
@@ -134,14 +164,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .progress_chars("=> "),
     );
     let started = std::time::Instant::now();
-    let input = BakeInput {
-        dataset: args.dataset.clone(),
-        poses: args.poses.clone(),
-        build_poses: args.build_poses,
-        scans: args.scans.unwrap_or(ScanRange::ALL),
-    };
     let report = pool.install(|| {
-        bake(&input, &config, &output, |p| {
+        bake(input, config, output, |p| {
             bar.set_length(p.total as u64);
             bar.set_position(p.done as u64);
             let rate = p.points_done as f64 / started.elapsed().as_secs_f64().max(1e-9);
@@ -154,75 +178,90 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         })
     })?;
     bar.finish_and_clear();
-    let w = report.written;
-    let gravity = report.gravity.as_ref().map(|g| {
-        let c = g.correction.as_ref();
-        json!({
-            "imu": g.imu, "keyframes_with_samples": g.fill.with_samples,
-            "compensated": g.fill.compensated, "applied": g.applied,
-            "roll_deg": c.map(|c| c.roll_deg()), "pitch_deg": c.map(|c| c.pitch_deg()),
-            "members": c.map(|c| c.estimate.health.members),
-            "spread_deg": c.map(|c| c.estimate.health.spread_deg),
-            "accel_bias_mps2": c.map(|c| c.estimate.accel_bias.mps2.as_slice().to_vec()),
-            "bias_observable": c.map(|c| c.estimate.accel_bias.observable),
-        })
-    });
-    if args.json {
-        println!(
-            "{}",
-            json!({
-                "map": args.out,
-                "scans": report.scans.len(),
-                "scan_range": [report.scans.start, report.scans.end],
-                "dataset_scans": report.dataset_scans,
-                "trajectory_out": output.trajectory,
-                "graph_out": output.graph.as_ref().zip(report.mapping.as_ref()).map(|(path, m)| json!({
-                    "path": path, "vertices": m.graph.len(), "edges": m.graph.edges().len(),
-                })),
-                "keyframes": w.keyframes,
-                "points": w.points,
-                "bytes": w.bytes,
-                "seconds": report.seconds,
-                "points_per_second": report.points_per_second(),
-                "threads": pool.current_num_threads(),
-                "gravity": gravity,
-                "mapping": report.mapping.as_ref().map(|m| json!({
-                    "keyframes": m.keyframes, "loops_found": m.loops_found,
-                    "loops_accepted": m.loops_accepted(), "graph_error_initial": m.graph_error.0,
-                    "graph_error_final": m.graph_error.1, "ate_m": m.ate,
-                    "ate_odometry_m": m.ate_odometry, "ate_scans_m": m.ate_scans,
-                    "recovered_scans": m.recovered_scans, "poor_scans": m.poor_scans,
-                    "gyro_bias_rad_s": m.gyro_bias,
-                    "loop_checks": m.loop_checks.iter().map(|c| json!({
-                        "older_scan": c.older_scan, "newer_scan": c.newer_scan,
-                        "accepted": c.accepted,
-                        "inlier_ratio": c.fitness.map(|f| f.inlier_ratio),
-                        "rmse_m": c.fitness.map(|f| f.rmse),
-                    })).collect::<Vec<_>>(),
-                })),
-            })
-        );
-    } else {
-        println!(
-            "{}: {} keyframes from {} scans, {} points, {:.1} MB, {:.2} s ({:.2} M points/s, {} threads)",
-            args.out.display(),
-            w.keyframes,
-            report.scans.len(),
-            w.points,
-            w.bytes as f64 / 1e6,
-            report.seconds,
-            report.points_per_second() / 1e6,
-            pool.current_num_threads()
-        );
-        if let Some(m) = &report.mapping {
-            print_mapping(m);
-        }
-        if let Some(g) = &report.gravity {
-            print_gravity(g);
-        }
-        print_outputs(&output, &report);
+    Ok(report)
+}
+
+/// `--json`'s summary of the bake.
+fn summary_json(
+    args: &Args,
+    output: &BakeOutput,
+    report: &BakeReport,
+    threads: usize,
+) -> serde_json::Value {
+    let w = &report.written;
+    json!({
+        "map": args.out,
+        "scans": report.scans.len(),
+        "scan_range": [report.scans.start, report.scans.end],
+        "dataset_scans": report.dataset_scans,
+        "trajectory_out": output.trajectory,
+        "graph_out": output.graph.as_ref().zip(report.mapping.as_ref()).map(|(path, m)| json!({
+            "path": path, "vertices": m.graph.len(), "edges": m.graph.edges().len(),
+        })),
+        "keyframes": w.keyframes,
+        "points": w.points,
+        "bytes": w.bytes,
+        "seconds": report.seconds,
+        "points_per_second": report.points_per_second(),
+        "threads": threads,
+        "gravity": report.gravity.as_ref().map(gravity_json),
+        "mapping": report.mapping.as_ref().map(mapping_json),
+    })
+}
+
+/// The gravity levelling's part of the JSON summary.
+fn gravity_json(g: &BakeGravity) -> serde_json::Value {
+    let c = g.correction.as_ref();
+    json!({
+        "imu": g.imu, "keyframes_with_samples": g.fill.with_samples,
+        "compensated": g.fill.compensated, "applied": g.applied,
+        "roll_deg": c.map(|c| c.roll_deg()), "pitch_deg": c.map(|c| c.pitch_deg()),
+        "members": c.map(|c| c.estimate.health.members),
+        "spread_deg": c.map(|c| c.estimate.health.spread_deg),
+        "accel_bias_mps2": c.map(|c| c.estimate.accel_bias.mps2.as_slice().to_vec()),
+        "bias_observable": c.map(|c| c.estimate.accel_bias.observable),
+    })
+}
+
+/// The pose building's part of the JSON summary (poses built from the scans).
+fn mapping_json(m: &MappingSummary) -> serde_json::Value {
+    json!({
+        "keyframes": m.keyframes, "loops_found": m.loops_found,
+        "loops_accepted": m.loops_accepted(), "graph_error_initial": m.graph_error.0,
+        "graph_error_final": m.graph_error.1, "ate_m": m.ate,
+        "ate_odometry_m": m.ate_odometry, "ate_scans_m": m.ate_scans,
+        "recovered_scans": m.recovered_scans, "poor_scans": m.poor_scans,
+        "gyro_bias_rad_s": m.gyro_bias,
+        "loop_checks": m.loop_checks.iter().map(|c| json!({
+            "older_scan": c.older_scan, "newer_scan": c.newer_scan,
+            "accepted": c.accepted,
+            "inlier_ratio": c.fitness.map(|f| f.inlier_ratio),
+            "rmse_m": c.fitness.map(|f| f.rmse),
+        })).collect::<Vec<_>>(),
+    })
+}
+
+/// Prints the bake's summary for people.
+fn print_summary(args: &Args, output: &BakeOutput, report: &BakeReport, threads: usize) {
+    let w = &report.written;
+    println!(
+        "{}: {} keyframes from {} scans, {} points, {:.1} MB, {:.2} s ({:.2} M points/s, {} threads)",
+        args.out.display(),
+        w.keyframes,
+        report.scans.len(),
+        w.points,
+        w.bytes as f64 / 1e6,
+        report.seconds,
+        report.points_per_second() / 1e6,
+        threads
+    );
+    if let Some(m) = &report.mapping {
+        print_mapping(m);
     }
-    Ok(())
+    if let Some(g) = &report.gravity {
+        print_gravity(g);
+    }
+    print_outputs(output, report);
 }
 
 fn print_outputs(output: &BakeOutput, report: &BakeReport) {

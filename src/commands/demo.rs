@@ -24,7 +24,7 @@ use kfmap_sim::{LidarParams, Preset, SimConfig, gravity_in_map, write_dataset};
 
 use super::localize::LocalizeLog;
 use super::plot::{MapPlotOptions, TrajectoryPlotInputs, render_map, render_trajectory};
-use super::report::json_number;
+use super::report::{json_number, p99_label};
 use super::server_child::{ServerChild, run_localize};
 
 /// Run the kfmap pipeline end to end on built-in defaults and draw the result.
@@ -317,24 +317,53 @@ fn run_pipeline(report: &mut Report, passes: &Passes, out: &Path) -> anyhow::Res
         baked.map_from_input.rotation * up_input
     });
     if let Some(up) = true_up {
-        let line = match &baked.level {
-            Some(c) => {
-                // What the levelling had to undo: the true up before it.
-                let (roll, pitch) = roll_pitch_from_gravity(&(c.rotation.inverse() * up), 1e-9);
-                format!(
-                    "recovered roll {:.2} deg, pitch {:.2} deg from the IMU; truth {:.2} / {:.2} deg; map levelled",
-                    c.roll_deg(),
-                    c.pitch_deg(),
-                    roll.to_degrees(),
-                    pitch.to_degrees()
-                )
-            }
-            None => "too few keyframes with IMU samples for an estimate".into(),
-        };
-        report.note("level by gravity", line);
+        note_levelling(report, &baked, &up);
     }
     report.step("reopen by mmap", || reopen(&map))?;
-    // The replayed pass's reference poses in the map frame, as the server reports it.
+    let reference_path = out.join("reference.tum");
+    write_reference(passes, &baked, &reference_path)?;
+    let server = report.step("kfmap serve", || start_demo_server(&map))?;
+    let localized = out.join("localized.tum");
+    let log = out.join("localize.jsonl");
+    let summary = report.step("kfmap localize", || {
+        localize_pass(passes, &server, &localized, &log)
+    })?;
+    drop(server);
+    note_localization(report, &summary, true_up.as_ref());
+    draw_pictures(report, &map, out, &localized, &reference_path, &log)?;
+    report.note(
+        "files",
+        format!(
+            "{}/: map.kfmap, map_poses.tum, localized.tum, reference.tum, localize.jsonl, report.md",
+            out.display()
+        ),
+    );
+    Ok(())
+}
+
+/// Notes the roll and pitch the bake's levelling recovered against the simulator's
+/// true `up` (in the map frame).
+fn note_levelling(report: &mut Report, baked: &Baked, up: &nalgebra::Vector3<f64>) {
+    let line = match &baked.level {
+        Some(c) => {
+            // What the levelling had to undo: the true up before it.
+            let (roll, pitch) = roll_pitch_from_gravity(&(c.rotation.inverse() * up), 1e-9);
+            format!(
+                "recovered roll {:.2} deg, pitch {:.2} deg from the IMU; truth {:.2} / {:.2} deg; map levelled",
+                c.roll_deg(),
+                c.pitch_deg(),
+                roll.to_degrees(),
+                pitch.to_degrees()
+            )
+        }
+        None => "too few keyframes with IMU samples for an estimate".into(),
+    };
+    report.note("level by gravity", line);
+}
+
+/// Writes the replayed pass's reference poses in the map frame, as the server reports
+/// it, to `path` (TUM).
+fn write_reference(passes: &Passes, baked: &Baked, path: &Path) -> anyhow::Result<()> {
     let reference = Trajectory {
         stamps: passes.replayed_reference.stamps.clone(),
         poses: passes
@@ -344,55 +373,77 @@ fn run_pipeline(report: &mut Report, passes: &Passes, out: &Path) -> anyhow::Res
             .map(|p| baked.map_from_input * p)
             .collect(),
     };
-    let reference_path = out.join("reference.tum");
-    write_atomic(&reference_path, format_tum(&reference).as_bytes())?;
-    let server = report.step("kfmap serve", || {
-        let id = std::process::id();
-        let server = ServerChild::start(&map, &format!("demo{id}"), &format!("kfdemo{id}_"), &[])?;
-        let ready = server.ready.trim_start_matches("ready: ");
-        let line = format!("child process {}, {ready}", server.pid());
-        Ok((server, line))
-    })?;
-    let localized = out.join("localized.tum");
-    let log = out.join("localize.jsonl");
-    let summary = report.step("kfmap localize", || {
-        // Without a guess the first scan is relocalized, as any lost one would be.
-        let start: &[&str] = if passes.relocalize_first {
-            &[]
-        } else {
-            &["--initial-from-ground-truth"]
-        };
-        let scans = passes.replayed_scans;
-        let range = format!(
-            "{}..{}",
-            scans.start,
-            scans.end.map_or(String::new(), |e| e.to_string())
-        );
-        let mut args: Vec<&std::ffi::OsStr> = vec!["--scans".as_ref(), range.as_ref()];
-        args.extend(["--json-lines".as_ref(), "--out".as_ref(), localized.as_os_str()]);
-        args.extend(start.iter().map(OsStr::new));
-        let lines = run_localize(&server, &passes.replayed, &args)?;
-        write_atomic(&log, lines.as_bytes())?;
-        let s = LocalizeLog::parse(&lines)?;
-        let relocalized = s.scans_with_reason("relocalized");
-        let v = &s.summary;
-        let line = format!(
-            "{} scans: {} ok / {} degraded / {} lost / {} failed{}; per scan p50 {:.1} ms, p99 {:.1} ms",
-            v["scans"],
-            v["ok"],
-            v["degraded"],
-            v["lost"],
-            v["failed"],
-            match relocalized {
-                0 => String::new(),
-                n => format!(", {n} relocalized with no guess"),
-            },
-            json_number(&v["p50_ms"]),
-            json_number(&v["p99_ms"]),
-        );
-        Ok((s.summary, line))
-    })?;
-    drop(server);
+    write_atomic(path, format_tum(&reference).as_bytes())?;
+    Ok(())
+}
+
+/// Starts `kfmap serve` on `map` as a child process; the report's line about it.
+fn start_demo_server(map: &Path) -> anyhow::Result<(ServerChild, String)> {
+    let id = std::process::id();
+    let server = ServerChild::start(map, &format!("demo{id}"), &format!("kfdemo{id}_"), &[])?;
+    let ready = server.ready.trim_start_matches("ready: ");
+    let line = format!("child process {}, {ready}", server.pid());
+    Ok((server, line))
+}
+
+/// Runs `kfmap localize --json-lines` on the replayed pass against `server`, writing
+/// the trajectory to `localized` and the log to `log`: its summary and the report's
+/// line.
+fn localize_pass(
+    passes: &Passes,
+    server: &ServerChild,
+    localized: &Path,
+    log: &Path,
+) -> anyhow::Result<(serde_json::Value, String)> {
+    // Without a guess the first scan is relocalized, as any lost one would be.
+    let start: &[&str] = if passes.relocalize_first {
+        &[]
+    } else {
+        &["--initial-from-ground-truth"]
+    };
+    let scans = passes.replayed_scans;
+    let range = format!(
+        "{}..{}",
+        scans.start,
+        scans.end.map_or(String::new(), |e| e.to_string())
+    );
+    let mut args: Vec<&std::ffi::OsStr> = vec!["--scans".as_ref(), range.as_ref()];
+    args.extend([
+        "--json-lines".as_ref(),
+        "--out".as_ref(),
+        localized.as_os_str(),
+    ]);
+    args.extend(start.iter().map(OsStr::new));
+    let lines = run_localize(server, &passes.replayed, &args)?;
+    write_atomic(log, lines.as_bytes())?;
+    let s = LocalizeLog::parse(&lines)?;
+    let relocalized = s.scans_with_reason("relocalized");
+    let v = &s.summary;
+    let line = format!(
+        "{} scans: {} ok / {} degraded / {} lost / {} failed{}; per scan p50 {:.1} ms, {} {:.1} ms",
+        v["scans"],
+        v["ok"],
+        v["degraded"],
+        v["lost"],
+        v["failed"],
+        match relocalized {
+            0 => String::new(),
+            n => format!(", {n} relocalized with no guess"),
+        },
+        json_number(&v["p50_ms"]),
+        p99_label(v["scans"].as_u64().unwrap_or(0) as usize),
+        json_number(&v["p99_ms"]),
+    );
+    Ok((s.summary, line))
+}
+
+/// Notes the localized pass's error against its reference and, with the simulator's
+/// true `up`, the gravity the server estimated over IPC against it.
+fn note_localization(
+    report: &mut Report,
+    summary: &serde_json::Value,
+    true_up: Option<&nalgebra::Vector3<f64>>,
+) {
     report.note(
         "error vs reference",
         format!(
@@ -406,7 +457,7 @@ fn run_pipeline(report: &mut Report, passes: &Passes, out: &Path) -> anyhow::Res
     );
     if let (Some(g), Some(up)) = (summary["gravity"].as_object(), true_up) {
         let (roll, pitch) = (json_number(&g["roll_deg"]), json_number(&g["pitch_deg"]));
-        let (true_roll, true_pitch) = roll_pitch_from_gravity(&up, 1e-9);
+        let (true_roll, true_pitch) = roll_pitch_from_gravity(up, 1e-9);
         report.note(
             "gravity over IPC",
             format!(
@@ -417,29 +468,34 @@ fn run_pipeline(report: &mut Report, passes: &Passes, out: &Path) -> anyhow::Res
             ),
         );
     }
+}
+
+/// Draws map.png and trajectory.png (the localized pass against its reference, its
+/// scan log marked) into `out`.
+fn draw_pictures(
+    report: &mut Report,
+    map: &Path,
+    out: &Path,
+    localized: &Path,
+    reference: &Path,
+    log: &Path,
+) -> anyhow::Result<()> {
     let map_png = out.join("map.png");
     report.step("picture of the map", || {
-        render_map(&map, &map_png, &MapPlotOptions::default())?;
+        render_map(map, &map_png, &MapPlotOptions::default())?;
         Ok(((), map_png.display().to_string()))
     })?;
     let trajectory_png = out.join("trajectory.png");
     report.step("picture of the trajectory", || {
         let inputs = TrajectoryPlotInputs {
-            estimate: &localized,
-            reference: &reference_path,
-            scan_log: Some(&log),
+            estimate: localized,
+            reference,
+            scan_log: Some(log),
             title: Some("localized pass against its reference (map frame)"),
         };
         render_trajectory(&inputs, &trajectory_png, 1600, 1200)?;
         Ok(((), trajectory_png.display().to_string()))
     })?;
-    report.note(
-        "files",
-        format!(
-            "{}/: map.kfmap, map_poses.tum, localized.tum, reference.tum, localize.jsonl, report.md",
-            out.display()
-        ),
-    );
     Ok(())
 }
 

@@ -5,6 +5,7 @@ use std::time::Instant;
 
 use indicatif::{ProgressBar, ProgressStyle};
 use kfmap_shared::archive::{OpenOptions, OpenedMap, open_map};
+use kfmap_shared::place::GridView;
 use serde_json::json;
 
 /// Describe a baked map: header, options, keyframes, points, size breakdown, bounding
@@ -62,29 +63,96 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let started = Instant::now();
     let opened = open_map(&args.map, OpenOptions::default())?;
     let open_ms = started.elapsed().as_secs_f64() * 1e3;
-    let mut verify_ms = None;
-    if args.verify {
-        let started = Instant::now();
-        opened.verify_payload()?;
-        let bar = if args.json {
-            ProgressBar::hidden()
-        } else {
-            ProgressBar::new(opened.map.len() as u64)
-        };
-        bar.set_style(
-            ProgressStyle::with_template("verifying [{bar:40}] {pos}/{len} keyframes, eta {eta}")
-                .expect("template")
-                .progress_chars("=> "),
-        );
-        opened.verify_keyframes(|done| bar.set_position(done as u64))?;
-        if let Some(place) = &opened.place {
-            place.view()?;
-        }
-        bar.finish_and_clear();
-        verify_ms = Some(started.elapsed().as_secs_f64() * 1e3);
+    let verify_ms = if args.verify {
+        Some(verify(&opened, args.json)?)
+    } else {
+        None
+    };
+    let facts = MapFacts::of(&opened)?;
+    let timing = Timing { open_ms, verify_ms };
+    if args.json {
+        println!("{}", facts_json(&args, &opened, &facts, &timing));
+    } else {
+        print_facts(&args, &opened, &facts, &timing);
     }
-    let index = &opened.index;
-    let points: u64 = index.keyframes.iter().map(|k| k.points).sum();
+    Ok(())
+}
+
+/// How long opening took, and verifying with `--verify`, milliseconds.
+struct Timing {
+    open_ms: f64,
+    verify_ms: Option<f64>,
+}
+
+/// Checks the whole-file checksum, every keyframe and the place grid, showing progress
+/// (hidden with `json`); milliseconds it took.
+fn verify(opened: &OpenedMap, json: bool) -> anyhow::Result<f64> {
+    let started = Instant::now();
+    opened.verify_payload()?;
+    let bar = if json {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(opened.map.len() as u64)
+    };
+    bar.set_style(
+        ProgressStyle::with_template("verifying [{bar:40}] {pos}/{len} keyframes, eta {eta}")
+            .expect("template")
+            .progress_chars("=> "),
+    );
+    opened.verify_keyframes(|done| bar.set_position(done as u64))?;
+    if let Some(place) = &opened.place {
+        place.view()?;
+    }
+    bar.finish_and_clear();
+    Ok(started.elapsed().as_secs_f64() * 1e3)
+}
+
+/// What the map holds, as printed.
+struct MapFacts<'a> {
+    points: u64,
+    sizes: Breakdown,
+    /// Bounding box of every keyframe's box in the map frame, metres.
+    lo: [f64; 3],
+    hi: [f64; 3],
+    covisibility_edges: usize,
+    mean_degree: f64,
+    essential_edges: usize,
+    gravity_pool: usize,
+    /// Mean accelerometer spread of the gravity pool, m/s^2 (`None`: empty pool).
+    pool_spread: Option<f64>,
+    place: Option<GridView<'a>>,
+}
+
+impl<'a> MapFacts<'a> {
+    /// Gathers the facts of `opened` from its index, keyframe boxes, covisibility graph,
+    /// gravity pool and place grid.
+    fn of(opened: &'a OpenedMap) -> anyhow::Result<Self> {
+        let index = &opened.index;
+        let (lo, hi) = map_bounds(opened);
+        let covis = opened.map.covisibility();
+        let edges = covis.edges();
+        let pool = &index.gravity_pool;
+        Ok(Self {
+            points: index.keyframes.iter().map(|k| k.points).sum(),
+            sizes: breakdown(opened),
+            lo,
+            hi,
+            covisibility_edges: edges.len(),
+            mean_degree: 2.0 * edges.len() as f64 / covis.len().max(1) as f64,
+            essential_edges: covis.essential_graph().len(),
+            gravity_pool: pool.len(),
+            pool_spread: if pool.is_empty() {
+                None
+            } else {
+                Some(pool.iter().map(|g| g.std).sum::<f64>() / pool.len() as f64)
+            },
+            place: opened.place.as_ref().map(|p| p.view()).transpose()?,
+        })
+    }
+}
+
+/// The map frame's bounding box of every keyframe's bounding box (all 8 corners).
+fn map_bounds(opened: &OpenedMap) -> ([f64; 3], [f64; 3]) {
     let mut lo = [f64::INFINITY; 3];
     let mut hi = [f64::NEG_INFINITY; 3];
     for k in opened.map.keyframes() {
@@ -102,55 +170,55 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             }
         }
     }
-    let sizes = breakdown(&opened);
-    let covis = opened.map.covisibility();
-    let edges = covis.edges();
-    let mean_degree = 2.0 * edges.len() as f64 / covis.len().max(1) as f64;
-    let essential = covis.essential_graph().len();
-    let pool = &index.gravity_pool;
-    let pool_spread = if pool.is_empty() {
-        None
-    } else {
-        Some(pool.iter().map(|g| g.std).sum::<f64>() / pool.len() as f64)
-    };
-    let place = opened.place.as_ref().map(|p| p.view()).transpose()?;
+    (lo, hi)
+}
+
+/// `--json`'s object.
+fn facts_json(
+    args: &Args,
+    opened: &OpenedMap,
+    f: &MapFacts<'_>,
+    timing: &Timing,
+) -> serde_json::Value {
     let h = &opened.header;
-    if args.json {
-        println!(
-            "{}",
-            json!({
-                "map": args.map,
-                "format_version": h.format_version,
-                "creator": h.creator,
-                "pointer_width": h.pointer_width,
-                "keyframes": opened.map.len(),
-                "points": points,
-                "bytes": opened.file_len(),
-                "bytes_points": sizes.points,
-                "bytes_covariances": sizes.covariances,
-                "bytes_trees_and_overhead": sizes.trees_and_overhead,
-                "bytes_index": sizes.index,
-                "bytes_place_grid": sizes.place_grid,
-                "place_grid": place.map(|g| json!({
-                    "resolution_m": g.resolution(),
-                    "dims": g.dims(),
-                    "levels": g.levels(),
-                })),
-                "bbox_min": lo,
-                "bbox_max": hi,
-                "covisibility_edges": edges.len(),
-                "covisibility_mean_degree": mean_degree,
-                "essential_graph_edges": essential,
-                "gravity_pool": pool.len(),
-                "gravity_pool_mean_std": pool_spread,
-                "options": toml::from_str::<toml::Value>(&h.options_toml).ok(),
-                "open_ms": open_ms,
-                "verified": args.verify,
-                "verify_ms": verify_ms,
-            })
-        );
-        return Ok(());
-    }
+    let sizes = &f.sizes;
+    json!({
+        "map": args.map,
+        "format_version": h.format_version,
+        "creator": h.creator,
+        "pointer_width": h.pointer_width,
+        "keyframes": opened.map.len(),
+        "points": f.points,
+        "bytes": opened.file_len(),
+        "bytes_points": sizes.points,
+        "bytes_covariances": sizes.covariances,
+        "bytes_trees_and_overhead": sizes.trees_and_overhead,
+        "bytes_index": sizes.index,
+        "bytes_place_grid": sizes.place_grid,
+        "place_grid": f.place.as_ref().map(|g| json!({
+            "resolution_m": g.resolution(),
+            "dims": g.dims(),
+            "levels": g.levels(),
+        })),
+        "bbox_min": f.lo,
+        "bbox_max": f.hi,
+        "covisibility_edges": f.covisibility_edges,
+        "covisibility_mean_degree": f.mean_degree,
+        "essential_graph_edges": f.essential_edges,
+        "gravity_pool": f.gravity_pool,
+        "gravity_pool_mean_std": f.pool_spread,
+        "options": toml::from_str::<toml::Value>(&h.options_toml).ok(),
+        "open_ms": timing.open_ms,
+        "verified": args.verify,
+        "verify_ms": timing.verify_ms,
+    })
+}
+
+/// Prints the facts for people.
+fn print_facts(args: &Args, opened: &OpenedMap, f: &MapFacts<'_>, timing: &Timing) {
+    let h = &opened.header;
+    let sizes = &f.sizes;
+    let (lo, hi) = (f.lo, f.hi);
     let mb = |b: u64| b as f64 / 1e6;
     println!(
         "{} (format {}, written by {})",
@@ -161,7 +229,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     println!(
         "  {} keyframes, {} points, {:.1} MB: points {:.1}, covariances {:.1}, trees + overhead {:.1}, index {:.3}",
         opened.map.len(),
-        points,
+        f.points,
         mb(opened.file_len()),
         mb(sizes.points),
         mb(sizes.covariances),
@@ -174,11 +242,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     );
     println!(
         "  covisibility: {} edges, mean degree {:.1}, essential graph {} edges",
-        edges.len(),
-        mean_degree,
-        essential
+        f.covisibility_edges, f.mean_degree, f.essential_edges
     );
-    match place {
+    match &f.place {
         Some(g) => println!(
             "  place grid (relocalization): {:?} voxels of {} m, {} levels, {:.3} MB ({:.2} % of the file)",
             g.dims(),
@@ -189,10 +255,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         ),
         None => println!("  place grid: none (relocalization refused; bake the map again)"),
     }
-    match pool_spread {
+    match f.pool_spread {
         Some(s) => println!(
             "  gravity pool: {} keyframes, mean accelerometer spread {s:.3} m/s^2",
-            pool.len()
+            f.gravity_pool
         ),
         None => println!("  gravity pool: empty"),
     }
@@ -200,9 +266,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     for line in h.options_toml.lines().filter(|l| !l.is_empty()) {
         println!("    {line}");
     }
-    match verify_ms {
+    match timing.verify_ms {
         Some(ms) => println!("  verified: checksum and every keyframe's tree ({ms:.0} ms)"),
-        None => println!("  opened in {open_ms:.2} ms (pass --verify to check every byte)"),
+        None => println!(
+            "  opened in {:.2} ms (pass --verify to check every byte)",
+            timing.open_ms
+        ),
     }
-    Ok(())
 }

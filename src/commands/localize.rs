@@ -1,15 +1,16 @@
 //! `kfmap localize`: replay a dataset against a running server and localize every scan.
 
+use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
 use kfmap_bake::config::BakeConfig;
+use kfmap_bake::dataset::{dataset_poses, find_scans, load_raw_scan};
 use kfmap_bake::gravity::{IMU_FILES, POSE_FILES, find_in, read_imu};
-use kfmap_bake::pipeline::{dataset_poses, find_scans, load_raw_scan};
 use kfmap_bake::scan_range::ScanRange;
-use kfmap_client::{GravityAnswer, LocalizeOptions, TrackedScan, Tracker, TrackerOptions};
+use kfmap_client::{Client, GravityAnswer, LocalizeOptions, TrackedScan, Tracker, TrackerOptions};
 use kfmap_protocol::Cov2CovMode;
 use kfmap_service::config::ServerConfig;
 use kfmap_service::server::percentile;
@@ -25,6 +26,7 @@ use kfmap_shared::trajectory_error::{absolute_trajectory_error, relative_pose_er
 use serde_json::json;
 
 use super::connect_arg::ConnectArgs;
+use super::report::p99_label;
 
 /// Replay a dataset's scans (and IMU) against a running `kfmap serve` and localize
 /// every scan, tracking it: each scan is localized from the pose a constant-velocity
@@ -249,54 +251,127 @@ fn scan_line(
     })
 }
 
+/// Runs the subcommand.
 pub fn run(args: Args) -> anyhow::Result<()> {
     if !(args.rate.is_finite() && args.rate >= 0.0) {
         anyhow::bail!("--rate must be >= 0 scans/s, got {}", args.rate);
     }
-    let all_scans = find_scans(&args.dataset)?;
-    let range = args
-        .scans
-        .unwrap_or(ScanRange::ALL)
-        .within(all_scans.len())?;
-    let truth = dataset_poses(&args.dataset, &all_scans)?;
-    if args.initial_from_ground_truth && truth.is_none() {
-        anyhow::bail!(
-            "--initial-from-ground-truth: {} has no pose file ({})",
-            args.dataset.display(),
-            POSE_FILES.join(", ")
-        );
-    }
-    let all_stamps: Vec<f64> = match &truth {
-        Some(t) => t.stamps.clone(),
-        None => (0..all_scans.len())
-            .map(|i| i as f64 / args.rate.max(1.0))
-            .collect(),
-    };
-    let imu = match &truth {
-        Some(t) if t.stamped && !args.no_imu => find_in(&args.dataset, &IMU_FILES)
-            .map(|path| read_imu(&path).map(|samples| (path, samples)))
-            .transpose()?,
-        _ => None,
-    };
-    let windows = imu
-        .as_ref()
-        .map(|(_, samples)| imu_windows(samples, &all_stamps));
-    let gyro = imu
-        .as_ref()
-        .map(|(path, samples)| gyro_from(path, samples, &args.imu_rpy_deg))
-        .transpose()?;
-    let scans = &all_scans[range.clone()];
-    let stamps = &all_stamps[range.clone()];
+    let mut dataset = ReplayDataset::read(&args)?;
     let mut client = args.server.connect()?;
-    // Ground truth is in the baked dataset's frame; the map may be levelled from it.
-    let map_from_input = client.status()?.map_from_input;
-    let truth: Option<Vec<Pose>> = truth.map(|t| {
-        t.poses[range.clone()]
-            .iter()
-            .map(|p| map_from_input * *p)
-            .collect()
-    });
-    let initial = match (&args.initial, &truth) {
+    let truth = dataset.truth_in_map_frame(&mut client)?;
+    let mut tracker = start_tracker(&args, truth.as_deref(), dataset.gyro.take())?;
+    let quiet = args.json || args.json_lines;
+    let bar = progress_bar(quiet, dataset.scans.len());
+    let replayed = replay_scans(
+        &args,
+        &dataset,
+        &mut client,
+        &mut tracker,
+        truth.as_deref(),
+        &bar,
+    )?;
+    bar.finish_and_clear();
+    if let Some(out) = &args.out {
+        write_trajectory(out, &dataset.stamps, &replayed.poses)?;
+    }
+    let summary = Summary::of(&dataset, replayed, truth.as_deref());
+    if quiet {
+        print_json(&args, &summary)
+    } else {
+        print_text(&args, &summary);
+        Ok(())
+    }
+}
+
+/// The dataset side of a replay: which scans, their stamps, reference poses and IMU.
+struct ReplayDataset {
+    /// Indices of the replayed scans in the dataset's sorted scan list.
+    range: Range<usize>,
+    /// The replayed scan files.
+    scans: Vec<PathBuf>,
+    /// Their stamps, s (from the pose file, else at `--rate`).
+    stamps: Vec<f64>,
+    /// The replayed scans' reference poses, in the baked dataset's frame.
+    truth: Option<Vec<Pose>>,
+    /// Every dataset scan's IMU window (by index in the dataset), with an IMU log.
+    windows: Option<Vec<ImuWindow>>,
+    /// The tracker's gyro over the IMU log.
+    gyro: Option<Gyro>,
+}
+
+impl ReplayDataset {
+    /// Finds the scans of `--dataset` within `--scans`, their reference poses and
+    /// stamps, and (with timestamped poses, unless `--no-imu`) the IMU log.
+    fn read(args: &Args) -> anyhow::Result<Self> {
+        let all_scans = find_scans(&args.dataset)?;
+        let range = args
+            .scans
+            .unwrap_or(ScanRange::ALL)
+            .within(all_scans.len())?;
+        let truth = dataset_poses(&args.dataset, &all_scans)?;
+        if args.initial_from_ground_truth && truth.is_none() {
+            anyhow::bail!(
+                "--initial-from-ground-truth: {} has no pose file ({})",
+                args.dataset.display(),
+                POSE_FILES.join(", ")
+            );
+        }
+        let all_stamps: Vec<f64> = match &truth {
+            Some(t) => t.stamps.clone(),
+            None => (0..all_scans.len())
+                .map(|i| i as f64 / args.rate.max(1.0))
+                .collect(),
+        };
+        let imu = match &truth {
+            Some(t) if t.stamped && !args.no_imu => find_in(&args.dataset, &IMU_FILES)
+                .map(|path| read_imu(&path).map(|samples| (path, samples)))
+                .transpose()?,
+            _ => None,
+        };
+        let windows = imu
+            .as_ref()
+            .map(|(_, samples)| imu_windows(samples, &all_stamps));
+        let gyro = imu
+            .as_ref()
+            .map(|(path, samples)| gyro_from(path, samples, &args.imu_rpy_deg))
+            .transpose()?;
+        Ok(Self {
+            scans: all_scans[range.clone()].to_vec(),
+            stamps: all_stamps[range.clone()].to_vec(),
+            truth: truth.map(|t| t.poses[range.clone()].to_vec()),
+            range,
+            windows,
+            gyro,
+        })
+    }
+
+    /// The reference poses in the map frame: ground truth is in the baked dataset's
+    /// frame, and the map may be levelled from it (the server says how).
+    fn truth_in_map_frame(&self, client: &mut Client) -> anyhow::Result<Option<Vec<Pose>>> {
+        let map_from_input = client.status()?.map_from_input;
+        Ok(self
+            .truth
+            .as_ref()
+            .map(|t| t.iter().map(|p| map_from_input * *p).collect()))
+    }
+
+    /// The IMU window of dataset scan `index`, when it has samples.
+    fn window(&self, index: usize) -> Option<&ImuWindow> {
+        self.windows
+            .as_ref()
+            .map(|w| &w[index])
+            .filter(|w| !w.is_empty())
+    }
+}
+
+/// The tracker: from `--initial`, the reference pose (`--initial-from-ground-truth`) or
+/// relocalizing, with the `--config` checks, the solver options and the gyro.
+fn start_tracker(
+    args: &Args,
+    truth: Option<&[Pose]>,
+    gyro: Option<Gyro>,
+) -> anyhow::Result<Tracker> {
+    let initial = match (&args.initial, truth) {
         (Some(text), _) => Some(super::pose_arg::parse_pose(text)?),
         (None, Some(t)) if args.initial_from_ground_truth => Some(t[0]),
         _ => None,
@@ -314,18 +389,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         deskew: !args.no_deskew,
         ..TrackerOptions::default()
     };
-    let quiet = args.json || args.json_lines;
-    let bar = if quiet {
-        ProgressBar::hidden()
-    } else {
-        ProgressBar::new(scans.len() as u64)
-    };
-    bar.set_style(
-        ProgressStyle::with_template("localizing {bar:30} {pos}/{len} scans, {msg} ({eta})")
-            .expect("valid template"),
-    );
-    let config = BakeConfig::default();
-    let period = (args.rate > 0.0).then(|| Duration::from_secs_f64(1.0 / args.rate));
     let mut tracker = match initial {
         Some(pose) => Tracker::new(pose, options),
         None => Tracker::relocalizing(options),
@@ -333,47 +396,91 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(gyro) = gyro {
         tracker = tracker.with_gyro(gyro);
     }
-    let mut poses = Vec::with_capacity(scans.len());
-    let mut latencies = Vec::with_capacity(scans.len());
-    let mut statuses = Vec::with_capacity(scans.len());
-    let mut failed = 0usize;
-    let mut iterations = 0u64;
-    let mut gravity: Option<GravityAnswer> = None;
-    for (k, path) in scans.iter().enumerate() {
-        let index = range.start + k;
+    Ok(tracker)
+}
+
+/// The progress bar over `scans` scans (hidden when printing JSON).
+fn progress_bar(quiet: bool, scans: usize) -> ProgressBar {
+    let bar = if quiet {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(scans as u64)
+    };
+    bar.set_style(
+        ProgressStyle::with_template("localizing {bar:30} {pos}/{len} scans, {msg} ({eta})")
+            .expect("valid template"),
+    );
+    bar
+}
+
+/// What the replay produced, scan by scan.
+struct Replayed {
+    /// Each scan's pose (the prediction when its request failed).
+    poses: Vec<Pose>,
+    /// Each scan's request latency, ms.
+    latencies: Vec<f64>,
+    /// Each scan's status; `None` when its request failed.
+    statuses: Vec<Option<TrackingStatus>>,
+    /// Scans whose request failed.
+    failed: usize,
+    /// GICP iterations over all scans.
+    iterations: u64,
+    /// The server's last answer to an IMU window.
+    gravity: Option<GravityAnswer>,
+}
+
+/// Sends every scan at `--rate` and tracks it, printing each scan's line with
+/// `--json-lines` and pushing its IMU window to the server's gravity pool.
+fn replay_scans(
+    args: &Args,
+    dataset: &ReplayDataset,
+    client: &mut Client,
+    tracker: &mut Tracker,
+    truth: Option<&[Pose]>,
+    bar: &ProgressBar,
+) -> anyhow::Result<Replayed> {
+    let n = dataset.scans.len();
+    let mut out = Replayed {
+        poses: Vec::with_capacity(n),
+        latencies: Vec::with_capacity(n),
+        statuses: Vec::with_capacity(n),
+        failed: 0,
+        iterations: 0,
+        gravity: None,
+    };
+    let config = BakeConfig::default();
+    let period = (args.rate > 0.0).then(|| Duration::from_secs_f64(1.0 / args.rate));
+    for (k, path) in dataset.scans.iter().enumerate() {
+        let index = dataset.range.start + k;
         let tick = Instant::now();
         let cloud = load_scan(path, &config, args.voxel)?;
-        let t = stamps[k];
+        let t = dataset.stamps[k];
         let sent = Instant::now();
-        let result = tracker.track_cloud(&mut client, &cloud, t);
+        let result = tracker.track_cloud(client, &cloud, t);
         let latency = sent.elapsed().as_secs_f64() * 1e3;
-        latencies.push(latency);
+        out.latencies.push(latency);
         let (tracked, error) = match result {
             Ok(tracked) => (tracked, None),
             Err(e) => {
-                failed += 1;
+                out.failed += 1;
                 bar.suspend(|| eprintln!("scan {}: {e}", path.display()));
                 (tracker.unanswered(t), Some(e.to_string()))
             }
         };
         let health = &tracked.localized.health;
-        iterations += health.iterations as u64;
-        statuses.push(error.is_none().then_some(health.status));
+        out.iterations += health.iterations as u64;
+        out.statuses.push(error.is_none().then_some(health.status));
         if args.json_lines {
-            let reference = truth.as_ref().map(|t| &t[k]);
+            let reference = truth.map(|t| &t[k]);
             let line = scan_line(index, &tracked, latency, reference, error.as_deref());
             println!("{line}");
         }
         let pose = tracked.localized.pose;
-        poses.push(pose);
-        if let Some(w) = windows
-            .as_ref()
-            .map(|w| &w[index])
-            .filter(|w| !w.is_empty())
-        {
+        out.poses.push(pose);
+        if let Some(w) = dataset.window(index) {
             // The window ends at this scan's stamp; the pose there goes with it.
-            match client.push_imu_window(index as u64, &pose, Some(stamps[k]), w.samples()) {
-                Ok(g) => gravity = Some(g),
+            match client.push_imu_window(index as u64, &pose, Some(t), w.samples()) {
+                Ok(g) => out.gravity = Some(g),
                 Err(e) => bar.suspend(|| eprintln!("IMU window of scan {index}: {e}")),
             }
         }
@@ -383,79 +490,128 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             std::thread::sleep(period.saturating_sub(tick.elapsed()));
         }
     }
-    bar.finish_and_clear();
-    if let Some(out) = &args.out {
-        let trajectory = Trajectory {
-            stamps: Some(stamps.to_vec()),
-            poses: poses.clone(),
-        };
-        write_atomic(out, format_tum(&trajectory).as_bytes())?;
-    }
-    let mut sorted = latencies.clone();
-    sorted.sort_by(f64::total_cmp);
-    let (p50, p99) = (percentile(&sorted, 0.5), percentile(&sorted, 0.99));
-    let count = |s: TrackingStatus| statuses.iter().filter(|x| **x == Some(s)).count();
-    let (ok, degraded, lost) = (
-        count(TrackingStatus::Ok),
-        count(TrackingStatus::Degraded),
-        count(TrackingStatus::Lost),
-    );
-    let errors = truth
-        .as_ref()
-        .map(|t| ReferenceErrors::of(&poses, t, &statuses));
-    let gravity = gravity.filter(|g| g.gravity.is_some());
-    if quiet {
-        let out = json!({
-            "scans": scans.len(),
-            "first_scan": range.start,
-            "ok": ok,
-            "degraded": degraded,
-            "lost": lost,
-            "failed": failed,
-            "ate_m": errors.as_ref().map(|e| e.ate),
-            "rpe_m": errors.as_ref().map(|e| e.rpe),
-            "rms_error_m": errors.as_ref().map(|e| e.rms),
-            "max_error_m": errors.as_ref().map(|e| e.max_m),
-            "max_error_deg": errors.as_ref().map(|e| e.max_deg),
-            "wrong_ok": errors.as_ref().map(|e| e.wrong_ok),
-            "p50_ms": p50,
-            "p99_ms": p99,
-            "mean_iterations": iterations as f64 / scans.len().max(1) as f64,
-            "server_side": args.server_side,
-            "mode": Cov2CovMode::from(args.mode).name(),
-            "gravity": gravity.as_ref().map(super::gravity::served_json),
-        });
-        if args.json_lines {
-            println!("{out}");
-        } else {
-            println!("{}", serde_json::to_string_pretty(&out)?);
+    Ok(out)
+}
+
+/// Writes the replayed trajectory to `out` (TUM).
+fn write_trajectory(out: &Path, stamps: &[f64], poses: &[Pose]) -> anyhow::Result<()> {
+    let trajectory = Trajectory {
+        stamps: Some(stamps.to_vec()),
+        poses: poses.to_vec(),
+    };
+    write_atomic(out, format_tum(&trajectory).as_bytes())?;
+    Ok(())
+}
+
+/// The replay's figures, as printed.
+struct Summary {
+    scans: usize,
+    first_scan: usize,
+    ok: usize,
+    degraded: usize,
+    lost: usize,
+    failed: usize,
+    /// Latency per scan, ms.
+    p50: f64,
+    p99: f64,
+    mean_iterations: f64,
+    /// Against the reference poses, when the dataset has them.
+    errors: Option<ReferenceErrors>,
+    /// The server's gravity estimate, when it made one.
+    gravity: Option<GravityAnswer>,
+}
+
+impl Summary {
+    /// Counts, latency percentiles and errors against `truth` of the replay.
+    fn of(dataset: &ReplayDataset, replayed: Replayed, truth: Option<&[Pose]>) -> Self {
+        let mut sorted = replayed.latencies;
+        sorted.sort_by(f64::total_cmp);
+        let statuses = &replayed.statuses;
+        let count = |s: TrackingStatus| statuses.iter().filter(|x| **x == Some(s)).count();
+        let scans = dataset.scans.len();
+        Self {
+            scans,
+            first_scan: dataset.range.start,
+            ok: count(TrackingStatus::Ok),
+            degraded: count(TrackingStatus::Degraded),
+            lost: count(TrackingStatus::Lost),
+            failed: replayed.failed,
+            p50: percentile(&sorted, 0.5),
+            p99: percentile(&sorted, 0.99),
+            mean_iterations: replayed.iterations as f64 / scans.max(1) as f64,
+            errors: truth.map(|t| ReferenceErrors::of(&replayed.poses, t, statuses)),
+            gravity: replayed.gravity.filter(|g| g.gravity.is_some()),
         }
-        return Ok(());
     }
+}
+
+/// Prints the summary as JSON: pretty, or on one line after the scans' lines with
+/// `--json-lines`.
+fn print_json(args: &Args, s: &Summary) -> anyhow::Result<()> {
+    let errors = s.errors.as_ref();
+    let out = json!({
+        "scans": s.scans,
+        "first_scan": s.first_scan,
+        "ok": s.ok,
+        "degraded": s.degraded,
+        "lost": s.lost,
+        "failed": s.failed,
+        "ate_m": errors.map(|e| e.ate),
+        "rpe_m": errors.map(|e| e.rpe),
+        "rms_error_m": errors.map(|e| e.rms),
+        "max_error_m": errors.map(|e| e.max_m),
+        "max_error_deg": errors.map(|e| e.max_deg),
+        "wrong_ok": errors.map(|e| e.wrong_ok),
+        "p50_ms": s.p50,
+        "p99_ms": s.p99,
+        "mean_iterations": s.mean_iterations,
+        "server_side": args.server_side,
+        "mode": Cov2CovMode::from(args.mode).name(),
+        "gravity": s.gravity.as_ref().map(super::gravity::served_json),
+    });
+    if args.json_lines {
+        println!("{out}");
+    } else {
+        println!("{}", serde_json::to_string_pretty(&out)?);
+    }
+    Ok(())
+}
+
+/// Prints the summary for people.
+fn print_text(args: &Args, s: &Summary) {
     println!(
-        "{} scans localized against map {} ({}): {ok} ok, {degraded} degraded, {lost} lost, {failed} failed",
-        scans.len(),
+        "{} scans localized against map {} ({}): {} ok, {} degraded, {} lost, {} failed",
+        s.scans,
         args.server.map_name,
         if args.server_side {
             "server-side GICP"
         } else {
             "client-side GICP"
-        }
+        },
+        s.ok,
+        s.degraded,
+        s.lost,
+        s.failed
     );
-    println!("  latency per scan: p50 {p50:.2} ms, p99 {p99:.2} ms");
-    if let Some(e) = &errors {
+    // Every scan's request is timed, failed ones too.
+    println!(
+        "  latency per scan: p50 {:.2} ms, {} {:.2} ms",
+        s.p50,
+        p99_label(s.scans),
+        s.p99
+    );
+    if let Some(e) = &s.errors {
         println!(
             "  ATE {:.4} m, RPE {:.4} m per scan; against the reference poses: RMS {:.4} m, max {:.3} m / {:.2} deg, {} scans off by more than {WRONG_M} m reported ok",
             e.ate, e.rpe, e.rms, e.max_m, e.max_deg, e.wrong_ok
         );
     }
-    if let Some(g) = &gravity {
+    if let Some(g) = &s.gravity {
         println!("  gravity over IPC: {}", super::gravity::served_line(g));
     }
     if let Some(out) = &args.out {
         println!("  trajectory: {}", out.display());
     }
-    Ok(())
 }
 
 /// A pose farther than this from its reference is wrong, metres.

@@ -2,9 +2,6 @@
 
 pub mod bake;
 pub mod bench;
-mod bench_ipc;
-mod bench_soak;
-mod bench_table;
 mod cloud_summary;
 mod connect_arg;
 pub mod demo;

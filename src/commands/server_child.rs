@@ -56,6 +56,16 @@ impl ServerChild {
     }
 }
 
+/// Starts `kfmap serve` on `map` for the server benchmarks (ipc, soak): the map name
+/// `bench` under `prefix`; `spin`: server polls instead of waiting on events.
+pub(super) fn start_bench_server(
+    map: &Path,
+    prefix: &str,
+    spin: bool,
+) -> anyhow::Result<ServerChild> {
+    ServerChild::start(map, "bench", prefix, if spin { &["--spin"] } else { &[] })
+}
+
 impl Drop for ServerChild {
     fn drop(&mut self) {
         // SAFETY: kill(2) on our own child; SIGTERM lets it remove its resources.

@@ -14,7 +14,7 @@ use std::time::Duration;
 use kfmap_protocol::transport::{iceoryx_config, remove_prefix_files};
 use kfmap_shared::archive::save_map;
 use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::geometry::Pose;
+use kfmap_shared::geometry::{Pose, rotation_distance, translation_distance};
 use kfmap_shared::map::{Keyframe, KeyframeMap, KeyframeMapOptions};
 
 /// A finished command's standard error as text.
@@ -268,4 +268,42 @@ pub fn linked_dataset(dir: &Path, scans: &[PathBuf], pose_lines: &[&str]) {
         std::os::unix::fs::symlink(scan, dir.join("scans").join(name)).unwrap();
     }
     std::fs::write(dir.join("poses.txt"), pose_lines.join("\n") + "\n").unwrap();
+}
+
+/// `T_map_input` of the map `name` serves under `prefix`, as its `Status` reports it:
+/// what moves a dataset's own poses into the (levelled) map frame.
+pub fn map_from_input(name: &str, prefix: &str) -> Pose {
+    let options = kfmap_client::ClientOptions {
+        iceoryx_prefix: Some(prefix.to_string()),
+        ..kfmap_client::ClientOptions::default()
+    };
+    kfmap_client::Client::connect(name, options)
+        .expect("connect")
+        .status()
+        .expect("status")
+        .map_from_input
+}
+
+/// Position (m) and rotation (deg) error of each pose against its reference, computed
+/// here: the oracle of the localization tests, never the figures `kfmap localize`
+/// prints about itself.
+pub fn pose_errors(poses: &[Pose], reference: &[Pose]) -> Vec<(f64, f64)> {
+    assert_eq!(poses.len(), reference.len(), "one reference per pose");
+    poses
+        .iter()
+        .zip(reference)
+        .map(|(p, r)| {
+            (
+                translation_distance(p, r),
+                rotation_distance(p, r).to_degrees(),
+            )
+        })
+        .collect()
+}
+
+/// RMS and largest of the position errors of [`pose_errors`], metres.
+pub fn rms_and_max_m(errors: &[(f64, f64)]) -> (f64, f64) {
+    let n = errors.len().max(1) as f64;
+    let rms = (errors.iter().map(|e| e.0 * e.0).sum::<f64>() / n).sqrt();
+    (rms, errors.iter().map(|e| e.0).fold(0.0, f64::max))
 }

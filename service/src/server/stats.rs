@@ -5,6 +5,10 @@ use std::sync::atomic::{AtomicU32, Ordering};
 
 use kfmap_protocol::KIND_SLOTS;
 
+/// Nearest-rank percentile of sorted values (zero when empty): the one definition, in
+/// `kfmap_shared::percentile`, re-exported for the server's users.
+pub use kfmap_shared::percentile::percentile;
+
 /// Latencies kept per kind for the percentiles (the most recent ones).
 const WINDOW: usize = 4096;
 
@@ -78,25 +82,14 @@ impl Stats {
     }
 }
 
-/// Nearest-rank percentile of sorted values (zero when empty).
-pub fn percentile<T: Copy + Default>(sorted: &[T], q: f64) -> T {
-    if sorted.is_empty() {
-        return T::default();
-    }
-    let rank = ((q * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len());
-    sorted[rank - 1]
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    /// The definition itself is tested in `kfmap_shared::percentile`; here, that the
+    /// figures use it: 10 samples, so the p99 is their maximum.
     #[test]
     fn percentiles_by_nearest_rank() {
-        let v: Vec<f32> = (1..=100).map(|x| x as f32).collect();
-        assert_eq!(percentile(&v, 0.5), 50.0);
-        assert_eq!(percentile(&v, 0.99), 99.0);
-        assert_eq!(percentile::<f32>(&[], 0.5), 0.0);
         let s = Stats::default();
         for x in 1..=10 {
             s.record(3, x as f32);

@@ -608,13 +608,10 @@ fn draw_symbol<DB: DrawingBackend>(
     .map_err(draw_error)
 }
 
-/// The `q`-quantile (0..=1) of sorted values; `None` when empty.
+/// The `q`-quantile (0..=1) of sorted values by nearest rank, the definition of
+/// `kfmap_shared::percentile`; `None` when empty.
 pub(super) fn quantile(sorted: &[f64], q: f64) -> Option<f64> {
-    if sorted.is_empty() {
-        return None;
-    }
-    let i = ((sorted.len() - 1) as f64 * q.clamp(0.0, 1.0)).round() as usize;
-    Some(sorted[i])
+    (!sorted.is_empty()).then(|| kfmap_shared::percentile::percentile(sorted, q))
 }
 
 #[cfg(test)]

@@ -6,6 +6,7 @@ use std::path::Path;
 
 use anyhow::Context;
 use kfmap_shared::archive::{ArchiveError, OpenOptions, open_map};
+use kfmap_shared::map::KeyframeMap;
 use nalgebra::Vector3;
 use plotters::coord::Shift;
 use plotters::prelude::*;
@@ -13,8 +14,8 @@ use plotters::style::text_anchor::{HPos, Pos, VPos};
 
 use super::MapPlotOptions;
 use super::draw::{
-    Figure, GREY, REVISIT_MAGENTA, Sizes, Symbol, centred_text, colour_bar, draw_error, grouped,
-    legend, legend_height, padded_bounds, plural, quantile, top_down_chart, turbo,
+    Chart2d, Figure, GREY, REVISIT_MAGENTA, Sizes, Symbol, centred_text, colour_bar, draw_error,
+    grouped, legend, legend_height, padded_bounds, plural, quantile, top_down_chart, turbo,
 };
 
 /// Most points drawn in a PNG (every n-th point of the map, n fixed by the total).
@@ -82,6 +83,135 @@ pub(super) struct MapFigure {
     summary: MapSummary,
 }
 
+/// What reading the map's keyframes gave: the sampled points and each keyframe's mark.
+struct Sampled {
+    /// Points of the map.
+    total: u64,
+    /// Every n-th point, map frame.
+    points: Vec<[f64; 3]>,
+    keyframes: Vec<KeyframeMark>,
+    /// (timestamp, id, index in `keyframes`) of each keyframe.
+    order: Vec<(f64, u64, usize)>,
+    /// Index in `keyframes` of each keyframe id.
+    index_of: HashMap<u64, usize>,
+}
+
+impl Sampled {
+    /// Reads every keyframe of `map` (at `path`, for errors): its pose's mark, and every
+    /// n-th point (n = ceil(points / max_points), counted across keyframes) moved into
+    /// the map frame.
+    fn read(map: &KeyframeMap, path: &Path, max_points: usize) -> anyhow::Result<Self> {
+        let total: u64 = map.keyframes().map(|k| k.len() as u64).sum();
+        let stride = total.div_ceil(max_points.max(1) as u64).max(1) as usize;
+        let mut out = Self {
+            total,
+            points: Vec::with_capacity((total as usize / stride) + 1),
+            keyframes: Vec::with_capacity(map.len()),
+            order: Vec::with_capacity(map.len()),
+            index_of: HashMap::with_capacity(map.len()),
+        };
+        let mut seen = 0usize;
+        for (i, k) in map.keyframes().enumerate() {
+            let view = k
+                .view()
+                .with_context(|| format!("{}: cannot read keyframe {}", path.display(), k.id))?;
+            let first = (stride - seen % stride) % stride;
+            for p in view.points.iter().skip(first).step_by(stride) {
+                let q = kfmap_shared::geometry::transform_point(&k.pose, p);
+                out.points.push([q.x, q.y, q.z]);
+            }
+            seen += view.points.len();
+            let t = k.pose.translation.vector;
+            let axis = k.pose.rotation * Vector3::x();
+            let norm = axis.x.hypot(axis.y);
+            out.keyframes.push(KeyframeMark {
+                x: t.x,
+                y: t.y,
+                heading: (norm > 0.2).then(|| (axis.x / norm, axis.y / norm)),
+            });
+            out.order.push((k.timestamp, k.id, i));
+            out.index_of.insert(k.id, i);
+        }
+        Ok(out)
+    }
+}
+
+/// The view: keyframes and the points between the 0.5th and 99.5th percentiles of x
+/// and of y (a few spurious far returns must not shrink the map to a dot), padded;
+/// points outside are not drawn.
+fn view_bounds(points: &[[f64; 3]], keyframes: &[KeyframeMark]) -> ((f64, f64), (f64, f64)) {
+    let axis_range = |axis: usize| {
+        let mut v: Vec<f64> = points.iter().map(|p| p[axis]).collect();
+        v.sort_by(f64::total_cmp);
+        quantile(&v, VIEW_QUANTILES.0).zip(quantile(&v, VIEW_QUANTILES.1))
+    };
+    let corners: Vec<(f64, f64)> = match (axis_range(0), axis_range(1)) {
+        (Some(x), Some(y)) => vec![(x.0, y.0), (x.1, y.1)],
+        _ => Vec::new(),
+    };
+    padded_bounds(
+        corners
+            .into_iter()
+            .chain(keyframes.iter().map(|k| (k.x, k.y))),
+        1.0,
+    )
+}
+
+/// The map's covisibility edges between keyframes, each marked whether it is across a
+/// revisit: covisible keyframes near each other with a long drive between them (the
+/// path driven in time `order`).
+fn classified_edges(
+    map: &KeyframeMap,
+    index_of: &HashMap<u64, usize>,
+    keyframes: &[KeyframeMark],
+    mut order: Vec<(f64, u64, usize)>,
+) -> Vec<Edge> {
+    // Path length driven to each keyframe, in time order.
+    order.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    let mut driven = vec![0.0f64; keyframes.len()];
+    let mut total_m = 0.0;
+    let mut steps = Vec::with_capacity(keyframes.len());
+    for w in order.windows(2) {
+        let (a, b) = (&keyframes[w[0].2], &keyframes[w[1].2]);
+        let step = (b.x - a.x).hypot(b.y - a.y);
+        steps.push(step);
+        total_m += step;
+        driven[w[1].2] = total_m;
+    }
+    steps.sort_by(f64::total_cmp);
+    let near = (REVISIT_NEAR * quantile(&steps, 0.5).unwrap_or(0.0)).max(REVISIT_NEAR_M);
+    map.covisibility()
+        .edges()
+        .iter()
+        .filter_map(|((a, b), &weight)| {
+            let (a, b) = (*index_of.get(a)?, *index_of.get(b)?);
+            let (ka, kb) = (&keyframes[a], &keyframes[b]);
+            let apart = (kb.x - ka.x).hypot(kb.y - ka.y);
+            let path = (driven[b] - driven[a]).abs();
+            Some(Edge {
+                a,
+                b,
+                weight,
+                revisit: apart <= near && path > REVISIT_DETOUR * apart + REVISIT_SLACK_M,
+            })
+        })
+        .collect()
+}
+
+/// The height colour range: [`HEIGHT_QUANTILES`] of the drawn points' z, at least
+/// 0.1 m wide ((0, 1) without points).
+fn height_range(points: &[[f64; 3]]) -> (f64, f64) {
+    let zs: Vec<f64> = points.iter().map(|p| p[2]).collect();
+    match (
+        quantile(&zs, HEIGHT_QUANTILES.0),
+        quantile(&zs, HEIGHT_QUANTILES.1),
+    ) {
+        (Some(lo), Some(hi)) if hi - lo >= 0.1 => (lo, hi),
+        (Some(lo), Some(hi)) => (0.5 * (lo + hi) - 0.05, 0.5 * (lo + hi) + 0.05),
+        _ => (0.0, 1.0),
+    }
+}
+
 impl MapFigure {
     pub(super) fn summary(&self) -> &MapSummary {
         &self.summary
@@ -99,99 +229,23 @@ impl MapFigure {
             other => anyhow::anyhow!("{}: {other}", path.display()),
         })?;
         let map = &opened.map;
-        let total: u64 = map.keyframes().map(|k| k.len() as u64).sum();
-        let stride = total.div_ceil(max_points.max(1) as u64).max(1) as usize;
-        let mut points = Vec::with_capacity((total as usize / stride) + 1);
-        let mut keyframes = Vec::with_capacity(map.len());
-        let mut order = Vec::with_capacity(map.len());
-        let mut index_of = HashMap::with_capacity(map.len());
-        let mut seen = 0usize;
-        for (i, k) in map.keyframes().enumerate() {
-            let view = k
-                .view()
-                .with_context(|| format!("{}: cannot read keyframe {}", path.display(), k.id))?;
-            let first = (stride - seen % stride) % stride;
-            for p in view.points.iter().skip(first).step_by(stride) {
-                let q = kfmap_shared::geometry::transform_point(&k.pose, p);
-                points.push([q.x, q.y, q.z]);
-            }
-            seen += view.points.len();
-            let t = k.pose.translation.vector;
-            let axis = k.pose.rotation * Vector3::x();
-            let norm = axis.x.hypot(axis.y);
-            keyframes.push(KeyframeMark {
-                x: t.x,
-                y: t.y,
-                heading: (norm > 0.2).then(|| (axis.x / norm, axis.y / norm)),
-            });
-            order.push((k.timestamp, k.id, i));
-            index_of.insert(k.id, i);
-        }
-        // The view: keyframes and the points between the 0.5th and 99.5th percentiles
-        // of x and of y (a few spurious far returns must not shrink the map to a dot);
-        // points outside are not drawn.
-        let axis_range = |axis: usize| {
-            let mut v: Vec<f64> = points.iter().map(|p| p[axis]).collect();
-            v.sort_by(f64::total_cmp);
-            quantile(&v, VIEW_QUANTILES.0).zip(quantile(&v, VIEW_QUANTILES.1))
-        };
-        let corners: Vec<(f64, f64)> = match (axis_range(0), axis_range(1)) {
-            (Some(x), Some(y)) => vec![(x.0, y.0), (x.1, y.1)],
-            _ => Vec::new(),
-        };
-        let bounds = padded_bounds(
-            corners
-                .into_iter()
-                .chain(keyframes.iter().map(|k| (k.x, k.y))),
-            1.0,
-        );
+        let sampled = Sampled::read(map, path, max_points)?;
+        let Sampled {
+            total,
+            mut points,
+            keyframes,
+            order,
+            index_of,
+        } = sampled;
+        let bounds = view_bounds(&points, &keyframes);
         let (bx, by) = bounds;
         points.retain(|p| (bx.0..=bx.1).contains(&p[0]) && (by.0..=by.1).contains(&p[1]));
         points.sort_by(|a, b| a[2].total_cmp(&b[2]));
-        // Path length driven to each keyframe, in time order: revisits are covisible
-        // keyframes with a long drive between them.
-        order.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-        let mut driven = vec![0.0f64; keyframes.len()];
-        let mut total_m = 0.0;
-        let mut steps = Vec::with_capacity(keyframes.len());
-        for w in order.windows(2) {
-            let (a, b) = (&keyframes[w[0].2], &keyframes[w[1].2]);
-            let step = (b.x - a.x).hypot(b.y - a.y);
-            steps.push(step);
-            total_m += step;
-            driven[w[1].2] = total_m;
-        }
-        steps.sort_by(f64::total_cmp);
-        let near = (REVISIT_NEAR * quantile(&steps, 0.5).unwrap_or(0.0)).max(REVISIT_NEAR_M);
-        let all_edges: Vec<Edge> = map
-            .covisibility()
-            .edges()
-            .iter()
-            .filter_map(|((a, b), &weight)| {
-                let (a, b) = (*index_of.get(a)?, *index_of.get(b)?);
-                let (ka, kb) = (&keyframes[a], &keyframes[b]);
-                let apart = (kb.x - ka.x).hypot(kb.y - ka.y);
-                let path = (driven[b] - driven[a]).abs();
-                Some(Edge {
-                    a,
-                    b,
-                    weight,
-                    revisit: apart <= near && path > REVISIT_DETOUR * apart + REVISIT_SLACK_M,
-                })
-            })
-            .collect();
+        let all_edges = classified_edges(map, &index_of, &keyframes, order);
         let covisibility_edges = all_edges.len();
         let revisit_edges = all_edges.iter().filter(|e| e.revisit).count();
         let edges = strongest_edges(all_edges, keyframes.len());
-        let zs: Vec<f64> = points.iter().map(|p| p[2]).collect();
-        let height_range = match (
-            quantile(&zs, HEIGHT_QUANTILES.0),
-            quantile(&zs, HEIGHT_QUANTILES.1),
-        ) {
-            (Some(lo), Some(hi)) if hi - lo >= 0.1 => (lo, hi),
-            (Some(lo), Some(hi)) => (0.5 * (lo + hi) - 0.05, 0.5 * (lo + hi) + 0.05),
-            _ => (0.0, 1.0),
-        };
+        let height_range = height_range(&points);
         let name = path
             .file_stem()
             .map(|s| s.to_string_lossy().into_owned())
@@ -273,16 +327,16 @@ fn height_colour(t: f64) -> RGBColor {
     turbo(0.1 + 0.85 * t.clamp(0.0, 1.0))
 }
 
-impl Figure for MapFigure {
-    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> anyhow::Result<()> {
-        let (width, height) = root.dim_in_pixel();
-        let sizes = Sizes::of(width, height);
-        root.fill(&WHITE).map_err(draw_error)?;
+impl MapFigure {
+    /// The title: the map's name, keyframes and points (drawn).
+    fn draw_title<DB: DrawingBackend>(
+        &self,
+        band: &DrawingArea<DB, Shift>,
+        sizes: &Sizes,
+    ) -> anyhow::Result<()> {
         let s = &self.summary;
-        let title_h = (1.9 * sizes.title) as u32 + sizes.pad;
-        let (title_band, rest) = root.split_vertically(title_h);
         centred_text(
-            &title_band,
+            band,
             &format!(
                 "{}: {}, {} points (drawn {})",
                 self.name,
@@ -293,20 +347,14 @@ impl Figure for MapFigure {
             sizes.title,
             BLACK,
             sizes.pad as i32,
-        )?;
-        let entries = self.legend_entries();
-        let legend_h = legend_height(root, &entries, width, &sizes)?;
-        let (_, rest_h) = rest.dim_in_pixel();
-        let (main, legend_band) = rest.split_vertically(rest_h.saturating_sub(legend_h));
-        let bar_w = (9.0 * sizes.tick) as u32;
-        let (chart_area, bar_area) = main.split_horizontally(width.saturating_sub(bar_w));
+        )
+    }
 
-        let (xr, yr) = self.bounds;
-        let (mut chart, mpp) = top_down_chart(&chart_area, xr, yr, &sizes)?;
+    /// The points coloured by height: single pixels when dense, 2x2 or 3x3 squares when
+    /// sparse.
+    fn draw_points<DB: DrawingBackend>(&self, chart: &mut Chart2d<'_, DB>) -> anyhow::Result<()> {
         let (pw, ph) = chart.plotting_area().dim_in_pixel();
-
-        // Points: single pixels when dense, 2x2 or 3x3 squares when sparse.
-        let (lo, hi) = s.height_range;
+        let (lo, hi) = self.summary.height_range;
         let colour = |z: f64| height_colour((z - lo) / (hi - lo));
         let room = pw as f64 * ph as f64 / self.points.len().max(1) as f64;
         let side = if room >= 40.0 {
@@ -332,32 +380,43 @@ impl Figure for MapFigure {
                 )
                 .map_err(draw_error)?;
         }
+        Ok(())
+    }
 
-        if self.edges_shown {
-            let segment = |e: &Edge| {
-                let (a, b) = (&self.keyframes[e.a], &self.keyframes[e.b]);
-                vec![(a.x, a.y), (b.x, b.y)]
-            };
-            chart
-                .draw_series(
-                    self.edges
-                        .iter()
-                        .filter(|e| !e.revisit)
-                        .map(|e| PathElement::new(segment(e), BLACK.mix(0.4).stroke_width(1))),
-                )
-                .map_err(draw_error)?;
-            chart
-                .draw_series(
-                    self.edges
-                        .iter()
-                        .filter(|e| e.revisit)
-                        .map(|e| PathElement::new(segment(e), REVISIT_MAGENTA.stroke_width(2))),
-                )
-                .map_err(draw_error)?;
-        }
+    /// The covisibility edges drawn: plain ones faint, revisits in magenta on top.
+    fn draw_edges<DB: DrawingBackend>(&self, chart: &mut Chart2d<'_, DB>) -> anyhow::Result<()> {
+        let segment = |e: &Edge| {
+            let (a, b) = (&self.keyframes[e.a], &self.keyframes[e.b]);
+            vec![(a.x, a.y), (b.x, b.y)]
+        };
+        chart
+            .draw_series(
+                self.edges
+                    .iter()
+                    .filter(|e| !e.revisit)
+                    .map(|e| PathElement::new(segment(e), BLACK.mix(0.4).stroke_width(1))),
+            )
+            .map_err(draw_error)?;
+        chart
+            .draw_series(
+                self.edges
+                    .iter()
+                    .filter(|e| e.revisit)
+                    .map(|e| PathElement::new(segment(e), REVISIT_MAGENTA.stroke_width(2))),
+            )
+            .map_err(draw_error)?;
+        Ok(())
+    }
 
-        // Keyframe arrows: as long as the typical keyframe spacing allows, within 16 px
-        // and 1.4 text heights.
+    /// Keyframe arrows along their x axes (a dot when it points up or down): as long as
+    /// the typical keyframe spacing allows, within 16 px and 1.4 text heights; `mpp` is
+    /// metres per pixel.
+    fn draw_keyframes<DB: DrawingBackend>(
+        &self,
+        chart: &mut Chart2d<'_, DB>,
+        mpp: f64,
+        sizes: &Sizes,
+    ) -> anyhow::Result<()> {
         let mut steps: Vec<f64> = self
             .keyframes
             .windows(2)
@@ -396,17 +455,54 @@ impl Figure for MapFigure {
                 ])
                 .map_err(draw_error)?;
         }
+        Ok(())
+    }
+
+    /// "the map has no keyframes", centred in the view.
+    fn draw_empty_note<DB: DrawingBackend>(
+        &self,
+        chart: &mut Chart2d<'_, DB>,
+        sizes: &Sizes,
+    ) -> anyhow::Result<()> {
+        let (xr, yr) = self.bounds;
+        let style = Sizes::font(sizes.text)
+            .color(&GREY)
+            .pos(Pos::new(HPos::Center, VPos::Center));
+        chart
+            .draw_series(std::iter::once(Text::new(
+                "the map has no keyframes",
+                (0.5 * (xr.0 + xr.1), 0.5 * (yr.0 + yr.1)),
+                style,
+            )))
+            .map_err(draw_error)?;
+        Ok(())
+    }
+}
+
+impl Figure for MapFigure {
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> anyhow::Result<()> {
+        let (width, height) = root.dim_in_pixel();
+        let sizes = Sizes::of(width, height);
+        root.fill(&WHITE).map_err(draw_error)?;
+        let title_h = (1.9 * sizes.title) as u32 + sizes.pad;
+        let (title_band, rest) = root.split_vertically(title_h);
+        self.draw_title(&title_band, &sizes)?;
+        let entries = self.legend_entries();
+        let legend_h = legend_height(root, &entries, width, &sizes)?;
+        let (_, rest_h) = rest.dim_in_pixel();
+        let (main, legend_band) = rest.split_vertically(rest_h.saturating_sub(legend_h));
+        let bar_w = (9.0 * sizes.tick) as u32;
+        let (chart_area, bar_area) = main.split_horizontally(width.saturating_sub(bar_w));
+
+        let (xr, yr) = self.bounds;
+        let (mut chart, mpp) = top_down_chart(&chart_area, xr, yr, &sizes)?;
+        self.draw_points(&mut chart)?;
+        if self.edges_shown {
+            self.draw_edges(&mut chart)?;
+        }
+        self.draw_keyframes(&mut chart, mpp, &sizes)?;
         if self.keyframes.is_empty() && self.points.is_empty() {
-            let style = Sizes::font(sizes.text)
-                .color(&GREY)
-                .pos(Pos::new(HPos::Center, VPos::Center));
-            chart
-                .draw_series(std::iter::once(Text::new(
-                    "the map has no keyframes",
-                    (0.5 * (xr.0 + xr.1), 0.5 * (yr.0 + yr.1)),
-                    style,
-                )))
-                .map_err(draw_error)?;
+            self.draw_empty_note(&mut chart, &sizes)?;
         }
 
         // The colour bar spans the plotting area's height.
@@ -420,7 +516,7 @@ impl Figure for MapFigure {
         };
         colour_bar(
             &bar_area,
-            s.height_range,
+            self.summary.height_range,
             height_colour,
             "height z (m), 2nd-98th percentile",
             &sizes,

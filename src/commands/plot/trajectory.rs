@@ -186,6 +186,257 @@ fn read_scan_log(path: &Path) -> anyhow::Result<Vec<LoggedScan>> {
     Ok(scans)
 }
 
+/// Pairs (estimate index, reference index): each estimated pose with the reference
+/// pose nearest in time, within `max_dt` seconds.
+fn pairs_by_stamp(
+    estimate: &[(f64, Pose)],
+    reference: &[(f64, Pose)],
+    max_dt: f64,
+) -> Vec<(usize, usize)> {
+    estimate
+        .iter()
+        .enumerate()
+        .filter_map(|(i, (t, _))| Some((i, nearest(reference, *t, max_dt)?)))
+        .collect()
+}
+
+/// Moves `estimate` rigidly onto `reference` (least squares over the positions of
+/// `pairs`, no scale); returns `T_reference_estimate`.
+fn align_estimate(
+    estimate: &mut [(f64, Pose)],
+    reference: &[(f64, Pose)],
+    pairs: &[(usize, usize)],
+) -> anyhow::Result<Pose> {
+    anyhow::ensure!(
+        pairs.len() >= 3,
+        "--align needs at least 3 matched poses, found {}",
+        pairs.len()
+    );
+    let est: Vec<Pose> = pairs.iter().map(|&(i, _)| estimate[i].1).collect();
+    let refs: Vec<Pose> = pairs.iter().map(|&(_, j)| reference[j].1).collect();
+    let align = rigid_alignment(&est, &refs);
+    for (_, pose) in estimate.iter_mut() {
+        *pose = align * *pose;
+    }
+    Ok(align)
+}
+
+/// The matched estimated poses with their position errors; an error when none matched.
+fn matched_errors(
+    estimate: &[(f64, Pose)],
+    reference: &[(f64, Pose)],
+    pairs: &[(usize, usize)],
+    max_dt: f64,
+) -> anyhow::Result<Vec<Matched>> {
+    let t0 = estimate[0].0;
+    let matched: Vec<Matched> = pairs
+        .iter()
+        .map(|&(i, j)| {
+            let (t, p) = &estimate[i];
+            let p = p.translation.vector;
+            Matched {
+                t: t - t0,
+                x: p.x,
+                y: p.y,
+                error: (p - reference[j].1.translation.vector).norm(),
+            }
+        })
+        .collect();
+    if matched.is_empty() {
+        anyhow::bail!(
+            "no estimated pose has a reference pose within {} ms: estimate stamps {:.3}..{:.3} s, \
+             reference {:.3}..{:.3} s (are they on the same clock?)",
+            ms_label(max_dt),
+            estimate[0].0,
+            estimate[estimate.len() - 1].0,
+            reference[0].0,
+            reference[reference.len() - 1].0
+        );
+    }
+    Ok(matched)
+}
+
+/// RMSE and maximum of the position errors, and where the colours saturate.
+struct ErrorFigures {
+    rmse: f64,
+    max: f64,
+    /// [`ERROR_QUANTILE`] of the errors (at least 1 mm): the colour scale's top.
+    top: f64,
+}
+
+impl ErrorFigures {
+    /// The figures of `matched` (not empty).
+    fn of(matched: &[Matched]) -> Self {
+        let mut errors: Vec<f64> = matched.iter().map(|m| m.error).collect();
+        errors.sort_by(f64::total_cmp);
+        let rmse = (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt();
+        let max = errors[errors.len() - 1];
+        let top = quantile(&errors, ERROR_QUANTILE).unwrap_or(max).max(1e-3);
+        Self { rmse, max, top }
+    }
+}
+
+/// The reference's positions within the estimate's time span (1 s either side).
+fn reference_in_span(reference: &[(f64, Pose)], estimate: &[(f64, Pose)]) -> Vec<(f64, f64)> {
+    let (first, last) = (estimate[0].0 - 1.0, estimate[estimate.len() - 1].0 + 1.0);
+    reference
+        .iter()
+        .filter(|(t, _)| (first..=last).contains(t))
+        .map(|(_, p)| (p.translation.x, p.translation.y))
+        .collect()
+}
+
+/// The marks of a scan log: its scans within the estimate's span that were not `ok`.
+struct LogMarks {
+    marks: Vec<Mark>,
+    /// Scans of the log within the estimate's span.
+    logged: usize,
+    /// Of them, lost or failed.
+    lost: usize,
+    /// Of them, degraded.
+    degraded: usize,
+}
+
+impl LogMarks {
+    /// Reads the `--json-lines` log at `log` and marks its lost, failed and degraded
+    /// scans: at their logged position (moved by `alignment`), else the estimate's at
+    /// their stamp, with the matched error at their stamp.
+    fn read(
+        log: &Path,
+        estimate: &[(f64, Pose)],
+        matched: &[Matched],
+        alignment: Option<&Pose>,
+        max_dt: f64,
+    ) -> anyhow::Result<Self> {
+        let t0 = estimate[0].0;
+        let scans = logged_scans_in_span(log, estimate, max_dt)?;
+        let by_stamp: Vec<(f64, usize)> = {
+            let mut v: Vec<(f64, usize)> = matched
+                .iter()
+                .enumerate()
+                .map(|(i, m)| (m.t + t0, i))
+                .collect();
+            v.sort_by(|a, b| a.0.total_cmp(&b.0));
+            v
+        };
+        let estimate_at = |t: f64| {
+            nearest(estimate, t, max_dt).map(|j| {
+                let v = estimate[j].1.translation.vector;
+                [v.x, v.y]
+            })
+        };
+        let mut out = Self {
+            marks: Vec::new(),
+            logged: scans.len(),
+            lost: 0,
+            degraded: 0,
+        };
+        for scan in &scans {
+            let kind = match scan.status.as_str() {
+                "lost" | "failed" => MarkKind::LostOrFailed,
+                "degraded" => MarkKind::Degraded,
+                _ => continue,
+            };
+            match kind {
+                MarkKind::LostOrFailed => out.lost += 1,
+                MarkKind::Degraded => out.degraded += 1,
+            }
+            // The logged pose is in the estimate's frame: aligned with it.
+            let logged = scan.position.map(|p| match alignment {
+                Some(a) => {
+                    let q = a * nalgebra::Point3::new(p[0], p[1], p[2]);
+                    [q.x, q.y]
+                }
+                None => [p[0], p[1]],
+            });
+            let Some([x, y]) = logged.or_else(|| estimate_at(scan.t)) else {
+                continue;
+            };
+            let error = nearest(&by_stamp, scan.t, max_dt).map(|j| matched[by_stamp[j].1].error);
+            out.marks.push(Mark {
+                t: scan.t - t0,
+                x,
+                y,
+                error,
+                kind,
+            });
+        }
+        Ok(out)
+    }
+}
+
+/// The scans of the log at `log` stamped within the estimate's span (`max_dt` either
+/// side); an error when there is none: a log of another run or clock marks nothing.
+fn logged_scans_in_span(
+    log: &Path,
+    estimate: &[(f64, Pose)],
+    max_dt: f64,
+) -> anyhow::Result<Vec<LoggedScan>> {
+    let all = read_scan_log(log)?;
+    let (start, end) = (
+        estimate[0].0 - max_dt,
+        estimate[estimate.len() - 1].0 + max_dt,
+    );
+    let scans: Vec<_> = all
+        .into_iter()
+        .filter(|s| (start..=end).contains(&s.t))
+        .collect();
+    anyhow::ensure!(
+        !scans.is_empty(),
+        "{}: no logged scan is stamped within the estimate's {start:.3}..{end:.3} s (a log of another run?)",
+        log.display()
+    );
+    Ok(scans)
+}
+
+/// "ESTIMATE against REFERENCE", by file name.
+fn default_title(inputs: &TrajectoryPlotInputs) -> String {
+    let name = |p: &Path| {
+        p.file_name()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_else(|| p.display().to_string())
+    };
+    format!(
+        "{} against {}",
+        name(inputs.estimate),
+        name(inputs.reference)
+    )
+}
+
+/// The line under the title: poses matched, the errors, the alignment and the log's
+/// counts.
+fn stats_line(
+    matched: &[Matched],
+    estimate_poses: usize,
+    max_dt: f64,
+    errors: &ErrorFigures,
+    alignment: Option<&Pose>,
+    marks: Option<&LogMarks>,
+) -> String {
+    let mut stats = format!(
+        "{} of {} poses matched within {} ms  ·  position error RMSE {}, max {}",
+        matched.len(),
+        estimate_poses,
+        ms_label(max_dt),
+        length_label(errors.rmse),
+        length_label(errors.max)
+    );
+    if let Some(a) = alignment {
+        stats.push_str(&format!(
+            "  ·  aligned: rotated {:.2}°, moved {:.3} m",
+            a.rotation.angle().to_degrees(),
+            a.translation.vector.norm()
+        ));
+    }
+    if let Some(m) = marks {
+        stats.push_str(&format!(
+            "  ·  {} lost/failed, {} degraded of {} scans",
+            m.lost, m.degraded, m.logged
+        ));
+    }
+    stats
+}
+
 impl TrajectoryFigure {
     pub(super) fn summary(&self) -> &TrajectorySummary {
         &self.summary
@@ -205,184 +456,59 @@ impl TrajectoryFigure {
         );
         let reference = read_stamped(inputs.reference, "reference trajectory")?;
         let mut estimate = read_stamped(inputs.estimate, "estimated trajectory")?;
-        let t0 = estimate[0].0;
-        // Pairs (estimate index, reference index) by stamp.
-        let pairs: Vec<(usize, usize)> = estimate
-            .iter()
-            .enumerate()
-            .filter_map(|(i, (t, _))| Some((i, nearest(&reference, *t, max_dt)?)))
-            .collect();
+        let pairs = pairs_by_stamp(&estimate, &reference, max_dt);
         // --align: the estimate moved rigidly onto the reference (least squares over
         // the matched positions, no scale) before anything is measured or drawn.
         let alignment = if options.align && !pairs.is_empty() {
-            anyhow::ensure!(
-                pairs.len() >= 3,
-                "--align needs at least 3 matched poses, found {}",
-                pairs.len()
-            );
-            let est: Vec<Pose> = pairs.iter().map(|&(i, _)| estimate[i].1).collect();
-            let refs: Vec<Pose> = pairs.iter().map(|&(_, j)| reference[j].1).collect();
-            let align = rigid_alignment(&est, &refs);
-            for (_, pose) in &mut estimate {
-                *pose = align * *pose;
-            }
-            Some(align)
+            Some(align_estimate(&mut estimate, &reference, &pairs)?)
         } else {
             None
         };
-        let matched: Vec<Matched> = pairs
-            .iter()
-            .map(|&(i, j)| {
-                let (t, p) = &estimate[i];
-                let p = p.translation.vector;
-                Matched {
-                    t: t - t0,
-                    x: p.x,
-                    y: p.y,
-                    error: (p - reference[j].1.translation.vector).norm(),
-                }
-            })
-            .collect();
-        if matched.is_empty() {
-            anyhow::bail!(
-                "no estimated pose has a reference pose within {} ms: estimate stamps {:.3}..{:.3} s, \
-                 reference {:.3}..{:.3} s (are they on the same clock?)",
-                ms_label(max_dt),
-                estimate[0].0,
-                estimate[estimate.len() - 1].0,
-                reference[0].0,
-                reference[reference.len() - 1].0
-            );
-        }
-        let mut errors: Vec<f64> = matched.iter().map(|m| m.error).collect();
-        errors.sort_by(f64::total_cmp);
-        let rmse = (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt();
-        let max = errors[errors.len() - 1];
-        let top = quantile(&errors, ERROR_QUANTILE).unwrap_or(max).max(1e-3);
-
-        // Reference within the estimate's time span (1 s either side).
-        let (first, last) = (t0 - 1.0, estimate[estimate.len() - 1].0 + 1.0);
-        let reference_xy: Vec<(f64, f64)> = reference
-            .iter()
-            .filter(|(t, _)| (first..=last).contains(t))
-            .map(|(_, p)| (p.translation.x, p.translation.y))
-            .collect();
-
-        let mut marks = Vec::new();
-        let mut logged = None;
-        let (mut lost, mut degraded) = (0, 0);
-        if let Some(log) = inputs.scan_log {
-            let all = read_scan_log(log)?;
-            // Only the estimate's scans: a log of another run or clock marks nothing.
-            let (start, end) = (t0 - max_dt, estimate[estimate.len() - 1].0 + max_dt);
-            let scans: Vec<_> = all
-                .into_iter()
-                .filter(|s| (start..=end).contains(&s.t))
-                .collect();
-            anyhow::ensure!(
-                !scans.is_empty(),
-                "{}: no logged scan is stamped within the estimate's {start:.3}..{end:.3} s (a log of another run?)",
-                log.display()
-            );
-            logged = Some(scans.len());
-            let by_stamp: Vec<(f64, usize)> = {
-                let mut v: Vec<(f64, usize)> = matched
-                    .iter()
-                    .enumerate()
-                    .map(|(i, m)| (m.t + t0, i))
-                    .collect();
-                v.sort_by(|a, b| a.0.total_cmp(&b.0));
-                v
-            };
-            let estimate_at = |t: f64| {
-                nearest(&estimate, t, max_dt).map(|j| {
-                    let v = estimate[j].1.translation.vector;
-                    [v.x, v.y]
-                })
-            };
-            for scan in &scans {
-                let kind = match scan.status.as_str() {
-                    "lost" | "failed" => MarkKind::LostOrFailed,
-                    "degraded" => MarkKind::Degraded,
-                    _ => continue,
-                };
-                match kind {
-                    MarkKind::LostOrFailed => lost += 1,
-                    MarkKind::Degraded => degraded += 1,
-                }
-                // The logged pose is in the estimate's frame: aligned with it.
-                let logged = scan.position.map(|p| match &alignment {
-                    Some(a) => {
-                        let q = a * nalgebra::Point3::new(p[0], p[1], p[2]);
-                        [q.x, q.y]
-                    }
-                    None => [p[0], p[1]],
-                });
-                let Some([x, y]) = logged.or_else(|| estimate_at(scan.t)) else {
-                    continue;
-                };
-                let error =
-                    nearest(&by_stamp, scan.t, max_dt).map(|j| matched[by_stamp[j].1].error);
-                marks.push(Mark {
-                    t: scan.t - t0,
-                    x,
-                    y,
-                    error,
-                    kind,
-                });
-            }
-        }
-
-        let name = |p: &Path| {
-            p.file_name()
-                .map(|s| s.to_string_lossy().into_owned())
-                .unwrap_or_else(|| p.display().to_string())
+        let matched = matched_errors(&estimate, &reference, &pairs, max_dt)?;
+        let errors = ErrorFigures::of(&matched);
+        let reference_xy = reference_in_span(&reference, &estimate);
+        let marks = match inputs.scan_log {
+            Some(log) => Some(LogMarks::read(
+                log,
+                &estimate,
+                &matched,
+                alignment.as_ref(),
+                max_dt,
+            )?),
+            None => None,
         };
-        let title = inputs.title.map(str::to_string).unwrap_or_else(|| {
-            format!(
-                "{} against {}",
-                name(inputs.estimate),
-                name(inputs.reference)
-            )
-        });
-        let mut stats = format!(
-            "{} of {} poses matched within {} ms  ·  position error RMSE {}, max {}",
-            matched.len(),
+        let title = inputs
+            .title
+            .map(str::to_string)
+            .unwrap_or_else(|| default_title(inputs));
+        let stats = stats_line(
+            &matched,
             estimate.len(),
-            ms_label(max_dt),
-            length_label(rmse),
-            length_label(max)
+            max_dt,
+            &errors,
+            alignment.as_ref(),
+            marks.as_ref(),
         );
-        if let Some(a) = &alignment {
-            stats.push_str(&format!(
-                "  ·  aligned: rotated {:.2}°, moved {:.3} m",
-                a.rotation.angle().to_degrees(),
-                a.translation.vector.norm()
-            ));
-        }
-        if let Some(n) = logged {
-            stats.push_str(&format!(
-                "  ·  {lost} lost/failed, {degraded} degraded of {n} scans"
-            ));
-        }
+        let (lost, degraded) = marks.as_ref().map_or((0, 0), |m| (m.lost, m.degraded));
+        let logged = marks.as_ref().map(|m| m.logged);
         Ok(Self {
             title,
             stats,
             reference: reference_xy,
-            error_range: (0.0, top),
+            error_range: (0.0, errors.top),
             has_log: logged.is_some(),
             summary: TrajectorySummary {
                 estimate_poses: estimate.len(),
                 matched: matched.len(),
-                rmse,
-                max,
+                rmse: errors.rmse,
+                max: errors.max,
                 logged_scans: logged,
                 lost,
                 degraded,
                 alignment,
             },
             matched,
-            marks,
+            marks: marks.map_or_else(Vec::new, |m| m.marks),
         })
     }
 
@@ -441,37 +567,36 @@ impl TrajectoryFigure {
     }
 }
 
-impl Figure for TrajectoryFigure {
-    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> anyhow::Result<()> {
-        let (width, height) = root.dim_in_pixel();
-        let sizes = Sizes::of(width, height);
-        root.fill(&WHITE).map_err(draw_error)?;
-        let title_h = (1.5 * sizes.title + 1.6 * sizes.text) as u32 + 2 * sizes.pad;
-        let (title_band, rest) = root.split_vertically(title_h);
+impl TrajectoryFigure {
+    /// The title and the statistics line under it.
+    fn draw_title<DB: DrawingBackend>(
+        &self,
+        band: &DrawingArea<DB, Shift>,
+        sizes: &Sizes,
+    ) -> anyhow::Result<()> {
+        centred_text(band, &self.title, sizes.title, BLACK, sizes.pad as i32)?;
         centred_text(
-            &title_band,
-            &self.title,
-            sizes.title,
-            BLACK,
-            sizes.pad as i32,
-        )?;
-        centred_text(
-            &title_band,
+            band,
             &self.stats,
             sizes.text,
             RGBColor(60, 60, 60),
             (1.4 * sizes.title) as i32 + sizes.pad as i32,
-        )?;
-        let entries = self.legend_entries();
-        let legend_h = legend_height(root, &entries, width, &sizes)?;
-        let (_, rest_h) = rest.dim_in_pixel();
-        let top_h = ((rest_h.saturating_sub(legend_h)) as f64 * 0.66) as u32;
-        let (top, rest) = rest.split_vertically(top_h);
-        let (legend_band, bottom) = rest.split_vertically(legend_h);
-        let bar_w = (9.0 * sizes.tick) as u32;
-        let (map_area, bar_area) = top.split_horizontally(width.saturating_sub(bar_w));
+        )
+    }
 
-        // Top: the view from above.
+    /// Width of the estimate's line and radius of its dots, pixels.
+    fn line_width(sizes: &Sizes) -> u32 {
+        (0.2 * sizes.text).max(2.0) as u32
+    }
+
+    /// The view from above in `area`: the reference in grey, the estimate coloured by
+    /// its error, its start ringed, the log's marks. Returns the plotting area's pixel
+    /// rows, for the colour bar beside it.
+    fn draw_top_view<DB: DrawingBackend>(
+        &self,
+        area: &DrawingArea<DB, Shift>,
+        sizes: &Sizes,
+    ) -> anyhow::Result<std::ops::Range<i32>> {
         let (xr, yr) = padded_bounds(
             self.reference
                 .iter()
@@ -480,14 +605,14 @@ impl Figure for TrajectoryFigure {
                 .chain(self.marks.iter().map(|m| (m.x, m.y))),
             1.0,
         );
-        let (mut chart, _) = top_down_chart(&map_area, xr, yr, &sizes)?;
+        let (mut chart, _) = top_down_chart(area, xr, yr, sizes)?;
         chart
             .draw_series(std::iter::once(PathElement::new(
                 self.reference.clone(),
                 GREY.stroke_width(3),
             )))
             .map_err(draw_error)?;
-        let line_w = (0.2 * sizes.text).max(2.0) as u32;
+        let line_w = Self::line_width(sizes);
         chart
             .draw_series(self.matched.windows(2).map(|w| {
                 let c = self.colour(0.5 * (w[0].error + w[1].error));
@@ -512,23 +637,19 @@ impl Figure for TrajectoryFigure {
                 BLACK.stroke_width(2),
             )))
             .map_err(draw_error)?;
-        self.draw_marks(&mut chart, |m| Some((m.x, m.y)), &sizes)?;
-        let (top_rows, main_rows) = (
-            chart.plotting_area().get_pixel_range().1,
-            top.get_pixel_range().1,
-        );
-        colour_bar(
-            &bar_area,
-            self.error_range,
-            viridis,
-            "position error (m)",
-            &sizes,
-            (top_rows.start - main_rows.start).max(0) as u32,
-            (main_rows.end - top_rows.end).max(0) as u32,
-        )?;
-        legend(&legend_band, &entries, &sizes)?;
+        self.draw_marks(&mut chart, |m| Some((m.x, m.y)), sizes)?;
+        Ok(chart.plotting_area().get_pixel_range().1)
+    }
 
-        // Bottom: the error over time.
+    /// The position error over time in `area` (its right margin `bar_w` wide, under the
+    /// colour bar), with the log's marks; a mark with no known error sits on the time
+    /// axis.
+    fn draw_error_over_time<DB: DrawingBackend>(
+        &self,
+        area: &DrawingArea<DB, Shift>,
+        bar_w: u32,
+        sizes: &Sizes,
+    ) -> anyhow::Result<()> {
         let t_end = self
             .matched
             .iter()
@@ -545,7 +666,7 @@ impl Figure for TrajectoryFigure {
             .fold(0.0f64, f64::max)
             .max(1e-3)
             * 1.08;
-        let mut chart = ChartBuilder::on(&bottom)
+        let mut chart = ChartBuilder::on(area)
             .margin(sizes.pad)
             .margin_right(bar_w + 2 * sizes.pad)
             .x_label_area_size((2.6 * sizes.tick) as u32)
@@ -560,7 +681,7 @@ impl Figure for TrajectoryFigure {
             ],
             (t_end - t_start, e_max),
             (12, 6),
-            &sizes,
+            sizes,
         )?;
         chart
             .draw_series(std::iter::once(PathElement::new(
@@ -571,6 +692,7 @@ impl Figure for TrajectoryFigure {
                 RGBColor(90, 90, 90).stroke_width(1),
             )))
             .map_err(draw_error)?;
+        let line_w = Self::line_width(sizes);
         chart
             .draw_series(
                 self.matched
@@ -578,9 +700,44 @@ impl Figure for TrajectoryFigure {
                     .map(|m| Circle::new((m.t, m.error), line_w, self.colour(m.error).filled())),
             )
             .map_err(draw_error)?;
-        // A mark with no known error sits on the time axis.
-        self.draw_marks(&mut chart, |m| Some((m.t, m.error.unwrap_or(0.0))), &sizes)?;
+        self.draw_marks(&mut chart, |m| Some((m.t, m.error.unwrap_or(0.0))), sizes)?;
         Ok(())
+    }
+}
+
+impl Figure for TrajectoryFigure {
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> anyhow::Result<()> {
+        let (width, height) = root.dim_in_pixel();
+        let sizes = Sizes::of(width, height);
+        root.fill(&WHITE).map_err(draw_error)?;
+        let title_h = (1.5 * sizes.title + 1.6 * sizes.text) as u32 + 2 * sizes.pad;
+        let (title_band, rest) = root.split_vertically(title_h);
+        self.draw_title(&title_band, &sizes)?;
+        let entries = self.legend_entries();
+        let legend_h = legend_height(root, &entries, width, &sizes)?;
+        let (_, rest_h) = rest.dim_in_pixel();
+        let top_h = ((rest_h.saturating_sub(legend_h)) as f64 * 0.66) as u32;
+        let (top, rest) = rest.split_vertically(top_h);
+        let (legend_band, bottom) = rest.split_vertically(legend_h);
+        let bar_w = (9.0 * sizes.tick) as u32;
+        let (map_area, bar_area) = top.split_horizontally(width.saturating_sub(bar_w));
+
+        // Top: the view from above, its colour bar beside the plotting area.
+        let top_rows = self.draw_top_view(&map_area, &sizes)?;
+        let main_rows = top.get_pixel_range().1;
+        colour_bar(
+            &bar_area,
+            self.error_range,
+            viridis,
+            "position error (m)",
+            &sizes,
+            (top_rows.start - main_rows.start).max(0) as u32,
+            (main_rows.end - top_rows.end).max(0) as u32,
+        )?;
+        legend(&legend_band, &entries, &sizes)?;
+
+        // Bottom: the error over time.
+        self.draw_error_over_time(&bottom, bar_w, &sizes)
     }
 }
 

@@ -1,0 +1,103 @@
+//! The table's localization rows on real data: balm_os0, a map of scans 0-115 at their
+//! reference poses, scans 116-176 tracked against it by `kfmap localize` over IPC, as
+//! tests/health.rs checks.
+
+use std::ffi::OsStr;
+use std::path::Path;
+
+use kfmap_bake::config::BakeConfig;
+use kfmap_bake::pipeline::{BakeInput, BakeOutput, bake};
+use kfmap_bake::scan_range::ScanRange;
+
+use super::anchors::SMALL_GICP_LOCALIZE;
+use super::fixtures::data_file;
+use super::table::{Table, anchor};
+use crate::commands::report::{json_number, p99_label};
+use crate::commands::server_child::{ServerChild, run_localize};
+
+/// Bakes the map in `dir`, serves it from a child process and measures the rows
+/// (skipped without balm_os0).
+pub(super) fn measure(table: &mut Table, data: Option<&Path>, dir: &Path) -> anyhow::Result<()> {
+    table.stage("localization on real data (balm_os0)");
+    let Some(balm) = data_file(data, "balm_os0") else {
+        table.skip("localization on real data: needs balm_os0 of the shared data");
+        return Ok(());
+    };
+    let v = localize_balm(&balm, dir)?;
+    let label = "balm_os0: map of scans 0-115, scans 116-176 tracked";
+    let script = "tools/anchors/small_gicp_localize.py --motion-model";
+    table.push(
+        "localization per scan, client-side GICP over IPC, median",
+        label,
+        2,
+        json_number(&v["p50_ms"]),
+        "ms",
+    );
+    table.anchored(anchor(
+        "small_gicp (in process)",
+        SMALL_GICP_LOCALIZE[0],
+        script,
+    ));
+    let scans = v["scans"].as_u64().unwrap_or(0) as usize;
+    table.push(
+        &format!(
+            "localization per scan, client-side GICP over IPC, {}",
+            p99_label(scans)
+        ),
+        label,
+        2,
+        json_number(&v["p99_ms"]),
+        "ms",
+    );
+    table.anchored(anchor(
+        "small_gicp (in process)",
+        SMALL_GICP_LOCALIZE[1],
+        script,
+    ));
+    table.push(
+        "localization error vs reference poses, RMS",
+        label,
+        2,
+        json_number(&v["rms_error_m"]),
+        "m",
+    );
+    table.anchored(anchor("small_gicp", SMALL_GICP_LOCALIZE[2], script));
+    Ok(())
+}
+
+/// Bakes scans 0-115 of balm_os0 into a map in `dir`, serves it and tracks scans
+/// 116-176 with `kfmap localize --json`: its summary.
+fn localize_balm(balm: &Path, dir: &Path) -> anyhow::Result<serde_json::Value> {
+    let map = dir.join(format!("kfmap-bench-balm-{}.kfmap", std::process::id()));
+    let input = BakeInput {
+        scans: ScanRange {
+            start: 0,
+            end: Some(116),
+        },
+        ..BakeInput::dataset(balm)
+    };
+    bake(
+        &input,
+        &BakeConfig::default(),
+        &BakeOutput::map(&map),
+        |_| {},
+    )?;
+    let id = std::process::id();
+    let served = ServerChild::start(
+        &map,
+        &format!("benchbalm{id}"),
+        &format!("kfbalm{id}_"),
+        &[],
+    );
+    let _ = std::fs::remove_file(&map); // The server holds it mapped.
+    let server = served?;
+    let args = [
+        "--scans",
+        "116..177",
+        "--initial-from-ground-truth",
+        "--json",
+    ];
+    let printed = run_localize(&server, balm, &args.map(OsStr::new));
+    drop(server);
+    Ok(serde_json::from_str(&printed?)?)
+}
