@@ -7,8 +7,10 @@ use std::sync::atomic::AtomicBool;
 use anyhow::Context;
 use kfmap_protocol::RequestKind;
 use kfmap_service::config::ServerConfig;
-use kfmap_service::server::{ServeOptions, serve};
+use kfmap_service::server::{LATENCY_WINDOW, ServeOptions, serve};
 use kfmap_shared::options::ConfigFile;
+
+use super::report::p99_label;
 
 /// Serve a baked map (`kfmap bake`) to client processes on this host over iceoryx2
 /// zero-copy shared memory, until SIGINT or SIGTERM.
@@ -123,10 +125,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         if f.count > 0 {
             let _ = writeln!(
                 err,
-                "  {:<10} {:>8} requests, p50 {:.0} us, p99 {:.0} us",
+                "  {:<10} {:>8} requests, p50 {:.0} us, {} {:.0} us",
                 kind.name(),
                 f.count,
                 f.p50_us,
+                p99_label((f.count as usize).min(LATENCY_WINDOW)),
                 f.p99_us
             );
         }

@@ -2,7 +2,10 @@
 
 use serde_json::json;
 
+use kfmap_service::server::LATENCY_WINDOW;
+
 use super::connect_arg::ConnectArgs;
+use super::report::p99_label;
 
 /// Show a running server's map, uptime, sessions and per-kind request counts with
 /// median and 99th percentile latency, and each session's gravity pool (windows pooled,
@@ -70,9 +73,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         s.uptime_s, s.sessions, s.in_flight
     );
     for (kind, count, p50, p99) in &s.kinds {
+        // The server's percentiles cover its latest LATENCY_WINDOW requests of a kind.
+        let samples = (*count as usize).min(LATENCY_WINDOW);
         println!(
-            "  {:<10} {count:>8} requests, p50 {p50:.0} us, p99 {p99:.0} us",
-            kind.name()
+            "  {:<10} {count:>8} requests, p50 {p50:.0} us, {} {p99:.0} us",
+            kind.name(),
+            p99_label(samples)
         );
     }
     for g in &s.session_gravity {

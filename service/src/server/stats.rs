@@ -10,7 +10,8 @@ use kfmap_protocol::KIND_SLOTS;
 pub use kfmap_shared::percentile::percentile;
 
 /// Latencies kept per kind for the percentiles (the most recent ones).
-const WINDOW: usize = 4096;
+/// Latest latencies per kind that its percentiles are taken over.
+pub const WINDOW: usize = 4096;
 
 #[derive(Default, Clone)]
 struct Kind {
