@@ -52,7 +52,7 @@ use ports::ClientPorts;
 use queue::FairQueue;
 use session::Sessions;
 pub use state::{MapSlot, ServedMap};
-pub use stats::{KindFigures, Stats, WINDOW as LATENCY_WINDOW, percentile};
+pub use stats::{KindFigures, Stats, WINDOW as LATENCY_WINDOW};
 use unread::UnreadAnswers;
 use workers::{Job, WorkerContext};
 

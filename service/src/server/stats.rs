@@ -5,12 +5,9 @@ use std::sync::atomic::{AtomicU32, Ordering};
 
 use kfmap_protocol::KIND_SLOTS;
 
-/// Nearest-rank percentile of sorted values (zero when empty): the one definition, in
-/// `kfmap_shared::percentile`, re-exported for the server's users.
-pub use kfmap_shared::percentile::percentile;
+use kfmap_shared::percentile::percentile;
 
 /// Latencies kept per kind for the percentiles (the most recent ones).
-/// Latest latencies per kind that its percentiles are taken over.
 pub const WINDOW: usize = 4096;
 
 #[derive(Default, Clone)]

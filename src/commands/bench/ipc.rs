@@ -9,10 +9,11 @@ use anyhow::bail;
 use indicatif::ProgressBar;
 use kfmap_client::{Client, ClientOptions};
 use kfmap_protocol::{Cov2CovMode, RequestHeader, RequestKind, ScanPayload, pose_to_wire};
+use kfmap_service::server::ServedMap;
 use kfmap_service::server::session::Session;
 use kfmap_service::server::{Limits, answer};
-use kfmap_service::server::{ServedMap, percentile};
 use kfmap_shared::cov::CovOptions;
+use kfmap_shared::percentile::percentile;
 use serde_json::json;
 
 use super::child::child_bench;

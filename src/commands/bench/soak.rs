@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 use anyhow::bail;
 use indicatif::{ProgressBar, ProgressStyle};
 use kfmap_protocol::transport::{iceoryx_config, prefix_files};
-use kfmap_service::server::percentile;
+use kfmap_shared::percentile::percentile;
 use serde_json::json;
 
 use super::fixtures::bake_served_map;

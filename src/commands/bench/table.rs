@@ -5,7 +5,7 @@
 use std::time::Instant;
 
 use indicatif::{ProgressBar, ProgressStyle};
-use kfmap_service::server::percentile;
+use kfmap_shared::percentile::percentile;
 use serde_json::json;
 
 /// An anchor's figure for the same measurement on the same data and machine.
