@@ -289,3 +289,86 @@ fn client_options(prefix: &Prefix) -> ClientOptions {
         ..ClientOptions::default()
     }
 }
+
+/// Issue 33 (tracking never wanders), through `kfmap localize` with no start pose as a
+/// user runs it: the campus, 20 s at 10 Hz, seed 5, baked at its true poses and replayed
+/// as recorded. Every scan is relocalized or tracked; the test takes the poses from the
+/// written trajectory and the statuses from `--json-lines`, and the truth from the
+/// simulator (`poses_gt.txt` in the map frame). Targets, client- and server-side: the
+/// first `ok` scan within 1 s, every scan from 2 s on within 0.1 m, never more than 10
+/// `degraded` scans in a row, and no `ok` scan off the truth (0.3 m).
+#[test]
+fn a_run_with_no_start_is_found_and_never_wanders() {
+    let dir = temp_dir("no-start");
+    let run = dir.join("campus");
+    simulate(&run, "campus", "20", "64", &["--seed", "5"]);
+    let map = dir.join("campus.kfmap");
+    bake_dataset(&run, &map);
+    let prefix = Prefix::new("no-start");
+    let _server = Server::start(&map, "nostart", &prefix.0, &[]);
+    let truth = truth_in_map(&run, "nostart", &prefix);
+    let stamps = read_trajectory(&run.join("poses_gt.txt"))
+        .unwrap()
+        .stamps
+        .unwrap();
+    for side in ["client", "server"] {
+        let out = dir.join(format!("{side}.tum"));
+        let mut command = Command::new(kfmap_bin());
+        command
+            .args(["localize", "--map-name", "nostart", "--rate", "0"])
+            .args([
+                "--json-lines",
+                "--timeout",
+                "60",
+                "--iceoryx-prefix",
+                &prefix.0,
+            ])
+            .arg("--dataset")
+            .arg(&run)
+            .arg("--out")
+            .arg(&out);
+        if side == "server" {
+            command.arg("--server-side");
+        }
+        let output = command.stderr(Stdio::piped()).output().unwrap();
+        assert!(
+            output.status.success(),
+            "{}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+        let statuses: Vec<String> = String::from_utf8(output.stdout)
+            .unwrap()
+            .lines()
+            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+            .filter(|v| v.get("index").is_some())
+            .map(|v| v["status"].as_str().unwrap().to_string())
+            .collect();
+        let poses = read_trajectory(&out).unwrap().poses;
+        assert_eq!(poses.len(), truth.len());
+        assert_eq!(statuses.len(), truth.len());
+        let errors: Vec<f64> = pose_errors(&poses, &truth).iter().map(|e| e.0).collect();
+        let since = |k: usize| stamps[k] - stamps[0];
+        let first_ok = statuses.iter().position(|s| s == "ok").map(since);
+        let late_max = (0..errors.len())
+            .filter(|&k| since(k) >= 2.0)
+            .map(|k| errors[k])
+            .fold(0.0, f64::max);
+        let mut longest_degraded = 0;
+        let mut run_length = 0;
+        for s in &statuses {
+            run_length = if s == "degraded" { run_length + 1 } else { 0 };
+            longest_degraded = longest_degraded.max(run_length);
+        }
+        let wrong_ok = (0..errors.len())
+            .filter(|&k| statuses[k] == "ok" && errors[k] > 0.3)
+            .count();
+        println!(
+            "{side}-side, no start: first ok at {first_ok:?} s, max error from 2 s {late_max:.3} m, longest degraded run {longest_degraded}, ok scans off the truth {wrong_ok}; statuses {}",
+            statuses.iter().map(|s| &s[..1]).collect::<String>()
+        );
+        assert!(first_ok.is_some_and(|t| t <= 1.0), "{side}: {first_ok:?}");
+        assert!(late_max <= 0.1, "{side}: {late_max} m");
+        assert!(longest_degraded <= 10, "{side}: {longest_degraded}");
+        assert_eq!(wrong_ok, 0, "{side}");
+    }
+}

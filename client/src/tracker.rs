@@ -4,7 +4,9 @@
 //! localization may make by how wrong the predictions have been (an adaptive gate,
 //! after KISS-ICP), and follows the status: a `lost` scan adopts no pose and the
 //! tracker keeps predicting; it is `ok` again once scans agree with the prediction for
-//! `recover-after` scans in a row.
+//! `recover-after` scans in a row. A tracker never wanders: after `lost-after-unfit`
+//! adopted scans in a row that do not fit the map it says `lost` (and relocalizes, with
+//! the IMU's tilt when it has one) instead of following its own prediction.
 
 use kfmap_protocol::ScanPayload;
 use kfmap_shared::cloud::PointCloud;
@@ -14,7 +16,7 @@ use kfmap_shared::motion::{
 };
 use kfmap_shared::tracking::{CORRECTION_RANGE_M, Reasons, ScanHealth, TrackingStatus};
 
-use kfmap_shared::place::RelocalizeStatus;
+use kfmap_shared::place::{RelocalizeStatus, levelling};
 
 use crate::{Client, ClientError, LocalizeOptions, Localized, RelocalizeOptions};
 
@@ -38,6 +40,10 @@ pub struct TrackerOptions {
     /// Ask the server where a scan is (`Relocalize`, no guess) when it is `lost`, and
     /// restart tracking there when the server finds one place.
     pub relocalize_when_lost: bool,
+    /// Adopted scans in a row that do not fit the map (`degraded` for not converging,
+    /// low fitness or a fitness drop) after which the tracker is `lost` (reason
+    /// `unfit-streak`), and every further unfitting scan too until one is `ok` again.
+    pub lost_after_unfit: usize,
 }
 
 impl Default for TrackerOptions {
@@ -56,6 +62,9 @@ impl Default for TrackerOptions {
             recover_after: 2,
             deskew: true,
             relocalize_when_lost: false,
+            // Half a second at 10 Hz: long enough for a few hard scans (a turn, an
+            // open square), short enough that a wrong pose is not followed for long.
+            lost_after_unfit: 5,
         }
     }
 }
@@ -90,6 +99,24 @@ pub struct Tracker {
     adopted_streak: usize,
     /// Inlier ratio of the last adopted scan.
     last_inlier_ratio: Option<f64>,
+    /// Scans in a row that did not fit the map, since the last `ok` or relocalized one.
+    unfit_streak: usize,
+}
+
+/// Seconds of accelerometer before a scan that give its tilt for relocalization.
+const TILT_WINDOW_S: f64 = 1.0;
+
+/// True when a scan was adopted without fitting the map: its registration did not
+/// converge or pairs too little of it (degeneracy alone is a corridor, not a misfit).
+fn unfit(health: &ScanHealth) -> bool {
+    health.status == TrackingStatus::Degraded
+        && [
+            Reasons::NOT_CONVERGED,
+            Reasons::LOW_FITNESS,
+            Reasons::FITNESS_DROP,
+        ]
+        .iter()
+        .any(|r| health.reasons.contains(*r))
 }
 
 impl Tracker {
@@ -124,6 +151,7 @@ impl Tracker {
             lost_streak: 0,
             adopted_streak: usize::MAX,
             last_inlier_ratio: None,
+            unfit_streak: 0,
         }
     }
 
@@ -180,15 +208,41 @@ impl Tracker {
             };
             return self.relocalize(client, scan, t, predicted, None, lost);
         }
-        let localized = if self.options.server_side {
+        let mut localized = if self.options.server_side {
             client.localize(scan, &predicted, &options)?
         } else {
             client.localize_client_side(scan, &predicted, &options)?
         };
+        self.give_up_when_unfit(&predicted, &mut localized);
         if localized.health.status == TrackingStatus::Lost && self.options.relocalize_when_lost {
             return self.relocalize(client, scan, t, predicted, max_correction, localized);
         }
         Ok(self.observe(t, predicted, max_correction, localized))
+    }
+
+    /// Counts scans that do not fit the map and turns the `lost-after-unfit`th in a row,
+    /// and every unfitting one after it, into `lost` at the prediction.
+    fn give_up_when_unfit(&mut self, predicted: &Pose, localized: &mut Localized) {
+        if localized.health.status == TrackingStatus::Ok {
+            self.unfit_streak = 0;
+            return;
+        }
+        if !unfit(&localized.health) {
+            return;
+        }
+        self.unfit_streak += 1;
+        if self.unfit_streak >= self.options.lost_after_unfit.max(1) {
+            localized.pose = *predicted;
+            localized.health.status = TrackingStatus::Lost;
+            localized.health.reasons.insert(Reasons::UNFIT_STREAK);
+        }
+    }
+
+    /// The sensor's tilt at time `t` from the IMU's accelerometer (`R_map_sensor` up
+    /// to yaw, map levelled on gravity), when the tracker has an IMU log covering it.
+    pub fn tilt(&self, t: f64) -> Option<nalgebra::UnitQuaternion<f64>> {
+        let up = self.motion.gyro()?.up(t, TILT_WINDOW_S)?;
+        Some(levelling(&up))
     }
 
     /// Asks the server where `scan` is; when it finds one place, tracking restarts
@@ -206,7 +260,7 @@ impl Tracker {
         let options = RelocalizeOptions {
             max_pair_dist: self.options.localize.max_pair_dist,
             max_iterations: self.options.localize.max_iterations,
-            tilt: None,
+            tilt: self.tilt(t),
         };
         let place = client.relocalize(scan, &options)?;
         let (RelocalizeStatus::Found, Some(pose)) = (place.status, place.pose) else {
@@ -214,6 +268,7 @@ impl Tracker {
         };
         self.motion.restart();
         self.adopted_streak = 0;
+        self.unfit_streak = 0;
         let localized = Localized {
             pose,
             health: ScanHealth {
@@ -331,6 +386,55 @@ mod tests {
                 ..ScanHealth::no_fit(1, 3)
             },
         }
+    }
+
+    #[test]
+    fn a_streak_of_scans_that_do_not_fit_becomes_lost_until_one_is_ok() {
+        let options = TrackerOptions::default();
+        let mut tracker = Tracker::new(at(0.0), options);
+        let unfit = |reasons: Reasons| Localized {
+            health: ScanHealth {
+                reasons,
+                ..scan(at(5.0), TrackingStatus::Degraded, 0.4).health
+            },
+            ..scan(at(5.0), TrackingStatus::Degraded, 0.4)
+        };
+        let predicted = at(1.0);
+        // Degenerate but converged and fitting (a corridor) is never counted.
+        for _ in 0..3 * options.lost_after_unfit {
+            let mut corridor = unfit(Reasons::DEGENERATE);
+            tracker.give_up_when_unfit(&predicted, &mut corridor);
+            assert_eq!(corridor.health.status, TrackingStatus::Degraded);
+        }
+        for k in 1..=options.lost_after_unfit + 2 {
+            let reasons = [
+                Reasons::NOT_CONVERGED,
+                Reasons::LOW_FITNESS,
+                Reasons::FITNESS_DROP,
+            ][k % 3]
+                | Reasons::DEGENERATE;
+            let mut localized = unfit(reasons);
+            tracker.give_up_when_unfit(&predicted, &mut localized);
+            if k < options.lost_after_unfit {
+                assert_eq!(
+                    localized.health.status,
+                    TrackingStatus::Degraded,
+                    "scan {k}"
+                );
+                assert_eq!(localized.pose, at(5.0));
+            } else {
+                // From the streak's length on: lost at the prediction, with the reason.
+                assert_eq!(localized.health.status, TrackingStatus::Lost, "scan {k}");
+                assert!(localized.health.reasons.contains(Reasons::UNFIT_STREAK));
+                assert_eq!(localized.pose, predicted);
+            }
+        }
+        // An ok scan ends the streak: the next unfitting one is degraded again.
+        let mut ok = scan(at(1.0), TrackingStatus::Ok, 0.9);
+        tracker.give_up_when_unfit(&predicted, &mut ok);
+        let mut again = unfit(Reasons::NOT_CONVERGED);
+        tracker.give_up_when_unfit(&predicted, &mut again);
+        assert_eq!(again.health.status, TrackingStatus::Degraded);
     }
 
     #[test]

@@ -151,6 +151,7 @@ REASON_NAMES: tuple[tuple[int, str], ...] = (
     (1 << 8, "singular"),
     (1 << 9, "fitness-drop"),
     (1 << 10, "relocalized"),
+    (1 << 11, "unfit-streak"),
 )
 
 

@@ -7,6 +7,7 @@ use kfmap_bake::config::BakeConfig;
 use kfmap_client::RelocalizeOptions;
 use kfmap_protocol::ScanPayload;
 use kfmap_shared::geometry::pose_to_xyz_quat;
+use nalgebra::UnitQuaternion;
 use serde_json::json;
 
 use super::connect_arg::ConnectArgs;
@@ -16,11 +17,16 @@ use super::connect_arg::ConnectArgs;
 /// near the map's keyframes, verifies the best places by registration and answers
 /// `found`, `ambiguous` (two places fit almost equally, e.g. a symmetric corridor) or
 /// `not-found` (the scan is from elsewhere or sees too little of the map). Up is found
-/// from the scan's floor-like planes.
+/// from the scan's floor-like planes, unless --tilt-deg gives the sensor's roll and
+/// pitch against the map's z (e.g. from an IMU's gravity, the map levelled on gravity
+/// as `kfmap bake` levels maps with an IMU log): on rolling or sloping ground a scan's
+/// own floor is degrees off, and a known tilt makes the search far more certain.
+/// (`kfmap localize` passes each scan's tilt from the dataset's IMU log itself.)
 ///
 /// Examples:
 ///   kfmap relocalize --map-name site scan.pcd
 ///   kfmap relocalize --map-name site scans/*.pcd --json > places.jsonl
+///   kfmap relocalize --map-name site --tilt-deg 1.5,-4.0 scan.pcd
 #[derive(clap::Args)]
 #[command(verbatim_doc_comment)]
 pub struct Args {
@@ -35,6 +41,10 @@ pub struct Args {
     /// Largest pairing distance of the verifying registrations, metres.
     #[arg(long, default_value_t = 1.0)]
     max_pair_dist: f32,
+    /// The sensor's tilt, "ROLL,PITCH" in degrees (about x, then y; R = Ry(pitch)
+    /// Rx(roll), yaw unknown) against the map's z, for every scan given.
+    #[arg(long, value_name = "ROLL,PITCH", allow_hyphen_values = true)]
+    tilt_deg: Option<String>,
     /// One JSON object per scan: scan, status, pose [x,y,z,qx,qy,qz,qw] (map frame,
     /// null when not-found), fitness (inlier ratio), rmse_m, score and runner_up (the
     /// verification scores of the best and the best other place), candidates,
@@ -47,6 +57,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut client = args.server.connect()?;
     let options = RelocalizeOptions {
         max_pair_dist: args.max_pair_dist,
+        tilt: args.tilt_deg.as_deref().map(parse_tilt).transpose()?,
         ..RelocalizeOptions::default()
     };
     if !(options.max_pair_dist.is_finite() && options.max_pair_dist > 0.0) {
@@ -109,4 +120,24 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
     }
     Ok(())
+}
+
+/// `--tilt-deg ROLL,PITCH` as `R_map_sensor` with no yaw.
+fn parse_tilt(text: &str) -> anyhow::Result<UnitQuaternion<f64>> {
+    let angles: Vec<f64> = text
+        .split(',')
+        .map(|a| a.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .ok()
+        .filter(|a: &Vec<f64>| a.len() == 2 && a.iter().all(|v| v.is_finite() && v.abs() < 90.0))
+        .ok_or_else(|| {
+            anyhow::anyhow!(
+                "--tilt-deg {text:?}: expected \"ROLL,PITCH\", two angles in degrees below 90 in size, e.g. 1.5,-4"
+            )
+        })?;
+    Ok(UnitQuaternion::from_euler_angles(
+        angles[0].to_radians(),
+        angles[1].to_radians(),
+        0.0,
+    ))
 }

@@ -41,11 +41,13 @@ pub fn relocalize(
         .view()
         .map_err(|e| Rejection::new(StatusCode::Internal, format!("map: {e}")))?;
     let params = limits.relocalize;
-    // The sensor's up in its own frame: the guess's tilt when the client knows it.
-    let up = (request.flags & FLAG_LEVELLED != 0).then(|| pose.rotation.inverse() * Vector3::z());
+    // The map's z in the sensor frame: the guess's tilt (`R_map_sensor` up to yaw) when
+    // the client knows it; otherwise the search levels the scan on its own floors.
+    let map_up =
+        (request.flags & FLAG_LEVELLED != 0).then(|| pose.rotation.inverse() * Vector3::z());
     let started = std::time::Instant::now();
     let proposal =
-        propose(&grid, scan.points, up, &params).map_err(|e| bad(format!("scan: {e}")))?;
+        propose(&grid, scan.points, map_up, &params).map_err(|e| bad(format!("scan: {e}")))?;
     let searched = started.elapsed();
     let mut stages = prepare(scan, limits);
     let mut against = MapRegistration {

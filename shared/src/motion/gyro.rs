@@ -9,6 +9,9 @@ use serde::{Deserialize, Serialize};
 use crate::imu::ImuSample;
 use crate::options::{InvalidOption, ensure};
 
+/// Fewest accelerometer samples [`Gyro::up`] averages.
+pub const MIN_UP_SAMPLES: usize = 5;
+
 /// Bias samples above this are registration failures, not bias, rad/s (MEMS gyro
 /// biases are below about 0.05 rad/s).
 const MAX_BIAS_SAMPLE: f64 = 0.1;
@@ -160,6 +163,25 @@ impl Gyro {
         Some(self.rotation(t0, t1)?.scaled_axis() / (t1 - t0))
     }
 
+    /// The LiDAR's up direction at time `t`, its own frame: the mean specific force of
+    /// the samples in `(t - window, t]`, each turned into the LiDAR frame at `t` by the
+    /// gyro (so turns average out), normalized. The platform's own acceleration averages
+    /// out only as far as its velocity changes little over the window. `None` with
+    /// fewer than [`MIN_UP_SAMPLES`] samples there, or no specific force.
+    pub fn up(&self, t: f64, window: f64) -> Option<Vector3<f64>> {
+        let inside = self.samples.partition_point(|s| s.t <= t - window)
+            ..self.samples.partition_point(|s| s.t <= t);
+        if inside.len() < MIN_UP_SAMPLES {
+            return None;
+        }
+        let mut sum = Vector3::zeros();
+        for sample in &self.samples[inside] {
+            let force = self.lidar_from_imu * Vector3::from(sample.acc);
+            sum += self.rotation(sample.t, t)?.inverse() * force;
+        }
+        sum.try_normalize(1e-9)
+    }
+
     /// Learns the bias from `measured`, the LiDAR's rotation from `t0` to `t1` as
     /// registration found it: the raw gyro's excess rotation over a small turn is the
     /// bias times the interval.
@@ -188,8 +210,9 @@ impl Gyro {
         if !(t0.is_finite() && t1.is_finite() && t1 >= t0 && self.covers(t0, t1)) {
             return None;
         }
-        let inside =
-            self.samples.partition_point(|s| s.t <= t0)..self.samples.partition_point(|s| s.t < t1);
+        // A sample exactly at t0 = t1 would make the range run backwards.
+        let first = self.samples.partition_point(|s| s.t <= t0);
+        let inside = first..self.samples.partition_point(|s| s.t < t1).max(first);
         let knots = std::iter::once(t0)
             .chain(self.samples[inside].iter().map(|s| s.t))
             .chain(std::iter::once(t1));
@@ -284,6 +307,53 @@ mod tests {
         // Outside the log (beyond the bridged gap) there is no answer.
         assert!(gyro.rotation(1.9, 2.2).is_none());
         assert!(gyro.rotation(-0.2, 0.5).is_none());
+    }
+
+    #[test]
+    fn up_is_gravity_in_the_lidar_frame_at_the_stamp_while_turning() {
+        // A body tilted 6 deg about x spins about its own z at 1.5 rad/s: its up, fixed
+        // in the world, sweeps a cone in the body frame. Closed form: R(t) = T Rz(w t),
+        // up_body(t) = R(t)^T z; the accelerometer reads R(t)^T (0, 0, 9.81).
+        let w = 1.5;
+        let tilt = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 6f64.to_radians());
+        let world_from_body =
+            |t: f64| tilt * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), w * t);
+        let samples: Vec<ImuSample> = (0..=600)
+            .map(|k| {
+                let t = k as f64 / 200.0;
+                ImuSample {
+                    t,
+                    acc: (world_from_body(t).inverse() * Vector3::new(0.0, 0.0, 9.81)).into(),
+                    gyro: [0.0, 0.0, w],
+                }
+            })
+            .collect();
+        let params = GyroParams {
+            lidar_from_imu_rpy_deg: [0.0, 0.0, 90.0],
+            ..GyroParams::default()
+        };
+        let lidar_from_imu = params.lidar_from_imu();
+        let gyro = Gyro::new(samples.clone(), params).unwrap();
+        for t in [1.2, 2.0, 2.9] {
+            let want = lidar_from_imu * (world_from_body(t).inverse() * Vector3::z());
+            let got = gyro.up(t, 1.0).unwrap();
+            assert!(
+                got.angle(&want).to_degrees() < 0.01,
+                "t {t}: {}",
+                got.angle(&want).to_degrees()
+            );
+            // Without turning the samples into the frame at t, the cone averages towards
+            // the body's z: degrees off.
+            let naive: Vector3<f64> = samples
+                .iter()
+                .filter(|s| s.t > t - 1.0 && s.t <= t)
+                .map(|s| lidar_from_imu * Vector3::from(s.acc))
+                .sum();
+            assert!(naive.angle(&want).to_degrees() > 3.0);
+        }
+        // Before the log, or with too few samples in the window, there is no answer.
+        assert!(gyro.up(-0.5, 0.2).is_none());
+        assert!(gyro.up(1.0, 0.01).is_none());
     }
 
     #[test]

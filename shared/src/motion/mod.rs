@@ -16,7 +16,7 @@ use crate::pose_graph::{exp, log};
 mod gyro;
 mod predictor;
 
-pub use gyro::{Gyro, GyroError, GyroParams};
+pub use gyro::{Gyro, GyroError, GyroParams, MIN_UP_SAMPLES};
 pub use predictor::{MidScan, PosePredictor};
 
 /// `relative` scaled to a fraction `s` of itself along its screw motion,

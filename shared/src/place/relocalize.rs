@@ -189,24 +189,53 @@ pub struct Relocalization {
     pub registrations: u32,
 }
 
-/// Proposes placements of `scan` (sensor frame) over `grid`. `up` is the gravity's
-/// opposite in the sensor frame when an IMU gives it; otherwise it is estimated from
-/// the scan's floor-like planes.
+/// Proposes placements of `scan` (sensor frame) over `grid`. `map_up` is the map's z
+/// in the sensor frame when the client knows its tilt (an IMU's gravity, in a map
+/// levelled on gravity); otherwise up is estimated from the scan's floor-like planes.
 pub fn propose(
     grid: &GridView<'_>,
     scan: &[[f32; 3]],
-    up: Option<Vector3<f64>>,
+    map_up: Option<Vector3<f64>>,
     params: &RelocalizeParams,
 ) -> Result<Proposal, CloudError> {
-    let Some(up) = up.or_else(|| estimate_up(scan, params.max_tilt_deg)) else {
-        return Ok(Proposal::default());
+    // The grid is levelled on the map's floors: a scan levelled on its own floors is
+    // already in that frame; one levelled on the map's z is turned into it per yaw.
+    let (up, grid_from_levelled) = match map_up {
+        Some(up) => (up, grid.grid_from_map()),
+        None => match estimate_up(scan, params.max_tilt_deg) {
+            Some(up) => (up, UnitQuaternion::identity()),
+            None => return Ok(Proposal::default()),
+        },
     };
     let level = levelling(&up);
-    let structure = structure_points(scan, &level, grid.resolution(), params)?;
+    let mut structure = structure_points(scan, &level, grid.resolution(), params)?;
+    // Thinned in order of range, not of voxel key: a turned copy of the scan keeps the
+    // same points, so its heading does not change what is searched with.
+    structure.sort_by(|a, b| {
+        a[0].hypot(a[1])
+            .total_cmp(&b[0].hypot(b[1]))
+            .then(a[2].total_cmp(&b[2]))
+    });
     let stride = structure.len().div_ceil(params.search_points).max(1);
     let points: Vec<[f64; 3]> = structure.into_iter().step_by(stride).collect();
-    let outcome = search(grid, &points, &grid.region(), &params.search);
+    let outcome = search(
+        grid,
+        &points,
+        &grid.region(),
+        &params.search,
+        &grid_from_levelled,
+    );
     let map_from_grid: UnitQuaternion<f64> = grid.grid_from_map().inverse();
+    for p in &outcome.placements {
+        tracing::debug!(
+            "relocalize: proposed grid ({:.1}, {:.1}, {:.1}) yaw {:.1} deg, hits {:.3}",
+            p.pose.translation.x,
+            p.pose.translation.y,
+            p.pose.translation.z,
+            p.yaw.to_degrees(),
+            p.hit_ratio
+        );
+    }
     Ok(Proposal {
         poses: outcome
             .placements
@@ -286,6 +315,9 @@ fn above_ground(points: &[[f64; 3]], cell: f64) -> Vec<[f64; 3]> {
         .collect()
 }
 
+/// Iterations of the scoring registration (coarse scan, fine pairing distance).
+const SCORE_ITERATIONS: usize = 10;
+
 /// Verifies `proposal` by registration and decides. `settle(start, stage)` runs one
 /// registration against the map for a proposed place (on any thread: places are
 /// verified in parallel); `register` runs the final one (as for
@@ -311,10 +343,12 @@ pub fn verify<E: Send>(
         max_pair_dist: tracking.coarse_pair_dist.max(fine.max_pair_dist),
         max_iterations: tracking.coarse_iterations,
     };
+    // Settled at the fine pairing distance before scoring: a place's score must not
+    // depend on how well coarse iterations from its lattice yaw happened to converge.
     let score_stage = Stage {
         coarse: true,
         max_pair_dist: fine.max_pair_dist,
-        max_iterations: 1,
+        max_iterations: SCORE_ITERATIONS,
     };
     let verified: Vec<(Option<(Pose, f64)>, u32)> = proposal
         .poses
@@ -324,10 +358,22 @@ pub fn verify<E: Send>(
                 return Ok((None, 1));
             };
             let score = settle(&settled.pose, &score_stage)?;
-            Ok((score.map(|s| (settled.pose, s.fitness.inlier_ratio)), 2))
+            Ok((score.map(|s| (s.pose, s.fitness.inlier_ratio)), 2))
         })
         .collect::<Result<_, E>>()?;
     let registrations = verified.iter().map(|(_, n)| n).sum();
+    for (place, _) in &verified {
+        if let Some((pose, score)) = place {
+            let t = pose.translation.vector;
+            tracing::debug!(
+                "relocalize: settled at ({:.2}, {:.2}, {:.2}) yaw {:.1} deg, score {score:.3}",
+                t.x,
+                t.y,
+                t.z,
+                pose.rotation.euler_angles().2.to_degrees()
+            );
+        }
+    }
     let mut scored: Vec<(Pose, f64)> = verified.into_iter().filter_map(|(s, _)| s).collect();
     scored.sort_by(|a, b| b.1.total_cmp(&a.1));
     let mut answer = Relocalization {

@@ -101,7 +101,7 @@ impl Default for SearchParams {
 /// One placement of the scan.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Placement {
-    /// `T_map_levelled`: yaw about z and translation.
+    /// `T_grid_levelled`: the yaw about z (then `grid_from_levelled`) and translation.
     pub pose: Pose,
     /// Yaw, radians in [0, 2 pi).
     pub yaw: f64,
@@ -156,12 +156,15 @@ pub fn yaw_step(resolution: f64, range: f64) -> f64 {
 
 /// Places `points` (levelled sensor frame: z up, yaw unknown) over `grid` at every yaw
 /// and every lattice translation inside `region`, best bound first (see
-/// `Lattice::branch_and_bound`).
+/// `Lattice::branch_and_bound`). `grid_from_levelled` turns the yawed points into the
+/// grid's frame: identity when the scan was levelled on its floors as the grid was,
+/// the grid's `grid_from_map` when it was levelled on the map's z (an IMU's gravity).
 pub fn search(
     grid: &GridView<'_>,
     points: &[[f64; 3]],
     region: &SearchRegion,
     params: &SearchParams,
+    grid_from_levelled: &UnitQuaternion<f64>,
 ) -> SearchOutcome {
     let n = points.len();
     let range = points
@@ -173,7 +176,7 @@ pub fn search(
     let searched = if n == 0 || !region.min.iter().zip(&region.max).all(|(a, b)| a <= b) {
         SearchOutcome::default()
     } else {
-        Lattice::new(grid, points, region, yaws).branch_and_bound(params)
+        Lattice::new(grid, points, region, yaws, grid_from_levelled).branch_and_bound(params)
     };
     SearchOutcome {
         points: n,
@@ -200,6 +203,8 @@ struct Lattice<'g> {
     spans: [i32; 3],
     /// The top level searched.
     top: usize,
+    /// Applied after each yaw: see [`search`].
+    grid_from_levelled: UnitQuaternion<f64>,
     /// Voxel of each point at each yaw with the region's low corner as translation;
     /// translation `min + k r` moves every point by exactly `k` voxels.
     voxels: Vec<Vec<[i64; 3]>>,
@@ -211,6 +216,7 @@ impl<'g> Lattice<'g> {
         points: &[[f64; 3]],
         region: &SearchRegion,
         yaws: usize,
+        grid_from_levelled: &UnitQuaternion<f64>,
     ) -> Self {
         let r = grid.resolution();
         let spans: [i32; 3] =
@@ -219,7 +225,7 @@ impl<'g> Lattice<'g> {
         let voxels = (0..yaws)
             .into_par_iter()
             .map(|y| {
-                let rotation = yaw_rotation(y as f64 * TAU / yaws as f64);
+                let rotation = grid_from_levelled * yaw_rotation(y as f64 * TAU / yaws as f64);
                 points
                     .iter()
                     .map(|p| {
@@ -239,6 +245,7 @@ impl<'g> Lattice<'g> {
             yaws,
             spans,
             top,
+            grid_from_levelled: *grid_from_levelled,
             voxels,
         }
     }
@@ -299,7 +306,7 @@ impl<'g> Lattice<'g> {
                     let placement = Placement {
                         pose: Isometry3::from_parts(
                             Translation3::new(t[0], t[1], t[2]),
-                            yaw_rotation(yaw),
+                            self.grid_from_levelled * yaw_rotation(yaw),
                         ),
                         yaw,
                         hits: node.bound,

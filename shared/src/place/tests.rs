@@ -131,6 +131,7 @@ fn the_search_finds_the_exhaustive_optimum() {
                 min_hit_ratio: 0.0,
                 ..SearchParams::default()
             },
+            &UnitQuaternion::identity(),
         );
         let range = points.iter().map(|p| p[0].hypot(p[1])).fold(0.0, f64::max);
         let yaws = (TAU / yaw_step(1.0, range)).ceil() as usize;

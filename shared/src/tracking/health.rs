@@ -70,8 +70,12 @@ impl Reasons {
     /// The pose came from global relocalization (no prediction): the motion model
     /// restarted there.
     pub const RELOCALIZED: Self = Self(1 << 10);
+    /// The tracker gave up the pose: too many scans in a row were adopted without
+    /// fitting the map (not converged, low fitness, fitness falling), so it says `lost`
+    /// and looks again instead of following its own prediction.
+    pub const UNFIT_STREAK: Self = Self(1 << 11);
 
-    const NAMES: [(Self, &'static str); 11] = [
+    const NAMES: [(Self, &'static str); 12] = [
         (Self::DEGENERATE, "degenerate"),
         (Self::NOT_CONVERGED, "not-converged"),
         (Self::LOW_FITNESS, "low-fitness"),
@@ -83,6 +87,7 @@ impl Reasons {
         (Self::SINGULAR, "singular"),
         (Self::FITNESS_DROP, "fitness-drop"),
         (Self::RELOCALIZED, "relocalized"),
+        (Self::UNFIT_STREAK, "unfit-streak"),
     ];
 
     /// No reason.
