@@ -32,8 +32,12 @@ time half a sweep later than those before: on a short run that jump (about 0.4 m
 Prints the aligned ATE (tools/anchors/ate.py) against the reference for the frames used and
 writes the estimate as TUM (--out) with times.txt's stamps.
 
-`python kiss_icp_kitti.py [--dataset D] [--start S] [--end E] [--step K] [--deskew off|kiss|sweep]
- [--voxel V] [--no-kitti-correction] [--out est.tum]`
+A dataset with a TUM poses_gt.txt or poses.txt instead (kfmap simulate --raw scans written as
+.bin) is read too: pass --spin ccw --sweep-seconds 1/rate --no-kitti-correction; `mid` then
+deskews into the frame at the sweep's start, where the simulator's poses are.
+
+`python kiss_icp_kitti.py [--dataset D] [--start S] [--end E] [--step K] [--deskew off|kiss|sweep|mid]
+ [--spin cw|ccw] [--sweep-seconds S] [--voxel V] [--no-kitti-correction] [--out est.tum]`
 """
 import argparse
 import pathlib
@@ -43,7 +47,7 @@ from kiss_icp.config import KISSConfig
 from kiss_icp.kiss_icp import KissICP
 from kiss_icp.pybind import kiss_icp_pybind
 
-from ate import ate, summary, write_tum  # same folder
+from ate import ate, read_tum, summary, write_tum  # same folder
 
 DATA = pathlib.Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "kitti00"
 
@@ -55,9 +59,13 @@ def read_bin(path, correct):
     return points
 
 
-def azimuth_times(points):
-    """KISS-ICP 0.x's KITTI per-point times: 0 and 1 behind the sensor, 0.5 forward."""
-    return 0.5 * (-np.arctan2(points[:, 1], points[:, 0]) / np.pi + 1.0)
+def azimuth_times(points, spin="cw"):
+    """Share of the sweep (0 to 1) at each point. cw: KISS-ICP 0.x's KITTI times, 0 and 1
+    behind the sensor, 0.5 forward; ccw: kfmap's simulator, counter-clockwise from +X."""
+    az = np.arctan2(points[:, 1], points[:, 0])
+    if spin == "ccw":
+        return np.mod(az, 2 * np.pi) / (2 * np.pi)
+    return 0.5 * (-az / np.pi + 1.0)
 
 
 def hat(w):
@@ -94,11 +102,12 @@ def scale_motion(T, s):
     return se3_exp(s * rho, s * phi)
 
 
-def deskew_mid(points, times01, delta, sweep_share):
-    """Points moved into the sensor frame at mid-sweep: a point at sweep share u was seen
-    (u - 0.5) sweeps from there, the sensor then at exp(s log(delta)), s = (u - 0.5) sweep_share."""
+def deskew_mid(points, times01, delta, sweep_share, stamp_share=0.5):
+    """Points moved into the sensor frame at the stamp (sweep share stamp_share, mid-sweep
+    for KITTI): a point at share u was seen (u - stamp_share) sweeps from there, the sensor
+    then at exp(s log(delta)), s = (u - stamp_share) sweep_share."""
     rho, phi = se3_log(delta)
-    s = (times01 - 0.5) * sweep_share
+    s = (times01 - stamp_share) * sweep_share
     angle = np.linalg.norm(phi)
     axis = phi / angle if angle > 1e-12 else np.zeros(3)
     a = s * angle
@@ -111,7 +120,11 @@ def deskew_mid(points, times01, delta, sweep_share):
 
 
 def read_reference(dataset):
-    """Times (N,) and T_world_velo (N, 4, 4) of the dataset's poses_velo_kitti.txt / times.txt."""
+    """Times (N,) and T_world_velo (N, 4, 4) of the dataset's poses_velo_kitti.txt / times.txt,
+    or of its TUM poses_gt.txt (kfmap simulate) / poses.txt."""
+    for name in ("poses_gt.txt", "poses.txt"):
+        if (pathlib.Path(dataset) / name).exists():
+            return read_tum(pathlib.Path(dataset) / name)
     rows = np.loadtxt(pathlib.Path(dataset) / "poses_velo_kitti.txt", ndmin=2)
     poses = np.tile(np.eye(4), (len(rows), 1, 1))
     poses[:, :3, :] = rows.reshape(-1, 3, 4)
@@ -126,6 +139,8 @@ def main():
     parser.add_argument("--step", type=int, default=1)
     parser.add_argument("--deskew", choices=["off", "kiss", "sweep", "mid"], default="off")
     parser.add_argument("--sweep-seconds", type=float, default=0.1)
+    parser.add_argument("--spin", choices=["cw", "ccw"], default="cw",
+                        help="cw: KITTI (from behind, stamp forward); ccw: kfmap simulate --raw (from +X, stamp at start)")
     parser.add_argument("--voxel", type=float, default=1.0)
     parser.add_argument("--no-kitti-correction", action="store_true")
     parser.add_argument("--threads", type=int, default=2)
@@ -144,15 +159,17 @@ def main():
     for i in used:
         points = read_bin(paths[i], not args.no_kitti_correction)
         if args.deskew == "kiss":
-            odometry.register_frame(points, azimuth_times(points))
+            odometry.register_frame(points, azimuth_times(points, args.spin))
         elif args.deskew == "sweep":
             dt = times[i] - last_t if last_t is not None else args.sweep_seconds
             delta = scale_motion(odometry.last_delta, args.sweep_seconds / dt)
-            deskewed = odometry.preprocessor.preprocess(points, azimuth_times(points), delta)
+            deskewed = odometry.preprocessor.preprocess(points, azimuth_times(points, args.spin), delta)
             odometry.register_frame(deskewed, np.array([]))
         elif args.deskew == "mid":
             dt = times[i] - last_t if last_t is not None else args.sweep_seconds
-            deskewed = deskew_mid(points, azimuth_times(points), odometry.last_delta, args.sweep_seconds / dt)
+            stamp_share = 0.0 if args.spin == "ccw" else 0.5
+            deskewed = deskew_mid(points, azimuth_times(points, args.spin), odometry.last_delta,
+                                  args.sweep_seconds / dt, stamp_share)
             odometry.register_frame(deskewed, np.array([]))
         else:
             odometry.register_frame(points, np.array([]))
