@@ -253,6 +253,18 @@ mod tests {
             text.contains("build.odometry.registration") && text.contains("voxel-size"),
             "{text}"
         );
+        let text = bad("[build.odometry.sweep]\nseconds = 0.0\n");
+        assert!(
+            text.contains("build.odometry.sweep") && text.contains("seconds"),
+            "{text}"
+        );
+        let text = bad("[build.odometry.sweep]\ndirection = \"left\"\n");
+        assert!(
+            text.contains("left") && text.contains("clockwise"),
+            "{text}"
+        );
+        let text = bad("[build.odometry]\ndeskew = \"kiss\"\n");
+        assert!(text.contains("kiss") && text.contains("azimuth"), "{text}");
         let text = bad("[build.loops]\nmax-distanse = 3.0\n");
         assert!(text.contains("max-distanse"), "{text}");
         let ok =

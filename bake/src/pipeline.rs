@@ -15,8 +15,9 @@ use kfmap_shared::cloud::{PointCloud, Twist, deskew};
 use kfmap_shared::covis::CovisibilityGraph;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::imu::ImuSample;
-use kfmap_shared::io::{Trajectory, format_tum, write_atomic};
+use kfmap_shared::io::{BinLayout, Trajectory, format_tum, write_atomic};
 use kfmap_shared::map::{Keyframe, KeyframeMapOptions};
+use kfmap_shared::motion::DeskewMode;
 use kfmap_shared::pose_graph::{PoseEdge, PoseGraph, write_g2o};
 use kfmap_shared::registration::Fitness;
 use kfmap_shared::trajectory_error::{absolute_trajectory_error, rigid_alignment};
@@ -159,6 +160,11 @@ pub struct MappingSummary {
     pub ate_odometry: Option<f64>,
     /// The gyro bias odometry learned, IMU frame, rad/s (`None`: no IMU log used).
     pub gyro_bias: Option<[f64; 3]>,
+    /// How odometry deskewed the scans (`auto` settled: `azimuth` or `per-point`).
+    pub deskew: DeskewMode,
+    /// The sweep duration azimuth times spanned, seconds (one scan interval when the
+    /// scans have no timestamps); `None` unless `deskew` is `azimuth`.
+    pub sweep_seconds: Option<f64>,
 }
 
 impl MappingSummary {
@@ -232,11 +238,16 @@ fn build_poses(
         || (first..first + scans.len()).map(|i| i as f64).collect(),
         |t| t.stamps.clone(),
     );
+    let mut build = config.build;
+    if !truth.is_some_and(|t| t.stamped) {
+        // The stamps count scans: a sweep is taken to last one scan interval.
+        build.odometry.sweep.seconds = 1.0;
+    }
     let built = build_trajectory::<BakeError>(
         &stamps,
         imu,
         |i| load_raw_scan(&scans[i], config),
-        &config.build,
+        &build,
         |stage| {
             progress(match stage {
                 Stage::Odometry(d, t) => report(BakeStage::Odometry, d, t),
@@ -286,6 +297,9 @@ fn build_poses(
         ate_odometry: ate(&built.odometry),
         poses: built.poses.clone(),
         gyro_bias: built.gyro_bias.map(Into::into),
+        deskew: build.odometry.deskew,
+        sweep_seconds: (build.odometry.deskew == DeskewMode::Azimuth)
+            .then_some(build.odometry.sweep.seconds),
     };
     let poses = ScanPoses {
         poses: built.poses,
@@ -331,6 +345,26 @@ fn scan_twist(poses: &[Pose], stamps: &[f64], i: usize) -> Option<Twist> {
     Twist::between(&poses[a], &poses[b], stamps[b] - stamps[a])
 }
 
+/// `config` with `[build.odometry] deskew = "auto"` settled for `scans`: `azimuth` when
+/// every scan is a KITTI velodyne `.bin` (x y z intensity: raw sweeps of a spinning
+/// sensor, stored without per-point times), else `per-point`.
+pub fn settle_deskew(config: &BakeConfig, scans: &[PathBuf]) -> BakeConfig {
+    let kitti_bin = |path: &PathBuf| {
+        let bin = path
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("bin"));
+        let sidecar = std::fs::read_to_string(path.with_extension("bin.layout")).ok();
+        let layout = sidecar.map_or(Some(config.input.bin_layout), |s| BinLayout::parse(&s));
+        bin && layout == Some(BinLayout::Xyzi)
+    };
+    let mut settled = config.clone();
+    let odometry = &mut settled.build.odometry;
+    odometry.deskew = odometry
+        .deskew
+        .resolve(!scans.is_empty() && scans.iter().all(kitti_bin));
+    settled
+}
+
 /// Reads, filters and downsamples one scan taken at `pose` (map frame): on the map's
 /// voxel grid, with each point's raw count, when keyframes are fused.
 fn load_scan(
@@ -341,7 +375,11 @@ fn load_scan(
 ) -> Result<(PointCloud, Option<Vec<u32>>), BakeError> {
     let fused = config.map.fuse_overlapping_keyframes;
     let mut raw = load_raw_scan(path, config)?;
-    if let Some(twist) = twist.filter(|_| config.build.odometry.deskew) {
+    let odometry = &config.build.odometry;
+    if odometry.deskew == DeskewMode::Azimuth {
+        odometry.sweep.time_scan(&mut raw);
+    }
+    if let Some(twist) = twist.filter(|_| odometry.deskew.uses_point_times()) {
         deskew(&mut raw, &twist, 0.0).map_err(|e| BakeError::Scan {
             path: path.to_path_buf(),
             message: e.to_string(),
@@ -375,6 +413,7 @@ pub fn bake(
     let all_scans = find_scans(&input.dataset)?;
     let range = input.scans.within(all_scans.len())?;
     let scans = &all_scans[range.clone()];
+    let config = &settle_deskew(config, scans);
     let (scan_poses, mapping) = poses_of_scans(
         input,
         config,

@@ -66,6 +66,10 @@ impl BuildParams {
             .gyro
             .validate()
             .map_err(|e| ("build.odometry.gyro", e))?;
+        odometry
+            .sweep
+            .validate()
+            .map_err(|e| ("build.odometry.sweep", e))?;
         odometry.validate().map_err(|e| ("build.odometry", e))?;
         self.loops
             .registration

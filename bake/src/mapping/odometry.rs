@@ -13,7 +13,8 @@ use kfmap_shared::geometry::{Pose, to_point, transform_point};
 use kfmap_shared::imu::ImuSample;
 use kfmap_shared::map::KeyframeDecider;
 use kfmap_shared::motion::{
-    AdaptiveThreshold, AdaptiveThresholdParams, Gyro, GyroParams, PosePredictor, yaw_hypotheses,
+    AdaptiveThreshold, AdaptiveThresholdParams, DeskewMode, Gyro, GyroParams, PosePredictor,
+    SweepParams, yaw_hypotheses,
 };
 use kfmap_shared::options::{InvalidOption, ensure, ensure_distance, ensure_ratio};
 use kfmap_shared::registration::{
@@ -52,8 +53,12 @@ pub struct OdometryParams {
     pub coarse_voxel_factor: f64,
     /// Retry: the coarse pass's correspondence distance, metres.
     pub coarse_distance: f64,
-    /// Deskew scans that carry per-point times with the motion model's twist.
-    pub deskew: bool,
+    /// Which scans are deskewed with the motion model's twist, mid-scan: those with
+    /// per-point times, and with `azimuth` also those without, timed by `sweep`
+    /// (`auto` is `per-point` here; `kfmap bake` settles it from the scan format).
+    pub deskew: DeskewMode,
+    /// The spinning sensor's sweep, for per-point times from the azimuth.
+    pub sweep: SweepParams,
     /// The gyro's part in the motion model, when the dataset has IMU samples.
     pub gyro: GyroParams,
     /// Retry: yaw hypotheses every this many degrees...
@@ -88,7 +93,8 @@ impl Default for OdometryParams {
             max_correction: 3.0,
             coarse_voxel_factor: 2.0,
             coarse_distance: 3.0,
-            deskew: true,
+            deskew: DeskewMode::Auto,
+            sweep: SweepParams::default(),
             gyro: GyroParams::default(),
             yaw_step_deg: 20.0,
             yaw_max_deg: 60.0,
@@ -103,6 +109,7 @@ impl OdometryParams {
         self.adaptive_distance.validate()?;
         self.local_map_decider.validate()?;
         self.gyro.validate()?;
+        self.sweep.validate()?;
         ensure(
             self.local_map_keyframes >= 1,
             "local-map-keyframes",
@@ -213,7 +220,17 @@ impl Odometry {
         scan: &PointCloud,
     ) -> Result<OdometryStep, RegistrationError> {
         let reg = self.params.registration;
-        let mid = self.motion.mid_scan(scan, stamp, self.params.deskew)?;
+        let timed;
+        let scan = if self.params.deskew == DeskewMode::Azimuth && scan.time.is_none() {
+            let mut copy = scan.clone();
+            self.params.sweep.time_scan(&mut copy);
+            timed = copy;
+            &timed
+        } else {
+            scan
+        };
+        let deskew = self.params.deskew.uses_point_times();
+        let mid = self.motion.mid_scan(scan, stamp, deskew)?;
         let scan = mid.deskewed.as_ref().unwrap_or(scan);
         let prepared = PreparedCloud::new(scan, &reg, "scan")?;
         let tracked_at = stamp + mid.offset;

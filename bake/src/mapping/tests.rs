@@ -1,4 +1,5 @@
 use super::*;
+use kfmap_shared::motion::DeskewMode;
 use kfmap_shared::trajectory_error::absolute_trajectory_error;
 use kfmap_sim::{LidarParams, Preset, SimConfig, Simulation};
 
@@ -151,7 +152,11 @@ fn raw_drive_ate(drive: Drive) -> f64 {
         .map(|&i| i as f64 / sim.config().lidar.rate_hz)
         .collect();
     let mut params = BuildParams::default();
-    params.odometry.deskew = drive.deskew;
+    params.odometry.deskew = if drive.deskew {
+        DeskewMode::PerPoint
+    } else {
+        DeskewMode::Off
+    };
     let imu = if drive.gyro { sim.imu() } else { Vec::new() };
     let built = build_trajectory::<TestError>(
         &stamps,

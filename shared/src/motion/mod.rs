@@ -15,9 +15,11 @@ use crate::pose_graph::{exp, log};
 
 mod gyro;
 mod predictor;
+mod sweep;
 
 pub use gyro::{Gyro, GyroError, GyroParams, MIN_UP_SAMPLES};
 pub use predictor::{MidScan, PosePredictor};
+pub use sweep::{DeskewMode, SpinDirection, SweepParams};
 
 /// `relative` scaled to a fraction `s` of itself along its screw motion,
 /// `exp(s log(relative))`: exact for a constant body-frame twist, so a steady turn is

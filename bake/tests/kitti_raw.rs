@@ -1,0 +1,210 @@
+//! Raw (not deskewed) automotive scans without per-point times (issue 33, item 6): KITTI
+//! 00 frames 0-5 through `kfmap bake --build-poses` (the function the CLI calls, on a
+//! dataset folder like the CLI reads), and the simulated street driven raw at 5 Hz with
+//! its per-point times stripped, deskewed from the points' azimuths.
+//!
+//! KITTI anchor (tools/anchors/kiss_icp_kitti.py, KISS-ICP 1.3.0, voxel 1.0 m, max range
+//! 100 m, 2 threads, its KITTI scan correction on), aligned ATE RMS against
+//! poses_velo_kitti.txt on the same frames:
+//!
+//! | frames     | --deskew off (KISS-ICP 1.3's KITTI loader) | kiss (0.x azimuth times) | mid |
+//! |------------|-------------------------------------------|--------------------------|-----|
+//! | 0,1,..,5   | 0.2355 m                                  | 0.1652 m                 | 0.2204 m |
+//! | 0,2,4      | 0.2124 m                                  | 0.1853 m                 | 0.2158 m |
+//!
+//! `kiss` deskews into the sensor frame at the end of the sweep, and only from the third
+//! frame on (no motion known before): its poses jump half a sweep (about 0.35 m) ahead
+//! there, which lengthens these short, too short trajectories; deskewed into the
+//! mid-sweep frame the ground truth refers to (`mid`) the gain is gone. On these frames no
+//! registration recovers more than 80-86 % of the ground truth's forward motion per step,
+//! deskewed or not (pairwise GICP with the scans deskewed by the true velocity, either
+//! sign, or twice it: the same 0.80-0.86), so the ATE mostly measures that disagreement.
+
+use std::path::{Path, PathBuf};
+
+use kfmap_bake::config::BakeConfig;
+use kfmap_bake::mapping::{BuildParams, GlobalError, build_trajectory};
+use kfmap_bake::pipeline::{BakeInput, BakeOutput, bake};
+use kfmap_shared::geometry::Pose;
+use kfmap_shared::io::{Trajectory, format_tum, read_trajectory};
+use kfmap_shared::motion::{DeskewMode, SpinDirection, SweepParams};
+use kfmap_shared::registration::RegistrationError;
+use kfmap_sim::{LidarParams, Preset, SimConfig, Simulation};
+use kfmap_testdata::require_test_data;
+use nalgebra::{Matrix3, Vector3};
+
+/// Aligned ATE: RMS position error after the rigid fit (Horn / Umeyama, no scale) of
+/// `estimate`'s positions onto `truth`'s, metres (as tools/anchors/ate.py).
+fn aligned_ate(estimate: &[Pose], truth: &[Pose]) -> f64 {
+    assert_eq!(estimate.len(), truth.len());
+    let e: Vec<Vector3<f64>> = estimate.iter().map(|p| p.translation.vector).collect();
+    let r: Vec<Vector3<f64>> = truth.iter().map(|p| p.translation.vector).collect();
+    let n = e.len() as f64;
+    let (me, mr) = (
+        e.iter().sum::<Vector3<f64>>() / n,
+        r.iter().sum::<Vector3<f64>>() / n,
+    );
+    let h: Matrix3<f64> = e
+        .iter()
+        .zip(&r)
+        .map(|(a, b)| (b - mr) * (a - me).transpose())
+        .sum();
+    let svd = h.svd(true, true);
+    let (u, v_t) = (svd.u.unwrap(), svd.v_t.unwrap());
+    let d = (u * v_t).determinant().signum();
+    let rot = u * Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, d)) * v_t;
+    let t = mr - rot * me;
+    let sum: f64 = e
+        .iter()
+        .zip(&r)
+        .map(|(a, b)| (rot * a + t - b).norm_squared())
+        .sum();
+    (sum / n).sqrt()
+}
+
+/// A KITTI-style dataset folder (`DIR/NNNNNN.bin` linked to kitti00's, `poses.txt` as
+/// TUM with times.txt's stamps) of `frames`, as a user would assemble one.
+fn kitti_subset(data: &Path, frames: &[usize], name: &str) -> (PathBuf, Vec<Pose>) {
+    let dir = std::env::temp_dir().join(format!("kfmap-kitti-raw-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let truth = read_trajectory(&data.join("poses_velo_kitti.txt"))
+        .unwrap()
+        .poses;
+    let times: Vec<f64> = std::fs::read_to_string(data.join("times.txt"))
+        .unwrap()
+        .split_whitespace()
+        .map(|t| t.parse().unwrap())
+        .collect();
+    for &f in frames {
+        let file = format!("{f:06}.bin");
+        std::os::unix::fs::symlink(data.join(&file), dir.join(&file)).unwrap();
+    }
+    let picked: Vec<Pose> = frames.iter().map(|&f| truth[f]).collect();
+    let trajectory = Trajectory {
+        stamps: Some(frames.iter().map(|&f| times[f]).collect()),
+        poses: picked.clone(),
+    };
+    std::fs::write(dir.join("poses.txt"), format_tum(&trajectory)).unwrap();
+    (dir, picked)
+}
+
+/// `kfmap bake --dataset DIR --build-poses` with the default configuration (deskew
+/// `auto`, or `deskew`): the built poses' aligned ATE against the frames' truth.
+fn bake_kitti(frames: &[usize], name: &str, deskew: DeskewMode) -> Option<f64> {
+    let data = require_test_data("kitti00", "kitti_raw")?;
+    let (dir, truth) = kitti_subset(&data, frames, name);
+    let mut config = BakeConfig::default();
+    config.build.odometry.deskew = deskew;
+    let input = BakeInput {
+        build_poses: true,
+        ..BakeInput::dataset(&dir)
+    };
+    let report = bake(
+        &input,
+        &config,
+        &BakeOutput::map(dir.join("map.kfmap")),
+        |_| {},
+    )
+    .unwrap();
+    let mapping = report.mapping.expect("poses built");
+    let ate = aligned_ate(&mapping.poses, &truth);
+    println!(
+        "KITTI 00 frames {frames:?}, deskew {deskew} ({}): aligned ATE {ate:.4} m",
+        mapping.deskew
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+    Some(ate)
+}
+
+/// Every frame (10 Hz, 0.86 m apart) and every second one (~4.8 Hz, 1.7 m apart), raw,
+/// deskew `auto` (KITTI .bin: azimuth times). Measured: 0.2471 and 0.2519 m; without
+/// deskew 0.2468 and 0.2458 m (the deskew changes nothing measurable here, see the
+/// module comment). KISS-ICP as its KITTI pipeline runs (no deskew) measured 0.2355 and
+/// 0.2124 m: kfmap is 1.05x and 1.19x of it on these frames, not at or below it. The
+/// bounds hold the measured figures (+3 %) so a regression shows.
+#[test]
+fn kitti00_raw_frames_through_bake() {
+    let Some(all) = bake_kitti(&[0, 1, 2, 3, 4, 5], "all", DeskewMode::Auto) else {
+        return;
+    };
+    let every_second = bake_kitti(&[0, 2, 4], "step2", DeskewMode::Auto).unwrap();
+    assert!(all <= 0.2471 * 1.03, "frames 0-5: ATE {all} m");
+    assert!(
+        every_second <= 0.2519 * 1.03,
+        "frames 0,2,4: ATE {every_second} m"
+    );
+}
+
+#[derive(Debug, thiserror::Error)]
+enum TestError {
+    #[error(transparent)]
+    Registration(#[from] RegistrationError),
+    #[error(transparent)]
+    Global(#[from] GlobalError),
+}
+
+/// Odometry ATE on the simulated street (10 m/s cruise, 12 m corners) driven with a
+/// 16-beam sensor spinning at 5 Hz (2 m per scan), scans raw; `times` keeps their
+/// per-point times, else they are stripped like KITTI's .bin and `deskew` decides.
+fn street_ate(deskew: DeskewMode, times: bool) -> f64 {
+    let sim = Simulation::new(SimConfig {
+        preset: Preset::Street,
+        seconds: 12.0,
+        lidar: LidarParams {
+            beams: 16,
+            rate_hz: 5.0,
+            deskew: false,
+            ..LidarParams::default()
+        },
+        ..SimConfig::default()
+    })
+    .unwrap();
+    let count = sim.config().scan_count();
+    let stamps: Vec<f64> = (0..count)
+        .map(|i| i as f64 / sim.config().lidar.rate_hz)
+        .collect();
+    let mut params = BuildParams::default();
+    params.odometry.deskew = deskew;
+    // The simulator's sensor: counter-clockwise from +X, stamped at the sweep's start.
+    params.odometry.sweep = SweepParams {
+        seconds: 0.2,
+        direction: SpinDirection::CounterClockwise,
+        start_deg: 0.0,
+        stamp_deg: 0.0,
+    };
+    let built = build_trajectory::<TestError>(
+        &stamps,
+        Vec::new(),
+        |k| {
+            let mut cloud = sim.scan(k).cloud;
+            if !times {
+                cloud.time = None;
+            }
+            Ok(cloud)
+        },
+        &params,
+        |_| {},
+    )
+    .unwrap();
+    let truth: Vec<Pose> = (0..count).map(|i| sim.scan_pose(i)).collect();
+    aligned_ate(&built.odometry, &truth)
+}
+
+/// Azimuth times recover what the recorded per-point times give, and deskewing beats
+/// not deskewing, on timeless raw scans at a low frame rate.
+#[test]
+fn street_raw_at_5hz_deskewed_from_azimuth() {
+    let off = street_ate(DeskewMode::Off, false);
+    let azimuth = street_ate(DeskewMode::Azimuth, false);
+    let recorded = street_ate(DeskewMode::PerPoint, true);
+    println!(
+        "street raw 5 Hz: ATE {off:.4} m without deskew, {azimuth:.4} m azimuth times, \
+         {recorded:.4} m recorded times"
+    );
+    assert!(azimuth < 0.7 * off, "azimuth {azimuth} m vs off {off} m");
+    assert!(
+        azimuth <= 1.2 * recorded + 0.01,
+        "azimuth {azimuth} m vs recorded times {recorded} m"
+    );
+}
