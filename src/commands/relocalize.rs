@@ -54,7 +54,6 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let mut client = args.server.connect()?;
     let options = RelocalizeOptions {
         max_pair_dist: args.max_pair_dist,
         tilt: args.tilt_deg.as_deref().map(parse_tilt).transpose()?,
@@ -72,6 +71,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             args.voxel
         );
     }
+    let mut client = args.server.connect()?;
     let config = BakeConfig::default();
     for path in &args.scans {
         let cloud = super::localize::load_scan(path, &config, args.voxel)?;
