@@ -124,17 +124,17 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         trajectory: args.trajectory_out.clone(),
         graph: args.graph_out.clone(),
     };
-    refuse_existing_outputs(&output, args.force)?;
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(args.threads)
-        .build()
-        .context("cannot start worker threads")?;
     let input = BakeInput {
         dataset: args.dataset.clone(),
         poses: args.poses.clone(),
         build_poses: args.build_poses,
         scans: args.scans.unwrap_or(ScanRange::ALL),
     };
+    refuse_existing_outputs(&output, input.builds_poses(), args.force)?;
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(args.threads)
+        .build()
+        .context("cannot start worker threads")?;
     let report = bake_with_progress(&pool, &input, &config, &output, args.json)?;
     let threads = pool.current_num_threads();
     if args.json {
@@ -145,9 +145,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// An error when an output file exists and `--force` was not given.
-fn refuse_existing_outputs(output: &BakeOutput, force: bool) -> anyhow::Result<()> {
-    let sidecar = output.trajectory.as_deref().map(scan_check_sidecar);
+/// An error when an output file exists and `--force` was not given (the trajectory's
+/// scan check is written only when the poses are `built`).
+fn refuse_existing_outputs(output: &BakeOutput, built: bool, force: bool) -> anyhow::Result<()> {
+    let sidecar = output
+        .trajectory
+        .as_deref()
+        .filter(|_| built)
+        .map(scan_check_sidecar);
     let paths = [
         ("--out", Some(&output.map)),
         ("--trajectory-out", output.trajectory.as_ref()),

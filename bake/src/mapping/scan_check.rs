@@ -304,7 +304,13 @@ impl Checker<'_> {
         let after = (i + 1..(i + w + 1).min(good.len())).find(|&j| good[j]);
         let placed = match (before, after) {
             (Some(a), Some(b)) => {
-                let t = (stamps[i] - stamps[a]) / (stamps[b] - stamps[a]);
+                // Repeated stamps place it halfway.
+                let span = stamps[b] - stamps[a];
+                let t = if span > 0.0 {
+                    ((stamps[i] - stamps[a]) / span).clamp(0.0, 1.0)
+                } else {
+                    0.5
+                };
                 poses[a].lerp_slerp(&poses[b], t)
             }
             (Some(a), None) => poses[a],
