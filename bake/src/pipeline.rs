@@ -3,7 +3,7 @@
 //! covariances, in parallel) and written a chunk at a time, so memory stays bounded by
 //! one chunk of keyframes plus the covisibility index, whatever the map's size. Beside
 //! the map a bake can write the trajectory it used (TUM) and, when it built the poses,
-//! its keyframe pose graph (g2o).
+//! its keyframe pose graph (g2o) and how each scan lies on its neighbours (CSV).
 
 use std::ops::Range;
 use std::path::{Path, PathBuf};
@@ -29,7 +29,7 @@ use crate::error::BakeError;
 use crate::gravity::{
     BakeGravity, IMU_FILES, POSE_FILES, bake_gravity, check_overlap, find_in, read_imu,
 };
-use crate::mapping::{OdometryOutcome, Stage, build_trajectory};
+use crate::mapping::{OdometryOutcome, ScanCheck, ScanVerdict, Stage, build_trajectory};
 use crate::scan_range::ScanRange;
 
 /// Where a bake reads from.
@@ -91,6 +91,15 @@ pub struct BakeOutput {
     pub graph: Option<PathBuf>,
 }
 
+/// The scan check's sidecar of a trajectory file: `FILE` + `.check.csv`, one line per
+/// baked scan (`scan,t,verdict,inlier_ratio,rmse_m,shift_m,moved_m`), written beside
+/// the trajectory when the poses are built.
+pub fn scan_check_sidecar(trajectory: &Path) -> PathBuf {
+    let mut name = trajectory.as_os_str().to_owned();
+    name.push(".check.csv");
+    PathBuf::from(name)
+}
+
 impl BakeOutput {
     /// The map file alone.
     pub fn map(path: impl Into<PathBuf>) -> Self {
@@ -111,6 +120,8 @@ pub enum BakeStage {
     Keyframes,
     /// Loop detection and pose-graph optimization (building poses).
     Optimizing,
+    /// Every scan checked against its neighbours (building poses).
+    Checking,
     /// Keyframes indexed and written.
     Writing,
 }
@@ -154,7 +165,15 @@ pub struct MappingSummary {
     pub loop_checks: Vec<LoopSummary>,
     /// Scans odometry found only after retrying wider hypotheses.
     pub recovered_scans: Vec<usize>,
-    /// Scans no hypothesis registered well (their pose may be off).
+    /// Scans odometry registered well by no hypothesis (the scan check judges their
+    /// final pose).
+    pub odometry_poor_scans: Vec<usize>,
+    /// Every baked scan's check against its neighbours, in order.
+    pub checks: Vec<ScanCheck>,
+    /// Scans that did not fit their neighbours and were re-registered onto them.
+    pub reregistered_scans: Vec<usize>,
+    /// Scans that fit their neighbours neither as built nor re-registered: their pose
+    /// may be off.
     pub poor_scans: Vec<usize>,
     /// The same for odometry alone.
     pub ate_odometry: Option<f64>,
@@ -253,6 +272,7 @@ fn build_poses(
                 Stage::Odometry(d, t) => report(BakeStage::Odometry, d, t),
                 Stage::Keyframes(d, t) => report(BakeStage::Keyframes, d, t),
                 Stage::Optimizing => report(BakeStage::Optimizing, 0, 1),
+                Stage::Checking => report(BakeStage::Checking, 0, 1),
             })
         },
     )?;
@@ -293,7 +313,10 @@ fn build_poses(
             })
             .collect(),
         recovered_scans: scans_where(&built.outcomes, OdometryOutcome::Recovered, first),
-        poor_scans: scans_where(&built.outcomes, OdometryOutcome::Poor, first),
+        odometry_poor_scans: scans_where(&built.outcomes, OdometryOutcome::Poor, first),
+        reregistered_scans: checked(&built.checks, ScanVerdict::Reregistered, first),
+        poor_scans: checked(&built.checks, ScanVerdict::Poor, first),
+        checks: built.checks.clone(),
         ate_odometry: ate(&built.odometry),
         poses: built.poses.clone(),
         gyro_bias: built.gyro_bias.map(Into::into),
@@ -330,6 +353,14 @@ fn odometry_imu(
 fn scans_where(outcomes: &[OdometryOutcome], which: OdometryOutcome, first: usize) -> Vec<usize> {
     (0..outcomes.len())
         .filter(|&i| outcomes[i] == which)
+        .map(|i| first + i)
+        .collect()
+}
+
+/// Dataset indices of the scans (the first at `first`) the scan check found `which`.
+fn checked(checks: &[ScanCheck], which: ScanVerdict, first: usize) -> Vec<usize> {
+    (0..checks.len())
+        .filter(|&i| checks[i].verdict == which)
         .map(|i| first + i)
         .collect()
 }
@@ -462,7 +493,8 @@ pub fn bake(
         gravity.as_ref(),
         &mut progress,
     )?;
-    write_trajectory_and_graph(output, poses, stamps, mapping.as_ref(), &level)?;
+    let first = range.start;
+    write_trajectory_and_graph(output, poses, stamps, mapping.as_ref(), &level, first)?;
     Ok(BakeReport {
         dataset_scans: all_scans.len(),
         scans: range,
@@ -611,15 +643,21 @@ fn write_map(
 }
 
 /// The files beside the map, each written atomically: the trajectory used (TUM) and,
-/// when the poses were built, the keyframe pose graph (g2o), both levelled like the map.
+/// when the poses were built, its scan check ([`scan_check_sidecar`]) and the keyframe
+/// pose graph (g2o), levelled like the map. `first`: the first baked scan's index.
 fn write_trajectory_and_graph(
     output: &BakeOutput,
     poses: Vec<Pose>,
     stamps: Vec<f64>,
     mapping: Option<&MappingSummary>,
     level: &Pose,
+    first: usize,
 ) -> Result<(), BakeError> {
     if let Some(path) = &output.trajectory {
+        if let Some(m) = mapping {
+            let csv = format_scan_checks(&m.checks, &stamps, first);
+            write_atomic(&scan_check_sidecar(path), csv.as_bytes())?;
+        }
         let trajectory = Trajectory {
             stamps: Some(stamps),
             poses,
@@ -635,4 +673,25 @@ fn write_trajectory_and_graph(
         write_g2o(path, &graph, m.graph.ids().first().copied())?;
     }
     Ok(())
+}
+
+/// The scan check as CSV: a header, then per scan its dataset index, time, verdict,
+/// fitness at its final pose (empty when unchecked), how far its local map pulled it
+/// and how far the check moved it (metres).
+fn format_scan_checks(checks: &[ScanCheck], stamps: &[f64], first: usize) -> String {
+    let mut csv = String::from("scan,t,verdict,inlier_ratio,rmse_m,shift_m,moved_m\n");
+    let blank =
+        |v: Option<f64>, digits: usize| v.map_or(String::new(), |v| format!("{v:.digits$}"));
+    for (i, (c, t)) in checks.iter().zip(stamps).enumerate() {
+        csv.push_str(&format!(
+            "{},{t:.6},{},{},{},{},{:.3}\n",
+            first + i,
+            c.verdict.name(),
+            blank(c.fitness.map(|f| f.inlier_ratio), 3),
+            blank(c.fitness.map(|f| f.rmse), 3),
+            blank(c.shift, 3),
+            c.moved
+        ));
+    }
+    csv
 }

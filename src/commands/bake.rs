@@ -6,7 +6,10 @@ use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
 use kfmap_bake::config::BakeConfig;
 use kfmap_bake::gravity::BakeGravity;
-use kfmap_bake::pipeline::{BakeInput, BakeOutput, BakeReport, BakeStage, MappingSummary, bake};
+use kfmap_bake::mapping::ScanVerdict;
+use kfmap_bake::pipeline::{
+    BakeInput, BakeOutput, BakeReport, BakeStage, MappingSummary, bake, scan_check_sidecar,
+};
 use kfmap_bake::scan_range::ScanRange;
 use kfmap_shared::gravity::GravityCorrection;
 use kfmap_shared::motion::DeskewMode;
@@ -48,6 +51,16 @@ use serde_json::json;
 /// 0.316 m without deskew, 0.149 m with azimuth times (as with the recorded ones); on
 /// KITTI 00 frames 0-5 no change (0.247 m; see docs/DESIGN.md#deskew).
 ///
+/// Built poses are then checked scan by scan ([build.check] in bake.toml): each scan is
+/// registered onto the clouds of the 5 scans either side at their built poses; it fits
+/// when that moves it at most 0.15 m (translation plus the arc of a point 10 m away)
+/// and at least 50 % of its points have a partner within 1 m at an RMS distance of at
+/// most 0.4 m (as tracking's health). A scan that does not fit is re-registered onto
+/// the neighbours that do, from the pose they place it at, and moved there when it
+/// fits; what still does not fit keeps its built pose and is listed: "poor scans" in
+/// the summary (mapping.poor_scans with --json), and in the sidecar of
+/// --trajectory-out.
+///
 /// --scans A..B bakes only scans A to B-1 of the sorted scan list (A.. and ..B leave an
 /// end open); each keeps the pose it has in the whole dataset (by frame number, or by
 /// its place in the pose file), and built poses start from scan A's frame.
@@ -57,6 +70,11 @@ use serde_json::json;
 ///       baked scan: t x y z qx qy qz qw with the dataset's times (its scan index where
 ///       the poses have none), in the map frame of the written map, i.e. after the
 ///       gravity levelling bake applies, so they match the keyframe poses in the map.
+///       With built poses, FILE.tum.check.csv beside it gives each scan's check, one
+///       line per baked scan: scan,t,verdict,inlier_ratio,rmse_m,shift_m,moved_m with
+///       verdict fits, reregistered (moved moved_m by the check), poor (the pose may
+///       be off: leave it out of evaluations) or unchecked; inlier_ratio and rmse_m
+///       at the final pose, shift_m how far its neighbours pulled it as built;
 ///   --graph-out FILE.g2o  the keyframe pose graph of the built poses (VERTEX_SE3:QUAT
 ///       per graph keyframe, its id the scan's index in the dataset; EDGE_SE3:QUAT for
 ///       consecutive and loop edges with their information; FIX on the first), in the
@@ -133,17 +151,17 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         trajectory: args.trajectory_out.clone(),
         graph: args.graph_out.clone(),
     };
-    refuse_existing_outputs(&output, args.force)?;
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(args.threads)
-        .build()
-        .context("cannot start worker threads")?;
     let input = BakeInput {
         dataset: args.dataset.clone(),
         poses: args.poses.clone(),
         build_poses: args.build_poses,
         scans: args.scans.unwrap_or(ScanRange::ALL),
     };
+    refuse_existing_outputs(&output, input.builds_poses(), args.force)?;
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(args.threads)
+        .build()
+        .context("cannot start worker threads")?;
     let report = bake_with_progress(&pool, &input, &config, &output, args.json)?;
     let threads = pool.current_num_threads();
     if args.json {
@@ -154,11 +172,18 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// An error when an output file exists and `--force` was not given.
-fn refuse_existing_outputs(output: &BakeOutput, force: bool) -> anyhow::Result<()> {
+/// An error when an output file exists and `--force` was not given (the trajectory's
+/// scan check is written only when the poses are `built`).
+fn refuse_existing_outputs(output: &BakeOutput, built: bool, force: bool) -> anyhow::Result<()> {
+    let sidecar = output
+        .trajectory
+        .as_deref()
+        .filter(|_| built)
+        .map(scan_check_sidecar);
     let paths = [
         ("--out", Some(&output.map)),
         ("--trajectory-out", output.trajectory.as_ref()),
+        ("--trajectory-out's scan check", sidecar.as_ref()),
         ("--graph-out", output.graph.as_ref()),
     ];
     for (flag, path) in paths {
@@ -200,6 +225,7 @@ fn bake_with_progress(
                 BakeStage::Odometry => "odometry (scans)".to_string(),
                 BakeStage::Keyframes => "pose-graph keyframes".to_string(),
                 BakeStage::Optimizing => "loop closure and pose-graph optimization".to_string(),
+                BakeStage::Checking => "checking every scan against its neighbours".to_string(),
                 BakeStage::Writing => format!("writing keyframes, {:.2} M points/s", rate / 1e6),
             });
         })
@@ -222,6 +248,8 @@ fn summary_json(
         "scan_range": [report.scans.start, report.scans.end],
         "dataset_scans": report.dataset_scans,
         "trajectory_out": output.trajectory,
+        "scan_check_out": output.trajectory.as_deref().filter(|_| report.mapping.is_some())
+            .map(scan_check_sidecar),
         "graph_out": output.graph.as_ref().zip(report.mapping.as_ref()).map(|(path, m)| json!({
             "path": path, "vertices": m.graph.len(), "edges": m.graph.edges().len(),
         })),
@@ -257,7 +285,8 @@ fn mapping_json(m: &MappingSummary) -> serde_json::Value {
         "loops_accepted": m.loops_accepted(), "graph_error_initial": m.graph_error.0,
         "graph_error_final": m.graph_error.1, "ate_m": m.ate,
         "ate_odometry_m": m.ate_odometry, "ate_scans_m": m.ate_scans,
-        "recovered_scans": m.recovered_scans, "poor_scans": m.poor_scans,
+        "recovered_scans": m.recovered_scans, "odometry_poor_scans": m.odometry_poor_scans,
+        "reregistered_scans": m.reregistered_scans, "poor_scans": m.poor_scans,
         "gyro_bias_rad_s": m.gyro_bias,
         "deskew": m.deskew.to_string(), "sweep_seconds": m.sweep_seconds,
         "loop_checks": m.loop_checks.iter().map(|c| json!({
@@ -305,6 +334,12 @@ fn print_outputs(output: &BakeOutput, report: &BakeReport) {
             report.scans.len(),
             path.display()
         );
+        if report.mapping.is_some() {
+            println!(
+                "  scan check: one line per scan -> {}",
+                scan_check_sidecar(path).display()
+            );
+        }
     }
     if let (Some(path), Some(m)) = (&output.graph, &report.mapping) {
         println!(
@@ -369,12 +404,13 @@ fn print_mapping(m: &MappingSummary) {
         (DeskewMode::Off, _) => println!("  deskew: off"),
         _ => println!("  deskew: scans with per-point times only"),
     }
-    if !m.recovered_scans.is_empty() || !m.poor_scans.is_empty() {
+    if !m.recovered_scans.is_empty() || !m.odometry_poor_scans.is_empty() {
         println!(
             "  odometry retried wider hypotheses for scans {:?}; no good registration for {:?}",
-            m.recovered_scans, m.poor_scans
+            m.recovered_scans, m.odometry_poor_scans
         );
     }
+    print_scan_check(m);
     for c in &m.loop_checks {
         let verdict = if c.accepted { "accepted" } else { "rejected" };
         match c.fitness {
@@ -400,4 +436,20 @@ fn print_mapping(m: &MappingSummary) {
     if let Some(ate) = m.ate_scans {
         println!("  ATE of every scan against the pose file: {ate:.3} m");
     }
+}
+
+fn print_scan_check(m: &MappingSummary) {
+    let checked = m
+        .checks
+        .iter()
+        .filter(|c| c.verdict != ScanVerdict::Unchecked)
+        .count();
+    if checked == 0 {
+        println!("  scans not checked against their neighbours ([build.check] enabled = false)");
+        return;
+    }
+    println!(
+        "  {checked} scans checked against their neighbours: re-registered {:?}; poor scans (pose may be off) {:?}",
+        m.reregistered_scans, m.poor_scans
+    );
 }

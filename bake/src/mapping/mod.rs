@@ -1,9 +1,11 @@
 //! Map building from raw scans (docs/DESIGN.md#map-building): scan-to-local-map odometry,
 //! keyframes, keyframe-to-keyframe registration, distance loop detection verified by
-//! GICP, pose-graph optimization; every scan's pose follows its keyframe.
+//! GICP, pose-graph optimization; every scan's pose follows its keyframe, then is checked
+//! against its neighbours.
 
 mod framework;
 mod odometry;
+mod scan_check;
 #[cfg(test)]
 mod tests;
 
@@ -23,6 +25,7 @@ use kfmap_shared::options::InvalidOption;
 use kfmap_shared::pose_graph::{GraphParams, GraphReport, PoseEdge};
 use kfmap_shared::registration::RegistrationError;
 pub use odometry::{Odometry, OdometryOutcome, OdometryParams, OdometryStep};
+pub use scan_check::{ScanCheck, ScanCheckParams, ScanVerdict};
 
 /// Map-building settings (`bake.toml`'s `[build]`).
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
@@ -36,6 +39,8 @@ pub struct BuildParams {
     pub loops: DistanceLoopDetection,
     /// Pose-graph optimization.
     pub graph: GraphParams,
+    /// Every scan checked against its neighbours after the optimization.
+    pub check: ScanCheckParams,
 }
 
 impl BuiltTrajectory {
@@ -79,19 +84,23 @@ impl BuildParams {
             .validate()
             .map_err(|e| ("build.keyframes", e))?;
         self.loops.validate().map_err(|e| ("build.loops", e))?;
-        self.graph.validate().map_err(|e| ("build.graph", e))
+        self.graph.validate().map_err(|e| ("build.graph", e))?;
+        self.check.validate().map_err(|e| ("build.check", e))
     }
 }
 
 /// What map building produced.
 #[derive(Debug, Clone)]
 pub struct BuiltTrajectory {
-    /// Every scan's pose after loop closure (`T_map_scan`, map = first scan's frame).
+    /// Every scan's pose after loop closure and the scan check (`T_map_scan`, map =
+    /// first scan's frame).
     pub poses: Vec<Pose>,
     /// Every scan's pose from odometry alone.
     pub odometry: Vec<Pose>,
     /// How odometry found each scan's pose.
     pub outcomes: Vec<OdometryOutcome>,
+    /// How each scan lies on its neighbours (after re-registration, if any).
+    pub checks: Vec<ScanCheck>,
     /// Scans chosen as graph keyframes.
     pub keyframe_scans: Vec<usize>,
     /// Loop candidates and the accepted loops (keyframe indices).
@@ -115,6 +124,8 @@ pub enum Stage {
     Keyframes(usize, usize),
     /// Loop detection and optimization.
     Optimizing,
+    /// Every scan checked against its neighbours.
+    Checking,
 }
 
 /// Builds a consistent trajectory for scans taken at `stamps` (seconds, increasing;
@@ -135,10 +146,14 @@ pub fn build_trajectory<E: From<RegistrationError> + From<GlobalError>>(
     let mut keyframe_clouds = Vec::new();
     // Graph vertices sit at the keyframe clouds' frames (mid-scan when deskewed).
     let mut keyframe_cloud_poses = Vec::new();
+    // What the scan check needs of every scan: its points and covariances as prepared.
+    let mut scan_clouds = Vec::with_capacity(count);
     for (i, &stamp) in stamps.iter().enumerate() {
         let scan = load(i)?;
         let step = odometry.push(stamp, &scan)?;
         outcomes.push(step.outcome);
+        let scan_from_cloud = step.pose.inverse() * step.cloud_pose;
+        scan_clouds.push(scan_check::ScanCloud::new(scan_from_cloud, &step.prepared));
         // Against the last keyframe only: a revisit must still get graph vertices, or
         // its scans hang off one keyframe's pose for the rest of the run.
         if params.keyframes.should_create(
@@ -174,10 +189,13 @@ pub fn build_trajectory<E: From<RegistrationError> + From<GlobalError>>(
         }
         poses.push(global.poses()[k] * keyframe_cloud_poses[k].inverse() * odom);
     }
+    progress(Stage::Checking);
+    let checks = scan_check::check_scans(&scan_clouds, stamps, &mut poses, &params.check)?;
     Ok(BuiltTrajectory {
         poses,
         odometry: odometry_poses,
         outcomes,
+        checks,
         keyframe_scans,
         loops_found: report.loops_found,
         loop_checks: report.loop_checks,

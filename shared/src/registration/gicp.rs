@@ -233,6 +233,28 @@ impl PreparedCloud {
         })
     }
 
+    /// A cloud from points and their covariances, both already computed (e.g. prepared
+    /// clouds merged, their covariances moved with their points): builds only the tree.
+    ///
+    /// # Panics
+    ///
+    /// When `covariances` does not have one entry per point.
+    pub fn from_parts(
+        points: Vec<[f32; 3]>,
+        covariances: Vec<PackedSym3>,
+        which: &'static str,
+    ) -> Result<Self, RegistrationError> {
+        assert_eq!(points.len(), covariances.len(), "one covariance per point");
+        let tree =
+            build_tree(&points).map_err(|source| RegistrationError::Cloud { which, source })?;
+        Ok(Self {
+            points,
+            covariances,
+            tree,
+            normals: OnceLock::new(),
+        })
+    }
+
     /// Number of points.
     pub fn len(&self) -> usize {
         self.points.len()
