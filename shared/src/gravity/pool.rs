@@ -24,10 +24,14 @@ pub struct KeyframeStamp {
 pub struct PoolFill {
     /// Keyframes offered.
     pub keyframes: usize,
-    /// Keyframes whose window had samples (now in the pool).
+    /// Keyframes pooled (their window had samples, compensated when asked for).
     pub with_samples: usize,
     /// Of those, motion-compensated.
     pub compensated: usize,
+    /// Keyframes left out: motion compensation was on but the trajectory does not
+    /// cover their window (the first pose's window has no pose before it), so their
+    /// platform acceleration cannot be removed (as the served pool leaves them out).
+    pub skipped: usize,
     /// IMU samples averaged in all.
     pub samples_used: usize,
 }
@@ -37,7 +41,11 @@ pub struct PoolFill {
 /// 1 s alone). With `motion` and `motion_compensation` on, samples are rotated by the
 /// trajectory's attitude at their time and the platform's mean acceleration over the
 /// window is removed ([`super::motion::compensated_sample`]); windows the trajectory
-/// does not cover are pooled as they are.
+/// does not cover are left out ([`PoolFill::skipped`]), as the served pool leaves them
+/// out (docs/DESIGN.md#gravity): a raw mean of a moving platform would pull the
+/// estimate off, and a window of one sample, its spread floored at [`super::MIN_ACC_STD`],
+/// would outweigh every other member. Without `motion` (or with compensation off) every
+/// window is pooled raw.
 pub fn fill_pool(
     aligner: &mut GravityAligner,
     keyframes: &[KeyframeStamp],
@@ -64,12 +72,17 @@ pub fn fill_pool(
             _ => order[k - 1].t,
         };
         let window = ImuWindow::cut(imu, t_prev, kf.t);
-        let compensated = motion.and_then(|m| compensated_sample(&window, t_prev, &kf.pose, m));
-        let sample = match compensated {
-            Some(sample) => {
-                fill.compensated += 1;
-                sample
-            }
+        let sample = match motion {
+            Some(m) => match compensated_sample(&window, t_prev, &kf.pose, m) {
+                Some(sample) => {
+                    fill.compensated += 1;
+                    sample
+                }
+                None => {
+                    fill.skipped += usize::from(!window.is_empty());
+                    continue;
+                }
+            },
             None => match KfAccSample::from_window(&window) {
                 Some(sample) => sample,
                 None => continue,
