@@ -43,8 +43,9 @@ pub struct PoolFill {
 /// window is removed ([`super::motion::compensated_sample`]); windows the trajectory
 /// does not cover are left out ([`PoolFill::skipped`]), as the served pool leaves them
 /// out (docs/DESIGN.md#gravity): a raw mean of a moving platform would pull the
-/// estimate off, and a window of one sample, its spread floored at [`super::MIN_ACC_STD`],
-/// would outweigh every other member. Without `motion` (or with compensation off) every
+/// estimate off, all the more as the window of a keyframe at the first pose holds one
+/// sample, its spread floored at [`super::MIN_ACC_STD`] (on the simulated campus about
+/// four times the weight of a one-second window). Without `motion` (or with compensation off) every
 /// window is pooled raw.
 pub fn fill_pool(
     aligner: &mut GravityAligner,

@@ -363,8 +363,8 @@ fn motion_model_recovers_a_constant_acceleration() {
 
 /// Keyframes at the poses' own times from 0 s, as `kfmap gravity` picks them: the first
 /// one's window ends at the first pose, so no platform acceleration can be removed from
-/// it. Compensated, it is left out and counted (its one sample, spread floored at
-/// [`MIN_ACC_STD`], would otherwise outweigh every other member); raw, it is pooled.
+/// it. Compensated, it is left out and counted (its one raw sample, spread floored at
+/// [`MIN_ACC_STD`], would weigh in heavily); raw, it is pooled.
 #[test]
 fn a_window_the_trajectory_does_not_cover_is_left_out_when_compensating() {
     let level = Pose::identity();
