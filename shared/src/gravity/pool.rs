@@ -28,9 +28,10 @@ pub struct PoolFill {
     pub with_samples: usize,
     /// Of those, motion-compensated.
     pub compensated: usize,
-    /// Keyframes left out: motion compensation was on but the trajectory does not
-    /// cover their window (the first pose's window has no pose before it), so their
-    /// platform acceleration cannot be removed (as the served pool leaves them out).
+    /// Keyframes whose window had samples but was left out: motion compensation was on
+    /// and the trajectory does not cover the window (the first pose's window has no pose
+    /// before it), so its platform acceleration cannot be removed (the served pool
+    /// leaves such windows out too).
     pub skipped: usize,
     /// IMU samples averaged in all.
     pub samples_used: usize,
@@ -45,8 +46,8 @@ pub struct PoolFill {
 /// out (docs/DESIGN.md#gravity): a raw mean of a moving platform would pull the
 /// estimate off, all the more as the window of a keyframe at the first pose holds one
 /// sample, its spread floored at [`super::MIN_ACC_STD`] (on the simulated campus about
-/// four times the weight of a one-second window). Without `motion` (or with compensation off) every
-/// window is pooled raw.
+/// four times the weight of a one-second window). Without `motion` (or with
+/// compensation off) every window with samples is pooled raw.
 pub fn fill_pool(
     aligner: &mut GravityAligner,
     keyframes: &[KeyframeStamp],
