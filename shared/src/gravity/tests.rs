@@ -356,6 +356,11 @@ fn motion_model_recovers_a_constant_acceleration() {
     let model = MotionModel::new(poses).unwrap();
     let got = model.mean_acceleration(1.05, 3.3).unwrap();
     assert!((got - a).norm() < 1e-9, "{got:?}");
+    // Up to the ends too (second-order differences there).
+    for (t0, t1) in [(0.0, 1.0), (3.9, 4.9)] {
+        let got = model.mean_acceleration(t0, t1).unwrap();
+        assert!((got - a).norm() < 1e-9, "{t0}..{t1}: {got:?}");
+    }
     assert!(model.mean_acceleration(-1.0, 1.0).is_none());
     assert!(model.mean_acceleration(2.0, 2.0).is_none());
     assert!(MotionModel::new([(0.0, Pose::identity())]).is_none());
