@@ -552,7 +552,10 @@ fn gravity_and_bake_recover_a_tilted_world() {
         (roll - 2.0).abs() < 0.02 && (pitch + 3.0).abs() < 0.02,
         "{roll} {pitch}"
     );
-    assert_eq!(g["members"], 12);
+    // Keyframes at 0, 1, ..., 11 s: the first one's window ends at the first pose, so no
+    // platform acceleration can be removed from it and it is left out.
+    assert_eq!(g["members"], 11);
+    assert_eq!(g["pool"]["skipped"], 1);
     assert_eq!(g["gravity"]["yaw_deg"], 0.0);
 
     let map = dir.parent().unwrap().join("tilted.kfmap");
@@ -569,7 +572,9 @@ fn gravity_and_bake_recover_a_tilted_world() {
     let world_from_map = Rotation3::from_euler_angles(2f64.to_radians(), -3f64.to_radians(), 0.0);
     let truth = read_trajectory(&dir.join("poses_gt.txt")).unwrap();
     let opened = open_map(&map, OpenOptions::default()).unwrap();
-    assert_eq!(opened.index.gravity_pool.len(), opened.map.len());
+    // Every keyframe but the first (its window ends at the first pose: left out).
+    assert_eq!(opened.index.gravity_pool.len(), opened.map.len() - 1);
+    assert_eq!(baked["gravity"]["skipped"], 1);
     for k in opened.map.keyframes() {
         let scan = truth
             .stamps
@@ -581,10 +586,14 @@ fn gravity_and_bake_recover_a_tilted_world() {
         let applied = k.pose.rotation.to_rotation_matrix()
             * truth.poses[scan].rotation.to_rotation_matrix().inverse();
         let off = (applied * world_from_map.inverse()).angle().to_degrees();
-        assert!(off < 0.02, "keyframe {}: {off} deg", k.id);
+        // Measured 0.052 deg (issue 33): 12 s of a courtyard barely turn, so the bias and
+        // the tilt are hard to tell apart; before, the first keyframe's one raw sample
+        // (at rest here, noise off) outweighed the pool and gave 0.004 deg.
+        assert!(off < 0.06, "keyframe {}: {off} deg", k.id);
         let moved =
             k.pose.translation.vector - world_from_map * truth.poses[scan].translation.vector;
-        assert!(moved.norm() < 0.01, "keyframe {}: {moved:?}", k.id);
+        // The levelling turns about the map origin: 0.052 deg at 16 m is 0.015 m.
+        assert!(moved.norm() < 0.02, "keyframe {}: {moved:?}", k.id);
     }
 
     // An IMU log on another clock is refused by name.

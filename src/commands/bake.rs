@@ -269,7 +269,7 @@ fn gravity_json(g: &BakeGravity) -> serde_json::Value {
     let c = g.correction.as_ref();
     json!({
         "imu": g.imu, "keyframes_with_samples": g.fill.with_samples,
-        "compensated": g.fill.compensated, "applied": g.applied,
+        "compensated": g.fill.compensated, "skipped": g.fill.skipped, "applied": g.applied,
         "roll_deg": c.map(|c| c.roll_deg()), "pitch_deg": c.map(|c| c.pitch_deg()),
         "members": c.map(|c| c.estimate.health.members),
         "spread_deg": c.map(|c| c.estimate.health.spread_deg),

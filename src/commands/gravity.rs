@@ -20,8 +20,10 @@ use serde_json::{Value, json};
 /// Motion compensation (on unless --no-motion-compensation): on a moving platform the
 /// accelerometer also feels its own acceleration. Each sample is rotated by the
 /// trajectory's attitude at its time and the acceleration implied by the positions
-/// (velocity change over the window) is subtracted before pooling. The uncompensated
-/// estimate is printed beside it.
+/// (velocity change over the window) is subtracted before pooling; a keyframe whose
+/// window the poses do not cover (the first pose's: nothing before it) is left out, as
+/// a served session leaves such windows out. The uncompensated estimate is printed
+/// beside it.
 ///
 /// Accelerometer bias ([gravity] estimate-accel-bias, on by default): a constant
 /// body-frame bias is estimated with gravity (R_i (a_i - b) = g over the keyframes) and
@@ -133,13 +135,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         return Ok(());
     }
     println!(
-        "{} poses, {} IMU samples; {} keyframes every {} s, {} with samples ({} motion-compensated)",
+        "{} poses, {} IMU samples; {} keyframes every {} s, {} pooled ({} motion-compensated, \
+         {} left out: the poses do not cover their window)",
         report.poses,
         report.imu_samples,
         report.fill.keyframes,
         args.keyframe_interval,
         report.fill.with_samples,
-        report.fill.compensated
+        report.fill.compensated,
+        report.fill.skipped
     );
     let label = if params.motion_compensation {
         "motion-compensated"

@@ -6,8 +6,9 @@ use nalgebra::{UnitQuaternion, Vector3};
 use super::{ImuWindow, KfAccSample};
 use crate::geometry::Pose;
 
-/// Poses over time with velocities by finite differences: the mean acceleration over
-/// any interval the trajectory covers, and the attitude at any time in it.
+/// Poses over time with velocities by finite differences (central inside, second order
+/// one-sided at the ends): the mean acceleration over any interval the trajectory
+/// covers, and the attitude at any time in it.
 #[derive(Debug, Clone)]
 pub struct MotionModel {
     times: Vec<f64>,
@@ -27,12 +28,29 @@ impl MotionModel {
             return None;
         }
         let last = samples.len() - 1;
-        // Central differences inside, one-sided at the ends.
+        let t = |i: usize| samples[i].0;
+        let p = |i: usize| samples[i].1.translation.vector;
+        // Central differences inside; at the ends (with three poses) the slope of the
+        // parabola through the end and its two neighbours: a two-pose difference there
+        // errs by half the acceleration times the spacing, which a run starting from
+        // rest turned into its first window's error (docs/DESIGN.md#gravity).
         let velocities = (0..=last)
-            .map(|i| {
-                let (a, b) = (i.saturating_sub(1), (i + 1).min(last));
-                let moved = samples[b].1.translation.vector - samples[a].1.translation.vector;
-                moved / (samples[b].0 - samples[a].0)
+            .map(|i| match (i == 0 || i == last) && last >= 2 {
+                true => {
+                    let (a, b, c) = if i == 0 {
+                        (0, 1, 2)
+                    } else {
+                        (last, last - 1, last - 2)
+                    };
+                    let (h1, h2) = (t(b) - t(a), t(c) - t(b));
+                    p(a) * (-(2.0 * h1 + h2) / (h1 * (h1 + h2)))
+                        + p(b) * ((h1 + h2) / (h1 * h2))
+                        + p(c) * (-h1 / (h2 * (h1 + h2)))
+                }
+                false => {
+                    let (a, b) = (i.saturating_sub(1), (i + 1).min(last));
+                    (p(b) - p(a)) / (t(b) - t(a))
+                }
             })
             .collect();
         Some(Self {

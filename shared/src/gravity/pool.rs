@@ -24,10 +24,15 @@ pub struct KeyframeStamp {
 pub struct PoolFill {
     /// Keyframes offered.
     pub keyframes: usize,
-    /// Keyframes whose window had samples (now in the pool).
+    /// Keyframes pooled (their window had samples, compensated when asked for).
     pub with_samples: usize,
     /// Of those, motion-compensated.
     pub compensated: usize,
+    /// Keyframes whose window had samples but was left out: motion compensation was on
+    /// and the trajectory does not cover the window (the first pose's window has no pose
+    /// before it), so its platform acceleration cannot be removed (the served pool
+    /// leaves such windows out too).
+    pub skipped: usize,
     /// IMU samples averaged in all.
     pub samples_used: usize,
 }
@@ -37,7 +42,12 @@ pub struct PoolFill {
 /// 1 s alone). With `motion` and `motion_compensation` on, samples are rotated by the
 /// trajectory's attitude at their time and the platform's mean acceleration over the
 /// window is removed ([`super::motion::compensated_sample`]); windows the trajectory
-/// does not cover are pooled as they are.
+/// does not cover are left out ([`PoolFill::skipped`]), as the served pool leaves them
+/// out (docs/DESIGN.md#gravity): a raw mean of a moving platform would pull the
+/// estimate off, all the more as the window of a keyframe at the first pose holds one
+/// sample, its spread floored at [`super::MIN_ACC_STD`] (on the simulated campus about
+/// four times the weight of a one-second window). Without `motion` (or with
+/// compensation off) every window with samples is pooled raw.
 pub fn fill_pool(
     aligner: &mut GravityAligner,
     keyframes: &[KeyframeStamp],
@@ -64,12 +74,17 @@ pub fn fill_pool(
             _ => order[k - 1].t,
         };
         let window = ImuWindow::cut(imu, t_prev, kf.t);
-        let compensated = motion.and_then(|m| compensated_sample(&window, t_prev, &kf.pose, m));
-        let sample = match compensated {
-            Some(sample) => {
-                fill.compensated += 1;
-                sample
-            }
+        let sample = match motion {
+            Some(m) => match compensated_sample(&window, t_prev, &kf.pose, m) {
+                Some(sample) => {
+                    fill.compensated += 1;
+                    sample
+                }
+                None => {
+                    fill.skipped += usize::from(!window.is_empty());
+                    continue;
+                }
+            },
             None => match KfAccSample::from_window(&window) {
                 Some(sample) => sample,
                 None => continue,

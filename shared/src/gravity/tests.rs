@@ -356,7 +356,59 @@ fn motion_model_recovers_a_constant_acceleration() {
     let model = MotionModel::new(poses).unwrap();
     let got = model.mean_acceleration(1.05, 3.3).unwrap();
     assert!((got - a).norm() < 1e-9, "{got:?}");
+    // Up to the ends too (second-order differences there).
+    for (t0, t1) in [(0.0, 1.0), (3.9, 4.9)] {
+        let got = model.mean_acceleration(t0, t1).unwrap();
+        assert!((got - a).norm() < 1e-9, "{t0}..{t1}: {got:?}");
+    }
     assert!(model.mean_acceleration(-1.0, 1.0).is_none());
     assert!(model.mean_acceleration(2.0, 2.0).is_none());
     assert!(MotionModel::new([(0.0, Pose::identity())]).is_none());
+}
+
+/// Keyframes at the poses' own times from 0 s, as `kfmap gravity` picks them: the first
+/// one's window ends at the first pose, so no platform acceleration can be removed from
+/// it. Compensated, it is left out and counted (its one raw sample, spread floored at
+/// [`MIN_ACC_STD`], would weigh in heavily); raw, it is pooled.
+#[test]
+fn a_window_the_trajectory_does_not_cover_is_left_out_when_compensating() {
+    let level = Pose::identity();
+    let imu: Vec<ImuSample> = (0..=400)
+        .map(|k| ImuSample {
+            t: k as f64 * 0.005,
+            acc: [0.0, 0.0, G],
+            gyro: [0.0; 3],
+        })
+        .collect();
+    let keyframes: Vec<KeyframeStamp> = (0..=2)
+        .map(|id| KeyframeStamp {
+            id,
+            t: id as f64,
+            pose: level,
+        })
+        .collect();
+    let motion = MotionModel::new((0..=20).map(|k| (k as f64 * 0.1, level))).unwrap();
+    let fill = |compensate: bool| {
+        let params = GravityParams {
+            motion_compensation: compensate,
+            ..GravityParams::default()
+        };
+        let mut aligner = GravityAligner::new(params).unwrap();
+        let fill = fill_pool(&mut aligner, &keyframes, &imu, Some(&motion));
+        (fill, aligner.has(0))
+    };
+    let (compensated, first_pooled) = fill(true);
+    assert!(!first_pooled);
+    assert_eq!(
+        (
+            compensated.with_samples,
+            compensated.compensated,
+            compensated.skipped
+        ),
+        (2, 2, 1)
+    );
+    assert_eq!(compensated.samples_used, 400);
+    let (raw, first_pooled) = fill(false);
+    assert!(first_pooled);
+    assert_eq!((raw.with_samples, raw.compensated, raw.skipped), (3, 0, 0));
 }
