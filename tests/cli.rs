@@ -112,11 +112,24 @@ fn bad_input_exits_2_with_a_message_naming_the_problem() {
         ),
         (vec!["no-such-command"], "no-such-command"),
         (
-            vec!["relocalize", "--map-name", "none", "--tilt-deg", "3", "a.pcd"],
+            vec![
+                "relocalize",
+                "--map-name",
+                "none",
+                "--tilt-deg",
+                "3",
+                "a.pcd",
+            ],
             "--tilt-deg",
         ),
         (
-            vec!["relocalize", "--map-name", "none", "--tilt-deg=95,0", "a.pcd"],
+            vec![
+                "relocalize",
+                "--map-name",
+                "none",
+                "--tilt-deg=95,0",
+                "a.pcd",
+            ],
             "below 90",
         ),
     ];
