@@ -13,11 +13,8 @@ use kfmap_shared::registration::{
     Fitness, PreparedCloud, RegistrationError, RegistrationParams, RegistrationResult, align,
     overlap,
 };
+use kfmap_shared::tracking::CORRECTION_RANGE_M;
 use rayon::prelude::*;
-
-/// Rotations are weighed as the arc a point this far away sweeps, metres (as the
-/// odometry's corrections and tracking's).
-const DISPLACEMENT_RANGE: f64 = 10.0;
 
 /// The scan check's settings (`bake.toml`'s `[build.check]`).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -265,7 +262,7 @@ impl Checker<'_> {
         let here = overlap(&map, &scan, &Pose::identity(), self.params.max_distance);
         let shift = align(&map, &scan, &Pose::identity(), &self.registration)
             .ok()
-            .map(|r| point_displacement(&Pose::identity(), &r.pose, DISPLACEMENT_RANGE));
+            .map(|r| point_displacement(&Pose::identity(), &r.pose, CORRECTION_RANGE_M));
         let stays = shift.is_some_and(|s| s <= self.params.max_shift);
         Ok(ScanCheck {
             verdict: if stays && self.fits(&here) {
@@ -326,7 +323,7 @@ impl Checker<'_> {
         let Some(best) = best else {
             return Ok((poor(None, Some(here)), None));
         };
-        let shift = point_displacement(&Pose::identity(), &best.pose, DISPLACEMENT_RANGE);
+        let shift = point_displacement(&Pose::identity(), &best.pose, CORRECTION_RANGE_M);
         if shift <= self.params.max_shift && self.fits(&here) {
             // On good neighbours alone it stays: only a bad neighbour pulled it.
             return Ok((
