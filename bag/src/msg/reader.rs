@@ -1,0 +1,1 @@
+//! Placeholder: primitive readers of CDR and ROS 1 serialization.
