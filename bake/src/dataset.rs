@@ -11,6 +11,7 @@ use kfmap_shared::io::{IoError, ReadOptions, read_cloud, read_trajectory};
 use crate::config::BakeConfig;
 use crate::error::BakeError;
 use crate::gravity::{POSE_FILES, find_in};
+use crate::source::ScanList;
 
 /// Scan file extensions a dataset may hold.
 const SCAN_EXTENSIONS: [&str; 3] = ["pcd", "ply", "bin"];
@@ -43,8 +44,9 @@ pub fn find_scans(dataset: &Path) -> Result<Vec<PathBuf>, BakeError> {
 /// Every scan's pose and time from the dataset's pose file (the first of
 /// [`POSE_FILES`]), or `None` when it has none.
 pub fn dataset_poses(dataset: &Path, scans: &[PathBuf]) -> Result<Option<ScanPoses>, BakeError> {
+    let scans = ScanList::files(scans.to_vec());
     find_in(dataset, &POSE_FILES)
-        .map(|path| scan_poses(&path, scans))
+        .map(|path| scan_poses(&path, &scans))
         .transpose()
 }
 
@@ -71,8 +73,10 @@ impl ScanPoses {
 }
 
 /// The pose of every scan: by frame number when every scan is named by one (KITTI
-/// `000123.bin`), else one pose per scan in order.
-pub(crate) fn scan_poses(path: &Path, scans: &[PathBuf]) -> Result<ScanPoses, BakeError> {
+/// `000123.bin`), else one pose per scan in order. Scans from a bag keep their header
+/// stamps (the clock their IMU topic shares); a stamped pose file far from them is
+/// reported.
+pub fn scan_poses(path: &Path, scans: &ScanList) -> Result<ScanPoses, BakeError> {
     let path = path.to_path_buf();
     let trajectory = read_trajectory(&path)?;
     let count_error = || BakeError::PoseCount {
@@ -80,11 +84,7 @@ pub(crate) fn scan_poses(path: &Path, scans: &[PathBuf]) -> Result<ScanPoses, Ba
         count: trajectory.poses.len(),
         scans: scans.len(),
     };
-    let frames: Option<Vec<usize>> = scans
-        .iter()
-        .map(|s| s.file_stem()?.to_str()?.parse().ok())
-        .collect();
-    let indices: Vec<usize> = match frames {
+    let indices: Vec<usize> = match scans.frame_numbers() {
         Some(f) if trajectory.poses.len() != scans.len() => f,
         _ if trajectory.poses.len() == scans.len() => (0..scans.len()).collect(),
         _ => return Err(count_error()),
@@ -93,16 +93,39 @@ pub(crate) fn scan_poses(path: &Path, scans: &[PathBuf]) -> Result<ScanPoses, Ba
         return Err(count_error());
     }
     let poses = indices.iter().map(|&i| trajectory.poses[i]).collect();
-    let stamps = indices
-        .iter()
-        .map(|&i| trajectory.stamps.as_ref().map_or(i as f64, |s| s[i]))
-        .collect();
+    let file_stamps: Option<Vec<f64>> = trajectory
+        .stamps
+        .as_ref()
+        .map(|s| indices.iter().map(|&i| s[i]).collect());
+    if let (Some(header), Some(file)) = (scans.stamps(), &file_stamps) {
+        let (gap, at) = header
+            .iter()
+            .zip(file)
+            .map(|(h, f)| (h - f).abs())
+            .enumerate()
+            .fold((0.0f64, 0), |w, (i, g)| if g > w.0 { (g, i) } else { w });
+        if gap > STAMP_MISMATCH_WARN_S {
+            tracing::warn!(
+                "{}: pose {at} is stamped {gap:.3} s from its cloud's header stamp; the poses are matched to the clouds in order and the header stamps are used",
+                path.display()
+            );
+        }
+    }
+    let stamped = file_stamps.is_some() || scans.stamps().is_some();
+    let stamps = match (scans.stamps(), file_stamps) {
+        (Some(header), _) => header.to_vec(),
+        (None, Some(file)) => file,
+        (None, None) => indices.iter().map(|&i| i as f64).collect(),
+    };
     Ok(ScanPoses {
         poses,
         stamps,
-        stamped: trajectory.stamps.is_some(),
+        stamped,
     })
 }
+
+/// A stamped pose file this far from its clouds' header stamps is reported (seconds).
+const STAMP_MISMATCH_WARN_S: f64 = 0.01;
 
 /// Reads one scan and drops invalid returns (the bake configuration's filter).
 pub fn load_raw_scan(path: &Path, config: &BakeConfig) -> Result<PointCloud, BakeError> {

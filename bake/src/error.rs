@@ -41,6 +41,9 @@ pub enum BakeError {
         /// What is wrong.
         message: String,
     },
+    /// A bag could not be read.
+    #[error(transparent)]
+    Bag(#[from] kfmap_bag::BagError),
     /// The map file could not be written.
     #[error(transparent)]
     Archive(#[from] ArchiveError),

@@ -16,6 +16,8 @@ use kfmap_shared::imu::{ImuSample, read_imu_csv};
 use kfmap_shared::io::{IoError, Trajectory, read_trajectory};
 use kfmap_shared::options::InvalidOption;
 
+use crate::source::ImuSource;
+
 /// IMU logs looked for in a dataset folder, in order.
 pub const IMU_FILES: [&str; 2] = ["imu.csv", "imu.txt"];
 /// Pose files looked for in a dataset folder, in order.
@@ -64,6 +66,9 @@ pub enum GravityError {
     /// A file could not be read.
     #[error(transparent)]
     Io(#[from] IoError),
+    /// A bag could not be read.
+    #[error(transparent)]
+    Bag(#[from] kfmap_bag::BagError),
     /// A parameter is out of range.
     #[error(transparent)]
     Invalid(#[from] InvalidOption),
@@ -77,8 +82,9 @@ pub fn find_in(dir: &Path, names: &[&str]) -> Option<PathBuf> {
 /// Where `kfmap gravity` reads from and how it picks keyframes.
 #[derive(Debug, Clone)]
 pub struct GravityInput {
-    /// IMU log (`imu.csv`, or whitespace-separated `t ax ay az wx wy wz`).
-    pub imu: PathBuf,
+    /// IMU log (`imu.csv`, or whitespace-separated `t ax ay az wx wy wz`), or a bag's
+    /// Imu topic.
+    pub imu: ImuSource,
     /// TUM poses `T_map_body` on the IMU's clock.
     pub poses: PathBuf,
     /// A pose becomes a keyframe once this many seconds passed since the last one.
@@ -100,11 +106,11 @@ impl GravityInput {
             tried: names.join(", "),
         };
         Ok(Self {
-            imu: match imu {
+            imu: ImuSource::File(match imu {
                 Some(p) => p,
                 None => find_in(dataset, &IMU_FILES)
                     .ok_or_else(|| missing("IMU log", "imu", &IMU_FILES))?,
-            },
+            }),
             poses: match poses {
                 Some(p) => p,
                 None => find_in(dataset, &POSE_FILES)
@@ -210,8 +216,8 @@ pub fn estimate_dataset_gravity(
     params.validate()?;
     let trajectory = read_trajectory(&input.poses)?;
     let stamps = pose_stamps(&input.poses, &trajectory)?;
-    let imu = read_imu(&input.imu)?;
-    check_overlap(&input.imu, &imu, stamps)?;
+    let imu = input.imu.read()?;
+    check_overlap(&input.imu.label(), &imu, stamps)?;
     let keyframes = keyframes_every(stamps, &trajectory.poses, input.keyframe_interval);
     let motion = MotionModel::new(stamps.iter().copied().zip(trajectory.poses.iter().copied()));
     let poses: BTreeMap<KeyframeId, Pose> = keyframes.iter().map(|k| (k.id, k.pose)).collect();
@@ -245,7 +251,7 @@ pub fn estimate_dataset_gravity(
 /// What a bake did with the dataset's IMU log.
 #[derive(Debug, Clone)]
 pub struct BakeGravity {
-    /// The IMU log read.
+    /// The IMU log read (a file, or `BAG:TOPIC`).
     pub imu: PathBuf,
     /// How the pool was filled.
     pub fill: PoolFill,
@@ -262,15 +268,16 @@ pub struct BakeGravity {
 /// from every scan's pose and stamp. `Ok(None)` without an IMU log, or (with a warning)
 /// when the poses have no timestamps to cut its windows with.
 pub fn bake_gravity(
-    dataset: &Path,
+    imu: Option<&ImuSource>,
     params: &GravityParams,
     scan_poses: &[Pose],
     scan_stamps: Option<&[f64]>,
     keyframe_scans: &[(KeyframeId, usize)],
 ) -> Result<Option<BakeGravity>, GravityError> {
-    let Some(imu_path) = find_in(dataset, &IMU_FILES) else {
+    let Some(imu_source) = imu else {
         return Ok(None);
     };
+    let imu_path = imu_source.label();
     let Some(stamps) = scan_stamps else {
         tracing::warn!(
             "{}: the poses have no timestamps, so its IMU windows cannot be cut; the map is baked without gravity",
@@ -278,7 +285,7 @@ pub fn bake_gravity(
         );
         return Ok(None);
     };
-    let imu = read_imu(&imu_path)?;
+    let imu = imu_source.read()?;
     check_overlap(&imu_path, &imu, stamps)?;
     let keyframes: Vec<KeyframeStamp> = keyframe_scans
         .iter()

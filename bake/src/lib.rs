@@ -15,3 +15,4 @@ pub mod gravity;
 pub mod mapping;
 pub mod pipeline;
 pub mod scan_range;
+pub mod source;

@@ -15,7 +15,7 @@ use kfmap_shared::cloud::{PointCloud, Twist, deskew};
 use kfmap_shared::covis::CovisibilityGraph;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::imu::ImuSample;
-use kfmap_shared::io::{BinLayout, Trajectory, format_tum, write_atomic};
+use kfmap_shared::io::{Trajectory, format_tum, write_atomic};
 use kfmap_shared::map::{Keyframe, KeyframeMapOptions};
 use kfmap_shared::motion::DeskewMode;
 use kfmap_shared::pose_graph::{PoseEdge, PoseGraph, write_g2o};
@@ -24,26 +24,26 @@ use kfmap_shared::trajectory_error::{absolute_trajectory_error, rigid_alignment}
 use rayon::prelude::*;
 
 use crate::config::BakeConfig;
-use crate::dataset::{ScanPoses, find_scans, load_raw_scan, scan_poses};
+use crate::dataset::{ScanPoses, scan_poses};
 use crate::error::BakeError;
-use crate::gravity::{
-    BakeGravity, IMU_FILES, POSE_FILES, bake_gravity, check_overlap, find_in, read_imu,
-};
+use crate::gravity::{BakeGravity, bake_gravity, check_overlap};
 use crate::mapping::{OdometryOutcome, ScanCheck, ScanVerdict, Stage, build_trajectory};
 use crate::scan_range::ScanRange;
+use crate::source::{ScanList, Source};
 
 /// Where a bake reads from.
 #[derive(Debug, Clone)]
 pub struct BakeInput {
-    /// Dataset directory (simulator output, or scans + a pose file).
-    pub dataset: PathBuf,
-    /// Pose file; default: the first of [`POSE_FILES`] in the dataset.
+    /// The dataset: a folder (simulator output, or scans + a pose file), or a bag.
+    pub source: Source,
+    /// Pose file; default: the first of [`POSE_FILES`](crate::gravity::POSE_FILES) in a dataset folder.
     pub poses: Option<PathBuf>,
     /// Build the poses from the scans (odometry, loops, pose graph) even when a pose
     /// file exists; it then serves as ground truth for the ATE. Without any pose file
     /// the poses are always built.
     pub build_poses: bool,
-    /// Only these scans of the dataset's sorted scan list ([`find_scans`]); scans named
+    /// Only these scans of the dataset's scan list (sorted files, or the bag topic's
+    /// clouds in log-time order); scans named
     /// by frame number keep their number's pose, others their place in the pose file.
     pub scans: ScanRange,
 }
@@ -52,19 +52,17 @@ impl BakeInput {
     /// Reads `dataset` (every scan, its own pose file, poses built only without one).
     pub fn dataset(dataset: impl Into<PathBuf>) -> Self {
         Self {
-            dataset: dataset.into(),
+            source: Source::Folder(dataset.into()),
             poses: None,
             build_poses: false,
             scans: ScanRange::ALL,
         }
     }
 
-    /// The pose file the bake reads: `poses`, else the first of [`POSE_FILES`] in the
-    /// dataset; `None` when there is none.
+    /// The pose file the bake reads: `poses`, else the first of [`POSE_FILES`](crate::gravity::POSE_FILES) in a
+    /// dataset folder; `None` when there is none.
     pub fn pose_file(&self) -> Option<PathBuf> {
-        self.poses
-            .clone()
-            .or_else(|| find_in(&self.dataset, &POSE_FILES))
+        self.poses.clone().or_else(|| self.source.pose_file())
     }
 
     /// True when the bake builds the poses from the scans (no pose file, or
@@ -114,6 +112,8 @@ impl BakeOutput {
 /// Which part of a bake is running.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum BakeStage {
+    /// A bag's clouds read once for their header stamps.
+    Indexing,
     /// Odometry over the scans (building poses).
     Odometry,
     /// Keyframe-to-keyframe edges (building poses).
@@ -238,7 +238,7 @@ impl BakeReport {
 /// Poses built from `scans` (dataset indices from `first`); `truth` (a pose file, the
 /// same scans) gives stamps and the ATE.
 fn build_poses(
-    scans: &[PathBuf],
+    scans: &ScanList,
     first: usize,
     config: &BakeConfig,
     truth: Option<&ScanPoses>,
@@ -251,21 +251,23 @@ fn build_poses(
         total,
         points_done: 0,
     };
-    // Without a pose file the scans are taken to be evenly spaced (the motion model
-    // then predicts per scan instead of per second).
-    let stamps: Vec<f64> = truth.map_or_else(
-        || (first..first + scans.len()).map(|i| i as f64).collect(),
-        |t| t.stamps.clone(),
-    );
+    // Without a pose file or header stamps the scans are taken to be evenly spaced
+    // (the motion model then predicts per scan instead of per second).
+    let stamps: Vec<f64> = match (truth, scans.stamps()) {
+        (Some(t), _) => t.stamps.clone(),
+        (None, Some(header)) => header.to_vec(),
+        (None, None) => (first..first + scans.len()).map(|i| i as f64).collect(),
+    };
+    let stamped = truth.is_some_and(|t| t.stamped) || scans.stamps().is_some();
     let mut build = config.build;
-    if !truth.is_some_and(|t| t.stamped) {
+    if !stamped {
         // The stamps count scans: a sweep is taken to last one scan interval.
         build.odometry.sweep.seconds = 1.0;
     }
     let built = build_trajectory::<BakeError>(
         &stamps,
         imu,
-        |i| load_raw_scan(&scans[i], config),
+        |i| scans.load_raw(i, config),
         &build,
         |stage| {
             progress(match stage {
@@ -327,26 +329,26 @@ fn build_poses(
     let poses = ScanPoses {
         poses: built.poses,
         stamps,
-        stamped: truth.is_some_and(|t| t.stamped),
+        stamped,
     };
     Ok((poses, summary))
 }
 
 /// The dataset's IMU log for the odometry's motion model: read when the gyro is enabled
-/// and the scans have timestamps (from the pose file) to place it on; empty otherwise.
+/// and the scans have timestamps (from the pose file, or a bag's header stamps) to
+/// place it on; empty otherwise.
 fn odometry_imu(
-    dataset: &Path,
+    source: &Source,
     config: &BakeConfig,
-    truth: Option<&ScanPoses>,
+    stamps: Option<&[f64]>,
 ) -> Result<Vec<ImuSample>, BakeError> {
-    let stamps = truth.filter(|t| t.stamped).map(|t| &t.stamps);
-    let path = find_in(dataset, &IMU_FILES).filter(|_| config.build.odometry.gyro.enabled);
-    let (Some(path), Some(stamps)) = (path, stamps) else {
+    let imu = source.imu().filter(|_| config.build.odometry.gyro.enabled);
+    let (Some(imu), Some(stamps)) = (imu, stamps) else {
         return Ok(Vec::new());
     };
-    let imu = read_imu(&path)?;
-    check_overlap(&path, &imu, stamps)?;
-    Ok(imu)
+    let samples = imu.read()?;
+    check_overlap(&imu.label(), &samples, stamps)?;
+    Ok(samples)
 }
 
 /// Dataset indices of the scans (the first at `first`) whose odometry outcome was `which`.
@@ -378,34 +380,28 @@ fn scan_twist(poses: &[Pose], stamps: &[f64], i: usize) -> Option<Twist> {
 
 /// `config` with `[build.odometry] deskew = "auto"` settled for `scans`: `azimuth` when
 /// every scan is a KITTI velodyne `.bin` (x y z intensity: raw sweeps of a spinning
-/// sensor, stored without per-point times), else `per-point`.
-pub fn settle_deskew(config: &BakeConfig, scans: &[PathBuf]) -> BakeConfig {
-    let kitti_bin = |path: &PathBuf| {
-        let bin = path
-            .extension()
-            .is_some_and(|e| e.eq_ignore_ascii_case("bin"));
-        let sidecar = std::fs::read_to_string(path.with_extension("bin.layout")).ok();
-        let layout = sidecar.map_or(Some(config.input.bin_layout), |s| BinLayout::parse(&s));
-        bin && layout == Some(BinLayout::Xyzi)
-    };
+/// sensor, stored without per-point times), else `per-point` (a bag's clouds too:
+/// drivers write per-point times).
+pub fn settle_deskew(config: &BakeConfig, scans: &ScanList) -> BakeConfig {
     let mut settled = config.clone();
     let odometry = &mut settled.build.odometry;
-    odometry.deskew = odometry
-        .deskew
-        .resolve(!scans.is_empty() && scans.iter().all(kitti_bin));
+    odometry.deskew = odometry.deskew.resolve(scans.all_kitti_bin(config));
     settled
 }
 
-/// Reads, filters and downsamples one scan taken at `pose` (map frame): on the map's
-/// voxel grid, with each point's raw count, when keyframes are fused.
+/// Reads, filters and downsamples scan `i` of `scans`, taken at `pose` (map frame): on
+/// the map's voxel grid, with each point's raw count, when keyframes are fused.
 fn load_scan(
-    path: &Path,
+    scans: &ScanList,
+    i: usize,
     config: &BakeConfig,
     pose: &Pose,
     twist: Option<Twist>,
 ) -> Result<(PointCloud, Option<Vec<u32>>), BakeError> {
     let fused = config.map.fuse_overlapping_keyframes;
-    let mut raw = load_raw_scan(path, config)?;
+    let path = scans.name(i);
+    let path = path.as_path();
+    let mut raw = scans.load_raw(i, config)?;
     let odometry = &config.build.odometry;
     if odometry.deskew == DeskewMode::Azimuth {
         odometry.sweep.time_scan(&mut raw);
@@ -441,9 +437,16 @@ pub fn bake(
     mut progress: impl FnMut(BakeProgress),
 ) -> Result<BakeReport, BakeError> {
     let started = Instant::now();
-    let all_scans = find_scans(&input.dataset)?;
+    let all_scans = input.source.scans(&mut |done, total| {
+        progress(BakeProgress {
+            stage: BakeStage::Indexing,
+            done,
+            total,
+            points_done: 0,
+        })
+    })?;
     let range = input.scans.within(all_scans.len())?;
-    let scans = &all_scans[range.clone()];
+    let scans = &all_scans.select(range.clone());
     let config = &settle_deskew(config, scans);
     let (scan_poses, mapping) = poses_of_scans(
         input,
@@ -465,7 +468,7 @@ pub fn bake(
         .map(|(id, &scan)| (id as KeyframeId, scan))
         .collect();
     let mut gravity = bake_gravity(
-        &input.dataset,
+        input.source.imu().as_ref(),
         &config.gravity,
         &poses,
         stamped.then_some(&stamps),
@@ -513,7 +516,7 @@ fn poses_of_scans(
     input: &BakeInput,
     config: &BakeConfig,
     output: &BakeOutput,
-    all_scans: &[PathBuf],
+    all_scans: &ScanList,
     range: Range<usize>,
     progress: &mut impl FnMut(BakeProgress),
 ) -> Result<(ScanPoses, Option<MappingSummary>), BakeError> {
@@ -529,15 +532,14 @@ fn poses_of_scans(
             let truth = truth
                 .map(|p| scan_poses(&p, all_scans).map(|t| t.select(range.clone())))
                 .transpose()?;
-            let imu = odometry_imu(&input.dataset, config, truth.as_ref())?;
-            let (built, summary) = build_poses(
-                &all_scans[range.clone()],
-                range.start,
-                config,
-                truth.as_ref(),
-                imu,
-                progress,
-            )?;
+            let scans = all_scans.select(range.clone());
+            let stamps = match &truth {
+                Some(t) => t.stamped.then_some(&t.stamps[..]),
+                None => scans.stamps(),
+            };
+            let imu = odometry_imu(&input.source, config, stamps)?;
+            let (built, summary) =
+                build_poses(&scans, range.start, config, truth.as_ref(), imu, progress)?;
             Ok((built, Some(summary)))
         }
     }
@@ -577,7 +579,7 @@ fn level_by_gravity(
 
 /// The scans being baked with their (map-frame) poses and times.
 struct Sequence<'a> {
-    scans: &'a [PathBuf],
+    scans: &'a ScanList,
     poses: &'a [Pose],
     stamps: &'a [f64],
     /// The times come from the pose file (else they are scan numbers, and no scan is
@@ -620,12 +622,12 @@ fn write_map(
             .enumerate()
             .map(|(j, &scan)| {
                 let twist = stamped.then(|| scan_twist(poses, stamps, scan)).flatten();
-                let (cloud, weights) = load_scan(&scans[scan], config, &poses[scan], twist)?;
+                let (cloud, weights) = load_scan(scans, scan, config, &poses[scan], twist)?;
                 let id = (chunk_index * chunk + j) as u64;
                 let (pose, stamp) = (poses[scan], stamps[scan]);
                 Keyframe::build_weighted(id, pose, stamp, cloud, weights, &options.covariance)
                     .map_err(|e| BakeError::Scan {
-                        path: scans[scan].clone(),
+                        path: scans.name(scan),
                         message: e.to_string(),
                     })
             })

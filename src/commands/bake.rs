@@ -16,6 +16,8 @@ use kfmap_shared::motion::DeskewMode;
 use kfmap_shared::options::ConfigFile;
 use serde_json::json;
 
+use super::source_arg::SourceArgs;
+
 /// Bake a map: choose keyframes from a scan sequence with poses, build each keyframe's
 /// KD-tree and per-point covariances and the covisibility graph, and write one .kfmap
 /// file that `kfmap serve` memory-maps and answers from at once.
@@ -95,10 +97,10 @@ use serde_json::json;
 #[derive(clap::Args)]
 #[command(verbatim_doc_comment)]
 pub struct Args {
-    /// Dataset folder.
-    #[arg(long)]
-    dataset: PathBuf,
-    /// Pose file (TUM or KITTI); default: found in the dataset folder.
+    #[command(flatten)]
+    source: SourceArgs,
+    /// Pose file (TUM or KITTI); default: found in the dataset folder (a bag needs it,
+    /// one pose per cloud in order, or --build-poses).
     #[arg(long)]
     poses: Option<PathBuf>,
     /// Build the poses from the scans even when a pose file exists (it then serves as
@@ -152,7 +154,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         graph: args.graph_out.clone(),
     };
     let input = BakeInput {
-        dataset: args.dataset.clone(),
+        source: args.source.source(),
         poses: args.poses.clone(),
         build_poses: args.build_poses,
         scans: args.scans.unwrap_or(ScanRange::ALL),
@@ -221,7 +223,11 @@ fn bake_with_progress(
             bar.set_length(p.total as u64);
             bar.set_position(p.done as u64);
             let rate = p.points_done as f64 / started.elapsed().as_secs_f64().max(1e-9);
+            let clouds_per_second = p.done as f64 / started.elapsed().as_secs_f64().max(1e-9);
             bar.set_message(match p.stage {
+                BakeStage::Indexing => {
+                    format!("reading the bag's clouds, {clouds_per_second:.0} clouds/s")
+                }
                 BakeStage::Odometry => "odometry (scans)".to_string(),
                 BakeStage::Keyframes => "pose-graph keyframes".to_string(),
                 BakeStage::Optimizing => "loop closure and pose-graph optimization".to_string(),

@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 use kfmap_bake::config::BakeConfig;
 use kfmap_bake::gravity::{GravityInput, PerKeyframe, estimate_dataset_gravity};
+use kfmap_bake::source::ImuSource;
 use kfmap_client::GravityAnswer;
 use kfmap_shared::gravity::{AccelBias, GravityCorrection};
 use kfmap_shared::options::ConfigFile;
@@ -36,20 +37,29 @@ use serde_json::{Value, json};
 /// TUM (t x y z qx qy qz qw, T_map_body, on the IMU's clock); the IMU log is
 /// `t,ax,ay,az,gx,gy,gz` (m/s^2, rad/s, body frame) or the same columns space-separated.
 /// Aligner options come from the [gravity] section of a bake.toml (--config).
+/// From a bag: --bag PATH --imu-topic TOPIC reads sensor_msgs/Imu messages (samples at
+/// their header stamps) instead of the IMU log; --poses is then required.
 ///
 /// Examples:
 ///   kfmap simulate --preset courtyard --seconds 30 --tilt-deg 2,-3 --out /tmp/tilted
 ///   kfmap gravity --dataset /tmp/tilted
 ///   kfmap gravity --dataset ../shared/data/imu_real --per-keyframe --json
+///   kfmap gravity --bag run.mcap --imu-topic /imu --poses run.tum
 #[derive(clap::Args)]
 #[command(verbatim_doc_comment)]
 pub struct Args {
     /// Dataset folder holding the IMU log and the poses.
-    #[arg(long, required_unless_present_all = ["imu", "poses"])]
+    #[arg(long, required_unless_present_any = ["imu", "bag"], conflicts_with = "bag")]
     dataset: Option<PathBuf>,
     /// IMU log; default: found in the dataset folder.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "bag")]
     imu: Option<PathBuf>,
+    /// A bag (MCAP, rosbag2 sqlite3, ROS 1) whose --imu-topic gives the IMU samples.
+    #[arg(long, value_name = "PATH", requires_all = ["imu_topic", "poses"])]
+    bag: Option<PathBuf>,
+    /// With --bag: the sensor_msgs/Imu topic.
+    #[arg(long, value_name = "TOPIC", requires = "bag")]
+    imu_topic: Option<String>,
     /// TUM pose file; default: found in the dataset folder.
     #[arg(long)]
     poses: Option<PathBuf>,
@@ -89,18 +99,28 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if args.no_motion_compensation {
         params.motion_compensation = false;
     }
-    let input = GravityInput::in_dataset(
-        args.dataset.as_deref().unwrap_or(std::path::Path::new(".")),
-        args.imu,
-        args.poses,
-        args.keyframe_interval,
-    )?;
+    let input = match (&args.bag, &args.imu_topic, &args.poses) {
+        (Some(bag), Some(topic), Some(poses)) => GravityInput {
+            imu: ImuSource::Topic {
+                bag: bag.clone(),
+                topic: topic.clone(),
+            },
+            poses: poses.clone(),
+            keyframe_interval: args.keyframe_interval,
+        },
+        _ => GravityInput::in_dataset(
+            args.dataset.as_deref().unwrap_or(std::path::Path::new(".")),
+            args.imu.clone(),
+            args.poses.clone(),
+            args.keyframe_interval,
+        )?,
+    };
     let per_keyframe = args.per_keyframe.then_some(PerKeyframe {
         half_width: args.half_width,
         min_pool: args.min_pool_per_kf,
     });
     let report = estimate_dataset_gravity(&input, &params, per_keyframe)
-        .with_context(|| format!("gravity from {}", input.imu.display()))?;
+        .with_context(|| format!("gravity from {}", input.imu.label().display()))?;
     let Some(correction) = report.correction else {
         anyhow::bail!(
             "only {} keyframes have IMU samples; the estimate needs min-keyframes = {} \
@@ -119,7 +139,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             })
             .collect();
         let out = json!({
-            "imu": input.imu, "poses": input.poses, "pose_count": report.poses,
+            "imu": input.imu.label(), "poses": input.poses, "pose_count": report.poses,
             "imu_samples": report.imu_samples, "pool": report.fill,
             "motion_compensation": params.motion_compensation,
             "compensated": report.fill.with_samples > 0 && report.fill.compensated == report.fill.with_samples,

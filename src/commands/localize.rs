@@ -7,9 +7,10 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
 use kfmap_bake::config::BakeConfig;
-use kfmap_bake::dataset::{dataset_poses, find_scans, load_raw_scan};
-use kfmap_bake::gravity::{IMU_FILES, POSE_FILES, find_in, read_imu};
+use kfmap_bake::dataset::{load_raw_scan, scan_poses};
+use kfmap_bake::gravity::POSE_FILES;
 use kfmap_bake::scan_range::ScanRange;
+use kfmap_bake::source::ScanList;
 use kfmap_client::{Client, GravityAnswer, LocalizeOptions, TrackedScan, Tracker, TrackerOptions};
 use kfmap_protocol::Cov2CovMode;
 use kfmap_service::config::ServerConfig;
@@ -27,6 +28,7 @@ use serde_json::json;
 
 use super::connect_arg::ConnectArgs;
 use super::report::p99_label;
+use super::source_arg::SourceArgs;
 
 /// Replay a dataset's scans (and IMU) against a running `kfmap serve` and localize
 /// every scan, tracking it: each scan is localized from the pose a constant-velocity
@@ -80,9 +82,12 @@ use super::report::p99_label;
 pub struct Args {
     #[command(flatten)]
     server: ConnectArgs,
-    /// Dataset directory (scans/ or scan files, optional pose file and IMU log).
-    #[arg(long)]
-    dataset: PathBuf,
+    #[command(flatten)]
+    source: SourceArgs,
+    /// Reference poses (TUM or KITTI) for the errors; default: the dataset folder's
+    /// pose file (a bag has none: one pose per cloud, in order).
+    #[arg(long, value_name = "FILE")]
+    poses: Option<PathBuf>,
     /// Replay only scans A..B of the dataset: a half-open range of indices in its
     /// sorted scan list (e.g. 116..177; "A.." to the end).
     #[arg(long, value_name = "A..B")]
@@ -203,7 +208,11 @@ pub(super) fn load_scan(
     config: &BakeConfig,
     voxel: f64,
 ) -> anyhow::Result<PointCloud> {
-    let cloud = load_raw_scan(path, config)?;
+    downsample(load_raw_scan(path, config)?, path, voxel)
+}
+
+/// `cloud` downsampled at `voxel` metres (0 keeps every point); `path` names it in errors.
+fn downsample(cloud: PointCloud, path: &Path, voxel: f64) -> anyhow::Result<PointCloud> {
     if voxel > 0.0 {
         Ok(cloud
             .voxel_downsample(voxel)
@@ -287,8 +296,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 struct ReplayDataset {
     /// Indices of the replayed scans in the dataset's sorted scan list.
     range: Range<usize>,
-    /// The replayed scan files.
-    scans: Vec<PathBuf>,
+    /// The replayed scans.
+    scans: ScanList,
     /// Their stamps, s (from the pose file, else at `--rate`).
     stamps: Vec<f64>,
     /// The replayed scans' reference poses, in the baked dataset's frame.
@@ -303,29 +312,33 @@ impl ReplayDataset {
     /// Finds the scans of `--dataset` within `--scans`, their reference poses and
     /// stamps, and (with timestamped poses, unless `--no-imu`) the IMU log.
     fn read(args: &Args) -> anyhow::Result<Self> {
-        let all_scans = find_scans(&args.dataset)?;
+        let source = args.source.source();
+        let all_scans = source.scans(&mut |_, _| {})?;
         let range = args
             .scans
             .unwrap_or(ScanRange::ALL)
             .within(all_scans.len())?;
-        let truth = dataset_poses(&args.dataset, &all_scans)?;
+        let pose_file = args.poses.clone().or_else(|| source.pose_file());
+        let truth = pose_file
+            .map(|path| scan_poses(&path, &all_scans))
+            .transpose()?;
         if args.initial_from_ground_truth && truth.is_none() {
             anyhow::bail!(
-                "--initial-from-ground-truth: {} has no pose file ({})",
-                args.dataset.display(),
+                "--initial-from-ground-truth: {} has no pose file ({}; or pass --poses)",
+                source.path().display(),
                 POSE_FILES.join(", ")
             );
         }
-        let all_stamps: Vec<f64> = match &truth {
-            Some(t) => t.stamps.clone(),
-            None => (0..all_scans.len())
+        let all_stamps: Vec<f64> = match (&truth, all_scans.stamps()) {
+            (Some(t), _) => t.stamps.clone(),
+            (None, Some(header)) => header.to_vec(),
+            (None, None) => (0..all_scans.len())
                 .map(|i| i as f64 / args.rate.max(1.0))
                 .collect(),
         };
-        let imu = match &truth {
-            Some(t) if t.stamped && !args.no_imu => find_in(&args.dataset, &IMU_FILES)
-                .map(|path| read_imu(&path).map(|samples| (path, samples)))
-                .transpose()?,
+        let stamped = truth.as_ref().is_some_and(|t| t.stamped) || all_scans.stamps().is_some();
+        let imu = match source.imu() {
+            Some(imu) if stamped && !args.no_imu => Some((imu.label(), imu.read()?)),
             _ => None,
         };
         let windows = imu
@@ -336,7 +349,7 @@ impl ReplayDataset {
             .map(|(path, samples)| gyro_from(path, samples, &args.imu_rpy_deg))
             .transpose()?;
         Ok(Self {
-            scans: all_scans[range.clone()].to_vec(),
+            scans: all_scans.select(range.clone()),
             stamps: all_stamps[range.clone()].to_vec(),
             truth: truth.map(|t| t.poses[range.clone()].to_vec()),
             range,
@@ -450,10 +463,11 @@ fn replay_scans(
     };
     let config = BakeConfig::default();
     let period = (args.rate > 0.0).then(|| Duration::from_secs_f64(1.0 / args.rate));
-    for (k, path) in dataset.scans.iter().enumerate() {
+    for k in 0..n {
         let index = dataset.range.start + k;
         let tick = Instant::now();
-        let cloud = load_scan(path, &config, args.voxel)?;
+        let path = dataset.scans.name(k);
+        let cloud = downsample(dataset.scans.load_raw(k, &config)?, &path, args.voxel)?;
         let t = dataset.stamps[k];
         let sent = Instant::now();
         let result = tracker.track_cloud(client, &cloud, t);

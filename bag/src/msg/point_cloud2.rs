@@ -98,3 +98,15 @@ pub fn decode_point_cloud2(
 ) -> Result<PointCloud2<'_>, DecodeError> {
     Err(DecodeError("not decoded yet".into()))
 }
+
+impl PointCloud2<'_> {
+    /// Placeholder: the `ring` (or `line`) field.
+    pub fn ring_field(&self) -> Option<&PointField> {
+        None
+    }
+}
+
+/// Placeholder: a datatype code's ROS name.
+pub fn datatype_name(_code: u8) -> &'static str {
+    "?"
+}

@@ -23,3 +23,10 @@ pub(super) const SMALL_GICP_COV_SCRIPT: &str = "tools/anchors/small_gicp_cov.py"
 /// small_gicp localizing balm_os0 scans 116-176 against the merged map of scans 0-115
 /// (`small_gicp_localize.py --motion-model`, 2 threads): per scan p50, p99, RMS error.
 pub(super) const SMALL_GICP_LOCALIZE: [f64; 3] = [24.0, 73.0, 0.183];
+
+/// rosbags 0.11.9 (pure Python) reading an MCAP of Ouster-layout PointCloud2 clouds and
+/// viewing each cloud's x y z as a numpy array, GB/s of payload, one thread; measured
+/// by the script beside `kfmap bench bag-read` on the same file (see the script).
+pub(super) const ROSBAGS_MCAP_READ: f64 = f64::NAN;
+/// The script that measured [`ROSBAGS_MCAP_READ`].
+pub(super) const ROSBAGS_MCAP_READ_SCRIPT: &str = "tools/anchors/rosbags_read.py";

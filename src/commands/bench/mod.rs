@@ -3,6 +3,7 @@
 //! own, the table's rows are measured by the modules `suite` lists.
 
 mod anchors;
+mod bags;
 mod child;
 mod cov2cov;
 mod fixtures;
@@ -101,6 +102,9 @@ enum What {
     Ipc(IpcArgs),
     /// Many clients for minutes against one server.
     Soak(SoakArgs),
+    /// Stream, then decode, every PointCloud2 of a bag: seconds and GB/s as JSON (the
+    /// rosbags anchor script runs it beside its own reader on the same file).
+    BagRead { file: PathBuf },
     /// Internal (load): open MAP, answer one query, print the microseconds since start.
     #[command(hide = true)]
     Probe { map: PathBuf },
@@ -198,6 +202,7 @@ pub fn run(args: Args, process_start: Instant) -> anyhow::Result<()> {
             soak::run(&dir()?, plan, args.json)
         }
         Some(What::Probe { map }) => load::probe(map, process_start),
+        Some(What::BagRead { file }) => bags::run_read(file),
         Some(What::IpcWorker { prefix, seconds }) => ipc::worker(prefix, *seconds),
         Some(What::SoakClient {
             prefix,

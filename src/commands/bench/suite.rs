@@ -4,6 +4,7 @@
 
 use std::path::Path;
 
+use super::bags;
 use super::cov2cov;
 use super::ipc;
 use super::kdtree;
@@ -27,6 +28,7 @@ pub(super) fn run(quick: bool, json_out: bool, dir: &Path) -> anyhow::Result<()>
     load::table_rows(&mut table, dir)?;
     ipc::table_rows(&mut table, dir)?;
     localization::measure(&mut table, data.as_deref(), dir)?;
+    bags::measure(&mut table, data.as_deref(), dir)?;
     table.finish();
     if json_out {
         println!("{}", serde_json::to_string_pretty(&table.json())?);
