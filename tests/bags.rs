@@ -459,3 +459,83 @@ fn bad_bags_are_refused_by_name_and_nothing_is_written() {
         );
     }
 }
+
+#[test]
+fn a_bag_localizes_as_its_folder() {
+    let test = "a_bag_localizes_as_its_folder";
+    let Some(python) = bag_python(test) else {
+        return;
+    };
+    let dir = temp_dir(test);
+    let raw = raw_drive(&dir);
+    let map = dir.join("map.kfmap");
+    common::bake_dataset(&raw, &map);
+    let bag = dir.join("raw-ouster");
+    let imu = s(&raw.join("imu.csv"));
+    let flags = ["--layout", "ouster", "--base-sec", "1700000000", "--imu", &imu];
+    write_bag(&python, &raw, &bag, "ros1", &flags);
+    let prefix = common::Prefix::new("bagloc");
+    let _server = common::Server::start(&map, "bagloc", &prefix.0, &[]);
+    let localize = |source: &[String], name: &str| {
+        let tum = dir.join(format!("{name}.tum"));
+        let mut args: Vec<String> = [
+            "localize", "--map-name", "bagloc", "--iceoryx-prefix", &prefix.0, "--rate", "0",
+            "--initial-from-ground-truth", "--json", "--out", &s(&tum),
+        ]
+        .map(String::from)
+        .to_vec();
+        args.extend(source.iter().cloned());
+        let summary = run_json(&args);
+        (read_trajectory(&tum).unwrap(), summary)
+    };
+    let (folder, folder_summary) = localize(&["--dataset".into(), s(&raw)], "folder");
+    let bag_args = [
+        "--bag", &s(&bag), "--points-topic", "/points", "--imu-topic", "/imu", "--poses",
+        &s(&raw.join("poses_gt.txt")),
+    ]
+    .map(String::from);
+    let (from_bag, bag_summary) = localize(&bag_args, "bag");
+    assert_eq!(bag_summary["scans"], folder_summary["scans"]);
+    assert_eq!(bag_summary["ok"], folder_summary["ok"]);
+    let gap = widest_gap(&from_bag.poses, &folder.poses);
+    assert!(gap <= 1e-3, "localized from the bag {gap} m from the folder's poses");
+    // The bag's scans are stamped on its own clock (the pose file's plus an epoch).
+    let first = from_bag.stamps.as_ref().unwrap()[0] - folder.stamps.as_ref().unwrap()[0];
+    assert!((first - 1.7e9).abs() < 1e-3, "bag stamps offset {first} s");
+}
+
+#[test]
+fn demo_runs_on_a_bag() {
+    let test = "demo_runs_on_a_bag";
+    let Some(python) = bag_python(test) else {
+        return;
+    };
+    let dir = temp_dir(test);
+    let raw = raw_drive(&dir);
+    let bag = dir.join("raw-velodyne.mcap");
+    let imu = s(&raw.join("imu.csv"));
+    let flags = ["--layout", "velodyne", "--base-sec", "1700000000", "--imu", &imu];
+    write_bag(&python, &raw, &bag, "mcap", &flags);
+    let out = dir.join("demo");
+    let gt = raw.join("poses_gt.txt");
+    let result = kfmap(&[
+        "demo", "--out", &s(&out), "--bag", &s(&bag), "--points-topic", "/points",
+        "--imu-topic", "/imu", "--poses", &s(&gt), "--localize-scans", "10..",
+    ]);
+    assert!(result.status.success(), "{}", stderr(&result));
+    let report = String::from_utf8(result.stdout).unwrap();
+    assert!(report.starts_with("kfmap demo --bag"), "{report}");
+    // The simulator's truth is the oracle: the built map's frame is the rigid fit of the
+    // mapped scans' true poses onto their built ones.
+    let truth = read_trajectory(&gt).unwrap().poses;
+    let built = read_trajectory(&out.join("map_poses.tum")).unwrap().poses;
+    let map_from_truth = kfmap_shared::trajectory_error::rigid_alignment(&truth, &built);
+    let localized = read_trajectory(&out.join("localized.tum")).unwrap().poses;
+    assert_eq!(localized.len(), truth.len() - 10);
+    let worst = localized
+        .iter()
+        .zip(&truth[10..])
+        .map(|(l, t)| translation_distance(l, &(map_from_truth * t)))
+        .fold(0.0, f64::max);
+    assert!(worst < 0.05, "worst localized scan {worst} m from the truth");
+}

@@ -13,7 +13,9 @@ use crate::data_dir::shared_data_dir;
 use anyhow::{Context, bail};
 use kfmap_bake::config::BakeConfig;
 use kfmap_bake::pipeline::{BakeInput, BakeOutput, bake};
+use kfmap_bake::dataset::scan_poses;
 use kfmap_bake::scan_range::ScanRange;
+use kfmap_bake::source::{BagSource, Source};
 use kfmap_shared::archive::{OpenOptions, open_map};
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::gravity::{GravityCorrection, roll_pitch_from_gravity};
@@ -59,6 +61,13 @@ use super::server_child::{ServerChild, run_localize};
 /// Examples:
 ///   cargo run --release -- demo
 ///   kfmap demo --real --out /tmp/balm-demo
+///   kfmap demo --bag run.mcap --points-topic /ouster/points --imu-topic /ouster/imu \
+///       --poses run_reference.tum --map-scans ..400 --localize-scans 300..
+///
+/// --bag: the same pipeline on your own bag (MCAP, rosbag2 sqlite3 or ROS 1; see
+/// `kfmap inspect-bag`): the map built from the clouds of --map-scans (default all),
+/// then --localize-scans (default all) localized against it from no pose guess, errors
+/// against --poses (one reference pose per cloud, in order).
 #[derive(clap::Args)]
 #[command(verbatim_doc_comment)]
 pub struct Args {
@@ -66,11 +75,29 @@ pub struct Args {
     #[arg(long, default_value = "kfmap-demo")]
     out: PathBuf,
     /// Run on the real sequence balm_os0 of the shared data instead of the simulator.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "bag")]
     real: bool,
+    /// Run on a bag instead of the simulator (with --points-topic and --poses).
+    #[arg(long, value_name = "PATH", requires_all = ["points_topic", "poses"])]
+    bag: Option<PathBuf>,
+    /// With --bag: the sensor_msgs/PointCloud2 topic.
+    #[arg(long, value_name = "TOPIC", requires = "bag")]
+    points_topic: Option<String>,
+    /// With --bag: the sensor_msgs/Imu topic (gravity levelling, gyro).
+    #[arg(long, value_name = "TOPIC", requires = "bag")]
+    imu_topic: Option<String>,
+    /// With --bag: reference poses, one per cloud in order (TUM or KITTI).
+    #[arg(long, value_name = "FILE", requires = "bag")]
+    poses: Option<PathBuf>,
+    /// With --bag: the clouds the map is built from (A..B, counting the topic's clouds).
+    #[arg(long, value_name = "A..B", requires = "bag")]
+    map_scans: Option<ScanRange>,
+    /// With --bag: the clouds localized against the map.
+    #[arg(long, value_name = "A..B", requires = "bag")]
+    localize_scans: Option<ScanRange>,
     /// Keep the simulated datasets in OUT/dataset and OUT/second-drive (they must not
     /// exist yet).
-    #[arg(long, conflicts_with = "real")]
+    #[arg(long, conflicts_with_all = ["real", "bag"])]
     keep_dataset: bool,
 }
 
@@ -158,10 +185,12 @@ impl Report {
 /// A pass of scans to map and a pass to localize against the map, with references.
 struct Passes {
     /// Dataset the map is built from, and which of its scans.
-    mapped: PathBuf,
+    mapped: Source,
     mapped_scans: ScanRange,
+    /// Reference poses of a bag (a folder's are found in it).
+    reference_file: Option<PathBuf>,
     /// Dataset localized against the map, which of its scans, and their reference poses.
-    replayed: PathBuf,
+    replayed: Source,
     replayed_scans: ScanRange,
     replayed_reference: Trajectory,
     /// Start the localized pass by relocalization (no pose guess) instead of at the map
@@ -179,7 +208,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut report = Report::default();
     let temp = std::env::temp_dir().join(format!("kfmap-demo-{}", std::process::id()));
     let _cleanup = TempDir(temp.clone());
-    let passes = if args.real {
+    let passes = if let Some(bag) = &args.bag {
+        bag_passes(&mut report, &args, bag)?
+    } else if args.real {
         real_passes(&mut report)?
     } else {
         let data = if args.keep_dataset { out.clone() } else { temp };
@@ -239,9 +270,10 @@ fn simulated_passes(report: &mut Report, data: &Path) -> anyhow::Result<Passes> 
         Ok((reference, line))
     })?;
     Ok(Passes {
-        mapped,
+        mapped: Source::Folder(mapped),
         mapped_scans: ScanRange::ALL,
-        replayed,
+        reference_file: None,
+        replayed: Source::Folder(replayed),
         replayed_scans: ScanRange::ALL,
         replayed_reference,
         // Both drives start where the map's frame is: the first scan's pose.
@@ -287,18 +319,65 @@ fn real_passes(report: &mut Report) -> anyhow::Result<Passes> {
         poses: reference.poses[BALM_REPLAYED].to_vec(),
     };
     Ok(Passes {
-        mapped: balm.clone(),
+        mapped: Source::Folder(balm.clone()),
         mapped_scans: ScanRange {
             start: BALM_MAPPED.start,
             end: Some(BALM_MAPPED.end),
         },
-        replayed: balm,
+        reference_file: None,
+        replayed: Source::Folder(balm),
         replayed_scans: ScanRange {
             start: BALM_REPLAYED.start,
             end: Some(BALM_REPLAYED.end),
         },
         replayed_reference,
         // No pose guess: the first scan is relocalized, as any lost one would be.
+        relocalize_first: true,
+        sim_tilt_deg: None,
+    })
+}
+
+/// A bag of the user's: the clouds of `--map-scans` mapped, those of `--localize-scans`
+/// localized from no guess, against `--poses`.
+fn bag_passes(report: &mut Report, args: &Args, bag: &Path) -> anyhow::Result<Passes> {
+    let source = Source::Bag(BagSource {
+        path: bag.to_path_buf(),
+        points_topic: args.points_topic.clone().unwrap_or_default(),
+        imu_topic: args.imu_topic.clone(),
+    });
+    let poses = args.poses.clone().context("--bag needs --poses")?;
+    let scans = source.scans(&mut |_, _| {})?;
+    let reference = scan_poses(&poses, &scans)?;
+    let mapped_scans = args.map_scans.unwrap_or(ScanRange::ALL);
+    let replayed_scans = args.localize_scans.unwrap_or(ScanRange::ALL);
+    let (mapped, replayed) = (
+        mapped_scans.within(scans.len())?,
+        replayed_scans.within(scans.len())?,
+    );
+    report.title = format!("kfmap demo --bag: {}", bag.display());
+    report.note(
+        "dataset",
+        format!(
+            "{} clouds on {}: {}-{} mapped, {}-{} localized",
+            scans.len(),
+            args.points_topic.as_deref().unwrap_or(""),
+            mapped.start,
+            mapped.end - 1,
+            replayed.start,
+            replayed.end - 1
+        ),
+    );
+    let replayed_reference = Trajectory {
+        stamps: Some(reference.stamps[replayed.clone()].to_vec()),
+        poses: reference.poses[replayed].to_vec(),
+    };
+    Ok(Passes {
+        mapped: source.clone(),
+        mapped_scans,
+        reference_file: Some(poses),
+        replayed: source,
+        replayed_scans,
+        replayed_reference,
         relocalize_first: true,
         sim_tilt_deg: None,
     })
@@ -414,6 +493,9 @@ fn localize_pass(
         localized.as_os_str(),
     ]);
     args.extend(start.iter().map(OsStr::new));
+    if let Some(poses) = &passes.reference_file {
+        args.extend(["--poses".as_ref(), poses.as_os_str()]);
+    }
     let lines = run_localize(server, &passes.replayed, &args)?;
     write_atomic(log, lines.as_bytes())?;
     let s = LocalizeLog::parse(&lines)?;
@@ -510,9 +592,10 @@ struct Baked {
 /// Builds the poses from the raw scans and bakes the map.
 fn build_map(passes: &Passes, map: &Path, map_poses: &Path) -> anyhow::Result<(Baked, String)> {
     let input = BakeInput {
+        source: passes.mapped.clone(),
+        poses: passes.reference_file.clone(),
         build_poses: true,
         scans: passes.mapped_scans,
-        ..BakeInput::dataset(&passes.mapped)
     };
     let output = BakeOutput {
         trajectory: Some(map_poses.to_path_buf()),

@@ -7,6 +7,7 @@ use std::path::Path;
 use std::process::{Child, Command, Stdio};
 
 use anyhow::{Context, bail};
+use kfmap_bake::source::Source;
 use kfmap_protocol::transport::{iceoryx_config, remove_prefix_files};
 
 /// The server child: stopped, and every iceoryx2 file of its prefix removed, on drop.
@@ -83,7 +84,7 @@ impl Drop for ServerChild {
 /// returns what it printed.
 pub(super) fn run_localize(
     server: &ServerChild,
-    dataset: &Path,
+    source: &Source,
     args: &[&OsStr],
 ) -> anyhow::Result<String> {
     let out = Command::new(std::env::current_exe()?)
@@ -94,8 +95,7 @@ pub(super) fn run_localize(
             "--iceoryx-prefix",
             &server.prefix,
         ])
-        .arg("--dataset")
-        .arg(dataset)
+        .args(source_args(source))
         .args(["--rate", "0"])
         .args(args)
         .stderr(Stdio::inherit())
@@ -105,4 +105,24 @@ pub(super) fn run_localize(
         bail!("kfmap localize failed ({})", out.status);
     }
     Ok(String::from_utf8(out.stdout)?)
+}
+
+/// The flags that name `source` to `kfmap localize` (`--dataset DIR`, or `--bag PATH
+/// --points-topic T [--imu-topic T]`).
+pub(super) fn source_args(source: &Source) -> Vec<std::ffi::OsString> {
+    match source {
+        Source::Folder(dir) => vec!["--dataset".into(), dir.into()],
+        Source::Bag(b) => {
+            let mut args: Vec<std::ffi::OsString> = vec![
+                "--bag".into(),
+                (&b.path).into(),
+                "--points-topic".into(),
+                (&b.points_topic).into(),
+            ];
+            if let Some(imu) = &b.imu_topic {
+                args.extend(["--imu-topic".into(), imu.into()]);
+            }
+            args
+        }
+    }
 }

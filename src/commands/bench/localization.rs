@@ -8,6 +8,7 @@ use std::path::Path;
 use kfmap_bake::config::BakeConfig;
 use kfmap_bake::pipeline::{BakeInput, BakeOutput, bake};
 use kfmap_bake::scan_range::ScanRange;
+use kfmap_bake::source::Source;
 
 use super::anchors::SMALL_GICP_LOCALIZE;
 use super::fixtures::data_file;
@@ -97,7 +98,8 @@ fn localize_balm(balm: &Path, dir: &Path) -> anyhow::Result<serde_json::Value> {
         "--initial-from-ground-truth",
         "--json",
     ];
-    let printed = run_localize(&server, balm, &args.map(OsStr::new));
+    let source = Source::Folder(balm.to_path_buf());
+    let printed = run_localize(&server, &source, &args.map(OsStr::new));
     drop(server);
     Ok(serde_json::from_str(&printed?)?)
 }
