@@ -7,8 +7,9 @@
 //! for the passes of a bake that revisit scans.
 
 mod error;
-pub mod msg;
 mod mcap_reader;
+pub mod msg;
+mod raw;
 mod ros1;
 mod sqlite;
 
@@ -305,8 +306,9 @@ fn rosbag2_folder_file(dir: &Path) -> Result<PathBuf, BagError> {
             .filter_map(Result::ok)
             .map(|e| e.path())
             .filter(|p| {
-                p.extension()
-                    .is_some_and(|e| e.eq_ignore_ascii_case("mcap") || e.eq_ignore_ascii_case("db3"))
+                p.extension().is_some_and(|e| {
+                    e.eq_ignore_ascii_case("mcap") || e.eq_ignore_ascii_case("db3")
+                })
             })
             .collect();
         files.sort();
