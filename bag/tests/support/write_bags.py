@@ -14,6 +14,10 @@ OUT_DIR receives:
 - manifest.json            {"ros2": [...], "ros1": [...]}: per topic its name, type and
                            messages (log time in ns and the hex of the serialized bytes)
 
+With --corpus it instead writes tiny bags (a few KB) as the fuzz seed corpora:
+OUT_DIR/bag_mcap/seed_{none,zstd}.mcap, OUT_DIR/bag_ros1/seed_{none,bz2,lz4}.bag and
+OUT_DIR/bag_sqlite/seed.db3 (vacuumed to 512-byte pages); OUT_DIR is fuzz/corpus.
+
 With --big-mcap MB it instead writes only big.mcap (a rosbag2 mcap folder `big/`) of
 about MB megabytes of 1 MB PointCloud2 messages, for throughput measurements.
 """
@@ -68,6 +72,43 @@ def imu(ts, index, types):
         linear_acceleration=v3(x=0.0, y=0.1, z=9.81),
         linear_acceleration_covariance=np.zeros(9),
     )
+
+
+def tiny_messages(types):
+    """Two small clouds, three imus, one string: the fuzz seeds."""
+    return [
+        ('/lidar/points', 'sensor_msgs/msg/PointCloud2', [(T0 + i, cloud(T0 + i, i, 2, types)) for i in range(2)]),
+        ('/imu/data', 'sensor_msgs/msg/Imu', [(T0 + 10 * i, imu(T0 + 10 * i, i, types)) for i in range(3)]),
+        ('/notes', 'std_msgs/msg/String', [(T0 + 5, types['std_msgs/msg/String'](data='hi'))]),
+    ]
+
+
+def corpus(out):
+    """Tiny bags of every container for the fuzz seed corpora."""
+    import shutil
+    import sqlite3
+    import tempfile
+
+    for sub in ('bag_mcap', 'bag_ros1', 'bag_sqlite'):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    ros2 = tiny_messages(TS2.types)
+    ser2 = lambda m: bytes(TS2.serialize_cdr(m, m.__msgtype__))  # noqa: E731
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        for name, patch in [('none', None), ('zstd', 'zstd')]:
+            write_ros2(tmp / name, StoragePlugin.MCAP, ros2, ser2, patch)
+            shutil.copy(tmp / name / f'{name}.mcap', out / 'bag_mcap' / f'seed_{name}.mcap')
+        write_ros2(tmp / 'db', StoragePlugin.SQLITE3, ros2, ser2)
+        db = sqlite3.connect(tmp / 'db' / 'db.db3')
+        db.execute('PRAGMA journal_mode=DELETE')
+        db.execute('PRAGMA page_size=512')
+        db.execute('VACUUM')
+        db.close()
+        shutil.copy(tmp / 'db' / 'db.db3', out / 'bag_sqlite' / 'seed.db3')
+    ros1 = [(name, msgtype, [(ts, to_ros1(m)) for ts, m in msgs]) for name, msgtype, msgs in ros2]
+    ser1 = lambda m: bytes(TS1.serialize_ros1(m, m.__msgtype__))  # noqa: E731
+    for name, fmt in [('none', None), ('bz2', Writer1.CompressionFormat.BZ2), ('lz4', Writer1.CompressionFormat.LZ4)]:
+        write_ros1(out / 'bag_ros1' / f'seed_{name}.bag', fmt, ros1, ser1)
 
 
 def messages(types):
@@ -154,8 +195,12 @@ def main():
     parser = argparse.ArgumentParser()
     parser.add_argument('out', type=Path)
     parser.add_argument('--big-mcap', type=int, default=0)
+    parser.add_argument('--corpus', action='store_true')
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.corpus:
+        corpus(args.out)
+        return
     if args.big_mcap:
         big_mcap(args.out, args.big_mcap)
         return
