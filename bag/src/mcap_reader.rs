@@ -433,11 +433,8 @@ impl McapBag {
     /// The message at `at`, from `chunk` (the records of the chunk `at.locator`) or,
     /// outside chunks, from the map.
     fn message(&self, at: &MessageRef, chunk: Option<&ChunkBytes>) -> Result<Message, BagError> {
-        let (mut c, where_) = match chunk {
-            None => (
-                self.cursor_at(at.locator).map_err(|e| self.bad(e))?,
-                at.locator,
-            ),
+        let mut c = match chunk {
+            None => self.cursor_at(at.locator).map_err(|e| self.bad(e))?,
             Some(chunk) => {
                 let bytes = self.bytes_of(chunk);
                 if at.offset >= bytes.len() as u64 {
@@ -451,19 +448,16 @@ impl McapBag {
                         ),
                     ));
                 }
-                // Checked just above.
-                (
-                    Cursor::new(&bytes[at.offset as usize..], at.locator),
-                    at.locator,
-                )
+                // Checked just above; offsets in errors count from the chunk's records.
+                Cursor::new(&bytes[at.offset as usize..], at.offset)
             }
         };
         let parsed = (|| {
             let (opcode, mut body) = next_record(&mut c)?;
             if opcode != op::MESSAGE {
                 return Err(RawError::new(
-                    where_,
-                    format!("an index offset {} points at no Message record", at.offset),
+                    at.offset,
+                    "an index that points at no Message record",
                 ));
             }
             let _channel = body.u16("message channel")?;
@@ -474,7 +468,17 @@ impl McapBag {
             let data = body.bytes(rest, "message data")?.to_vec();
             Ok(Message { log_time_ns, data })
         })();
-        parsed.map_err(|e| self.bad(e))
+        parsed.map_err(|e| match chunk {
+            None => self.bad(e),
+            Some(_) => BagError::malformed(
+                &self.path,
+                at.locator,
+                format!(
+                    "in the chunk at this byte, offset {} of its records: {}",
+                    e.offset, e.reason
+                ),
+            ),
+        })
     }
 
     /// Groups channels into topics (a topic recorded on several channels is one topic,

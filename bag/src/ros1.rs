@@ -516,7 +516,7 @@ impl Ros1Bag {
                 &self.path,
                 at.locator,
                 format!(
-                    "in the chunk at this byte, offset {}: {}",
+                    "in the chunk at this byte, offset {} of its records: {}",
                     e.offset, e.reason
                 ),
             ),
