@@ -68,8 +68,7 @@ fn written(test: &str) -> Option<&'static Written> {
     static WRITTEN: OnceLock<Option<Written>> = OnceLock::new();
     let written = WRITTEN.get_or_init(|| {
         let python = python()?;
-        let dir = Path::new(env!("CARGO_TARGET_TMPDIR"))
-            .join(format!("kfmap-bag-containers-{}", std::process::id()));
+        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("kfmap-bag-containers");
         let _ = std::fs::remove_dir_all(&dir);
         let out = Command::new(&python)
             .arg(support().join("write_bags.py"))
