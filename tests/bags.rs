@@ -472,15 +472,31 @@ fn a_bag_localizes_as_its_folder() {
     common::bake_dataset(&raw, &map);
     let bag = dir.join("raw-ouster");
     let imu = s(&raw.join("imu.csv"));
-    let flags = ["--layout", "ouster", "--base-sec", "1700000000", "--imu", &imu];
+    let flags = [
+        "--layout",
+        "ouster",
+        "--base-sec",
+        "1700000000",
+        "--imu",
+        &imu,
+    ];
     write_bag(&python, &raw, &bag, "ros1", &flags);
     let prefix = common::Prefix::new("bagloc");
     let _server = common::Server::start(&map, "bagloc", &prefix.0, &[]);
     let localize = |source: &[String], name: &str| {
         let tum = dir.join(format!("{name}.tum"));
         let mut args: Vec<String> = [
-            "localize", "--map-name", "bagloc", "--iceoryx-prefix", &prefix.0, "--rate", "0",
-            "--initial-from-ground-truth", "--json", "--out", &s(&tum),
+            "localize",
+            "--map-name",
+            "bagloc",
+            "--iceoryx-prefix",
+            &prefix.0,
+            "--rate",
+            "0",
+            "--initial-from-ground-truth",
+            "--json",
+            "--out",
+            &s(&tum),
         ]
         .map(String::from)
         .to_vec();
@@ -490,7 +506,13 @@ fn a_bag_localizes_as_its_folder() {
     };
     let (folder, folder_summary) = localize(&["--dataset".into(), s(&raw)], "folder");
     let bag_args = [
-        "--bag", &s(&bag), "--points-topic", "/points", "--imu-topic", "/imu", "--poses",
+        "--bag",
+        &s(&bag),
+        "--points-topic",
+        "/points",
+        "--imu-topic",
+        "/imu",
+        "--poses",
         &s(&raw.join("poses_gt.txt")),
     ]
     .map(String::from);
@@ -498,7 +520,10 @@ fn a_bag_localizes_as_its_folder() {
     assert_eq!(bag_summary["scans"], folder_summary["scans"]);
     assert_eq!(bag_summary["ok"], folder_summary["ok"]);
     let gap = widest_gap(&from_bag.poses, &folder.poses);
-    assert!(gap <= 1e-3, "localized from the bag {gap} m from the folder's poses");
+    assert!(
+        gap <= 1e-3,
+        "localized from the bag {gap} m from the folder's poses"
+    );
     // The bag's scans are stamped on its own clock (the pose file's plus an epoch).
     let first = from_bag.stamps.as_ref().unwrap()[0] - folder.stamps.as_ref().unwrap()[0];
     assert!((first - 1.7e9).abs() < 1e-3, "bag stamps offset {first} s");
@@ -514,13 +539,31 @@ fn demo_runs_on_a_bag() {
     let raw = raw_drive(&dir);
     let bag = dir.join("raw-velodyne.mcap");
     let imu = s(&raw.join("imu.csv"));
-    let flags = ["--layout", "velodyne", "--base-sec", "1700000000", "--imu", &imu];
+    let flags = [
+        "--layout",
+        "velodyne",
+        "--base-sec",
+        "1700000000",
+        "--imu",
+        &imu,
+    ];
     write_bag(&python, &raw, &bag, "mcap", &flags);
     let out = dir.join("demo");
     let gt = raw.join("poses_gt.txt");
     let result = kfmap(&[
-        "demo", "--out", &s(&out), "--bag", &s(&bag), "--points-topic", "/points",
-        "--imu-topic", "/imu", "--poses", &s(&gt), "--localize-scans", "10..",
+        "demo",
+        "--out",
+        &s(&out),
+        "--bag",
+        &s(&bag),
+        "--points-topic",
+        "/points",
+        "--imu-topic",
+        "/imu",
+        "--poses",
+        &s(&gt),
+        "--localize-scans",
+        "10..",
     ]);
     assert!(result.status.success(), "{}", stderr(&result));
     let report = String::from_utf8(result.stdout).unwrap();
@@ -537,5 +580,8 @@ fn demo_runs_on_a_bag() {
         .zip(&truth[10..])
         .map(|(l, t)| translation_distance(l, &(map_from_truth * t)))
         .fold(0.0, f64::max);
-    assert!(worst < 0.05, "worst localized scan {worst} m from the truth");
+    assert!(
+        worst < 0.05,
+        "worst localized scan {worst} m from the truth"
+    );
 }

@@ -9,6 +9,7 @@
 mod error;
 mod mcap_reader;
 pub mod msg;
+mod raw;
 mod ros1;
 mod sqlite;
 
