@@ -6,7 +6,9 @@ mod point_cloud2;
 mod reader;
 
 pub use imu::{ImuMessage, decode_imu};
-pub use point_cloud2::{PointCloud2, PointField, TimeField, TimeUnit, decode_point_cloud2};
+pub use point_cloud2::{
+    PointCloud2, PointField, TimeField, TimeUnit, datatype_name, decode_point_cloud2,
+};
 
 /// A message's header stamp.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
