@@ -152,9 +152,6 @@ impl PointCloud2<'_> {
     pub fn to_cloud(&self) -> Result<PointCloud, DecodeError> {
         let xyz = self.check_layout()?;
         let n = self.len();
-        if n == 0 {
-            return Ok(PointCloud::default());
-        }
 
         let mut points = Vec::with_capacity(n);
         if xyz.iter().all(|s| s.datatype == Datatype::Float32) && !self.is_bigendian {
@@ -217,9 +214,12 @@ impl PointCloud2<'_> {
     }
 
     /// Appends `read(point bytes)` for every point, row by row. Call only once
-    /// [`Self::check_layout`] passed and the cloud has points (so `point_step > 0`
-    /// and every row lies inside `data`).
+    /// [`Self::check_layout`] passed (so every row lies inside `data`, and with points
+    /// `point_step` and `row_step` are not 0).
     fn gather<T>(&self, out: &mut Vec<T>, mut read: impl FnMut(&[u8]) -> T) {
+        if self.is_empty() {
+            return;
+        }
         let step = self.point_step as usize;
         let row_bytes = self.width as usize * step;
         for row in self

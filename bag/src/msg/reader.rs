@@ -255,7 +255,7 @@ pub(crate) mod writer {
 
         fn value(&mut self, le: &[u8]) {
             if self.aligned {
-                while (self.out.len() - self.start) % le.len() != 0 {
+                while !(self.out.len() - self.start).is_multiple_of(le.len()) {
                     self.out.push(0);
                 }
             }

@@ -116,7 +116,10 @@ fn decodes_each_serialization_and_point_byte_order() {
             assert!(cloud.points[1][0].is_nan(), "NaN returns are kept");
             assert_eq!(cloud.points[2], [0.0; 3], "zero returns are kept");
             assert_eq!(cloud.intensity.unwrap(), [10.0, 0.0, 65535.0]);
-            assert_eq!(cloud.time.unwrap(), [0.0, 0.05, 0.099_999_999]);
+            assert_eq!(
+                cloud.time.unwrap(),
+                [0.0, 0.05, (99_999_999.0 * 1e-9) as f32]
+            );
         }
     }
 }
