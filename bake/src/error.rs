@@ -41,9 +41,9 @@ pub enum BakeError {
         /// What is wrong.
         message: String,
     },
-    /// A bag could not be read.
+    /// A bag could not be read (boxed: its errors carry the bag's topic listing).
     #[error(transparent)]
-    Bag(#[from] kfmap_bag::BagError),
+    Bag(Box<kfmap_bag::BagError>),
     /// The map file could not be written.
     #[error(transparent)]
     Archive(#[from] ArchiveError),
@@ -73,5 +73,11 @@ pub enum BakeError {
 impl From<GraphError> for BakeError {
     fn from(error: GraphError) -> Self {
         Self::Mapping(error.into())
+    }
+}
+
+impl From<kfmap_bag::BagError> for BakeError {
+    fn from(error: kfmap_bag::BagError) -> Self {
+        Self::Bag(Box::new(error))
     }
 }

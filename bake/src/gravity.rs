@@ -66,9 +66,9 @@ pub enum GravityError {
     /// A file could not be read.
     #[error(transparent)]
     Io(#[from] IoError),
-    /// A bag could not be read.
+    /// A bag could not be read (boxed: its errors carry the bag's topic listing).
     #[error(transparent)]
-    Bag(#[from] kfmap_bag::BagError),
+    Bag(Box<kfmap_bag::BagError>),
     /// A parameter is out of range.
     #[error(transparent)]
     Invalid(#[from] InvalidOption),
@@ -316,4 +316,10 @@ pub fn bake_gravity(
         applied: false,
         pool,
     }))
+}
+
+impl From<kfmap_bag::BagError> for GravityError {
+    fn from(error: kfmap_bag::BagError) -> Self {
+        Self::Bag(Box::new(error))
+    }
 }

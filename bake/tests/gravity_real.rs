@@ -16,13 +16,13 @@ fn real_imu_gravity_matches_the_mean_over_quiet_keyframes() {
         return;
     };
     let input = GravityInput::in_dataset(&dir, None, None, 1.0).unwrap();
-    assert!(input.imu.ends_with("imu.txt") && input.poses.ends_with("traj.txt"));
+    assert!(input.imu.label().ends_with("imu.txt") && input.poses.ends_with("traj.txt"));
     let report = estimate_dataset_gravity(&input, &GravityParams::default(), None).unwrap();
     let compensated = report.correction.unwrap();
     let raw = report.uncompensated.unwrap();
 
     // The oracle: its own windows (t_prev, t_k], keyframes every 10th pose (1 s apart).
-    let imu = read_imu_csv(&input.imu).unwrap();
+    let imu = read_imu_csv(&input.imu.label()).unwrap();
     let trajectory = read_trajectory(&input.poses).unwrap();
     let stamps = trajectory.stamps.unwrap();
     let mut sum = Vector3::zeros();

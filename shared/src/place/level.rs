@@ -29,8 +29,13 @@ pub fn estimate_up(points: &[[f32; 3]], max_tilt_deg: f64) -> Option<Vector3<f64
         let key = [0, 1, 2].map(|a| (v[a] / PLANE_VOXEL_M).floor() as i32);
         voxels.entry(key).or_default().add_point(v);
     }
+    // In key order: summed in a hash map's (random) order, the estimate would differ in
+    // its last bits from run to run, and so would the baked map's place grid.
+    let mut voxels: Vec<([i32; 3], Surfel)> = voxels.into_iter().collect();
+    voxels.sort_unstable_by_key(|(key, _)| *key);
     let normals: Vec<(Vector3<f64>, f64)> = voxels
-        .values()
+        .iter()
+        .map(|(_, s)| s)
         .filter(|s| s.num_points() >= MIN_PLANE_POINTS)
         .filter_map(|s| {
             let eigen = s.eigen();

@@ -282,7 +282,7 @@ fn cdr_point_cloud2(
 ) -> Vec<u8> {
     let mut out = vec![0x00, 0x01, 0x00, 0x00];
     let align = |out: &mut Vec<u8>, n: usize| {
-        while (out.len() - 4) % n != 0 {
+        while !(out.len() - 4).is_multiple_of(n) {
             out.push(0);
         }
     };
