@@ -229,21 +229,22 @@ fn an_imu_topic_gives_the_gravity_of_the_imu_log() {
     }
 }
 
-/// A raw (not deskewed) simulated drive with per-point times and its IMU log.
-fn raw_drive(dir: &Path) -> PathBuf {
-    let out = dir.join("raw");
-    common::simulate(&out, "courtyard", "4", "16", &["--speed", "4", "--raw"]);
-    out
+/// The bag writer, a scratch folder and in it a raw (not deskewed) simulated drive
+/// with per-point times and its IMU log; `None` after the skip-or-fail without Python.
+fn raw_fixture(test: &str) -> Option<(PathBuf, common::TestDir, PathBuf)> {
+    let python = bag_python(test)?;
+    let dir = temp_dir(test);
+    let raw = dir.join("raw");
+    common::simulate(&raw, "courtyard", "4", "16", &["--speed", "4", "--raw"]);
+    Some((python, dir, raw))
 }
 
 #[test]
 fn every_drivers_point_times_deskew_as_the_pcd_time_field() {
     let test = "every_drivers_point_times_deskew_as_the_pcd_time_field";
-    let Some(python) = bag_python(test) else {
+    let Some((python, dir, raw)) = raw_fixture(test) else {
         return;
     };
-    let dir = temp_dir(test);
-    let raw = raw_drive(&dir);
     let gt = s(&raw.join("poses_gt.txt"));
     let bake = |source: Vec<String>, name: &str, extra: &[&str]| {
         let tum = dir.join(format!("{name}.tum"));
@@ -325,11 +326,9 @@ fn every_drivers_point_times_deskew_as_the_pcd_time_field() {
 #[test]
 fn inspect_bag_reports_each_topic_and_the_cloud_layout() {
     let test = "inspect_bag_reports_each_topic_and_the_cloud_layout";
-    let Some(python) = bag_python(test) else {
+    let Some((python, dir, raw)) = raw_fixture(test) else {
         return;
     };
-    let dir = temp_dir(test);
-    let raw = raw_drive(&dir);
     let imu = s(&raw.join("imu.csv"));
     let scans = std::fs::read_dir(raw.join("scans")).unwrap().count() as u64;
     let imu_lines = std::fs::read_to_string(raw.join("imu.csv"))
@@ -397,11 +396,9 @@ fn inspect_bag_reports_each_topic_and_the_cloud_layout() {
 #[test]
 fn bad_bags_are_refused_by_name_and_nothing_is_written() {
     let test = "bad_bags_are_refused_by_name_and_nothing_is_written";
-    let Some(python) = bag_python(test) else {
+    let Some((python, dir, raw)) = raw_fixture(test) else {
         return;
     };
-    let dir = temp_dir(test);
-    let raw = raw_drive(&dir);
     let imu = s(&raw.join("imu.csv"));
     let good = dir.join("good.bag");
     write_bag(&python, &raw, &good, "ros1", &["--imu", &imu]);
@@ -472,11 +469,9 @@ fn bad_bags_are_refused_by_name_and_nothing_is_written() {
 #[test]
 fn a_bag_localizes_as_its_folder() {
     let test = "a_bag_localizes_as_its_folder";
-    let Some(python) = bag_python(test) else {
+    let Some((python, dir, raw)) = raw_fixture(test) else {
         return;
     };
-    let dir = temp_dir(test);
-    let raw = raw_drive(&dir);
     let map = dir.join("map.kfmap");
     common::bake_dataset(&raw, &map);
     let bag = dir.join("raw-ouster");
@@ -541,11 +536,9 @@ fn a_bag_localizes_as_its_folder() {
 #[test]
 fn demo_runs_on_a_bag() {
     let test = "demo_runs_on_a_bag";
-    let Some(python) = bag_python(test) else {
+    let Some((python, dir, raw)) = raw_fixture(test) else {
         return;
     };
-    let dir = temp_dir(test);
-    let raw = raw_drive(&dir);
     let bag = dir.join("raw-velodyne.mcap");
     let imu = s(&raw.join("imu.csv"));
     let flags = [

@@ -6,6 +6,7 @@
 //! memory bounded by one chunk, and [`Bag::index`] + [`Bag::read`] fetch single messages
 //! for the passes of a bake that revisit scans.
 
+mod chunked;
 mod error;
 mod mcap_reader;
 pub mod msg;

@@ -17,19 +17,16 @@
 
 use std::collections::{BTreeMap, HashMap};
 use std::fs::File;
-use std::ops::Range;
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex};
+use std::sync::Mutex;
 
 use mcap::records::op;
 use memmap2::Mmap;
 
+use crate::chunked::{self, ChunkBytes, Chunked, NOT_IN_CHUNK};
 use crate::raw::{Cursor, RawError, decompress_exact};
 use crate::{BagError, Container, Encoding, Message, MessageRef, Topic};
 
-/// `MessageRef::offset` of a message that is not in a chunk (`locator` is then the
-/// file offset of its record).
-const NOT_IN_CHUNK: u64 = u64::MAX;
 /// Footer record: prefix + summary start + summary offset start + summary CRC.
 const FOOTER_RECORD_LEN: usize = 9 + 8 + 8 + 4;
 /// A chunk claiming more than this uncompressed is refused rather than allocated.
@@ -44,15 +41,6 @@ struct ChunkIndex {
     chunk_start: u64,
     /// Channel id -> file offset of its MessageIndex record for this chunk.
     message_indexes: BTreeMap<u16, u64>,
-}
-
-/// A chunk's records, decompressed or in place.
-#[derive(Clone)]
-enum ChunkBytes {
-    /// An uncompressed chunk: this range of the map.
-    Mapped(Range<usize>),
-    /// A decompressed chunk.
-    Owned(Arc<[u8]>),
 }
 
 /// An open MCAP file.
@@ -306,7 +294,7 @@ impl McapBag {
                 op::DATA_END | op::FOOTER => break,
                 op::CHUNK => {
                     let chunk = self.chunk_bytes(record_at)?;
-                    let bytes = self.bytes_of(&chunk);
+                    let bytes = self.chunk_slice(&chunk);
                     let mut inner = Cursor::new(bytes, record_at);
                     while !inner.is_empty() {
                         let offset = inner.pos() as u64;
@@ -339,6 +327,11 @@ impl McapBag {
             }
         }
         Ok(())
+    }
+
+    /// A chunk's records (its range of the map, or its decompressed bytes).
+    fn chunk_slice<'a>(&'a self, chunk: &'a ChunkBytes) -> &'a [u8] {
+        chunk.bytes(&self.map)
     }
 
     /// The records of the chunk whose record starts at file offset `at`.
@@ -408,7 +401,7 @@ impl McapBag {
             }
         };
         if crc != 0 {
-            let computed = crc32fast::hash(self.bytes_of(&chunk));
+            let computed = crc32fast::hash(self.chunk_slice(&chunk));
             if computed != crc {
                 return Err(BagError::malformed(
                     &self.path,
@@ -422,21 +415,13 @@ impl McapBag {
         Ok(chunk)
     }
 
-    fn bytes_of<'a>(&'a self, chunk: &'a ChunkBytes) -> &'a [u8] {
-        match chunk {
-            // The range was cut from this map by `chunk_bytes`.
-            ChunkBytes::Mapped(range) => &self.map[range.clone()],
-            ChunkBytes::Owned(bytes) => bytes,
-        }
-    }
-
     /// The message at `at`, from `chunk` (the records of the chunk `at.locator`) or,
     /// outside chunks, from the map.
     fn message(&self, at: &MessageRef, chunk: Option<&ChunkBytes>) -> Result<Message, BagError> {
         let mut c = match chunk {
             None => self.cursor_at(at.locator).map_err(|e| self.bad(e))?,
             Some(chunk) => {
-                let bytes = self.bytes_of(chunk);
+                let bytes = self.chunk_slice(chunk);
                 if at.offset >= bytes.len() as u64 {
                     return Err(BagError::malformed(
                         &self.path,
@@ -519,20 +504,6 @@ impl McapBag {
             topic.last_ns = max_opt(topic.last_ns, tally.last);
         }
         self.topics = topics.into_values().collect();
-    }
-
-    /// The chunk at `locator` through the shared one-chunk cache.
-    fn cached_chunk(&self, locator: u64) -> Result<ChunkBytes, BagError> {
-        let lock = || self.last_chunk.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some((at, chunk)) = lock().as_ref()
-            && *at == locator
-        {
-            return Ok(chunk.clone());
-        }
-        // Decompressed without the lock, so concurrent readers of other chunks wait not.
-        let chunk = self.chunk_bytes(locator)?;
-        *lock() = Some((locator, chunk.clone()));
-        Ok(chunk)
     }
 }
 
@@ -643,6 +614,20 @@ fn max_opt(a: Option<u64>, b: Option<u64>) -> Option<u64> {
     }
 }
 
+impl Chunked for McapBag {
+    fn chunk_bytes(&self, locator: u64) -> Result<ChunkBytes, BagError> {
+        McapBag::chunk_bytes(self, locator)
+    }
+
+    fn message(&self, at: &MessageRef, chunk: Option<&ChunkBytes>) -> Result<Message, BagError> {
+        McapBag::message(self, at, chunk)
+    }
+
+    fn last_chunk(&self) -> &Mutex<Option<(u64, ChunkBytes)>> {
+        &self.last_chunk
+    }
+}
+
 impl Container for McapBag {
     fn topics(&self) -> &[Topic] {
         &self.topics
@@ -652,31 +637,7 @@ impl Container for McapBag {
         &'a self,
         topic: &Topic,
     ) -> Result<Box<dyn Iterator<Item = Result<Message, BagError>> + Send + 'a>, BagError> {
-        // The refs are 24 bytes a message; the data is read a chunk at a time, through a
-        // one-chunk cache private to this stream.
-        let refs = self.index(topic)?;
-        let mut chunk: Option<(u64, ChunkBytes)> = None;
-        let mut failed = false;
-        Ok(Box::new(refs.into_iter().map_while(move |at| {
-            if failed {
-                return None;
-            }
-            let result = if at.offset == NOT_IN_CHUNK {
-                self.message(&at, None)
-            } else {
-                let cached = match &chunk {
-                    Some((locator, bytes)) if *locator == at.locator => Ok(bytes.clone()),
-                    _ => self.chunk_bytes(at.locator),
-                };
-                cached.and_then(|bytes| {
-                    let message = self.message(&at, Some(&bytes));
-                    chunk = Some((at.locator, bytes));
-                    message
-                })
-            };
-            failed = result.is_err();
-            Some(result)
-        })))
+        Ok(chunked::stream(self, self.index(topic)?))
     }
 
     fn index(&self, topic: &Topic) -> Result<Vec<MessageRef>, BagError> {
@@ -724,10 +685,6 @@ impl Container for McapBag {
     }
 
     fn read(&self, at: &MessageRef) -> Result<Message, BagError> {
-        if at.offset == NOT_IN_CHUNK {
-            return self.message(at, None);
-        }
-        let chunk = self.cached_chunk(at.locator)?;
-        self.message(at, Some(&chunk))
+        chunked::read(self, at)
     }
 }

@@ -24,12 +24,12 @@
 
 use std::collections::{BTreeMap, HashMap};
 use std::fs::File;
-use std::ops::Range;
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex};
+use std::sync::Mutex;
 
 use memmap2::Mmap;
 
+use crate::chunked::{self, ChunkBytes, Chunked, NOT_IN_CHUNK};
 use crate::raw::{Cursor, RawError, decompress_exact};
 use crate::{BagError, Container, Encoding, Message, MessageRef, ROS1_MAGIC, Topic};
 
@@ -39,8 +39,6 @@ const OP_INDEX_DATA: u8 = 0x04;
 const OP_CHUNK: u8 = 0x05;
 const OP_CHUNK_INFO: u8 = 0x06;
 const OP_CONNECTION: u8 = 0x07;
-/// `MessageRef::offset` of a message outside any chunk (`locator`: its record).
-const NOT_IN_CHUNK: u64 = u64::MAX;
 /// A chunk claiming more than this uncompressed is refused rather than allocated.
 const MAX_CHUNK_BYTES: u64 = 4 << 30;
 const SUPPORTED: &str = "none, bz2, lz4";
@@ -127,13 +125,6 @@ fn next_record<'a>(c: &mut Cursor<'a>) -> Result<Record<'a>, RawError> {
         data,
         data_at,
     })
-}
-
-/// A chunk's records, decompressed or in place.
-#[derive(Clone)]
-enum ChunkBytes {
-    Mapped(Range<usize>),
-    Owned(Arc<[u8]>),
 }
 
 /// One chunk and where its index data records are.
@@ -386,7 +377,7 @@ impl Ros1Bag {
                     Err(BagError::Malformed { .. }) if self.lenient_tail && c.is_empty() => break,
                     Err(e) => return Err(e),
                 };
-                let bytes = self.bytes_of(&chunk);
+                let bytes = self.chunk_slice(&chunk);
                 let mut inner = Cursor::new(bytes, 0);
                 while !inner.is_empty() {
                     let offset = inner.pos() as u64;
@@ -409,6 +400,11 @@ impl Ros1Bag {
             }
         }
         Ok(())
+    }
+
+    /// A chunk's records (its range of the map, or its decompressed bytes).
+    fn chunk_slice<'a>(&'a self, chunk: &'a ChunkBytes) -> &'a [u8] {
+        chunk.bytes(&self.map)
     }
 
     /// The records of the chunk whose record starts at file offset `at`.
@@ -468,21 +464,13 @@ impl Ros1Bag {
         Ok(ChunkBytes::Owned(decoded.into()))
     }
 
-    fn bytes_of<'a>(&'a self, chunk: &'a ChunkBytes) -> &'a [u8] {
-        match chunk {
-            // The range was cut from this map by `chunk_bytes`.
-            ChunkBytes::Mapped(range) => &self.map[range.clone()],
-            ChunkBytes::Owned(bytes) => bytes,
-        }
-    }
-
     /// The message at `at`, from `chunk` (the records of chunk `at.locator`) or, outside
     /// chunks, from the map.
     fn message(&self, at: &MessageRef, chunk: Option<&ChunkBytes>) -> Result<Message, BagError> {
         let mut c = match chunk {
             None => self.cursor_at(at.locator).map_err(|e| self.bad(e))?,
             Some(chunk) => {
-                let bytes = self.bytes_of(chunk);
+                let bytes = self.chunk_slice(chunk);
                 if at.offset >= bytes.len() as u64 {
                     return Err(BagError::malformed(
                         &self.path,
@@ -559,20 +547,6 @@ impl Ros1Bag {
             };
         }
         self.topics = topics.into_values().collect();
-    }
-
-    /// The chunk at `locator` through the shared one-chunk cache.
-    fn cached_chunk(&self, locator: u64) -> Result<ChunkBytes, BagError> {
-        let lock = || self.last_chunk.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some((at, chunk)) = lock().as_ref()
-            && *at == locator
-        {
-            return Ok(chunk.clone());
-        }
-        // Decompressed without the lock: readers of other chunks need not wait.
-        let chunk = self.chunk_bytes(locator)?;
-        *lock() = Some((locator, chunk.clone()));
-        Ok(chunk)
     }
 }
 
@@ -658,6 +632,20 @@ fn scan_record(
     Ok(())
 }
 
+impl Chunked for Ros1Bag {
+    fn chunk_bytes(&self, locator: u64) -> Result<ChunkBytes, BagError> {
+        Ros1Bag::chunk_bytes(self, locator)
+    }
+
+    fn message(&self, at: &MessageRef, chunk: Option<&ChunkBytes>) -> Result<Message, BagError> {
+        Ros1Bag::message(self, at, chunk)
+    }
+
+    fn last_chunk(&self) -> &Mutex<Option<(u64, ChunkBytes)>> {
+        &self.last_chunk
+    }
+}
+
 impl Container for Ros1Bag {
     fn topics(&self) -> &[Topic] {
         &self.topics
@@ -667,31 +655,7 @@ impl Container for Ros1Bag {
         &'a self,
         topic: &Topic,
     ) -> Result<Box<dyn Iterator<Item = Result<Message, BagError>> + Send + 'a>, BagError> {
-        // 24 bytes a message of refs; the data a chunk at a time, through a one-chunk
-        // cache private to this stream.
-        let refs = self.index(topic)?;
-        let mut chunk: Option<(u64, ChunkBytes)> = None;
-        let mut failed = false;
-        Ok(Box::new(refs.into_iter().map_while(move |at| {
-            if failed {
-                return None;
-            }
-            let result = if at.offset == NOT_IN_CHUNK {
-                self.message(&at, None)
-            } else {
-                let cached = match &chunk {
-                    Some((locator, bytes)) if *locator == at.locator => Ok(bytes.clone()),
-                    _ => self.chunk_bytes(at.locator),
-                };
-                cached.and_then(|bytes| {
-                    let message = self.message(&at, Some(&bytes));
-                    chunk = Some((at.locator, bytes));
-                    message
-                })
-            };
-            failed = result.is_err();
-            Some(result)
-        })))
+        Ok(chunked::stream(self, self.index(topic)?))
     }
 
     fn index(&self, topic: &Topic) -> Result<Vec<MessageRef>, BagError> {
@@ -743,10 +707,6 @@ impl Container for Ros1Bag {
     }
 
     fn read(&self, at: &MessageRef) -> Result<Message, BagError> {
-        if at.offset == NOT_IN_CHUNK {
-            return self.message(at, None);
-        }
-        let chunk = self.cached_chunk(at.locator)?;
-        self.message(at, Some(&chunk))
+        chunked::read(self, at)
     }
 }
