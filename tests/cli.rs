@@ -930,5 +930,7 @@ fn bench_table_json_rows_without_data() {
         );
     }
     let skipped = report["skipped"].as_array().unwrap();
-    assert_eq!(skipped.len(), 2, "{skipped:?}");
+    // Localization on balm_os0, the parking-garage pose graph, and the bake from a bag
+    // against balm_os0's files.
+    assert_eq!(skipped.len(), 3, "{skipped:?}");
 }
