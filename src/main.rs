@@ -7,6 +7,7 @@ mod data_dir;
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
+use tracing_subscriber::util::SubscriberInitExt;
 
 /// kfmap: a keyframe point-cloud map server for LiDAR localization.
 #[derive(Parser)]
@@ -28,6 +29,7 @@ enum Command {
     Register(commands::register::Args),
     Simulate(commands::simulate::Args),
     Demo(commands::demo::Args),
+    Gateway(commands::gateway::Args),
     Gravity(commands::gravity::Args),
     Localize(commands::localize::Args),
     Query(commands::query::Args),
@@ -43,15 +45,30 @@ fn main() -> ExitCode {
         .ok()
         .and_then(|l| l.parse().ok())
         .unwrap_or(tracing::Level::INFO);
-    tracing_subscriber::fmt()
-        .with_writer(std::io::stderr)
-        // Colour codes only for a person at a terminal, never in a log file or pipe.
-        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
-        // A closed stderr must not panic a server: its own report of the failed write
-        // would go to the same stderr.
-        .log_internal_errors(false)
-        .with_max_level(level)
-        .init();
+    // Zenoh (remote clients, the gateway) says what it does at info level: its own
+    // lines only from warnings, unless KFMAP_LOG asks for debug.
+    // (tracing orders levels by verbosity: TRACE > DEBUG > INFO > WARN > ERROR.)
+    let zenoh_level = if level >= tracing::Level::DEBUG {
+        level
+    } else {
+        level.min(tracing::Level::WARN)
+    };
+    let filter = tracing_subscriber::filter::Targets::new()
+        .with_default(level)
+        .with_target("zenoh", zenoh_level);
+    tracing_subscriber::layer::SubscriberExt::with(
+        tracing_subscriber::fmt()
+            .with_writer(std::io::stderr)
+            // Colour codes only for a person at a terminal, never in a log file or pipe.
+            .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+            // A closed stderr must not panic a server: its own report of the failed write
+            // would go to the same stderr.
+            .log_internal_errors(false)
+            .with_max_level(level)
+            .finish(),
+        filter,
+    )
+    .init();
     // iceoryx2's own warnings, one line per kind of event with a count, never per event.
     kfmap_protocol::log_limit::install();
     // A closed output pipe (`kfmap ... | head`) ends the process quietly (status 141)
@@ -60,7 +77,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse(); // Usage errors exit with code 2 and a message from clap.
     if matches!(
         cli.command,
-        Command::Serve(_) | Command::Demo(_) | Command::Bench(_)
+        Command::Serve(_) | Command::Gateway(_) | Command::Demo(_) | Command::Bench(_)
     ) {
         // These own a server, child processes or shared memory to clean up: a signal
         // death would skip that, so a broken pipe stays an I/O error here.
@@ -77,6 +94,7 @@ fn main() -> ExitCode {
         Command::Register(args) => commands::register::run(args),
         Command::Simulate(args) => commands::simulate::run(args),
         Command::Demo(args) => commands::demo::run(args),
+        Command::Gateway(args) => commands::gateway::run(args),
         Command::Gravity(args) => commands::gravity::run(args),
         Command::Localize(args) => commands::localize::run(args),
         Command::Query(args) => commands::query::run(args),

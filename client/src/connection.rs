@@ -10,8 +10,8 @@ use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::prelude::PortFactory;
 use kfmap_protocol::transport::{
-    ALLOCATION, INITIAL_SLICE_LEN, Transport, TransportError, create_node, iceoryx_config, iox,
-    no_room_for_client, open_request_event, open_response_event, open_rpc,
+    ALLOCATION, INITIAL_SLICE_LEN, Transport, create_node, iceoryx_config, iox, no_room_for_client,
+    open_request_event, open_response_event, open_rpc,
 };
 use kfmap_shared::cov::CovOptions;
 use std::mem::MaybeUninit;
@@ -74,15 +74,26 @@ struct Ports {
 
 /// A connection to the server of one map.
 pub struct Connection {
-    node: Node<Transport>,
+    link: Link,
     map_name: String,
     options: ClientOptions,
-    ports: Option<Ports>,
     client_node: [u64; 2],
     next_request_id: u64,
     /// The server's `[covariance]` from its status report, once asked; forgotten on
     /// reconnection (a restarted server may be configured otherwise).
     pub(crate) served_covariance: Option<CovOptions>,
+}
+
+/// How requests travel: iceoryx2 on the host, or Zenoh to a gateway on another host.
+// One per connection, never moved on the hot path: no box for the large local ports.
+#[allow(clippy::large_enum_variant)]
+enum Link {
+    Local {
+        node: Node<Transport>,
+        ports: Option<Ports>,
+    },
+    #[cfg(feature = "remote")]
+    Remote(crate::remote::RemoteLink),
 }
 
 impl Connection {
@@ -92,10 +103,9 @@ impl Connection {
         let node = create_node(&config, "kfmap-client")?;
         let id = node.id().value();
         let mut connection = Self {
-            node,
+            link: Link::Local { node, ports: None },
             map_name: map_name.to_string(),
             options,
-            ports: None,
             client_node: [(id >> 64) as u64, id as u64],
             next_request_id: 1,
             served_covariance: None,
@@ -105,6 +115,32 @@ impl Connection {
             return Err(ClientError::NoServer(map_name.to_string()));
         }
         Ok(connection)
+    }
+
+    /// Connects to the server of `map_name` on another host, through the `kfmap gateway`
+    /// at `remote`'s endpoints; fails with `NoServer` when the gateway announces no live
+    /// server for the map's tile.
+    #[cfg(feature = "remote")]
+    pub fn connect_remote(
+        map_name: &str,
+        remote: &crate::remote::RemoteOptions,
+        options: ClientOptions,
+    ) -> Result<Self, ClientError> {
+        let link = crate::remote::RemoteLink::open(map_name, remote)?;
+        Ok(Self {
+            link: Link::Remote(link),
+            map_name: map_name.to_string(),
+            options,
+            // The gateway gives each remote client a session of its own on its server.
+            client_node: [0; 2],
+            next_request_id: 1,
+            served_covariance: None,
+        })
+    }
+
+    /// True when requests travel to another host (through a gateway).
+    pub fn is_remote(&self) -> bool {
+        !matches!(self.link, Link::Local { .. })
     }
 
     /// This client's node id, as it writes it into every request's `client_node`.
@@ -128,11 +164,16 @@ impl Connection {
         self.options.timeout
     }
 
-    fn ports(&mut self) -> Result<&Ports, TransportError> {
-        if self.ports.is_none() {
-            let service = open_rpc(&self.node, &self.map_name)?;
+    fn ports(&mut self) -> Result<(&Node<Transport>, &Ports), ClientError> {
+        let Link::Local { node, ports } = &mut self.link else {
+            return Err(ClientError::Invalid(
+                "this request needs a connection on the server's host (iceoryx2)".into(),
+            ));
+        };
+        if ports.is_none() {
+            let service = open_rpc(node, &self.map_name)?;
             if let Some(e) = no_room_for_client(&service, &self.map_name, std::process::id()) {
-                return Err(e);
+                return Err(e.into());
             }
             let rpc = service
                 .client_builder()
@@ -144,27 +185,33 @@ impl Connection {
                     no_room_for_client(&service, &self.map_name, std::process::id())
                         .unwrap_or_else(|| iox("create the client port")(e))
                 })?;
-            let requests = open_request_event(&self.node, &self.map_name)?
+            let requests = open_request_event(node, &self.map_name)?
                 .notifier_builder()
                 .create()
                 .map_err(iox("create the request notifier"))?;
-            let responses = open_response_event(&self.node, &self.map_name)?
+            let responses = open_response_event(node, &self.map_name)?
                 .listener_builder()
                 .create()
                 .map_err(iox("create the response listener"))?;
-            self.ports = Some(Ports {
+            *ports = Some(Ports {
                 rpc,
                 requests,
                 responses,
             });
         }
-        Ok(self.ports.as_ref().expect("set above"))
+        Ok((node, ports.as_ref().expect("set above")))
     }
 
     /// True when a server is attached to the map's service.
     pub fn server_present(&mut self) -> Result<bool, ClientError> {
-        let rpc = open_rpc(&self.node, &self.map_name)?;
-        Ok(rpc.dynamic_config().number_of_servers() > 0)
+        match &self.link {
+            Link::Local { node, .. } => {
+                let rpc = open_rpc(node, &self.map_name)?;
+                Ok(rpc.dynamic_config().number_of_servers() > 0)
+            }
+            #[cfg(feature = "remote")]
+            Link::Remote(link) => Ok(link.alive()),
+        }
     }
 
     /// Sends one request (`fill` writes the `len` payload floats, zeroed first) and
@@ -254,7 +301,7 @@ impl Connection {
         header.client_node = self.client_node;
         header.request_id = self.next_request_id;
         self.next_request_id += 1;
-        let ports = self.ports()?;
+        let (_, ports) = self.ports()?;
         let mut request = ports
             .rpc
             .loan_slice_uninit(len)
@@ -281,6 +328,23 @@ impl Connection {
         init: impl FnOnce(&mut RequestHeader, &mut [MaybeUninit<f32>]) -> usize,
         read: impl FnOnce(&ResponseHeader, &[WirePairing]) -> R,
     ) -> Result<R, ClientError> {
+        #[cfg(feature = "remote")]
+        if let Link::Remote(_) = self.link {
+            return self.send_and_wait_remote(header, len, init, read);
+        }
+        self.wait_answer(header, len, init, read, true)
+    }
+
+    /// Sends over iceoryx2 and waits; `check`: error statuses become `Rejected` (else
+    /// `read` sees every answer).
+    fn wait_answer<R>(
+        &mut self,
+        header: RequestHeader,
+        len: usize,
+        init: impl FnOnce(&mut RequestHeader, &mut [MaybeUninit<f32>]) -> usize,
+        read: impl FnOnce(&ResponseHeader, &[WirePairing]) -> R,
+        check: bool,
+    ) -> Result<R, ClientError> {
         let timeout = self.options.timeout;
         let spin = self.options.spin;
         let (pending, ports) = self.send(header, len, init)?;
@@ -293,7 +357,9 @@ impl Connection {
             match pending.receive() {
                 Ok(Some(response)) => {
                     let header = response.user_header();
-                    check_status(header)?;
+                    if check {
+                        check_status(header)?;
+                    }
                     return Ok(read(header, response.payload()));
                 }
                 Ok(None) if gone => {
@@ -326,11 +392,61 @@ impl Connection {
         })
     }
 
+    /// As [`Self::send_and_wait`] over the remote link: the request is written into a
+    /// frame, sent as a Zenoh query, and the answer frame read back.
+    #[cfg(feature = "remote")]
+    fn send_and_wait_remote<R>(
+        &mut self,
+        mut header: RequestHeader,
+        len: usize,
+        init: impl FnOnce(&mut RequestHeader, &mut [MaybeUninit<f32>]) -> usize,
+        read: impl FnOnce(&ResponseHeader, &[WirePairing]) -> R,
+    ) -> Result<R, ClientError> {
+        header.client_node = self.client_node;
+        header.request_id = self.next_request_id;
+        self.next_request_id += 1;
+        let mut payload = vec![MaybeUninit::new(0.0f32); len];
+        let written = init(&mut header, &mut payload);
+        assert_eq!(written, len, "a request's payload is written whole");
+        // SAFETY: every element was initialized (zero-filled above, then written), and
+        // `MaybeUninit<f32>` has the layout of `f32`.
+        let floats = unsafe { &*(payload.as_slice() as *const [MaybeUninit<f32>] as *const [f32]) };
+        let frame = kfmap_protocol::remote::encode_request(&header, floats);
+        let Link::Remote(link) = &self.link else {
+            unreachable!("called for remote links only")
+        };
+        let answer = link.call(frame, self.options.timeout)?;
+        let (header, pairings) = kfmap_protocol::remote::decode_answer(&answer)
+            .map_err(|e| ClientError::Remote(format!("the gateway's answer: {e}")))?;
+        check_status(&header)?;
+        Ok(read(&header, &pairings))
+    }
+
+    /// Sends a request exactly as given (its version and fields; `client_node` and
+    /// `request_id` are this connection's) with `payload`, and hands the answer to `read`
+    /// in place, whatever its status. What a gateway does for its remote clients.
+    pub fn forward<R>(
+        &mut self,
+        header: RequestHeader,
+        payload: &[f32],
+        read: impl FnOnce(&ResponseHeader, &[WirePairing]) -> R,
+    ) -> Result<R, ClientError> {
+        let init = |_: &mut RequestHeader, loan: &mut [MaybeUninit<f32>]| {
+            for (slot, value) in loan.iter_mut().zip(payload) {
+                *slot = MaybeUninit::new(*value);
+            }
+            payload.len().min(loan.len())
+        };
+        self.wait_answer(header, payload.len(), init, read, false)
+    }
+
     /// Cleans up dead nodes (e.g. a killed server) and rebuilds the ports on next use.
     pub fn reconnect(&mut self) {
-        self.ports = None;
         self.served_covariance = None;
-        self.node.try_cleanup_dead_nodes();
+        if let Link::Local { node, ports } = &mut self.link {
+            *ports = None;
+            node.try_cleanup_dead_nodes();
+        }
     }
 }
 

@@ -14,7 +14,7 @@ pub enum ClientError {
     Transport(#[from] TransportError),
     /// No server serves this map name (under this iceoryx2 prefix).
     #[error(
-        "no kfmap server serves map {0:?}; start one with `kfmap serve --map FILE --map-name {0}` (same --iceoryx-prefix)"
+        "no kfmap server serves map {0:?}; start one with `kfmap serve --map FILE --map-name NAME` (same --iceoryx-prefix; for a remote client also `kfmap gateway --map-name NAME` on the server's host)"
     )]
     NoServer(String),
     /// No answer within the timeout; the connection is rebuilt for the next call.
@@ -46,6 +46,10 @@ pub enum ClientError {
     /// Client-side registration failed.
     #[error(transparent)]
     Registration(#[from] RegistrationError),
+    /// The remote link (Zenoh) failed: no gateway reachable, a bad Zenoh configuration, or
+    /// the gateway could not use its local server.
+    #[error("remote: {0}")]
+    Remote(String),
     /// A parameter of the call is out of range.
     #[error("{0}")]
     Invalid(String),

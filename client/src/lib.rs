@@ -13,12 +13,17 @@
 //! println!("{} map points, status {:?}", found.len(), client.status()?.sessions);
 //! # Ok::<(), kfmap_client::ClientError>(())
 //! ```
+//!
+//! With the `remote` feature, [`Client::remote`] reaches a server on another host
+//! through its `kfmap gateway` (Zenoh), with the same calls and errors.
 #![warn(missing_docs)]
 
 mod connection;
 mod error;
 mod localize;
 mod relocalize;
+#[cfg(feature = "remote")]
+pub mod remote;
 mod tracker;
 
 pub use connection::{ClientOptions, Connection, Response};
@@ -161,6 +166,32 @@ impl Client {
     pub fn connect(map_name: &str, options: ClientOptions) -> Result<Self, ClientError> {
         Ok(Self {
             connection: Connection::connect(map_name, options)?,
+        })
+    }
+
+    /// Connects to the server of `map_name` on another host through the `kfmap gateway`
+    /// at `endpoint` (a Zenoh endpoint such as `tcp/10.0.0.5:7447`; several separated by
+    /// commas). The same calls and errors as [`Client::connect`]; a [`Tracker`] works over
+    /// it unchanged.
+    #[cfg(feature = "remote")]
+    pub fn remote(
+        endpoint: &str,
+        map_name: &str,
+        options: ClientOptions,
+    ) -> Result<Self, ClientError> {
+        Self::remote_with(&remote::RemoteOptions::new(endpoint), map_name, options)
+    }
+
+    /// As [`Client::remote`] with every remote option (Zenoh config file for TLS, client
+    /// id, tile).
+    #[cfg(feature = "remote")]
+    pub fn remote_with(
+        remote: &remote::RemoteOptions,
+        map_name: &str,
+        options: ClientOptions,
+    ) -> Result<Self, ClientError> {
+        Ok(Self {
+            connection: Connection::connect_remote(map_name, remote, options)?,
         })
     }
 

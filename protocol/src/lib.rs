@@ -15,6 +15,7 @@
 
 mod decode;
 pub mod log_limit;
+pub mod remote;
 pub mod transport;
 mod wire;
 

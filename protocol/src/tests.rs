@@ -307,3 +307,117 @@ fn covariance_options_round_trip_through_a_status_report() {
         None
     );
 }
+
+mod remote_frames {
+    use super::*;
+    use crate::remote::*;
+
+    #[test]
+    fn request_frames_carry_the_header_and_payload_bytes_at_their_documented_offsets() {
+        let header = RequestHeader {
+            kind: RequestKind::Localize as u32,
+            request_id: 0x0102_0304_0506_0708,
+            point_count: 2,
+            stamp: 12.5,
+            ..Default::default()
+        };
+        let payload = [1.0f32, -2.0, 3.5, 4.0, 5.0, 6.0];
+        let frame = encode_request(&header, &payload);
+        // The layout documented on `RequestHeader`: 152 bytes, request_id at 8, stamp at 144.
+        assert_eq!(frame.len(), 152 + 24);
+        assert_eq!(frame[8..16], 0x0102_0304_0506_0708u64.to_le_bytes());
+        assert_eq!(frame[144..152], 12.5f64.to_le_bytes());
+        assert_eq!(frame[152..156], 1.0f32.to_le_bytes());
+        // Read back from an unaligned copy.
+        let mut shifted = vec![0u8];
+        shifted.extend_from_slice(&frame);
+        let (h, p) = decode_request(&shifted[1..], 1 << 20).unwrap();
+        assert_eq!(h, header);
+        assert_eq!(p, payload);
+    }
+
+    #[test]
+    fn bad_request_frames_are_refused_with_the_reason() {
+        let frame = encode_request(&RequestHeader::default(), &[1.0, 2.0]);
+        assert!(matches!(
+            decode_request(&frame[..100], 1 << 20),
+            Err(FrameError::Short {
+                len: 100,
+                header: 152,
+                ..
+            })
+        ));
+        assert!(matches!(
+            decode_request(&frame[..frame.len() - 1], 1 << 20),
+            Err(FrameError::Ragged { len: 7, .. })
+        ));
+        assert!(matches!(
+            decode_request(&frame, 159),
+            Err(FrameError::TooLarge { limit: 159, .. })
+        ));
+    }
+
+    #[test]
+    fn answer_frames_round_trip_and_refuse_partial_pairings() {
+        let mut header = ResponseHeader::refusal(9, StatusCode::Busy, "slots");
+        header.pose = [1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0];
+        let pairings = [WirePairing {
+            query: 3,
+            keyframe: 7,
+            point: [1.0, 2.0, 3.0],
+            dist_sq: 0.25,
+            ..Default::default()
+        }; 3];
+        let frame = encode_answer(&header, &pairings);
+        assert_eq!(frame.len(), answer_frame_len(3));
+        assert_eq!(frame.len(), 3232 + 3 * 56);
+        let (h, p) = decode_answer(&frame).unwrap();
+        assert_eq!(h, header);
+        assert_eq!(h.message(), "slots");
+        assert_eq!(StatusCode::from_code(h.status), StatusCode::Busy);
+        assert_eq!(p, pairings);
+        assert!(matches!(
+            decode_answer(&frame[..frame.len() - 8]),
+            Err(FrameError::Ragged { .. })
+        ));
+    }
+
+    #[test]
+    fn keys_name_map_version_tile_and_client() {
+        let v = PROTOCOL_VERSION;
+        assert_eq!(
+            rpc_key("site", "t3_-2", "robot7"),
+            format!("kfmap/site/v{v}/t3_-2/rpc/robot7")
+        );
+        assert_eq!(
+            client_of_rpc_key(&rpc_key("site", "whole", "r1")),
+            Some("r1")
+        );
+        assert_eq!(client_of_rpc_key("kfmap/site/v7/whole/alive"), None);
+        assert_eq!(
+            tile_of_alive_key("site", &alive_key("site", "t0_0")),
+            Some("t0_0")
+        );
+        assert_eq!(tile_of_alive_key("other", &alive_key("site", "t0_0")), None);
+        for bad in ["", "a/b", "a*", "$x", "q?", "#"] {
+            assert!(check_key_chunk("map name", bad).is_err(), "{bad:?}");
+        }
+        assert!(check_key_chunk("map name", "campus-2.v3").is_ok());
+    }
+
+    #[test]
+    fn failure_replies_read_back_as_their_kind() {
+        for f in [
+            RemoteFailure::NoServer,
+            RemoteFailure::Disconnected,
+            RemoteFailure::Timeout,
+            RemoteFailure::Gateway,
+        ] {
+            assert_eq!(
+                RemoteFailure::parse(&f.reply("why: because")),
+                (f, "why: because")
+            );
+        }
+        assert_eq!(RemoteFailure::parse("garbage").0, RemoteFailure::Gateway);
+    }
+}

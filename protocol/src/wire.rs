@@ -2,6 +2,9 @@
 //! protocol version, so clients built on iceoryx2's C, C++ or Python bindings can speak
 //! the protocol (docs/DESIGN.md#protocol).
 
+// `Pod` fails to compile on any padding: the byte frames of remote requests
+// (crate::remote) rely on it.
+use bytemuck::{Pod, Zeroable};
 use iceoryx2::prelude::ZeroCopySend;
 use kfmap_shared::cov::{CovCenter, CovOptions};
 
@@ -25,7 +28,7 @@ pub const STATUS_SESSIONS: usize = 16;
 /// max_pair_dist 108, max_iterations 112, max_correction 116 (was `reserved` in
 /// protocol 2), keyframe_or_scan_id 120, imu_t0 128, expected_inlier_ratio 136 (new
 /// in protocol 3), reserved 140, stamp 144 (new in protocol 4).
-#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend, Pod, Zeroable)]
 #[repr(C)]
 #[type_name("kfmap::RequestHeader")]
 pub struct RequestHeader {
@@ -114,7 +117,7 @@ impl Default for RequestHeader {
 ///
 /// Layout (56 bytes): query 0, local_index 4, keyframe 8, point 16, dist_sq 28,
 /// information 32.
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Pod, Zeroable)]
 #[repr(C)]
 #[type_name("kfmap::WirePairing")]
 pub struct WirePairing {
@@ -145,9 +148,9 @@ pub struct WirePairing {
 /// gravity_pending 696, gravity_skipped 700, bias_observable 704, gravity_reserved
 /// 708, gravity_spread_deg 712, accel_bias 720, accel_bias_sigma 744, map_keyframes
 /// 768, map_points 776, uptime_s 784, counts 792, p50_us 872, p99_us 912, sessions
-/// 952, in_flight 956, map_name_len 960, map_name 964, message 1028, session_gravity
+/// 952, in_flight 956, map_name_len 960, map_name 964, message 1028, message_reserved 1268, session_gravity
 /// 1272 (new in protocol 4), scan_covariance 3192 (new in protocol 7).
-#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend, Pod, Zeroable)]
 #[repr(C)]
 #[type_name("kfmap::ResponseHeader")]
 pub struct ResponseHeader {
@@ -262,6 +265,9 @@ pub struct ResponseHeader {
     pub map_name: [u8; NAME_LEN],
     /// Status message (UTF-8).
     pub message: [u8; MESSAGE_LEN],
+    /// Reserved, zero: the four bytes before `session_gravity` that `#[repr(C)]` would
+    /// pad anyway, named so every byte of the header is defined.
+    pub message_reserved: u32,
     /// `Status`: the gravity pool of each session (the first `min(sessions, 16)`, by
     /// client id); unused slots are zero.
     pub session_gravity: [WireSessionGravity; STATUS_SESSIONS],
@@ -276,7 +282,7 @@ pub struct ResponseHeader {
 ///
 /// Layout (40 bytes): k_correspondences 0, min_correspondences 4, center 8, reserved
 /// 12, max_distance 16, lambda 24, max_plane_deviation 32.
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Pod, Zeroable)]
 #[repr(C)]
 #[type_name("kfmap::WireCovOptions")]
 pub struct WireCovOptions {
@@ -338,7 +344,7 @@ impl WireCovOptions {
 /// Layout (120 bytes): client_node 0, members 16, compensated 20, pending 24, skipped
 /// 28, inliers 32, has_gravity 36, bias_observable 40, busy 44, roll_pitch 48,
 /// spread_deg 64, accel_bias 72, gravity 96.
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Pod, Zeroable)]
 #[repr(C)]
 #[type_name("kfmap::WireSessionGravity")]
 pub struct WireSessionGravity {
@@ -421,6 +427,7 @@ impl Default for ResponseHeader {
             map_name_len: 0,
             map_name: [0; NAME_LEN],
             message: [0; MESSAGE_LEN],
+            message_reserved: 0,
             session_gravity: [WireSessionGravity::default(); STATUS_SESSIONS],
             scan_covariance: WireCovOptions::default(),
         }
@@ -458,5 +465,16 @@ impl ResponseHeader {
     /// Sets the status message.
     pub fn set_message(&mut self, text: &str) {
         self.message_len = write_text(&mut self.message, text);
+    }
+
+    /// An answer refusing request `request_id` with `status` and `message`.
+    pub fn refusal(request_id: u64, status: super::StatusCode, message: &str) -> Self {
+        let mut header = Self {
+            status: status as u32,
+            request_id,
+            ..Default::default()
+        };
+        header.set_message(message);
+        header
     }
 }

@@ -391,6 +391,7 @@ fn wire_layouts() -> Vec<Layout> {
             map_name_len,
             map_name,
             message,
+            message_reserved,
             session_gravity,
             scan_covariance,
         }),

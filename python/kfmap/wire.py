@@ -248,7 +248,7 @@ class ResponseHeader(C.Structure):
         ("counts", u64 * KIND_SLOTS), ("p50_us", f32 * KIND_SLOTS),
         ("p99_us", f32 * KIND_SLOTS), ("sessions", u32), ("in_flight", u32),
         ("map_name_len", u32), ("map_name", C.c_uint8 * NAME_LEN),
-        ("message", C.c_uint8 * MESSAGE_LEN),
+        ("message", C.c_uint8 * MESSAGE_LEN), ("message_reserved", u32),
         ("session_gravity", WireSessionGravity * STATUS_SESSIONS),
         ("scan_covariance", WireCovOptions),
     ]

@@ -1,7 +1,11 @@
-//! The arguments every client subcommand (`localize`, `query`, `status`) connects with.
+//! The arguments every client subcommand (`localize`, `query`, `relocalize`, `status`)
+//! connects with: a server on this host (iceoryx2) or, with `--remote`, on another host
+//! through its `kfmap gateway` (Zenoh).
 
+use std::path::PathBuf;
 use std::time::Duration;
 
+use kfmap_client::remote::RemoteOptions;
 use kfmap_client::{Client, ClientOptions};
 
 /// Which server to talk to.
@@ -16,6 +20,13 @@ pub struct ConnectArgs {
     /// iceoryx2 prefix (the server's).
     #[arg(long)]
     pub iceoryx_prefix: Option<String>,
+    /// Reach the server on another host through its `kfmap gateway`: the gateway's Zenoh
+    /// endpoint, e.g. tcp/10.0.0.5:7447 (several separated by commas).
+    #[arg(long, value_name = "ENDPOINT")]
+    pub remote: Option<String>,
+    /// With --remote: a Zenoh config file (JSON5) for TLS, mutual TLS or other settings.
+    #[arg(long, requires = "remote")]
+    pub zenoh_config: Option<PathBuf>,
 }
 
 impl ConnectArgs {
@@ -27,13 +38,18 @@ impl ConnectArgs {
                 self.timeout
             );
         }
-        Ok(Client::connect(
-            &self.map_name,
-            ClientOptions {
-                iceoryx_prefix: self.iceoryx_prefix.clone(),
-                timeout: Duration::from_secs_f64(self.timeout),
-                spin: false,
-            },
-        )?)
+        let options = ClientOptions {
+            iceoryx_prefix: self.iceoryx_prefix.clone(),
+            timeout: Duration::from_secs_f64(self.timeout),
+            spin: false,
+        };
+        Ok(match &self.remote {
+            Some(endpoint) => {
+                let mut remote = RemoteOptions::new(endpoint);
+                remote.zenoh_config = self.zenoh_config.clone();
+                Client::remote_with(&remote, &self.map_name, options)?
+            }
+            None => Client::connect(&self.map_name, options)?,
+        })
     }
 }

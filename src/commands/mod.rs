@@ -5,6 +5,7 @@ pub mod bench;
 mod cloud_summary;
 mod connect_arg;
 pub mod demo;
+pub mod gateway;
 pub mod gravity;
 pub mod inspect;
 pub mod inspect_bag;
