@@ -245,6 +245,7 @@ fn header_layouts_are_the_documented_ones() {
         map_name_len = 960,
         map_name = 964,
         message = 1028,
+        message_reserved = 1268,
         session_gravity = 1272,
         scan_covariance = 3192
     );

@@ -83,6 +83,36 @@ class Client:
     ) -> None:
         self._conn = Connection(map_name, iceoryx_prefix, timeout)
 
+    @classmethod
+    def remote(
+        cls,
+        endpoint: str,
+        map_name: str,
+        *,
+        timeout: float = 5.0,
+        zenoh_config: str | None = None,
+        client_id: str | None = None,
+        tile: str = "whole",
+    ) -> "Client":
+        """A client of the server of ``map_name`` on another host, through the ``kfmap
+        gateway`` at ``endpoint`` (a Zenoh endpoint such as ``tcp/10.0.0.5:7447``; several
+        separated by commas): the same calls and errors as a local client. Needs the
+        ``eclipse-zenoh`` package (``pip install 'kfmap[remote]'``); ``zenoh_config`` is a
+        Zenoh JSON5 file for TLS or mutual TLS.
+
+        Raises:
+            NoServerError: the gateway announces no live server for the map.
+            TransportError: no gateway answers at ``endpoint``.
+        """
+        from .remote import RemoteConnection
+
+        client = cls.__new__(cls)
+        client._conn = RemoteConnection(
+            map_name, endpoint, timeout, zenoh_config=zenoh_config, client_id=client_id,
+            tile=tile,
+        )
+        return client
+
     def __enter__(self) -> "Client":
         return self
 

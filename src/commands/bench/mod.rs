@@ -14,6 +14,7 @@ mod load;
 mod localization;
 mod pose_graph;
 mod registration;
+mod remote;
 mod soak;
 mod soak_client;
 mod suite;
@@ -33,7 +34,7 @@ use anyhow::{Context, bail};
 /// data: per-point covariances, cov2cov per scan (approximate, exact on a new active
 /// set, exact cached), GICP per scan pair, pose-graph optimization, cold start against
 /// rebuild and bake throughput (`load`), IPC round trips of 1k/10k/100k points and
-/// cov2cov throughput (`ipc`), and localization per scan with its error on the real
+/// cov2cov throughput (`ipc`), remote against local localize (`remote`), and localization per scan with its error on the real
 /// sequence balm_os0. Real data comes from ../shared/data (or $KFMAP_DATA_DIR); without
 /// it, synthetic scans stand in and rows that need it are listed as skipped. About 75 s
 /// on 2 cores; --quick (fewer repetitions, a 40-keyframe generated map) under a
@@ -53,6 +54,13 @@ use anyhow::{Context, bail};
 /// over IPC against the same call in process; and cov2cov throughput of one client
 /// against four client processes at once (scans/s, p99). --spin makes server and
 /// client poll instead of sleeping on events.
+///
+/// `kfmap bench remote` (run it inside `unshare -rn`, as the table does: network
+/// benchmarks stay on a private loopback) starts `kfmap serve` and `kfmap gateway` on the
+/// same synthetic map and measures server-side localize of a 20k-point scan through the
+/// gateway (Zenoh over TCP) against the same request over iceoryx2, alternated request
+/// by request (median, p99 as JSON), then the throughput of 4 clients each way. Without
+/// user namespaces the table lists these rows as skipped.
 ///
 /// `kfmap bench soak` starts `kfmap serve` on the same synthetic map and --clients
 /// client processes, each sending --rate requests per second for --seconds: scans of
@@ -102,6 +110,9 @@ enum What {
     Ipc(IpcArgs),
     /// Many clients for minutes against one server.
     Soak(SoakArgs),
+    /// Server-side localize through `kfmap gateway` against the same over iceoryx2 (run
+    /// it in a private network namespace: `unshare -rn`, as the table does).
+    Remote,
     /// Stream, then decode, every PointCloud2 of a bag: seconds and GB/s as JSON (the
     /// rosbags anchor script runs it beside its own reader on the same file).
     BagRead { file: PathBuf },
@@ -192,6 +203,7 @@ pub fn run(args: Args, process_start: Instant) -> anyhow::Result<()> {
             load::run(&dir()?, size, load.keep, args.json)
         }
         Some(What::Ipc(ipc)) => ipc::run(&dir()?, ipc.spin, args.quick, args.json),
+        Some(What::Remote) => remote::run(&dir()?, args.quick),
         Some(What::Soak(soak)) => {
             let plan = soak::SoakPlan {
                 clients: soak.clients as usize,

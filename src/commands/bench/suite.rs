@@ -13,6 +13,7 @@ use super::load;
 use super::localization;
 use super::pose_graph;
 use super::registration;
+use super::remote;
 use super::table::Table;
 use crate::data_dir::shared_data_dir;
 
@@ -27,6 +28,7 @@ pub(super) fn run(quick: bool, json_out: bool, dir: &Path) -> anyhow::Result<()>
     pose_graph::measure(&mut table, data.as_deref())?;
     load::table_rows(&mut table, dir)?;
     ipc::table_rows(&mut table, dir)?;
+    remote::table_rows(&mut table, dir)?;
     localization::measure(&mut table, data.as_deref(), dir)?;
     bags::measure(&mut table, data.as_deref(), dir)?;
     table.finish();
