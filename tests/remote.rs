@@ -146,8 +146,106 @@ mod in_namespace {
             back,
             "no answer within 1000 tries after the gateway's restart"
         );
+        mutual_tls_and_access_control_as_shipped(&dir, &prefix.0);
         drop(server);
     }
+}
+
+/// The shipped `config/zenoh-gateway-mtls.json5` and `zenoh-robot-mtls.json5`, with
+/// certificates made here by openssl: robot7 is answered on its own key, refused on
+/// another robot's, and a client without a certificate or without TLS gets nothing.
+fn mutual_tls_and_access_control_as_shipped(dir: &Path, prefix: &str) {
+    let test = "mutual_tls_and_access_control_as_shipped";
+    let openssl = Command::new("openssl").arg("version").output().is_ok();
+    if require_capability(openssl, "openssl to make test certificates", test).is_none() {
+        return;
+    }
+    let certs = dir.join("certs");
+    std::fs::create_dir_all(&certs).unwrap();
+    let sh = |script: &str| {
+        let out = Command::new("sh")
+            .args(["-c", script])
+            .current_dir(&certs)
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{script}: {}", stderr(&out));
+    };
+    sh(
+        "openssl req -x509 -newkey rsa:2048 -nodes -keyout ca-key.pem -out ca.pem -days 2 -subj /CN=kfmap-test-ca",
+    );
+    for (name, ext) in [
+        ("gateway", "subjectAltName=DNS:localhost,IP:127.0.0.1"),
+        (
+            "robot7",
+            "basicConstraints=CA:FALSE\\nextendedKeyUsage=clientAuth",
+        ),
+    ] {
+        sh(&format!(
+            "openssl req -newkey rsa:2048 -nodes -keyout {name}-key.pem -out {name}.csr -subj /CN={name} && \
+             printf '{ext}\\n' > {name}.ext && \
+             openssl x509 -req -in {name}.csr -CA ca.pem -CAkey ca-key.pem -CAcreateserial -out {name}.pem -days 2 -extfile {name}.ext"
+        ));
+    }
+    let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let gateway_json = repo.join("config/zenoh-gateway-mtls.json5");
+    let robot_json = repo.join("config/zenoh-robot-mtls.json5");
+    let tls = "tls/localhost:17451";
+    let mut child = Command::new(common::kfmap_bin())
+        .args(["gateway", "--map-name", "court", "--iceoryx-prefix", prefix])
+        .args([
+            "--listen",
+            tls,
+            "--zenoh-config",
+            gateway_json.to_str().unwrap(),
+        ])
+        .current_dir(dir)
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stdout = child.stdout.take().unwrap();
+    let _gateway = Gateway(child);
+    let mut line = String::new();
+    BufReader::new(stdout).read_line(&mut line).unwrap();
+    assert!(line.starts_with("ready: gateway"), "{line:?}");
+    let status = |endpoint: &str, config: Option<&Path>, id: &str| {
+        let mut args = vec!["status", "--remote", endpoint, "--map-name", "court"];
+        args.extend(["--client-id", id]);
+        if let Some(c) = config {
+            args.extend(["--zenoh-config", c.to_str().unwrap()]);
+        }
+        Command::new(common::kfmap_bin())
+            .args(&args)
+            .current_dir(dir)
+            .output()
+            .unwrap()
+    };
+    let out = status(tls, Some(&robot_json), "robot7");
+    assert!(out.status.success(), "robot7: {}", stderr(&out));
+    let out = status(tls, Some(&robot_json), "robot8");
+    assert_eq!(out.status.code(), Some(2));
+    assert!(
+        stderr(&out).contains("access control list may deny"),
+        "{}",
+        stderr(&out)
+    );
+    let ca_only = dir.join("ca-only.json5");
+    std::fs::write(
+        &ca_only,
+        "{transport:{link:{tls:{root_ca_certificate:\"certs/ca.pem\"}}}}",
+    )
+    .unwrap();
+    let out = status(tls, Some(&ca_only), "robot7");
+    assert_eq!(
+        out.status.code(),
+        Some(2),
+        "no client certificate: {}",
+        stderr(&out)
+    );
+    let out = status("tcp/127.0.0.1:17451", None, "robot7");
+    assert_eq!(out.status.code(), Some(2), "plain TCP: {}", stderr(&out));
+    println!(
+        "mutual TLS and ACL as shipped: robot7 answered; robot8, no certificate, plain TCP refused"
+    );
 }
 
 /// Nothing but `lo` in this namespace: no address outside loopback can be reached.

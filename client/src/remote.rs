@@ -17,6 +17,9 @@ use crate::error::ClientError;
 /// How a pending answer is watched: the token check runs this often, so a client learns
 /// of a dead server within about this long after its gateway withdraws the token.
 const WATCH_SLICE: Duration = Duration::from_millis(2);
+/// How long a query that ended unanswered waits for the token to go (a dead gateway)
+/// before it is read as a refusal.
+const GONE_WAIT: Duration = Duration::from_millis(100);
 /// Longest wait for the gateway's liveliness token when connecting.
 const CONNECT_WAIT: Duration = Duration::from_secs(2);
 
@@ -194,8 +197,7 @@ impl RemoteLink {
         loop {
             match replies.recv_timeout(WATCH_SLICE) {
                 Ok(Some(reply)) => return self.answer(reply),
-                // The query ended with no answer: the gateway's session closed.
-                Err(_) => return Err(ClientError::Disconnected(self.describe())),
+                Err(_) => return Err(self.ended_unanswered()),
                 Ok(None) => {}
             }
             if !self.alive() {
@@ -208,6 +210,24 @@ impl RemoteLink {
                 });
             }
         }
+    }
+
+    /// Why a query ended with no reply: the gateway's session closed (its token goes
+    /// with it, within a few milliseconds), or, while the token stays, the gateway
+    /// refused to see the query (an access control list denying this client's key).
+    fn ended_unanswered(&self) -> ClientError {
+        let deadline = Instant::now() + GONE_WAIT;
+        while Instant::now() < deadline {
+            if !self.alive() {
+                return ClientError::Disconnected(self.describe());
+            }
+            std::thread::sleep(WATCH_SLICE);
+        }
+        ClientError::Remote(format!(
+            "the gateway of {} answered nothing while its server lives: its access control list may deny this client's key {}",
+            self.describe(),
+            self.key
+        ))
     }
 
     fn answer(&self, reply: zenoh::query::Reply) -> Result<Vec<u8>, ClientError> {

@@ -27,6 +27,11 @@ pub struct ConnectArgs {
     /// With --remote: a Zenoh config file (JSON5) for TLS, mutual TLS or other settings.
     #[arg(long, requires = "remote")]
     pub zenoh_config: Option<PathBuf>,
+    /// With --remote: this client's id, the last chunk of its request keys (an access
+    /// control list on the gateway grants keys by it; e.g. the name in its TLS
+    /// certificate). Default: a random one.
+    #[arg(long, requires = "remote")]
+    pub client_id: Option<String>,
 }
 
 impl ConnectArgs {
@@ -47,6 +52,7 @@ impl ConnectArgs {
             Some(endpoint) => {
                 let mut remote = RemoteOptions::new(endpoint);
                 remote.zenoh_config = self.zenoh_config.clone();
+                remote.client_id = self.client_id.clone();
                 Client::remote_with(&remote, &self.map_name, options)?
             }
             None => Client::connect(&self.map_name, options)?,
