@@ -255,7 +255,7 @@ mod in_namespace {
         let (mut crossings, mut worst_crossing, mut worst) = (0, 0.0_f64, 0.0_f64);
         let mut identical = 0;
         let kill_at = scans.len() / 2;
-        for i in 0..scans.len() {
+        for (i, true_pose) in truth.iter().enumerate() {
             let points = load(i);
             let scan = ScanPayload {
                 points: &points,
@@ -285,7 +285,7 @@ mod in_namespace {
                 identical += 1;
             }
             assert_eq!(answer.health.status, whole.health.status, "scan {i}");
-            let off = (answer.pose.translation.vector - truth[i].translation.vector).norm();
+            let off = (answer.pose.translation.vector - true_pose.translation.vector).norm();
             worst = worst.max(off);
             if i > 0 && tile != last_tile {
                 crossings += 1;

@@ -56,7 +56,11 @@ pub(super) fn run(dir: &Path, plan: CityPlan, json_out: bool) -> anyhow::Result<
     plan.tiles
         .validate()
         .map_err(|e| anyhow::anyhow!("--{e}"))?;
-    if plan.keyframes < 4 || plan.points < 100 || !(plan.extent_m >= 100.0) {
+    if plan.keyframes < 4
+        || plan.points < 100
+        || !plan.extent_m.is_finite()
+        || plan.extent_m < 100.0
+    {
         bail!("--keyframes must be at least 4, --points at least 100, --extent-m at least 100");
     }
     let work = dir.join(format!("kfmap-bench-city-{}", std::process::id()));
