@@ -223,7 +223,7 @@ mod in_namespace {
         let endpoints: Vec<String> = hosts.iter().map(|h| h.endpoint.clone()).collect();
         let options = ClientOptions {
             iceoryx_prefix: None,
-            timeout: Duration::from_secs(20),
+            timeout: Duration::from_secs(120),
             spin: false,
         };
         let mut remote = Client::remote(&endpoints.join(","), "court", options.clone()).unwrap();
@@ -587,7 +587,12 @@ impl TileHost {
         let prefix = Prefix::new(&format!("tiles-host{host}"));
         let server = Server::start_tiles(tiles, "court", &prefix.0, only);
         let endpoint = format!("tcp/127.0.0.1:{}", 17460 + host);
+        // Every tile of every host relocalizes at once on this machine's cores.
+        let config = tiles.with_file_name(format!("gateway{host}.toml"));
+        std::fs::write(&config, "[gateway]\nrequest-timeout-s = 120.0\n").unwrap();
         let gateway = Gateway::spawn(&[
+            "--config",
+            config.to_str().unwrap(),
             "--tiles",
             tiles.to_str().unwrap(),
             "--only",

@@ -350,9 +350,14 @@ impl RemoteLink {
                 Err(_) => break,
             }
         }
-        if answers.is_empty() {
+        if answers.len() < expected {
+            // A ranking without every tile is not the one search it stands for.
             return Err(failures.pop().unwrap_or_else(|| ClientError::Timeout {
-                map_name: format!("{} (remote, every tile)", self.map_name),
+                map_name: format!(
+                    "{} (remote, {} of {expected} tiles answered)",
+                    self.map_name,
+                    answers.len()
+                ),
                 waited: timeout,
             }));
         }
