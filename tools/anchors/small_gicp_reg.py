@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""small_gicp registration anchor for `tests/registration_real.rs` and `cargo bench -p
+"""small_gicp registration anchor for `tests/integration/registration_real.rs` and `cargo bench -p
 kfmap-shared --bench registration` (install `small-gicp numpy` in a venv outside the
 repository, as for small_gicp_cov.py).
 

@@ -1,6 +1,6 @@
 //! The table's localization rows on real data: balm_os0, a map of scans 0-115 at their
 //! reference poses, scans 116-176 tracked against it by `kfmap localize` over IPC, as
-//! tests/health.rs checks.
+//! tests/integration/health.rs checks.
 
 use std::ffi::OsStr;
 use std::path::Path;

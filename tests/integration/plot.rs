@@ -2,7 +2,7 @@
 //! map, its pictures (PNG decoded and measured, SVG read as text), a trajectory against
 //! its reference with a scan log, and bad inputs.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::process::Output;

@@ -1,6 +1,6 @@
 //! End-to-end tests of the `kfmap` binary: real processes, real files, exit codes.
 
-mod common;
+use crate::common;
 
 use std::path::PathBuf;
 use std::process::Command;

@@ -1,7 +1,7 @@
 //! `kfmap demo` end to end, as a user runs it: its report, its files and pictures, and
 //! the localized pass checked against the dataset's own reference poses.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::process::{Command, Output, Stdio};
@@ -137,6 +137,6 @@ fn demo_real_maps_and_tracks_balm_against_its_reference_poses() {
     println!("demo --real: RMS {rms:.3} m over {} scans", errors.len());
     // The map is built from the raw scans (keyframe ATE about 0.04 m) and the revisit
     // tracked against it: about 0.13 m measured; a map baked at the reference poses
-    // gives 0.06 m (tests/health.rs).
+    // gives 0.06 m (tests/integration/health.rs).
     assert!(rms < 0.2, "RMS {rms} m from balm's reference poses");
 }

@@ -5,6 +5,15 @@
 
 pub mod picture;
 
+/// The libtest name of test `name` of the module at `module` (its `module_path!()`):
+/// the path without the binary's crate name, as `--exact` matches it.
+pub fn test_name(module: &str, name: &str) -> String {
+    match module.split_once("::") {
+        Some((_, path)) => format!("{path}::{name}"),
+        None => name.to_string(),
+    }
+}
+
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};

@@ -3,7 +3,7 @@
 //! only `lo` exists, so nothing can leave the machine). The oracle is the local client
 //! (iceoryx2) on the same server: every remote answer must equal its local twin.
 
-mod common;
+use crate::common;
 
 use std::io::{BufRead, BufReader};
 use std::path::Path;
@@ -60,7 +60,8 @@ fn in_private_network_namespace(test: &str, inner: &str) {
     let out = Command::new("unshare")
         .args(["-rn", "sh", "-c", "ip link set lo up && exec \"$0\" \"$@\""])
         .arg(&me)
-        .args(["--exact", inner, "--include-ignored"])
+        .args(["--exact", &common::test_name(module_path!(), inner)])
+        .arg("--include-ignored")
         .args(["--nocapture", "--test-threads", "1"])
         .env(IN_NAMESPACE, "1")
         .output()

@@ -2,7 +2,7 @@
 //! scans at their reference poses, the others localized against a running server.
 //! Skipped with a printed reason when the data is missing (failing under CI=true).
 
-mod common;
+use crate::common;
 
 use std::time::Duration;
 

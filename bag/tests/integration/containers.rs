@@ -441,7 +441,7 @@ fn messages_stream_one_at_a_time() {
 }
 
 /// Throughput of `messages()` over `$KFMAP_BAG_BENCH` (a bag file or folder), every
-/// topic; run with `cargo test --release -p kfmap-bag --test containers -- --ignored
+/// topic; run with `cargo test --release -p kfmap-bag --test integration containers:: -- --ignored
 /// --nocapture throughput`.
 #[test]
 #[ignore = "a measurement: set KFMAP_BAG_BENCH"]

@@ -10,7 +10,7 @@
 //! - Simulated corridor (a tunnel, repeated structure): no confident wrong answer;
 //!   outside the tunnel every scan is found.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 

@@ -1,7 +1,7 @@
 //! End-to-end tests of the map server: `kfmap serve` and clients as real processes over
 //! iceoryx2, each test under its own iceoryx2 prefix (removed at teardown).
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::time::{Duration, Instant};

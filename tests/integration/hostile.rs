@@ -3,7 +3,7 @@
 //! and checks the refusal names the limit and the server's memory stays bounded. Each
 //! test runs under its own iceoryx2 prefix (removed at teardown).
 
-mod common;
+use crate::common;
 
 use std::path::PathBuf;
 use std::time::Duration;
@@ -432,7 +432,8 @@ impl Drop for Holder {
 fn spawn_port_holder(test: &str, spec: &str) -> (Holder, String) {
     use std::io::BufRead;
     let child = std::process::Command::new(std::env::current_exe().unwrap())
-        .args([test, "--exact", "--nocapture", "--test-threads", "1"])
+        .arg(common::test_name(module_path!(), test))
+        .args(["--exact", "--nocapture", "--test-threads", "1"])
         .env(HOLD_PORTS, spec)
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::null())

@@ -4,7 +4,7 @@
 //! same gravity as the IMU log, every driver's per-point time deskews as the PCD `time`
 //! field does, and bad bags are refused by name with nothing written.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;

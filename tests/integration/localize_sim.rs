@@ -1,7 +1,7 @@
 //! Localization of a simulated run against the baked map of another run of the same
 //! site, over IPC with real processes: accuracy, client/server agreement, gravity.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::process::{Command, Stdio};

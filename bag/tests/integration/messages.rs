@@ -488,7 +488,7 @@ proptest! {
 
 /// Single-thread throughput of `to_cloud` on a 128 x 1024 Ouster-layout cloud (48-byte
 /// points with x y z, intensity and `t`). Run in release:
-/// `cargo test --release -p kfmap-bag --test messages -- --ignored --nocapture`.
+/// `cargo test --release -p kfmap-bag --test integration messages:: -- --ignored --nocapture`.
 #[test]
 #[ignore = "a measurement, not a check; run in release"]
 fn to_cloud_throughput() {

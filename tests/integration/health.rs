@@ -10,7 +10,7 @@
 //!   and the tracker recovers; a teleported prediction comes back `lost` from both
 //!   sides.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 
@@ -238,7 +238,7 @@ fn a_scan_from_elsewhere_is_lost_and_tracking_recovers() {
         let mut args = vec!["--map-name", "elsewhere", "--iceoryx-prefix", &prefix.0];
         args.extend(["--dataset", dataset.to_str().unwrap()]);
         // Tracking from a known start: the foreign scan must come back `lost` (without a
-        // start the tracker would relocalize it, see tests/relocalize.rs).
+        // start the tracker would relocalize it, see tests/integration/relocalize.rs).
         args.push("--initial-from-ground-truth");
         args.extend_from_slice(side);
         let (lines, summary) = localize_lines(&args);

@@ -1,0 +1,7 @@
+//! The integration tests of this crate, as one binary (one link instead of one per
+//! file: each release test binary is a thin-LTO link of every dependency).
+
+mod gravity_real;
+mod gravity_sim;
+mod kitti_raw;
+mod mapping_real;
