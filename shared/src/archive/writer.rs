@@ -242,7 +242,10 @@ impl MapWriter {
             levels: grid.levels,
             region_min: grid.region.min,
             region_max: grid.region.max,
-            words: &grid.words,
+            directory: &grid.levels_data.directory,
+            keys: &grid.levels_data.keys,
+            entries: &grid.levels_data.entries,
+            words: &grid.levels_data.words,
         };
         let bytes = rkyv::api::high::to_bytes_in::<_, rancor::Error>(
             &record,
