@@ -65,6 +65,12 @@ pub enum BakeError {
         .0.display()
     )]
     NoPoseGraph(PathBuf),
+    /// The tile set could not be cut (bad geometry, directory, ...).
+    #[error("tiles: {0}")]
+    Tiles(String),
+    /// A tile set's index could not be used.
+    #[error(transparent)]
+    TileIndex(#[from] kfmap_shared::tiles::TileError),
     /// The pose graph could not be assembled or written.
     #[error("writing the pose graph: {0}")]
     Graph(#[from] G2oError),

@@ -16,3 +16,4 @@ pub mod mapping;
 pub mod pipeline;
 pub mod scan_range;
 pub mod source;
+pub mod tiling;

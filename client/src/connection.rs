@@ -138,6 +138,24 @@ impl Connection {
         })
     }
 
+    /// The tile set's index when the map is served remotely in tiles.
+    #[cfg(feature = "remote")]
+    pub fn tile_index(&self) -> Option<&kfmap_shared::tiles::TileIndex> {
+        match &self.link {
+            Link::Remote(link) => link.tile_index(),
+            Link::Local { .. } => None,
+        }
+    }
+
+    /// The tile the last remote request went to (`None` on the host, or before any).
+    #[cfg(feature = "remote")]
+    pub fn current_tile(&self) -> Option<&str> {
+        match &self.link {
+            Link::Remote(link) => link.current_tile(),
+            Link::Local { .. } => None,
+        }
+    }
+
     /// True when requests travel to another host (through a gateway).
     pub fn is_remote(&self) -> bool {
         !matches!(self.link, Link::Local { .. })
@@ -412,10 +430,10 @@ impl Connection {
         // `MaybeUninit<f32>` has the layout of `f32`.
         let floats = unsafe { &*(payload.as_slice() as *const [MaybeUninit<f32>] as *const [f32]) };
         let frame = kfmap_protocol::remote::encode_request(&header, floats);
-        let Link::Remote(link) = &self.link else {
+        let Link::Remote(link) = &mut self.link else {
             unreachable!("called for remote links only")
         };
-        let answer = link.call(frame, self.options.timeout)?;
+        let answer = link.call(&header, frame, self.options.timeout)?;
         let (header, pairings) = kfmap_protocol::remote::decode_answer(&answer)
             .map_err(|e| ClientError::Remote(format!("the gateway's answer: {e}")))?;
         check_status(&header)?;

@@ -24,6 +24,8 @@ mod localize;
 mod relocalize;
 #[cfg(feature = "remote")]
 pub mod remote;
+#[cfg(feature = "remote")]
+mod tiled;
 mod tracker;
 
 pub use connection::{ClientOptions, Connection, Response};

@@ -2,12 +2,17 @@
 //! which answers them through its local map server (docs/DESIGN.md#notes-remote).
 //! Frames and keys are `kfmap_protocol::remote`'s; this module only moves them.
 
+use std::collections::HashSet;
 use std::path::PathBuf;
-use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use kfmap_protocol::remote::{RemoteFailure, WHOLE_MAP_TILE, alive_key, check_key_chunk, rpc_key};
+use kfmap_protocol::remote::{
+    RemoteFailure, WHOLE_MAP_TILE, alive_pattern, check_key_chunk, rpc_all_tiles_key, rpc_key,
+    tile_index_key, tile_of_alive_key, tile_of_rpc_key,
+};
+use kfmap_protocol::{RequestHeader, RequestKind};
+use kfmap_shared::tiles::{Route, TileIndex, TileRouter};
 use zenoh::Wait;
 use zenoh::query::{ConsolidationMode, QueryTarget};
 use zenoh::sample::SampleKind;
@@ -35,8 +40,9 @@ pub struct RemoteOptions {
     /// This client's id, the last chunk of its request keys (access control lists grant
     /// keys by it); a random one when `None`.
     pub client_id: Option<String>,
-    /// The tile the requests go to ([`WHOLE_MAP_TILE`] for a map served whole).
-    pub tile: String,
+    /// The one tile the requests go to; `None`: the map's tiles when its gateways serve a
+    /// tile set (each request routed by its pose guess), else the map served whole.
+    pub tile: Option<String>,
 }
 
 impl RemoteOptions {
@@ -51,7 +57,7 @@ impl RemoteOptions {
                 .collect(),
             zenoh_config: None,
             client_id: None,
-            tile: WHOLE_MAP_TILE.to_string(),
+            tile: None,
         }
     }
 }
@@ -94,26 +100,33 @@ pub fn zenoh_config(
     Ok(config)
 }
 
-/// An open remote link to one tile of a map.
+/// An open remote link to a map: one tile (a map served whole, or the tile asked for),
+/// or every tile of a tile set, each request routed by its pose guess.
 pub(crate) struct RemoteLink {
     session: zenoh::Session,
-    key: String,
     map_name: String,
-    tile: String,
-    /// The tile's liveliness token is present (its server answers).
-    alive: Arc<AtomicBool>,
+    client_id: String,
+    /// The tiles requests may go to (keys' tile chunks).
+    tiles: Vec<String>,
+    /// The tiles whose liveliness token is present (their servers answer).
+    alive: Arc<Mutex<HashSet<String>>>,
+    /// A tile set's index and the router over it (`None`: one tile).
+    routing: Option<(TileIndex, TileRouter)>,
     _token_watch: zenoh::pubsub::Subscriber<()>,
 }
 
 impl RemoteLink {
-    /// Opens a Zenoh session to the gateways and waits for the tile's token.
+    /// Opens a Zenoh session to the gateways and waits for the map's tokens; learns the
+    /// tile set (from a gateway's index) unless `remote.tile` names one tile.
     pub(crate) fn open(map_name: &str, remote: &RemoteOptions) -> Result<Self, ClientError> {
-        check_key_chunk("map name", map_name).map_err(|e| ClientError::Invalid(e.to_string()))?;
-        check_key_chunk("tile", &remote.tile).map_err(|e| ClientError::Invalid(e.to_string()))?;
+        let invalid = |e: kfmap_protocol::remote::FrameError| ClientError::Invalid(e.to_string());
+        check_key_chunk("map name", map_name).map_err(invalid)?;
+        if let Some(tile) = &remote.tile {
+            check_key_chunk("tile", tile).map_err(invalid)?;
+        }
         let client_id = match &remote.client_id {
             Some(id) => {
-                check_key_chunk("client id", id)
-                    .map_err(|e| ClientError::Invalid(e.to_string()))?;
+                check_key_chunk("client id", id).map_err(invalid)?;
                 id.clone()
             }
             None => random_client_id(),
@@ -130,135 +143,304 @@ impl RemoteLink {
                 remote.endpoints.join(", ")
             ))
         })?;
-        let alive = Arc::new(AtomicBool::new(false));
-        let token = alive_key(map_name, &remote.tile);
-        let flag = alive.clone();
+        let alive: Arc<Mutex<HashSet<String>>> = Arc::default();
+        let pattern = alive_pattern(map_name);
+        let (flags, name) = (alive.clone(), map_name.to_string());
         let token_watch = session
             .liveliness()
-            .declare_subscriber(&token)
+            .declare_subscriber(&pattern)
             .history(true)
             .callback(move |sample| {
-                flag.store(sample.kind() == SampleKind::Put, Ordering::SeqCst);
+                if let Some(tile) = tile_of_alive_key(&name, sample.key_expr().as_str()) {
+                    let mut alive = flags.lock().expect("the token set");
+                    if sample.kind() == SampleKind::Put {
+                        alive.insert(tile.to_string());
+                    } else {
+                        alive.remove(tile);
+                    }
+                }
             })
             .wait()
-            .map_err(|e| ClientError::Remote(format!("watch {token}: {e}")))?;
-        let link = Self {
-            key: rpc_key(map_name, &remote.tile, &client_id),
-            session,
-            map_name: map_name.to_string(),
-            tile: remote.tile.clone(),
-            alive,
-            _token_watch: token_watch,
-        };
-        // The tokens alive now (the subscriber above keeps the flag current after).
-        let present = link
-            .session
+            .map_err(|e| ClientError::Remote(format!("watch {pattern}: {e}")))?;
+        // The tokens alive now (the subscriber above keeps the set current after).
+        let present: Vec<String> = session
             .liveliness()
-            .get(&token)
+            .get(&pattern)
             .timeout(CONNECT_WAIT)
             .wait()
-            .map_err(|e| ClientError::Remote(format!("look up {token}: {e}")))?
+            .map_err(|e| ClientError::Remote(format!("look up {pattern}: {e}")))?
             .iter()
-            .any(|reply| reply.result().is_ok());
-        if present {
-            link.alive.store(true, Ordering::SeqCst);
-        }
-        if !link.alive() {
-            return Err(ClientError::NoServer(format!(
-                "{map_name} (tile {} at {})",
-                remote.tile,
+            .filter_map(|reply| {
+                let sample = reply.into_result().ok()?;
+                tile_of_alive_key(map_name, sample.key_expr().as_str()).map(str::to_string)
+            })
+            .collect();
+        alive
+            .lock()
+            .expect("the token set")
+            .extend(present.iter().cloned());
+        let no_server = || {
+            ClientError::NoServer(format!(
+                "{map_name} (remote, at {})",
                 remote.endpoints.join(", ")
-            )));
+            ))
+        };
+        let (tiles, routing) = match &remote.tile {
+            Some(tile) => (vec![tile.clone()], None),
+            None if present.is_empty() => return Err(no_server()),
+            None if present.iter().all(|t| t == WHOLE_MAP_TILE) => {
+                (vec![WHOLE_MAP_TILE.to_string()], None)
+            }
+            None => {
+                let index = fetch_index(&session, map_name)?;
+                let router = TileRouter::new(&index, TileRouter::default_hysteresis(&index));
+                let tiles = index.tiles.iter().map(|t| t.id.clone()).collect();
+                (tiles, Some((index, router)))
+            }
+        };
+        let link = Self {
+            session,
+            map_name: map_name.to_string(),
+            client_id,
+            tiles,
+            alive,
+            routing,
+            _token_watch: token_watch,
+        };
+        if !(0..link.tiles.len()).any(|i| link.tile_alive(i)) {
+            return Err(no_server());
         }
         Ok(link)
     }
 
-    /// True while the tile's gateway announces a live server.
-    pub(crate) fn alive(&self) -> bool {
-        self.alive.load(Ordering::SeqCst)
+    /// True while a gateway announces a live server for tile `i`.
+    fn tile_alive(&self, i: usize) -> bool {
+        self.alive
+            .lock()
+            .expect("the token set")
+            .contains(&self.tiles[i])
     }
 
-    /// Sends a request frame and waits for the answer frame.
-    pub(crate) fn call(&self, frame: Vec<u8>, timeout: Duration) -> Result<Vec<u8>, ClientError> {
-        let was_alive = self.alive();
-        if !was_alive {
-            return Err(ClientError::NoServer(self.describe()));
+    /// True while some tile's gateway announces a live server.
+    pub(crate) fn alive(&self) -> bool {
+        (0..self.tiles.len()).any(|i| self.tile_alive(i))
+    }
+
+    /// The tile set's index, when the map is served in tiles.
+    pub(crate) fn tile_index(&self) -> Option<&TileIndex> {
+        self.routing.as_ref().map(|(index, _)| index)
+    }
+
+    /// The tile the last routed request went to.
+    pub(crate) fn current_tile(&self) -> Option<&str> {
+        match &self.routing {
+            Some((_, router)) => router.current().map(|i| self.tiles[i].as_str()),
+            None => self.tiles.first().map(String::as_str),
         }
+    }
+
+    /// Sends a request frame (`header` is its header, for routing) and waits for the
+    /// answer frame: to the tile the pose guess routes to, or, to relocalize over a tile
+    /// set, to every tile at once, the answers ranked as one search would.
+    pub(crate) fn call(
+        &mut self,
+        header: &RequestHeader,
+        frame: Vec<u8>,
+        timeout: Duration,
+    ) -> Result<Vec<u8>, ClientError> {
+        if self.routing.is_some() && header.kind == RequestKind::Relocalize as u32 {
+            return self.call_every_tile(frame, timeout);
+        }
+        let tile = self.route(header)?;
+        self.call_tile(tile, frame, timeout)
+    }
+
+    /// The tile a request goes to.
+    fn route(&mut self, header: &RequestHeader) -> Result<usize, ClientError> {
+        let up: Vec<bool> = (0..self.tiles.len()).map(|i| self.tile_alive(i)).collect();
+        let Some((_, router)) = &mut self.routing else {
+            return Ok(0);
+        };
+        match router.route(header.pose[0], header.pose[1], |i| up[i]) {
+            Route::Tile(i) => Ok(i),
+            Route::Down(i) => Err(ClientError::NoServer(self.describe(i))),
+            Route::NoneUp => Err(ClientError::NoServer(format!(
+                "{} (remote: no tile's server answers)",
+                self.map_name
+            ))),
+        }
+    }
+
+    /// Sends a request frame to tile `i` and waits for the answer frame.
+    fn call_tile(
+        &self,
+        i: usize,
+        frame: Vec<u8>,
+        timeout: Duration,
+    ) -> Result<Vec<u8>, ClientError> {
+        if !self.tile_alive(i) {
+            return Err(ClientError::NoServer(self.describe(i)));
+        }
+        let key = rpc_key(&self.map_name, &self.tiles[i], &self.client_id);
         let replies = self
             .session
-            .get(&self.key)
+            .get(&key)
             .payload(frame)
             .target(QueryTarget::BestMatching)
             .consolidation(ConsolidationMode::None)
             .timeout(timeout)
             .wait()
-            .map_err(|e| ClientError::Remote(format!("send to {}: {e}", self.key)))?;
+            .map_err(|e| ClientError::Remote(format!("send to {key}: {e}")))?;
         let deadline = Instant::now() + timeout;
         loop {
             match replies.recv_timeout(WATCH_SLICE) {
-                Ok(Some(reply)) => return self.answer(reply),
-                Err(_) => return Err(self.ended_unanswered()),
+                Ok(Some(reply)) => return self.answer(i, reply),
+                Err(_) => return Err(self.ended_unanswered(i, &key)),
                 Ok(None) => {}
             }
-            if !self.alive() {
-                return Err(ClientError::Disconnected(self.describe()));
+            if !self.tile_alive(i) {
+                return Err(ClientError::Disconnected(self.describe(i)));
             }
             if Instant::now() >= deadline {
                 return Err(ClientError::Timeout {
-                    map_name: self.describe(),
+                    map_name: self.describe(i),
                     waited: timeout,
                 });
             }
         }
     }
 
+    /// Sends a relocalization to every tile at once (`QueryTarget::All`) and merges the
+    /// answers of the tiles alive when it was sent.
+    fn call_every_tile(&self, frame: Vec<u8>, timeout: Duration) -> Result<Vec<u8>, ClientError> {
+        let expected = (0..self.tiles.len())
+            .filter(|&i| self.tile_alive(i))
+            .count();
+        if expected == 0 {
+            return Err(ClientError::NoServer(format!(
+                "{} (remote: no tile's server answers)",
+                self.map_name
+            )));
+        }
+        let key = rpc_all_tiles_key(&self.map_name, &self.client_id);
+        let replies = self
+            .session
+            .get(&key)
+            .payload(frame)
+            .target(QueryTarget::All)
+            .consolidation(ConsolidationMode::None)
+            .timeout(timeout)
+            .wait()
+            .map_err(|e| ClientError::Remote(format!("send to {key}: {e}")))?;
+        let deadline = Instant::now() + timeout;
+        let mut answers: Vec<(String, Vec<u8>)> = Vec::new();
+        let mut failures: Vec<ClientError> = Vec::new();
+        while answers.len() + failures.len() < expected && Instant::now() < deadline {
+            match replies.recv_timeout(WATCH_SLICE) {
+                Ok(Some(reply)) => match reply.into_result() {
+                    Ok(sample) => {
+                        let tile = tile_of_rpc_key(&self.map_name, sample.key_expr().as_str())
+                            .unwrap_or("?")
+                            .to_string();
+                        answers.push((tile, sample.payload().to_bytes().into_owned()));
+                    }
+                    Err(error) => failures.push(self.failure(None, &error)),
+                },
+                Ok(None) => {}
+                Err(_) => break,
+            }
+        }
+        if answers.len() < expected {
+            // A ranking without every tile is not the one search it stands for.
+            return Err(failures.pop().unwrap_or_else(|| ClientError::Timeout {
+                map_name: format!(
+                    "{} (remote, {} of {expected} tiles answered)",
+                    self.map_name,
+                    answers.len()
+                ),
+                waited: timeout,
+            }));
+        }
+        crate::tiled::merge_relocalizations(&answers)
+    }
+
     /// Why a query ended with no reply: the gateway's session closed (its token goes
     /// with it, within a few milliseconds), or, while the token stays, the gateway
     /// refused to see the query (an access control list denying this client's key).
-    fn ended_unanswered(&self) -> ClientError {
+    fn ended_unanswered(&self, i: usize, key: &str) -> ClientError {
         let deadline = Instant::now() + GONE_WAIT;
         while Instant::now() < deadline {
-            if !self.alive() {
-                return ClientError::Disconnected(self.describe());
+            if !self.tile_alive(i) {
+                return ClientError::Disconnected(self.describe(i));
             }
             std::thread::sleep(WATCH_SLICE);
         }
         ClientError::Remote(format!(
-            "the gateway of {} answered nothing while its server lives: its access control list may deny this client's key {}",
-            self.describe(),
-            self.key
+            "the gateway of {} answered nothing while its server lives: its access control list may deny this client's key {key}",
+            self.describe(i),
         ))
     }
 
-    fn answer(&self, reply: zenoh::query::Reply) -> Result<Vec<u8>, ClientError> {
+    fn answer(&self, i: usize, reply: zenoh::query::Reply) -> Result<Vec<u8>, ClientError> {
         match reply.into_result() {
             Ok(sample) => Ok(sample.payload().to_bytes().into_owned()),
-            Err(error) => {
-                let text = error
-                    .payload()
-                    .try_to_string()
-                    .unwrap_or_default()
-                    .into_owned();
-                let (failure, message) = RemoteFailure::parse(&text);
-                Err(match failure {
-                    RemoteFailure::NoServer => ClientError::NoServer(self.describe()),
-                    RemoteFailure::Disconnected => ClientError::Disconnected(self.describe()),
-                    RemoteFailure::Timeout => ClientError::Timeout {
-                        map_name: self.describe(),
-                        waited: Duration::ZERO,
-                    },
-                    RemoteFailure::Gateway => ClientError::Remote(format!(
-                        "the gateway of {} failed: {message}",
-                        self.describe()
-                    )),
-                })
+            Err(error) => Err(self.failure(Some(i), &error)),
+        }
+    }
+
+    /// The client error a gateway's error reply stands for (`i`: the tile asked).
+    fn failure(&self, i: Option<usize>, error: &zenoh::query::ReplyError) -> ClientError {
+        let text = error
+            .payload()
+            .try_to_string()
+            .unwrap_or_default()
+            .into_owned();
+        let (failure, message) = RemoteFailure::parse(&text);
+        let name = i.map_or_else(
+            || format!("{} (remote)", self.map_name),
+            |i| self.describe(i),
+        );
+        match failure {
+            RemoteFailure::NoServer => ClientError::NoServer(name),
+            RemoteFailure::Disconnected => ClientError::Disconnected(name),
+            RemoteFailure::Timeout => ClientError::Timeout {
+                map_name: name,
+                waited: Duration::ZERO,
+            },
+            RemoteFailure::Gateway => {
+                ClientError::Remote(format!("the gateway of {name} failed: {message}"))
             }
         }
     }
 
-    fn describe(&self) -> String {
-        format!("{} (remote, tile {})", self.map_name, self.tile)
+    fn describe(&self, i: usize) -> String {
+        format!("{} (remote, tile {})", self.map_name, self.tiles[i])
     }
+}
+
+/// The tile index a gateway of `map_name` answers (a map served in tiles has one).
+fn fetch_index(session: &zenoh::Session, map_name: &str) -> Result<TileIndex, ClientError> {
+    let key = tile_index_key(map_name);
+    let deadline = Instant::now() + CONNECT_WAIT;
+    // The gateway's index queryable may reach this session a moment after its tokens.
+    while Instant::now() < deadline {
+        let replies = session
+            .get(&key)
+            .timeout(CONNECT_WAIT)
+            .wait()
+            .map_err(|e| ClientError::Remote(format!("ask {key}: {e}")))?;
+        if let Some(sample) = replies.iter().find_map(|r| r.into_result().ok()) {
+            let text = sample.payload().try_to_string().map_err(|e| {
+                ClientError::Remote(format!("the tile index on {key} is not text: {e}"))
+            })?;
+            return TileIndex::parse(&text, std::path::Path::new(&key))
+                .map_err(|e| ClientError::Remote(format!("the gateway's tile index: {e}")));
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    Err(ClientError::Remote(format!(
+        "{map_name} is served in tiles, but no gateway answers its tile index on {key} within {CONNECT_WAIT:?}"
+    )))
 }
 
 /// A client id unlikely to collide: process id and clock.

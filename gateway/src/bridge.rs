@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 
 use kfmap_client::{ClientError, ClientOptions, Connection};
 use kfmap_protocol::remote::{
-    RemoteFailure, answer_frame_len, client_of_rpc_key, decode_request, encode_answer,
+    RemoteFailure, answer_frame_len, client_of_rpc_key, decode_request, encode_answer, rpc_key,
 };
 use kfmap_protocol::{ResponseHeader, StatusCode, check_version};
 use zenoh::Wait;
@@ -20,14 +20,29 @@ use crate::config::GatewaySection;
 /// What a forwarding worker needs to reach the server.
 #[derive(Clone)]
 pub(crate) struct Upstream {
-    pub map_name: String,
+    /// The local server's (iceoryx2) map name.
+    pub local_map: String,
+    /// The map's name in the keys.
+    pub remote_map: String,
+    /// The tile chunk of the keys.
+    pub tile: String,
     pub iceoryx_prefix: Option<String>,
     pub limits: GatewaySection,
+}
+
+impl Upstream {
+    /// The concrete key a reply to `query` goes out on: a query over every tile
+    /// (relocalization) learns from it which tile answered.
+    fn reply_key(&self, query: &Query) -> String {
+        let client = client_of_rpc_key(query.key_expr().as_str()).unwrap_or("unknown");
+        rpc_key(&self.remote_map, &self.tile, client)
+    }
 }
 
 /// The queues into the workers; a client's queries always go to the same worker.
 pub(crate) struct Dispatch {
     queues: Vec<SyncSender<Query>>,
+    upstream: Upstream,
 }
 
 impl Dispatch {
@@ -49,7 +64,13 @@ impl Dispatch {
                 .expect("spawn a gateway worker");
             threads.push(thread);
         }
-        (Self { queues }, threads)
+        (
+            Self {
+                queues,
+                upstream: upstream.clone(),
+            },
+            threads,
+        )
     }
 
     /// Hands a query to its client's worker; a full queue is answered Busy at once
@@ -65,7 +86,11 @@ impl Dispatch {
                     StatusCode::Busy,
                     "the gateway's queue for this client is full (gateway.toml queue-depth); retry later",
                 );
-                reply_frame(&query, encode_answer(&refusal, &[]));
+                reply_frame(
+                    &query,
+                    self.upstream.reply_key(&query),
+                    encode_answer(&refusal, &[]),
+                );
             }
         }
     }
@@ -115,6 +140,7 @@ impl Worker {
     }
 
     fn answer(&mut self, query: &Query) {
+        let key = self.upstream.reply_key(query);
         let frame = query.payload().map(|p| p.to_bytes()).unwrap_or_default();
         let max_request = self.upstream.limits.max_request_bytes;
         let (header, payload) = match decode_request(&frame, max_request) {
@@ -131,14 +157,14 @@ impl Worker {
                 };
                 let refusal =
                     ResponseHeader::refusal(request_id_of(query), status, &format!("{e}{hint}"));
-                return reply_frame(query, encode_answer(&refusal, &[]));
+                return reply_frame(query, key, encode_answer(&refusal, &[]));
             }
         };
         if let Err(rejection) = check_version(&header) {
             let mut refusal =
                 ResponseHeader::refusal(header.request_id, rejection.status, &rejection.message);
             refusal.detail = rejection.detail;
-            return reply_frame(query, encode_answer(&refusal, &[]));
+            return reply_frame(query, key, encode_answer(&refusal, &[]));
         }
         let client = client_of_rpc_key(query.key_expr().as_str())
             .unwrap_or("")
@@ -167,7 +193,7 @@ impl Worker {
             encode_answer(&answer, pairings)
         });
         match forwarded {
-            Ok(frame) => reply_frame(query, frame),
+            Ok(frame) => reply_frame(query, key, frame),
             Err(error) => {
                 // A connection that lost its server is rebuilt on the client's next request.
                 self.sessions.remove(&client);
@@ -193,7 +219,7 @@ impl Worker {
                 timeout: Duration::from_secs_f64(self.upstream.limits.request_timeout_s),
                 spin: false,
             };
-            let connection = Connection::connect(&self.upstream.map_name, options)
+            let connection = Connection::connect(&self.upstream.local_map, options)
                 .map_err(|e| failure_of(&e))?;
             tracing::info!(client, "remote session opened");
             self.sessions.insert(
@@ -225,8 +251,8 @@ fn reply_failure(query: &Query, (failure, message): (RemoteFailure, String)) {
     }
 }
 
-fn reply_frame(query: &Query, frame: Vec<u8>) {
-    if let Err(e) = query.reply(query.key_expr().clone(), frame).wait() {
+fn reply_frame(query: &Query, key: String, frame: Vec<u8>) {
+    if let Err(e) = query.reply(key, frame).wait() {
         tracing::warn!("could not send a reply: {e}");
     }
 }

@@ -1,7 +1,8 @@
 //! `kfmap gateway`: a sidecar beside `kfmap serve` that answers Zenoh queries from
 //! other hosts through the local server (docs/DESIGN.md#notes-remote).
 //!
-//! It declares a queryable on `kfmap/<map>/v<protocol>/<tile>/rpc/*` and forwards each
+//! It declares, per tile it announces (one, `whole`, for a map served whole), a
+//! queryable on `kfmap/<map>/v<protocol>/<tile>/rpc/*` and forwards each
 //! query's frame over iceoryx2, one server session per remote client (the key's last
 //! chunk), and holds the liveliness token `.../<tile>/alive` while the server answers:
 //! remote clients learn within milliseconds that the server died (the token goes) or the
@@ -18,19 +19,33 @@ use std::time::Duration;
 use iceoryx2::prelude::PortFactory;
 use kfmap_client::remote::zenoh_config;
 use kfmap_client::{ClientError, ClientOptions, Connection};
-use kfmap_protocol::remote::{WHOLE_MAP_TILE, alive_key, check_key_chunk, rpc_queryable_key};
-use kfmap_protocol::transport::{create_node, iceoryx_config, open_rpc};
+use kfmap_protocol::remote::{
+    WHOLE_MAP_TILE, alive_key, check_key_chunk, rpc_queryable_key, tile_index_key, tile_map_name,
+};
+use kfmap_protocol::transport::{Rpc, create_node, iceoryx_config, open_rpc};
 use zenoh::Wait;
 
 pub use config::{GatewayConfig, GatewaySection};
 
+/// One tile the gateway announces.
+#[derive(Debug, Clone)]
+pub struct ServedTile {
+    /// The tile chunk of the keys ([`WHOLE_MAP_TILE`] for a map served whole).
+    pub tile: String,
+    /// The local server's (iceoryx2) map name for it.
+    pub local_map: String,
+}
+
 /// What to serve.
 #[derive(Debug, Clone)]
 pub struct GatewayOptions {
-    /// The served map's name (as `kfmap serve` announces it).
+    /// The map's name in the keys (as `kfmap serve` announces it).
     pub map_name: String,
-    /// The tile chunk of the keys ([`WHOLE_MAP_TILE`] for a map served whole).
-    pub tile: String,
+    /// The tiles announced, each forwarded to its local server.
+    pub tiles: Vec<ServedTile>,
+    /// A tile set's index (`tiles.toml`'s text), answered on the map's index key so
+    /// remote clients can route by pose; `None` for a map served whole.
+    pub index: Option<String>,
     /// iceoryx2 prefix of the local server.
     pub iceoryx_prefix: Option<String>,
     /// `gateway.toml`.
@@ -42,7 +57,29 @@ impl GatewayOptions {
     pub fn new(map_name: &str, config: GatewaySection) -> Self {
         Self {
             map_name: map_name.to_string(),
-            tile: WHOLE_MAP_TILE.to_string(),
+            tiles: vec![ServedTile {
+                tile: WHOLE_MAP_TILE.to_string(),
+                local_map: map_name.to_string(),
+            }],
+            index: None,
+            iceoryx_prefix: None,
+            config,
+        }
+    }
+
+    /// A gateway for `tiles` of a tile set whose index text is `index`, each served
+    /// locally as `<map_name>.<tile>` (`kfmap serve --tiles`).
+    pub fn tiled(map_name: &str, index: String, tiles: &[String], config: GatewaySection) -> Self {
+        Self {
+            map_name: map_name.to_string(),
+            tiles: tiles
+                .iter()
+                .map(|tile| ServedTile {
+                    tile: tile.clone(),
+                    local_map: tile_map_name(map_name, tile),
+                })
+                .collect(),
+            index: Some(index),
             iceoryx_prefix: None,
             config,
         }
@@ -63,41 +100,72 @@ pub enum GatewayError {
     Local(#[from] ClientError),
 }
 
-/// Runs the gateway until `stop` is set: declares the queryable, forwards, and keeps the
-/// liveliness token in step with the local server. `ready` is called once the Zenoh
-/// session is open and the queryable declared.
+/// Runs the gateway until `stop` is set: declares each tile's queryable (and the index's),
+/// forwards, and keeps each tile's liveliness token in step with its local server.
+/// `ready` is called once the Zenoh session is open, the queryables declared and each
+/// server looked at once.
 pub fn run(
     options: &GatewayOptions,
     stop: &Arc<AtomicBool>,
     ready: impl FnOnce(&[String]),
 ) -> Result<(), GatewayError> {
-    check_key_chunk("map name", &options.map_name)
-        .and_then(|_| check_key_chunk("tile", &options.tile))
-        .map_err(|e| GatewayError::Invalid(e.to_string()))?;
+    let invalid = |e: kfmap_protocol::remote::FrameError| GatewayError::Invalid(e.to_string());
+    check_key_chunk("map name", &options.map_name).map_err(invalid)?;
+    if options.tiles.is_empty() {
+        return Err(GatewayError::Invalid("no tile to announce".into()));
+    }
+    for served in &options.tiles {
+        check_key_chunk("tile", &served.tile).map_err(invalid)?;
+    }
     let g = &options.config;
     let base = (!g.zenoh_config.is_empty()).then(|| PathBuf::from(&g.zenoh_config));
     let zconfig = zenoh_config(base.as_deref(), &g.listen, &g.connect)?;
     let session = zenoh::open(zconfig)
         .wait()
         .map_err(|e| GatewayError::Zenoh(format!("open a session: {e}")))?;
-    let upstream = bridge::Upstream {
-        map_name: options.map_name.clone(),
-        iceoryx_prefix: options.iceoryx_prefix.clone(),
-        limits: g.clone(),
-    };
-    let (dispatch, workers) = bridge::Dispatch::start(&upstream, stop);
-    let key = rpc_queryable_key(&options.map_name, &options.tile);
-    let queryable = session
-        .declare_queryable(&key)
-        .complete(true)
-        .callback(move |query| dispatch.dispatch(query))
-        .wait()
-        .map_err(|e| GatewayError::Zenoh(format!("declare the queryable {key}: {e}")))?;
-    tracing::info!(key, listen = ?g.listen, "gateway answering");
-    // Ready once the server's token is declared (if it runs): a client that connects
-    // on the ready line finds it.
-    let watched = watch_server(&session, options, stop, || ready(&g.listen));
-    drop(queryable);
+    let mut queryables = Vec::new();
+    let mut workers = Vec::new();
+    for served in &options.tiles {
+        let upstream = bridge::Upstream {
+            local_map: served.local_map.clone(),
+            remote_map: options.map_name.clone(),
+            tile: served.tile.clone(),
+            iceoryx_prefix: options.iceoryx_prefix.clone(),
+            limits: g.clone(),
+        };
+        let (dispatch, threads) = bridge::Dispatch::start(&upstream, stop);
+        workers.extend(threads);
+        let key = rpc_queryable_key(&options.map_name, &served.tile);
+        queryables.push(
+            session
+                .declare_queryable(&key)
+                .complete(true)
+                .callback(move |query| dispatch.dispatch(query))
+                .wait()
+                .map_err(|e| GatewayError::Zenoh(format!("declare the queryable {key}: {e}")))?,
+        );
+        tracing::info!(key, listen = ?g.listen, "gateway answering");
+    }
+    if let Some(index) = &options.index {
+        let key = tile_index_key(&options.map_name);
+        let text = index.clone();
+        let reply_key = key.clone();
+        queryables.push(
+            session
+                .declare_queryable(&key)
+                .callback(move |query| {
+                    if let Err(e) = query.reply(&reply_key, text.as_bytes()).wait() {
+                        tracing::warn!("could not send the tile index: {e}");
+                    }
+                })
+                .wait()
+                .map_err(|e| GatewayError::Zenoh(format!("declare the queryable {key}: {e}")))?,
+        );
+    }
+    // Ready once the servers' tokens are declared (if they run): a client that connects
+    // on the ready line finds them.
+    let watched = watch_servers(&session, options, stop, || ready(&g.listen));
+    drop(queryables);
     for worker in workers {
         let _ = worker.join();
     }
@@ -105,9 +173,9 @@ pub fn run(
     watched
 }
 
-/// Declares the tile's liveliness token while the local server answers, withdraws it
+/// Declares each tile's liveliness token while its local server answers, withdraws it
 /// when the server is gone; returns when `stop` is set.
-fn watch_server(
+fn watch_servers(
     session: &zenoh::Session,
     options: &GatewayOptions,
     stop: &AtomicBool,
@@ -117,26 +185,35 @@ fn watch_server(
     let iceoryx = iceoryx_config(options.iceoryx_prefix.as_deref()).map_err(ClientError::from)?;
     let node = create_node(&iceoryx, "kfmap-gateway").map_err(ClientError::from)?;
     let period = Duration::from_millis(options.config.probe_interval_ms);
-    let key = alive_key(&options.map_name, &options.tile);
-    let mut token: Option<zenoh::liveliness::LivelinessToken> = None;
+    let mut tokens: Vec<Option<zenoh::liveliness::LivelinessToken>> =
+        options.tiles.iter().map(|_| None).collect();
+    // Each tile's service, opened once: a probe then only reads its live server count
+    // (reopening it every period cost milliseconds a tile under load).
+    let mut services: Vec<Option<Rpc>> = options.tiles.iter().map(|_| None).collect();
     while !stop.load(Ordering::SeqCst) {
         // A killed server's ports stay registered until some node cleans them up.
         node.try_cleanup_dead_nodes();
-        let present = open_rpc(&node, &options.map_name)
-            .map(|rpc| rpc.dynamic_config().number_of_servers() > 0)
-            .unwrap_or(false);
-        if present && token.is_none() && server_answers(options) {
-            token = Some(
-                session
-                    .liveliness()
-                    .declare_token(&key)
-                    .wait()
-                    .map_err(|e| GatewayError::Zenoh(format!("declare {key}: {e}")))?,
-            );
-            tracing::info!(key, "local server answers: token declared");
-        } else if !present && token.is_some() {
-            token = None;
-            tracing::warn!(key, "local server gone: token withdrawn");
+        for ((served, token), service) in options.tiles.iter().zip(&mut tokens).zip(&mut services) {
+            let key = alive_key(&options.map_name, &served.tile);
+            if service.is_none() {
+                *service = open_rpc(&node, &served.local_map).ok();
+            }
+            let present = service
+                .as_ref()
+                .is_some_and(|rpc| rpc.dynamic_config().number_of_servers() > 0);
+            if present && token.is_none() && server_answers(options, &served.local_map) {
+                *token = Some(
+                    session
+                        .liveliness()
+                        .declare_token(&key)
+                        .wait()
+                        .map_err(|e| GatewayError::Zenoh(format!("declare {key}: {e}")))?,
+                );
+                tracing::info!(key, "local server answers: token declared");
+            } else if !present && token.is_some() {
+                *token = None;
+                tracing::warn!(key, "local server gone: token withdrawn");
+            }
         }
         if let Some(first_look) = first_look.take() {
             first_look();
@@ -146,14 +223,15 @@ fn watch_server(
     Ok(())
 }
 
-/// True when the local server answers a status request (its map is loaded).
-fn server_answers(options: &GatewayOptions) -> bool {
+/// True when the local server of `local_map` answers a status request (its map is
+/// loaded).
+fn server_answers(options: &GatewayOptions, local_map: &str) -> bool {
     let client_options = ClientOptions {
         iceoryx_prefix: options.iceoryx_prefix.clone(),
         timeout: Duration::from_secs_f64(options.config.request_timeout_s),
         spin: false,
     };
-    let Ok(mut connection) = Connection::connect(&options.map_name, client_options) else {
+    let Ok(mut connection) = Connection::connect(local_map, client_options) else {
         return false;
     };
     let probe = kfmap_protocol::RequestHeader {

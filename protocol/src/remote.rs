@@ -105,6 +105,33 @@ pub fn alive_key(map_name: &str, tile: &str) -> String {
     format!("{}/{tile}/alive", map_key_prefix(map_name))
 }
 
+/// Every tile's requests from one client: what a relocalization over a tile set asks
+/// (`QueryTarget::All`, every tile answers).
+pub fn rpc_all_tiles_key(map_name: &str, client_id: &str) -> String {
+    format!("{}/*/rpc/{client_id}", map_key_prefix(map_name))
+}
+
+/// The tile chunk of an rpc key of `map_name`, if it is one.
+pub fn tile_of_rpc_key<'k>(map_name: &str, key: &'k str) -> Option<&'k str> {
+    let rest = key
+        .strip_prefix(&map_key_prefix(map_name))?
+        .strip_prefix('/')?;
+    let (tile, _) = rest.split_once("/rpc/")?;
+    (!tile.contains('/')).then_some(tile)
+}
+
+/// The key a gateway answers a tile set's index on (`tiles.toml`'s text): a remote client
+/// learns from it how to route requests to tiles.
+pub fn tile_index_key(map_name: &str) -> String {
+    format!("{}/index", map_key_prefix(map_name))
+}
+
+/// The local (iceoryx2) map name of one tile of a tile set, as `kfmap serve --tiles`
+/// serves it: `<map>.<tile>`.
+pub fn tile_map_name(map_name: &str, tile: &str) -> String {
+    format!("{map_name}.{tile}")
+}
+
 /// Every tile's liveliness token of a map.
 pub fn alive_pattern(map_name: &str) -> String {
     format!("{}/*/alive", map_key_prefix(map_name))

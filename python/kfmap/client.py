@@ -92,7 +92,7 @@ class Client:
         timeout: float = 5.0,
         zenoh_config: str | None = None,
         client_id: str | None = None,
-        tile: str = "whole",
+        tile: str | None = None,
     ) -> "Client":
         """A client of the server of ``map_name`` on another host, through the ``kfmap
         gateway`` at ``endpoint`` (a Zenoh endpoint such as ``tcp/10.0.0.5:7447``; several
@@ -100,9 +100,16 @@ class Client:
         ``eclipse-zenoh`` package (``pip install 'kfmap[remote]'``); ``zenoh_config`` is a
         Zenoh JSON5 file for TLS or mutual TLS.
 
+        A map served in tiles (``kfmap gateway --tiles``, one gateway per host) is found
+        by itself (``tile=None``): each request goes to the tile its pose guess routes
+        to (staying on a tile within half the halo past its border; see
+        :attr:`current_tile`), and ``relocalize`` asks every tile at once. ``tile``
+        names one tile (or ``"whole"``) to talk to instead.
+
         Raises:
-            NoServerError: the gateway announces no live server for the map.
-            TransportError: no gateway answers at ``endpoint``.
+            NoServerError: the gateways announce no live server for the map.
+            TransportError: no gateway answers at ``endpoint``, or a tile set's index
+                cannot be read.
         """
         from .remote import RemoteConnection
 
@@ -138,6 +145,12 @@ class Client:
         if not seconds > 0:
             raise InvalidArgument(f"timeout {seconds!r} s must be positive")
         self._conn.timeout = float(seconds)
+
+    @property
+    def current_tile(self) -> str | None:
+        """A remote client's tile: the one the last request went to over a tile set
+        (None before the first), else ``"whole"`` or the tile given; None when local."""
+        return getattr(self._conn, "current_tile", None)
 
     @property
     def client_node(self) -> int:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import signal
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -107,11 +108,31 @@ def test_no_server_is_reported_quickly(server) -> None:
     assert not isinstance(caught.value, (kfmap.RequestTimeout, kfmap.ServerError))
 
 
+def _wait_until_stopped(pid: int, limit_s: float = 10.0) -> None:
+    """Waits until every thread of ``pid`` is stopped: SIGSTOP takes effect when each
+    thread is next scheduled, so on a loaded machine one may still answer a request sent
+    right after ``kill`` returns."""
+    deadline = time.monotonic() + limit_s
+    while time.monotonic() < deadline:
+        states = []
+        for task in Path(f"/proc/{pid}/task").iterdir():
+            try:
+                stat = (task / "stat").read_text()
+            except OSError:
+                continue  # a thread that just ended
+            states.append(stat.rsplit(")", 1)[1].split()[0])
+        if states and all(state in ("T", "t") for state in states):
+            return
+        time.sleep(0.005)
+    raise AssertionError(f"process {pid} not stopped {limit_s} s after SIGSTOP")
+
+
 def test_timeout_is_its_own_error_and_the_client_reconnects(server) -> None:
     with kfmap.Client(server.map_name, iceoryx_prefix=server.prefix, timeout=0.5) as c:
         c.status()
         os.kill(server.process.pid, signal.SIGSTOP)
         try:
+            _wait_until_stopped(server.process.pid)
             started = time.monotonic()
             with pytest.raises(kfmap.RequestTimeout) as caught:
                 c.status()

@@ -1,6 +1,9 @@
 """``Client.remote`` through a ``kfmap gateway`` (Zenoh over TCP) against the session's
 test server, checked against the local client (iceoryx2) on the same server: every
-remote answer must equal its local twin.
+remote answer must equal its local twin. Then a tile set on two emulated hosts (each a
+``kfmap serve --tiles --only`` + ``kfmap gateway --tiles --only`` pair), driven through
+one remote client routing by pose guess, against the merged map served whole. The
+router and the relocalization merge are also checked on hand-made inputs.
 
 Network tests run only inside a private network namespace (``unshare -rn``: only ``lo``
 exists), which ``run_tests.sh`` creates for this file and marks with
@@ -9,15 +12,25 @@ exists), which ``run_tests.sh`` creates for this file and marks with
 
 from __future__ import annotations
 
+import atexit
+import ctypes
+import math
 import os
+import signal
 import subprocess
 import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 import kfmap
 from _data import ground_truth, scan_points
+from conftest import READY_TIMEOUT_S, _stop, remove_prefix_files
+from kfmap import remote as kr
+from kfmap import wire
 
 ENDPOINT = "tcp/127.0.0.1:17449"
 
@@ -26,15 +39,19 @@ def _in_namespace() -> bool:
     return os.environ.get("KFMAP_TEST_NETNS") == "1"
 
 
-@pytest.fixture(scope="module")
-def gateway(kfmap_bin, server):
+def _require_namespace() -> None:
     if not _in_namespace():
         reason = "remote tests run only in the network namespace run_tests.sh creates"
         if os.environ.get("CI") == "true":
             pytest.fail(f"{reason}, and CI=true: run them through python/run_tests.sh")
         pytest.skip(reason)
     links = subprocess.run(["ip", "-o", "link"], capture_output=True, text=True).stdout
-    assert [l.split(":")[1].strip() for l in links.splitlines()] == ["lo"], links
+    assert [line.split(":")[1].strip() for line in links.splitlines()] == ["lo"], links
+
+
+@pytest.fixture(scope="module")
+def gateway(kfmap_bin, server):
+    _require_namespace()
     process = subprocess.Popen(
         [kfmap_bin, "gateway", "--map-name", server.map_name, "--iceoryx-prefix",
          server.prefix, "--listen", ENDPOINT],
@@ -79,3 +96,370 @@ def test_remote_refusals_and_bad_endpoints_name_the_problem(gateway, server):
         kfmap.Client.remote(ENDPOINT, "bad/name")
     with pytest.raises(kfmap.TransportError):
         kfmap.Client.remote("tcp/127.0.0.1:1", server.map_name)
+
+
+# -- tile sets: the router and the relocalization merge on hand-made inputs ----------
+
+
+def _index(tiles: list[tuple[int, int]], size: float, halo: float) -> kr.TileIndex:
+    """A tile index as ``kfmap bake --tile-size`` writes it (files and counts made up)."""
+    entries = "".join(
+        f'[[tile]]\nid = "x{c}_y{r}"\ncol = {c}\nrow = {r}\nfile = "x{c}_y{r}.kfmap"\n'
+        f'pcd = "x{c}_y{r}.pcd"\nkeyframes = 3\ncore-keyframes = 1\npoints = 9\nbytes = 99\n\n'
+        for c, r in tiles
+    )
+    text = f"format = 1\ntile-size = {size}\nhalo = {halo}\nkeyframes = 7\n\n{entries}"
+    return kr.TileIndex.parse(text)
+
+
+def test_the_router_keeps_its_tile_within_half_the_halo_and_never_sends_far():
+    tile, down, none_up = kr.ROUTE_TILE, kr.ROUTE_DOWN, kr.ROUTE_NONE_UP
+    index = _index([(0, 0), (1, 0)], 10.0, 4.0)  # cores [0,10) and [10,20) on x, [0,10) on y
+    assert [t.id for t in index.tiles] == ["x0_y0", "x1_y0"]
+    every = lambda i: True  # noqa: E731
+    nothing = lambda i: False  # noqa: E731
+    router = kr.TileRouter(index)
+    assert router.hysteresis == 2.0 and router.current is None
+    assert kr.TileRouter(index, 9.0).hysteresis == 4.0  # at most the halo
+    assert router.route(9.0, 5.0, every) == (tile, 0)
+    assert router.route(11.5, 5.0, every) == (tile, 0)  # 1.5 m past the border: stays
+    assert router.route(12.5, 5.0, every) == (tile, 1)  # 2.5 m past it: hands over
+    assert router.route(8.5, 5.0, every) == (tile, 1)  # ... and stays back to 1.5 m
+    assert router.route(7.5, 5.0, every) == (tile, 0)
+    assert router.current == 0
+    # Past the top edge (outside every core): the current tile within 2 m, else the
+    # nearest live tile (at (15, 11.5) tile 0 is 5 m away, tile 1 1.5 m).
+    assert router.route(9.0, 11.5, every) == (tile, 0)
+    assert router.route(15.0, 11.5, every) == (tile, 1)
+    assert router.route(8.5, 11.5, every) == (tile, 1)
+    assert router.route(5.0, 13.0, every) == (tile, 0)  # 3 m from tile 0, 5 m from tile 1
+    # The current tile down: the owner takes over.
+    assert router.route(1.0, 1.0, lambda i: i == 0) == (tile, 0)
+    # The owner down: a neighbour within 2 m of the guess stands in, a farther one never.
+    fresh = kr.TileRouter(index)
+    assert fresh.route(11.0, 5.0, lambda i: i == 0) == (tile, 0)
+    assert fresh.route(15.0, 5.0, lambda i: i == 0) == (down, 1)
+    assert fresh.route(15.0, 5.0, nothing) == (down, 1)
+    assert fresh.current == 0
+    # Outside every core: the nearest live tile, or none.
+    fresh = kr.TileRouter(index)
+    assert fresh.route(40.0, -3.0, every) == (tile, 1)
+    assert kr.TileRouter(index).route(-30.0, 3.0, lambda i: i == 1) == (tile, 1)
+    assert kr.TileRouter(index).route(40.0, -3.0, nothing) == (none_up, None)
+    # A non-finite guess: the current tile (none yet: nowhere to go).
+    assert kr.TileRouter(index).route(math.nan, 0.0, every) == (none_up, None)
+    assert fresh.route(math.inf, 5.0, every) == (tile, 1)
+    assert fresh.route(math.nan, 5.0, lambda i: i == 0) == (down, 1)
+    # Chebyshev distance to a core square, 0 inside.
+    assert index.distance_to_core(0, 5.0, 5.0) == 0.0
+    assert index.distance_to_core(0, 13.0, -1.0) == 3.0
+    assert index.distance_to_core(1, 5.0, 14.0) == 5.0
+
+
+def test_a_bad_tile_index_is_refused_naming_the_problem():
+    good = _index([(-1, 2)], 250.0, 50.0)
+    assert (good.tile_size, good.halo, good.keyframes) == (250.0, 50.0, 7)
+    assert good.tiles == (kr.TileEntry("x-1_y2", -1, 2),)
+    cases = [
+        ("format = 2\ntile-size = 10.0\nhalo = 1.0\n", "format 2"),
+        ("format = 1\ntile-size = 10.0\nhalo = 1.0\n", "no tile"),
+        ("format = 1\ntile-size = 10.0\nhalo = 50.0\n[[tile]]\nid = 'x0_y0'\ncol = 0\nrow = 0\n",
+         "halo 50.0"),
+        ("format = 1\ntile-size = 10.0\nhalo = 1.0\n[[tile]]\nid = 'x5_y5'\ncol = 0\nrow = 0\n",
+         "its id must be 'x0_y0'"),
+        ("format = 1\ntile-size = 10.0\nhalo = 1.0\n[[tile]]\nid = 'x0_y0'\ncol = 0\nrow = 0\n"
+         "[[tile]]\nid = 'x0_y0'\ncol = 0\nrow = 0\n", "listed twice"),
+        ("format = 1\ntile-size = [\n", "not a tile index"),
+    ]
+    for text, expected in cases:
+        with pytest.raises(kfmap.TransportError, match=expected):
+            kr.TileIndex.parse(text)
+
+
+FOUND, AMBIGUOUS, NOT_FOUND = (
+    wire.RelocalizeStatus.FOUND, wire.RelocalizeStatus.AMBIGUOUS, wire.RelocalizeStatus.NOT_FOUND)
+
+
+def _reloc_answer(status, score: float, runner_up: float, x: float, *, yaw_deg: float = 0.0,
+                  code: int = wire.StatusCode.OK, pairings: int = 0) -> bytes:
+    """A tile's relocalization answer frame: 5 candidates, ``1000 * score`` us."""
+    h = wire.ResponseHeader(status=code, relocalization=status, candidates=5,
+                            server_us=1000.0 * score)
+    h.place_scores[0], h.place_scores[1] = score, runner_up
+    half = math.radians(yaw_deg) / 2.0
+    h.pose[:] = [x, 0.0, 0.0, 0.0, 0.0, math.sin(half), math.cos(half)]
+    records = np.zeros(pairings, dtype=wire.PAIRING_DTYPE)
+    records["query"] = np.arange(pairings)
+    records["dist_sq"] = x
+    return ctypes.string_at(ctypes.byref(h), ctypes.sizeof(h)) + records.tobytes()
+
+
+def _merged(*answers: bytes) -> tuple[wire.ResponseHeader, np.ndarray]:
+    frame = kr.merge_relocalizations([(f"t{i}", a) for i, a in enumerate(answers)])
+    head = ctypes.sizeof(wire.ResponseHeader)
+    return (wire.ResponseHeader.from_buffer_copy(frame[:head]),
+            np.frombuffer(frame[head:], dtype=wire.PAIRING_DTYPE))
+
+
+def test_relocalization_answers_of_tiles_merge_as_one_search():
+    # The same place seen from two tiles' halos (0.3 m apart): found, not ambiguous.
+    h, p = _merged(_reloc_answer(FOUND, 0.80, 0.2, 10.0, pairings=3),
+                   _reloc_answer(FOUND, 0.79, 0.1, 10.3, pairings=1))
+    assert h.relocalization == FOUND and list(h.place_scores) == [0.80, 0.2]
+    assert h.candidates == 10 and h.server_us == 800.0
+    assert len(p) == 3 and np.all(p["dist_sq"] == 10.0)  # the winner's pairings
+    # Another place elsewhere scoring within the margin: ambiguous; farther: found.
+    h, _ = _merged(_reloc_answer(FOUND, 0.80, 0.2, 10.0), _reloc_answer(FOUND, 0.78, 0.1, 60.0))
+    assert h.relocalization == AMBIGUOUS and list(h.place_scores) == [0.80, 0.78]
+    h, _ = _merged(_reloc_answer(FOUND, 0.80, 0.2, 10.0), _reloc_answer(FOUND, 0.70, 0.1, 60.0))
+    assert h.relocalization == FOUND and list(h.place_scores) == [0.80, 0.70]
+    # The same spot turned 10 degrees is another place; turned 3 degrees it is not.
+    h, _ = _merged(_reloc_answer(FOUND, 0.80, 0.2, 10.0),
+                   _reloc_answer(FOUND, 0.77, 0.1, 10.0, yaw_deg=10.0))
+    assert h.relocalization == AMBIGUOUS and list(h.place_scores) == [0.80, 0.77]
+    h, _ = _merged(_reloc_answer(FOUND, 0.80, 0.2, 10.0),
+                   _reloc_answer(FOUND, 0.77, 0.1, 10.0, yaw_deg=3.0))
+    assert h.relocalization == FOUND and list(h.place_scores) == [0.80, 0.2]
+    # The best score wins even when its registration does not fit, as in one search.
+    h, _ = _merged(_reloc_answer(NOT_FOUND, 0.9, 0.0, 60.0), _reloc_answer(FOUND, 0.6, 0.1, 10.0))
+    assert h.relocalization == NOT_FOUND and h.pose[0] == 60.0
+    assert list(h.place_scores) == [0.9, 0.6] and h.server_us == 900.0
+    # A tile's own close runner-up keeps it ambiguous; a far one is re-judged found.
+    h, _ = _merged(_reloc_answer(AMBIGUOUS, 0.7, 0.68, 5.0), _reloc_answer(FOUND, 0.2, 0.0, 90.0))
+    assert h.relocalization == AMBIGUOUS and list(h.place_scores) == [0.7, 0.68]
+    h, _ = _merged(_reloc_answer(AMBIGUOUS, 0.7, 0.1, 5.0), _reloc_answer(FOUND, 0.2, 0.0, 90.0))
+    assert h.relocalization == FOUND and list(h.place_scores) == [0.7, 0.2]
+    # Nothing fits anywhere: not found.
+    h, _ = _merged(_reloc_answer(NOT_FOUND, 0.3, 0.0, 1.0), _reloc_answer(NOT_FOUND, 0.0, 0.0, 0.0))
+    assert h.relocalization == NOT_FOUND and h.pose[0] == 1.0
+    # Refusals count only when no tile answered Ok; then the first refusal is the answer.
+    refusal = _reloc_answer(NOT_FOUND, 0.0, 0.0, 0.0, code=wire.StatusCode.EMPTY_SCAN)
+    h, _ = _merged(refusal, _reloc_answer(FOUND, 0.5, 0.1, 3.0))
+    assert h.status == wire.StatusCode.OK and h.relocalization == FOUND and h.candidates == 5
+    h, _ = _merged(refusal, _reloc_answer(NOT_FOUND, 0.0, 0.0, 0.0, code=wire.StatusCode.BUSY))
+    assert h.status == wire.StatusCode.EMPTY_SCAN
+    with pytest.raises(kfmap.TransportError, match="tile t1"):
+        _merged(_reloc_answer(FOUND, 0.5, 0.1, 3.0), b"\0" * 100)
+
+
+# -- tile sets: two emulated hosts against the merged map ----------------------------
+
+TILE_PORTS = (17451, 17452)
+#: Longest the tiled drive may take, seconds.
+DRIVE_BUDGET_S = 240.0
+
+
+@dataclass
+class TileSite:
+    """A tile set served by two serve + gateway pairs, and its merged map served whole."""
+
+    data: Path
+    index: kr.TileIndex
+    map_name: str
+    endpoints: list[str]
+    shares: list[list[str]]
+    gateways: list[subprocess.Popen]
+    oracle_name: str
+    oracle_prefix: str
+
+
+def _die_with_parent() -> None:
+    """In the child: SIGKILL when pytest dies, so no host outlives an aborted run."""
+    try:
+        ctypes.CDLL(None).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def _start(args: list, log_path: Path, ready: str) -> subprocess.Popen:
+    """Starts a kfmap process and waits for its ready line (stdout goes to ``log_path``
+    with its stderr)."""
+    log = open(log_path, "w")  # noqa: SIM115 - the draining thread keeps it
+    process = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=log, text=True,
+                               preexec_fn=_die_with_parent)
+    seen = threading.Event()
+
+    def drain() -> None:
+        assert process.stdout is not None
+        for line in process.stdout:
+            log.write(line)
+            log.flush()
+            if line.startswith(ready):
+                seen.set()
+        log.close()
+
+    threading.Thread(target=drain, daemon=True).start()
+    if not seen.wait(READY_TIMEOUT_S) or process.poll() is not None:
+        _stop(process)
+        pytest.fail(f"{' '.join(map(str, args[:2]))} did not get ready; see {log_path}")
+    return process
+
+
+@pytest.fixture(scope="module")
+def tile_site(kfmap_bin, tmp_path_factory):
+    _require_namespace()
+    out = tmp_path_factory.mktemp("kfmap-tiles")
+    data, tiles = out / "sim", out / "court.tiles"
+    run = dict(check=True, capture_output=True, text=True, timeout=300)
+    # One lap of the courtyard's 24 m square at 8 m/s: 12 tiles of 10 m on the ring.
+    subprocess.run([kfmap_bin, "simulate", "--preset", "courtyard", "--seconds", "12",
+                    "--beams", "16", "--speed", "8", "--out", data], **run)
+    subprocess.run([kfmap_bin, "bake", "--dataset", data, "--out", tiles, "--tile-size", "10",
+                    "--halo", "10", "--keep-merged"], **run)
+    index = kr.TileIndex.parse((tiles / "tiles.toml").read_text())
+    ids = [t.id for t in index.tiles]
+    shares = [ids[0::2], ids[1::2]]
+    base = os.environ.get("KFMAP_TEST_PREFIX") or f"kfpytest{os.getpid()}_"
+    map_name = f"court-{os.getpid()}"
+    processes: list[subprocess.Popen] = []
+    prefixes = [f"{base}tiles{h}_" for h in range(len(shares))] + [f"{base}merged_"]
+
+    def cleanup() -> None:
+        for process in reversed(processes):
+            _stop(process)
+        for prefix in prefixes:
+            remove_prefix_files(prefix)
+
+    atexit.register(cleanup)
+    try:
+        gateways, endpoints = [], []
+        # Every tile of a host searches at once on this machine's 2 cores: give them time.
+        gateway_toml = out / "gateway.toml"
+        gateway_toml.write_text("[gateway]\nrequest-timeout-s = 120.0\n")
+        for h, share in enumerate(shares):
+            only = ",".join(share)
+            processes.append(_start(
+                [kfmap_bin, "serve", "--tiles", tiles, "--map-name", map_name, "--only", only,
+                 "--iceoryx-prefix", prefixes[h]], out / f"serve{h}.log", "ready:"))
+            endpoints.append(f"tcp/127.0.0.1:{TILE_PORTS[h]}")
+            gateways.append(_start(
+                [kfmap_bin, "gateway", "--tiles", tiles, "--map-name", map_name, "--only", only,
+                 "--iceoryx-prefix", prefixes[h], "--listen", endpoints[-1],
+                 "--config", gateway_toml],
+                out / f"gateway{h}.log", "ready: gateway"))
+            processes.append(gateways[-1])
+        oracle_name = f"{map_name}-merged"
+        processes.append(_start(
+            [kfmap_bin, "serve", "--map", tiles / "merged.kfmap", "--map-name", oracle_name,
+             "--iceoryx-prefix", prefixes[-1]], out / "oracle.log", "ready:"))
+        yield TileSite(data, index, map_name, endpoints, shares, gateways, oracle_name,
+                       prefixes[-1])
+    finally:
+        cleanup()
+        atexit.unregister(cleanup)
+
+
+def _translation(pose: np.ndarray) -> np.ndarray:
+    return np.asarray(pose[:3, 3], dtype=np.float64)
+
+
+def test_a_tile_set_on_two_hosts_answers_as_the_merged_map(tile_site):
+    site = tile_site
+    truth = ground_truth(site.data)
+    half_halo = site.index.halo / 2.0
+    ids = [t.id for t in site.index.tiles]
+    with kfmap.Client.remote(",".join(site.endpoints), site.map_name, timeout=120.0) as remote, \
+            kfmap.Client(site.oracle_name, iceoryx_prefix=site.oracle_prefix,
+                         timeout=30.0) as oracle:
+        assert remote._conn.tile_index == site.index
+        assert remote.current_tile is None
+        started = time.monotonic()
+        guess = previous = kfmap.pose_from_wire(truth[0, 1:])
+        compared, crossings, worst_apart, worst_crossing = 0, 0, 0.0, 0.0
+        last, seen, differ = None, set(), []
+        for i in range(0, len(truth), 2):
+            assert time.monotonic() - started < DRIVE_BUDGET_S, f"drive over budget at scan {i}"
+            points, _ = scan_points(site.data, i)
+            tiled = remote.localize(points, guess)
+            tile = remote.current_tile
+            whole = oracle.localize(points, guess)
+            # The request went to a tile within the hysteresis of the guess.
+            assert site.index.distance_to_core(ids.index(tile), guess[0, 3], guess[1, 3]) \
+                <= half_halo, f"scan {i} on {tile}"
+            apart = float(np.abs(tiled.pose - whole.pose).max())
+            if apart > 1e-6 or tiled.status != whole.status:
+                differ.append(f"scan {i} on {tile}: {apart:.2e} apart, {tiled.status.name} "
+                              f"vs {whole.status.name}")
+            worst_apart = max(worst_apart, apart)
+            compared += 1
+            seen.add(tile)
+            if last is not None and tile != last:
+                crossings += 1
+                off = float(np.linalg.norm(_translation(tiled.pose) - truth[i, 1:4]))
+                worst_crossing = max(worst_crossing, off)
+                assert off < 0.05, f"scan {i}, {last} -> {tile}: {off} m from the truth"
+            last = tile
+            # Constant velocity: the next guess moves on as this scan moved.
+            guess = tiled.pose @ np.linalg.inv(previous) @ tiled.pose
+            previous = tiled.pose
+        print(f"tiled drive: {compared} scans compared with the merged map, max difference "
+              f"{worst_apart:.2e}; {crossings} tile changes over {len(seen)} tiles, worst "
+              f"{worst_crossing * 100:.1f} cm from the truth at a crossing")
+        assert crossings >= 4, f"only {crossings} tile changes"
+        assert all(seen & set(share) for share in site.shares), seen  # both hosts answered
+
+        # Relocalization asks every tile at once and ranks as one search of the merged map.
+        for i in range(0, len(truth), len(truth) // 4):
+            points, _ = scan_points(site.data, i)
+            tiled = remote.relocalize(points)
+            whole = oracle.relocalize(points)
+            print(f"relocalize scan {i}: tiles {tiled.status.name} (score {tiled.score:.3f}, "
+                  f"runner-up {tiled.runner_up:.3f}, {tiled.candidates} candidates), merged "
+                  f"map {whole.status.name} (score {whole.score:.3f}, runner-up "
+                  f"{whole.runner_up:.3f})")
+            assert tiled.status == whole.status, f"scan {i}"
+            assert (tiled.pose is None) == (whole.pose is None), f"scan {i}"
+            if tiled.pose is not None:
+                apart = float(np.linalg.norm(_translation(tiled.pose) - _translation(whole.pose)))
+                assert apart < 0.05, f"scan {i}: {apart} m from the merged map's"
+    # Exactly one tile answered each scan, from the keyframes the whole map would use.
+    assert not differ, f"{len(differ)} of {compared} answers differ: {differ}"
+
+
+def _wait_for(ok, seconds: float = 10.0) -> bool:
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        if ok():
+            return True
+        time.sleep(0.01)
+    return ok()
+
+
+def test_a_tile_whose_hosts_are_gone_is_named_and_a_neighbour_stands_in(tile_site):
+    """Runs last: it stops the gateways."""
+    site = tile_site
+    index, h = site.index, site.index.halo / 2.0
+    ids = [t.id for t in index.tiles]
+    points, _ = scan_points(site.data, 0)
+
+    def guess_at(x: float, y: float) -> np.ndarray:
+        pose = np.eye(4)
+        pose[:2, 3] = [x, y]
+        return pose
+
+    def host0_within_h(x: float, y: float) -> bool:
+        return any(index.distance_to_core(ids.index(u), x, y) <= h for u in site.shares[0])
+
+    # Points in host 1's cores (a 1 m grid) with a host 0 tile within the hysteresis (it
+    # stands in when host 1 is gone) and without (nothing may stand in).
+    spots = [((t.col + fx) * index.tile_size, (t.row + fy) * index.tile_size, t.id)
+             for t in index.tiles if t.id in site.shares[1]
+             for fx in np.arange(0.05, 1.0, 0.1) for fy in np.arange(0.05, 1.0, 0.1)]
+    near = [s for s in spots if host0_within_h(s[0], s[1])]
+    alone = [s for s in spots if not host0_within_h(s[0], s[1])]
+    assert near and alone, "both kinds of spot in this layout"
+    with kfmap.Client.remote(",".join(site.endpoints), site.map_name, timeout=20.0) as remote:
+        _stop(site.gateways[1])
+        assert _wait_for(lambda: not remote._conn.alive_tiles & set(site.shares[1]))
+        remote.localize(points, guess_at(*near[0][:2]))
+        assert remote.current_tile in site.shares[0]
+        with pytest.raises(kfmap.NoServerError, match=alone[0][2]):
+            remote.localize(points, guess_at(*alone[0][:2]))
+        # Relocalization asks the tiles still up.
+        remote.relocalize(points)
+        _stop(site.gateways[0])
+        assert _wait_for(lambda: not remote._conn.alive_tiles)
+        with pytest.raises(kfmap.NoServerError, match=near[0][2]):
+            remote.localize(points, guess_at(*near[0][:2]))
+        with pytest.raises(kfmap.NoServerError, match="no tile"):
+            remote.relocalize(points)

@@ -39,5 +39,6 @@ pub mod registration;
 pub mod select;
 pub mod spatial;
 pub mod surfel;
+pub mod tiles;
 pub mod tracking;
 pub mod trajectory_error;

@@ -95,8 +95,10 @@ pub fn rank(
 
 /// The active keyframes for `query`, in selection order: primary slots by metric, then
 /// each diverse slot taking, among unselected keyframes within `max(3 * farthest
-/// primary distance, 1 m)` (or among all if none is), the one whose relative heading
-/// differs most from every selected keyframe's; the first in metric order wins ties.
+/// primary distance, 1 m)`, the one whose relative heading differs most from every
+/// selected keyframe's (the first in metric order wins ties), or the next in metric
+/// order when none is that near: the set never reaches across the site, so a tile
+/// whose halo holds the nearest keyframes answers as the whole map does.
 pub fn select_active(
     keyframes: &[(KeyframeId, Pose)],
     query: &Pose,
@@ -118,7 +120,7 @@ pub fn select_active(
         };
         let near: Vec<&Candidate> = unselected().filter(|c| c.dist <= limit).collect();
         let pool = if near.is_empty() {
-            unselected().collect()
+            unselected().take(1).collect()
         } else {
             near
         };
@@ -201,7 +203,7 @@ mod tests {
     }
 
     #[test]
-    fn diverse_slot_falls_back_to_all_when_none_is_near() {
+    fn diverse_slot_falls_back_to_the_next_nearest_when_none_is_near() {
         let options = SelectionOptions {
             max_search_keyframes: 2,
             num_diverse_keyframes: 1,
@@ -213,7 +215,7 @@ mod tests {
             (2, pose(5.0, 0.0, 0.0)),
             (3, pose(9.0, 0.0, 1.0)),
         ];
-        assert_eq!(select_active(&kfs, &Pose::identity(), &options), vec![1, 3]);
+        assert_eq!(select_active(&kfs, &Pose::identity(), &options), vec![1, 2]);
         // With a near candidate present it wins even with less heading difference.
         let kfs = vec![
             (1, pose(0.1, 0.0, 0.0)),

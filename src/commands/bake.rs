@@ -11,9 +11,11 @@ use kfmap_bake::pipeline::{
     BakeInput, BakeOutput, BakeReport, BakeStage, MappingSummary, bake, scan_check_sidecar,
 };
 use kfmap_bake::scan_range::ScanRange;
+use kfmap_bake::tiling::{TileSetSummary, cut_into_tiles, merged_map_path};
 use kfmap_shared::gravity::GravityCorrection;
 use kfmap_shared::motion::DeskewMode;
 use kfmap_shared::options::ConfigFile;
+use kfmap_shared::tiles::{AUTOWARE_METADATA_FILE, INDEX_FILE, TileGeometry};
 use serde_json::json;
 
 use super::source_arg::SourceArgs;
@@ -107,9 +109,24 @@ pub struct Args {
     /// ground truth for the printed ATE).
     #[arg(long)]
     build_poses: bool,
-    /// Output map file (conventionally *.kfmap).
+    /// Output map file (conventionally *.kfmap); with --tile-size, the tile set's directory.
     #[arg(long)]
     out: PathBuf,
+    /// Cut the map into square tiles of this edge on the map's x-y grid (metres): --out
+    /// is then a directory of one .kfmap per tile (its core square's keyframes plus those
+    /// within --halo), tiles.toml (the index `kfmap serve --tiles` and `kfmap gateway
+    /// --tiles` read) and, for Autoware's map loader, each core square's points as
+    /// <tile>.pcd with pointcloud_map_metadata.yaml. See docs/DESIGN.md#notes-tiles.
+    #[arg(long, value_name = "METRES")]
+    tile_size: Option<f64>,
+    /// With --tile-size: keyframes this far outside a tile's square (per axis) also go
+    /// into its file, so requests near a border find every keyframe the whole map would
+    /// use. At least the localizer's keyframe reach; default 50 m.
+    #[arg(long, value_name = "METRES", requires = "tile_size")]
+    halo: Option<f64>,
+    /// With --tile-size: keep the whole map the tiles were cut from as DIR/merged.kfmap.
+    #[arg(long, requires = "tile_size")]
+    keep_merged: bool,
     /// Bake only scans A to B-1 of the dataset's sorted scan list (A.., ..B: open end).
     #[arg(long, value_name = "A..B")]
     scans: Option<ScanRange>,
@@ -148,8 +165,31 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(mode) = args.deskew {
         config.build.odometry.deskew = mode;
     }
+    let tiles = args.tile_size.map(|tile_size| TileGeometry {
+        tile_size,
+        halo: args.halo.unwrap_or(DEFAULT_HALO_M),
+    });
+    if let Some(geometry) = tiles {
+        geometry.validate().map_err(|e| anyhow::anyhow!("--{e}"))?;
+        if args.out.join(INDEX_FILE).exists() && !args.force {
+            anyhow::bail!(
+                "--out {} holds a tile set; pass --force to replace it",
+                args.out.display()
+            );
+        }
+        std::fs::create_dir_all(&args.out).with_context(|| {
+            format!(
+                "cannot create the tile set's directory {}",
+                args.out.display()
+            )
+        })?;
+    }
     let output = BakeOutput {
-        map: args.out.clone(),
+        // A tile set is cut from the whole map, written into its directory first.
+        map: match tiles {
+            Some(_) => merged_map_path(&args.out),
+            None => args.out.clone(),
+        },
         trajectory: args.trajectory_out.clone(),
         graph: args.graph_out.clone(),
     };
@@ -165,13 +205,113 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .build()
         .context("cannot start worker threads")?;
     let report = bake_with_progress(&pool, &input, &config, &output, args.json)?;
+    let tile_set = match tiles {
+        Some(geometry) => Some(cut_with_progress(&pool, &args, &output.map, geometry)?),
+        None => None,
+    };
     let threads = pool.current_num_threads();
     if args.json {
-        println!("{}", summary_json(&args, &output, &report, threads));
+        let mut summary = summary_json(&args, &output, &report, threads);
+        if let Some(t) = &tile_set {
+            summary["tiles"] = tiles_json(t);
+        }
+        println!("{summary}");
     } else {
-        print_summary(&args, &output, &report, threads);
+        print_summary(&output, &report, threads);
+        if let Some(t) = &tile_set {
+            print_tiles(&args, t);
+        }
     }
     Ok(())
+}
+
+/// The default halo of a tile set, metres: well past the localizer's keyframe reach.
+const DEFAULT_HALO_M: f64 = 50.0;
+
+/// Cuts the merged map at `merged` into the tile set `args.out` (then removes it unless
+/// --keep-merged), showing a progress bar.
+fn cut_with_progress(
+    pool: &rayon::ThreadPool,
+    args: &Args,
+    merged: &std::path::Path,
+    geometry: TileGeometry,
+) -> anyhow::Result<TileSetSummary> {
+    let bar = if args.json {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(0)
+    };
+    bar.set_style(
+        ProgressStyle::with_template("cutting tiles [{bar:40}] {pos}/{len} tiles, eta {eta}")
+            .expect("template")
+            .progress_chars("=> "),
+    );
+    let cut = pool.install(|| {
+        cut_into_tiles(merged, &args.out, geometry, |done, total| {
+            bar.set_length(total as u64);
+            bar.set_position(done as u64);
+        })
+    });
+    bar.finish_and_clear();
+    if !args.keep_merged {
+        let _ = std::fs::remove_file(merged);
+    }
+    Ok(cut?)
+}
+
+/// `--json`'s part for a tile set.
+fn tiles_json(t: &TileSetSummary) -> serde_json::Value {
+    json!({
+        "tile_size_m": t.index.tile_size, "halo_m": t.index.halo, "count": t.index.tiles.len(),
+        "map_bytes": t.map_bytes, "place_grid_bytes": t.place_bytes,
+        "worst_place_grid_share": t.worst_place_share, "seconds": t.seconds,
+        "halo_check": {"agree": t.halo_check.0, "sampled": t.halo_check.1},
+        "tiles": t.index.tiles.iter().map(|e| json!({
+            "id": e.id, "file": e.file, "keyframes": e.keyframes,
+            "core_keyframes": e.core_keyframes, "points": e.points, "bytes": e.bytes,
+        })).collect::<Vec<_>>(),
+    })
+}
+
+/// Prints the tile set's summary for people.
+fn print_tiles(args: &Args, t: &TileSetSummary) {
+    let i = &t.index;
+    let written: u64 = i.tiles.iter().map(|e| e.keyframes).sum();
+    println!(
+        "  cut into {} tiles of {} m (halo {} m) -> {}: {} keyframes written for {} ({:.2}x), {:.1} MB, {:.2} s",
+        i.tiles.len(),
+        i.tile_size,
+        i.halo,
+        args.out.display(),
+        written,
+        i.keyframes,
+        written as f64 / i.keyframes.max(1) as f64,
+        t.map_bytes as f64 / 1e6,
+        t.seconds
+    );
+    println!(
+        "  place grids: {:.2} MB in all, at most {:.2} % of a tile's file; index {}, Autoware metadata {}",
+        t.place_bytes as f64 / 1e6,
+        100.0 * t.worst_place_share,
+        INDEX_FILE,
+        AUTOWARE_METADATA_FILE
+    );
+    let (agree, sampled) = t.halo_check;
+    println!(
+        "  halo check: {agree} of {sampled} sampled guesses (core keyframes, and half the halo past them) select the same keyframes from their tile as from the whole map"
+    );
+    if agree < sampled {
+        println!(
+            "  warning: {} guesses near tile borders would be answered from fewer keyframes than the whole map has; widen --halo",
+            sampled - agree
+        );
+    }
+    if args.keep_merged {
+        println!(
+            "  the whole map kept as {}",
+            merged_map_path(&args.out).display()
+        );
+    }
 }
 
 /// An error when an output file exists and `--force` was not given (the trajectory's
@@ -305,11 +445,11 @@ fn mapping_json(m: &MappingSummary) -> serde_json::Value {
 }
 
 /// Prints the bake's summary for people.
-fn print_summary(args: &Args, output: &BakeOutput, report: &BakeReport, threads: usize) {
+fn print_summary(output: &BakeOutput, report: &BakeReport, threads: usize) {
     let w = &report.written;
     println!(
         "{}: {} keyframes from {} scans, {} points, {:.1} MB, {:.2} s ({:.2} M points/s, {} threads)",
-        args.out.display(),
+        output.map.display(),
         w.keyframes,
         report.scans.len(),
         w.points,

@@ -8,6 +8,7 @@ use std::sync::atomic::AtomicBool;
 use anyhow::Context;
 use kfmap_gateway::{GatewayConfig, GatewayOptions};
 use kfmap_shared::options::ConfigFile;
+use kfmap_shared::tiles::TileIndex;
 
 /// Answer remote clients (other hosts) through the local `kfmap serve`, over Zenoh,
 /// until SIGINT or SIGTERM.
@@ -27,10 +28,19 @@ use kfmap_shared::options::ConfigFile;
 /// Remote clients: `kfmap localize|relocalize|status|query --remote tcp/HOST:7447
 /// --map-name NAME`, `Client::remote` in Rust, `kfmap.Client.remote` in Python.
 ///
+/// Tile sets: --tiles DIR (the directory `kfmap bake --tile-size` wrote, as given to
+/// `kfmap serve --tiles`) announces each tile served on this host (all, or --only) as
+/// kfmap/<map-name>/v<protocol>/<tile>/..., forwarded to the local map <map-name>.<tile>,
+/// and answers the tile index on kfmap/<map-name>/v<protocol>/index. Remote clients
+/// route each request by its pose guess to the tile whose square holds it (staying on
+/// a tile a little past its border), and ask every tile at once to relocalize.
+///
 /// Examples:
 ///   kfmap serve --map site.kfmap &
 ///   kfmap gateway --map-name site --listen tcp/0.0.0.0:7447
 ///   kfmap gateway --map-name site --config gateway.toml
+///   kfmap serve --tiles site.tiles --map-name site --only x0_y0,x1_y0 &
+///   kfmap gateway --tiles site.tiles --map-name site --only x0_y0,x1_y0
 #[derive(clap::Args)]
 #[command(verbatim_doc_comment)]
 pub struct Args {
@@ -50,6 +60,13 @@ pub struct Args {
     /// iceoryx2 prefix of the local server.
     #[arg(long)]
     iceoryx_prefix: Option<String>,
+    /// A tile set's directory (`kfmap bake --tile-size`): announce its tiles.
+    #[arg(long, value_name = "DIR")]
+    tiles: Option<PathBuf>,
+    /// With --tiles: announce only these tiles (comma-separated ids), those this host's
+    /// `kfmap serve --tiles --only` serves.
+    #[arg(long, value_name = "IDS", value_delimiter = ',', requires = "tiles")]
+    only: Vec<String>,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -60,20 +77,36 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(path) = &args.zenoh_config {
         config.zenoh_config = path.display().to_string();
     }
-    let mut options = GatewayOptions::new(&args.map_name, config);
+    let mut options = match &args.tiles {
+        None => GatewayOptions::new(&args.map_name, config),
+        Some(dir) => {
+            let index = TileIndex::load(dir)?;
+            let tiles: Vec<String> = index
+                .select(&args.only, dir)?
+                .iter()
+                .map(|t| t.id.clone())
+                .collect();
+            GatewayOptions::tiled(&args.map_name, index.to_toml(), &tiles, config)
+        }
+    };
     options.iceoryx_prefix = args.iceoryx_prefix.clone();
     let stop = Arc::new(AtomicBool::new(false));
     for signal in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
         signal_hook::flag::register(signal, stop.clone())
             .context("install the SIGINT/SIGTERM handler")?;
     }
+    let tiles = match options.index {
+        Some(_) => format!(" ({} tiles)", options.tiles.len()),
+        None => String::new(),
+    };
     kfmap_gateway::run(&options, &stop, |locators| {
         // One line on stdout when ready: scripts and tests wait for it.
         let mut out = std::io::stdout().lock();
         let _ = writeln!(
             out,
-            "ready: gateway for map {} listening on {}",
+            "ready: gateway for map {}{} listening on {}",
             args.map_name,
+            tiles,
             locators.join(", ")
         );
         let _ = out.flush();

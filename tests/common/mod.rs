@@ -125,10 +125,35 @@ impl Server {
     /// Starts `kfmap serve --map MAP --map-name NAME --iceoryx-prefix PREFIX [extra]` and
     /// waits for its ready line.
     pub fn start(map: &Path, name: &str, prefix: &str, extra: &[&str]) -> Self {
+        let map = ["--map", map.to_str().unwrap()];
+        Self::spawn(
+            &[
+                &map[..],
+                &["--map-name", name, "--iceoryx-prefix", prefix],
+                extra,
+            ]
+            .concat(),
+        )
+    }
+
+    /// Starts `kfmap serve --tiles DIR --map-name NAME --iceoryx-prefix PREFIX --only
+    /// IDS` and waits for its ready line (after every tile's).
+    pub fn start_tiles(dir: &Path, name: &str, prefix: &str, only: &str) -> Self {
+        let tiles = ["--tiles", dir.to_str().unwrap(), "--only", only];
+        Self::spawn(
+            &[
+                &tiles[..],
+                &["--map-name", name, "--iceoryx-prefix", prefix],
+            ]
+            .concat(),
+        )
+    }
+
+    /// Starts `kfmap serve ARGS` and waits for the line starting "ready:".
+    fn spawn(args: &[&str]) -> Self {
         let mut child = Command::new(kfmap_bin())
-            .args(["serve", "--map", map.to_str().unwrap(), "--map-name", name])
-            .args(["--iceoryx-prefix", prefix])
-            .args(extra)
+            .arg("serve")
+            .args(args)
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
             .spawn()
@@ -149,9 +174,16 @@ impl Server {
             }
             all
         });
-        let ready_line = match rx.recv_timeout(Duration::from_secs(60)) {
-            Ok(line) => line,
-            Err(_) => {
+        let deadline = std::time::Instant::now() + Duration::from_secs(60);
+        // A tile server prints a line per tile before its ready line.
+        let ready = std::iter::from_fn(|| {
+            rx.recv_timeout(deadline.saturating_duration_since(std::time::Instant::now()))
+                .ok()
+        })
+        .find(|line| line.starts_with("ready:"));
+        let ready_line = match ready {
+            Some(line) => line,
+            None => {
                 let _ = child.kill();
                 let _ = child.wait();
                 panic!(

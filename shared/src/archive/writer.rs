@@ -103,6 +103,17 @@ impl MapWriter {
 
     /// Appends one keyframe (ids must ascend); returns its segment's size in bytes.
     pub fn write_keyframe(&mut self, keyframe: &Keyframe) -> Result<u64, ArchiveError> {
+        self.write_keyframe_searched(keyframe, None)
+    }
+
+    /// As [`Self::write_keyframe`]; `searched` (a tile's writer): whether relocalization
+    /// searches around this keyframe (a core keyframe) or only marks its points (a halo
+    /// keyframe). `None`: as every keyframe of a whole map.
+    pub fn write_keyframe_searched(
+        &mut self,
+        keyframe: &Keyframe,
+        searched: Option<bool>,
+    ) -> Result<u64, ArchiveError> {
         if keyframe.len() > MAX_KEYFRAME_POINTS {
             return Err(ArchiveError::KeyframeTooLarge {
                 id: keyframe.id,
@@ -140,8 +151,11 @@ impl MapWriter {
         )
         .map_err(|e| ArchiveError::Serialize(format!("keyframe {}: {e}", keyframe.id)))?;
         let offset = self.append(&bytes, SEGMENT_ALIGN)?;
-        self.place
-            .add_anchor(keyframe.pose.translation.vector.into());
+        let position = keyframe.pose.translation.vector.into();
+        match searched {
+            Some(true) => self.place.add_searched_anchor(position),
+            _ => self.place.add_anchor(position),
+        }
         self.place.add_points(keyframe.map_points()?);
         let n = keyframe.len() as u64;
         let b = &keyframe.bbox;

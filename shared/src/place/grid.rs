@@ -138,6 +138,9 @@ pub struct GridBuilder {
     fine: f64,
     keys: HashSet<[i64; 3]>,
     anchors: Vec<[f64; 3]>,
+    /// Anchors whose surroundings relocalization searches (a tile's core keyframes; all
+    /// anchors when empty).
+    searched: Vec<[f64; 3]>,
     /// Sum of the up directions of the clouds added (map frame), each found from the
     /// cloud's own points as a scan's is.
     up_votes: Vector3<f64>,
@@ -150,6 +153,7 @@ impl GridBuilder {
             fine: params.resolution / 2.0,
             keys: HashSet::new(),
             anchors: Vec::new(),
+            searched: Vec::new(),
             up_votes: Vector3::zeros(),
         }
     }
@@ -178,6 +182,16 @@ impl GridBuilder {
         }
     }
 
+    /// As [`Self::add_anchor`], for a sensor position whose surroundings relocalization
+    /// searches while others' are only marked: a tile of a tile set searches its core,
+    /// its halo's places being its neighbours' to find.
+    pub fn add_searched_anchor(&mut self, position: [f64; 3]) {
+        if position.iter().all(|v| v.is_finite()) {
+            self.anchors.push(position);
+            self.searched.push(position);
+        }
+    }
+
     /// The grid: levelled on the map's own floor-like planes (a map built from poses
     /// whose z is not quite gravity still levels alike with a levelled scan), clipped
     /// to `params.reach` around the anchors.
@@ -190,13 +204,17 @@ impl GridBuilder {
         let grid_from_map = levelling(&up);
         let to_grid = |p: [f64; 3]| -> [f64; 3] { (grid_from_map * Vector3::from(p)).into() };
         let anchors: Vec<[f64; 3]> = self.anchors.iter().map(|a| to_grid(*a)).collect();
-        let (mut low, mut high) = ([f64::MAX; 3], [f64::MIN; 3]);
-        for a in &anchors {
-            for axis in 0..3 {
-                low[axis] = low[axis].min(a[axis]);
-                high[axis] = high[axis].max(a[axis]);
+        let bounds = |points: &[[f64; 3]]| {
+            let (mut low, mut high) = ([f64::MAX; 3], [f64::MIN; 3]);
+            for a in points {
+                for axis in 0..3 {
+                    low[axis] = low[axis].min(a[axis]);
+                    high[axis] = high[axis].max(a[axis]);
+                }
             }
-        }
+            (low, high)
+        };
+        let (low, high) = bounds(&anchors);
         let reach = params.reach;
         let r = params.resolution;
         let mut marked: HashSet<[i64; 3]> = HashSet::new();
@@ -207,6 +225,17 @@ impl GridBuilder {
             }
         }
         let margin = params.search_margin;
+        let (low, high) = if self.searched.is_empty() {
+            (low, high)
+        } else {
+            bounds(
+                &self
+                    .searched
+                    .iter()
+                    .map(|a| to_grid(*a))
+                    .collect::<Vec<_>>(),
+            )
+        };
         let region = SearchRegion {
             min: [low[0] - margin[0], low[1] - margin[1], low[2] - margin[2]],
             max: [

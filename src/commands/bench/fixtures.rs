@@ -60,6 +60,17 @@ pub(super) fn bake_synthetic(
     points: usize,
     bar: &ProgressBar,
 ) -> anyhow::Result<f64> {
+    bake_synthetic_at(path, count, points, keyframe_pose, bar)
+}
+
+/// As [`bake_synthetic`], keyframe `i` at `pose_of(i)`.
+pub(super) fn bake_synthetic_at(
+    path: &Path,
+    count: usize,
+    points: usize,
+    pose_of: impl Fn(usize) -> Pose + Sync,
+    bar: &ProgressBar,
+) -> anyhow::Result<f64> {
     let options = KeyframeMapOptions::default();
     let mut writer = MapWriter::create(path, &options)?;
     let chunk = 2 * rayon::current_num_threads();
@@ -75,7 +86,7 @@ pub(super) fn bake_synthetic(
             .enumerate()
             .map(|(j, c)| {
                 let i = start + j;
-                Keyframe::build(i as u64, keyframe_pose(i), i as f64, c, &options.covariance)
+                Keyframe::build(i as u64, pose_of(i), i as f64, c, &options.covariance)
             })
             .collect::<Result<_, _>>()?;
         for k in &keyframes {

@@ -49,10 +49,16 @@ pub(super) fn run(dir: &Path, size: MapSize, keep: bool, json_out: bool) -> anyh
 /// microseconds since the process started.
 pub(super) fn probe(path: &Path, started: Instant) -> anyhow::Result<()> {
     let mut map = open_map(path, OpenOptions::default())?.map;
-    let at = keyframe_pose(map.len() / 2);
+    // At the middle keyframe, half a metre off its origin (any map: a tile too).
+    let at = map
+        .keyframes()
+        .nth(map.len() / 2)
+        .context("the map has no keyframe")?
+        .pose;
     let active = map.activate(&at)?;
+    let t = at.translation.vector;
     let hit = active
-        .nearest_one(&[at.translation.x as f32, 0.5, 0.0])
+        .nearest_one(&[t.x as f32, t.y as f32 + 0.5, t.z as f32])
         .context("no answer")?;
     println!(
         "{}",
@@ -175,7 +181,7 @@ fn bake_throughput(small: &Path, size: MapSize, bar: &ProgressBar) -> anyhow::Re
 
 /// Five fresh `kfmap bench probe` processes on the map: median milliseconds from
 /// spawning to the printed answer, and inside the process.
-fn cold_starts(path: &Path) -> anyhow::Result<(f64, f64)> {
+pub(super) fn cold_starts(path: &Path) -> anyhow::Result<(f64, f64)> {
     let exe = std::env::current_exe()?;
     let mut wall = Vec::new();
     let mut inside = Vec::new();

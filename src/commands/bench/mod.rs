@@ -5,6 +5,7 @@
 mod anchors;
 mod bags;
 mod child;
+mod city;
 mod cov2cov;
 mod fixtures;
 mod ipc;
@@ -59,8 +60,15 @@ use anyhow::{Context, bail};
 /// benchmarks stay on a private loopback) starts `kfmap serve` and `kfmap gateway` on the
 /// same synthetic map and measures server-side localize of a 20k-point scan through the
 /// gateway (Zenoh over TCP) against the same request over iceoryx2, alternated request
-/// by request (median, p99 as JSON), then the throughput of 4 clients each way. Without
+/// by request (median, p99 as JSON), then the throughput of 4 client processes each way. Without
 /// user namespaces the table lists these rows as skipped.
+///
+/// `kfmap bench city` lays 20 000 keyframes (2 000 points each) along a street grid over
+/// a 10 x 10 km site, bakes them into one map, cuts it into 250 m tiles with a 50 m halo
+/// as `kfmap bake --tile-size` does, and reports bake throughput whole and into tiles,
+/// the cold start of the largest tiles (a fresh process to its first answer) and the
+/// place grids' bytes against the tile files. About 9 GB on disk under --dir while it
+/// runs; --quick: 800 keyframes over 2 x 2 km.
 ///
 /// `kfmap bench soak` starts `kfmap serve` on the same synthetic map and --clients
 /// client processes, each sending --rate requests per second for --seconds: scans of
@@ -110,6 +118,9 @@ enum What {
     Ipc(IpcArgs),
     /// Many clients for minutes against one server.
     Soak(SoakArgs),
+    /// A synthetic city map baked whole and cut into tiles: bake throughput, cold start
+    /// per tile, place grid share.
+    City(CityArgs),
     /// Server-side localize through `kfmap gateway` against the same over iceoryx2 (run
     /// it in a private network namespace: `unshare -rn`, as the table does).
     Remote,
@@ -119,6 +130,18 @@ enum What {
     /// Internal (load): open MAP, answer one query, print the microseconds since start.
     #[command(hide = true)]
     Probe { map: PathBuf },
+    /// Internal (remote): run as one throughput client of the server under PREFIX, over
+    /// iceoryx2 or (--remote) through the gateway.
+    #[command(hide = true)]
+    RemoteWorker {
+        prefix: String,
+        /// Seconds to send requests.
+        #[arg(long)]
+        seconds: f64,
+        /// Through the gateway.
+        #[arg(long)]
+        remote: bool,
+    },
     /// Internal (ipc): run as one throughput client of the server under PREFIX.
     #[command(hide = true)]
     IpcWorker {
@@ -155,6 +178,26 @@ struct LoadArgs {
     /// Keep the generated map file.
     #[arg(long)]
     keep: bool,
+}
+
+/// `kfmap bench city`.
+#[derive(clap::Args)]
+struct CityArgs {
+    /// Edge of the square site, metres (--quick: 2000).
+    #[arg(long, default_value_t = 10_000.0)]
+    extent_m: f64,
+    /// Keyframes along its streets, about 10 m apart (--quick: 800).
+    #[arg(long, default_value_t = 20_000)]
+    keyframes: usize,
+    /// Points per keyframe.
+    #[arg(long, default_value_t = 2_000)]
+    points: usize,
+    /// Tile edge, metres.
+    #[arg(long, default_value_t = 250.0)]
+    tile_size: f64,
+    /// Halo around each tile, metres.
+    #[arg(long, default_value_t = 50.0)]
+    halo: f64,
 }
 
 /// `kfmap bench ipc`.
@@ -204,6 +247,18 @@ pub fn run(args: Args, process_start: Instant) -> anyhow::Result<()> {
         }
         Some(What::Ipc(ipc)) => ipc::run(&dir()?, ipc.spin, args.quick, args.json),
         Some(What::Remote) => remote::run(&dir()?, args.quick),
+        Some(What::City(city)) => {
+            let plan = city::CityPlan {
+                extent_m: if args.quick { 2_000.0 } else { city.extent_m },
+                keyframes: if args.quick { 800 } else { city.keyframes },
+                points: city.points,
+                tiles: kfmap_shared::tiles::TileGeometry {
+                    tile_size: city.tile_size,
+                    halo: city.halo,
+                },
+            };
+            city::run(&dir()?, plan, args.json)
+        }
         Some(What::Soak(soak)) => {
             let plan = soak::SoakPlan {
                 clients: soak.clients as usize,
@@ -216,6 +271,11 @@ pub fn run(args: Args, process_start: Instant) -> anyhow::Result<()> {
         Some(What::Probe { map }) => load::probe(map, process_start),
         Some(What::BagRead { file }) => bags::run_read(file),
         Some(What::IpcWorker { prefix, seconds }) => ipc::worker(prefix, *seconds),
+        Some(What::RemoteWorker {
+            prefix,
+            seconds,
+            remote,
+        }) => remote::worker(prefix, *remote, *seconds),
         Some(What::SoakClient {
             prefix,
             rate,

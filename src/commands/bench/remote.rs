@@ -95,34 +95,55 @@ fn options(prefix: &str) -> ClientOptions {
     }
 }
 
-/// Scans per second of `CLIENTS` clients made by `connect`, each on its own thread
-/// (and server session), for `seconds`.
-fn throughput(
-    connect: impl Fn() -> anyhow::Result<Client> + Sync,
-    request: &Request,
-    seconds: f64,
-) -> anyhow::Result<f64> {
+/// Scans per second of `CLIENTS` client processes (`kfmap bench remote-worker`), each
+/// with its own server session, local or through the gateway, for `seconds`: the sum of
+/// each process's own rate.
+fn throughput(prefix: &str, remote: bool, seconds: f64) -> anyhow::Result<f64> {
+    let exe = std::env::current_exe()?;
+    let children: Vec<_> = (0..CLIENTS)
+        .map(|_| {
+            let mut command = Command::new(&exe);
+            command
+                .args(["bench", "remote-worker", prefix, "--seconds"])
+                .arg(seconds.to_string())
+                .stdout(Stdio::piped())
+                .stderr(Stdio::inherit());
+            if remote {
+                command.arg("--remote");
+            }
+            command.spawn()
+        })
+        .collect::<Result<_, _>>()?;
+    let mut total = 0.0;
+    for child in children {
+        let out = child.wait_with_output()?;
+        if !out.status.success() {
+            anyhow::bail!("a throughput client failed");
+        }
+        let v: serde_json::Value = serde_json::from_slice(&out.stdout)?;
+        total += v["scans_per_s"].as_f64().unwrap_or(0.0);
+    }
+    Ok(total)
+}
+
+/// The hidden `kfmap bench remote-worker`: one client process of the throughput rows,
+/// sending server-side localize back to back for `seconds`; prints its rate as JSON.
+pub(super) fn worker(prefix: &str, remote: bool, seconds: f64) -> anyhow::Result<()> {
+    let mut client = if remote {
+        Client::remote(ENDPOINT, "bench", options(prefix))?
+    } else {
+        Client::connect("bench", options(prefix))?
+    };
+    let request = Request::new();
     let started = Instant::now();
-    let counts = std::thread::scope(|s| {
-        let threads: Vec<_> = (0..CLIENTS)
-            .map(|_| {
-                s.spawn(|| -> anyhow::Result<usize> {
-                    let mut client = connect()?;
-                    let mut n = 0;
-                    while started.elapsed().as_secs_f64() < seconds {
-                        request.time(&mut client)?;
-                        n += 1;
-                    }
-                    Ok(n)
-                })
-            })
-            .collect();
-        threads
-            .into_iter()
-            .map(|t| t.join().expect("a throughput thread panicked"))
-            .collect::<anyhow::Result<Vec<usize>>>()
-    })?;
-    Ok(counts.iter().sum::<usize>() as f64 / started.elapsed().as_secs_f64())
+    let mut n = 0;
+    while started.elapsed().as_secs_f64() < seconds {
+        request.time(&mut client)?;
+        n += 1;
+    }
+    let rate = n as f64 / started.elapsed().as_secs_f64();
+    println!("{}", json!({ "scans": n, "scans_per_s": rate }));
+    Ok(())
 }
 
 /// Runs `kfmap bench remote` (inside a network namespace) against a synthetic map in
@@ -141,10 +162,8 @@ fn measure(map: &Path, prefix: &str, quick: bool) -> anyhow::Result<serde_json::
     let (reps, seconds) = if quick { (20, 1.0) } else { (200, 5.0) };
     let _server = start_bench_server(map, prefix, false)?;
     let _gateway = GatewayChild::start(prefix)?;
-    let remote_client = || Ok(Client::remote(ENDPOINT, "bench", options(prefix))?);
-    let local_client = || Ok(Client::connect("bench", options(prefix))?);
-    let mut local = local_client()?;
-    let mut remote = remote_client()?;
+    let mut local = Client::connect("bench", options(prefix))?;
+    let mut remote = Client::remote(ENDPOINT, "bench", options(prefix))?;
     let request = Request::new();
     for _ in 0..5 {
         request.time(&mut local)?;
@@ -157,8 +176,9 @@ fn measure(map: &Path, prefix: &str, quick: bool) -> anyhow::Result<serde_json::
     }
     l.sort_by(f64::total_cmp);
     r.sort_by(f64::total_cmp);
-    let local_rate = throughput(local_client, &request, seconds)?;
-    let remote_rate = throughput(remote_client, &request, seconds)?;
+    drop((local, remote));
+    let local_rate = throughput(prefix, false, seconds)?;
+    let remote_rate = throughput(prefix, true, seconds)?;
     Ok(json!({
         "scan_points": SCAN_POINTS,
         "samples": reps,
@@ -225,7 +245,7 @@ pub(super) fn table_rows(table: &mut Table, dir: &Path) -> anyhow::Result<()> {
         json_number(&v["remote_scans_per_s"]),
     );
     table.push(
-        "localize throughput, 4 clients, local",
+        "localize throughput, 4 client processes, local",
         label,
         4,
         lr,

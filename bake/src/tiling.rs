@@ -1,0 +1,337 @@
+//! Cutting a baked map into a tile set (`kfmap bake --tile-size`, docs/DESIGN.md#notes-tiles):
+//! one `.kfmap` per tile with the keyframes of its core square and of its halo, the
+//! index `tiles.toml`, and for Autoware each core square's points as `<id>.pcd` with
+//! `pointcloud_map_metadata.yaml`. Keyframes are copied from the baked map as they are
+//! (points, trees, covariances): nothing is rebuilt, so a tile answers exactly as the
+//! whole map does for a request it owns.
+
+use std::collections::{BTreeMap, HashSet};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use kfmap_shared::KeyframeId;
+use kfmap_shared::archive::{MapWriter, OpenOptions, open_map};
+use kfmap_shared::cloud::PointCloud;
+use kfmap_shared::covis::CovisibilityGraph;
+use kfmap_shared::geometry::{Pose, pose_from_xyz_quat};
+use kfmap_shared::io::{IoError, PcdData, write_atomic, write_pcd};
+use kfmap_shared::select::{SelectionOptions, rank, select_active};
+use kfmap_shared::tiles::{
+    AUTOWARE_METADATA_FILE, INDEX_FILE, INDEX_FORMAT, TileEntry, TileGeometry, TileIndex, tile_id,
+};
+use rayon::prelude::*;
+
+use crate::error::BakeError;
+
+/// The voxel (metres) the Autoware point clouds are thinned to: keyframes overlap, and a
+/// place seen from ten keyframes should not weigh ten times.
+const PCD_VOXEL_M: f64 = 0.1;
+
+/// What a cut produced.
+#[derive(Debug, Clone)]
+pub struct TileSetSummary {
+    /// The index written.
+    pub index: TileIndex,
+    /// Bytes of the tile maps.
+    pub map_bytes: u64,
+    /// Bytes of the tiles' place grids (relocalization), summed.
+    pub place_bytes: u64,
+    /// Largest place grid as a share of its tile's file.
+    pub worst_place_share: f64,
+    /// The halo check: sampled guesses whose active set from the tile's keyframes is the
+    /// whole map's, and guesses sampled.
+    pub halo_check: (usize, usize),
+    /// Wall time, seconds.
+    pub seconds: f64,
+}
+
+/// Cuts the baked map at `map` into a tile set in `dir` (created; a tile set already
+/// there is replaced, any other non-empty directory refused). `progress(done, total)`
+/// after each tile.
+pub fn cut_into_tiles(
+    map: &Path,
+    dir: &Path,
+    geometry: TileGeometry,
+    mut progress: impl FnMut(usize, usize),
+) -> Result<TileSetSummary, BakeError> {
+    let started = Instant::now();
+    geometry.validate().map_err(BakeError::Tiles)?;
+    let previous = prepare_directory(dir)?;
+    let opened = open_map(map, OpenOptions::default())?;
+    let whole = &opened.map;
+    let map_from_input =
+        pose_from_xyz_quat(opened.index.map_from_input).unwrap_or_else(Pose::identity);
+    // Each tile's keyframes (ascending ids, as a map file needs) and its core count.
+    let mut members: BTreeMap<(i32, i32), (Vec<KeyframeId>, u64)> = BTreeMap::new();
+    for keyframe in whole.keyframes() {
+        let t = keyframe.pose.translation.vector;
+        for (n, (col, row)) in geometry.tiles_holding(t.x, t.y).into_iter().enumerate() {
+            let entry = members.entry((row, col)).or_default();
+            entry.0.push(keyframe.id);
+            entry.1 += u64::from(n == 0);
+        }
+    }
+    // A tile is written when it owns a keyframe: a halo alone answers nothing.
+    members.retain(|_, (_, core)| *core > 0);
+    let total = members.len();
+    let mut index = TileIndex {
+        format: INDEX_FORMAT,
+        tile_size: geometry.tile_size,
+        halo: geometry.halo,
+        keyframes: whole.len() as u64,
+        tiles: Vec::with_capacity(total),
+    };
+    let (mut map_bytes, mut place_bytes, mut worst_place_share) = (0, 0, 0.0_f64);
+    let everyone: Vec<(KeyframeId, Pose)> = whole.keyframes().map(|k| (k.id, k.pose)).collect();
+    let near_index = NearIndex::new(&everyone, geometry.halo.max(1.0));
+    let selection = whole.options().selection;
+    let mut halo_check = (0, 0);
+    for (done, (&(row, col), (ids, core))) in members.iter().enumerate() {
+        let id = tile_id(col, row);
+        let file = format!("{id}.kfmap");
+        let mut writer = MapWriter::create(&dir.join(&file), whole.options())?;
+        writer.set_map_from_input(&map_from_input);
+        let mut covis = CovisibilityGraph::new(whole.options().covisibility);
+        let [x0, y0] = geometry.core_min(col, row);
+        let in_core = |p: &[f64; 3]| {
+            p[0] >= x0
+                && p[0] < x0 + geometry.tile_size
+                && p[1] >= y0
+                && p[1] < y0 + geometry.tile_size
+        };
+        let mut core_points: Vec<[f32; 3]> = Vec::new();
+        for &kf in ids {
+            let keyframe = whole.keyframe(kf).expect("an id listed from the map");
+            let points = keyframe.map_points()?;
+            core_points.extend(
+                points
+                    .iter()
+                    .filter(|p| in_core(p))
+                    .map(|p| p.map(|v| v as f32)),
+            );
+            covis.set_keyframe(kf, points);
+            // Relocalization searches the core: the halo's places are the neighbours'.
+            let t = keyframe.pose.translation.vector;
+            let core = geometry.tile_of(t.x, t.y) == (col, row);
+            writer.write_keyframe_searched(keyframe, Some(core))?;
+        }
+        let members: HashSet<KeyframeId> = ids.iter().copied().collect();
+        let own: Vec<(KeyframeId, Pose)> = everyone
+            .iter()
+            .filter(|(id, _)| members.contains(id))
+            .copied()
+            .collect();
+        let (agree, sampled) = check_halo(&own, &near_index, geometry, (col, row), &selection);
+        halo_check.0 += agree;
+        halo_check.1 += sampled;
+        let pool: Vec<_> = opened
+            .index
+            .gravity_pool
+            .iter()
+            .filter(|g| members.contains(&g.keyframe))
+            .cloned()
+            .collect();
+        let written = writer.finish(whole.next_id(), &covis.snapshot(), &pool)?;
+        let pcd = format!("{id}.pcd");
+        let cloud = PointCloud::from_points(core_points)
+            .voxel_downsample(PCD_VOXEL_M)
+            .map_err(|e| BakeError::Tiles(format!("tile {id}: thinning its points: {e}")))?;
+        write_atomic(&dir.join(&pcd), &write_pcd(&cloud, PcdData::Binary))?;
+        let reopened = open_map(&dir.join(&file), OpenOptions::default())?;
+        let grid = reopened.place.as_ref().map_or(0, |p| p.byte_len() as u64);
+        place_bytes += grid;
+        worst_place_share = worst_place_share.max(grid as f64 / written.bytes.max(1) as f64);
+        map_bytes += written.bytes;
+        index.tiles.push(TileEntry {
+            id,
+            col,
+            row,
+            file,
+            pcd,
+            keyframes: written.keyframes as u64,
+            core_keyframes: *core,
+            points: written.points,
+            bytes: written.bytes,
+        });
+        progress(done + 1, total);
+    }
+    write_atomic(
+        &dir.join(AUTOWARE_METADATA_FILE),
+        index.autoware_metadata().as_bytes(),
+    )?;
+    // The index last: a directory with an index is a complete tile set.
+    write_atomic(&dir.join(INDEX_FILE), index.to_toml().as_bytes())?;
+    remove_stale(dir, previous, &index);
+    Ok(TileSetSummary {
+        index,
+        map_bytes,
+        place_bytes,
+        worst_place_share,
+        halo_check,
+        seconds: started.elapsed().as_secs_f64(),
+    })
+}
+
+/// The halo check of one tile: for each of its core keyframes' poses, and each moved
+/// half the halo along x and y (where the router still sends a guess to the tile), the
+/// active set selected from the tile's keyframes `own` against the whole map's. Returns
+/// (agreeing, sampled).
+fn check_halo(
+    own: &[(KeyframeId, Pose)],
+    everyone: &NearIndex,
+    geometry: TileGeometry,
+    (col, row): (i32, i32),
+    selection: &SelectionOptions,
+) -> (usize, usize) {
+    let h = geometry.halo / 2.0;
+    let mut samples = Vec::new();
+    for (_, pose) in own {
+        let t = pose.translation.vector;
+        if geometry.distance_to_core(col, row, t.x, t.y) > 0.0 {
+            continue;
+        }
+        for (dx, dy) in [(0.0, 0.0), (h, 0.0), (-h, 0.0), (0.0, h), (0.0, -h)] {
+            if geometry.distance_to_core(col, row, t.x + dx, t.y + dy) <= h {
+                let mut q = *pose;
+                q.translation.vector += nalgebra::Vector3::new(dx, dy, 0.0);
+                samples.push(q);
+            }
+        }
+    }
+    let agree = samples
+        .par_iter()
+        .filter(|q| {
+            let mut from_tile = select_active(own, q, selection);
+            // Whatever the whole map selects lies within `reach` (see `NearIndex`).
+            let Some(reach) = selection_reach(own, q, selection) else {
+                return true;
+            };
+            let nearby = everyone.within(q, reach);
+            let mut from_whole = select_active(&nearby, q, selection);
+            from_tile.sort_unstable();
+            from_whole.sort_unstable();
+            from_tile == from_whole
+        })
+        .count();
+    (agree, samples.len())
+}
+
+/// How far from `q` the whole map's active set can reach, given that a subset `own`
+/// selects as it does: the whole map's primary slots rank at least as well, so lie
+/// within the subset's worst primary metric `m` (metric >= distance); its diverse
+/// slots within `3 m` (the near pool's bound) or, falling back, within the subset's next
+/// metric. `None` when the subset has too few keyframes to bound anything (its set is
+/// then all it has: the check compares nothing).
+fn selection_reach(
+    own: &[(KeyframeId, Pose)],
+    q: &Pose,
+    selection: &SelectionOptions,
+) -> Option<f64> {
+    let ranked = rank(own, q, selection);
+    let total = selection.max_search_keyframes.min(ranked.len());
+    let diverse = selection.num_diverse_keyframes.min(total.saturating_sub(1));
+    let primaries = total - diverse;
+    if ranked.len() <= total || primaries == 0 {
+        return None;
+    }
+    let worst_primary = ranked[primaries - 1].metric;
+    let next = ranked[primaries].metric;
+    Some((3.0 * worst_primary).max(1.0).max(next))
+}
+
+/// The whole map's keyframes by position, in square cells, for "every keyframe within
+/// r of q".
+struct NearIndex {
+    cell: f64,
+    cells: std::collections::HashMap<(i64, i64), Vec<(KeyframeId, Pose)>>,
+}
+
+impl NearIndex {
+    fn new(keyframes: &[(KeyframeId, Pose)], cell: f64) -> Self {
+        let mut cells: std::collections::HashMap<(i64, i64), Vec<(KeyframeId, Pose)>> =
+            Default::default();
+        for &(id, pose) in keyframes {
+            let t = pose.translation.vector;
+            cells
+                .entry(((t.x / cell).floor() as i64, (t.y / cell).floor() as i64))
+                .or_default()
+                .push((id, pose));
+        }
+        Self { cell, cells }
+    }
+
+    /// Keyframes within `r` (in x-y, then exactly in 3D) of `q`, ascending id.
+    fn within(&self, q: &Pose, r: f64) -> Vec<(KeyframeId, Pose)> {
+        let t = q.translation.vector;
+        let lo = |v: f64| ((v - r) / self.cell).floor() as i64;
+        let hi = |v: f64| ((v + r) / self.cell).floor() as i64;
+        let mut found = Vec::new();
+        for cx in lo(t.x)..=hi(t.x) {
+            for cy in lo(t.y)..=hi(t.y) {
+                if let Some(list) = self.cells.get(&(cx, cy)) {
+                    found.extend(
+                        list.iter()
+                            .filter(|(_, p)| (p.translation.vector - t).norm() <= r)
+                            .copied(),
+                    );
+                }
+            }
+        }
+        found.sort_unstable_by_key(|(id, _)| *id);
+        found
+    }
+}
+
+/// Creates `dir`, or accepts it empty or holding a tile set (whose index is returned, so
+/// its files can be removed once the new set is written).
+fn prepare_directory(dir: &Path) -> Result<Option<TileIndex>, BakeError> {
+    let io = |e: std::io::Error| BakeError::Io(IoError::os(dir, e));
+    if !dir.exists() {
+        std::fs::create_dir_all(dir).map_err(io)?;
+        return Ok(None);
+    }
+    if !dir.is_dir() {
+        return Err(BakeError::Tiles(format!(
+            "{}: not a directory (a tile set is a directory of tiles)",
+            dir.display()
+        )));
+    }
+    if dir.join(INDEX_FILE).exists() {
+        return Ok(Some(TileIndex::load(dir)?));
+    }
+    // The merged map `kfmap bake --tile-size` writes first may be there.
+    let empty = std::fs::read_dir(dir)
+        .map_err(io)?
+        .filter_map(Result::ok)
+        .all(|e| e.path() == merged_map_path(dir));
+    if !empty {
+        return Err(BakeError::Tiles(format!(
+            "{}: not empty and not a tile set (no {INDEX_FILE}); give a new or empty directory",
+            dir.display()
+        )));
+    }
+    Ok(None)
+}
+
+/// Removes the files of the tile set `previous` that the new `index` no longer lists.
+fn remove_stale(dir: &Path, previous: Option<TileIndex>, index: &TileIndex) {
+    let Some(previous) = previous else { return };
+    let kept: HashSet<&str> = index
+        .tiles
+        .iter()
+        .flat_map(|t| [t.file.as_str(), t.pcd.as_str()])
+        .collect();
+    for t in &previous.tiles {
+        for name in [&t.file, &t.pcd] {
+            if !kept.contains(name.as_str()) {
+                let _ = std::fs::remove_file(dir.join(name));
+            }
+        }
+    }
+}
+
+/// The merged map a tile set was cut from, when `kfmap bake --tile-size --keep-merged`
+/// kept it: `DIR/merged.kfmap`.
+pub fn merged_map_path(dir: &Path) -> PathBuf {
+    dir.join("merged.kfmap")
+}
