@@ -36,6 +36,8 @@ pub struct WriteSummary {
     pub points: u64,
     /// File size, bytes.
     pub bytes: u64,
+    /// The place grid's segment, bytes (0 without a grid).
+    pub place_bytes: u64,
 }
 
 /// A map file being written. Dropping it before [`finish`](Self::finish) removes the
@@ -234,6 +236,7 @@ impl MapWriter {
             keyframes: index.keyframes.len(),
             points: index.keyframes.iter().map(|k| k.points).sum(),
             bytes: HEADER_LEN as u64 + self.offset,
+            place_bytes: index.place.as_ref().map_or(0, |p| p.len),
         })
     }
 }
