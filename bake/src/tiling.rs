@@ -7,14 +7,17 @@
 
 use std::collections::{BTreeMap, HashSet};
 use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
 use kfmap_shared::KeyframeId;
-use kfmap_shared::archive::{MapWriter, OpenOptions, open_map};
+use kfmap_shared::archive::{GravityRecord, MapWriter, OpenOptions, open_map};
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::covis::CovisibilityGraph;
 use kfmap_shared::geometry::{Pose, pose_from_xyz_quat};
 use kfmap_shared::io::{IoError, PcdData, write_atomic, write_pcd};
+use kfmap_shared::map::KeyframeMap;
 use kfmap_shared::select::{SelectionOptions, rank, select_active};
 use kfmap_shared::tiles::{
     AUTOWARE_METADATA_FILE, INDEX_FILE, INDEX_FORMAT, TileEntry, TileGeometry, TileIndex, tile_id,
@@ -52,7 +55,7 @@ pub fn cut_into_tiles(
     map: &Path,
     dir: &Path,
     geometry: TileGeometry,
-    mut progress: impl FnMut(usize, usize),
+    progress: impl FnMut(usize, usize) + Send,
 ) -> Result<TileSetSummary, BakeError> {
     let started = Instant::now();
     geometry.validate().map_err(BakeError::Tiles)?;
@@ -81,16 +84,93 @@ pub fn cut_into_tiles(
         keyframes: whole.len() as u64,
         tiles: Vec::with_capacity(total),
     };
-    let (mut map_bytes, mut place_bytes, mut worst_place_share) = (0, 0, 0.0_f64);
     let everyone: Vec<(KeyframeId, Pose)> = whole.keyframes().map(|k| (k.id, k.pose)).collect();
-    let near_index = NearIndex::new(&everyone, geometry.halo.max(1.0));
-    let selection = whole.options().selection;
+    let cut = TileCut {
+        whole,
+        pool: &opened.index.gravity_pool,
+        map_from_input,
+        geometry,
+        dir,
+        near: NearIndex::new(&everyone, geometry.halo.max(1.0)),
+        everyone: &everyone,
+    };
+    // Tiles are independent: written in parallel, each by one thread (a tile's own work
+    // is sequential), the results kept in tile order.
+    let done = AtomicUsize::new(0);
+    let progress = Mutex::new(progress);
+    let written: Vec<WrittenTile> = members
+        .par_iter()
+        .map(|(&(row, col), (ids, core))| {
+            let tile = cut.write_tile(col, row, ids, *core)?;
+            let finished = done.fetch_add(1, Ordering::Relaxed) + 1;
+            if let Ok(mut report) = progress.lock() {
+                report(finished, total);
+            }
+            Ok(tile)
+        })
+        .collect::<Result<_, BakeError>>()?;
+    let (mut map_bytes, mut place_bytes, mut worst_place_share) = (0, 0, 0.0_f64);
     let mut halo_check = (0, 0);
-    for (done, (&(row, col), (ids, core))) in members.iter().enumerate() {
+    for tile in written {
+        place_bytes += tile.place_bytes;
+        worst_place_share =
+            worst_place_share.max(tile.place_bytes as f64 / tile.entry.bytes.max(1) as f64);
+        map_bytes += tile.entry.bytes;
+        halo_check.0 += tile.halo_check.0;
+        halo_check.1 += tile.halo_check.1;
+        index.tiles.push(tile.entry);
+    }
+    write_atomic(
+        &dir.join(AUTOWARE_METADATA_FILE),
+        index.autoware_metadata().as_bytes(),
+    )?;
+    // The index last: a directory with an index is a complete tile set.
+    write_atomic(&dir.join(INDEX_FILE), index.to_toml().as_bytes())?;
+    remove_stale(dir, previous, &index);
+    Ok(TileSetSummary {
+        index,
+        map_bytes,
+        place_bytes,
+        worst_place_share,
+        halo_check,
+        seconds: started.elapsed().as_secs_f64(),
+    })
+}
+
+/// One tile written: its index entry, its place grid's bytes, its halo check.
+struct WrittenTile {
+    entry: TileEntry,
+    place_bytes: u64,
+    halo_check: (usize, usize),
+}
+
+/// What every tile is cut from.
+struct TileCut<'a> {
+    whole: &'a KeyframeMap,
+    pool: &'a [GravityRecord],
+    map_from_input: Pose,
+    geometry: TileGeometry,
+    dir: &'a Path,
+    /// Every keyframe of the whole map with its pose, and the same by position.
+    everyone: &'a [(KeyframeId, Pose)],
+    near: NearIndex,
+}
+
+impl TileCut<'_> {
+    /// Writes tile `(col, row)` of keyframes `ids` (ascending; `core` of them its own):
+    /// its map, its Autoware point cloud, and checks its halo.
+    fn write_tile(
+        &self,
+        col: i32,
+        row: i32,
+        ids: &[KeyframeId],
+        core: u64,
+    ) -> Result<WrittenTile, BakeError> {
+        let (whole, geometry) = (self.whole, self.geometry);
         let id = tile_id(col, row);
         let file = format!("{id}.kfmap");
-        let mut writer = MapWriter::create(&dir.join(&file), whole.options())?;
-        writer.set_map_from_input(&map_from_input);
+        let mut writer = MapWriter::create(&self.dir.join(&file), whole.options())?;
+        writer.set_map_from_input(&self.map_from_input);
         let mut covis = CovisibilityGraph::new(whole.options().covisibility);
         let [x0, y0] = geometry.core_min(col, row);
         let in_core = |p: &[f64; 3]| {
@@ -112,21 +192,25 @@ pub fn cut_into_tiles(
             covis.set_keyframe(kf, points);
             // Relocalization searches the core: the halo's places are the neighbours'.
             let t = keyframe.pose.translation.vector;
-            let core = geometry.tile_of(t.x, t.y) == (col, row);
-            writer.write_keyframe_searched(keyframe, Some(core))?;
+            let in_own_core = geometry.tile_of(t.x, t.y) == (col, row);
+            writer.write_keyframe_searched(keyframe, Some(in_own_core))?;
         }
         let members: HashSet<KeyframeId> = ids.iter().copied().collect();
-        let own: Vec<(KeyframeId, Pose)> = everyone
+        let own: Vec<(KeyframeId, Pose)> = self
+            .everyone
             .iter()
             .filter(|(id, _)| members.contains(id))
             .copied()
             .collect();
-        let (agree, sampled) = check_halo(&own, &near_index, geometry, (col, row), &selection);
-        halo_check.0 += agree;
-        halo_check.1 += sampled;
-        let pool: Vec<_> = opened
-            .index
-            .gravity_pool
+        let halo_check = check_halo(
+            &own,
+            &self.near,
+            geometry,
+            (col, row),
+            &whole.options().selection,
+        );
+        let pool: Vec<_> = self
+            .pool
             .iter()
             .filter(|g| members.contains(&g.keyframe))
             .cloned()
@@ -136,40 +220,23 @@ pub fn cut_into_tiles(
         let cloud = PointCloud::from_points(core_points)
             .voxel_downsample(PCD_VOXEL_M)
             .map_err(|e| BakeError::Tiles(format!("tile {id}: thinning its points: {e}")))?;
-        write_atomic(&dir.join(&pcd), &write_pcd(&cloud, PcdData::Binary))?;
-        let reopened = open_map(&dir.join(&file), OpenOptions::default())?;
-        let grid = reopened.place.as_ref().map_or(0, |p| p.byte_len() as u64);
-        place_bytes += grid;
-        worst_place_share = worst_place_share.max(grid as f64 / written.bytes.max(1) as f64);
-        map_bytes += written.bytes;
-        index.tiles.push(TileEntry {
-            id,
-            col,
-            row,
-            file,
-            pcd,
-            keyframes: written.keyframes as u64,
-            core_keyframes: *core,
-            points: written.points,
-            bytes: written.bytes,
-        });
-        progress(done + 1, total);
+        write_atomic(&self.dir.join(&pcd), &write_pcd(&cloud, PcdData::Binary))?;
+        Ok(WrittenTile {
+            entry: TileEntry {
+                id,
+                col,
+                row,
+                file,
+                pcd,
+                keyframes: written.keyframes as u64,
+                core_keyframes: core,
+                points: written.points,
+                bytes: written.bytes,
+            },
+            place_bytes: written.place_bytes,
+            halo_check,
+        })
     }
-    write_atomic(
-        &dir.join(AUTOWARE_METADATA_FILE),
-        index.autoware_metadata().as_bytes(),
-    )?;
-    // The index last: a directory with an index is a complete tile set.
-    write_atomic(&dir.join(INDEX_FILE), index.to_toml().as_bytes())?;
-    remove_stale(dir, previous, &index);
-    Ok(TileSetSummary {
-        index,
-        map_bytes,
-        place_bytes,
-        worst_place_share,
-        halo_check,
-        seconds: started.elapsed().as_secs_f64(),
-    })
 }
 
 /// The halo check of one tile: for each of its core keyframes' poses, and each moved

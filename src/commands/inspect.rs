@@ -199,6 +199,12 @@ fn facts_json(
             "resolution_m": g.resolution(),
             "dims": g.dims(),
             "levels": g.levels(),
+            "bytes": g.bytes(),
+            "index": g.index().0,
+            "index_slots": g.index().1,
+            "blocks_per_level": g.level_blocks().iter()
+                .map(|b| json!({"partial": b.partial, "full": b.full}))
+                .collect::<Vec<_>>(),
         })),
         "bbox_min": f.lo,
         "bbox_max": f.hi,
@@ -245,14 +251,27 @@ fn print_facts(args: &Args, opened: &OpenedMap, f: &MapFacts<'_>, timing: &Timin
         f.covisibility_edges, f.mean_degree, f.essential_edges
     );
     match &f.place {
-        Some(g) => println!(
-            "  place grid (relocalization): {:?} voxels of {} m, {} levels, {:.3} MB ({:.2} % of the file)",
-            g.dims(),
-            g.resolution(),
-            g.levels(),
-            mb(sizes.place_grid),
-            100.0 * sizes.place_grid as f64 / opened.file_len() as f64
-        ),
+        Some(g) => {
+            let blocks = g.level_blocks();
+            let per_level: Vec<String> = blocks
+                .iter()
+                .map(|b| format!("{}+{}", b.partial, b.full))
+                .collect();
+            let (index, slots) = g.index();
+            println!(
+                "  place grid (relocalization): {:?} voxels of {} m, {} levels, {} block levels \
+                 of 8^3 ({} wholly marked) found by a {index} of {slots}, {:.3} MB ({:.2} % of \
+                 the file); per level partly+wholly marked blocks: {}",
+                g.dims(),
+                g.resolution(),
+                g.levels(),
+                blocks.iter().map(|b| b.partial + b.full).sum::<usize>(),
+                blocks.iter().map(|b| b.full).sum::<usize>(),
+                mb(sizes.place_grid),
+                100.0 * sizes.place_grid as f64 / opened.file_len() as f64,
+                per_level.join(" ")
+            );
+        }
         None => println!("  place grid: none (relocalization refused; bake the map again)"),
     }
     match f.pool_spread {

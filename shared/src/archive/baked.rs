@@ -140,6 +140,9 @@ fn view_of<'f>(
         three(&r.origin),
         r.dims.map(|d| d.to_native()),
         r.levels.to_native(),
+        native(&r.directory),
+        native(&r.keys),
+        native(&r.entries),
         native(&r.words),
         SearchRegion {
             min: three(&r.region_min),

@@ -9,8 +9,8 @@ use super::ArchiveError;
 pub const MAGIC: [u8; 8] = *b"KFMAP\x00\r\n";
 /// Format version this build writes and reads (3: the index records `T_map_input`;
 /// 4: keyframes may hold per-point weights; 5: the place grid of relocalization; 6:
-/// KD-tree leaves in blocks of lanes).
-pub const FORMAT_VERSION: u32 = 6;
+/// KD-tree leaves in blocks of lanes; 7: the place grid sparse, blocks in a hash table).
+pub const FORMAT_VERSION: u32 = 7;
 /// Header size; the payload starts here (page aligned, so 128-byte aligned in a map).
 pub const HEADER_LEN: usize = 4096;
 /// Keyframe segments start at multiples of this from the payload start (cache-line

@@ -100,7 +100,20 @@ pub struct PlaceGridRecord<'a> {
     pub region_min: [f64; 3],
     /// ... and high corner.
     pub region_max: [f64; 3],
-    /// Bits of every level, level after level.
+    /// Per block of the grid (x fastest): its entry, or `0xff` when empty at every
+    /// level; empty when the table is used: see [`crate::place::sparse`].
+    #[rkyv(with = InlineAsBox)]
+    pub directory: &'a [u32],
+    /// Block table keys (block coordinates; `u64::MAX` where free), a
+    /// power-of-two count: see [`crate::place::sparse`].
+    #[rkyv(with = InlineAsBox)]
+    pub keys: &'a [u64],
+    /// Per table slot: the levels where the block is partly marked (below them it is
+    /// empty, above wholly marked) and where their bits are.
+    #[rkyv(with = InlineAsBox)]
+    pub entries: &'a [u32],
+    /// Bits of the partly marked block levels, 8 words (8^3 voxels) each, after a
+    /// block of clear and a block of set bits.
     #[rkyv(with = InlineAsBox)]
     pub words: &'a [u64],
 }

@@ -296,22 +296,25 @@ fn bad_files_are_named_errors() {
         ArchiveError::BadMagic
     ));
     let mut newer = good.clone();
-    newer[8] = 7;
+    newer[8] = 8;
     assert!(matches!(
         open_err(&write("newer", &newer)),
         ArchiveError::NewerVersion {
-            found: 7,
-            supported: 6
+            found: 8,
+            supported: 7
         }
     ));
     // Version 1 held kiddo trees, version 2 no T_map_input, version 3 no point weights,
-    // version 4 no place grid, version 5 unblocked tree leaves: such maps are baked again.
-    for old in [1u8, 2, 3, 4, 5] {
+    // version 4 no place grid, version 5 unblocked tree leaves, version 6 a dense place
+    // grid: such maps are baked again.
+    for old in [1u8, 2, 3, 4, 5, 6] {
         let mut older = good.clone();
         older[8] = old;
+        let error = open_err(&write("older", &older));
+        assert!(error.to_string().contains("format version"), "{error}");
         assert!(matches!(
-            open_err(&write("older", &older)),
-            ArchiveError::OldVersion { found, supported: 6 } if found == old as u32
+            error,
+            ArchiveError::OldVersion { found, supported: 7 } if found == old as u32
         ));
     }
     let mut wide = good.clone();
@@ -464,4 +467,44 @@ fn the_place_grid_is_baked_and_a_damaged_one_is_named() {
     let error = opened.place.as_ref().unwrap().view().unwrap_err();
     assert!(error.to_string().contains("place grid"), "{error}");
     assert!(opened.map.keyframes().all(|k| k.view().is_ok()));
+}
+
+/// The place grid read back from a reopened file is the grid the writer built: same
+/// frame, extent and bytes, and the same answer at every level for every voxel of the
+/// grid and a margin around it.
+#[test]
+fn the_place_grid_round_trips_through_a_file() {
+    let dir = Scratch::new("archive-place-trip");
+    let map = sample_map(KeyframeMapOptions::default());
+    let path = baked(&dir, &map);
+    let params = crate::place::GridParams::default();
+    let mut builder = crate::place::GridBuilder::new(&params);
+    for keyframe in map.keyframes() {
+        builder.add_anchor(keyframe.pose.translation.vector.into());
+        builder.add_points(keyframe.map_points().unwrap());
+    }
+    let built = builder.finish(&params).unwrap();
+    let expected = built.view();
+    let opened = open_map(&path, OpenOptions::default()).unwrap();
+    let view = opened.place.as_ref().unwrap().view().unwrap();
+    assert_eq!(view.dims(), expected.dims());
+    assert_eq!(view.origin(), expected.origin());
+    assert_eq!(view.levels(), expected.levels());
+    assert_eq!(view.bytes(), expected.bytes());
+    assert_eq!(view.level_blocks(), expected.level_blocks());
+    assert_eq!(view.region(), expected.region());
+    let [nx, ny, nz] = view.dims();
+    let mut marked = 0;
+    for level in 0..view.levels() {
+        for z in -3..nz + 3 {
+            for y in -3..ny + 3 {
+                for x in -3..nx + 3 {
+                    let answer = view.marked(level, [x, y, z]);
+                    assert_eq!(answer, expected.marked(level, [x, y, z]));
+                    marked += usize::from(answer);
+                }
+            }
+        }
+    }
+    assert!(marked > 0);
 }

@@ -36,6 +36,8 @@ pub struct WriteSummary {
     pub points: u64,
     /// File size, bytes.
     pub bytes: u64,
+    /// The place grid's segment, bytes (0 without a grid).
+    pub place_bytes: u64,
 }
 
 /// A map file being written. Dropping it before [`finish`](Self::finish) removes the
@@ -234,6 +236,7 @@ impl MapWriter {
             keyframes: index.keyframes.len(),
             points: index.keyframes.iter().map(|k| k.points).sum(),
             bytes: HEADER_LEN as u64 + self.offset,
+            place_bytes: index.place.as_ref().map_or(0, |p| p.len),
         })
     }
 }
@@ -256,7 +259,10 @@ impl MapWriter {
             levels: grid.levels,
             region_min: grid.region.min,
             region_max: grid.region.max,
-            words: &grid.words,
+            directory: &grid.levels_data.directory,
+            keys: &grid.levels_data.keys,
+            entries: &grid.levels_data.entries,
+            words: &grid.levels_data.words,
         };
         let bytes = rkyv::api::high::to_bytes_in::<_, rancor::Error>(
             &record,

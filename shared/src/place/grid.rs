@@ -3,13 +3,19 @@
 //! map point; level `l` marks voxel `i` when any level-0 voxel in the cube
 //! `i + [0, 2^l)^3` is marked. A search node covering the translations `t + k r`,
 //! `k` in `[0, 2^l)^3`, then bounds the hits of all of them with one lookup per point.
-//! Levels are dense bit arrays (x fastest), so a baked grid is read in place.
+//! Levels are stored sparsely (blocks of 8^3 voxels holding a mark, found through a
+//! hash table of plain arrays: see [`super::sparse`]), so a baked grid is read in
+//! place and costs memory in proportion to what is mapped, not to its bounding box.
 
 use std::collections::HashSet;
 
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
 use super::level::{estimate_up, levelling};
+use super::sparse::{
+    self, ABSENT, BLOCK_EDGE, BLOCK_WORDS, EMPTY_KEY, MAX_EXTENT, ONES_BLOCK, SparseLevels,
+    block_at, directory_index, home, key, shift_of, unentry, unkey,
+};
 use crate::options::{InvalidOption, ensure};
 
 /// The translations searched: an axis-aligned box in the map frame.
@@ -29,8 +35,9 @@ const MAP_MAX_TILT_DEG: f64 = 20.0;
 /// level-0 voxels per axis.
 pub const MAX_LEVELS: usize = 12;
 
-/// Most voxels one level may hold: 2^31 bits (256 MiB per level).
-pub const MAX_VOXELS: u64 = 1 << 31;
+/// Most blocks of 8^3 voxels a grid may keep, all levels together: at most about
+/// 1.4 GiB (64 bytes of bits and 24 of table per block), whatever the site's extent.
+pub const MAX_BLOCKS: u64 = 1 << 24;
 
 /// How the grid is cut.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -97,13 +104,24 @@ pub enum GridError {
     /// No finite point to mark.
     #[error("no finite map point to build the place grid from")]
     Empty,
-    /// The map's extent at this resolution needs too many voxels.
+    /// What is mapped at this resolution needs too many blocks.
     #[error(
-        "the place grid would need {voxels} voxels of {resolution} m (at most {MAX_VOXELS}); \
-         bake with a coarser place-resolution"
+        "the place grid would need more than {blocks} blocks of 8^3 voxels of {resolution} m \
+         (at most {MAX_BLOCKS}); bake with a coarser place-resolution"
     )]
     TooLarge {
-        /// Voxels needed.
+        /// Blocks counted when the limit was passed.
+        blocks: u64,
+        /// Level-0 voxel edge, metres.
+        resolution: f64,
+    },
+    /// The map spans too many voxels along one axis for the block keys.
+    #[error(
+        "the place grid would span {voxels} voxels of {resolution} m along one axis \
+         (at most {MAX_EXTENT}); bake with a coarser place-resolution"
+    )]
+    TooWide {
+        /// Voxels along the widest axis.
         voxels: u64,
         /// Level-0 voxel edge, metres.
         resolution: f64,
@@ -244,8 +262,8 @@ pub struct PlaceGrid {
     pub dims: [u32; 3],
     /// Levels, level 0 first.
     pub levels: u32,
-    /// Bits of every level, level after level, each `ceil(voxels / 64)` words.
-    pub words: Vec<u64>,
+    /// The levels' blocks: see [`SparseLevels`].
+    pub levels_data: SparseLevels,
     /// Translations relocalization searches, grid frame.
     pub region: SearchRegion,
 }
@@ -272,36 +290,30 @@ impl PlaceGrid {
             return Err(GridError::Empty);
         }
         let span = |a: usize| (high[a] - low[a] + 1) as u64;
-        let voxels = span(0).saturating_mul(span(1)).saturating_mul(span(2));
-        if voxels > MAX_VOXELS {
-            return Err(GridError::TooLarge {
-                voxels,
+        let widest = span(0).max(span(1)).max(span(2));
+        if widest > MAX_EXTENT {
+            return Err(GridError::TooWide {
+                voxels: widest,
                 resolution: r,
             });
         }
         let dims = [span(0) as u32, span(1) as u32, span(2) as u32];
-        let n = voxels as usize;
-        let mut level = vec![false; n];
-        let index =
-            |x: usize, y: usize, z: usize| x + dims[0] as usize * (y + dims[1] as usize * z);
-        for key in marked {
-            let [x, y, z] = [0, 1, 2].map(|a| (key[a] - low[a]) as usize);
-            level[index(x, y, z)] = true;
-        }
-        let words_per_level = n.div_ceil(64);
-        let mut words = Vec::with_capacity(words_per_level * params.levels);
-        pack(&level, &mut words);
-        for l in 1..params.levels {
-            dilate(&mut level, dims, 1 << (l - 1));
-            pack(&level, &mut words);
-        }
+        let relative: HashSet<[i64; 3]> = marked
+            .iter()
+            .map(|k| [k[0] - low[0], k[1] - low[1], k[2] - low[2]])
+            .collect();
+        let levels_data = sparse::build(&relative, dims.map(i64::from), params.levels, MAX_BLOCKS)
+            .map_err(|blocks| GridError::TooLarge {
+                blocks,
+                resolution: r,
+            })?;
         Ok(Self {
             resolution: r,
             grid_from_map,
             origin: low.map(|v| v as f64 * r),
             dims,
             levels: params.levels as u32,
-            words,
+            levels_data,
             region,
         })
     }
@@ -314,41 +326,13 @@ impl PlaceGrid {
             self.origin,
             self.dims,
             self.levels,
-            &self.words,
+            &self.levels_data.directory,
+            &self.levels_data.keys,
+            &self.levels_data.entries,
+            &self.levels_data.words,
             self.region,
         )
         .expect("a built grid is consistent")
-    }
-}
-
-/// Appends `bits` packed 64 per word.
-fn pack(bits: &[bool], words: &mut Vec<u64>) {
-    words.extend(bits.chunks(64).map(|chunk| {
-        chunk
-            .iter()
-            .enumerate()
-            .fold(0u64, |w, (i, &b)| w | (u64::from(b) << i))
-    }));
-}
-
-/// One doubling of the dilation: each voxel also takes the marks `shift` voxels
-/// further along each axis (separable, so three passes).
-fn dilate(level: &mut [bool], dims: [u32; 3], shift: usize) {
-    let [nx, ny, nz] = dims.map(|d| d as usize);
-    let strides = [1, nx, nx * ny];
-    let extents = [nx, ny, nz];
-    for axis in 0..3 {
-        let (stride, extent) = (strides[axis], extents[axis]);
-        if shift >= extent {
-            // Nothing lies `shift` voxels further inside the grid.
-            continue;
-        }
-        for i in 0..level.len() {
-            let coordinate = (i / stride) % extent;
-            if coordinate + shift < extent && level[i + shift * stride] {
-                level[i] = true;
-            }
-        }
     }
 }
 
@@ -360,19 +344,50 @@ pub struct GridView<'a> {
     region: SearchRegion,
     origin: [f64; 3],
     dims: [i64; 3],
+    /// Blocks per axis.
+    block_dims: [i64; 3],
     levels: usize,
-    words_per_level: usize,
+    directory: &'a [u32],
+    keys: &'a [u64],
+    entries: &'a [u32],
     words: &'a [u64],
+    /// Hash shift of the table (`64 - log2(keys.len())`).
+    shift: u32,
+}
+
+/// One level's blocks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct LevelBlocks {
+    /// Blocks partly marked (bits stored).
+    pub partial: usize,
+    /// Blocks wholly marked (no bits).
+    pub full: usize,
+}
+
+/// True when a block entry points past the levels or the bits.
+fn bad_entry(value: u32, levels: usize, stored: u64) -> bool {
+    let (base, first, full) = unentry(value);
+    !(first < levels
+        && first <= full
+        && full <= levels
+        && (full == first || base as usize > ONES_BLOCK)
+        && u64::from(base) + (full - first) as u64 <= stored)
 }
 
 impl<'a> GridView<'a> {
-    /// Checks that the fields agree (a baked grid's may have been written by anyone).
+    /// Checks that the fields agree (a baked grid's may have been written by anyone):
+    /// every entry points at stored bits, every table key is a block of the grid found
+    /// by probing from its home slot, and a free slot ends every probe.
+    #[allow(clippy::too_many_arguments)]
     pub fn new(
         resolution: f64,
         grid_from_map: [f64; 4],
         origin: [f64; 3],
         dims: [u32; 3],
         levels: u32,
+        directory: &'a [u32],
+        keys: &'a [u64],
+        entries: &'a [u32],
         words: &'a [u64],
         region: SearchRegion,
     ) -> Result<Self, GridError> {
@@ -388,20 +403,75 @@ impl<'a> GridView<'a> {
                 "rotation {grid_from_map:?} or search region {region:?} is invalid"
             )));
         }
-        let voxels = dims.iter().map(|&d| u64::from(d)).product::<u64>();
-        let words_per_level = voxels.div_ceil(64) as usize;
         let levels = levels as usize;
-        if !(resolution.is_finite() && resolution > 0.0)
-            || origin.iter().any(|v| !v.is_finite())
-            || voxels == 0
-            || voxels > MAX_VOXELS
-            || !(1..=MAX_LEVELS).contains(&levels)
-            || words.len() != words_per_level * levels
-        {
+        let block_dims = dims.map(|d| (i64::from(d) + BLOCK_EDGE - 1) / BLOCK_EDGE);
+        let spanned = block_dims.iter().map(|&d| d as u64).product::<u64>();
+        let capacity = keys.len();
+        let tables_ok = if directory.is_empty() {
+            capacity >= 2 && capacity.is_power_of_two() && entries.len() == capacity
+        } else {
+            directory.len() as u64 == spanned && capacity == 0 && entries.is_empty()
+        };
+        let shape_ok = resolution.is_finite()
+            && resolution > 0.0
+            && origin.iter().all(|v| v.is_finite())
+            && dims.iter().all(|&d| d > 0 && u64::from(d) <= MAX_EXTENT)
+            && (1..=MAX_LEVELS).contains(&levels)
+            && tables_ok
+            && words.len().is_multiple_of(BLOCK_WORDS)
+            && words.len() >= 2 * BLOCK_WORDS
+            // The all-clear and all-set blocks that empty and full levels read.
+            && words[..BLOCK_WORDS] == [0; BLOCK_WORDS]
+            && words[BLOCK_WORDS..2 * BLOCK_WORDS] == [u64::MAX; BLOCK_WORDS];
+        if !shape_ok {
             return Err(GridError::Corrupt(format!(
-                "resolution {resolution}, dims {dims:?}, {levels} levels and {} words do not agree",
+                "resolution {resolution}, dims {dims:?}, {levels} levels, a directory of {}, \
+                 {} keys, {} entries and {} words do not agree",
+                directory.len(),
+                keys.len(),
+                entries.len(),
                 words.len()
             )));
+        }
+        let stored = (words.len() / BLOCK_WORDS) as u64;
+        if let Some(i) = directory
+            .iter()
+            .position(|&v| v != ABSENT && bad_entry(v, levels, stored))
+        {
+            return Err(GridError::Corrupt(format!(
+                "directory slot {i}: entry {:#x} points past the levels or bits",
+                directory[i]
+            )));
+        }
+        let shift = if capacity == 0 { 0 } else { shift_of(capacity) };
+        let mut free = 0;
+        for (i, (&k, &value)) in keys.iter().zip(entries).enumerate() {
+            if k == EMPTY_KEY {
+                free += 1;
+                continue;
+            }
+            let b = unkey(k);
+            let in_grid = key(b) == k && (0..3).all(|a| b[a] < block_dims[a]);
+            if !in_grid || bad_entry(value, levels, stored) {
+                return Err(GridError::Corrupt(format!(
+                    "table slot {i}: block {b:?} (entry {value:#x}) lies outside the grid or \
+                     points past the levels or bits"
+                )));
+            }
+            let mut j = home(k, shift);
+            while j != i {
+                if keys[j] == EMPTY_KEY || keys[j] == k {
+                    return Err(GridError::Corrupt(format!(
+                        "table slot {i}: block {b:?} is not where a lookup finds it"
+                    )));
+                }
+                j = (j + 1) & (capacity - 1);
+            }
+        }
+        if capacity > 0 && free == 0 {
+            return Err(GridError::Corrupt(
+                "the block table has no free slot".into(),
+            ));
         }
         Ok(Self {
             resolution,
@@ -409,9 +479,13 @@ impl<'a> GridView<'a> {
             region,
             origin,
             dims: dims.map(i64::from),
+            block_dims,
             levels,
-            words_per_level,
+            directory,
+            keys,
+            entries,
             words,
+            shift,
         })
     }
 
@@ -435,7 +509,7 @@ impl<'a> GridView<'a> {
         self.origin
     }
 
-    /// Voxels per axis.
+    /// Voxels per axis of level 0's bounding box.
     pub fn dims(&self) -> [i64; 3] {
         self.dims
     }
@@ -445,26 +519,128 @@ impl<'a> GridView<'a> {
         self.levels
     }
 
-    /// Bytes the levels take.
+    /// Bytes the levels take (directory or table, and bits).
     pub fn bytes(&self) -> usize {
-        self.words.len() * 8
+        self.directory.len() * 4
+            + self.keys.len() * 8
+            + self.entries.len() * 4
+            + self.words.len() * 8
+    }
+
+    /// How blocks are found: "directory" (dense over the grid's blocks) or "hash
+    /// table" (sparse sites), with its slots.
+    pub fn index(&self) -> (&'static str, usize) {
+        if self.directory.is_empty() {
+            ("hash table", self.keys.len())
+        } else {
+            ("directory", self.directory.len())
+        }
+    }
+
+    /// Blocks of each level, level 0 first.
+    pub fn level_blocks(&self) -> Vec<LevelBlocks> {
+        let mut out = vec![LevelBlocks::default(); self.levels];
+        let table = self
+            .keys
+            .iter()
+            .zip(self.entries)
+            .filter(|(k, _)| **k != EMPTY_KEY)
+            .map(|(_, v)| *v);
+        let listed = self.directory.iter().copied().filter(|&v| v != ABSENT);
+        for value in table.chain(listed) {
+            let (_, first, full) = unentry(value);
+            for (l, level) in out.iter_mut().enumerate().skip(first) {
+                if l < full {
+                    level.partial += 1;
+                } else {
+                    level.full += 1;
+                }
+            }
+        }
+        out
     }
 
     /// True when voxel `v` is marked at `level`: some level-0 voxel of the cube
     /// `v + [0, 2^level)^3` is. A cube starting below the grid is answered by the
     /// grid's first voxel on that axis, whose cube covers the part inside (an upper
-    /// bound, as a search needs).
+    /// bound, as a search needs: the bound the search's answers were measured with).
     #[inline]
     pub fn marked(&self, level: usize, v: [i64; 3]) -> bool {
+        let Some(v) = self.clamped(level, v) else {
+            return false;
+        };
+        let b = v.map(|c| c >> 3);
+        let value = if self.directory.is_empty() {
+            self.entry_of(key(b))
+        } else {
+            self.directory[directory_index(b, self.block_dims)]
+        };
+        self.bit(value, level, v)
+    }
+
+    /// How many of `voxels`, each moved by `shift`, are marked at `level` (as
+    /// [`Self::marked`]): a search's bound, its hot loop.
+    pub fn count_marked(&self, level: usize, voxels: &[[i64; 3]], shift: [i64; 3]) -> u32 {
+        let moved = voxels.iter().filter_map(|v| {
+            self.clamped(level, [v[0] + shift[0], v[1] + shift[1], v[2] + shift[2]])
+        });
+        let mut count = 0;
+        if self.directory.is_empty() {
+            // Neighbouring voxels (a scan's, in scan order) often share a block, whose
+            // entry is then looked up once.
+            let mut last = (EMPTY_KEY, ABSENT);
+            for v in moved {
+                let k = key(v.map(|c| c >> 3));
+                if k != last.0 {
+                    last = (k, self.entry_of(k));
+                }
+                count += u32::from(self.bit(last.1, level, v));
+            }
+        } else {
+            for v in moved {
+                let value = self.directory[directory_index(v.map(|c| c >> 3), self.block_dims)];
+                count += u32::from(self.bit(value, level, v));
+            }
+        }
+        count
+    }
+
+    /// `v` clamped to the grid's first voxel per axis, or `None` when the cube
+    /// `v + [0, 2^level)^3` misses the grid.
+    #[inline]
+    fn clamped(&self, level: usize, v: [i64; 3]) -> Option<[i64; 3]> {
         let [nx, ny, nz] = self.dims;
         let side = 1_i64 << level;
         if v[0] >= nx || v[1] >= ny || v[2] >= nz || v.iter().any(|&c| c + side <= 0) {
-            return false;
+            return None;
         }
-        let [x, y, z] = v.map(|c| c.max(0));
-        let i = (x + nx * (y + ny * z)) as usize;
-        let word = self.words[level * self.words_per_level + i / 64];
-        word >> (i % 64) & 1 == 1
+        Some(v.map(|c| c.max(0)))
+    }
+
+    /// The table entry of block key `k`, [`ABSENT`] when the block is empty at every
+    /// level.
+    #[inline]
+    fn entry_of(&self, k: u64) -> u32 {
+        let mask = self.keys.len() - 1;
+        let mut i = home(k, self.shift);
+        loop {
+            let found = self.keys[i];
+            if found == k {
+                return self.entries[i];
+            }
+            if found == EMPTY_KEY {
+                return ABSENT;
+            }
+            i = (i + 1) & mask;
+        }
+    }
+
+    /// Voxel `v`'s bit at `level` in the block whose entry is `value`.
+    #[inline]
+    fn bit(&self, value: u32, level: usize, v: [i64; 3]) -> bool {
+        let [x, y, z] = v.map(|c| c & (BLOCK_EDGE - 1));
+        let word = self.words[block_at(value, level) * BLOCK_WORDS + z as usize];
+        word >> (x + 8 * y) & 1 == 1
     }
 
     /// The voxel holding world point `p` (may lie outside the grid).

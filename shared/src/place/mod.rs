@@ -3,6 +3,7 @@
 //!
 //! - [`level`]: the scan's up direction from its floor-like planes (when no IMU gives it);
 //! - [`grid`]: the map's coarse occupancy grid with dilated levels, baked into the map;
+//! - [`sparse`]: the grid's levels as blocks found through a hash table;
 //! - [`search`]: branch and bound over yaw and translation on that grid;
 //! - [`relocalize`]: levelling, search, verification by registration, the verdict.
 //!
@@ -16,8 +17,11 @@ pub mod grid;
 pub mod level;
 pub mod relocalize;
 pub mod search;
+pub mod sparse;
 
-pub use grid::{GridBuilder, GridError, GridParams, GridView, PlaceGrid, SearchRegion};
+pub use grid::{
+    GridBuilder, GridError, GridParams, GridView, LevelBlocks, PlaceGrid, SearchRegion,
+};
 pub use level::{estimate_up, levelling};
 pub use relocalize::{
     Proposal, Relocalization, RelocalizeParams, RelocalizeStatus, propose, verify,

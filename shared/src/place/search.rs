@@ -252,14 +252,8 @@ impl<'g> Lattice<'g> {
 
     /// Points of yaw `yaw` landing on marked level-`level` voxels at translation `k`.
     fn bound(&self, level: usize, yaw: usize, k: [i32; 3]) -> u32 {
-        let k = k.map(i64::from);
-        self.voxels[yaw]
-            .iter()
-            .filter(|v| {
-                self.grid
-                    .marked(level, [v[0] + k[0], v[1] + k[1], v[2] + k[2]])
-            })
-            .count() as u32
+        self.grid
+            .count_marked(level, &self.voxels[yaw], k.map(i64::from))
     }
 
     /// Best-first branch and bound over every yaw. Nodes are expanded in batches of

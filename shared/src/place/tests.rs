@@ -289,3 +289,375 @@ fn bad_grid_options_are_named() {
             .is_err()
     );
 }
+
+/// Brute force of the levels' definition: some marked voxel (grid coordinates, the
+/// lowest marked key per axis at 0) lies in `v + [0, 2^level)^3`.
+fn in_cube(marked: &[[i64; 3]], low: [i64; 3], level: usize, v: [i64; 3]) -> bool {
+    let side = 1_i64 << level;
+    marked.iter().any(|k| {
+        (0..3).all(|a| {
+            let c = k[a] - low[a];
+            c >= v[a] && c < v[a] + side
+        })
+    })
+}
+
+/// Clusters of marked voxels far apart (most of the bounding box empty), around
+/// negative and positive keys.
+fn clusters(rng: &mut StdRng, count: usize, spread: i64) -> HashSet<[i64; 3]> {
+    let mut marked = HashSet::new();
+    for _ in 0..count {
+        let centre = [
+            rng.random_range(-spread..spread),
+            rng.random_range(-spread..spread),
+            rng.random_range(-spread / 4..spread / 4),
+        ];
+        let size = rng.random_range(1..12);
+        for _ in 0..rng.random_range(1..40) {
+            marked.insert([0, 1, 2].map(|a| centre[a] + rng.random_range(0..size)));
+        }
+    }
+    marked
+}
+
+/// Every level of the sparse grid answers exactly the definition for every voxel not
+/// below the grid (inside it and beyond it), near the marked voxels (where blocks are
+/// partly marked) and far away; a cube starting below the grid (negative coordinates)
+/// is answered as the grid's first voxel's cube on that axis, as the dense grid did
+/// (the bound the search's answers were measured with), which bounds the definition.
+#[test]
+fn sparse_levels_equal_the_brute_force_definition() {
+    let mut rng = StdRng::seed_from_u64(35);
+    let mut kinds = HashSet::new();
+    for trial in 0..6 {
+        let levels = [8, 12, 3, 8, 5, 10][trial];
+        let spread = [300, 2000, 40, 60, 500, 8][trial];
+        let marked = clusters(&mut rng, 2 + trial * 2, spread);
+        let list: Vec<[i64; 3]> = marked.iter().copied().collect();
+        let low = [0, 1, 2].map(|a| list.iter().map(|k| k[a]).min().unwrap());
+        let high = [0, 1, 2].map(|a| list.iter().map(|k| k[a]).max().unwrap());
+        let grid = PlaceGrid::from_voxels(
+            &marked,
+            &params(levels),
+            [0.0, 0.0, 0.0, 1.0],
+            region([0.0; 3], [1.0; 3]),
+        )
+        .unwrap();
+        let view = grid.view();
+        kinds.insert(view.index().0);
+        assert_eq!(view.dims(), [0, 1, 2].map(|a| high[a] - low[a] + 1));
+        let mut hits = 0;
+        for level in 0..levels {
+            let side = 1_i64 << level;
+            for i in 0..4000 {
+                let v: [i64; 3] = if i % 2 == 0 {
+                    // Anywhere from a cube below the grid to past its end.
+                    [0, 1, 2].map(|a| rng.random_range(-side - 3..high[a] - low[a] + 4))
+                } else {
+                    // Near a marked voxel: cube corners around it, partly marked blocks.
+                    let k = list[rng.random_range(0..list.len())];
+                    [0, 1, 2].map(|a| k[a] - low[a] + rng.random_range(-side - 2..3))
+                };
+                let exact = in_cube(&list, low, level, v);
+                // A cube that reaches into the grid starts at its first voxel.
+                let reaches = v.iter().all(|&c| c + side > 0);
+                let expected = reaches && in_cube(&list, low, level, v.map(|c| c.max(0)));
+                hits += usize::from(expected);
+                let answer = view.marked(level, v);
+                assert_eq!(
+                    answer, expected,
+                    "trial {trial}, level {level}, voxel {v:?}"
+                );
+                assert!(
+                    answer || !exact,
+                    "trial {trial}, level {level}, voxel {v:?}"
+                );
+                if v.iter().all(|&c| c >= 0) {
+                    assert_eq!(answer, exact, "trial {trial}, level {level}, voxel {v:?}");
+                }
+            }
+        }
+        // A search's count over a cloud of voxels moved together agrees with the
+        // voxels one by one (its block cache included).
+        for level in 0..levels {
+            let cloud: Vec<[i64; 3]> = (0..300)
+                .map(|_| {
+                    let k = list[rng.random_range(0..list.len())];
+                    [0, 1, 2].map(|a| k[a] - low[a] + rng.random_range(-9..9))
+                })
+                .collect();
+            let shift = [0, 1, 2].map(|_| rng.random_range(-20..20));
+            let one_by_one = cloud
+                .iter()
+                .filter(|v| view.marked(level, [0, 1, 2].map(|a| v[a] + shift[a])))
+                .count();
+            assert_eq!(
+                view.count_marked(level, &cloud, shift) as usize,
+                one_by_one,
+                "trial {trial}, level {level}"
+            );
+        }
+        // Both answers were asked often.
+        assert!(
+            hits > 1000 && hits < levels * 4000 - 1000,
+            "trial {trial}: {hits}"
+        );
+    }
+}
+
+/// A few streets' worth of marked voxels over a 2 x 2 km box cost bytes in proportion
+/// to what is marked: far below the dense bit arrays over the bounding box.
+#[test]
+fn a_sparse_site_costs_what_is_mapped() {
+    let mut marked = HashSet::new();
+    // Three streets along x and two along y, 2 km long: a 10 m wide road and 15 m
+    // facades on both sides.
+    let mut street = |along: usize, at: i64| {
+        for s in 0..2000_i64 {
+            for w in 0..10 {
+                let mut k = [0, 0, 0];
+                k[along] = s;
+                k[1 - along] = at + w;
+                marked.insert(k);
+            }
+            for h in 0..15 {
+                for side in [at - 1, at + 10] {
+                    let mut k = [0, 0, h];
+                    k[along] = s;
+                    k[1 - along] = side;
+                    marked.insert(k);
+                }
+            }
+        }
+    };
+    for at in [100, 900, 1700] {
+        street(0, at);
+    }
+    for at in [500, 1500] {
+        street(1, at);
+    }
+    let levels = 8;
+    let grid = PlaceGrid::from_voxels(
+        &marked,
+        &params(levels),
+        [0.0, 0.0, 0.0, 1.0],
+        region([0.0; 3], [1.0; 3]),
+    )
+    .unwrap();
+    let view = grid.view();
+    // Dense: one bit per voxel of the bounding box per level.
+    let extent = |a: usize| {
+        let (lo, hi) = marked.iter().fold((i64::MAX, i64::MIN), |(lo, hi), k| {
+            (lo.min(k[a]), hi.max(k[a]))
+        });
+        (hi - lo + 1) as usize
+    };
+    let dense = extent(0) * extent(1) * extent(2) / 8 * levels;
+    let sparse = view.bytes();
+    let blocks = view.level_blocks();
+    eprintln!(
+        "{} marked voxels: sparse {sparse} bytes, dense {dense}; per level partial+full {:?}",
+        marked.len(),
+        blocks
+    );
+    assert!(sparse * 10 < dense, "sparse {sparse} bytes, dense {dense}");
+    // Level 0 holds the marked voxels' blocks only: a street's cross-section spans a
+    // few blocks.
+    let level0 = blocks[0].partial + blocks[0].full;
+    assert!(level0 < marked.len() / 40, "{level0} blocks");
+    // Spot checks against the definition on a street and between streets.
+    assert!(view.marked(0, [5, 100 + 3, 0]));
+    assert!(!view.marked(0, [5, 300, 0]));
+    // The grid starts at key (0, 0, 0); the street at y = 900 has its facade at 899.
+    assert!(view.marked(7, [5, 899 - 127, 3]));
+    assert!(!view.marked(7, [5, 899 - 128, 3]));
+    assert!(!view.marked(7, [5, 120, 0]));
+}
+
+/// A stored grid whose table does not agree with itself is refused by a named error
+/// (a baked file's is checked so on first use), never read past its arrays.
+#[test]
+fn an_inconsistent_block_table_is_refused() {
+    let mut rng = StdRng::seed_from_u64(9);
+    let marked = clusters(&mut rng, 4, 2000);
+    let grid = PlaceGrid::from_voxels(
+        &marked,
+        &params(6),
+        [0.0, 0.0, 0.0, 1.0],
+        region([0.0; 3], [1.0; 3]),
+    )
+    .unwrap();
+    let data = &grid.levels_data;
+    assert_eq!(grid.view().index().0, "hash table");
+    let view = |keys: &[u64], entries: &[u32], words: &[u64], dims: [u32; 3]| {
+        GridView::new(
+            1.0,
+            [0.0, 0.0, 0.0, 1.0],
+            [0.0; 3],
+            dims,
+            6,
+            &[],
+            keys,
+            entries,
+            words,
+            region([0.0; 3], [1.0; 3]),
+        )
+        .map(|_| ())
+    };
+    assert!(view(&data.keys, &data.entries, &data.words, grid.dims).is_ok());
+    let refused = |keys: &[u64], entries: &[u32], words: &[u64], dims: [u32; 3], what: &str| {
+        let error = view(keys, entries, words, dims).unwrap_err();
+        assert!(
+            matches!(error, super::GridError::Corrupt(_))
+                && error.to_string().starts_with("place grid: "),
+            "{what}: {error}"
+        );
+    };
+    let empty = u64::MAX;
+    let used = data.keys.iter().position(|&k| k != empty).unwrap();
+    // Bits missing under an entry with partly marked levels.
+    let partly = (0..data.keys.len())
+        .find(|&i| data.keys[i] != empty && ((data.entries[i] >> 4) & 15) < (data.entries[i] & 15))
+        .unwrap();
+    let mut entries = data.entries.clone();
+    entries[partly] = ((data.words.len() as u32 / 8) << 8) | (entries[partly] & 0xff);
+    refused(
+        &data.keys,
+        &entries,
+        &data.words,
+        grid.dims,
+        "bits past the end",
+    );
+    // Levels out of order, or past the grid's.
+    let mut entries = data.entries.clone();
+    entries[used] = (entries[used] & !0xff) | (5 << 4) | 2;
+    refused(
+        &data.keys,
+        &entries,
+        &data.words,
+        grid.dims,
+        "levels out of order",
+    );
+    entries[used] = (data.entries[used] & !0xff) | 9;
+    refused(
+        &data.keys,
+        &entries,
+        &data.words,
+        grid.dims,
+        "levels past the grid's",
+    );
+    // Blocks outside the grid.
+    refused(
+        &data.keys,
+        &data.entries,
+        &data.words,
+        [1, 1, 1],
+        "blocks outside",
+    );
+    // A key moved where probing from its home slot meets a free slot first.
+    let (mut keys, mut entries) = (data.keys.clone(), data.entries.clone());
+    let k = keys[used];
+    keys[used] = empty;
+    let n = keys.len();
+    let home = super::sparse::home(k, super::sparse::shift_of(n));
+    let gap = (0..n)
+        .map(|d| (home + d) % n)
+        .find(|&i| keys[i] == empty)
+        .unwrap();
+    let moved = (1..n)
+        .map(|d| (gap + d) % n)
+        .find(|&i| keys[i] == empty)
+        .unwrap();
+    keys[moved] = k;
+    entries[moved] = data.entries[used];
+    refused(
+        &keys,
+        &entries,
+        &data.words,
+        grid.dims,
+        "a key off its probe",
+    );
+    // A table with no free slot (probes would not end), not a power of two long, or
+    // bits cut mid-block.
+    let mut filler = (0..).map(|x| super::sparse::key([x, 0, 0]));
+    let full_table: Vec<u64> = data
+        .keys
+        .iter()
+        .map(|&k| {
+            if k == empty {
+                filler.find(|f| !data.keys.contains(f)).unwrap()
+            } else {
+                k
+            }
+        })
+        .collect();
+    refused(
+        &full_table,
+        &data.entries,
+        &data.words,
+        [1 << 20; 3],
+        "no free slot",
+    );
+    refused(
+        &data.keys[1..],
+        &data.entries[1..],
+        &data.words,
+        grid.dims,
+        "length",
+    );
+    let cut = &data.words[..data.words.len() - 1];
+    refused(&data.keys, &data.entries, cut, grid.dims, "words cut");
+    let mut words = data.words.clone();
+    words[9] = 0;
+    refused(
+        &data.keys,
+        &data.entries,
+        &words,
+        grid.dims,
+        "constant blocks",
+    );
+
+    // A compact grid's directory: entries past the bits, or a directory of another size.
+    let marked = clusters(&mut rng, 3, 12);
+    let grid = PlaceGrid::from_voxels(
+        &marked,
+        &params(6),
+        [0.0, 0.0, 0.0, 1.0],
+        region([0.0; 3], [1.0; 3]),
+    )
+    .unwrap();
+    assert_eq!(grid.view().index().0, "directory");
+    let data = &grid.levels_data;
+    let directory = |directory: &[u32], dims: [u32; 3]| {
+        GridView::new(
+            1.0,
+            [0.0, 0.0, 0.0, 1.0],
+            [0.0; 3],
+            dims,
+            6,
+            directory,
+            &[],
+            &[],
+            &data.words,
+            region([0.0; 3], [1.0; 3]),
+        )
+        .map(|_| ())
+    };
+    assert!(directory(&data.directory, grid.dims).is_ok());
+    let refused = |result: Result<(), super::GridError>, what: &str| {
+        let error = result.unwrap_err();
+        assert!(
+            error.to_string().starts_with("place grid: "),
+            "{what}: {error}"
+        );
+    };
+    let mut bad = data.directory.clone();
+    let slot = bad
+        .iter()
+        .position(|&v| v != super::sparse::ABSENT)
+        .unwrap();
+    bad[slot] = (1 << 20) << 8 | (bad[slot] & 0xff);
+    refused(directory(&bad, grid.dims), "an entry past the bits");
+    let bigger = grid.dims.map(|d| d + 8);
+    refused(directory(&data.directory, bigger), "another grid's size");
+}
