@@ -408,7 +408,7 @@ fn bake_then_inspect_a_simulated_dataset() {
         "--verify",
         "--json",
     ]));
-    assert_eq!(inspected["format_version"], 6);
+    assert_eq!(inspected["format_version"], 7);
     assert_eq!(inspected["keyframes"], chosen.len());
     assert_eq!(inspected["points"], points);
     assert_eq!(inspected["bytes"], size);
