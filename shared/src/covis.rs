@@ -4,6 +4,7 @@
 
 use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
 
+use rustc_hash::FxHashMap;
 use serde::{Deserialize, Serialize};
 
 use crate::KeyframeId;
@@ -69,9 +70,9 @@ pub struct CovisSnapshot {
 #[derive(Debug, Clone, Default)]
 pub struct CovisibilityGraph {
     options: CovisOptions,
-    voxels: HashMap<KeyframeId, Vec<Voxel>>,
+    voxels: FxHashMap<KeyframeId, Vec<Voxel>>,
     /// Keyframes occupying each voxel, ascending (a Vec: most voxels hold a few ids).
-    index: HashMap<Voxel, Vec<KeyframeId>>,
+    index: FxHashMap<Voxel, Vec<KeyframeId>>,
     /// Symmetric: `edges[a][b] == edges[b][a]` for every kept edge.
     edges: HashMap<KeyframeId, BTreeMap<KeyframeId, u32>>,
     /// Each keyframe's own fallback: its strongest partner, when none reaches

@@ -8,6 +8,9 @@
 //! place and costs memory in proportion to what is mapped, not to its bounding box.
 
 use std::collections::HashSet;
+use std::hash::BuildHasher;
+
+use rustc_hash::FxHashSet;
 
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
@@ -136,7 +139,7 @@ pub enum GridError {
 #[derive(Debug, Clone, Default)]
 pub struct GridBuilder {
     fine: f64,
-    keys: HashSet<[i64; 3]>,
+    keys: FxHashSet<[i64; 3]>,
     anchors: Vec<[f64; 3]>,
     /// Anchors whose surroundings relocalization searches (a tile's core keyframes; all
     /// anchors when empty).
@@ -151,7 +154,7 @@ impl GridBuilder {
     pub fn new(params: &GridParams) -> Self {
         Self {
             fine: params.resolution / 2.0,
-            keys: HashSet::new(),
+            keys: FxHashSet::default(),
             anchors: Vec::new(),
             searched: Vec::new(),
             up_votes: Vector3::zeros(),
@@ -217,7 +220,7 @@ impl GridBuilder {
         let (low, high) = bounds(&anchors);
         let reach = params.reach;
         let r = params.resolution;
-        let mut marked: HashSet<[i64; 3]> = HashSet::new();
+        let mut marked: FxHashSet<[i64; 3]> = FxHashSet::default();
         for k in &self.keys {
             let p = to_grid(centre(k));
             if (0..3).all(|a| p[a] >= low[a] - reach && p[a] <= high[a] + reach) {
@@ -271,8 +274,8 @@ pub struct PlaceGrid {
 impl PlaceGrid {
     /// The grid over marked level-0 voxel keys (`floor(p / resolution)` per axis, grid
     /// frame).
-    pub fn from_voxels(
-        marked: &HashSet<[i64; 3]>,
+    pub fn from_voxels<S: BuildHasher>(
+        marked: &HashSet<[i64; 3], S>,
         params: &GridParams,
         grid_from_map: [f64; 4],
         region: SearchRegion,
@@ -298,7 +301,7 @@ impl PlaceGrid {
             });
         }
         let dims = [span(0) as u32, span(1) as u32, span(2) as u32];
-        let relative: HashSet<[i64; 3]> = marked
+        let relative: FxHashSet<[i64; 3]> = marked
             .iter()
             .map(|k| [k[0] - low[0], k[1] - low[1], k[2] - low[2]])
             .collect();

@@ -13,7 +13,10 @@
 //!
 //! A block's bits: word `z`, bit `x + 8 y` (local coordinates 0..8).
 
-use std::collections::{HashMap, HashSet};
+use std::collections::HashSet;
+use std::hash::BuildHasher;
+
+use rustc_hash::{FxHashMap as HashMap, FxHashSet};
 
 /// Voxels per block edge.
 pub const BLOCK_EDGE: i64 = 8;
@@ -104,13 +107,13 @@ pub struct SparseLevels {
 /// answered by the grid's first voxel, see [`crate::place::GridView::marked`]).
 /// `max_blocks` bounds the blocks kept (the top level's); past it, `Err` gives the
 /// blocks counted so far.
-pub fn build(
-    marked: &HashSet<[i64; 3]>,
+pub fn build<S: BuildHasher>(
+    marked: &HashSet<[i64; 3], S>,
     dims: [i64; 3],
     levels: usize,
     max_blocks: u64,
 ) -> Result<SparseLevels, u64> {
-    let mut level: HashMap<[i64; 3], Bits> = HashMap::new();
+    let mut level: HashMap<[i64; 3], Bits> = HashMap::default();
     for v in marked {
         let b = v.map(|c| c.div_euclid(BLOCK_EDGE));
         let [x, y, z] = v.map(|c| c.rem_euclid(BLOCK_EDGE));
@@ -263,7 +266,8 @@ fn dilate(src: &HashMap<[i64; 3], Bits>, axis: usize, h: i64) -> HashMap<[i64; 3
         b[axis] += d;
         b
     };
-    let mut targets: HashSet<[i64; 3]> = HashSet::with_capacity(src.len() * 2);
+    let mut targets: FxHashSet<[i64; 3]> =
+        FxHashSet::with_capacity_and_hasher(src.len() * 2, Default::default());
     for &b in src.keys() {
         targets.insert(b);
         targets.insert(along(b, -q));
@@ -271,7 +275,7 @@ fn dilate(src: &HashMap<[i64; 3], Bits>, axis: usize, h: i64) -> HashMap<[i64; 3
             targets.insert(along(b, -q - 1));
         }
     }
-    let mut out = HashMap::with_capacity(targets.len());
+    let mut out = HashMap::with_capacity_and_hasher(targets.len(), Default::default());
     for b in targets {
         let get = |d: i64| src.get(&along(b, d)).unwrap_or(&zero);
         let from = if r == 0 {
