@@ -264,11 +264,16 @@ impl RemoteLink {
         match router.route(header.pose[0], header.pose[1], |i| up[i]) {
             Route::Tile(i) => Ok(i),
             Route::Down(i) => Err(ClientError::NoServer(self.describe(i))),
-            Route::NoneUp => Err(ClientError::NoServer(format!(
-                "{} (remote: no tile's server answers)",
-                self.map_name
-            ))),
+            Route::NoneUp => Err(self.no_tile_answers()),
         }
+    }
+
+    /// The error when no tile of the set has a live server.
+    fn no_tile_answers(&self) -> ClientError {
+        ClientError::NoServer(format!(
+            "{} (remote: no tile's server answers)",
+            self.map_name
+        ))
     }
 
     /// Sends a request frame to tile `i` and waits for the answer frame.
@@ -317,10 +322,7 @@ impl RemoteLink {
             .filter(|&i| self.tile_alive(i))
             .count();
         if expected == 0 {
-            return Err(ClientError::NoServer(format!(
-                "{} (remote: no tile's server answers)",
-                self.map_name
-            )));
+            return Err(self.no_tile_answers());
         }
         let key = rpc_all_tiles_key(&self.map_name, &self.client_id);
         let replies = self
