@@ -8,7 +8,6 @@
 use std::collections::{BTreeMap, HashSet};
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
-use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
 use kfmap_shared::KeyframeId;
@@ -92,19 +91,19 @@ pub fn cut_into_tiles(
         geometry,
         dir,
         near: NearIndex::new(&everyone, geometry.halo.max(1.0)),
-        everyone: &everyone,
     };
     // Tiles are independent: written in parallel, each by one thread (a tile's own work
     // is sequential), the results kept in tile order.
-    let done = AtomicUsize::new(0);
-    let progress = Mutex::new(progress);
+    // Tiles finished so far, with the callback that reports them.
+    let progress = Mutex::new((0, progress));
     let written: Vec<WrittenTile> = members
         .par_iter()
         .map(|(&(row, col), (ids, core))| {
             let tile = cut.write_tile(col, row, ids, *core)?;
-            let finished = done.fetch_add(1, Ordering::Relaxed) + 1;
-            if let Ok(mut report) = progress.lock() {
-                report(finished, total);
+            if let Ok(mut guard) = progress.lock() {
+                let (done, report) = &mut *guard;
+                *done += 1;
+                report(*done, total);
             }
             Ok(tile)
         })
@@ -151,8 +150,7 @@ struct TileCut<'a> {
     map_from_input: Pose,
     geometry: TileGeometry,
     dir: &'a Path,
-    /// Every keyframe of the whole map with its pose, and the same by position.
-    everyone: &'a [(KeyframeId, Pose)],
+    /// Every keyframe of the whole map by position.
     near: NearIndex,
 }
 
@@ -180,6 +178,7 @@ impl TileCut<'_> {
                 && p[1] < y0 + geometry.tile_size
         };
         let mut core_points: Vec<[f32; 3]> = Vec::new();
+        let mut own: Vec<(KeyframeId, Pose)> = Vec::with_capacity(ids.len());
         for &kf in ids {
             let keyframe = whole.keyframe(kf).expect("an id listed from the map");
             let points = keyframe.map_points()?;
@@ -193,15 +192,9 @@ impl TileCut<'_> {
             // Relocalization searches the core: the halo's places are the neighbours'.
             let t = keyframe.pose.translation.vector;
             let in_own_core = geometry.tile_of(t.x, t.y) == (col, row);
+            own.push((kf, keyframe.pose));
             writer.write_keyframe_searched(keyframe, Some(in_own_core))?;
         }
-        let members: HashSet<KeyframeId> = ids.iter().copied().collect();
-        let own: Vec<(KeyframeId, Pose)> = self
-            .everyone
-            .iter()
-            .filter(|(id, _)| members.contains(id))
-            .copied()
-            .collect();
         let halo_check = check_halo(
             &own,
             &self.near,
@@ -212,7 +205,7 @@ impl TileCut<'_> {
         let pool: Vec<_> = self
             .pool
             .iter()
-            .filter(|g| members.contains(&g.keyframe))
+            .filter(|g| ids.binary_search(&g.keyframe).is_ok())
             .cloned()
             .collect();
         let written = writer.finish(whole.next_id(), &covis.snapshot(), &pool)?;
