@@ -84,9 +84,16 @@ pub fn cut_into_tiles(
         tiles: Vec::with_capacity(total),
     };
     let everyone: Vec<(KeyframeId, Pose)> = whole.keyframes().map(|k| (k.id, k.pose)).collect();
+    // Tiles' place grids are levelled as the whole map's, so that a tile proposes the
+    // places the whole map's search would (docs/DESIGN.md#notes-tiles).
+    let grid_from_map = match &opened.place {
+        Some(place) => Some(place.view()?.grid_from_map()),
+        None => None,
+    };
     let cut = TileCut {
         whole,
         pool: &opened.index.gravity_pool,
+        grid_from_map,
         map_from_input,
         geometry,
         dir,
@@ -147,6 +154,8 @@ struct WrittenTile {
 struct TileCut<'a> {
     whole: &'a KeyframeMap,
     pool: &'a [GravityRecord],
+    /// The whole map's place-grid levelling, which every tile's grid takes.
+    grid_from_map: Option<nalgebra::UnitQuaternion<f64>>,
     map_from_input: Pose,
     geometry: TileGeometry,
     dir: &'a Path,
@@ -169,6 +178,9 @@ impl TileCut<'_> {
         let file = format!("{id}.kfmap");
         let mut writer = MapWriter::create(&self.dir.join(&file), whole.options())?;
         writer.set_map_from_input(&self.map_from_input);
+        if let Some(levelling) = self.grid_from_map {
+            writer.level_place_grid_as(levelling);
+        }
         let mut covis = CovisibilityGraph::new(whole.options().covisibility);
         let [x0, y0] = geometry.core_min(col, row);
         let in_core = |p: &[f64; 3]| {

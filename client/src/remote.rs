@@ -8,16 +8,19 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use kfmap_protocol::remote::{
-    RemoteFailure, WHOLE_MAP_TILE, alive_pattern, check_key_chunk, rpc_all_tiles_key, rpc_key,
-    tile_index_key, tile_of_alive_key, tile_of_rpc_key,
+    RemoteFailure, WHOLE_MAP_TILE, alive_pattern, check_key_chunk, decode_request, encode_request,
+    rpc_all_tiles_key, rpc_key, tile_index_key, tile_of_alive_key, tile_of_rpc_key,
 };
-use kfmap_protocol::{RequestHeader, RequestKind};
+use kfmap_protocol::{
+    FLAG_FINISH_CHOSEN, FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN, RequestHeader, RequestKind,
+};
 use kfmap_shared::tiles::{Route, TileIndex, TileRouter};
 use zenoh::Wait;
 use zenoh::query::{ConsolidationMode, QueryTarget};
 use zenoh::sample::SampleKind;
 
 use crate::error::ClientError;
+use crate::tiled::Choice;
 
 /// How a pending answer is watched: the token check runs this often, so a client learns
 /// of a dead server within about this long after its gateway withdraws the token.
@@ -315,9 +318,123 @@ impl RemoteLink {
         }
     }
 
-    /// Sends a relocalization to every tile at once (`QueryTarget::All`) and merges the
-    /// answers of the tiles alive when it was sent.
+    /// Relocalizes over every tile as one search over the merged map would, in three
+    /// phases (`crate::tiled`): every tile's places at once (`QueryTarget::All`); the
+    /// best of them all scored by the tiles holding them; the best score finished by
+    /// its tile.
     fn call_every_tile(&self, frame: Vec<u8>, timeout: Duration) -> Result<Vec<u8>, ClientError> {
+        let started = Instant::now();
+        let left = || timeout.saturating_sub(started.elapsed());
+        let (header, payload) = decode_request(&frame, usize::MAX)
+            .map_err(|e| ClientError::Invalid(format!("the request frame: {e}")))?;
+        let phase = |flag: u32, ranks: u64| {
+            let mut h = header;
+            h.flags |= flag;
+            h.keyframe_or_scan_id = ranks;
+            encode_request(&h, &payload)
+        };
+        let places = self.ask_every_tile(phase(FLAG_PLACES_ONLY, 0), timeout)?;
+        let (chosen, order, searched_us) = match crate::tiled::choose_places(&places)? {
+            Choice::Answer(frame) => return Ok(frame),
+            Choice::Score {
+                chosen,
+                order,
+                searched_us,
+            } => (chosen, order, searched_us),
+        };
+        let requests = chosen
+            .into_iter()
+            .map(|(at, ranks)| {
+                let tile = self.tile_number(&places[at].0)?;
+                Ok((tile, phase(FLAG_SCORE_CHOSEN, ranks)))
+            })
+            .collect::<Result<Vec<_>, ClientError>>()?;
+        let order: Vec<(String, usize)> = order
+            .into_iter()
+            .map(|(at, rank)| (places[at].0.clone(), rank))
+            .collect();
+        let scored = self.ask_tiles(requests, left())?;
+        let ranked = match crate::tiled::best_scored(&order, &scored)? {
+            Ok(ranked) => ranked,
+            Err(refusal) => return Ok(refusal),
+        };
+        let Some((tile, rank)) = &ranked.best else {
+            return Ok(crate::tiled::nothing_settled(&ranked, searched_us));
+        };
+        let request = (
+            self.tile_number(tile)?,
+            phase(FLAG_FINISH_CHOSEN, 1 << rank),
+        );
+        let finished = self.ask_tiles(vec![request], left())?;
+        crate::tiled::finish(&finished[0].1, &ranked, searched_us)
+    }
+
+    /// The index of tile `id` in this link's tiles.
+    fn tile_number(&self, id: &str) -> Result<usize, ClientError> {
+        self.tiles.iter().position(|t| t == id).ok_or_else(|| {
+            ClientError::Remote(format!(
+                "an answer came from tile {id:?}, which is not in {}'s tile index",
+                self.map_name
+            ))
+        })
+    }
+
+    /// Sends request frames to tiles (each its own) at once and waits for every answer
+    /// frame (tile id, frame).
+    fn ask_tiles(
+        &self,
+        requests: Vec<(usize, Vec<u8>)>,
+        timeout: Duration,
+    ) -> Result<Vec<(String, Vec<u8>)>, ClientError> {
+        let mut pending = Vec::with_capacity(requests.len());
+        for (i, frame) in requests {
+            if !self.tile_alive(i) {
+                return Err(ClientError::Disconnected(self.describe(i)));
+            }
+            let key = rpc_key(&self.map_name, &self.tiles[i], &self.client_id);
+            let replies = self
+                .session
+                .get(&key)
+                .payload(frame)
+                .target(QueryTarget::BestMatching)
+                .consolidation(ConsolidationMode::None)
+                .timeout(timeout)
+                .wait()
+                .map_err(|e| ClientError::Remote(format!("send to {key}: {e}")))?;
+            pending.push((i, key, replies));
+        }
+        let deadline = Instant::now() + timeout;
+        let mut answers = Vec::with_capacity(pending.len());
+        while let Some((i, key, replies)) = pending.first() {
+            match replies.recv_timeout(WATCH_SLICE) {
+                Ok(Some(reply)) => {
+                    answers.push((self.tiles[*i].clone(), self.answer(*i, reply)?));
+                    pending.remove(0);
+                    continue;
+                }
+                Err(_) => return Err(self.ended_unanswered(*i, key)),
+                Ok(None) => {}
+            }
+            if let Some((i, _, _)) = pending.iter().find(|(i, _, _)| !self.tile_alive(*i)) {
+                return Err(ClientError::Disconnected(self.describe(*i)));
+            }
+            if Instant::now() >= deadline {
+                return Err(ClientError::Timeout {
+                    map_name: self.describe(*i),
+                    waited: timeout,
+                });
+            }
+        }
+        Ok(answers)
+    }
+
+    /// Sends one request frame to every tile at once (`QueryTarget::All`) and waits for
+    /// the answers (tile id, frame) of every tile alive when it was sent.
+    fn ask_every_tile(
+        &self,
+        frame: Vec<u8>,
+        timeout: Duration,
+    ) -> Result<Vec<(String, Vec<u8>)>, ClientError> {
         let expected = (0..self.tiles.len())
             .filter(|&i| self.tile_alive(i))
             .count();
@@ -363,7 +480,7 @@ impl RemoteLink {
                 waited: timeout,
             }));
         }
-        crate::tiled::merge_relocalizations(&answers)
+        Ok(answers)
     }
 
     /// Why a query ended with no reply: the gateway's session closed (its token goes

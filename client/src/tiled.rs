@@ -1,163 +1,399 @@
-//! Relocalization over a tile set: every tile searches its own map at once, and the
-//! answers are ranked as one search over the merged map ranks its places
-//! (docs/DESIGN.md#notes-tiles). The best-scoring place wins (and is `found` only if it
-//! fits, as its tile's final registration found); another tile's
-//! place farther than `distinct-m` / `distinct-deg` from it is a runner-up (the same
-//! place seen from two tiles' overlapping halos is not), and a runner-up within
-//! `ambiguity-margin` of the best makes the answer `ambiguous`, as on one server.
+//! Relocalization over a tile set, in three phases that run the steps of one search
+//! over the merged map (docs/DESIGN.md#notes-tiles). *Places*: every tile searches its
+//! core and answers its places unverified; the client keeps the best `candidates` of
+//! them all, as one search keeps its best ([`choose_places`]). *Scores*: each tile
+//! holding chosen places settles and scores them ([`best_scored`]). *Finish*: the tile
+//! of the best score runs the final registration, and the client judges the verdict as
+//! one server would ([`finish`]): `found` only if that place fits; another place
+//! farther than `distinct-m` / `distinct-deg` from it is a runner-up, and a runner-up
+//! within `ambiguity-margin` makes the answer `ambiguous`.
 
 use kfmap_protocol::remote::{decode_answer, encode_answer};
-use kfmap_protocol::{ResponseHeader, StatusCode, pose_from_wire};
-use kfmap_shared::geometry::{rotation_distance, translation_distance};
+use kfmap_protocol::{ResponseHeader, StatusCode, WirePlace, place_from_wire, pose_from_wire};
+use kfmap_shared::geometry::{Pose, rotation_distance, translation_distance};
 use kfmap_shared::place::{RelocalizeParams, RelocalizeStatus};
 
 use crate::ClientError;
 
-/// One tile's decoded answer.
-struct TileAnswer {
-    header: ResponseHeader,
-    pairings: Vec<kfmap_protocol::WirePairing>,
+/// What the first phase decided.
+#[derive(Debug, PartialEq)]
+pub(crate) enum Choice {
+    /// The answer as it stands (a refusal, or no place proposed anywhere).
+    Answer(Vec<u8>),
+    /// The places to score: per tile (its index in the answers given), the ranks' bits,
+    /// and every chosen (tile index, rank) in the order one search would rank them.
+    Score {
+        chosen: Vec<(usize, u64)>,
+        order: Vec<(usize, usize)>,
+        /// The slowest tile's search, microseconds.
+        searched_us: f64,
+    },
 }
 
-impl TileAnswer {
-    fn status(&self) -> Option<RelocalizeStatus> {
-        RelocalizeStatus::from_code(self.header.relocalization)
-    }
-
-    /// Found or ambiguous: its place fits the scan.
-    fn fits(&self) -> bool {
-        matches!(
-            self.status(),
-            Some(RelocalizeStatus::Found | RelocalizeStatus::Ambiguous)
-        )
-    }
-
-    fn score(&self) -> f64 {
-        self.header.place_scores[0]
-    }
+/// Decodes an answer frame; an error names the tile and the phase.
+fn decoded(
+    tile: &str,
+    what: &str,
+    frame: &[u8],
+) -> Result<(ResponseHeader, Vec<WirePlace>), ClientError> {
+    let (header, slots) = decode_answer(frame)
+        .map_err(|e| ClientError::Remote(format!("tile {tile}'s {what}: {e}")))?;
+    Ok((
+        header,
+        slots.into_iter().map(WirePlace::from_slot).collect(),
+    ))
 }
 
-/// Merges the answer frames of every tile (tile id, frame) into one answer frame.
-pub(crate) fn merge_relocalizations(answers: &[(String, Vec<u8>)]) -> Result<Vec<u8>, ClientError> {
-    let mut decoded = Vec::with_capacity(answers.len());
-    for (tile, frame) in answers {
-        let (header, pairings) = decode_answer(frame).map_err(|e| {
-            ClientError::Remote(format!("tile {tile}'s relocalization answer: {e}"))
-        })?;
-        decoded.push(TileAnswer { header, pairings });
-    }
-    // Refusals (a bad scan is refused by every tile alike) are answered as they came.
-    let (ok, refused): (Vec<_>, Vec<_>) = decoded
-        .into_iter()
-        .partition(|a| StatusCode::from_code(a.header.status) == StatusCode::Ok);
-    let Some(best) = ok
-        .iter()
-        .enumerate()
-        .max_by(|(_, a), (_, b)| a.score().total_cmp(&b.score()))
-        .map(|(i, _)| i)
-    else {
-        let first = &refused[0];
-        return Ok(encode_answer(&first.header, &first.pairings));
-    };
-    let params = RelocalizeParams::default();
-    let winner = &ok[best];
-    let mut header = winner.header;
-    let best_pose = pose_from_wire(&header.pose);
-    let distinct = |a: &TileAnswer| match (best_pose, pose_from_wire(&a.header.pose)) {
-        (Some(p), Some(q)) => {
-            translation_distance(&p, &q) > params.distinct_m
-                || rotation_distance(&p, &q).to_degrees() > params.distinct_deg
+/// Ranks every tile's proposed places (tile id, `FLAG_PLACES_ONLY` answer frame) and
+/// keeps as many as one search verifies (the largest `detail` any tile reported), best
+/// first, ties by tile id and rank so every client chooses alike.
+pub(crate) fn choose_places(answers: &[(String, Vec<u8>)]) -> Result<Choice, ClientError> {
+    let mut places: Vec<(f64, &str, usize, usize)> = Vec::new();
+    let mut keep = 0;
+    let mut searched_us: f64 = 0.0;
+    for (at, (tile, frame)) in answers.iter().enumerate() {
+        let (header, slots) = decoded(tile, "proposed places", frame)?;
+        // A ranking without a tile is not the one search it stands for.
+        if StatusCode::from_code(header.status) != StatusCode::Ok {
+            return Ok(Choice::Answer(frame.clone()));
         }
-        _ => true,
+        if slots.len() != header.candidates as usize {
+            return Err(ClientError::Remote(format!(
+                "tile {tile} proposed {} places but sent {}",
+                header.candidates,
+                slots.len()
+            )));
+        }
+        keep = keep.max(header.detail.min(64) as usize);
+        searched_us = searched_us.max(header.server_us);
+        for (rank, slot) in slots.into_iter().enumerate() {
+            places.push((slot.score, tile, at, rank));
+        }
+    }
+    places.sort_by(|a, b| {
+        b.0.total_cmp(&a.0)
+            .then_with(|| a.1.cmp(b.1))
+            .then(a.3.cmp(&b.3))
+    });
+    places.truncate(keep);
+    if places.is_empty() {
+        let (mut header, _) = decode_answer(&answers[0].1).expect("decoded above");
+        header.relocalization = RelocalizeStatus::NotFound as u32;
+        header.candidates = 0;
+        header.place_scores = [0.0; 2];
+        header.detail = 0;
+        header.server_us = searched_us;
+        return Ok(Choice::Answer(encode_answer(&header, &[])));
+    }
+    let order: Vec<(usize, usize)> = places.iter().map(|p| (p.2, p.3)).collect();
+    let mut chosen: Vec<(usize, u64)> = Vec::new();
+    for &(at, rank) in &order {
+        match chosen.iter_mut().find(|(tile, _)| *tile == at) {
+            Some((_, ranks)) => *ranks |= 1 << rank,
+            None => chosen.push((at, 1 << rank)),
+        }
+    }
+    Ok(Choice::Score {
+        chosen,
+        order,
+        searched_us,
+    })
+}
+
+/// Every scored place of the second phase, and what its answers add up to.
+#[derive(Debug, PartialEq)]
+pub(crate) struct Ranked {
+    /// The best score's (tile id, rank): the first of equal scores in the search's
+    /// order; `None` when no place settled.
+    pub best: Option<(String, usize)>,
+    /// Every settled place (pose, score), the best included.
+    pub places: Vec<(String, usize, Pose, f64)>,
+    /// Places chosen, registrations run, the slowest tile's time (microseconds).
+    pub candidates: u32,
+    pub registrations: u32,
+    pub scored_us: f64,
+}
+
+/// Reads the `FLAG_SCORE_CHOSEN` answers (tile id, frame) of the places chosen in
+/// `order` (tile id, rank) and finds the best score as one server would: places in the
+/// search's order, the first of equal scores. A refusal is returned as the answer.
+pub(crate) fn best_scored(
+    order: &[(String, usize)],
+    answers: &[(String, Vec<u8>)],
+) -> Result<Result<Ranked, Vec<u8>>, ClientError> {
+    let mut ranked = Ranked {
+        best: None,
+        places: Vec::new(),
+        candidates: 0,
+        registrations: 0,
+        scored_us: 0.0,
     };
-    let others = ok
+    for (tile, frame) in answers {
+        let (header, slots) = decoded(tile, "scored places", frame)?;
+        if StatusCode::from_code(header.status) != StatusCode::Ok {
+            return Ok(Err(frame.clone()));
+        }
+        ranked.candidates += header.candidates;
+        ranked.registrations += header.registrations;
+        ranked.scored_us = ranked.scored_us.max(header.server_us);
+        for slot in slots {
+            let pose = place_from_wire(&slot).ok_or_else(|| {
+                ClientError::Remote(format!("tile {tile} scored an invalid pose"))
+            })?;
+            ranked
+                .places
+                .push((tile.clone(), slot.rank as usize, pose, slot.score));
+        }
+    }
+    let position = |tile: &str, rank: usize| {
+        order
+            .iter()
+            .position(|(t, r)| t == tile && *r == rank)
+            .unwrap_or(usize::MAX)
+    };
+    ranked
+        .places
+        .sort_by_key(|(tile, rank, _, _)| position(tile, *rank));
+    if ranked
+        .places
         .iter()
-        .enumerate()
-        .filter(|&(i, a)| i != best && a.score() > 0.0 && distinct(a))
-        .map(|(_, a)| a.score())
-        .fold(0.0, f64::max);
-    header.place_scores[1] = header.place_scores[1].max(others);
-    header.candidates = ok.iter().map(|a| a.header.candidates).sum();
-    // The tiles searched in parallel: the answer took as long as the slowest.
-    header.server_us = ok.iter().map(|a| a.header.server_us).fold(0.0, f64::max);
-    if winner.fits() {
-        let close = header.place_scores[1] + params.ambiguity_margin >= header.place_scores[0];
-        let status = if close {
+        .any(|(t, r, _, _)| position(t, *r) == usize::MAX)
+    {
+        return Err(ClientError::Remote(
+            "a tile scored a place that was not chosen".into(),
+        ));
+    }
+    // The first of equal best scores, as a stable sort by score keeps it.
+    let mut best: Option<&(String, usize, Pose, f64)> = None;
+    for place in &ranked.places {
+        if best.is_none_or(|b| place.3 > b.3) {
+            best = Some(place);
+        }
+    }
+    ranked.best = best.map(|(t, r, _, _)| (t.clone(), *r));
+    Ok(Ok(ranked))
+}
+
+/// The answer when no chosen place settled: not found, as on one server.
+pub(crate) fn nothing_settled(ranked: &Ranked, searched_us: f64) -> Vec<u8> {
+    let mut header = ResponseHeader::default();
+    header.relocalization = RelocalizeStatus::NotFound as u32;
+    header.candidates = ranked.candidates;
+    header.registrations = ranked.registrations;
+    header.server_us = searched_us + ranked.scored_us;
+    encode_answer(&header, &[])
+}
+
+/// The final answer from the best place's `FLAG_FINISH_CHOSEN` answer frame: its
+/// registration and fit, the runner-up among every other scored place distinct from
+/// where it settled, the verdict, and the phases' counts and times.
+pub(crate) fn finish(
+    frame: &[u8],
+    ranked: &Ranked,
+    searched_us: f64,
+) -> Result<Vec<u8>, ClientError> {
+    let (mut header, pairings) = decode_answer(frame)
+        .map_err(|e| ClientError::Remote(format!("the best place's final answer: {e}")))?;
+    if StatusCode::from_code(header.status) != StatusCode::Ok {
+        return Ok(frame.to_vec());
+    }
+    let params = RelocalizeParams::default();
+    header.candidates = ranked.candidates;
+    header.registrations += ranked.registrations;
+    header.server_us += searched_us + ranked.scored_us;
+    let fits = header.relocalization != RelocalizeStatus::NotFound as u32;
+    if let (true, Some(settled), Some(best)) = (fits, pose_from_wire(&header.pose), &ranked.best) {
+        let distinct = |p: &Pose| {
+            translation_distance(p, &settled) > params.distinct_m
+                || rotation_distance(p, &settled).to_degrees() > params.distinct_deg
+        };
+        let runner_up = ranked
+            .places
+            .iter()
+            .filter(|(t, r, pose, _)| (t, r) != (&best.0, &best.1) && distinct(pose))
+            .map(|(_, _, _, score)| *score)
+            .fold(0.0, f64::max);
+        header.place_scores[1] = runner_up;
+        let close = runner_up + params.ambiguity_margin >= header.place_scores[0];
+        header.relocalization = if close {
             RelocalizeStatus::Ambiguous
         } else {
             RelocalizeStatus::Found
-        };
-        header.relocalization = status as u32;
+        } as u32;
     }
-    Ok(encode_answer(&header, &winner.pairings))
+    Ok(encode_answer(&header, &pairings))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use kfmap_protocol::pose_to_wire;
-    use kfmap_shared::geometry::Pose;
+    use kfmap_protocol::{place_to_wire, pose_to_wire};
     use nalgebra::{Translation3, UnitQuaternion};
 
-    fn answer(status: RelocalizeStatus, score: f64, runner_up: f64, x: f64) -> Vec<u8> {
-        let mut h = ResponseHeader::refusal(7, StatusCode::Ok, "");
-        h.relocalization = status as u32;
-        h.place_scores = [score, runner_up];
-        h.candidates = 5;
-        h.server_us = 1000.0 * score;
-        let pose = Pose::from_parts(Translation3::new(x, 0.0, 0.0), UnitQuaternion::identity());
-        h.pose = pose_to_wire(&pose);
-        encode_answer(&h, &[])
+    fn at(x: f64, yaw_deg: f64) -> Pose {
+        Pose::from_parts(
+            Translation3::new(x, 0.0, 0.0),
+            UnitQuaternion::from_euler_angles(0.0, 0.0, yaw_deg.to_radians()),
+        )
     }
 
-    fn merged(answers: Vec<Vec<u8>>) -> ResponseHeader {
-        let named: Vec<(String, Vec<u8>)> = answers
+    /// An answer frame carrying `places` (pose, score, rank).
+    fn places(places: &[(Pose, f64, usize)], candidates: u32, detail: u64) -> Vec<u8> {
+        let mut h = ResponseHeader::refusal(7, StatusCode::Ok, "");
+        h.candidates = candidates;
+        h.detail = detail;
+        h.registrations = 2 * candidates;
+        h.server_us = 100.0 * places.len() as f64;
+        let slots: Vec<_> = places
+            .iter()
+            .map(|(pose, score, rank)| place_to_wire(pose, *score, *rank).to_slot())
+            .collect();
+        encode_answer(&h, &slots)
+    }
+
+    fn named(frames: Vec<Vec<u8>>) -> Vec<(String, Vec<u8>)> {
+        frames
             .into_iter()
             .enumerate()
-            .map(|(i, a)| (format!("t{i}"), a))
+            .map(|(i, f)| (format!("t{i}"), f))
+            .collect()
+    }
+
+    /// A `FLAG_PLACES_ONLY` answer with places of these hit ratios.
+    fn proposed(hits: &[f64], detail: u64) -> Vec<u8> {
+        let list: Vec<_> = hits
+            .iter()
+            .enumerate()
+            .map(|(r, &h)| (Pose::identity(), h, r))
             .collect();
-        decode_answer(&merge_relocalizations(&named).unwrap())
-            .unwrap()
-            .0
+        places(&list, hits.len() as u32, detail)
     }
 
     #[test]
-    fn the_best_fitting_place_wins_and_a_distinct_close_second_makes_it_ambiguous() {
-        use RelocalizeStatus::*;
-        // The same place seen from two tiles' halos: found, not ambiguous.
-        let h = merged(vec![
-            answer(Found, 0.80, 0.2, 10.0),
-            answer(Found, 0.79, 0.1, 10.3),
+    fn the_best_places_of_every_tile_are_chosen_as_one_search_keeps_its_best() {
+        // Brute force over every (tile, rank): the 3 best hit ratios overall.
+        let hits = [vec![0.9, 0.5, 0.4], vec![0.8, 0.7], vec![0.3], vec![]];
+        let answers = named(hits.iter().map(|h| proposed(h, 3)).collect());
+        let Choice::Score {
+            chosen,
+            order,
+            searched_us,
+        } = choose_places(&answers).unwrap()
+        else {
+            panic!("places to score expected");
+        };
+        let mut all: Vec<(f64, usize, usize)> = hits
+            .iter()
+            .enumerate()
+            .flat_map(|(t, h)| h.iter().enumerate().map(move |(r, &x)| (x, t, r)))
+            .collect();
+        all.sort_by(|a, b| b.0.total_cmp(&a.0));
+        let expected: Vec<(usize, usize)> = all[..3].iter().map(|&(_, t, r)| (t, r)).collect();
+        assert_eq!(order, expected);
+        assert_eq!(chosen, vec![(0, 0b1), (1, 0b11)]);
+        assert_eq!(searched_us, 300.0);
+        // No place anywhere: not found at once, nothing to score.
+        let Choice::Answer(frame) = choose_places(&named(vec![proposed(&[], 5)])).unwrap() else {
+            panic!("an answer expected");
+        };
+        let h = decode_answer(&frame).unwrap().0;
+        assert_eq!(h.relocalization, RelocalizeStatus::NotFound as u32);
+        assert_eq!(h.candidates, 0);
+        // A tile's refusal is the answer: a ranking without it is not one search.
+        let refused = encode_answer(&ResponseHeader::refusal(7, StatusCode::Busy, "busy"), &[]);
+        let answers = named(vec![proposed(&[0.9], 5), refused.clone()]);
+        assert_eq!(choose_places(&answers).unwrap(), Choice::Answer(refused));
+        // A frame whose places disagree with its count is an error, not a guess.
+        let mut broken = proposed(&[0.9, 0.8], 5);
+        broken.truncate(broken.len() - 56);
+        assert!(choose_places(&named(vec![broken])).is_err());
+    }
+
+    /// The final answer of a place at `settled` with `score`, as the finishing tile
+    /// sends it (found when it fits, no runner-up).
+    fn finished(settled: &Pose, score: f64, fits: bool) -> Vec<u8> {
+        let mut h = ResponseHeader::refusal(7, StatusCode::Ok, "");
+        h.relocalization = if fits {
+            RelocalizeStatus::Found
+        } else {
+            RelocalizeStatus::NotFound
+        } as u32;
+        h.place_scores = [score, 0.0];
+        h.registrations = 2;
+        h.candidates = 1;
+        h.server_us = 50.0;
+        h.pose = pose_to_wire(settled);
+        encode_answer(&h, &[])
+    }
+
+    /// Scores over two tiles: t0 ranks 0, 1; t1 rank 0; in the search's order t0/0,
+    /// t1/0, t0/1.
+    fn ranked(scores: [(Pose, f64); 3]) -> Ranked {
+        let order = vec![("t0".into(), 0), ("t1".into(), 0), ("t0".into(), 1)];
+        let [a, b, c] = scores;
+        let answers = named(vec![
+            places(&[(a.0, a.1, 0), (c.0, c.1, 1)], 2, 0),
+            places(&[(b.0, b.1, 0)], 1, 0),
         ]);
-        assert_eq!(h.relocalization, Found as u32);
-        assert_eq!(h.place_scores, [0.80, 0.2]);
-        assert_eq!(h.candidates, 10);
-        assert_eq!(h.server_us, 800.0);
-        // Another place elsewhere scoring within the margin: ambiguous.
-        let h = merged(vec![
-            answer(Found, 0.80, 0.2, 10.0),
-            answer(Found, 0.78, 0.1, 60.0),
+        best_scored(&order, &answers).unwrap().unwrap()
+    }
+
+    #[test]
+    fn the_best_score_is_finished_and_judged_against_every_distinct_place() {
+        // The best score wins; equal scores go to the first in the search's order.
+        let r = ranked([
+            (at(0.0, 0.0), 0.6),
+            (at(50.0, 0.0), 0.8),
+            (at(90.0, 0.0), 0.8),
         ]);
-        assert_eq!(h.relocalization, Ambiguous as u32);
-        assert_eq!(h.place_scores, [0.80, 0.78]);
-        // The best score wins even when its registration does not fit, as in one search.
-        let h = merged(vec![
-            answer(NotFound, 0.9, 0.0, 60.0),
-            answer(Found, 0.6, 0.1, 10.0),
+        assert_eq!(r.best, Some(("t1".into(), 0)));
+        assert_eq!((r.candidates, r.registrations, r.scored_us), (3, 6, 200.0));
+        // A place far away within the margin: ambiguous (0.8 vs 0.8).
+        let h = |frame: Vec<u8>| decode_answer(&frame).unwrap().0;
+        let out = h(finish(&finished(&at(50.1, 1.0), 0.8, true), &r, 1000.0).unwrap());
+        assert_eq!(out.relocalization, RelocalizeStatus::Ambiguous as u32);
+        assert_eq!(out.place_scores, [0.8, 0.8]);
+        assert_eq!((out.candidates, out.registrations), (3, 8));
+        assert_eq!(out.server_us, 1000.0 + 200.0 + 50.0);
+        // The same place settled from two proposals (0.3 m apart) is no runner-up; the
+        // runner-up is then the best distinct one (0.6), outside the margin: found.
+        let r = ranked([
+            (at(0.0, 0.0), 0.6),
+            (at(50.0, 0.0), 0.8),
+            (at(50.3, 2.0), 0.79),
         ]);
-        assert_eq!(h.relocalization, NotFound as u32);
-        assert_eq!(pose_from_wire(&h.pose).unwrap().translation.x, 60.0);
-        // A tile whose own runner-up was close stays ambiguous.
-        let h = merged(vec![
-            answer(Ambiguous, 0.7, 0.68, 5.0),
-            answer(Found, 0.2, 0.0, 90.0),
+        let out = h(finish(&finished(&at(50.0, 0.0), 0.8, true), &r, 0.0).unwrap());
+        assert_eq!(out.relocalization, RelocalizeStatus::Found as u32);
+        assert_eq!(out.place_scores, [0.8, 0.6]);
+        // Turned more than distinct-deg, it is another place: ambiguous.
+        let r = ranked([
+            (at(0.0, 0.0), 0.1),
+            (at(50.0, 0.0), 0.8),
+            (at(50.0, 10.0), 0.79),
         ]);
-        assert_eq!(h.relocalization, Ambiguous as u32);
-        // Nothing fits anywhere: not found.
-        let h = merged(vec![
-            answer(NotFound, 0.3, 0.0, 1.0),
-            answer(NotFound, 0.0, 0.0, 0.0),
-        ]);
-        assert_eq!(h.relocalization, NotFound as u32);
+        let out = h(finish(&finished(&at(50.0, 0.0), 0.8, true), &r, 0.0).unwrap());
+        assert_eq!(out.relocalization, RelocalizeStatus::Ambiguous as u32);
+        // The best place does not fit: not found, whatever the others scored.
+        let out = h(finish(&finished(&at(50.0, 0.0), 0.8, false), &r, 0.0).unwrap());
+        assert_eq!(out.relocalization, RelocalizeStatus::NotFound as u32);
+        // A refusal of a phase is the answer.
+        let refused = encode_answer(&ResponseHeader::refusal(7, StatusCode::Busy, "busy"), &[]);
+        assert_eq!(finish(&refused, &r, 0.0).unwrap(), refused);
+        let order = vec![("t0".to_string(), 0)];
+        assert_eq!(
+            best_scored(&order, &named(vec![refused.clone()])).unwrap(),
+            Err(refused)
+        );
+        // A place nobody chose is an error, not a guess.
+        let stray = named(vec![places(&[(at(0.0, 0.0), 0.5, 3)], 1, 0)]);
+        assert!(best_scored(&order, &stray).is_err());
+        // Nothing settled: not found, the counts kept.
+        let none = best_scored(&order, &named(vec![places(&[], 1, 0)]))
+            .unwrap()
+            .unwrap();
+        assert_eq!(none.best, None);
+        let out = h(nothing_settled(&none, 10.0));
+        assert_eq!(out.relocalization, RelocalizeStatus::NotFound as u32);
+        assert_eq!((out.candidates, out.registrations), (1, 2));
     }
 }

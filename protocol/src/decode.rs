@@ -4,7 +4,8 @@
 use std::mem::MaybeUninit;
 
 use super::wire::{
-    FLAG_COVARIANCES, FLAG_LEVELLED, FLAG_STAMPED, FLAG_VIEW_DIRS, RequestHeader, WirePairing,
+    FLAG_COVARIANCES, FLAG_FINISH_CHOSEN, FLAG_LEVELLED, FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN,
+    FLAG_STAMPED, FLAG_VIEW_DIRS, RequestHeader, WirePairing,
 };
 use super::{IMU_SAMPLE_FLOATS, PROTOCOL_VERSION, StatusCode};
 use kfmap_shared::geometry::{PackedSym3, to_vec3, unpack_sym3};
@@ -76,8 +77,12 @@ impl ScanPayload<'_> {
     /// wrote, counted as it writes them (callers check it before `assume_init`).
     pub fn write(&self, header: &mut RequestHeader, out: &mut [MaybeUninit<f32>]) -> usize {
         header.point_count = self.points.len() as u32;
-        // The payload's own flags are set here; a pose stamp is the caller's.
-        header.flags &= FLAG_STAMPED | FLAG_LEVELLED;
+        // The payload's own flags are set here; the request's others are the caller's.
+        header.flags &= FLAG_STAMPED
+            | FLAG_LEVELLED
+            | FLAG_PLACES_ONLY
+            | FLAG_SCORE_CHOSEN
+            | FLAG_FINISH_CHOSEN;
         let mut at = 0;
         let mut put = |values: &[f32]| {
             for (dst, &v) in out[at..at + values.len()].iter_mut().zip(values) {
@@ -159,7 +164,14 @@ pub fn decode_scan<'a>(
             detail: n as u64,
         });
     }
-    if header.flags & !(FLAG_VIEW_DIRS | FLAG_COVARIANCES | FLAG_STAMPED | FLAG_LEVELLED) != 0 {
+    let known = FLAG_VIEW_DIRS
+        | FLAG_COVARIANCES
+        | FLAG_STAMPED
+        | FLAG_LEVELLED
+        | FLAG_PLACES_ONLY
+        | FLAG_SCORE_CHOSEN
+        | FLAG_FINISH_CHOSEN;
+    if header.flags & !known != 0 {
         return Err(Rejection::new(
             StatusCode::BadRequest,
             format!("unknown flag bits {:#x}", header.flags),

@@ -24,9 +24,10 @@ pub use decode::{
     correspondences_from_wire, decode_imu, decode_scan, decode_stamp, imu_payload,
 };
 pub use wire::{
-    FLAG_COVARIANCES, FLAG_LEVELLED, FLAG_STAMPED, FLAG_VIEW_DIRS, KIND_SLOTS, MESSAGE_LEN,
-    NAME_LEN, RequestHeader, ResponseHeader, STATUS_SESSIONS, WireCovOptions, WirePairing,
-    WireSessionGravity, read_text, write_text,
+    FLAG_COVARIANCES, FLAG_FINISH_CHOSEN, FLAG_LEVELLED, FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN,
+    FLAG_STAMPED, FLAG_VIEW_DIRS, KIND_SLOTS, MESSAGE_LEN, NAME_LEN, RequestHeader, ResponseHeader,
+    STATUS_SESSIONS, WireCovOptions, WirePairing, WirePlace, WireSessionGravity, read_text,
+    write_text,
 };
 
 use kfmap_shared::geometry::{Pose, pose_from_xyz_quat, pose_to_xyz_quat};
@@ -34,7 +35,7 @@ pub use kfmap_shared::map::Cov2CovMode;
 use kfmap_shared::tracking::Stage;
 
 /// Version of this protocol; a peer of another version gets `VersionMismatch`.
-pub const PROTOCOL_VERSION: u32 = 7;
+pub const PROTOCOL_VERSION: u32 = 8;
 /// Default limit on points per request.
 pub const DEFAULT_MAX_POINTS: usize = 1 << 20;
 /// Floats per IMU sample in an `ImuWindow` payload.
@@ -215,6 +216,30 @@ pub fn pose_from_wire(values: &[f64; 7]) -> Option<Pose> {
         return None;
     }
     pose_from_xyz_quat(*values)
+}
+
+/// A place of rank `rank` with its score, as a `FLAG_PLACES_ONLY` or
+/// `FLAG_SCORE_CHOSEN` answer carries it.
+pub fn place_to_wire(pose: &Pose, score: f64, rank: usize) -> WirePlace {
+    let [x, y, z, qx, qy, qz, qw] = pose_to_wire(pose);
+    WirePlace {
+        translation: [x, y, z],
+        rotation: [qx as f32, qy as f32, qz as f32, qw as f32],
+        score,
+        rank: rank as u64,
+    }
+}
+
+/// The pose of a proposed place (`None` when not finite or not a rotation).
+pub fn place_from_wire(place: &WirePlace) -> Option<Pose> {
+    let [x, y, z] = place.translation;
+    let q = place.rotation.map(f64::from);
+    let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+    // Unit in f32; renormalized in f64 before the strict check.
+    if !norm.is_finite() || (norm - 1.0).abs() >= 1e-3 {
+        return None;
+    }
+    pose_from_wire(&[x, y, z, q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm])
 }
 
 #[cfg(test)]

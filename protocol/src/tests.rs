@@ -70,7 +70,7 @@ fn bad_scans_are_refused_by_name() {
     assert_eq!(e.status, StatusCode::VersionMismatch);
     assert!(e.message.contains("protocol"));
     let flags = RequestHeader {
-        flags: 16,
+        flags: 128,
         ..header
     };
     assert_eq!(
@@ -155,7 +155,7 @@ fn message_text_is_cut_at_a_character_boundary() {
 /// The offsets documented on the wire types (foreign clients rely on them).
 #[test]
 fn header_layouts_are_the_documented_ones() {
-    use std::mem::{offset_of, size_of};
+    use std::mem::{align_of, offset_of, size_of};
     macro_rules! layout {
         ($t:ty, $size:expr, $($f:ident = $at:expr),*) => {
             assert_eq!(size_of::<$t>(), $size, "size of {}", stringify!($t));
@@ -194,6 +194,15 @@ fn header_layouts_are_the_documented_ones() {
         dist_sq = 28,
         information = 32
     );
+    layout!(
+        WirePlace,
+        56,
+        translation = 0,
+        rotation = 24,
+        score = 40,
+        rank = 48
+    );
+    assert_eq!(align_of::<WirePlace>(), align_of::<WirePairing>());
     layout!(
         ResponseHeader,
         3232,
@@ -421,4 +430,21 @@ mod remote_frames {
         }
         assert_eq!(RemoteFailure::parse("garbage").0, RemoteFailure::Gateway);
     }
+}
+
+#[test]
+fn a_proposed_place_travels_in_a_pairing_slot() {
+    let pose = pose_from_wire(&[1234.5, -6789.25, 3.0, 0.0, 0.0, 0.6, 0.8]).unwrap();
+    let slot = place_to_wire(&pose, 0.75, 3).to_slot();
+    let place = WirePlace::from_slot(slot);
+    assert_eq!((place.score, place.rank), (0.75, 3));
+    let back = place_from_wire(&place).unwrap();
+    // Translation exact (f64); rotation as f32 carries it (< 1e-6 rad).
+    assert_eq!(back.translation.vector, pose.translation.vector);
+    assert!(back.rotation.angle_to(&pose.rotation) < 1e-6);
+    let broken = WirePlace {
+        rotation: [0.0, 0.0, 0.0, 2.0],
+        ..place
+    };
+    assert!(place_from_wire(&broken).is_none());
 }

@@ -61,7 +61,8 @@ pub struct RequestHeader {
     /// its motion model allows, metres of translation plus the chord a point at
     /// [`kfmap_shared::tracking::CORRECTION_RANGE_M`] sweeps; 0 = no motion model (no bound).
     pub max_correction: f32,
-    /// Keyframe or scan the IMU window belongs to (`ImuWindow`).
+    /// Keyframe or scan the IMU window belongs to (`ImuWindow`); `Relocalize` with
+    /// `FLAG_SCORE_CHOSEN` or `FLAG_FINISH_CHOSEN`: the ranks chosen, bit r for rank r.
     pub keyframe_or_scan_id: u64,
     /// Time origin of the IMU samples, seconds (`ImuWindow`).
     pub imu_t0: f64,
@@ -86,6 +87,21 @@ pub const FLAG_STAMPED: u32 = 4;
 /// `Relocalize`: the pose guess's rotation gives the sensor's tilt (roll and pitch from
 /// an IMU), its yaw and position are ignored; without it, up is found from the scan.
 pub const FLAG_LEVELLED: u32 = 8;
+/// `Relocalize`: answer the search's proposed places ([`WirePlace`]s in the pairings'
+/// slots, best first) without verifying any: the first phase of a relocalization over
+/// a tile set, whose client ranks every tile's places as one search would.
+pub const FLAG_PLACES_ONLY: u32 = 16;
+/// `Relocalize`: settle and score only the proposed places whose ranks are set in
+/// `keyframe_or_scan_id` (bit r: the r-th best place of this scan's search) and answer
+/// them ([`WirePlace`]s: settled pose, score, rank), deciding nothing: the second phase
+/// over a tile set. The session keeps the search's places and these scores, so nothing
+/// runs twice for the same scan.
+pub const FLAG_SCORE_CHOSEN: u32 = 32;
+/// `Relocalize`: the final registration of the scored place whose rank is the one bit
+/// set in `keyframe_or_scan_id`, answered as a relocalization of that place alone
+/// (found when it fits, no runner-up): the third phase over a tile set, on the tile of
+/// the best score of them all.
+pub const FLAG_FINISH_CHOSEN: u32 = 64;
 
 impl Default for RequestHeader {
     fn default() -> Self {
@@ -133,6 +149,40 @@ pub struct WirePairing {
     pub dist_sq: f32,
     /// Packed information matrix (xx xy xz yy yz zz), 1/m^2, map frame.
     pub information: [f32; 6],
+}
+
+/// One place of a relocalization over a tile set (`FLAG_PLACES_ONLY`: as proposed;
+/// `FLAG_SCORE_CHOSEN`: as settled and scored), written in the slot of a
+/// [`WirePairing`] (same size and alignment; [`WirePlace::from_slot`] and
+/// [`WirePlace::to_slot`] convert).
+///
+/// Layout (56 bytes): translation 0 (f64 x y z, metres, map frame), rotation 24 (f32
+/// qx qy qz qw of `R_map_sensor`), score 40 (f64), rank 48 (u64).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Pod, Zeroable)]
+#[repr(C)]
+pub struct WirePlace {
+    /// Position of the sensor, map frame, metres.
+    pub translation: [f64; 3],
+    /// Orientation (x y z w); f32 is ample to tell places apart (the server keeps its own
+    /// places in f64 for the phases after).
+    pub rotation: [f32; 4],
+    /// Proposed: the search's hit ratio (share of its points that hit the map). Scored:
+    /// the share of the coarse scan paired at the fine distance.
+    pub score: f64,
+    /// The place's rank in its server's search (0: the best hit ratio there).
+    pub rank: u64,
+}
+
+impl WirePlace {
+    /// The place written in a pairing's slot.
+    pub fn to_slot(self) -> WirePairing {
+        bytemuck::cast(self)
+    }
+
+    /// The place a pairing's slot holds.
+    pub fn from_slot(slot: WirePairing) -> Self {
+        bytemuck::cast(slot)
+    }
 }
 
 /// Header of every response; the payload is `[WirePairing]`.

@@ -10,10 +10,11 @@ use std::mem::{align_of, offset_of, size_of};
 
 use kfmap_protocol::transport::{INITIAL_SLICE_LEN, MAX_CLIENTS, MAX_CLIENTS_PER_PROCESS};
 use kfmap_protocol::{
-    Cov2CovMode, DEFAULT_MAX_POINTS, FLAG_COVARIANCES, FLAG_LEVELLED, FLAG_STAMPED, FLAG_VIEW_DIRS,
-    IMU_SAMPLE_FLOATS, KIND_SLOTS, MESSAGE_LEN, NAME_LEN, PROTOCOL_VERSION, RequestHeader,
-    RequestKind, ResponseHeader, STATUS_SESSIONS, ScanPayload, StatusCode, WireCovOptions,
-    WirePairing, WireSessionGravity, decode_scan, imu_payload,
+    Cov2CovMode, DEFAULT_MAX_POINTS, FLAG_COVARIANCES, FLAG_FINISH_CHOSEN, FLAG_LEVELLED,
+    FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN, FLAG_STAMPED, FLAG_VIEW_DIRS, IMU_SAMPLE_FLOATS,
+    KIND_SLOTS, MESSAGE_LEN, NAME_LEN, PROTOCOL_VERSION, RequestHeader, RequestKind,
+    ResponseHeader, STATUS_SESSIONS, ScanPayload, StatusCode, WireCovOptions, WirePairing,
+    WirePlace, WireSessionGravity, decode_scan, imu_payload,
 };
 use kfmap_shared::imu::ImuSample;
 use kfmap_shared::place::RelocalizeStatus;
@@ -427,6 +428,12 @@ fn wire_layouts() -> Vec<Layout> {
             dist_sq,
             information,
         }),
+        layout!(WirePlace {
+            translation,
+            rotation,
+            score,
+            rank,
+        }),
     ]
 }
 
@@ -646,6 +653,9 @@ fn flags_match_the_doc_and_the_decoder() {
         ("FLAG_COVARIANCES", FLAG_COVARIANCES),
         ("FLAG_STAMPED", FLAG_STAMPED),
         ("FLAG_LEVELLED", FLAG_LEVELLED),
+        ("FLAG_PLACES_ONLY", FLAG_PLACES_ONLY),
+        ("FLAG_SCORE_CHOSEN", FLAG_SCORE_CHOSEN),
+        ("FLAG_FINISH_CHOSEN", FLAG_FINISH_CHOSEN),
     ];
     let documented_bits = documented.iter().fold(0u32, |a, (_, v)| a | *v as u32);
     same_entries(

@@ -5,8 +5,10 @@ A frame is the request's header bytes followed by its float32 payload; the answe
 the response header's bytes followed by its pairings (docs/PROTOCOL.md, "Remote
 frames"). A map served in tiles (``kfmap bake --tile-size``, docs/DESIGN.md#notes-tiles)
 is learned from a gateway's tile index: each request goes to the tile its pose guess
-routes to (:class:`TileRouter`), and a relocalization goes to every tile at once, the
-answers ranked as one search over the whole map (:func:`merge_relocalizations`). Needs
+routes to (:class:`TileRouter`), and a relocalization runs the steps of one search over
+the whole map in three phases: every tile's places at once, the best of them all scored
+by their tiles, the best score finished by its tile (:func:`choose_places`,
+:func:`best_scored`, :func:`finish`). Needs
 the ``eclipse-zenoh`` package (``pip install kfmap[remote]``).
 """
 
@@ -300,46 +302,134 @@ def _distinct(a: Sequence[float], b: Sequence[float]) -> bool:
     return math.degrees(angle) > DISTINCT_DEG
 
 
-def merge_relocalizations(answers: Sequence[tuple[str, bytes]]) -> bytes:
-    """Merges the relocalization answer frames of every tile (``(tile, frame)``) into
-    one, as ``client/src/tiled.rs`` does: the best place score wins (its status kept
-    unless found or ambiguous); the runner-up is the larger of its own runner-up and
-    the scores (> 0) of other tiles' places distinct from it, and a runner-up within
-    ``AMBIGUITY_MARGIN`` makes a fitting winner ``AMBIGUOUS``, else ``FOUND``;
-    candidates add up, ``server_us`` is the slowest tile's. With no ``Ok`` answer the
-    first refusal is the answer."""
+def choose_places(answers: Sequence[tuple[str, bytes]]) -> tuple[bytes | None, list[tuple[str, int]], list[tuple[str, int]], float]:
+    """The first phase's decision, as ``client/src/tiled.rs`` ``choose_places``: every
+    tile's proposed places (``(tile, FLAG_PLACES_ONLY answer frame)``) ranked by hit
+    ratio (ties by tile id, then rank), the best ``max(detail)`` kept. Returns ``(frame,
+    [], [], searched_us)`` when the answer stands (a tile's refusal, or no place
+    anywhere: not found), else ``(None, [(tile, rank bits)], order, searched_us)`` with
+    ``order`` every chosen ``(tile, rank)`` as one search would rank them."""
     if not answers:
         raise TransportError("no tile answered the relocalization")
-    decoded = []
+    places: list[tuple[int, str, int]] = []
+    keep, searched_us, first = 0, 0.0, None
     for tile, frame in answers:
         try:
-            decoded.append(_split_answer(frame))
+            header, rest = _split_answer(frame)
         except TransportError as e:
-            raise TransportError(f"tile {tile}'s relocalization answer: {e}") from None
-    ok = [a for a in decoded if a[0].status == wire.StatusCode.OK]
-    if not ok:
-        header, pairings = next(a for a in decoded if a[0].status != wire.StatusCode.OK)
-        return bytes(C.string_at(C.byref(header), C.sizeof(header))) + pairings
-    # The last of equal best scores, as Rust's max_by.
-    best = max(range(len(ok)), key=lambda i: (_total_order(ok[i][0].place_scores[0]), i))
-    winner, pairings = ok[best]
-    header = wire.ResponseHeader.from_buffer_copy(winner)
-    others = 0.0
-    for i, (h, _) in enumerate(ok):
-        if i != best and h.place_scores[0] > 0.0 and _distinct(winner.pose, h.pose):
-            others = _fmax(others, h.place_scores[0])
-    header.place_scores[1] = _fmax(header.place_scores[1], others)
-    header.candidates = sum(h.candidates for h, _ in ok) & 0xFFFF_FFFF
-    server_us = 0.0
-    for h, _ in ok:
-        server_us = _fmax(server_us, h.server_us)
-    header.server_us = server_us
-    if winner.relocalization in (wire.RelocalizeStatus.FOUND, wire.RelocalizeStatus.AMBIGUOUS):
-        close = header.place_scores[1] + AMBIGUITY_MARGIN >= header.place_scores[0]
+            raise TransportError(f"tile {tile}'s proposed places: {e}") from None
+        if header.status != wire.StatusCode.OK:
+            return frame, [], [], 0.0
+        slots = np.frombuffer(rest, dtype=wire.PLACE_DTYPE)
+        if len(slots) != header.candidates:
+            raise TransportError(
+                f"tile {tile} proposed {header.candidates} places but sent {len(slots)}"
+            )
+        first = header if first is None else first
+        keep = max(keep, min(header.detail, 64))
+        searched_us = _fmax(searched_us, header.server_us)
+        for rank, hits in enumerate(slots["score"]):
+            places.append((_total_order(float(hits)), tile, rank))
+    places.sort(key=lambda p: (-p[0], p[1], p[2]))
+    places = places[:keep]
+    if not places:
+        header = wire.ResponseHeader.from_buffer_copy(first)
+        header.relocalization = wire.RelocalizeStatus.NOT_FOUND
+        header.candidates = 0
+        header.place_scores[0] = header.place_scores[1] = 0.0
+        header.detail = 0
+        header.server_us = searched_us
+        return _header_bytes(header), [], [], searched_us
+    chosen: dict[str, int] = {}
+    for _, tile, rank in places:
+        chosen[tile] = chosen.get(tile, 0) | (1 << rank)
+    return None, list(chosen.items()), [(t, r) for _, t, r in places], searched_us
+
+
+@dataclass
+class Ranked:
+    """Every scored place of the second phase (:func:`best_scored`)."""
+
+    best: tuple[str, int] | None
+    places: list[tuple[str, int, list[float], float]]  # tile, rank, wire pose, score
+    candidates: int
+    registrations: int
+    scored_us: float
+
+
+def best_scored(order: Sequence[tuple[str, int]],
+                answers: Sequence[tuple[str, bytes]]) -> Ranked | bytes:
+    """Reads the ``FLAG_SCORE_CHOSEN`` answers (``(tile, frame)``) of the places chosen
+    in ``order`` and finds the best score as one server would (places in the search's
+    order, the first of equal scores), as ``client/src/tiled.rs``. A refusal is returned
+    as the answer frame."""
+    position = {place: i for i, place in enumerate(order)}
+    places, candidates, registrations, scored_us = [], 0, 0, 0.0
+    for tile, frame in answers:
+        try:
+            header, rest = _split_answer(frame)
+        except TransportError as e:
+            raise TransportError(f"tile {tile}'s scored places: {e}") from None
+        if header.status != wire.StatusCode.OK:
+            return frame
+        candidates += header.candidates
+        registrations += header.registrations
+        scored_us = _fmax(scored_us, header.server_us)
+        for slot in np.frombuffer(rest, dtype=wire.PLACE_DTYPE):
+            q = [float(v) for v in slot["rotation"]]
+            norm = math.sqrt(sum(v * v for v in q))
+            pose = [float(v) for v in slot["translation"]] + [v / norm if norm else v for v in q]
+            if not wire_pose_is_valid(pose):
+                raise TransportError(f"tile {tile} scored an invalid pose")
+            places.append((tile, int(slot["rank"]), pose, float(slot["score"])))
+    if any((t, r) not in position for t, r, _, _ in places):
+        raise TransportError("a tile scored a place that was not chosen")
+    places.sort(key=lambda p: position[(p[0], p[1])])
+    best = None
+    for place in places:
+        if best is None or place[3] > best[3]:
+            best = place
+    return Ranked(None if best is None else (best[0], best[1]), places,
+                  candidates & 0xFFFF_FFFF, registrations & 0xFFFF_FFFF, scored_us)
+
+
+def nothing_settled(ranked: Ranked, searched_us: float) -> bytes:
+    """The answer when no chosen place settled: not found, as on one server."""
+    header = wire.ResponseHeader(relocalization=wire.RelocalizeStatus.NOT_FOUND,
+                                 candidates=ranked.candidates,
+                                 registrations=ranked.registrations,
+                                 server_us=searched_us + ranked.scored_us)
+    return _header_bytes(header)
+
+
+def finish(frame: bytes, ranked: Ranked, searched_us: float) -> bytes:
+    """The final answer from the best place's ``FLAG_FINISH_CHOSEN`` answer frame, as
+    ``client/src/tiled.rs`` ``finish``: the runner-up is the best score among the other
+    scored places distinct from where the best settled (farther than ``DISTINCT_M`` or
+    turned more than ``DISTINCT_DEG``); within ``AMBIGUITY_MARGIN`` a fitting answer is
+    ``AMBIGUOUS``, else ``FOUND``; a place that does not fit is ``NOT_FOUND``."""
+    header, rest = _split_answer(frame)
+    if header.status != wire.StatusCode.OK:
+        return frame
+    header.candidates = ranked.candidates
+    header.registrations = (header.registrations + ranked.registrations) & 0xFFFF_FFFF
+    header.server_us += searched_us + ranked.scored_us
+    fits = header.relocalization != wire.RelocalizeStatus.NOT_FOUND
+    if fits and ranked.best is not None and wire_pose_is_valid(header.pose):
+        runner_up = 0.0
+        for tile, rank, pose, score in ranked.places:
+            if (tile, rank) != ranked.best and _distinct(header.pose, pose):
+                runner_up = _fmax(runner_up, score)
+        header.place_scores[1] = runner_up
+        close = runner_up + AMBIGUITY_MARGIN >= header.place_scores[0]
         header.relocalization = (
             wire.RelocalizeStatus.AMBIGUOUS if close else wire.RelocalizeStatus.FOUND
         )
-    return bytes(C.string_at(C.byref(header), C.sizeof(header))) + pairings
+    return _header_bytes(header) + rest
+
+
+def _header_bytes(header: wire.ResponseHeader) -> bytes:
+    return bytes(C.string_at(C.byref(header), C.sizeof(header)))
 
 
 def _fetch_index(session, map_name: str) -> TileIndex:
@@ -520,12 +610,12 @@ class RemoteConnection:
             header.client_node[0], header.client_node[1] = self.client_node
             header.request_id = self._next_request_id
             self._next_request_id += 1
-            frame = bytes(C.string_at(C.byref(header), C.sizeof(header)))
+            body = b""
             if payload is not None and payload.size:
-                frame += np.ascontiguousarray(payload, dtype="<f4").tobytes()
+                body = np.ascontiguousarray(payload, dtype="<f4").tobytes()
             if i is None:
-                return self._call_every_tile(frame)
-            return self._call_tile(i, frame)
+                return self._call_every_tile(header, body)
+            return self._call_tile(i, _frame(header, body))
 
     def _route(self, header: wire.RequestHeader) -> int:
         """The tile a request goes to (NoServerError when its tile is down)."""
@@ -576,9 +666,90 @@ class RemoteConnection:
             raise _failure(reply.err.payload.to_string(), self._describe(i), self.timeout)
         return _decode_answer(reply.ok.payload.to_bytes())
 
-    def _call_every_tile(self, frame: bytes) -> Reply:
-        """Sends a relocalization to every tile at once (``QueryTarget.ALL``) and merges
-        the answers of as many tiles as were alive when it was sent."""
+    def _call_every_tile(self, header: wire.RequestHeader, body: bytes) -> Reply:
+        """Relocalizes over every tile as one search over the merged map would, in three
+        phases: every tile's places at once, the best of them all scored by the tiles
+        holding them, the best score finished by its tile (:func:`choose_places`,
+        :func:`best_scored`, :func:`finish`)."""
+        started = time.monotonic()
+
+        def left() -> float:
+            return max(0.0, self.timeout - (time.monotonic() - started))
+
+        def phase(flag: int, ranks: int) -> bytes:
+            h = wire.RequestHeader.from_buffer_copy(header)
+            h.flags |= flag
+            h.keyframe_or_scan_id = ranks
+            return _frame(h, body)
+
+        def tile_number(tile: str) -> int:
+            if tile not in self._tiles:
+                raise TransportError(
+                    f"an answer came from tile {tile!r}, which is not in "
+                    f"{self.map_name}'s tile index"
+                )
+            return self._tiles.index(tile)
+
+        places = self._ask_every_tile(phase(wire.FLAG_PLACES_ONLY, 0))
+        frame, chosen, order, searched_us = choose_places(places)
+        if frame is not None:
+            return _decode_answer(frame)
+        requests = [(tile_number(t), phase(wire.FLAG_SCORE_CHOSEN, bits)) for t, bits in chosen]
+        ranked = best_scored(order, self._ask_tiles(requests, left()))
+        if isinstance(ranked, bytes):
+            return _decode_answer(ranked)
+        if ranked.best is None:
+            return _decode_answer(nothing_settled(ranked, searched_us))
+        tile, rank = ranked.best
+        finished = self._ask_tiles([(tile_number(tile), phase(wire.FLAG_FINISH_CHOSEN, 1 << rank))],
+                                   left())
+        return _decode_answer(finish(finished[0][1], ranked, searched_us))
+
+    def _ask_tiles(self, requests: list[tuple[int, bytes]], timeout: float) -> list[tuple[str, bytes]]:
+        """Sends request frames to tiles (each its own) at once and waits for every
+        answer frame (``(tile, frame)``)."""
+        zenoh = _zenoh()
+        pending = []
+        for i, frame in requests:
+            if not self._tile_alive(i):
+                raise DisconnectedError(self._describe(i))
+            replies: queue.Queue = queue.Queue()
+            self._session.get(
+                f"{_prefix(self.map_name)}/{self._tiles[i]}/rpc/{self._client_id}",
+                zenoh.handlers.Callback(replies.put, lambda q=replies: q.put(None)),
+                payload=frame,
+                target=zenoh.QueryTarget.BEST_MATCHING,
+                consolidation=zenoh.ConsolidationMode.NONE,
+                timeout=timeout,
+            )
+            pending.append((i, replies))
+        deadline = time.monotonic() + timeout
+        answers: list[tuple[str, bytes]] = []
+        while pending:
+            i, replies = pending[0]
+            try:
+                reply = replies.get(timeout=WATCH_SLICE_S)
+            except queue.Empty:
+                reply = False
+            if reply is None:
+                # The query ended with no answer: the gateway's session closed.
+                raise DisconnectedError(self._describe(i))
+            if reply is not False:
+                if reply.ok is None:
+                    raise _failure(reply.err.payload.to_string(), self._describe(i), timeout)
+                answers.append((self._tiles[i], reply.ok.payload.to_bytes()))
+                pending.pop(0)
+                continue
+            for j, _ in pending:
+                if not self._tile_alive(j):
+                    raise DisconnectedError(self._describe(j))
+            if time.monotonic() >= deadline:
+                raise RequestTimeout(self._describe(i), timeout)
+        return answers
+
+    def _ask_every_tile(self, frame: bytes) -> list[tuple[str, bytes]]:
+        """Sends one request frame to every tile at once (``QueryTarget.ALL``) and waits
+        for the answers of as many tiles as were alive when it was sent."""
         zenoh = _zenoh()
         expected = sum(self._tile_alive(i) for i in range(len(self._tiles)))
         if expected == 0:
@@ -617,7 +788,12 @@ class RemoteConnection:
                 f"{self.map_name} (remote, {len(answers)} of {expected} tiles answered)",
                 self.timeout,
             )
-        return _decode_answer(merge_relocalizations(answers))
+        return answers
+
+
+def _frame(header: wire.RequestHeader, body: bytes) -> bytes:
+    """A request frame: the header's bytes, then the payload's."""
+    return bytes(C.string_at(C.byref(header), C.sizeof(header))) + body
 
 
 def _decode_answer(frame: bytes) -> Reply:

@@ -1,4 +1,4 @@
-"""The kfmap wire protocol (protocol 7): the ``#[repr(C)]`` headers as ctypes
+"""The kfmap wire protocol (protocol 8): the ``#[repr(C)]`` headers as ctypes
 structures, request kinds, flags and status codes.
 
 Mirrors ``protocol/src/wire.rs`` and ``lib.rs``. iceoryx2 refuses to open a
@@ -15,7 +15,7 @@ import enum
 import numpy as np
 
 #: Version of the protocol; a server of another version answers VERSION_MISMATCH.
-PROTOCOL_VERSION = 7
+PROTOCOL_VERSION = 8
 #: Bytes of a response's status message.
 MESSAGE_LEN = 240
 #: Request kinds counted in a status report (index = kind code).
@@ -35,6 +35,15 @@ FLAG_COVARIANCES = 2
 FLAG_STAMPED = 4
 #: Relocalize: the pose guess's rotation gives the sensor's tilt (roll, pitch).
 FLAG_LEVELLED = 8
+#: Relocalize: answer the search's places unverified (``PLACE_DTYPE`` in the pairings'
+#: slots, best first); the first phase over a tile set.
+FLAG_PLACES_ONLY = 16
+#: Relocalize: settle and score only the places whose ranks are set in
+#: ``keyframe_or_scan_id`` (bit r: rank r), answered as ``PLACE_DTYPE``; the second phase.
+FLAG_SCORE_CHOSEN = 32
+#: Relocalize: the final registration of the scored place whose rank is the one bit set
+#: in ``keyframe_or_scan_id`` (found when it fits, no runner-up); the third phase.
+FLAG_FINISH_CHOSEN = 64
 
 
 def rpc_service_name(map_name: str) -> str:
@@ -284,6 +293,17 @@ PAIRING_DTYPE = np.dtype(
     }
 )
 
+#: A place (``WirePlace``) in a pairing's slot: position (f64), orientation (qx qy qz qw,
+#: f32), score (proposed: hit ratio; scored: the verification score) and rank.
+PLACE_DTYPE = np.dtype(
+    {
+        "names": ["translation", "rotation", "score", "rank"],
+        "formats": [("<f8", (3,)), ("<f4", (4,)), "<f8", "<u8"],
+        "offsets": [0, 24, 40, 48],
+        "itemsize": 56,
+    }
+)
+
 
 def _check_layouts() -> None:
     """The sizes and a few offsets of ``header_layouts_are_the_documented_ones``."""
@@ -302,6 +322,7 @@ def _check_layouts() -> None:
         (ResponseHeader.message.offset, 1028),
         (ResponseHeader.session_gravity.offset, 1272),
         (PAIRING_DTYPE.itemsize, C.sizeof(WirePairing)),
+        (PLACE_DTYPE.itemsize, C.sizeof(WirePairing)),
     ]
     for got, want in expected:
         if got != want:  # pragma: no cover - only on a broken platform / edit

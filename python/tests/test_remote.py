@@ -180,66 +180,104 @@ FOUND, AMBIGUOUS, NOT_FOUND = (
     wire.RelocalizeStatus.FOUND, wire.RelocalizeStatus.AMBIGUOUS, wire.RelocalizeStatus.NOT_FOUND)
 
 
-def _reloc_answer(status, score: float, runner_up: float, x: float, *, yaw_deg: float = 0.0,
-                  code: int = wire.StatusCode.OK, pairings: int = 0) -> bytes:
-    """A tile's relocalization answer frame: 5 candidates, ``1000 * score`` us."""
-    h = wire.ResponseHeader(status=code, relocalization=status, candidates=5,
-                            server_us=1000.0 * score)
-    h.place_scores[0], h.place_scores[1] = score, runner_up
+def _at(x: float, yaw_deg: float = 0.0) -> list[float]:
     half = math.radians(yaw_deg) / 2.0
-    h.pose[:] = [x, 0.0, 0.0, 0.0, 0.0, math.sin(half), math.cos(half)]
-    records = np.zeros(pairings, dtype=wire.PAIRING_DTYPE)
-    records["query"] = np.arange(pairings)
-    records["dist_sq"] = x
-    return ctypes.string_at(ctypes.byref(h), ctypes.sizeof(h)) + records.tobytes()
+    return [x, 0.0, 0.0, 0.0, 0.0, math.sin(half), math.cos(half)]
 
 
-def _merged(*answers: bytes) -> tuple[wire.ResponseHeader, np.ndarray]:
-    frame = kr.merge_relocalizations([(f"t{i}", a) for i, a in enumerate(answers)])
-    head = ctypes.sizeof(wire.ResponseHeader)
-    return (wire.ResponseHeader.from_buffer_copy(frame[:head]),
-            np.frombuffer(frame[head:], dtype=wire.PAIRING_DTYPE))
+def _places(places: list[tuple[list[float], float, int]], candidates: int, detail: int = 0, *,
+            code: int = wire.StatusCode.OK) -> bytes:
+    """An answer frame carrying ``places`` (wire pose, score, rank)."""
+    h = wire.ResponseHeader(status=code, candidates=candidates, detail=detail,
+                            registrations=2 * candidates, server_us=100.0 * len(places))
+    slots = np.zeros(len(places), dtype=wire.PLACE_DTYPE)
+    for i, (pose, score, rank) in enumerate(places):
+        slots[i]["translation"] = pose[:3]
+        slots[i]["rotation"] = pose[3:]
+        slots[i]["score"] = score
+        slots[i]["rank"] = rank
+    return ctypes.string_at(ctypes.byref(h), ctypes.sizeof(h)) + slots.tobytes()
 
 
-def test_relocalization_answers_of_tiles_merge_as_one_search():
-    # The same place seen from two tiles' halos (0.3 m apart): found, not ambiguous.
-    h, p = _merged(_reloc_answer(FOUND, 0.80, 0.2, 10.0, pairings=3),
-                   _reloc_answer(FOUND, 0.79, 0.1, 10.3, pairings=1))
-    assert h.relocalization == FOUND and list(h.place_scores) == [0.80, 0.2]
-    assert h.candidates == 10 and h.server_us == 800.0
-    assert len(p) == 3 and np.all(p["dist_sq"] == 10.0)  # the winner's pairings
-    # Another place elsewhere scoring within the margin: ambiguous; farther: found.
-    h, _ = _merged(_reloc_answer(FOUND, 0.80, 0.2, 10.0), _reloc_answer(FOUND, 0.78, 0.1, 60.0))
-    assert h.relocalization == AMBIGUOUS and list(h.place_scores) == [0.80, 0.78]
-    h, _ = _merged(_reloc_answer(FOUND, 0.80, 0.2, 10.0), _reloc_answer(FOUND, 0.70, 0.1, 60.0))
-    assert h.relocalization == FOUND and list(h.place_scores) == [0.80, 0.70]
-    # The same spot turned 10 degrees is another place; turned 3 degrees it is not.
-    h, _ = _merged(_reloc_answer(FOUND, 0.80, 0.2, 10.0),
-                   _reloc_answer(FOUND, 0.77, 0.1, 10.0, yaw_deg=10.0))
-    assert h.relocalization == AMBIGUOUS and list(h.place_scores) == [0.80, 0.77]
-    h, _ = _merged(_reloc_answer(FOUND, 0.80, 0.2, 10.0),
-                   _reloc_answer(FOUND, 0.77, 0.1, 10.0, yaw_deg=3.0))
-    assert h.relocalization == FOUND and list(h.place_scores) == [0.80, 0.2]
-    # The best score wins even when its registration does not fit, as in one search.
-    h, _ = _merged(_reloc_answer(NOT_FOUND, 0.9, 0.0, 60.0), _reloc_answer(FOUND, 0.6, 0.1, 10.0))
-    assert h.relocalization == NOT_FOUND and h.pose[0] == 60.0
-    assert list(h.place_scores) == [0.9, 0.6] and h.server_us == 900.0
-    # A tile's own close runner-up keeps it ambiguous; a far one is re-judged found.
-    h, _ = _merged(_reloc_answer(AMBIGUOUS, 0.7, 0.68, 5.0), _reloc_answer(FOUND, 0.2, 0.0, 90.0))
-    assert h.relocalization == AMBIGUOUS and list(h.place_scores) == [0.7, 0.68]
-    h, _ = _merged(_reloc_answer(AMBIGUOUS, 0.7, 0.1, 5.0), _reloc_answer(FOUND, 0.2, 0.0, 90.0))
-    assert h.relocalization == FOUND and list(h.place_scores) == [0.7, 0.2]
-    # Nothing fits anywhere: not found.
-    h, _ = _merged(_reloc_answer(NOT_FOUND, 0.3, 0.0, 1.0), _reloc_answer(NOT_FOUND, 0.0, 0.0, 0.0))
-    assert h.relocalization == NOT_FOUND and h.pose[0] == 1.0
-    # Refusals count only when no tile answered Ok; then the first refusal is the answer.
-    refusal = _reloc_answer(NOT_FOUND, 0.0, 0.0, 0.0, code=wire.StatusCode.EMPTY_SCAN)
-    h, _ = _merged(refusal, _reloc_answer(FOUND, 0.5, 0.1, 3.0))
-    assert h.status == wire.StatusCode.OK and h.relocalization == FOUND and h.candidates == 5
-    h, _ = _merged(refusal, _reloc_answer(NOT_FOUND, 0.0, 0.0, 0.0, code=wire.StatusCode.BUSY))
-    assert h.status == wire.StatusCode.EMPTY_SCAN
-    with pytest.raises(kfmap.TransportError, match="tile t1"):
-        _merged(_reloc_answer(FOUND, 0.5, 0.1, 3.0), b"\0" * 100)
+def _proposed(hits: list[float], detail: int) -> bytes:
+    return _places([(_at(0.0), h, r) for r, h in enumerate(hits)], len(hits), detail)
+
+
+def _header(frame: bytes) -> wire.ResponseHeader:
+    return wire.ResponseHeader.from_buffer_copy(frame[:ctypes.sizeof(wire.ResponseHeader)])
+
+
+def test_the_best_places_of_every_tile_are_chosen_as_one_search_keeps_its_best():
+    hits = [[0.9, 0.5, 0.4], [0.8, 0.7], [0.3], []]
+    answers = [(f"t{i}", _proposed(h, 3)) for i, h in enumerate(hits)]
+    frame, chosen, order, searched_us = kr.choose_places(answers)
+    # Brute force over every (tile, rank): the 3 best hit ratios overall.
+    every = sorted(((x, f"t{t}", r) for t, h in enumerate(hits) for r, x in enumerate(h)),
+                   key=lambda p: -p[0])[:3]
+    assert order == [(t, r) for _, t, r in every]
+    assert frame is None and chosen == [("t0", 0b1), ("t1", 0b11)] and searched_us == 300.0
+    # No place anywhere: not found at once.
+    frame, chosen, _, _ = kr.choose_places([("t0", _proposed([], 5))])
+    h = _header(frame)
+    assert chosen == [] and h.relocalization == NOT_FOUND and h.candidates == 0
+    # A tile's refusal is the answer: a ranking without it is not one search.
+    refused = _places([], 0, code=wire.StatusCode.BUSY)
+    frame, chosen, _, _ = kr.choose_places([("t0", _proposed([0.9], 5)), ("t1", refused)])
+    assert frame == refused and chosen == []
+    # A frame whose places disagree with its count is an error, not a guess.
+    with pytest.raises(kfmap.TransportError, match="proposed 2 places but sent 1"):
+        kr.choose_places([("t0", _proposed([0.9, 0.8], 5)[:-56])])
+
+
+def _finished(settled: list[float], score: float, fits: bool) -> bytes:
+    """The finishing tile's answer: found when it fits, no runner-up."""
+    h = wire.ResponseHeader(relocalization=FOUND if fits else NOT_FOUND, registrations=2,
+                            candidates=1, server_us=50.0)
+    h.place_scores[0] = score
+    h.pose[:] = settled
+    return ctypes.string_at(ctypes.byref(h), ctypes.sizeof(h))
+
+
+def _ranked(a, b, c) -> kr.Ranked:
+    """Scores over two tiles (t0 ranks 0, 1; t1 rank 0), in the search's order t0/0,
+    t1/0, t0/1."""
+    order = [("t0", 0), ("t1", 0), ("t0", 1)]
+    answers = [("t0", _places([(a[0], a[1], 0), (c[0], c[1], 1)], 2)),
+               ("t1", _places([(b[0], b[1], 0)], 1))]
+    return kr.best_scored(order, answers)
+
+
+def test_the_best_score_is_finished_and_judged_against_every_distinct_place():
+    # The best score wins; equal scores go to the first in the search's order.
+    r = _ranked((_at(0.0), 0.6), (_at(50.0), 0.8), (_at(90.0), 0.8))
+    assert r.best == ("t1", 0)
+    assert (r.candidates, r.registrations, r.scored_us) == (3, 6, 200.0)
+    # A place far away within the margin: ambiguous.
+    h = _header(kr.finish(_finished(_at(50.1, 1.0), 0.8, True), r, 1000.0))
+    assert h.relocalization == AMBIGUOUS and list(h.place_scores) == [0.8, 0.8]
+    assert (h.candidates, h.registrations, h.server_us) == (3, 8, 1250.0)
+    # The same place settled from two proposals is no runner-up: found.
+    r = _ranked((_at(0.0), 0.6), (_at(50.0), 0.8), (_at(50.3, 2.0), 0.79))
+    h = _header(kr.finish(_finished(_at(50.0), 0.8, True), r, 0.0))
+    assert h.relocalization == FOUND and list(h.place_scores) == [0.8, 0.6]
+    # Turned more than DISTINCT_DEG it is another place: ambiguous.
+    r = _ranked((_at(0.0), 0.1), (_at(50.0), 0.8), (_at(50.0, 10.0), 0.79))
+    h = _header(kr.finish(_finished(_at(50.0), 0.8, True), r, 0.0))
+    assert h.relocalization == AMBIGUOUS
+    # The best place does not fit: not found.
+    h = _header(kr.finish(_finished(_at(50.0), 0.8, False), r, 0.0))
+    assert h.relocalization == NOT_FOUND
+    # A refusal of a phase is the answer.
+    refused = _places([], 0, code=wire.StatusCode.BUSY)
+    assert kr.finish(refused, r, 0.0) == refused
+    assert kr.best_scored([("t0", 0)], [("t0", refused)]) == refused
+    # A place nobody chose is an error; nothing settled is not found.
+    with pytest.raises(kfmap.TransportError, match="not chosen"):
+        kr.best_scored([("t0", 0)], [("t0", _places([(_at(0.0), 0.5, 3)], 1))])
+    none = kr.best_scored([("t0", 0)], [("t0", _places([], 1))])
+    assert none.best is None
+    h = _header(kr.nothing_settled(none, 10.0))
+    assert h.relocalization == NOT_FOUND and (h.candidates, h.registrations) == (1, 2)
 
 
 # -- tile sets: two emulated hosts against the merged map ----------------------------

@@ -43,6 +43,10 @@ def test_layouts_match_the_rust_layout_test() -> None:
     types = {"RequestHeader": wire.RequestHeader, "ResponseHeader": wire.ResponseHeader,
              "WirePairing": wire.WirePairing, "WireSessionGravity": wire.WireSessionGravity,
              "WireCovOptions": wire.WireCovOptions}
+    # A place travels in a pairing's slot: a numpy record, not a ctypes structure.
+    place_size, place_offsets = layouts.pop("WirePlace")
+    assert wire.PLACE_DTYPE.itemsize == place_size
+    assert {f: wire.PLACE_DTYPE.fields[f][1] for f in wire.PLACE_DTYPE.names} == place_offsets
     assert set(layouts) == set(types)
     for name, (size, rust_offsets) in layouts.items():
         t = types[name]

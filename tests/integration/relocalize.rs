@@ -16,10 +16,15 @@ use std::path::{Path, PathBuf};
 
 use common::{Prefix, Server, bake_dataset, json, kfmap, linked_dataset, simulate, temp_dir};
 use kfmap_bake::dataset::find_scans;
-use kfmap_client::{Client, ClientOptions};
+use kfmap_client::{Client, ClientOptions, Connection, RelocalizeOptions};
+use kfmap_protocol::{
+    FLAG_FINISH_CHOSEN, FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN, RequestHeader, RequestKind,
+    ResponseHeader, ScanPayload, StatusCode, WirePlace, place_from_wire,
+};
 use kfmap_shared::geometry::{Pose, pose_from_xyz_quat, rotation_distance, translation_distance};
-use kfmap_shared::io::read_trajectory;
+use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
 use kfmap_shared::percentile::{is_maximum, percentile};
+use kfmap_shared::place::RelocalizeStatus;
 use kfmap_testdata::require_test_data;
 
 /// The README's figure: revisit scans of balm_os0 relocalized within [`RIGHT_M`] and
@@ -324,4 +329,139 @@ fn a_corridor_is_never_answered_with_a_confident_wrong_place() {
     );
     assert!(outside >= 20 && inside >= 10, "{outside} / {inside} scans");
     assert_eq!(outside_found, outside);
+    let sample: Vec<&PathBuf> = chosen.iter().step_by(4).map(|&i| &scans[i]).collect();
+    three_phases_answer_as_one("corridor", &prefix, &sample);
+}
+
+/// The phases a relocalization over a tile set runs on each tile (`FLAG_PLACES_ONLY`,
+/// `FLAG_SCORE_CHOSEN` with every place chosen, `FLAG_FINISH_CHOSEN` of the best score)
+/// reach the answer of one relocalization: the same pose, fit and scores, with the
+/// runner-up and verdict judged here over the scored places; with the session's places
+/// and scores, and in a fresh session that runs the steps again.
+fn three_phases_answer_as_one(map_name: &str, prefix: &Prefix, scans: &[&PathBuf]) {
+    let connect = || {
+        let options = ClientOptions {
+            iceoryx_prefix: Some(prefix.0.clone()),
+            ..Default::default()
+        };
+        Connection::connect(map_name, options).unwrap()
+    };
+    let (mut connection, mut fresh) = (connect(), connect());
+    let defaults = RelocalizeOptions::default();
+    let ask = |connection: &mut Connection, points: &[[f32; 3]], flags: u32, ranks: u64| {
+        let mut header = RequestHeader {
+            kind: RequestKind::Relocalize as u32,
+            flags,
+            keyframe_or_scan_id: ranks,
+            max_pair_dist: defaults.max_pair_dist,
+            max_iterations: defaults.max_iterations,
+            ..Default::default()
+        };
+        let scan = ScanPayload {
+            points,
+            view_dirs: None,
+            covariances: None,
+        };
+        let payload = scan.encode(&mut header);
+        let (h, slots) = connection
+            .forward(header, &payload, |h, slots| (*h, slots.to_vec()))
+            .unwrap();
+        let places: Vec<WirePlace> = slots.into_iter().map(WirePlace::from_slot).collect();
+        (h, places)
+    };
+    let mut compared = 0;
+    for path in scans {
+        let points = read_cloud(path, &ReadOptions::default())
+            .unwrap()
+            .cloud
+            .points;
+        let (one, _) = ask(&mut connection, &points, 0, 0);
+        assert_eq!(one.status, StatusCode::Ok as u32, "{}", one.message());
+        let (proposed, places) = ask(&mut connection, &points, FLAG_PLACES_ONLY, 0);
+        assert_eq!(
+            proposed.status,
+            StatusCode::Ok as u32,
+            "{}",
+            proposed.message()
+        );
+        assert_eq!(places.len(), one.candidates as usize);
+        assert!(places.windows(2).all(|w| w[0].score >= w[1].score));
+        assert!(places.iter().all(|p| place_from_wire(p).is_some()));
+        if places.is_empty() {
+            continue;
+        }
+        let every = u64::MAX >> (64 - places.len());
+        let (_, scored) = ask(&mut connection, &points, FLAG_SCORE_CHOSEN, every);
+        assert!(scored.windows(2).all(|w| w[0].rank < w[1].rank));
+        // The first of equal best scores, in rank order.
+        let Some(best) = scored
+            .iter()
+            .fold(None::<&WirePlace>, |b, p| match b {
+                Some(b) if b.score >= p.score => Some(b),
+                _ => Some(p),
+            })
+            .copied()
+        else {
+            assert_eq!(one.relocalization, RelocalizeStatus::NotFound as u32);
+            continue;
+        };
+        let (finished, _) = ask(&mut connection, &points, FLAG_FINISH_CHOSEN, 1 << best.rank);
+        let (again, _) = ask(&mut fresh, &points, FLAG_FINISH_CHOSEN, 1 << best.rank);
+        let fit = |h: &ResponseHeader| (h.pose, h.fitness, h.tight_fitness, h.place_scores[0]);
+        assert_eq!(fit(&finished), fit(&one), "{}", path.display());
+        assert_eq!(
+            fit(&again),
+            fit(&one),
+            "{} (steps run again)",
+            path.display()
+        );
+        let status = RelocalizeStatus::from_code(one.relocalization).unwrap();
+        if finished.relocalization == RelocalizeStatus::NotFound as u32 {
+            assert_eq!(status, RelocalizeStatus::NotFound);
+            continue;
+        }
+        let settled = pose_from_xyz_quat(finished.pose).unwrap();
+        let runner_up = scored
+            .iter()
+            .filter(|p| p.rank != best.rank)
+            .filter(|p| {
+                let pose = place_from_wire(p).unwrap();
+                translation_distance(&pose, &settled) > 1.0
+                    || rotation_distance(&pose, &settled).to_degrees() > 5.0
+            })
+            .map(|p| p.score)
+            .fold(0.0, f64::max);
+        assert_eq!(one.place_scores[1], runner_up, "{}", path.display());
+        let expected = if runner_up + 0.05 >= best.score {
+            RelocalizeStatus::Ambiguous
+        } else {
+            RelocalizeStatus::Found
+        };
+        assert_eq!(status, expected, "{}", path.display());
+        compared += 1;
+    }
+    assert!(
+        compared >= 3,
+        "only {compared} scans had a place that fitted"
+    );
+    let points = read_cloud(scans[0], &ReadOptions::default())
+        .unwrap()
+        .cloud
+        .points;
+    let (places, _) = ask(&mut connection, &points, FLAG_PLACES_ONLY, 0);
+    let beyond = 1u64 << places.candidates;
+    for (flags, ranks, says) in [
+        (FLAG_PLACES_ONLY | FLAG_SCORE_CHOSEN, 1, "one at a time"),
+        (FLAG_SCORE_CHOSEN, 0, "no place chosen"),
+        (FLAG_FINISH_CHOSEN, 0b11, "exactly one bit"),
+        (FLAG_SCORE_CHOSEN, beyond, "proposed"),
+    ] {
+        let (refused, _) = ask(&mut connection, &points, flags, ranks);
+        assert_eq!(
+            refused.status,
+            StatusCode::BadRequest as u32,
+            "flags {flags}"
+        );
+        assert!(refused.message().contains(says), "{}", refused.message());
+    }
 }

@@ -339,6 +339,11 @@ mod in_namespace {
                 .unwrap();
             whole_ms += started.elapsed().as_secs_f64() * 1e3;
             compared += 1;
+            println!(
+                "relocalize scan {i}: tiled server {:.0} ms, merged server {:.0} ms",
+                tiled.server_us / 1e3,
+                whole.server_us / 1e3
+            );
             assert_eq!(tiled.status, whole.status, "scan {i}");
             // An ambiguous answer's pose is one of near-equal places: only found ones.
             // Each tile searches its core only, so a found place may settle a little

@@ -1,12 +1,17 @@
 //! `Relocalize`: where a scan was taken, with no pose guess. The search runs on the
 //! map's baked place grid; each proposed place is verified by the same registrations
-//! as `Localize`, against the served map in the client's session.
+//! as `Localize`, against the served map in the client's session. Over a tile set the
+//! client runs the steps as three phases, one request each (docs/DESIGN.md#notes-tiles):
+//! places, scores of the chosen places, the final registration of the best.
 
 use kfmap_protocol::{
-    DecodedScan, FLAG_LEVELLED, Rejection, RequestHeader, StatusCode, pose_to_wire,
+    DecodedScan, FLAG_FINISH_CHOSEN, FLAG_LEVELLED, FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN, Rejection,
+    RequestHeader, StatusCode, place_to_wire, pose_to_wire,
 };
 use kfmap_shared::geometry::Pose;
-use kfmap_shared::place::{RelocalizeStatus, propose, verify};
+use kfmap_shared::place::{
+    Proposal, Relocalization, RelocalizeStatus, Scored, decide, propose, score_places,
+};
 use kfmap_shared::tracking::{covariance_to_wire, pose_covariance};
 use nalgebra::Vector3;
 
@@ -14,8 +19,45 @@ use super::answer::{Answer, AnswerPairings, bad, exact_mode, with_active};
 use super::limits::Limits;
 use super::localize::localize_params;
 use super::register::{MapRegistration, coarse_error, prepare, register_approximate};
-use super::session::Session;
+use super::session::{ProposedFor, Session};
 use super::state::ServedMap;
+
+/// What a `Relocalize` request asks of the steps.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Phase {
+    /// Search, score, decide: a relocalization on one server.
+    Whole,
+    /// `FLAG_PLACES_ONLY`: the search's places.
+    Places,
+    /// `FLAG_SCORE_CHOSEN`: the chosen places (rank bits) settled and scored.
+    Score(u64),
+    /// `FLAG_FINISH_CHOSEN`: the final registration of the scored place of this rank.
+    Finish(usize),
+}
+
+impl Phase {
+    fn of(request: &RequestHeader) -> Result<Self, Rejection> {
+        let ranks = request.keyframe_or_scan_id;
+        let flags = request.flags & (FLAG_PLACES_ONLY | FLAG_SCORE_CHOSEN | FLAG_FINISH_CHOSEN);
+        match flags {
+            0 => Ok(Self::Whole),
+            FLAG_PLACES_ONLY => Ok(Self::Places),
+            FLAG_SCORE_CHOSEN if ranks != 0 => Ok(Self::Score(ranks)),
+            FLAG_SCORE_CHOSEN => Err(bad(
+                "FLAG_SCORE_CHOSEN with no place chosen: set bit r of keyframe_or_scan_id to score the r-th best place",
+            )),
+            FLAG_FINISH_CHOSEN if ranks.count_ones() == 1 => {
+                Ok(Self::Finish(ranks.trailing_zeros() as usize))
+            }
+            FLAG_FINISH_CHOSEN => Err(bad(format!(
+                "FLAG_FINISH_CHOSEN finishes one place: set exactly one bit of keyframe_or_scan_id, not {ranks:#x}"
+            ))),
+            _ => Err(bad(
+                "FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN and FLAG_FINISH_CHOSEN are phases: set one at a time",
+            )),
+        }
+    }
+}
 
 /// Answers a `Relocalize` request; `pose` is the guess, whose rotation levels the scan
 /// when the request carries `FLAG_LEVELLED`.
@@ -27,6 +69,7 @@ pub fn relocalize(
     pose: &Pose,
     limits: &Limits,
 ) -> Result<Answer, Rejection> {
+    let phase = Phase::of(request)?;
     let (fine, _) = localize_params(request)?;
     let exact = exact_mode(map, request.mode, limits)?;
     let grid = map
@@ -46,9 +89,29 @@ pub fn relocalize(
     let map_up =
         (request.flags & FLAG_LEVELLED != 0).then(|| pose.rotation.inverse() * Vector3::z());
     let started = std::time::Instant::now();
-    let proposal =
-        propose(&grid, scan.points, map_up, &params).map_err(|e| bad(format!("scan: {e}")))?;
+    // The session keeps one scan's places (and scores) between the phases; the steps
+    // are deterministic, so a lost session only costs running them again.
+    let kept = session
+        .last_places
+        .take()
+        .filter(|_| matches!(phase, Phase::Score(_) | Phase::Finish(_)))
+        .filter(|p| p.points == scan.points && p.map_up == map_up);
+    let mut kept = match kept {
+        Some(kept) => kept,
+        None => ProposedFor {
+            points: scan.points.to_vec(),
+            map_up,
+            proposal: propose(&grid, scan.points, map_up, &params)
+                .map_err(|e| bad(format!("scan: {e}")))?,
+            scored: None,
+        },
+    };
     let searched = started.elapsed();
+    if phase == Phase::Places {
+        let answer = places_answer(&kept.proposal, params.search.candidates);
+        session.last_places = Some(kept);
+        return Ok(answer);
+    }
     let mut stages = prepare(scan, limits);
     let mut against = MapRegistration {
         map,
@@ -60,32 +123,77 @@ pub fn relocalize(
     // scan of their own; the ladder's stages build theirs on first use.
     let mut candidates = prepare(scan, limits);
     let (coarse_cloud, coarse_covs) = candidates.coarse().map_err(coarse_error)?;
-    let found = verify(
-        &proposal,
-        fine,
-        &limits.tracking,
-        &params,
-        |start, stage| register_approximate(map, coarse_cloud, coarse_covs, start, stage),
-        |start, stage| {
-            let (cloud, covs) = stages.for_stage(stage).map_err(coarse_error)?;
-            against.register(cloud, covs, start, stage)
-        },
-    )?;
+    let settle = |start: &Pose, stage: &_| {
+        register_approximate(map, coarse_cloud, coarse_covs, start, stage)
+    };
+    let scored_ranks = |ranks: u64| -> Result<Scored, Rejection> {
+        let (chosen, of) = chosen_places(&kept.proposal, ranks)?;
+        let mut scored = score_places(&chosen, fine, &limits.tracking, settle)?;
+        for place in &mut scored.places {
+            place.rank = of[place.rank];
+        }
+        Ok(scored)
+    };
+    let found = match phase {
+        Phase::Places => unreachable!("answered above"),
+        Phase::Score(ranks) => {
+            let scored = scored_ranks(ranks)?;
+            let answer = scored_answer(&scored, ranks.count_ones());
+            kept.scored = Some(scored);
+            against.session.last_places = Some(kept);
+            return Ok(answer);
+        }
+        Phase::Whole => {
+            let all = u64::MAX >> (64 - kept.proposal.poses.len().clamp(1, 64));
+            let scored = if kept.proposal.poses.is_empty() {
+                Scored::default()
+            } else {
+                scored_ranks(all)?
+            };
+            let candidates = kept.proposal.poses.len() as u32;
+            decide(&scored, candidates, fine, &params, |start, stage| {
+                let (cloud, covs) = stages.for_stage(stage).map_err(coarse_error)?;
+                against.register(cloud, covs, start, stage)
+            })?
+        }
+        Phase::Finish(rank) => {
+            let kept_place = kept
+                .scored
+                .as_ref()
+                .and_then(|s| s.places.iter().find(|p| p.rank == rank).copied());
+            let lone = match kept_place {
+                Some(place) => Scored {
+                    places: vec![place],
+                    registrations: 0,
+                },
+                None => scored_ranks(1 << rank)?,
+            };
+            let mut found = decide(&lone, 1, fine, &params, |start, stage| {
+                let (cloud, covs) = stages.for_stage(stage).map_err(coarse_error)?;
+                against.register(cloud, covs, start, stage)
+            })?;
+            // Alone it has no runner-up: it is found when it fits; the client that
+            // chose it judges ambiguity over every tile's scores.
+            if found.status == RelocalizeStatus::Ambiguous {
+                found.status = RelocalizeStatus::Found;
+            }
+            against.session.last_places = Some(kept);
+            found
+        }
+    };
     tracing::debug!(
-        "relocalize: search {:.1} ms ({} points, {} nodes{}), verify {:.1} ms ({} registrations): {}",
+        "relocalize: search {:.1} ms, verify {:.1} ms ({} registrations): {}",
         searched.as_secs_f64() * 1e3,
-        proposal.points,
-        proposal.nodes,
-        if proposal.exhausted {
-            ", stopped at max-lookups"
-        } else {
-            ""
-        },
         (started.elapsed() - searched).as_secs_f64() * 1e3,
         found.registrations,
         found.status.name()
     );
-    let mut answer = with_active(AnswerPairings::default(), &against.active);
+    Ok(verdict_answer(&found, &against.active))
+}
+
+/// The answer of a decided relocalization.
+fn verdict_answer(found: &Relocalization, active: &[u64]) -> Answer {
+    let mut answer = with_active(AnswerPairings::default(), active);
     let h = &mut answer.header;
     h.relocalization = found.status as u32;
     h.candidates = found.candidates;
@@ -105,5 +213,64 @@ pub fn relocalize(
             result.constraint.translation_ratio,
         ];
     }
-    Ok(answer)
+    answer
+}
+
+/// The places of `proposal` whose ranks are set in `ranks` (bit r: rank r), best first,
+/// and the rank each came from.
+fn chosen_places(proposal: &Proposal, ranks: u64) -> Result<(Proposal, Vec<usize>), Rejection> {
+    let proposed = proposal.poses.len();
+    let highest = 63 - ranks.leading_zeros() as usize;
+    if highest >= proposed {
+        return Err(bad(format!(
+            "the place of rank {highest} was chosen, but this scan's search proposed {proposed}"
+        )));
+    }
+    let of: Vec<usize> = (0..proposed).filter(|r| ranks & (1 << r) != 0).collect();
+    let poses = of.iter().map(|&r| proposal.poses[r]).collect();
+    Ok((
+        Proposal {
+            poses,
+            ..proposal.clone()
+        },
+        of,
+    ))
+}
+
+/// A `FLAG_PLACES_ONLY` answer: the places in the pairings' slots, best first;
+/// `candidates` counts them, `place_scores` holds the best two hit ratios and `detail`
+/// the places one search verifies here (`[relocalize.search] candidates`), which the
+/// client takes as many of over every tile. Nothing is verified: `not-found`.
+fn places_answer(proposal: &Proposal, verified_per_search: usize) -> Answer {
+    let places: Vec<_> = proposal
+        .poses
+        .iter()
+        .enumerate()
+        .map(|(rank, (pose, hits))| place_to_wire(pose, *hits, rank).to_slot())
+        .collect();
+    let mut answer = with_active(AnswerPairings::Wire(places), &[]);
+    let h = &mut answer.header;
+    h.relocalization = RelocalizeStatus::NotFound as u32;
+    h.candidates = proposal.poses.len() as u32;
+    let score = |rank: usize| proposal.poses.get(rank).map_or(0.0, |(_, hits)| *hits);
+    h.place_scores = [score(0), score(1)];
+    h.detail = verified_per_search as u64;
+    answer
+}
+
+/// A `FLAG_SCORE_CHOSEN` answer: the chosen places that settled (pose, score, rank) in
+/// rank order; `candidates` the places chosen, `registrations` those run. Nothing is
+/// decided: `not-found`.
+fn scored_answer(scored: &Scored, chosen: u32) -> Answer {
+    let places: Vec<_> = scored
+        .places
+        .iter()
+        .map(|p| place_to_wire(&p.pose, p.score, p.rank).to_slot())
+        .collect();
+    let mut answer = with_active(AnswerPairings::Wire(places), &[]);
+    let h = &mut answer.header;
+    h.relocalization = RelocalizeStatus::NotFound as u32;
+    h.candidates = chosen;
+    h.registrations = scored.registrations;
+    answer
 }

@@ -5,6 +5,8 @@ use std::sync::{Arc, Mutex};
 
 use kfmap_shared::gravity::{GravityParams, LiveAnswer, LiveGravity};
 use kfmap_shared::map::MergedSubmap;
+use kfmap_shared::place::{Proposal, Scored};
+use nalgebra::Vector3;
 
 /// One client's state.
 pub struct Session {
@@ -13,6 +15,9 @@ pub struct Session {
     /// Gravity pool of this client's IMU windows, with its stamped poses (windows'
     /// and localized scans') to remove the platform's acceleration.
     pub gravity: LiveGravity,
+    /// The places (and scores) of the last scan relocalized in phases over a tile set,
+    /// for the phase that follows.
+    pub last_places: Option<ProposedFor>,
     /// Map generation the cache belongs to.
     generation: u64,
 }
@@ -22,6 +27,7 @@ impl Session {
     pub fn new(generation: u64) -> Self {
         Self {
             merged: None,
+            last_places: None,
             gravity: LiveGravity::new(GravityParams::default())
                 .expect("default gravity parameters are valid"),
             generation,
@@ -32,9 +38,23 @@ impl Session {
     pub fn follow(&mut self, generation: u64) {
         if generation != self.generation {
             self.merged = None;
+            self.last_places = None;
             self.generation = generation;
         }
     }
+}
+
+/// A search's places, their scores once asked, and the scan (and the map's up, when
+/// the client gave its tilt) they belong to.
+pub struct ProposedFor {
+    /// The scan's points as sent.
+    pub points: Vec<[f32; 3]>,
+    /// The map's z in the sensor frame, when levelled by the client.
+    pub map_up: Option<Vector3<f64>>,
+    /// The search's places, best first.
+    pub proposal: Proposal,
+    /// The chosen places' scores, once a `FLAG_SCORE_CHOSEN` request asked.
+    pub scored: Option<Scored>,
 }
 
 /// Sessions by client node id.

@@ -187,6 +187,12 @@ impl MapWriter {
         self.index.map_from_input = pose_to_xyz_quat(pose);
     }
 
+    /// Levels the place grid as another map's (`R_grid_map`): a tile's as its whole
+    /// map's ([`crate::place::GridBuilder::level_as`]).
+    pub fn level_place_grid_as(&mut self, grid_from_map: nalgebra::UnitQuaternion<f64>) {
+        self.place.level_as(grid_from_map);
+    }
+
     /// Writes the index and the header, fsyncs and renames onto the target path.
     pub fn finish(
         mut self,

@@ -147,6 +147,8 @@ pub struct GridBuilder {
     /// Sum of the up directions of the clouds added (map frame), each found from the
     /// cloud's own points as a scan's is.
     up_votes: Vector3<f64>,
+    /// `R_grid_map` given by [`Self::level_as`] (then no votes are counted).
+    levelled_as: Option<UnitQuaternion<f64>>,
 }
 
 impl GridBuilder {
@@ -158,7 +160,15 @@ impl GridBuilder {
             anchors: Vec::new(),
             searched: Vec::new(),
             up_votes: Vector3::zeros(),
+            levelled_as: None,
         }
+    }
+
+    /// Levels the grid as another one (`R_grid_map`): a tile's as its whole map's, so
+    /// that a tile's places and their hit ratios are the whole map's (a tile's own
+    /// floors would level it a little differently).
+    pub fn level_as(&mut self, grid_from_map: UnitQuaternion<f64>) {
+        self.levelled_as = Some(grid_from_map);
     }
 
     /// Adds one cloud's map-frame points (a keyframe's; non-finite ones are skipped).
@@ -172,6 +182,9 @@ impl GridBuilder {
         }
         // Up as a scan from here finds it, so the grid levels alike (a map frame from
         // poses or gravity need not have its floors level).
+        if self.levelled_as.is_some() {
+            return;
+        }
         if let Some(up) = estimate_up(&cloud, MAP_MAX_TILT_DEG) {
             self.up_votes += up * cloud.len() as f64;
         }
@@ -203,8 +216,9 @@ impl GridBuilder {
             return Err(GridError::Empty);
         }
         let centre = |k: &[i64; 3]| k.map(|v| (v as f64 + 0.5) * self.fine);
-        let up = self.up_votes.try_normalize(1e-9).unwrap_or_else(Vector3::z);
-        let grid_from_map = levelling(&up);
+        let grid_from_map = self.levelled_as.unwrap_or_else(|| {
+            levelling(&self.up_votes.try_normalize(1e-9).unwrap_or_else(Vector3::z))
+        });
         let to_grid = |p: [f64; 3]| -> [f64; 3] { (grid_from_map * Vector3::from(p)).into() };
         let anchors: Vec<[f64; 3]> = self.anchors.iter().map(|a| to_grid(*a)).collect();
         let bounds = |points: &[[f64; 3]]| {

@@ -318,26 +318,52 @@ fn above_ground(points: &[[f64; 3]], cell: f64) -> Vec<[f64; 3]> {
 /// Iterations of the scoring registration (coarse scan, fine pairing distance).
 const SCORE_ITERATIONS: usize = 10;
 
-/// Verifies `proposal` by registration and decides. `settle(start, stage)` runs one
-/// registration against the map for a proposed place (on any thread: places are
-/// verified in parallel); `register` runs the final one (as for
-/// [`crate::tracking::localize_scan`]); `fine` is the request's pairing distance and
-/// iterations.
-///
-/// Each place: coarse iterations from it, then one coarse linearization at the fine
-/// pairing distance scores it. The best-scoring place gets fine iterations; it fits
-/// when it pairs at least `found-inlier-ratio` of the scan at the fine distance and
-/// `found-tight-ratio` within `tight-distance` of it, with a covariance. A fitting
-/// place is `found` unless a place more than `distinct-m` / `distinct-deg` away scores
-/// within `ambiguity-margin` of it (`ambiguous`); else the answer is `not-found`.
+/// A proposed place settled by registration and scored.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ScoredPlace {
+    /// Its rank in the search's proposal (0: the best hit ratio).
+    pub rank: usize,
+    /// Where it settled, `T_map_sensor`.
+    pub pose: Pose,
+    /// Share of the coarse scan paired at the fine distance there.
+    pub score: f64,
+}
+
+/// Places scored by [`score_places`], with the registrations it ran.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Scored {
+    /// In rank order; a place whose registration failed is left out.
+    pub places: Vec<ScoredPlace>,
+    /// Registrations run.
+    pub registrations: u32,
+}
+
+/// Verifies `proposal` by registration and decides: [`score_places`], then [`decide`].
+/// `settle(start, stage)` runs one registration against the map for a proposed place
+/// (on any thread: places are verified in parallel); `register` runs the final one (as
+/// for [`crate::tracking::localize_scan`]); `fine` is the request's pairing distance
+/// and iterations.
 pub fn verify<E: Send>(
     proposal: &Proposal,
     fine: Stage,
     tracking: &TrackingParams,
     params: &RelocalizeParams,
     settle: impl Fn(&Pose, &Stage) -> Result<Option<RegistrationResult>, E> + Sync,
-    mut register: impl FnMut(&Pose, &Stage) -> Result<Option<RegistrationResult>, E>,
+    register: impl FnMut(&Pose, &Stage) -> Result<Option<RegistrationResult>, E>,
 ) -> Result<Relocalization, E> {
+    let scored = score_places(proposal, fine, tracking, settle)?;
+    decide(&scored, proposal.poses.len() as u32, fine, params, register)
+}
+
+/// Settles and scores each proposed place: coarse iterations from it, then
+/// [`SCORE_ITERATIONS`] at the fine pairing distance on the coarse scan, whose inlier
+/// ratio is the score (places in parallel).
+pub fn score_places<E: Send>(
+    proposal: &Proposal,
+    fine: Stage,
+    tracking: &TrackingParams,
+    settle: impl Fn(&Pose, &Stage) -> Result<Option<RegistrationResult>, E> + Sync,
+) -> Result<Scored, E> {
     let coarse = Stage {
         coarse: true,
         max_pair_dist: tracking.coarse_pair_dist.max(fine.max_pair_dist),
@@ -362,20 +388,45 @@ pub fn verify<E: Send>(
         })
         .collect::<Result<_, E>>()?;
     let registrations = verified.iter().map(|(_, n)| n).sum();
-    for (place, _) in &verified {
-        if let Some((pose, score)) = place {
-            let t = pose.translation.vector;
-            tracing::debug!(
-                "relocalize: settled at ({:.2}, {:.2}, {:.2}) yaw {:.1} deg, score {score:.3}",
-                t.x,
-                t.y,
-                t.z,
-                pose.rotation.euler_angles().2.to_degrees()
-            );
-        }
+    let places = verified
+        .into_iter()
+        .enumerate()
+        .filter_map(|(rank, (place, _))| {
+            place.map(|(pose, score)| ScoredPlace { rank, pose, score })
+        })
+        .collect::<Vec<_>>();
+    for place in &places {
+        let t = place.pose.translation.vector;
+        tracing::debug!(
+            "relocalize: settled at ({:.2}, {:.2}, {:.2}) yaw {:.1} deg, score {:.3}",
+            t.x,
+            t.y,
+            t.z,
+            place.pose.rotation.euler_angles().2.to_degrees(),
+            place.score
+        );
     }
-    let mut scored: Vec<(Pose, f64)> = verified.into_iter().filter_map(|(s, _)| s).collect();
-    scored.sort_by(|a, b| b.1.total_cmp(&a.1));
+    Ok(Scored {
+        places,
+        registrations,
+    })
+}
+
+/// The best of `scored` (the first of equal scores) gets fine iterations; it fits when
+/// it pairs at least `found-inlier-ratio` of the scan at the fine distance and
+/// `found-tight-ratio` within `tight-distance` of it, with a covariance. A fitting
+/// place is `found` unless a place more than `distinct-m` / `distinct-deg` away scores
+/// within `ambiguity-margin` of it (`ambiguous`); else the answer is `not-found`.
+/// `candidates`: places the search proposed.
+pub fn decide<E>(
+    scored: &Scored,
+    candidates: u32,
+    fine: Stage,
+    params: &RelocalizeParams,
+    mut register: impl FnMut(&Pose, &Stage) -> Result<Option<RegistrationResult>, E>,
+) -> Result<Relocalization, E> {
+    let mut ranked: Vec<(Pose, f64)> = scored.places.iter().map(|p| (p.pose, p.score)).collect();
+    ranked.sort_by(|a, b| b.1.total_cmp(&a.1));
     let mut answer = Relocalization {
         status: RelocalizeStatus::NotFound,
         pose: Pose::identity(),
@@ -384,10 +435,10 @@ pub fn verify<E: Send>(
         tight_inlier_ratio: 0.0,
         score: 0.0,
         runner_up: 0.0,
-        candidates: proposal.poses.len() as u32,
-        registrations,
+        candidates,
+        registrations: scored.registrations,
     };
-    let Some(&(start, score)) = scored.first() else {
+    let Some(&(start, score)) = ranked.first() else {
         return Ok(answer);
     };
     answer.registrations += 1;
@@ -398,7 +449,7 @@ pub fn verify<E: Send>(
         translation_distance(p, &result.pose) > params.distinct_m
             || rotation_distance(p, &result.pose).to_degrees() > params.distinct_deg
     };
-    answer.runner_up = scored
+    answer.runner_up = ranked
         .iter()
         .skip(1)
         .filter(|(p, _)| distinct(p))
