@@ -176,11 +176,13 @@ pub(crate) fn best_scored(
 
 /// The answer when no chosen place settled: not found, as on one server.
 pub(crate) fn nothing_settled(ranked: &Ranked, searched_us: f64) -> Vec<u8> {
-    let mut header = ResponseHeader::default();
-    header.relocalization = RelocalizeStatus::NotFound as u32;
-    header.candidates = ranked.candidates;
-    header.registrations = ranked.registrations;
-    header.server_us = searched_us + ranked.scored_us;
+    let header = ResponseHeader {
+        relocalization: RelocalizeStatus::NotFound as u32,
+        candidates: ranked.candidates,
+        registrations: ranked.registrations,
+        server_us: searched_us + ranked.scored_us,
+        ..Default::default()
+    };
     encode_answer(&header, &[])
 }
 
