@@ -286,36 +286,8 @@ impl RemoteLink {
         frame: Vec<u8>,
         timeout: Duration,
     ) -> Result<Vec<u8>, ClientError> {
-        if !self.tile_alive(i) {
-            return Err(ClientError::NoServer(self.describe(i)));
-        }
-        let key = rpc_key(&self.map_name, &self.tiles[i], &self.client_id);
-        let replies = self
-            .session
-            .get(&key)
-            .payload(frame)
-            .target(QueryTarget::BestMatching)
-            .consolidation(ConsolidationMode::None)
-            .timeout(timeout)
-            .wait()
-            .map_err(|e| ClientError::Remote(format!("send to {key}: {e}")))?;
-        let deadline = Instant::now() + timeout;
-        loop {
-            match replies.recv_timeout(WATCH_SLICE) {
-                Ok(Some(reply)) => return self.answer(i, reply),
-                Err(_) => return Err(self.ended_unanswered(i, &key)),
-                Ok(None) => {}
-            }
-            if !self.tile_alive(i) {
-                return Err(ClientError::Disconnected(self.describe(i)));
-            }
-            if Instant::now() >= deadline {
-                return Err(ClientError::Timeout {
-                    map_name: self.describe(i),
-                    waited: timeout,
-                });
-            }
-        }
+        let mut answers = self.ask_tiles(vec![(i, frame)], timeout)?;
+        Ok(answers.pop().expect("one answer per request").1)
     }
 
     /// Relocalizes over every tile as one search over the merged map would, in three
@@ -389,7 +361,7 @@ impl RemoteLink {
         let mut pending = Vec::with_capacity(requests.len());
         for (i, frame) in requests {
             if !self.tile_alive(i) {
-                return Err(ClientError::Disconnected(self.describe(i)));
+                return Err(ClientError::NoServer(self.describe(i)));
             }
             let key = rpc_key(&self.map_name, &self.tiles[i], &self.client_id);
             let replies = self

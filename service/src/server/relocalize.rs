@@ -90,26 +90,33 @@ pub fn relocalize(
         (request.flags & FLAG_LEVELLED != 0).then(|| pose.rotation.inverse() * Vector3::z());
     let started = std::time::Instant::now();
     // The session keeps one scan's places (and scores) between the phases; the steps
-    // are deterministic, so a lost session only costs running them again.
-    let kept = session
-        .last_places
-        .take()
-        .filter(|_| matches!(phase, Phase::Score(_) | Phase::Finish(_)))
-        .filter(|p| p.points == scan.points && p.map_up == map_up);
-    let mut kept = match kept {
-        Some(kept) => kept,
-        None => ProposedFor {
-            points: scan.points.to_vec(),
-            map_up,
-            proposal: propose(&grid, scan.points, map_up, &params)
-                .map_err(|e| bad(format!("scan: {e}")))?,
-            scored: None,
-        },
+    // are deterministic, so a lost session only costs running them again. A plain
+    // relocalization neither reads nor keeps them.
+    let kept = match phase {
+        Phase::Score(_) | Phase::Finish(_) => session
+            .last_places
+            .take()
+            .filter(|p| p.points == scan.points && p.map_up == map_up),
+        Phase::Whole | Phase::Places => None,
+    };
+    let (points, proposal, scored) = match kept {
+        Some(kept) => (Some(kept.points), kept.proposal, kept.scored),
+        None => (
+            None,
+            propose(&grid, scan.points, map_up, &params).map_err(|e| bad(format!("scan: {e}")))?,
+            None,
+        ),
+    };
+    let remember = |proposal: Proposal, scored: Option<Scored>| ProposedFor {
+        points: points.unwrap_or_else(|| scan.points.to_vec()),
+        map_up,
+        proposal,
+        scored,
     };
     let searched = started.elapsed();
     if phase == Phase::Places {
-        let answer = places_answer(&kept.proposal, params.search.candidates);
-        session.last_places = Some(kept);
+        let answer = places_answer(&proposal, params.search.candidates);
+        session.last_places = Some(remember(proposal, None));
         return Ok(answer);
     }
     let mut stages = prepare(scan, limits);
@@ -127,38 +134,31 @@ pub fn relocalize(
         register_approximate(map, coarse_cloud, coarse_covs, start, stage)
     };
     let scored_ranks = |ranks: u64| -> Result<Scored, Rejection> {
-        let (chosen, of) = chosen_places(&kept.proposal, ranks)?;
+        let (chosen, of) = chosen_places(&proposal, ranks)?;
         let mut scored = score_places(&chosen, fine, &limits.tracking, settle)?;
         for place in &mut scored.places {
             place.rank = of[place.rank];
         }
         Ok(scored)
     };
+    let register = |start: &Pose, stage: &_| {
+        let (cloud, covs) = stages.for_stage(stage).map_err(coarse_error)?;
+        against.register(cloud, covs, start, stage)
+    };
     let found = match phase {
         Phase::Places => unreachable!("answered above"),
+        Phase::Whole => {
+            let every = score_places(&proposal, fine, &limits.tracking, settle)?;
+            decide(&every, proposal.poses.len() as u32, fine, &params, register)?
+        }
         Phase::Score(ranks) => {
-            let scored = scored_ranks(ranks)?;
-            let answer = scored_answer(&scored, ranks.count_ones());
-            kept.scored = Some(scored);
-            against.session.last_places = Some(kept);
+            let chosen = scored_ranks(ranks)?;
+            let answer = scored_answer(&chosen, ranks.count_ones());
+            against.session.last_places = Some(remember(proposal, Some(chosen)));
             return Ok(answer);
         }
-        Phase::Whole => {
-            let all = u64::MAX >> (64 - kept.proposal.poses.len().clamp(1, 64));
-            let scored = if kept.proposal.poses.is_empty() {
-                Scored::default()
-            } else {
-                scored_ranks(all)?
-            };
-            let candidates = kept.proposal.poses.len() as u32;
-            decide(&scored, candidates, fine, &params, |start, stage| {
-                let (cloud, covs) = stages.for_stage(stage).map_err(coarse_error)?;
-                against.register(cloud, covs, start, stage)
-            })?
-        }
         Phase::Finish(rank) => {
-            let kept_place = kept
-                .scored
+            let kept_place = scored
                 .as_ref()
                 .and_then(|s| s.places.iter().find(|p| p.rank == rank).copied());
             let lone = match kept_place {
@@ -168,16 +168,13 @@ pub fn relocalize(
                 },
                 None => scored_ranks(1 << rank)?,
             };
-            let mut found = decide(&lone, 1, fine, &params, |start, stage| {
-                let (cloud, covs) = stages.for_stage(stage).map_err(coarse_error)?;
-                against.register(cloud, covs, start, stage)
-            })?;
+            let mut found = decide(&lone, 1, fine, &params, register)?;
             // Alone it has no runner-up: it is found when it fits; the client that
             // chose it judges ambiguity over every tile's scores.
             if found.status == RelocalizeStatus::Ambiguous {
                 found.status = RelocalizeStatus::Found;
             }
-            against.session.last_places = Some(kept);
+            against.session.last_places = Some(remember(proposal, scored));
             found
         }
     };
