@@ -26,6 +26,11 @@ use crate::error::ClientError;
 /// answers then need no wake-up (tens of microseconds on virtual machines).
 const POLL_BEFORE_SLEEP: Duration = Duration::from_micros(50);
 
+/// Longest sleep on the response event between looks at whether the server is still
+/// there: a killed server sends no event, so this bounds how late its death is noticed
+/// (a gateway turns it into a remote client's error; issue 35 asks for 50 ms).
+const PRESENCE_CHECK: Duration = Duration::from_millis(5);
+
 /// How to connect.
 #[derive(Debug, Clone)]
 pub struct ClientOptions {
@@ -398,7 +403,7 @@ impl Connection {
                 // Yield, not spin: the server may share this core.
                 std::thread::yield_now();
             } else {
-                let wait = (deadline - now).min(Duration::from_millis(50));
+                let wait = (deadline - now).min(PRESENCE_CHECK);
                 let _ = ports.responses.timed_wait(|_| {}, wait);
             }
         }
