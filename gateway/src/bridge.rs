@@ -176,6 +176,7 @@ impl Worker {
         };
         session.last_used = Instant::now();
         let request_id = header.request_id;
+        let started = Instant::now();
         let forwarded = session.connection.forward(header, &payload, |answer, pairings| {
             if answer_frame_len(pairings.len()) > max_answer {
                 let refusal = ResponseHeader::refusal(
@@ -195,6 +196,11 @@ impl Worker {
         match forwarded {
             Ok(frame) => reply_frame(query, key, frame),
             Err(error) => {
+                tracing::warn!(
+                    client,
+                    "request failed after {:?}: {error}",
+                    started.elapsed()
+                );
                 // A connection that lost its server is rebuilt on the client's next request.
                 self.sessions.remove(&client);
                 reply_failure(query, failure_of(&error));

@@ -16,13 +16,12 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
-use iceoryx2::prelude::PortFactory;
 use kfmap_client::remote::zenoh_config;
 use kfmap_client::{ClientError, ClientOptions, Connection};
 use kfmap_protocol::remote::{
     WHOLE_MAP_TILE, alive_key, check_key_chunk, rpc_queryable_key, tile_index_key, tile_map_name,
 };
-use kfmap_protocol::transport::{Rpc, create_node, iceoryx_config, open_rpc};
+use kfmap_protocol::transport::{Rpc, create_node, iceoryx_config, open_rpc, server_processes};
 use zenoh::Wait;
 
 pub use config::{GatewayConfig, GatewaySection};
@@ -190,18 +189,43 @@ fn watch_servers(
     // Each tile's service, opened once: a probe then only reads its live server count
     // (reopening it every period cost milliseconds a tile under load).
     let mut services: Vec<Option<Rpc>> = options.tiles.iter().map(|_| None).collect();
+    // Per tile, the server processes seen alive when its token was declared. A killed
+    // server's ports stay registered until the dead-node cleanup below, which took 39 ms
+    // for a three-tile server under load: its clients must hear sooner (issue 35: 50 ms).
+    let mut watched: Vec<Vec<u32>> = options.tiles.iter().map(|_| Vec::new()).collect();
     while !stop.load(Ordering::SeqCst) {
+        for ((served, token), pids) in options.tiles.iter().zip(&mut tokens).zip(&mut watched) {
+            if token.is_some() && !pids.is_empty() && !pids.iter().any(|&p| process_alive(p)) {
+                *token = None;
+                tracing::warn!(
+                    key = alive_key(&options.map_name, &served.tile),
+                    "local server process gone: token withdrawn"
+                );
+            }
+        }
         // A killed server's ports stay registered until some node cleans them up.
         node.try_cleanup_dead_nodes();
-        for ((served, token), service) in options.tiles.iter().zip(&mut tokens).zip(&mut services) {
+        for (((served, token), service), pids) in options
+            .tiles
+            .iter()
+            .zip(&mut tokens)
+            .zip(&mut services)
+            .zip(&mut watched)
+        {
             let key = alive_key(&options.map_name, &served.tile);
             if service.is_none() {
                 *service = open_rpc(&node, &served.local_map).ok();
             }
-            let present = service
-                .as_ref()
-                .is_some_and(|rpc| rpc.dynamic_config().number_of_servers() > 0);
-            if present && token.is_none() && server_answers(options, &served.local_map) {
+            let servers = service.as_ref().map(server_processes).unwrap_or_default();
+            // Servers whose processes were seen to die are not probed: their requests
+            // would wait for the cleanup or the timeout.
+            let dead_listed = !pids.is_empty() && servers.iter().all(|p| pids.contains(p));
+            let present = !servers.is_empty();
+            if present
+                && token.is_none()
+                && !dead_listed
+                && server_answers(options, &served.local_map)
+            {
                 *token = Some(
                     session
                         .liveliness()
@@ -209,10 +233,14 @@ fn watch_servers(
                         .wait()
                         .map_err(|e| GatewayError::Zenoh(format!("declare {key}: {e}")))?,
                 );
+                // Only processes this gateway can see (not another PID namespace's).
+                *pids = servers.into_iter().filter(|&p| process_alive(p)).collect();
                 tracing::info!(key, "local server answers: token declared");
-            } else if !present && token.is_some() {
-                *token = None;
-                tracing::warn!(key, "local server gone: token withdrawn");
+            } else if !present {
+                pids.clear();
+                if token.take().is_some() {
+                    tracing::warn!(key, "local server gone: token withdrawn");
+                }
             }
         }
         if let Some(first_look) = first_look.take() {
@@ -221,6 +249,11 @@ fn watch_servers(
         std::thread::sleep(period);
     }
     Ok(())
+}
+
+/// True while process `pid` exists (Linux: its /proc entry).
+fn process_alive(pid: u32) -> bool {
+    std::path::Path::new(&format!("/proc/{pid}")).exists()
 }
 
 /// True when the local server of `local_map` answers a status request (its map is

@@ -196,6 +196,19 @@ pub fn registered_clients(rpc: &Rpc) -> Vec<RegisteredClient> {
     found
 }
 
+/// The processes of `rpc`'s server ports now (those iceoryx2 can tell), read from the
+/// service's registry.
+pub fn server_processes(rpc: &Rpc) -> Vec<u32> {
+    let mut found = Vec::new();
+    rpc.dynamic_config().list_servers(|details| {
+        if let Ok(pid) = details.node_id.pid::<Transport>() {
+            found.push(pid.value() as u32);
+        }
+        CallbackProgression::Continue
+    });
+    found
+}
+
 /// Ports per process among `clients`.
 pub fn ports_per_process(clients: &[RegisteredClient]) -> std::collections::HashMap<u32, usize> {
     let mut counts = std::collections::HashMap::new();

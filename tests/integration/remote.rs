@@ -530,8 +530,13 @@ fn a_killed_tile_server_is_an_explicit_error(
         .iter_mut()
         .find(|h| h.only.split(',').any(|t| t == tile))
         .unwrap();
+    let killing = Instant::now();
     host.server.take().unwrap().kill();
     let died = Instant::now();
+    println!(
+        "tile server process gone {:?} after the kill signal",
+        died - killing
+    );
     let error = remote
         .localize(scan, guess, &LocalizeOptions::default())
         .unwrap_err();
