@@ -12,7 +12,7 @@ use super::answer::{Answer, AnswerPairings, bad, exact_mode, with_active};
 use super::imu::imu_window;
 use super::limits::Limits;
 use super::localize::localize;
-use super::queries::{cov2cov, echo, nearest, radius};
+use super::queries::{Activation, cov2cov, echo, nearest, radius};
 use super::register::prepare;
 use super::relocalize::relocalize;
 use super::session::Session;
@@ -77,7 +77,7 @@ fn compute(
                         covs,
                         &pose,
                         request.max_pair_dist,
-                        exact,
+                        Activation::of_map(map, exact),
                     )?;
                     Ok(with_active(AnswerPairings::Cov2Cov(pairings), &active))
                 }

@@ -11,6 +11,7 @@ use kfmap_shared::tracking::{
 
 use super::answer::{Answer, AnswerPairings, bad, exact_mode, with_active};
 use super::limits::{Limits, MAX_CORRECTION, MAX_ITERATIONS, MAX_PAIR_DIST};
+use super::queries::Activation;
 use super::register::{MapRegistration, coarse_error, prepare};
 use super::session::Session;
 use super::state::ServedMap;
@@ -68,7 +69,7 @@ pub(super) fn localize(
     let mut against = MapRegistration {
         map,
         session,
-        exact,
+        activation: Activation::of_map(map, exact),
         active: Vec::new(),
     };
     let found = localize_scan(pose, &expected, fine, &limits.tracking, |start, stage| {

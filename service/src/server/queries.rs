@@ -10,6 +10,7 @@ use kfmap_protocol::{
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::geometry::{Pose, to_point, transform_point};
 use kfmap_shared::map::{ActiveSet, MapHit, Pairing};
+use kfmap_shared::select::SelectionOptions;
 use rayon::prelude::*;
 
 use super::answer::{Answer, AnswerPairings, bad, map_error, with_active};
@@ -39,14 +40,34 @@ pub(super) fn echo(
     })
 }
 
+/// How a query's active keyframes are chosen and searched.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Activation {
+    /// Keyframe selection at the query's pose: the map's own, or relocalization's
+    /// ([`kfmap_shared::place::verification_selection`]).
+    pub(super) selection: SelectionOptions,
+    /// Exact cov2cov: a merged submap of the active keyframes, cached in the session.
+    pub(super) exact: bool,
+}
+
+impl Activation {
+    /// The map's own selection.
+    pub(super) fn of_map(map: &ServedMap, exact: bool) -> Self {
+        Self {
+            selection: map.map.options().selection,
+            exact,
+        }
+    }
+}
+
 /// The active set for a query at `pose`, with the session's merged-submap cache.
 fn activate<'m>(
     map: &'m ServedMap,
     session: &mut Session,
     pose: &Pose,
-    exact: bool,
+    activation: Activation,
 ) -> Result<ActiveSet<'m>, Rejection> {
-    let ids = map.map.select(pose);
+    let ids = map.map.select_with(pose, &activation.selection);
     if ids.is_empty() {
         return Err(Rejection::new(
             StatusCode::MapNotLoaded,
@@ -54,7 +75,7 @@ fn activate<'m>(
         ));
     }
     map.map
-        .activate_cached(ids, &mut session.merged, exact)
+        .activate_cached(ids, &mut session.merged, activation.exact)
         .map_err(map_error)
 }
 
@@ -90,7 +111,7 @@ fn search_each(
     caps: Caps,
     search: impl Fn(&ActiveSet, &[f32; 3]) -> Vec<MapHit> + Sync,
 ) -> Result<Result<Answer, Overflow>, Rejection> {
-    let active = activate(map, session, pose, false)?;
+    let active = activate(map, session, pose, Activation::of_map(map, false))?;
     let (over_point, over_total) = (AtomicUsize::new(usize::MAX), AtomicBool::new(false));
     let found = AtomicUsize::new(0);
     let pairings: Vec<WirePairing> = scan
@@ -200,14 +221,14 @@ pub(super) fn cov2cov(
     covariances: &[[f32; 6]],
     pose: &Pose,
     max_pair_dist: f32,
-    exact: bool,
+    activation: Activation,
 ) -> Result<(Vec<Pairing>, Vec<u64>), Rejection> {
     if !(max_pair_dist.is_finite() && max_pair_dist > 0.0 && max_pair_dist <= MAX_PAIR_DIST) {
         return Err(bad(format!(
             "max_pair_dist {max_pair_dist} m must be within (0, {MAX_PAIR_DIST}]"
         )));
     }
-    let active = activate(map, session, pose, exact)?;
+    let active = activate(map, session, pose, activation)?;
     let pairings = active
         .cov2cov(cloud, pose, max_pair_dist as f64, Some(covariances))
         .map_err(map_error)?;

@@ -6,11 +6,12 @@ use kfmap_shared::cloud::{CloudError, PointCloud};
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::map::Pairing;
 use kfmap_shared::registration::{RegistrationError, RegistrationResult, solve_pose};
+use kfmap_shared::select::SelectionOptions;
 use kfmap_shared::tracking::{PreparedScan, Stage};
 
 use super::answer::{bad, map_error};
 use super::limits::Limits;
-use super::queries::cov2cov;
+use super::queries::{Activation, cov2cov};
 use super::session::Session;
 use super::state::ServedMap;
 
@@ -36,7 +37,7 @@ pub(super) fn coarse_error(e: CloudError) -> Rejection {
 pub(super) struct MapRegistration<'a> {
     pub(super) map: &'a ServedMap,
     pub(super) session: &'a mut Session,
-    pub(super) exact: bool,
+    pub(super) activation: Activation,
     /// Keyframes of the last pairing.
     pub(super) active: Vec<u64>,
 }
@@ -59,7 +60,7 @@ impl MapRegistration<'_> {
                 covs,
                 at,
                 stage.max_pair_dist as f32,
-                self.exact,
+                self.activation,
             )?;
             self.active = ids;
             Ok(pairings)
@@ -68,16 +69,18 @@ impl MapRegistration<'_> {
 }
 
 /// As [`MapRegistration::register`] in approximate mode and outside any session (no
-/// merged-submap cache to share), so registrations may run on several threads.
+/// merged-submap cache to share), so registrations may run on several threads; the
+/// active keyframes chosen with `selection`.
 pub(super) fn register_approximate(
     map: &ServedMap,
+    selection: &SelectionOptions,
     cloud: &PointCloud,
     covs: &[[f32; 6]],
     start: &Pose,
     stage: &Stage,
 ) -> Result<Option<RegistrationResult>, Rejection> {
     register_over(cloud, start, stage, |at| {
-        let ids = map.map.select(at);
+        let ids = map.map.select_with(at, selection);
         let active = map
             .map
             .activate_cached(ids, &mut None, false)

@@ -11,6 +11,7 @@ use kfmap_protocol::{
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::place::{
     Proposal, Relocalization, RelocalizeStatus, Scored, decide, propose, score_places,
+    verification_selection,
 };
 use kfmap_shared::tracking::{covariance_to_wire, pose_covariance};
 use nalgebra::Vector3;
@@ -18,6 +19,7 @@ use nalgebra::Vector3;
 use super::answer::{Answer, AnswerPairings, bad, exact_mode, with_active};
 use super::limits::Limits;
 use super::localize::localize_params;
+use super::queries::Activation;
 use super::register::{MapRegistration, coarse_error, prepare, register_approximate};
 use super::session::{ProposedFor, Session};
 use super::state::ServedMap;
@@ -119,11 +121,21 @@ pub fn relocalize(
         session.last_places = Some(remember(proposal, None));
         return Ok(answer);
     }
+    // Every registration of a place (scoring and the final one) pairs with the
+    // keyframes the scan's field of view makes relevant there.
+    let activation = Activation {
+        selection: verification_selection(
+            scan.points,
+            &map.map.options().selection,
+            params.min_range,
+        ),
+        exact,
+    };
     let mut stages = prepare(scan, limits);
     let mut against = MapRegistration {
         map,
         session,
-        exact,
+        activation,
         active: Vec::new(),
     };
     // The candidates' coarse registrations run in parallel, so they share a coarse
@@ -131,7 +143,14 @@ pub fn relocalize(
     let mut candidates = prepare(scan, limits);
     let (coarse_cloud, coarse_covs) = candidates.coarse().map_err(coarse_error)?;
     let settle = |start: &Pose, stage: &_| {
-        register_approximate(map, coarse_cloud, coarse_covs, start, stage)
+        register_approximate(
+            map,
+            &activation.selection,
+            coarse_cloud,
+            coarse_covs,
+            start,
+            stage,
+        )
     };
     let scored_ranks = |ranks: u64| -> Result<Scored, Rejection> {
         let (chosen, of) = chosen_places(&proposal, ranks)?;

@@ -21,7 +21,7 @@ use crate::cloud::{CloudError, PointCloud};
 use crate::covis::CovisibilityGraph;
 use crate::geometry::{Pose, translation_distance};
 use crate::options::InvalidOption;
-use crate::select::{rank, select_active};
+use crate::select::{SelectionOptions, rank, select_active};
 use crate::spatial::TreeError;
 
 /// Why a map operation failed.
@@ -290,21 +290,25 @@ impl KeyframeMap {
 
     /// The active keyframes for a query at `pose`, ascending id.
     pub fn select(&self, pose: &Pose) -> Vec<KeyframeId> {
+        self.select_with(pose, &self.options.selection)
+    }
+
+    /// As [`Self::select`] with `selection` in place of the map's own options (the
+    /// active-set mode stays the map's).
+    pub fn select_with(&self, pose: &Pose, selection: &SelectionOptions) -> Vec<KeyframeId> {
         let poses: Vec<(KeyframeId, Pose)> =
             self.keyframes.values().map(|k| (k.id, k.pose)).collect();
         let mut ids = match self.options.active_set {
-            ActiveSetMode::Distance => select_active(&poses, pose, &self.options.selection),
-            ActiveSetMode::Covisibility => {
-                match rank(&poses, pose, &self.options.selection).first() {
-                    None => Vec::new(),
-                    Some(nearest) => {
-                        let more = self.options.selection.max_search_keyframes - 1;
-                        std::iter::once(nearest.id)
-                            .chain(self.covis.best_covisible(nearest.id, more))
-                            .collect()
-                    }
+            ActiveSetMode::Distance => select_active(&poses, pose, selection),
+            ActiveSetMode::Covisibility => match rank(&poses, pose, selection).first() {
+                None => Vec::new(),
+                Some(nearest) => {
+                    let more = selection.max_search_keyframes - 1;
+                    std::iter::once(nearest.id)
+                        .chain(self.covis.best_covisible(nearest.id, more))
+                        .collect()
                 }
-            }
+            },
         };
         ids.sort_unstable();
         ids

@@ -25,7 +25,7 @@ pub use grid::{
 pub use level::{estimate_up, levelling};
 pub use relocalize::{
     Proposal, Relocalization, RelocalizeParams, RelocalizeStatus, Scored, ScoredPlace, decide,
-    propose, score_places, verify,
+    propose, score_places, verification_selection, verify,
 };
 pub use search::{Placement, SearchOutcome, SearchParams, search};
 

@@ -3,6 +3,7 @@
 //! registration against the map, and answer `found`, `ambiguous` or `not-found`.
 
 use std::collections::HashMap;
+use std::f64::consts::{PI, TAU};
 
 use nalgebra::{UnitQuaternion, Vector3};
 use rayon::prelude::*;
@@ -10,11 +11,12 @@ use serde::{Deserialize, Serialize};
 
 use super::grid::GridView;
 use super::level::{estimate_up, levelling};
-use super::search::{SearchParams, search};
+use super::search::{SearchOutcome, SearchParams, search};
 use crate::cloud::{CloudError, PointCloud};
 use crate::geometry::{Pose, rotation_distance, translation_distance};
 use crate::options::{InvalidOption, ensure, ensure_ratio};
 use crate::registration::RegistrationResult;
+use crate::select::SelectionOptions;
 use crate::tracking::{Stage, TrackingParams, pose_covariance};
 
 /// How relocalization runs (`server.toml [relocalize]`).
@@ -208,23 +210,34 @@ pub fn propose(
         },
     };
     let level = levelling(&up);
-    let mut structure = structure_points(scan, &level, grid.resolution(), params)?;
-    // Thinned in order of range, not of voxel key: a turned copy of the scan keeps the
-    // same points, so its heading does not change what is searched with.
-    structure.sort_by(|a, b| {
-        a[0].hypot(a[1])
-            .total_cmp(&b[0].hypot(b[1]))
-            .then(a[2].total_cmp(&b[2]))
-    });
-    let stride = structure.len().div_ceil(params.search_points).max(1);
-    let points: Vec<[f64; 3]> = structure.into_iter().step_by(stride).collect();
-    let outcome = search(
-        grid,
-        &points,
-        &grid.region(),
-        &params.search,
-        &grid_from_levelled,
-    );
+    let searched = |ground: Ground| -> Result<SearchOutcome, CloudError> {
+        let mut structure = structure_points(scan, &level, grid.resolution(), params, ground)?;
+        // Thinned in order of range, not of voxel key: a turned copy of the scan keeps
+        // the same points, so its heading does not change what is searched with.
+        structure.sort_by(|a, b| {
+            a[0].hypot(a[1])
+                .total_cmp(&b[0].hypot(b[1]))
+                .then(a[2].total_cmp(&b[2]))
+        });
+        let stride = structure.len().div_ceil(params.search_points).max(1);
+        let points: Vec<[f64; 3]> = structure.into_iter().step_by(stride).collect();
+        Ok(search(
+            grid,
+            &points,
+            &grid.region(),
+            &params.search,
+            &grid_from_levelled,
+        ))
+    };
+    let mut outcome = searched(Ground::Every)?;
+    // Too little structure anywhere within reach (open rolling ground): the relief of
+    // the ground rising above the sensor is what is left to tell places apart.
+    if outcome.placements.is_empty() {
+        let first = outcome;
+        outcome = searched(Ground::BelowSensor)?;
+        outcome.nodes += first.nodes;
+        outcome.exhausted |= first.exhausted;
+    }
     let map_from_grid: UnitQuaternion<f64> = grid.grid_from_map().inverse();
     for p in &outcome.placements {
         tracing::debug!(
@@ -251,13 +264,23 @@ pub fn propose(
 /// Fewest points (voxels) off the ground a search is worth making with.
 const MIN_STRUCTURE_POINTS: usize = 100;
 
+/// Which columns' floors [`above_ground`] takes for ground.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Ground {
+    /// Every column's.
+    Every,
+    /// Only those below the sensor: ground rising above it (uphill) stays.
+    BelowSensor,
+}
+
 /// The levelled scan's points a search places: voxelized at the grid's resolution,
-/// within range, off the ground.
+/// within range, off the `ground`.
 fn structure_points(
     scan: &[[f32; 3]],
     level: &UnitQuaternion<f64>,
     resolution: f64,
     params: &RelocalizeParams,
+    ground: Ground,
 ) -> Result<Vec<[f64; 3]>, CloudError> {
     let mut range = params.max_range;
     loop {
@@ -277,7 +300,7 @@ fn structure_points(
                 (level * Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]))).into()
             })
             .collect();
-        let structure = above_ground(&levelled, resolution);
+        let structure = above_ground(&levelled, resolution, ground);
         tracing::debug!(
             "relocalize: {} scan voxels within {range} m, {} off the ground",
             levelled.len(),
@@ -294,11 +317,15 @@ fn structure_points(
 }
 
 /// `points` (levelled sensor frame) without those of the ground: in each `cell` x
-/// `cell` column whose lowest point lies below the sensor, the points less than `cell`
-/// above that lowest one (terrain may roll; a column's floor is local). Ground lies
-/// under every placement at the right height, so it tells places apart by nothing while
-/// it fills most of an outdoor scan's sample.
-fn above_ground(points: &[[f64; 3]], cell: f64) -> Vec<[f64; 3]> {
+/// `cell` column whose floor (lowest point) `ground` takes for ground, the points less
+/// than `cell` above it (terrain may roll; a column's floor is local). Ground lies under
+/// every placement at the right height, so it tells places apart by little while it
+/// fills most of an outdoor scan's sample. On rolling ground (issue 33's campus) the
+/// uphill ground is a floor above the sensor: kept as structure, it was 272 of a scan's
+/// 296 search points, which then hit marked voxels at places 130 m away more than at
+/// its own ([`Ground::Every`] is searched first, [`Ground::BelowSensor`] when that
+/// proposes nothing).
+pub(super) fn above_ground(points: &[[f64; 3]], cell: f64, ground: Ground) -> Vec<[f64; 3]> {
     let column = |p: &[f64; 3]| [(p[0] / cell).floor() as i64, (p[1] / cell).floor() as i64];
     let mut lowest: HashMap<[i64; 2], f64> = HashMap::new();
     for p in points {
@@ -309,10 +336,49 @@ fn above_ground(points: &[[f64; 3]], cell: f64) -> Vec<[f64; 3]> {
         .iter()
         .filter(|p| {
             let floor = lowest[&column(p)];
-            floor >= 0.0 || p[2] >= floor + cell
+            (ground == Ground::BelowSensor && floor >= 0.0) || p[2] >= floor + cell
         })
         .copied()
         .collect()
+}
+
+/// Azimuth sectors (about the sensor's z) a scan is looked at in by
+/// [`verification_selection`]...
+const AZIMUTH_SECTORS: usize = 36;
+/// ... which takes it to see all around when it has points in this many of them: a
+/// spinning LiDAR's scans fill 36 of 36 (balm_os0, KITTI, the simulator), a Livox
+/// Avia's 8 (hku2_avia); an operator's body shadows a few.
+const ALL_AROUND_SECTORS: usize = 27;
+
+/// The keyframe selection of relocalization's registrations against the map: the map's
+/// own (`selection`), without its heading terms when `scan` (sensor frame) sees all
+/// around, beyond `min_range` metres. A spinning LiDAR sees a place alike at any
+/// heading, so a place's score must not depend on which way the scan faced: with the
+/// heading weighed (`rotation-distance-weight`, and the diverse slot's relative
+/// headings), a turned copy of a balm_os0 scan registered against keyframes farther
+/// away and scored 0.655 instead of 0.751 at its right place (docs/DESIGN.md#notes-relocalization).
+/// A narrow-field scan keeps the map's selection: there the heading says what it saw.
+pub fn verification_selection(
+    scan: &[[f32; 3]],
+    selection: &SelectionOptions,
+    min_range: f64,
+) -> SelectionOptions {
+    let mut seen = [false; AZIMUTH_SECTORS];
+    for p in scan {
+        let (x, y) = (f64::from(p[0]), f64::from(p[1]));
+        if x.hypot(y) >= min_range {
+            let turn = (y.atan2(x) + PI) / TAU;
+            seen[((turn * AZIMUTH_SECTORS as f64) as usize).min(AZIMUTH_SECTORS - 1)] = true;
+        }
+    }
+    if seen.iter().filter(|s| **s).count() < ALL_AROUND_SECTORS {
+        return *selection;
+    }
+    SelectionOptions {
+        rotation_distance_weight: 0.0,
+        num_diverse_keyframes: 0,
+        ..*selection
+    }
 }
 
 /// Iterations of the scoring registration (coarse scan, fine pairing distance).

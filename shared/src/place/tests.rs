@@ -7,8 +7,10 @@ use rand::{Rng, SeedableRng};
 
 use super::grid::SearchRegion;
 use super::grid::{GridParams, GridView, PlaceGrid};
+use super::relocalize::{Ground, above_ground};
 use super::search::{SearchParams, search, yaw_step};
-use super::{GridBuilder, estimate_up};
+use super::{GridBuilder, estimate_up, verification_selection};
+use crate::select::SelectionOptions;
 
 /// True when a marked level-0 voxel lies within half a half-resolution voxel's
 /// diagonal (0.43 times the resolution) of map point `p`: the grid holds map points by
@@ -229,6 +231,79 @@ fn up_is_found_from_the_floor_of_a_tilted_scan() {
         })
         .collect();
     assert_eq!(estimate_up(&scattered, 40.0), None);
+}
+
+/// Ground rising 7 deg (rolling terrain, or a tilt the levelling missed) lies above the
+/// sensor 15 m uphill: none of it is structure, whether below or above the sensor,
+/// while a pole's points more than a column's height above its foot all are.
+#[test]
+fn uphill_ground_is_not_structure() {
+    let slope = 7.0_f64.to_radians().tan();
+    let ground_z = |x: f64| -1.8 + slope * x;
+    let mut ground = Vec::new();
+    for i in -120..=120 {
+        for j in -120..=120 {
+            let (x, y) = (f64::from(i) * 0.25 + 0.1, f64::from(j) * 0.25 + 0.1);
+            ground.push([x, y, ground_z(x)]);
+        }
+    }
+    assert!(
+        ground.iter().any(|p| p[2] > 1.0),
+        "some ground above the sensor"
+    );
+    let pole: Vec<[f64; 3]> = (0..40)
+        .map(|k| [20.3, 5.3, ground_z(20.3) + 0.1 * f64::from(k)])
+        .collect();
+    let points: Vec<[f64; 3]> = ground.iter().chain(&pole).copied().collect();
+    let kept = above_ground(&points, 1.0, Ground::Every);
+    assert!(kept.iter().all(|p| pole.contains(p)), "ground kept");
+    // The pole's column floor is the lowest ground point in it, just below its foot.
+    let high: Vec<&[f64; 3]> = pole
+        .iter()
+        .filter(|p| p[2] >= ground_z(20.3) + 1.0)
+        .collect();
+    assert!(high.iter().all(|p| kept.contains(p)), "pole cut");
+    // Searched again when that proposes nothing: the ground above the sensor stays (a
+    // column's ground spans 0.09 m), and none below it.
+    let uphill = above_ground(&points, 1.0, Ground::BelowSensor);
+    assert!(
+        ground
+            .iter()
+            .filter(|p| p[2] >= 0.1)
+            .all(|p| uphill.contains(p))
+    );
+    assert!(uphill.iter().all(|p| p[2] >= 0.0 || pole.contains(p)));
+    assert!(high.iter().all(|p| uphill.contains(p)));
+}
+
+/// A scan that sees all around (a spinning LiDAR's, at any turn) is verified against
+/// the keyframes nearest its place whatever their heading; a narrow-field scan (70
+/// deg) keeps the map's selection.
+#[test]
+fn an_all_around_scan_selects_keyframes_by_place_alone() {
+    let map = SelectionOptions::default();
+    assert!(map.rotation_distance_weight > 0.0 && map.num_diverse_keyframes > 0);
+    let fan = |from_deg: f64, width_deg: f64| -> Vec<[f32; 3]> {
+        (0..2000)
+            .map(|k| {
+                let a = (from_deg + width_deg * f64::from(k) / 2000.0).to_radians();
+                [(8.0 * a.cos()) as f32, (8.0 * a.sin()) as f32, -1.0]
+            })
+            .collect()
+    };
+    for turn in [0.0, 37.0, 143.0, 250.0] {
+        let all_around = verification_selection(&fan(turn, 360.0), &map, 0.5);
+        assert_eq!(all_around.rotation_distance_weight, 0.0, "turn {turn}");
+        assert_eq!(all_around.num_diverse_keyframes, 0, "turn {turn}");
+        assert_eq!(all_around.max_search_keyframes, map.max_search_keyframes);
+        assert_eq!(verification_selection(&fan(turn, 70.0), &map, 0.5), map);
+    }
+    // Only points within the minimum range all around: they are the operator's.
+    let near: Vec<[f32; 3]> = fan(0.0, 360.0)
+        .iter()
+        .map(|p| p.map(|v| v / 20.0))
+        .collect();
+    assert_eq!(verification_selection(&near, &map, 0.5), map);
 }
 
 /// A grid built from a map tilted off its frame's z levels it back: the rotation is the
