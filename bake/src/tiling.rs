@@ -17,6 +17,7 @@ use kfmap_shared::covis::CovisibilityGraph;
 use kfmap_shared::geometry::{Pose, pose_from_xyz_quat};
 use kfmap_shared::io::{IoError, PcdData, write_atomic, write_pcd};
 use kfmap_shared::map::KeyframeMap;
+use kfmap_shared::place::{GridParams, GridView, PlaceGrid};
 use kfmap_shared::select::{SelectionOptions, rank, select_active};
 use kfmap_shared::tiles::{
     AUTOWARE_METADATA_FILE, INDEX_FILE, INDEX_FORMAT, TileEntry, TileGeometry, TileIndex, tile_id,
@@ -84,16 +85,15 @@ pub fn cut_into_tiles(
         tiles: Vec::with_capacity(total),
     };
     let everyone: Vec<(KeyframeId, Pose)> = whole.keyframes().map(|k| (k.id, k.pose)).collect();
-    // Tiles' place grids are levelled as the whole map's, so that a tile proposes the
-    // places the whole map's search would (docs/DESIGN.md#notes-tiles).
-    let grid_from_map = match &opened.place {
-        Some(place) => Some(place.view()?.grid_from_map()),
+    // Tiles' place grids are cut from the whole map's (docs/DESIGN.md#notes-tiles).
+    let whole_grid = match &opened.place {
+        Some(place) => Some(place.view()?),
         None => None,
     };
     let cut = TileCut {
         whole,
         pool: &opened.index.gravity_pool,
-        grid_from_map,
+        whole_grid,
         map_from_input,
         geometry,
         dir,
@@ -154,8 +154,8 @@ struct WrittenTile {
 struct TileCut<'a> {
     whole: &'a KeyframeMap,
     pool: &'a [GravityRecord],
-    /// The whole map's place-grid levelling, which every tile's grid takes.
-    grid_from_map: Option<nalgebra::UnitQuaternion<f64>>,
+    /// The whole map's place grid, which every tile's is cut from.
+    whole_grid: Option<GridView<'a>>,
     map_from_input: Pose,
     geometry: TileGeometry,
     dir: &'a Path,
@@ -178,11 +178,32 @@ impl TileCut<'_> {
         let file = format!("{id}.kfmap");
         let mut writer = MapWriter::create(&self.dir.join(&file), whole.options())?;
         writer.set_map_from_input(&self.map_from_input);
-        if let Some(levelling) = self.grid_from_map {
-            writer.level_place_grid_as(levelling);
-        }
         let mut covis = CovisibilityGraph::new(whole.options().covisibility);
         let [x0, y0] = geometry.core_min(col, row);
+        // The place grid is the whole map's within its reach of the core: a scan placed
+        // in the core hits what it hits on the whole map, from whichever keyframes the
+        // points came, and tries the same translations (docs/DESIGN.md#notes-tiles).
+        // Relocalization searches around the core's keyframes: the halo's places are
+        // the neighbours' to find.
+        if let Some(whole_grid) = &self.whole_grid {
+            let reach = GridParams::default().reach;
+            let searched: Vec<[f64; 3]> = ids
+                .iter()
+                .filter_map(|&kf| whole.keyframe(kf))
+                .map(|k| k.pose.translation.vector)
+                .filter(|t| geometry.tile_of(t.x, t.y) == (col, row))
+                .map(Into::into)
+                .collect();
+            writer.use_place_grid(PlaceGrid::cut_from(
+                whole_grid,
+                [x0 - reach, y0 - reach],
+                [
+                    x0 + geometry.tile_size + reach,
+                    y0 + geometry.tile_size + reach,
+                ],
+                &searched,
+            ));
+        }
         let in_core = |p: &[f64; 3]| {
             p[0] >= x0
                 && p[0] < x0 + geometry.tile_size
@@ -201,11 +222,8 @@ impl TileCut<'_> {
                     .map(|p| p.map(|v| v as f32)),
             );
             covis.set_keyframe(kf, points);
-            // Relocalization searches the core: the halo's places are the neighbours'.
-            let t = keyframe.pose.translation.vector;
-            let in_own_core = geometry.tile_of(t.x, t.y) == (col, row);
             own.push((kf, keyframe.pose));
-            writer.write_keyframe_searched(keyframe, Some(in_own_core))?;
+            writer.write_keyframe(keyframe)?;
         }
         let halo_check = check_halo(
             &own,

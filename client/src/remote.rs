@@ -14,7 +14,7 @@ use kfmap_protocol::remote::{
 use kfmap_protocol::{
     FLAG_FINISH_CHOSEN, FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN, RequestHeader, RequestKind,
 };
-use kfmap_shared::tiles::{Route, TileIndex, TileRouter};
+use kfmap_shared::tiles::{Route, TileGeometry, TileIndex, TileRouter};
 use zenoh::Wait;
 use zenoh::query::{ConsolidationMode, QueryTarget};
 use zenoh::sample::SampleKind;
@@ -234,6 +234,14 @@ impl RemoteLink {
         self.routing.as_ref().map(|(index, _)| index)
     }
 
+    /// The tile set's core squares, when the map is served in tiles.
+    fn tile_geometry(&self) -> Option<TileGeometry> {
+        self.tile_index().map(|index| TileGeometry {
+            tile_size: index.tile_size,
+            halo: index.halo,
+        })
+    }
+
     /// The tile the last routed request went to.
     pub(crate) fn current_tile(&self) -> Option<&str> {
         match &self.routing {
@@ -306,14 +314,15 @@ impl RemoteLink {
             encode_request(&h, &payload)
         };
         let places = self.ask_every_tile(phase(FLAG_PLACES_ONLY, 0), timeout)?;
-        let (chosen, order, searched_us) = match crate::tiled::choose_places(&places)? {
-            Choice::Answer(frame) => return Ok(frame),
-            Choice::Score {
-                chosen,
-                order,
-                searched_us,
-            } => (chosen, order, searched_us),
-        };
+        let (chosen, order, searched_us) =
+            match crate::tiled::choose_places(&places, self.tile_geometry().as_ref())? {
+                Choice::Answer(frame) => return Ok(frame),
+                Choice::Score {
+                    chosen,
+                    order,
+                    searched_us,
+                } => (chosen, order, searched_us),
+            };
         let requests = chosen
             .into_iter()
             .map(|(at, ranks)| {

@@ -9,9 +9,12 @@
 //! within `ambiguity-margin` makes the answer `ambiguous`.
 
 use kfmap_protocol::remote::{decode_answer, encode_answer};
-use kfmap_protocol::{ResponseHeader, StatusCode, WirePlace, place_from_wire, pose_from_wire};
+use kfmap_protocol::{
+    PLACES_FROM_RELIEF, ResponseHeader, StatusCode, WirePlace, place_from_wire, pose_from_wire,
+};
 use kfmap_shared::geometry::{Pose, rotation_distance, translation_distance};
-use kfmap_shared::place::{RelocalizeParams, RelocalizeStatus};
+use kfmap_shared::place::{RelocalizeParams, RelocalizeStatus, SearchParams};
+use kfmap_shared::tiles::{TileGeometry, tile_id};
 
 use crate::ClientError;
 
@@ -44,11 +47,33 @@ fn decoded(
     ))
 }
 
+/// Rounding of a place's f32 wire pose, metres and degrees, well above f32's at a
+/// site's coordinates and far below a voxel.
+const WIRE_SLACK_M: f64 = 1e-3;
+/// See [`WIRE_SLACK_M`].
+const WIRE_SLACK_DEG: f64 = 1e-3;
+
+/// A proposed place of the first phase: (hit ratio, tile id, answer index, rank, pose).
+type Proposed<'a> = (f64, &'a str, usize, usize, Pose);
+
 /// Ranks every tile's proposed places (tile id, `FLAG_PLACES_ONLY` answer frame) and
 /// keeps as many as one search verifies (the largest `detail` any tile reported), best
-/// first, ties by tile id and rank so every client chooses alike.
-pub(crate) fn choose_places(answers: &[(String, Vec<u8>)]) -> Result<Choice, ClientError> {
-    let mut places: Vec<(f64, &str, usize, usize)> = Vec::new();
+/// first, ties by tile id and rank so every client chooses alike. The keeping is one
+/// search's: a place within the separation of a better one is the same place (tiles'
+/// search regions overlap, so neighbours propose the same lattice placements), and a
+/// place below `keep-ratio` of the best hit ratio is not kept (the server defaults of
+/// `[relocalize.search]`). A tile's relief places ([`PLACES_FROM_RELIEF`]) count only
+/// when no tile proposed from structure: one search of the whole map falls back to
+/// relief only when its structure search found nothing.
+/// `cores` (the tile set's geometry) names the tile whose core holds a place: a
+/// neighbour's copy of a place in an answering tile's core is left out, the owner's
+/// kept (it holds the keyframes nearest the place, as the halo check verifies).
+pub(crate) fn choose_places(
+    answers: &[(String, Vec<u8>)],
+    cores: Option<&TileGeometry>,
+) -> Result<Choice, ClientError> {
+    let mut structure: Vec<Proposed> = Vec::new();
+    let mut relief: Vec<Proposed> = Vec::new();
     let mut keep = 0;
     let mut searched_us: f64 = 0.0;
     for (at, (tile, frame)) in answers.iter().enumerate() {
@@ -66,16 +91,54 @@ pub(crate) fn choose_places(answers: &[(String, Vec<u8>)]) -> Result<Choice, Cli
         }
         keep = keep.max(header.detail.min(64) as usize);
         searched_us = searched_us.max(header.server_us);
+        let into = if header.reasons & PLACES_FROM_RELIEF != 0 {
+            &mut relief
+        } else {
+            &mut structure
+        };
         for (rank, slot) in slots.into_iter().enumerate() {
-            places.push((slot.score, tile, at, rank));
+            let pose = place_from_wire(&slot).ok_or_else(|| {
+                ClientError::Remote(format!("tile {tile} proposed an invalid pose"))
+            })?;
+            into.push((slot.score, tile, at, rank, pose));
         }
     }
-    places.sort_by(|a, b| {
+    let mut proposed = if structure.is_empty() {
+        relief
+    } else {
+        structure
+    };
+    if let Some(cores) = cores {
+        let answered = |id: &str| answers.iter().any(|(tile, _)| tile == id);
+        proposed.retain(|(_, tile, _, _, pose)| {
+            let t = pose.translation.vector;
+            let (col, row) = cores.tile_of(t.x, t.y);
+            let owner = tile_id(col, row);
+            owner == *tile || !answered(&owner)
+        });
+    }
+    proposed.sort_by(|a, b| {
         b.0.total_cmp(&a.0)
             .then_with(|| a.1.cmp(b.1))
             .then(a.3.cmp(&b.3))
     });
-    places.truncate(keep);
+    let search = SearchParams::default();
+    let floor = proposed.first().map_or(0.0, |p| p.0) * search.keep_ratio;
+    // Lattice placements lie exact multiples of the voxel apart, often exactly the
+    // separation (2 m: distinct to the search); the wire's f32 must not make them one.
+    let same_place = |a: &Pose, b: &Pose| {
+        translation_distance(a, b) < search.separation_m - WIRE_SLACK_M
+            && rotation_distance(a, b).to_degrees() < search.separation_deg - WIRE_SLACK_DEG
+    };
+    let mut places: Vec<Proposed> = Vec::with_capacity(keep);
+    for place in proposed {
+        if places.len() == keep || place.0 < floor {
+            break;
+        }
+        if !places.iter().any(|kept| same_place(&kept.4, &place.4)) {
+            places.push(place);
+        }
+    }
     if places.is_empty() {
         let (mut header, _) = decode_answer(&answers[0].1).expect("decoded above");
         header.relocalization = RelocalizeStatus::NotFound as u32;
@@ -261,14 +324,95 @@ mod tests {
             .collect()
     }
 
-    /// A `FLAG_PLACES_ONLY` answer with places of these hit ratios.
+    /// A `FLAG_PLACES_ONLY` answer with places of these hit ratios, each at its own
+    /// spot (x = 100 times its hit ratio: distinct ratios are distinct places).
     fn proposed(hits: &[f64], detail: u64) -> Vec<u8> {
         let list: Vec<_> = hits
             .iter()
             .enumerate()
-            .map(|(r, &h)| (Pose::identity(), h, r))
+            .map(|(r, &h)| (at(100.0 * h, 0.0), h, r))
             .collect();
         places(&list, hits.len() as u32, detail)
+    }
+
+    #[test]
+    fn places_are_kept_as_one_search_keeps_them_across_tiles() {
+        // Two tiles propose the same lattice placement (their regions overlap): one
+        // place, the better hit ratio's; a placement within the separation (2 m, 20
+        // deg) of a better one is the same place; turned 30 deg it is another.
+        let near = |x: f64, yaw: f64, hits: f64, rank: usize| (at(x, yaw), hits, rank);
+        let answers = named(vec![
+            places(&[near(0.0, 0.0, 0.9, 0), near(50.0, 0.0, 0.8, 1)], 2, 6),
+            places(&[near(0.0, 0.0, 0.85, 0), near(1.5, 10.0, 0.84, 1)], 2, 6),
+            places(&[near(0.0, 30.0, 0.83, 0), near(80.0, 0.0, 0.6, 1)], 2, 6),
+        ]);
+        // 0.6 is below keep-ratio (0.7) of the best 0.9.
+        assert_eq!(chosen_order(&answers), vec![(0, 0), (2, 0), (0, 1)]);
+        // Exactly the separation apart (lattice placements 2 m apart in z, through the
+        // wire's f32 at a site's coordinates): two places, as the search keeps them.
+        let mut up = at(1234.567, 0.0);
+        let mut below = up;
+        up.translation.vector.z = 3.0;
+        below.translation.vector.z = 1.0;
+        let answers = named(vec![places(&[(below, 0.9, 0), (up, 0.89, 1)], 2, 6)]);
+        assert_eq!(chosen_order(&answers), vec![(0, 0), (0, 1)]);
+        // With cores of 10 m, x0_y0 owns x in [0, 10): its copy of the place at the
+        // origin stands, whatever a neighbour's hit ratio; a place in a core no tile
+        // answered for (x1_y0) stays with whoever proposed it.
+        let cores = TileGeometry {
+            tile_size: 10.0,
+            halo: 5.0,
+        };
+        let answers = vec![
+            (
+                "x-1_y0".to_string(),
+                places(&[near(0.0, 0.0, 0.9, 0)], 1, 6),
+            ),
+            (
+                "x0_y0".to_string(),
+                places(&[near(0.0, 0.0, 0.85, 0)], 1, 6),
+            ),
+            (
+                "x0_y-1".to_string(),
+                places(&[near(12.0, 90.0, 0.8, 0)], 1, 6),
+            ),
+        ];
+        let Choice::Score { order, .. } = choose_places(&answers, Some(&cores)).unwrap() else {
+            panic!("places to score expected");
+        };
+        assert_eq!(order, vec![(1, 0), (2, 0)]);
+    }
+
+    /// A tile's answer whose places come from its relief search.
+    fn from_relief(hits: &[f64], detail: u64) -> Vec<u8> {
+        let frame = proposed(hits, detail);
+        let (mut h, slots) = decode_answer(&frame).unwrap();
+        h.reasons = PLACES_FROM_RELIEF;
+        encode_answer(&h, &slots)
+    }
+
+    fn chosen_order(answers: &[(String, Vec<u8>)]) -> Vec<(usize, usize)> {
+        match choose_places(answers, None).unwrap() {
+            Choice::Score { order, .. } => order,
+            Choice::Answer(_) => panic!("places to score expected"),
+        }
+    }
+
+    #[test]
+    fn relief_places_stand_only_when_no_tile_proposed_from_structure() {
+        // One search of the merged map proposes from structure when any tile can: the
+        // tiles that fell back to relief (their structure search was empty) are left
+        // out, however well their relief places hit.
+        let answers = named(vec![
+            from_relief(&[0.95, 0.9], 3),
+            proposed(&[0.6], 3),
+            from_relief(&[0.7], 3),
+        ]);
+        assert_eq!(chosen_order(&answers), vec![(1, 0)]);
+        // No tile proposed from structure: every tile searched relief, as the merged
+        // map's fallback does, and their places rank together.
+        let answers = named(vec![from_relief(&[0.55, 0.5], 3), from_relief(&[0.7], 3)]);
+        assert_eq!(chosen_order(&answers), vec![(1, 0), (0, 0), (0, 1)]);
     }
 
     #[test]
@@ -280,7 +424,7 @@ mod tests {
             chosen,
             order,
             searched_us,
-        } = choose_places(&answers).unwrap()
+        } = choose_places(&answers, None).unwrap()
         else {
             panic!("places to score expected");
         };
@@ -295,7 +439,8 @@ mod tests {
         assert_eq!(chosen, vec![(0, 0b1), (1, 0b11)]);
         assert_eq!(searched_us, 300.0);
         // No place anywhere: not found at once, nothing to score.
-        let Choice::Answer(frame) = choose_places(&named(vec![proposed(&[], 5)])).unwrap() else {
+        let Choice::Answer(frame) = choose_places(&named(vec![proposed(&[], 5)]), None).unwrap()
+        else {
             panic!("an answer expected");
         };
         let h = decode_answer(&frame).unwrap().0;
@@ -304,11 +449,14 @@ mod tests {
         // A tile's refusal is the answer: a ranking without it is not one search.
         let refused = encode_answer(&ResponseHeader::refusal(7, StatusCode::Busy, "busy"), &[]);
         let answers = named(vec![proposed(&[0.9], 5), refused.clone()]);
-        assert_eq!(choose_places(&answers).unwrap(), Choice::Answer(refused));
+        assert_eq!(
+            choose_places(&answers, None).unwrap(),
+            Choice::Answer(refused)
+        );
         // A frame whose places disagree with its count is an error, not a guess.
         let mut broken = proposed(&[0.9, 0.8], 5);
         broken.truncate(broken.len() - 56);
-        assert!(choose_places(&named(vec![broken])).is_err());
+        assert!(choose_places(&named(vec![broken]), None).is_err());
     }
 
     /// The final answer of a place at `settled` with `score`, as the finishing tile

@@ -25,9 +25,9 @@ pub use decode::{
 };
 pub use wire::{
     FLAG_COVARIANCES, FLAG_FINISH_CHOSEN, FLAG_LEVELLED, FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN,
-    FLAG_STAMPED, FLAG_VIEW_DIRS, KIND_SLOTS, MESSAGE_LEN, NAME_LEN, RequestHeader, ResponseHeader,
-    STATUS_SESSIONS, WireCovOptions, WirePairing, WirePlace, WireSessionGravity, read_text,
-    write_text,
+    FLAG_STAMPED, FLAG_VIEW_DIRS, KIND_SLOTS, MESSAGE_LEN, NAME_LEN, PLACES_FROM_RELIEF,
+    RequestHeader, ResponseHeader, STATUS_SESSIONS, WireCovOptions, WirePairing, WirePlace,
+    WireSessionGravity, read_text, write_text,
 };
 
 use kfmap_shared::geometry::{Pose, pose_from_xyz_quat, pose_to_xyz_quat};

@@ -102,6 +102,11 @@ pub const FLAG_SCORE_CHOSEN: u32 = 32;
 /// (found when it fits, no runner-up): the third phase over a tile set, on the tile of
 /// the best score of them all.
 pub const FLAG_FINISH_CHOSEN: u32 = 64;
+/// `ResponseHeader::reasons` of a `FLAG_PLACES_ONLY` answer: the places come from the
+/// relief search (uphill ground kept), which a server runs when its structure search
+/// proposes nothing. Over a tile set they stand only when no tile proposed from
+/// structure, as one search of the whole map decides.
+pub const PLACES_FROM_RELIEF: u32 = 1;
 
 impl Default for RequestHeader {
     fn default() -> Self {

@@ -56,6 +56,15 @@ AMBIGUITY_MARGIN = 0.05
 DISTINCT_M = 1.0
 #: ... or turned more than this (degrees).
 DISTINCT_DEG = 5.0
+#: Place search keeping (``SearchParams`` defaults): places closer than this (metres) ...
+SEPARATION_M = 2.0
+#: ... and turned less than this (degrees) are one place ...
+SEPARATION_DEG = 20.0
+#: ... and a place below this share of the best hit ratio is not kept.
+KEEP_RATIO = 0.7
+#: Rounding of a place's f32 wire pose (metres, degrees), as ``client/src/tiled.rs``.
+WIRE_SLACK_M = 1e-3
+WIRE_SLACK_DEG = 1e-3
 
 #: :meth:`TileRouter.route` outcomes: to a tile, the owner tile down, no tile up.
 ROUTE_TILE, ROUTE_DOWN, ROUTE_NONE_UP = "tile", "down", "none-up"
@@ -302,16 +311,38 @@ def _distinct(a: Sequence[float], b: Sequence[float]) -> bool:
     return math.degrees(angle) > DISTINCT_DEG
 
 
-def choose_places(answers: Sequence[tuple[str, bytes]]) -> tuple[bytes | None, list[tuple[str, int]], list[tuple[str, int]], float]:
+def _same_place(a: Sequence[float], b: Sequence[float]) -> bool:
+    """Placements within ``SEPARATION_M`` and ``SEPARATION_DEG`` of each other."""
+    pa, pb = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    # Lattice placements often lie exactly the separation apart (distinct to the search):
+    # the wire's f32 must not make them one (``WIRE_SLACK_M``, ``WIRE_SLACK_DEG``).
+    if float(np.linalg.norm(pa[:3] - pb[:3])) >= SEPARATION_M - WIRE_SLACK_M:
+        return False
+    qa, qb = pa[3:] / np.linalg.norm(pa[3:]), pb[3:] / np.linalg.norm(pb[3:])
+    w = abs(float(np.dot(qa, qb)))
+    angle = 0.0 if w > 1.0 else 2.0 * math.acos(w)
+    return math.degrees(angle) < SEPARATION_DEG - WIRE_SLACK_DEG
+
+
+def choose_places(answers: Sequence[tuple[str, bytes]], cores: "TileIndex | None" = None,
+                  ) -> tuple[bytes | None, list[tuple[str, int]], list[tuple[str, int]], float]:
     """The first phase's decision, as ``client/src/tiled.rs`` ``choose_places``: every
     tile's proposed places (``(tile, FLAG_PLACES_ONLY answer frame)``) ranked by hit
-    ratio (ties by tile id, then rank), the best ``max(detail)`` kept. Returns ``(frame,
+    ratio (ties by tile id, then rank), the best ``max(detail)`` kept as one search keeps
+    them: a place within the separation of a better one is the same place (neighbours'
+    regions overlap), one below ``KEEP_RATIO`` of the best is dropped, and a tile's relief
+    places (``reasons`` has ``PLACES_FROM_RELIEF``) count only when no tile proposed from
+    structure, as one search of the whole map falls back; with ``cores`` (the tile
+    index) a neighbour's copy of a place in an answering tile's core is left out, the
+    owner's kept. Returns ``(frame,
     [], [], searched_us)`` when the answer stands (a tile's refusal, or no place
     anywhere: not found), else ``(None, [(tile, rank bits)], order, searched_us)`` with
     ``order`` every chosen ``(tile, rank)`` as one search would rank them."""
     if not answers:
         raise TransportError("no tile answered the relocalization")
-    places: list[tuple[int, str, int]] = []
+    # (hit ratio's total order, tile, rank, wire pose, hit ratio)
+    structure: list[tuple[int, str, int, list[float], float]] = []
+    relief: list[tuple[int, str, int, list[float], float]] = []
     keep, searched_us, first = 0, 0.0, None
     for tile, frame in answers:
         try:
@@ -328,10 +359,31 @@ def choose_places(answers: Sequence[tuple[str, bytes]]) -> tuple[bytes | None, l
         first = header if first is None else first
         keep = max(keep, min(header.detail, 64))
         searched_us = _fmax(searched_us, header.server_us)
-        for rank, hits in enumerate(slots["score"]):
-            places.append((_total_order(float(hits)), tile, rank))
-    places.sort(key=lambda p: (-p[0], p[1], p[2]))
-    places = places[:keep]
+        into = relief if header.reasons & wire.PLACES_FROM_RELIEF else structure
+        for rank, slot in enumerate(slots):
+            pose = [float(v) for v in slot["translation"]] + [float(v) for v in slot["rotation"]]
+            hits = float(slot["score"])
+            into.append((_total_order(hits), tile, rank, pose, hits))
+    proposed = sorted(structure or relief, key=lambda p: (-p[0], p[1], p[2]))
+    if cores is not None:
+        # A neighbour's copy of a place in an answering tile's core is left out: the
+        # owner holds the keyframes nearest it.
+        answered = {tile for tile, _ in answers}
+        size = cores.tile_size
+
+        def owned(tile: str, pose: list[float]) -> bool:
+            owner = tile_id(math.floor(pose[0] / size), math.floor(pose[1] / size))
+            return owner == tile or owner not in answered
+
+        proposed = [p for p in proposed if owned(p[1], p[3])]
+    places: list[tuple[int, str, int, list[float], float]] = []
+    if proposed:
+        floor = KEEP_RATIO * proposed[0][4]
+        for place in proposed:
+            if len(places) == keep or place[4] < floor:
+                break
+            if not any(_same_place(kept[3], place[3]) for kept in places):
+                places.append(place)
     if not places:
         header = wire.ResponseHeader.from_buffer_copy(first)
         header.relocalization = wire.RelocalizeStatus.NOT_FOUND
@@ -341,9 +393,9 @@ def choose_places(answers: Sequence[tuple[str, bytes]]) -> tuple[bytes | None, l
         header.server_us = searched_us
         return _header_bytes(header), [], [], searched_us
     chosen: dict[str, int] = {}
-    for _, tile, rank in places:
+    for _, tile, rank, _, _ in places:
         chosen[tile] = chosen.get(tile, 0) | (1 << rank)
-    return None, list(chosen.items()), [(t, r) for _, t, r in places], searched_us
+    return None, list(chosen.items()), [(t, r) for _, t, r, _, _ in places], searched_us
 
 
 @dataclass
@@ -691,7 +743,7 @@ class RemoteConnection:
             return self._tiles.index(tile)
 
         places = self._ask_every_tile(phase(wire.FLAG_PLACES_ONLY, 0))
-        frame, chosen, order, searched_us = choose_places(places)
+        frame, chosen, order, searched_us = choose_places(places, self.tile_index)
         if frame is not None:
             return _decode_answer(frame)
         requests = [(tile_number(t), phase(wire.FLAG_SCORE_CHOSEN, bits)) for t, bits in chosen]

@@ -44,6 +44,10 @@ FLAG_SCORE_CHOSEN = 32
 #: Relocalize: the final registration of the scored place whose rank is the one bit set
 #: in ``keyframe_or_scan_id`` (found when it fits, no runner-up); the third phase.
 FLAG_FINISH_CHOSEN = 64
+#: ``ResponseHeader.reasons`` of a ``FLAG_PLACES_ONLY`` answer: the places come from the
+#: relief search (uphill ground kept), run when the structure search proposed nothing;
+#: over a tile set they stand only when no tile proposed from structure.
+PLACES_FROM_RELIEF = 1
 
 
 def rpc_service_name(map_name: str) -> str:

@@ -200,7 +200,50 @@ def _places(places: list[tuple[list[float], float, int]], candidates: int, detai
 
 
 def _proposed(hits: list[float], detail: int) -> bytes:
-    return _places([(_at(0.0), h, r) for r, h in enumerate(hits)], len(hits), detail)
+    """Places of these hit ratios, each at its own spot (x = 100 times its ratio)."""
+    return _places([(_at(100.0 * h), h, r) for r, h in enumerate(hits)], len(hits), detail)
+
+
+def test_places_are_kept_as_one_search_keeps_them_across_tiles():
+    # The same placement from two tiles is one place, the better one's; within 2 m and
+    # 20 deg of a better one it is the same place; turned 30 deg it is another; 0.6 is
+    # below KEEP_RATIO of the best 0.9.
+    answers = [("t0", _places([(_at(0.0), 0.9, 0), (_at(50.0), 0.8, 1)], 2, 6)),
+               ("t1", _places([(_at(0.0), 0.85, 0), (_at(1.5, 10.0), 0.84, 1)], 2, 6)),
+               ("t2", _places([(_at(0.0, 30.0), 0.83, 0), (_at(80.0), 0.6, 1)], 2, 6))]
+    assert kr.choose_places(answers)[2] == [("t0", 0), ("t2", 0), ("t0", 1)]
+    # With 10 m cores, x0_y0 owns the origin: its copy stands, whatever a neighbour's
+    # hit ratio; a place in a core no tile answered for stays with its proposer.
+    cores = kr.TileIndex(10.0, 5.0, 0, ())
+    answers = [("x-1_y0", _places([(_at(0.0), 0.9, 0)], 1, 6)),
+               ("x0_y0", _places([(_at(0.0), 0.85, 0)], 1, 6)),
+               ("x0_y-1", _places([(_at(12.0, 90.0), 0.8, 0)], 1, 6))]
+    assert kr.choose_places(answers, cores)[2] == [("x0_y0", 0), ("x0_y-1", 0)]
+    # Exactly the separation apart (lattice placements 2 m apart in z, through the wire's
+    # f32 at a site's coordinates): two places, as the search keeps them.
+    below, up = _at(1234.567), _at(1234.567)
+    below[2], up[2] = 1.0, 3.0
+    answers = [("t0", _places([(below, 0.9, 0), (up, 0.89, 1)], 2, 6))]
+    assert kr.choose_places(answers)[2] == [("t0", 0), ("t0", 1)]
+
+
+def _from_relief(hits: list[float], detail: int) -> bytes:
+    """A tile's answer whose places come from its relief search."""
+    frame = bytearray(_proposed(hits, detail))
+    h = _header(bytes(frame))
+    h.reasons = wire.PLACES_FROM_RELIEF
+    frame[:ctypes.sizeof(h)] = ctypes.string_at(ctypes.byref(h), ctypes.sizeof(h))
+    return bytes(frame)
+
+
+def test_relief_places_stand_only_when_no_tile_proposed_from_structure():
+    # One search of the merged map proposes from structure when any tile can.
+    answers = [("t0", _from_relief([0.95, 0.9], 3)), ("t1", _proposed([0.6], 3)),
+               ("t2", _from_relief([0.7], 3))]
+    assert kr.choose_places(answers)[2] == [("t1", 0)]
+    # No tile proposed from structure: every tile's relief places rank together.
+    answers = [("t0", _from_relief([0.55, 0.5], 3)), ("t1", _from_relief([0.7], 3))]
+    assert kr.choose_places(answers)[2] == [("t1", 0), ("t0", 0), ("t0", 1)]
 
 
 def _header(frame: bytes) -> wire.ResponseHeader:
@@ -446,6 +489,9 @@ def test_a_tile_set_on_two_hosts_answers_as_the_merged_map(tile_site):
                   f"map {whole.status.name} (score {whole.score:.3f}, runner-up "
                   f"{whole.runner_up:.3f})")
             assert tiled.status == whole.status, f"scan {i}"
+            # The same places scored alike: the verdict's margins are the merged map's.
+            assert abs(tiled.score - whole.score) < 1e-9, f"scan {i}"
+            assert abs(tiled.runner_up - whole.runner_up) < 1e-9, f"scan {i}"
             assert (tiled.pose is None) == (whole.pose is None), f"scan {i}"
             if tiled.pose is not None:
                 apart = float(np.linalg.norm(_translation(tiled.pose) - _translation(whole.pose)))

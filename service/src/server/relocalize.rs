@@ -5,8 +5,8 @@
 //! places, scores of the chosen places, the final registration of the best.
 
 use kfmap_protocol::{
-    DecodedScan, FLAG_FINISH_CHOSEN, FLAG_LEVELLED, FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN, Rejection,
-    RequestHeader, StatusCode, place_to_wire, pose_to_wire,
+    DecodedScan, FLAG_FINISH_CHOSEN, FLAG_LEVELLED, FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN,
+    PLACES_FROM_RELIEF, Rejection, RequestHeader, StatusCode, place_to_wire, pose_to_wire,
 };
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::place::{
@@ -271,6 +271,11 @@ fn places_answer(proposal: &Proposal, verified_per_search: usize) -> Answer {
     let score = |rank: usize| proposal.poses.get(rank).map_or(0.0, |(_, hits)| *hits);
     h.place_scores = [score(0), score(1)];
     h.detail = verified_per_search as u64;
+    h.reasons = if proposal.relief {
+        PLACES_FROM_RELIEF
+    } else {
+        0
+    };
     answer
 }
 

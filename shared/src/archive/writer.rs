@@ -21,7 +21,7 @@ use crate::covis::CovisSnapshot;
 use crate::geometry::{Pose, pose_to_xyz_quat};
 use crate::io::temp_path_beside;
 use crate::map::{Keyframe, KeyframeMap, KeyframeMapOptions};
-use crate::place::{GridBuilder, GridParams, PlaceGrid};
+use crate::place::{GridBuilder, GridError, GridParams, PlaceGrid};
 
 /// Points one keyframe segment may hold: its archive (about 70 bytes a point with tree
 /// and covariances) must stay well inside rkyv's 2 GiB relative-pointer reach.
@@ -50,8 +50,10 @@ pub struct MapWriter {
     offset: u64,
     options: KeyframeMapOptions,
     index: MapIndex,
-    /// Where the map's points are, for the place grid written at the end.
+    /// Where the map's points are, for the place grid written at the end ...
     place: GridBuilder,
+    /// ... unless the grid was given ([`Self::use_place_grid`]: a tile's).
+    given_place: Option<Result<PlaceGrid, GridError>>,
     finished: bool,
 }
 
@@ -77,6 +79,7 @@ impl MapWriter {
                 ..MapIndex::default()
             },
             place: GridBuilder::new(&GridParams::default()),
+            given_place: None,
             finished: false,
         };
         // Placeholder: the real header is written last, when the payload is known.
@@ -105,17 +108,6 @@ impl MapWriter {
 
     /// Appends one keyframe (ids must ascend); returns its segment's size in bytes.
     pub fn write_keyframe(&mut self, keyframe: &Keyframe) -> Result<u64, ArchiveError> {
-        self.write_keyframe_searched(keyframe, None)
-    }
-
-    /// As [`Self::write_keyframe`]; `searched` (a tile's writer): whether relocalization
-    /// searches around this keyframe (a core keyframe) or only marks its points (a halo
-    /// keyframe). `None`: as every keyframe of a whole map.
-    pub fn write_keyframe_searched(
-        &mut self,
-        keyframe: &Keyframe,
-        searched: Option<bool>,
-    ) -> Result<u64, ArchiveError> {
         if keyframe.len() > MAX_KEYFRAME_POINTS {
             return Err(ArchiveError::KeyframeTooLarge {
                 id: keyframe.id,
@@ -153,12 +145,11 @@ impl MapWriter {
         )
         .map_err(|e| ArchiveError::Serialize(format!("keyframe {}: {e}", keyframe.id)))?;
         let offset = self.append(&bytes, SEGMENT_ALIGN)?;
-        let position = keyframe.pose.translation.vector.into();
-        match searched {
-            Some(true) => self.place.add_searched_anchor(position),
-            _ => self.place.add_anchor(position),
+        if self.given_place.is_none() {
+            self.place
+                .add_anchor(keyframe.pose.translation.vector.into());
+            self.place.add_points(keyframe.map_points()?);
         }
-        self.place.add_points(keyframe.map_points()?);
         let n = keyframe.len() as u64;
         let b = &keyframe.bbox;
         self.index.keyframes.push(KeyframeEntry {
@@ -187,10 +178,11 @@ impl MapWriter {
         self.index.map_from_input = pose_to_xyz_quat(pose);
     }
 
-    /// Levels the place grid as another map's (`R_grid_map`): a tile's as its whole
-    /// map's ([`crate::place::GridBuilder::level_as`]).
-    pub fn level_place_grid_as(&mut self, grid_from_map: nalgebra::UnitQuaternion<f64>) {
-        self.place.level_as(grid_from_map);
+    /// Writes `grid` as the map's place grid instead of one built from the keyframes
+    /// (a tile's, cut from its whole map's: [`PlaceGrid::cut_from`]); an error is
+    /// written as a map without a grid, as a failed build is. Call before the keyframes.
+    pub fn use_place_grid(&mut self, grid: Result<PlaceGrid, GridError>) {
+        self.given_place = Some(grid);
     }
 
     /// Writes the index and the header, fsyncs and renames onto the target path.
@@ -206,7 +198,11 @@ impl MapWriter {
         self.index.covis_parents = covis.parents.clone();
         self.index.covis_in_tree = covis.in_tree.clone();
         self.index.gravity_pool = gravity_pool.to_vec();
-        self.index.place = match self.place.finish(&GridParams::default()) {
+        let grid = match self.given_place.take() {
+            Some(given) => given,
+            None => self.place.finish(&GridParams::default()),
+        };
+        self.index.place = match grid {
             Ok(grid) => Some(self.write_place_grid(&grid)?),
             Err(e) => {
                 // The map still serves; only relocalization is refused, naming this.

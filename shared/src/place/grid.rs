@@ -141,14 +141,9 @@ pub struct GridBuilder {
     fine: f64,
     keys: FxHashSet<[i64; 3]>,
     anchors: Vec<[f64; 3]>,
-    /// Anchors whose surroundings relocalization searches (a tile's core keyframes; all
-    /// anchors when empty).
-    searched: Vec<[f64; 3]>,
     /// Sum of the up directions of the clouds added (map frame), each found from the
     /// cloud's own points as a scan's is.
     up_votes: Vector3<f64>,
-    /// `R_grid_map` given by [`Self::level_as`] (then no votes are counted).
-    levelled_as: Option<UnitQuaternion<f64>>,
 }
 
 impl GridBuilder {
@@ -158,17 +153,8 @@ impl GridBuilder {
             fine: params.resolution / 2.0,
             keys: FxHashSet::default(),
             anchors: Vec::new(),
-            searched: Vec::new(),
             up_votes: Vector3::zeros(),
-            levelled_as: None,
         }
-    }
-
-    /// Levels the grid as another one (`R_grid_map`): a tile's as its whole map's, so
-    /// that a tile's places and their hit ratios are the whole map's (a tile's own
-    /// floors would level it a little differently).
-    pub fn level_as(&mut self, grid_from_map: UnitQuaternion<f64>) {
-        self.levelled_as = Some(grid_from_map);
     }
 
     /// Adds one cloud's map-frame points (a keyframe's; non-finite ones are skipped).
@@ -182,9 +168,6 @@ impl GridBuilder {
         }
         // Up as a scan from here finds it, so the grid levels alike (a map frame from
         // poses or gravity need not have its floors level).
-        if self.levelled_as.is_some() {
-            return;
-        }
         if let Some(up) = estimate_up(&cloud, MAP_MAX_TILT_DEG) {
             self.up_votes += up * cloud.len() as f64;
         }
@@ -198,16 +181,6 @@ impl GridBuilder {
         }
     }
 
-    /// As [`Self::add_anchor`], for a sensor position whose surroundings relocalization
-    /// searches while others' are only marked: a tile of a tile set searches its core,
-    /// its halo's places being its neighbours' to find.
-    pub fn add_searched_anchor(&mut self, position: [f64; 3]) {
-        if position.iter().all(|v| v.is_finite()) {
-            self.anchors.push(position);
-            self.searched.push(position);
-        }
-    }
-
     /// The grid: levelled on the map's own floor-like planes (a map built from poses
     /// whose z is not quite gravity still levels alike with a levelled scan), clipped
     /// to `params.reach` around the anchors.
@@ -216,21 +189,10 @@ impl GridBuilder {
             return Err(GridError::Empty);
         }
         let centre = |k: &[i64; 3]| k.map(|v| (v as f64 + 0.5) * self.fine);
-        let grid_from_map = self.levelled_as.unwrap_or_else(|| {
-            levelling(&self.up_votes.try_normalize(1e-9).unwrap_or_else(Vector3::z))
-        });
+        let grid_from_map =
+            levelling(&self.up_votes.try_normalize(1e-9).unwrap_or_else(Vector3::z));
         let to_grid = |p: [f64; 3]| -> [f64; 3] { (grid_from_map * Vector3::from(p)).into() };
         let anchors: Vec<[f64; 3]> = self.anchors.iter().map(|a| to_grid(*a)).collect();
-        let bounds = |points: &[[f64; 3]]| {
-            let (mut low, mut high) = ([f64::MAX; 3], [f64::MIN; 3]);
-            for a in points {
-                for axis in 0..3 {
-                    low[axis] = low[axis].min(a[axis]);
-                    high[axis] = high[axis].max(a[axis]);
-                }
-            }
-            (low, high)
-        };
         let (low, high) = bounds(&anchors);
         let reach = params.reach;
         let r = params.resolution;
@@ -241,28 +203,43 @@ impl GridBuilder {
                 marked.insert(p.map(|v| (v / r).floor() as i64));
             }
         }
-        let margin = params.search_margin;
-        let (low, high) = if self.searched.is_empty() {
-            (low, high)
-        } else {
-            bounds(
-                &self
-                    .searched
-                    .iter()
-                    .map(|a| to_grid(*a))
-                    .collect::<Vec<_>>(),
-            )
-        };
-        let region = SearchRegion {
-            min: [low[0] - margin[0], low[1] - margin[1], low[2] - margin[2]],
-            max: [
-                high[0] + margin[0],
-                high[1] + margin[1],
-                high[2] + margin[2],
-            ],
-        };
+        let region = search_region(low, high, params, None);
         let q = grid_from_map.quaternion();
         PlaceGrid::from_voxels(&marked, params, [q.i, q.j, q.k, q.w], region)
+    }
+}
+
+/// Box around `points`: (lowest, highest) per axis.
+fn bounds(points: &[[f64; 3]]) -> ([f64; 3], [f64; 3]) {
+    let (mut low, mut high) = ([f64::MAX; 3], [f64::MIN; 3]);
+    for a in points {
+        for axis in 0..3 {
+            low[axis] = low[axis].min(a[axis]);
+            high[axis] = high[axis].max(a[axis]);
+        }
+    }
+    (low, high)
+}
+
+/// The translations searched around sensor positions spanning `[low, high]` (grid
+/// frame): the box grown by the search margin. With `lattice` (a region's low
+/// corner), its corners are moved out onto that region's lattice (steps of the
+/// resolution from it), so that a tile tries the whole map's translations.
+fn search_region(
+    low: [f64; 3],
+    high: [f64; 3],
+    params: &GridParams,
+    lattice: Option<[f64; 3]>,
+) -> SearchRegion {
+    let (margin, r) = (params.search_margin, params.resolution);
+    let min = [0, 1, 2].map(|a| low[a] - margin[a]);
+    let max = [0, 1, 2].map(|a| high[a] + margin[a]);
+    match lattice {
+        None => SearchRegion { min, max },
+        Some(o) => SearchRegion {
+            min: [0, 1, 2].map(|a| o[a] + ((min[a] - o[a]) / r).floor() * r),
+            max: [0, 1, 2].map(|a| o[a] + ((max[a] - o[a]) / r).ceil() * r),
+        },
     }
 }
 
@@ -333,6 +310,51 @@ impl PlaceGrid {
             levels_data,
             region,
         })
+    }
+
+    /// A tile's grid: `whole`'s marked voxels over grid-frame `(x, y)` within `[low,
+    /// high]` (a tile's core grown by the grid's reach), levelled as `whole`, searching
+    /// around `searched` (map frame: the core's keyframe positions). A scan placed in
+    /// the core then hits what it hits on the whole map, whichever keyframes the points
+    /// came from, and the tile tries the whole map's translations there.
+    pub fn cut_from(
+        whole: &GridView<'_>,
+        low: [f64; 2],
+        high: [f64; 2],
+        searched: &[[f64; 3]],
+    ) -> Result<Self, GridError> {
+        let r = whole.resolution();
+        let grid_from_map = whole.grid_from_map();
+        let base = whole.origin().map(|o| (o / r).round() as i64);
+        let dims = whole.dims();
+        let first = [0, 1].map(|a| ((low[a] / r).floor() as i64 - base[a]).max(0));
+        let last = [0, 1].map(|a| ((high[a] / r).floor() as i64 - base[a]).min(dims[a] - 1));
+        let mut marked: FxHashSet<[i64; 3]> = FxHashSet::default();
+        for x in first[0]..=last[0] {
+            for y in first[1]..=last[1] {
+                for z in 0..dims[2] {
+                    if whole.marked(0, [x, y, z]) {
+                        marked.insert([x + base[0], y + base[1], z + base[2]]);
+                    }
+                }
+            }
+        }
+        let params = GridParams {
+            resolution: r,
+            levels: whole.levels(),
+            ..GridParams::default()
+        };
+        let searched: Vec<[f64; 3]> = searched
+            .iter()
+            .map(|p| (grid_from_map * Vector3::from(*p)).into())
+            .collect();
+        if searched.is_empty() {
+            return Err(GridError::Empty);
+        }
+        let (first_anchor, last_anchor) = bounds(&searched);
+        let region = search_region(first_anchor, last_anchor, &params, Some(whole.region().min));
+        let q = grid_from_map.quaternion();
+        Self::from_voxels(&marked, &params, [q.i, q.j, q.k, q.w], region)
     }
 
     /// The grid, read as a search reads it.

@@ -166,6 +166,11 @@ pub struct Proposal {
     pub nodes: u64,
     /// The search stopped at its work limit.
     pub exhausted: bool,
+    /// The places come from the relief search (uphill ground kept), run because the
+    /// structure search proposed none here. Over a tile set a tile's relief places
+    /// stand only when no tile proposed from structure, as in one search of the
+    /// whole map.
+    pub relief: bool,
 }
 
 /// The answer of [`relocalize`].
@@ -232,7 +237,8 @@ pub fn propose(
     let mut outcome = searched(Ground::Every)?;
     // Too little structure anywhere within reach (open rolling ground): the relief of
     // the ground rising above the sensor is what is left to tell places apart.
-    if outcome.placements.is_empty() {
+    let relief = outcome.placements.is_empty();
+    if relief {
         let first = outcome;
         outcome = searched(Ground::BelowSensor)?;
         outcome.nodes += first.nodes;
@@ -258,6 +264,7 @@ pub fn propose(
         points: outcome.points,
         nodes: outcome.nodes,
         exhausted: outcome.exhausted,
+        relief,
     })
 }
 

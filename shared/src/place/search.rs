@@ -135,11 +135,18 @@ struct Node {
 }
 
 impl Ord for Node {
-    /// Higher bound first; on a tie the deeper node, which reaches a leaf sooner.
+    /// Higher bound first; on a tie the deeper node, which reaches a leaf sooner; then
+    /// the lower yaw and lattice translation (z, y, x), not the heap's history, so that
+    /// equal-hit placements present together are taken in the same order on every grid
+    /// of a map (a tile's and the whole map's: equal hits at z 0 and 1 m, the lower).
+    /// Coarser-first on a tie would settle every tie but expanded open ground's many
+    /// equal bounds to the work limit (the corridor test's scan 0 placed 112 m off).
     fn cmp(&self, other: &Self) -> Ordering {
+        let key = |n: &Self| (n.yaw, n.k[2], n.k[1], n.k[0]);
         self.bound
             .cmp(&other.bound)
             .then_with(|| other.level.cmp(&self.level))
+            .then_with(|| key(other).cmp(&key(self)))
     }
 }
 
