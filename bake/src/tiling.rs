@@ -13,7 +13,7 @@ use std::time::Instant;
 use kfmap_shared::KeyframeId;
 use kfmap_shared::archive::{GravityRecord, MapWriter, OpenOptions, open_map};
 use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::covis::CovisibilityGraph;
+use kfmap_shared::covis::CovisSnapshot;
 use kfmap_shared::geometry::{Pose, pose_from_xyz_quat};
 use kfmap_shared::io::{IoError, PcdData, write_atomic, write_pcd};
 use kfmap_shared::map::KeyframeMap;
@@ -94,6 +94,7 @@ pub fn cut_into_tiles(
         whole,
         pool: &opened.index.gravity_pool,
         whole_grid,
+        whole_covis: whole.covisibility().snapshot(),
         map_from_input,
         geometry,
         dir,
@@ -156,6 +157,9 @@ struct TileCut<'a> {
     pool: &'a [GravityRecord],
     /// The whole map's place grid, which every tile's is cut from.
     whole_grid: Option<GridView<'a>>,
+    /// The whole map's covisibility, which every tile keeps the part of among its
+    /// keyframes.
+    whole_covis: CovisSnapshot,
     map_from_input: Pose,
     geometry: TileGeometry,
     dir: &'a Path,
@@ -178,7 +182,6 @@ impl TileCut<'_> {
         let file = format!("{id}.kfmap");
         let mut writer = MapWriter::create(&self.dir.join(&file), whole.options())?;
         writer.set_map_from_input(&self.map_from_input);
-        let mut covis = CovisibilityGraph::new(whole.options().covisibility);
         let [x0, y0] = geometry.core_min(col, row);
         // The place grid is the whole map's within its reach of the core: a scan placed
         // in the core hits what it hits on the whole map, from whichever keyframes the
@@ -221,7 +224,6 @@ impl TileCut<'_> {
                     .filter(|p| in_core(p))
                     .map(|p| p.map(|v| v as f32)),
             );
-            covis.set_keyframe(kf, points);
             own.push((kf, keyframe.pose));
             writer.write_keyframe(keyframe)?;
         }
@@ -238,7 +240,8 @@ impl TileCut<'_> {
             .filter(|g| ids.binary_search(&g.keyframe).is_ok())
             .cloned()
             .collect();
-        let written = writer.finish(whole.next_id(), &covis.snapshot(), &pool)?;
+        let covis = self.whole_covis.restricted_to(ids);
+        let written = writer.finish(whole.next_id(), &covis, &pool)?;
         let pcd = format!("{id}.pcd");
         let cloud = PointCloud::from_points(core_points)
             .voxel_downsample(PCD_VOXEL_M)

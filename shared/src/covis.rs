@@ -66,6 +66,32 @@ pub struct CovisSnapshot {
     pub in_tree: Vec<KeyframeId>,
 }
 
+impl CovisSnapshot {
+    /// The part of the graph among `ids` (ascending): the keyframes, edges and tree links
+    /// with every end in `ids`. Edge weights count voxels two keyframes share, whoever
+    /// else is in the graph, so a tile keeps the whole map's edges among its keyframes
+    /// without recounting them.
+    pub fn restricted_to(&self, ids: &[KeyframeId]) -> CovisSnapshot {
+        let kept = |id: &KeyframeId| ids.binary_search(id).is_ok();
+        CovisSnapshot {
+            keyframes: self.keyframes.iter().copied().filter(kept).collect(),
+            edges: self
+                .edges
+                .iter()
+                .copied()
+                .filter(|(a, b, _)| kept(a) && kept(b))
+                .collect(),
+            parents: self
+                .parents
+                .iter()
+                .copied()
+                .filter(|(c, p)| kept(c) && kept(p))
+                .collect(),
+            in_tree: self.in_tree.iter().copied().filter(kept).collect(),
+        }
+    }
+}
+
 /// The covisibility graph with its inverted voxel index and spanning tree.
 #[derive(Debug, Clone, Default)]
 pub struct CovisibilityGraph {

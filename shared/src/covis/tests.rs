@@ -250,3 +250,39 @@ proptest! {
         }
     }
 }
+
+/// A snapshot restricted to some keyframes holds exactly the edges a graph built from
+/// those keyframes alone finds at or above the threshold (weights count what two
+/// keyframes share, whoever else is mapped), and no edge or tree link leaving them.
+#[test]
+fn a_restricted_snapshot_keeps_the_edges_among_its_keyframes() {
+    let options = CovisOptions::default();
+    let clouds: Vec<(KeyframeId, Vec<[f64; 3]>)> = (0..12)
+        .map(|i| (i as KeyframeId, block(i * 7, 30, 2)))
+        .collect();
+    let mut whole = CovisibilityGraph::new(options);
+    for (id, points) in &clouds {
+        whole.set_keyframe(*id, points.clone());
+    }
+    let ids: Vec<KeyframeId> = vec![2, 3, 4, 5, 9];
+    let part = whole.snapshot().restricted_to(&ids);
+    let mut alone = CovisibilityGraph::new(options);
+    for (id, points) in clouds.iter().filter(|(id, _)| ids.contains(id)) {
+        alone.set_keyframe(*id, points.clone());
+    }
+    let strong = |edges: &[(KeyframeId, KeyframeId, u32)]| -> Vec<(KeyframeId, KeyframeId, u32)> {
+        edges
+            .iter()
+            .copied()
+            .filter(|e| e.2 >= options.min_weight)
+            .collect()
+    };
+    let alone = alone.snapshot();
+    assert!(!strong(&alone.edges).is_empty());
+    assert_eq!(strong(&part.edges), strong(&alone.edges));
+    assert_eq!(part.keyframes, ids);
+    let inside = |id: &KeyframeId| ids.contains(id);
+    assert!(part.edges.iter().all(|(a, b, _)| inside(a) && inside(b)));
+    assert!(part.parents.iter().all(|(c, p)| inside(c) && inside(p)));
+    assert!(part.in_tree.iter().all(inside));
+}

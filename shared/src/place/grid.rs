@@ -312,7 +312,7 @@ impl PlaceGrid {
         })
     }
 
-    /// A tile's grid: `whole`'s marked voxels over grid-frame `(x, y)` within `[low,
+    /// A tile's grid: `whole`'s marked voxels overlapping grid-frame `(x, y)` in `[low,
     /// high]` (a tile's core grown by the grid's reach), levelled as `whole`, searching
     /// around `searched` (map frame: the core's keyframe positions). A scan placed in
     /// the core then hits what it hits on the whole map, whichever keyframes the points
@@ -323,18 +323,35 @@ impl PlaceGrid {
         high: [f64; 2],
         searched: &[[f64; 3]],
     ) -> Result<Self, GridError> {
+        if searched.is_empty() {
+            return Err(GridError::Empty);
+        }
         let r = whole.resolution();
         let grid_from_map = whole.grid_from_map();
         let base = whole.origin().map(|o| (o / r).round() as i64);
         let dims = whole.dims();
         let first = [0, 1].map(|a| ((low[a] / r).floor() as i64 - base[a]).max(0));
         let last = [0, 1].map(|a| ((high[a] / r).floor() as i64 - base[a]).min(dims[a] - 1));
+        let end = [last[0] + 1, last[1] + 1, dims[2]];
+        // Cubes of an upper level first: one look skips a cube with nothing marked
+        // (most of a site), level 0 is read only inside marked ones.
+        let level = whole.levels().saturating_sub(1).min(3);
+        let side = 1_i64 << level;
         let mut marked: FxHashSet<[i64; 3]> = FxHashSet::default();
-        for x in first[0]..=last[0] {
-            for y in first[1]..=last[1] {
-                for z in 0..dims[2] {
-                    if whole.marked(0, [x, y, z]) {
-                        marked.insert([x + base[0], y + base[1], z + base[2]]);
+        for cx in (first[0]..end[0]).step_by(side as usize) {
+            for cy in (first[1]..end[1]).step_by(side as usize) {
+                for cz in (0..end[2]).step_by(side as usize) {
+                    if !whole.marked(level, [cx, cy, cz]) {
+                        continue;
+                    }
+                    for x in cx..(cx + side).min(end[0]) {
+                        for y in cy..(cy + side).min(end[1]) {
+                            for z in cz..(cz + side).min(end[2]) {
+                                if whole.marked(0, [x, y, z]) {
+                                    marked.insert([x + base[0], y + base[1], z + base[2]]);
+                                }
+                            }
+                        }
                     }
                 }
             }
@@ -348,9 +365,6 @@ impl PlaceGrid {
             .iter()
             .map(|p| (grid_from_map * Vector3::from(*p)).into())
             .collect();
-        if searched.is_empty() {
-            return Err(GridError::Empty);
-        }
         let (first_anchor, last_anchor) = bounds(&searched);
         let region = search_region(first_anchor, last_anchor, &params, Some(whole.region().min));
         let q = grid_from_map.quaternion();

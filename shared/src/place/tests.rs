@@ -736,3 +736,49 @@ fn an_inconsistent_block_table_is_refused() {
     let bigger = grid.dims.map(|d| d + 8);
     refused(directory(&data.directory, bigger), "another grid's size");
 }
+
+/// A tile's grid cut from the whole map's holds exactly the whole grid's marked level-0
+/// voxels that overlap the box (brute force over every voxel of the whole
+/// grid), none outside it, and searches translations on the whole grid's lattice
+/// around the tile's anchors.
+#[test]
+fn a_cut_grid_holds_the_whole_grids_voxels_in_its_box() {
+    let mut rng = StdRng::seed_from_u64(36);
+    let marked = clusters(&mut rng, 30, 24);
+    let params = params(4);
+    let whole_region = region([-30.0, -30.0, -2.0], [30.0, 30.0, 2.0]);
+    let whole = PlaceGrid::from_voxels(&marked, &params, [0.0, 0.0, 0.0, 1.0], whole_region)
+        .unwrap();
+    let whole = whole.view();
+    let (low, high) = ([-12.0, -5.0], [20.0, 9.0]);
+    let anchors = [[-2.3, 0.4, 0.7], [6.1, 2.2, 0.2]];
+    let cut = PlaceGrid::cut_from(&whole, low, high, &anchors).unwrap();
+    let cut = cut.view();
+    let r = whole.resolution();
+    let (o, dims) = (whole.origin(), whole.dims());
+    let mut inside = 0;
+    for x in 0..dims[0] {
+        for y in 0..dims[1] {
+            for z in 0..dims[2] {
+                let centre = [0, 1, 2].map(|a| o[a] + ([x, y, z][a] as f64 + 0.5) * r);
+                let corner = |a: usize| o[a] + [x, y][a] as f64 * r;
+                let in_box = (0..2).all(|a| corner(a) <= high[a] && corner(a) + r > low[a]);
+                let expected = in_box && whole.marked(0, [x, y, z]);
+                inside += usize::from(expected);
+                assert_eq!(cut.marked(0, cut.voxel_of(centre)), expected, "{centre:?}");
+            }
+        }
+    }
+    assert!(inside > 20, "the box holds {inside} marked voxels: too few to test");
+    let (min, max) = (cut.region().min, cut.region().max);
+    for a in 0..3 {
+        let steps = (min[a] - whole.region().min[a]) / r;
+        assert!((steps - steps.round()).abs() < 1e-9, "axis {a}: {steps} steps");
+        let lo = anchors.iter().map(|p| p[a]).fold(f64::INFINITY, f64::min);
+        let hi = anchors.iter().map(|p| p[a]).fold(f64::NEG_INFINITY, f64::max);
+        let margin = params.search_margin[a];
+        assert!(min[a] <= lo - margin && min[a] > lo - margin - r, "axis {a}: {min:?}");
+        assert!(max[a] >= hi + margin && max[a] < hi + margin + r, "axis {a}: {max:?}");
+    }
+    assert!(PlaceGrid::cut_from(&whole, low, high, &[]).is_err());
+}
