@@ -139,10 +139,22 @@ pub fn relocalize(
         active: Vec::new(),
     };
     // The candidates' coarse registrations run in parallel, so they share a coarse
-    // scan of their own; the ladder's stages build theirs on first use.
+    // scan of their own; the ladder's stages build theirs on first use. Finishing a
+    // place this session scored settles nothing: no coarse scan then.
+    let kept_place = match phase {
+        Phase::Finish(rank) => scored
+            .as_ref()
+            .and_then(|s| s.places.iter().find(|p| p.rank == rank).copied()),
+        Phase::Whole | Phase::Places | Phase::Score(_) => None,
+    };
     let mut candidates = prepare(scan, limits);
-    let (coarse_cloud, coarse_covs) = candidates.coarse().map_err(coarse_error)?;
+    let coarse = match kept_place {
+        Some(_) => None,
+        None => Some(candidates.coarse().map_err(coarse_error)?),
+    };
     let settle = |start: &Pose, stage: &_| {
+        let (coarse_cloud, coarse_covs) =
+            coarse.ok_or_else(|| Rejection::new(StatusCode::Internal, "no coarse scan"))?;
         register_approximate(
             map,
             &activation.selection,
@@ -177,9 +189,6 @@ pub fn relocalize(
             return Ok(answer);
         }
         Phase::Finish(rank) => {
-            let kept_place = scored
-                .as_ref()
-                .and_then(|s| s.places.iter().find(|p| p.rank == rank).copied());
             let lone = match kept_place {
                 Some(place) => Scored {
                     places: vec![place],

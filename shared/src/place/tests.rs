@@ -747,8 +747,8 @@ fn a_cut_grid_holds_the_whole_grids_voxels_in_its_box() {
     let marked = clusters(&mut rng, 30, 24);
     let params = params(4);
     let whole_region = region([-30.0, -30.0, -2.0], [30.0, 30.0, 2.0]);
-    let whole = PlaceGrid::from_voxels(&marked, &params, [0.0, 0.0, 0.0, 1.0], whole_region)
-        .unwrap();
+    let whole =
+        PlaceGrid::from_voxels(&marked, &params, [0.0, 0.0, 0.0, 1.0], whole_region).unwrap();
     let whole = whole.view();
     let (low, high) = ([-12.0, -5.0], [20.0, 9.0]);
     let anchors = [[-2.3, 0.4, 0.7], [6.1, 2.2, 0.2]];
@@ -769,16 +769,31 @@ fn a_cut_grid_holds_the_whole_grids_voxels_in_its_box() {
             }
         }
     }
-    assert!(inside > 20, "the box holds {inside} marked voxels: too few to test");
+    assert!(
+        inside > 20,
+        "the box holds {inside} marked voxels: too few to test"
+    );
     let (min, max) = (cut.region().min, cut.region().max);
     for a in 0..3 {
         let steps = (min[a] - whole.region().min[a]) / r;
-        assert!((steps - steps.round()).abs() < 1e-9, "axis {a}: {steps} steps");
+        assert!(
+            (steps - steps.round()).abs() < 1e-9,
+            "axis {a}: {steps} steps"
+        );
         let lo = anchors.iter().map(|p| p[a]).fold(f64::INFINITY, f64::min);
-        let hi = anchors.iter().map(|p| p[a]).fold(f64::NEG_INFINITY, f64::max);
+        let hi = anchors
+            .iter()
+            .map(|p| p[a])
+            .fold(f64::NEG_INFINITY, f64::max);
         let margin = params.search_margin[a];
-        assert!(min[a] <= lo - margin && min[a] > lo - margin - r, "axis {a}: {min:?}");
-        assert!(max[a] >= hi + margin && max[a] < hi + margin + r, "axis {a}: {max:?}");
+        assert!(
+            min[a] <= lo - margin && min[a] > lo - margin - r,
+            "axis {a}: {min:?}"
+        );
+        assert!(
+            max[a] >= hi + margin && max[a] < hi + margin + r,
+            "axis {a}: {max:?}"
+        );
     }
     assert!(PlaceGrid::cut_from(&whole, low, high, &[]).is_err());
 }
