@@ -73,21 +73,35 @@ impl CovisSnapshot {
     /// without recounting them.
     pub fn restricted_to(&self, ids: &[KeyframeId]) -> CovisSnapshot {
         let kept = |id: &KeyframeId| ids.binary_search(id).is_ok();
+        let listed = |list: &[KeyframeId]| -> Vec<KeyframeId> {
+            ids.iter()
+                .copied()
+                .filter(|id| list.binary_search(id).is_ok())
+                .collect()
+        };
+        // Looked up per keyframe of `ids` (edges ascend by their lower end, tree links by
+        // child): a tile's cut costs its own keyframes, not the whole map's edges.
+        let mut edges = Vec::new();
+        for &a in ids {
+            let from = self.edges.partition_point(|e| e.0 < a);
+            let to = from + self.edges[from..].partition_point(|e| e.0 == a);
+            edges.extend(self.edges[from..to].iter().filter(|e| kept(&e.1)));
+        }
+        let parents = ids
+            .iter()
+            .filter_map(|&c| {
+                let at = self.parents.partition_point(|l| l.0 < c);
+                self.parents
+                    .get(at)
+                    .filter(|l| l.0 == c && kept(&l.1))
+                    .copied()
+            })
+            .collect();
         CovisSnapshot {
-            keyframes: self.keyframes.iter().copied().filter(kept).collect(),
-            edges: self
-                .edges
-                .iter()
-                .copied()
-                .filter(|(a, b, _)| kept(a) && kept(b))
-                .collect(),
-            parents: self
-                .parents
-                .iter()
-                .copied()
-                .filter(|(c, p)| kept(c) && kept(p))
-                .collect(),
-            in_tree: self.in_tree.iter().copied().filter(kept).collect(),
+            keyframes: listed(&self.keyframes),
+            edges,
+            parents,
+            in_tree: listed(&self.in_tree),
         }
     }
 }

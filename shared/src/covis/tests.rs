@@ -265,7 +265,24 @@ fn a_restricted_snapshot_keeps_the_edges_among_its_keyframes() {
         whole.set_keyframe(*id, points.clone());
     }
     let ids: Vec<KeyframeId> = vec![2, 3, 4, 5, 9];
-    let part = whole.snapshot().restricted_to(&ids);
+    let snapshot = whole.snapshot();
+    let part = snapshot.restricted_to(&ids);
+    // The definition, filtered over everything: what the per-keyframe lookups must give.
+    let inside = |id: &KeyframeId| ids.contains(id);
+    assert_eq!(
+        part,
+        CovisSnapshot {
+            keyframes: snapshot.keyframes.iter().copied().filter(inside).collect(),
+            edges: (snapshot.edges.iter().copied())
+                .filter(|(a, b, _)| inside(a) && inside(b))
+                .collect(),
+            parents: (snapshot.parents.iter().copied())
+                .filter(|(c, p)| inside(c) && inside(p))
+                .collect(),
+            in_tree: snapshot.in_tree.iter().copied().filter(inside).collect(),
+        }
+    );
+    assert!(!part.parents.is_empty());
     let mut alone = CovisibilityGraph::new(options);
     for (id, points) in clouds.iter().filter(|(id, _)| ids.contains(id)) {
         alone.set_keyframe(*id, points.clone());
@@ -281,7 +298,6 @@ fn a_restricted_snapshot_keeps_the_edges_among_its_keyframes() {
     assert!(!strong(&alone.edges).is_empty());
     assert_eq!(strong(&part.edges), strong(&alone.edges));
     assert_eq!(part.keyframes, ids);
-    let inside = |id: &KeyframeId| ids.contains(id);
     assert!(part.edges.iter().all(|(a, b, _)| inside(a) && inside(b)));
     assert!(part.parents.iter().all(|(c, p)| inside(c) && inside(p)));
     assert!(part.in_tree.iter().all(inside));
