@@ -632,9 +632,9 @@ fn write_map(
                     })
             })
             .collect::<Result<_, _>>()?;
+        writer.write_keyframes(&keyframes)?;
         for k in &keyframes {
             covis.set_keyframe(k.id, k.map_points()?);
-            writer.write_keyframe(k)?;
             done.done += 1;
             done.points_done += k.len() as u64;
             progress(done);

@@ -12,7 +12,7 @@ use std::time::Instant;
 
 use kfmap_shared::geometry::{rotation_distance, translation_distance};
 use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
-use kfmap_shared::place::{GridBuilder, GridParams, RelocalizeParams, propose};
+use kfmap_shared::place::{GridBuilder, GridParams, RelocalizeParams, ScanUp, own_up, propose};
 use kfmap_testdata::shared_data_dir;
 use nalgebra::Point3;
 
@@ -65,7 +65,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     for (q, reference) in poses.iter().enumerate().skip(MAP_SCANS) {
         let points = scan(q)?;
         let t0 = Instant::now();
-        let proposal = propose(&view, &points, None, &relocalize)?;
+        let proposal = propose(
+            &view,
+            &points,
+            ScanUp::Own(own_up(&points, &relocalize)),
+            &relocalize,
+        )?;
         let ms = t0.elapsed().as_secs_f64() * 1e3;
         times.push(ms);
         let rank = proposal.poses.iter().position(|(pose, _)| {

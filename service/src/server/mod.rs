@@ -24,8 +24,8 @@ mod workers;
 
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
 use iceoryx2::node::{Node, NodeView};
@@ -198,6 +198,37 @@ fn live_nodes(node: &Node<Transport>, config: &iceoryx2::config::Config) -> Hash
     alive
 }
 
+/// A listing of live nodes: when it was taken, and the ids.
+type Listing = (Instant, Arc<HashSet<u128>>);
+
+/// The last listing per iceoryx2 prefix in this process. A process serving many tiles
+/// runs a housekeeping per tile, and a listing reads every node's files on the host:
+/// the tiles share one listing per interval (12 tiles listed the host 48 times a
+/// second, a tenth of a core on a host of 20 nodes: docs/DESIGN.md#notes-tiles).
+static LISTINGS: Mutex<Vec<(Option<String>, Listing)>> = Mutex::new(Vec::new());
+
+/// The live nodes under `prefix`, listed by whichever served map of this process asks
+/// first in each housekeeping interval.
+fn shared_live_nodes(
+    node: &Node<Transport>,
+    config: &iceoryx2::config::Config,
+    prefix: Option<&str>,
+) -> Listing {
+    // Held while listing: the others wait for this listing instead of making theirs.
+    let mut listings = LISTINGS.lock().unwrap_or_else(PoisonError::into_inner);
+    let fresh = |(p, (taken, _)): &&(Option<String>, Listing)| {
+        p.as_deref() == prefix && taken.elapsed() < HOUSEKEEPING
+    };
+    if let Some((_, listing)) = listings.iter().find(fresh) {
+        return listing.clone();
+    }
+    let taken = Instant::now();
+    let listing = (taken, Arc::new(live_nodes(node, config)));
+    listings.retain(|(p, _)| p.as_deref() != prefix);
+    listings.push((prefix.map(str::to_string), listing.clone()));
+    listing
+}
+
 /// Every request allocates and frees buffers of about the same size (decoded scan,
 /// pairings); glibc would hand large ones back to the kernel each time and fault them
 /// in again on the next request. Keep them in the process instead.
@@ -267,9 +298,9 @@ pub fn serve(
         .attach_interval(HOUSEKEEPING)
         .map_err(iox("attach the housekeeping interval"))?;
     let housekeeping = || {
-        let alive = live_nodes(&node, &config);
+        let (listed, alive) = shared_live_nodes(&node, &config, options.iceoryx_prefix.as_deref());
         context.unread.sweep();
-        let dropped = context.sessions.retain_alive(&alive);
+        let dropped = context.sessions.retain_alive(&alive, listed);
         if dropped > 0 {
             info!(dropped, "sessions of dead clients reclaimed");
         }

@@ -4,14 +4,16 @@
 //! client runs the steps as three phases, one request each (docs/DESIGN.md#notes-tiles):
 //! places, scores of the chosen places, the final registration of the best.
 
+use std::sync::{Mutex, PoisonError};
+
 use kfmap_protocol::{
     DecodedScan, FLAG_FINISH_CHOSEN, FLAG_LEVELLED, FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN,
     PLACES_FROM_RELIEF, Rejection, RequestHeader, StatusCode, place_to_wire, pose_to_wire,
 };
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::place::{
-    Proposal, Relocalization, RelocalizeStatus, Scored, decide, propose, score_places,
-    verification_selection,
+    GridView, Proposal, Relocalization, RelocalizeParams, RelocalizeStatus, ScanUp, Scored, decide,
+    own_up, propose, score_places, verification_selection,
 };
 use kfmap_shared::tracking::{covariance_to_wire, pose_covariance};
 use nalgebra::Vector3;
@@ -105,7 +107,7 @@ pub fn relocalize(
         Some(kept) => (Some(kept.points), kept.proposal, kept.scored),
         None => (
             None,
-            propose(&grid, scan.points, map_up, &params).map_err(|e| bad(format!("scan: {e}")))?,
+            proposed(&grid, scan.points, map_up, phase, &params)?,
             None,
         ),
     };
@@ -214,6 +216,47 @@ pub fn relocalize(
         found.status.name()
     );
     Ok(verdict_answer(&found, &against.active))
+}
+
+/// The search's places for `scan`: up from the client's tilt, else from its floors.
+fn proposed(
+    grid: &GridView<'_>,
+    scan: &[[f32; 3]],
+    map_up: Option<Vector3<f64>>,
+    phase: Phase,
+    params: &RelocalizeParams,
+) -> Result<Proposal, Rejection> {
+    let up = match map_up {
+        Some(up) => ScanUp::Map(up),
+        // Only the first phase fans one scan out to every tile at once.
+        None if phase == Phase::Places => ScanUp::Own(shared_own_up(scan, params)),
+        None => ScanUp::Own(own_up(scan, params)),
+    };
+    propose(grid, scan, up, params).map_err(|e| bad(format!("scan: {e}")))
+}
+
+/// A scan and the up found from its floors (with the tilt gate it was found under).
+type FoundUp = (Vec<[f32; 3]>, f64, Option<Vector3<f64>>);
+
+/// The last scan's own up in this process, for the places phase. Over a tile set the
+/// client asks every tile with the same scan at once; a process serving several tiles
+/// finds up once for them (it is most of a tile's first phase when the scan fits
+/// nowhere: docs/DESIGN.md#notes-tiles).
+static LAST_UP: Mutex<Option<FoundUp>> = Mutex::new(None);
+
+/// [`own_up`] of `scan`, shared by the maps this process serves.
+fn shared_own_up(scan: &[[f32; 3]], params: &RelocalizeParams) -> Option<Vector3<f64>> {
+    // Held while finding up: a tile asking with the same scan waits and reads it.
+    let mut last = LAST_UP.lock().unwrap_or_else(PoisonError::into_inner);
+    if let Some((points, tilt, up)) = last.as_ref()
+        && points == scan
+        && *tilt == params.max_tilt_deg
+    {
+        return *up;
+    }
+    let up = own_up(scan, params);
+    *last = Some((scan.to_vec(), params.max_tilt_deg, up));
+    up
 }
 
 /// The answer of a decided relocalization.

@@ -2,6 +2,7 @@
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
+use std::time::Instant;
 
 use kfmap_shared::gravity::{GravityParams, LiveAnswer, LiveGravity};
 use kfmap_shared::map::MergedSubmap;
@@ -57,10 +58,13 @@ pub struct ProposedFor {
     pub scored: Option<Scored>,
 }
 
+/// A session and when it was opened.
+type Opened = (Instant, Arc<Mutex<Session>>);
+
 /// Sessions by client node id.
 #[derive(Default)]
 pub struct Sessions {
-    by_client: Mutex<HashMap<u128, Arc<Mutex<Session>>>>,
+    by_client: Mutex<HashMap<u128, Opened>>,
 }
 
 impl Sessions {
@@ -68,15 +72,23 @@ impl Sessions {
     pub fn get(&self, client: u128, generation: u64) -> Arc<Mutex<Session>> {
         let mut map = self.by_client.lock().unwrap_or_else(|e| e.into_inner());
         map.entry(client)
-            .or_insert_with(|| Arc::new(Mutex::new(Session::new(generation))))
+            .or_insert_with(|| {
+                (
+                    Instant::now(),
+                    Arc::new(Mutex::new(Session::new(generation))),
+                )
+            })
+            .1
             .clone()
     }
 
-    /// Drops the sessions of clients not in `alive`; returns how many were dropped.
-    pub fn retain_alive(&self, alive: &std::collections::HashSet<u128>) -> usize {
+    /// Drops the sessions of clients not in `alive`, a listing of the live nodes taken
+    /// at `listed`; a session opened since is kept (its client may have started after
+    /// the listing). Returns how many were dropped.
+    pub fn retain_alive(&self, alive: &std::collections::HashSet<u128>, listed: Instant) -> usize {
         let mut map = self.by_client.lock().unwrap_or_else(|e| e.into_inner());
         let before = map.len();
-        map.retain(|client, _| alive.contains(client));
+        map.retain(|client, (opened, _)| alive.contains(client) || *opened >= listed);
         before - map.len()
     }
 
@@ -85,7 +97,7 @@ impl Sessions {
     pub fn gravity(&self) -> Vec<(u128, Option<LiveAnswer>)> {
         let sessions: Vec<(u128, Arc<Mutex<Session>>)> = {
             let map = self.by_client.lock().unwrap_or_else(|e| e.into_inner());
-            map.iter().map(|(c, s)| (*c, s.clone())).collect()
+            map.iter().map(|(c, (_, s))| (*c, s.clone())).collect()
         };
         let mut out: Vec<_> = sessions
             .into_iter()
@@ -115,4 +127,28 @@ impl Sessions {
 /// The client node id carried in a request header.
 pub fn client_of(words: [u64; 2]) -> u128 {
     (words[0] as u128) << 64 | words[1] as u128
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Sessions of clients missing from a listing are dropped, unless opened after the
+    /// listing was taken (their client may have started since); listed ones are kept.
+    #[test]
+    fn sessions_of_unlisted_clients_are_dropped_unless_opened_since_the_listing() {
+        let sessions = Sessions::default();
+        sessions.get(1, 0);
+        sessions.get(2, 0);
+        let listed = Instant::now();
+        sessions.get(3, 0);
+        let alive: std::collections::HashSet<u128> = [1].into();
+        assert_eq!(sessions.retain_alive(&alive, listed), 1);
+        let kept: Vec<u128> = sessions.gravity().iter().map(|(c, _)| *c).collect();
+        assert_eq!(kept, [1, 3]);
+        // The next listing, taken after client 3 opened its session, drops it.
+        std::thread::sleep(std::time::Duration::from_millis(2));
+        assert_eq!(sessions.retain_alive(&alive, Instant::now()), 1);
+        assert_eq!(sessions.len(), 1);
+    }
 }

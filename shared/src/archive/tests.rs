@@ -508,3 +508,28 @@ fn the_place_grid_round_trips_through_a_file() {
     }
     assert!(marked > 0);
 }
+
+/// Keyframes written in a batch (serialized and their grid parts found in parallel)
+/// make the file one-by-one writing makes, byte for byte.
+#[test]
+fn a_batch_of_keyframes_is_written_as_one_by_one() {
+    let dir = Scratch::new("archive-batch");
+    let map = sample_map(KeyframeMapOptions::default());
+    let one_by_one = baked(&dir, &map);
+    let batch = dir.file("batch.kfmap");
+    let mut writer = MapWriter::create(&batch, map.options()).unwrap();
+    let keyframes: Vec<Keyframe> = map.keyframes().cloned().collect();
+    writer.write_keyframes(&keyframes[..1]).unwrap();
+    writer.write_keyframes(&keyframes[1..]).unwrap();
+    // Ids must still ascend across batches.
+    assert!(writer.write_keyframes(&keyframes[..1]).is_err());
+    writer
+        .finish(map.next_id(), &map.covisibility().snapshot(), &[])
+        .unwrap();
+    let (a, b) = (
+        std::fs::read(&one_by_one).unwrap(),
+        std::fs::read(&batch).unwrap(),
+    );
+    assert!(a.len() > 10_000);
+    assert!(a == b, "the files differ");
+}

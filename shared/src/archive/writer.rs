@@ -1,10 +1,11 @@
-//! Writing a `.kfmap` file keyframe by keyframe (memory stays bounded by one keyframe),
-//! atomically: a temporary file beside the target, fsync, rename.
+//! Writing a `.kfmap` file keyframe by keyframe, or a batch at a time (memory stays bounded by
+//! the keyframes in hand), atomically: a temporary file beside the target, fsync, rename.
 
 use std::fs::File;
 use std::io::{BufWriter, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
+use rayon::prelude::*;
 use rkyv::rancor;
 use rkyv::util::AlignedVec;
 use xxhash_rust::xxh3::{Xxh3, xxh3_64};
@@ -21,7 +22,7 @@ use crate::covis::CovisSnapshot;
 use crate::geometry::{Pose, pose_to_xyz_quat};
 use crate::io::temp_path_beside;
 use crate::map::{Keyframe, KeyframeMap, KeyframeMapOptions};
-use crate::place::{GridBuilder, GridError, GridParams, PlaceGrid};
+use crate::place::{GridBuilder, GridContribution, GridError, GridParams, PlaceGrid};
 
 /// Points one keyframe segment may hold: its archive (about 70 bytes a point with tree
 /// and covariances) must stay well inside rkyv's 2 GiB relative-pointer reach.
@@ -38,6 +39,17 @@ pub struct WriteSummary {
     pub bytes: u64,
     /// The place grid's segment, bytes (0 without a grid).
     pub place_bytes: u64,
+}
+
+/// A keyframe serialized, with its part of the place grid (none when the grid is given).
+struct PreparedKeyframe {
+    bytes: AlignedVec<{ SEGMENT_ALIGN as usize }>,
+    /// xxh3-64 of `bytes`.
+    checksum: u64,
+    place: Option<GridContribution>,
+    point_bytes: u64,
+    covariance_bytes: u64,
+    has_view_dirs: bool,
 }
 
 /// A map file being written. Dropping it before [`finish`](Self::finish) removes the
@@ -108,23 +120,33 @@ impl MapWriter {
 
     /// Appends one keyframe (ids must ascend); returns its segment's size in bytes.
     pub fn write_keyframe(&mut self, keyframe: &Keyframe) -> Result<u64, ArchiveError> {
+        let prepared = self.prepare(keyframe)?;
+        self.commit(keyframe, prepared)
+    }
+
+    /// Appends keyframes (ids ascending), each serialized and its part of the place
+    /// grid found in parallel; the bytes are appended in order, so the file is the
+    /// one [`Self::write_keyframe`] one by one writes.
+    pub fn write_keyframes(&mut self, keyframes: &[Keyframe]) -> Result<(), ArchiveError> {
+        let prepared: Vec<PreparedKeyframe> = keyframes
+            .par_iter()
+            .map(|k| self.prepare(k))
+            .collect::<Result<_, _>>()?;
+        for (keyframe, prepared) in keyframes.iter().zip(prepared) {
+            self.commit(keyframe, prepared)?;
+        }
+        Ok(())
+    }
+
+    /// A keyframe's segment bytes and its part of the place grid: the work that needs
+    /// no other keyframe.
+    fn prepare(&self, keyframe: &Keyframe) -> Result<PreparedKeyframe, ArchiveError> {
         if keyframe.len() > MAX_KEYFRAME_POINTS {
             return Err(ArchiveError::KeyframeTooLarge {
                 id: keyframe.id,
                 points: keyframe.len(),
                 max: MAX_KEYFRAME_POINTS,
             });
-        }
-        if self
-            .index
-            .keyframes
-            .last()
-            .is_some_and(|k| k.id >= keyframe.id)
-        {
-            return Err(ArchiveError::Serialize(format!(
-                "keyframe {} out of order (ids must ascend)",
-                keyframe.id
-            )));
         }
         let view = keyframe.view()?;
         let tree = self.options.serialize_kdtrees.then(|| view.tree.into());
@@ -144,22 +166,12 @@ impl MapWriter {
             AlignedVec::<{ SEGMENT_ALIGN as usize }>::new(),
         )
         .map_err(|e| ArchiveError::Serialize(format!("keyframe {}: {e}", keyframe.id)))?;
-        let offset = self.append(&bytes, SEGMENT_ALIGN)?;
-        if self.given_place.is_none() {
-            self.place
-                .add_anchor(keyframe.pose.translation.vector.into());
-            self.place.add_points(keyframe.map_points()?);
-        }
+        let place = match self.given_place {
+            Some(_) => None,
+            None => Some(self.place.contribution(keyframe.map_points()?)),
+        };
         let n = keyframe.len() as u64;
-        let b = &keyframe.bbox;
-        self.index.keyframes.push(KeyframeEntry {
-            id: keyframe.id,
-            timestamp: keyframe.timestamp,
-            pose: pose_bits(&keyframe.pose),
-            bbox: [b.min[0], b.min[1], b.min[2], b.max[0], b.max[1], b.max[2]],
-            points: n,
-            offset,
-            len: bytes.len() as u64,
+        Ok(PreparedKeyframe {
             checksum: xxh3_64(&bytes),
             point_bytes: 12 * n * if record.view_dirs.is_some() { 2 } else { 1 }
                 + if record.weights.is_some() { 4 * n } else { 0 },
@@ -169,6 +181,48 @@ impl MapWriter {
                 0
             },
             has_view_dirs: record.view_dirs.is_some(),
+            bytes,
+            place,
+        })
+    }
+
+    /// Appends a prepared keyframe and enters it in the index.
+    fn commit(
+        &mut self,
+        keyframe: &Keyframe,
+        prepared: PreparedKeyframe,
+    ) -> Result<u64, ArchiveError> {
+        if self
+            .index
+            .keyframes
+            .last()
+            .is_some_and(|k| k.id >= keyframe.id)
+        {
+            return Err(ArchiveError::Serialize(format!(
+                "keyframe {} out of order (ids must ascend)",
+                keyframe.id
+            )));
+        }
+        let bytes = &prepared.bytes;
+        let offset = self.append(bytes, SEGMENT_ALIGN)?;
+        if let Some(place) = prepared.place {
+            self.place
+                .add_anchor(keyframe.pose.translation.vector.into());
+            self.place.add(place);
+        }
+        let b = &keyframe.bbox;
+        self.index.keyframes.push(KeyframeEntry {
+            id: keyframe.id,
+            timestamp: keyframe.timestamp,
+            pose: pose_bits(&keyframe.pose),
+            bbox: [b.min[0], b.min[1], b.min[2], b.max[0], b.max[1], b.max[2]],
+            points: keyframe.len() as u64,
+            offset,
+            len: bytes.len() as u64,
+            checksum: prepared.checksum,
+            point_bytes: prepared.point_bytes,
+            covariance_bytes: prepared.covariance_bytes,
+            has_view_dirs: prepared.has_view_dirs,
         });
         Ok(bytes.len() as u64)
     }

@@ -7,11 +7,6 @@
 //! hash table of plain arrays: see [`super::sparse`]), so a baked grid is read in
 //! place and costs memory in proportion to what is mapped, not to its bounding box.
 
-use std::collections::HashSet;
-use std::hash::BuildHasher;
-
-use rustc_hash::FxHashSet;
-
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
 use super::level::{estimate_up, levelling};
@@ -20,6 +15,7 @@ use super::sparse::{
     block_at, directory_index, home, key, shift_of, unentry, unkey,
 };
 use crate::options::{InvalidOption, ensure};
+use rayon::prelude::*;
 
 /// The translations searched: an axis-aligned box in the map frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -139,38 +135,76 @@ pub enum GridError {
 #[derive(Debug, Clone, Default)]
 pub struct GridBuilder {
     fine: f64,
-    keys: FxHashSet<[i64; 3]>,
+    /// The voxels of the clouds added, sorted and unique up to `sorted`; those of the
+    /// clouds added since come after (sorted again once they outgrow that part: a
+    /// sort of many keys is far cheaper than a hash insert per point).
+    keys: Vec<[i64; 3]>,
+    sorted: usize,
     anchors: Vec<[f64; 3]>,
     /// Sum of the up directions of the clouds added (map frame), each found from the
     /// cloud's own points as a scan's is.
     up_votes: Vector3<f64>,
 }
 
+/// One cloud's part of a grid ([`GridBuilder::contribution`]): found apart from the
+/// builder, so clouds can be prepared in parallel and added in order.
+#[derive(Debug, Clone, Default)]
+pub struct GridContribution {
+    /// Its voxels at the builder's resolution, sorted, unique.
+    keys: Vec<[i64; 3]>,
+    /// Its up direction weighted by its points (zero when it has no floor).
+    up_vote: Vector3<f64>,
+}
+
+/// Keys held unsorted before a [`GridBuilder`] sorts them in (at least; few in unit
+/// tests, so that their clouds are sorted in more than once).
+const FIRST_SORT_KEYS: usize = if cfg!(test) { 1 << 10 } else { 1 << 20 };
+
 impl GridBuilder {
     /// An empty builder for `params` (validated by the caller).
     pub fn new(params: &GridParams) -> Self {
         Self {
             fine: params.resolution / 2.0,
-            keys: FxHashSet::default(),
-            anchors: Vec::new(),
-            up_votes: Vector3::zeros(),
+            ..Self::default()
+        }
+    }
+
+    /// One cloud's map-frame points as a part of the grid (non-finite ones are skipped).
+    pub fn contribution(&self, points: impl IntoIterator<Item = [f64; 3]>) -> GridContribution {
+        let mut keys = Vec::new();
+        let mut cloud: Vec<[f32; 3]> = Vec::new();
+        for p in points {
+            if p.iter().all(|v| v.is_finite()) {
+                keys.push(p.map(|v| (v / self.fine).floor() as i64));
+                cloud.push(p.map(|v| v as f32));
+            }
+        }
+        keys.sort_unstable();
+        keys.dedup();
+        // Up as a scan from here finds it, so the grid levels alike (a map frame from
+        // poses or gravity need not have its floors level).
+        let up_vote = estimate_up(&cloud, MAP_MAX_TILT_DEG)
+            .map_or_else(Vector3::zeros, |up| up * cloud.len() as f64);
+        GridContribution { keys, up_vote }
+    }
+
+    /// Adds a cloud's part (clouds in the order the map holds them: the up votes sum
+    /// in that order).
+    pub fn add(&mut self, part: GridContribution) {
+        self.keys.extend_from_slice(&part.keys);
+        self.up_votes += part.up_vote;
+        let unsorted = self.keys.len() - self.sorted;
+        if unsorted > self.sorted.max(FIRST_SORT_KEYS) {
+            self.keys.par_sort_unstable();
+            self.keys.dedup();
+            self.sorted = self.keys.len();
         }
     }
 
     /// Adds one cloud's map-frame points (a keyframe's; non-finite ones are skipped).
     pub fn add_points(&mut self, points: impl IntoIterator<Item = [f64; 3]>) {
-        let mut cloud: Vec<[f32; 3]> = Vec::new();
-        for p in points {
-            if p.iter().all(|v| v.is_finite()) {
-                self.keys.insert(p.map(|v| (v / self.fine).floor() as i64));
-                cloud.push(p.map(|v| v as f32));
-            }
-        }
-        // Up as a scan from here finds it, so the grid levels alike (a map frame from
-        // poses or gravity need not have its floors level).
-        if let Some(up) = estimate_up(&cloud, MAP_MAX_TILT_DEG) {
-            self.up_votes += up * cloud.len() as f64;
-        }
+        let part = self.contribution(points);
+        self.add(part);
     }
 
     /// Adds a sensor position the map was seen from (a keyframe's): the grid reaches
@@ -196,13 +230,19 @@ impl GridBuilder {
         let (low, high) = bounds(&anchors);
         let reach = params.reach;
         let r = params.resolution;
-        let mut marked: FxHashSet<[i64; 3]> = FxHashSet::default();
-        for k in &self.keys {
-            let p = to_grid(centre(k));
-            if (0..3).all(|a| p[a] >= low[a] - reach && p[a] <= high[a] + reach) {
-                marked.insert(p.map(|v| (v / r).floor() as i64));
-            }
-        }
+        // Keys may repeat (clouds added since the last sort): the voxels are made unique.
+        let mut marked: Vec<[i64; 3]> = self
+            .keys
+            .par_iter()
+            .filter_map(|k| {
+                let p = to_grid(centre(k));
+                (0..3)
+                    .all(|a| p[a] >= low[a] - reach && p[a] <= high[a] + reach)
+                    .then(|| p.map(|v| (v / r).floor() as i64))
+            })
+            .collect();
+        marked.par_sort_unstable();
+        marked.dedup();
         let region = search_region(low, high, params, None);
         let q = grid_from_map.quaternion();
         PlaceGrid::from_voxels(&marked, params, [q.i, q.j, q.k, q.w], region)
@@ -264,9 +304,9 @@ pub struct PlaceGrid {
 
 impl PlaceGrid {
     /// The grid over marked level-0 voxel keys (`floor(p / resolution)` per axis, grid
-    /// frame).
-    pub fn from_voxels<S: BuildHasher>(
-        marked: &HashSet<[i64; 3], S>,
+    /// frame; a key may repeat).
+    pub fn from_voxels(
+        marked: &[[i64; 3]],
         params: &GridParams,
         grid_from_map: [f64; 4],
         region: SearchRegion,
@@ -292,8 +332,8 @@ impl PlaceGrid {
             });
         }
         let dims = [span(0) as u32, span(1) as u32, span(2) as u32];
-        let relative: FxHashSet<[i64; 3]> = marked
-            .iter()
+        let relative: Vec<[i64; 3]> = marked
+            .par_iter()
             .map(|k| [k[0] - low[0], k[1] - low[1], k[2] - low[2]])
             .collect();
         let levels_data = sparse::build(&relative, dims.map(i64::from), params.levels, MAX_BLOCKS)
@@ -337,7 +377,8 @@ impl PlaceGrid {
         // (most of a site), level 0 is read only inside marked ones.
         let level = whole.levels().saturating_sub(1).min(3);
         let side = 1_i64 << level;
-        let mut marked: FxHashSet<[i64; 3]> = FxHashSet::default();
+        // Each voxel is visited once: the keys are unique.
+        let mut marked: Vec<[i64; 3]> = Vec::new();
         for cx in (first[0]..end[0]).step_by(side as usize) {
             for cy in (first[1]..end[1]).step_by(side as usize) {
                 for cz in (0..end[2]).step_by(side as usize) {
@@ -348,7 +389,7 @@ impl PlaceGrid {
                         for y in cy..(cy + side).min(end[1]) {
                             for z in cz..(cz + side).min(end[2]) {
                                 if whole.marked(0, [x, y, z]) {
-                                    marked.insert([x + base[0], y + base[1], z + base[2]]);
+                                    marked.push([x + base[0], y + base[1], z + base[2]]);
                                 }
                             }
                         }

@@ -20,12 +20,13 @@ pub mod search;
 pub mod sparse;
 
 pub use grid::{
-    GridBuilder, GridError, GridParams, GridView, LevelBlocks, PlaceGrid, SearchRegion,
+    GridBuilder, GridContribution, GridError, GridParams, GridView, LevelBlocks, PlaceGrid,
+    SearchRegion,
 };
 pub use level::{estimate_up, levelling};
 pub use relocalize::{
-    Proposal, Relocalization, RelocalizeParams, RelocalizeStatus, Scored, ScoredPlace, decide,
-    propose, score_places, verification_selection, verify,
+    Proposal, Relocalization, RelocalizeParams, RelocalizeStatus, ScanUp, Scored, ScoredPlace,
+    decide, own_up, propose, score_places, verification_selection, verify,
 };
 pub use search::{Placement, SearchOutcome, SearchParams, search};
 

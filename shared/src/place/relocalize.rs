@@ -196,23 +196,35 @@ pub struct Relocalization {
     pub registrations: u32,
 }
 
-/// Proposes placements of `scan` (sensor frame) over `grid`. `map_up` is the map's z
-/// in the sensor frame when the client knows its tilt (an IMU's gravity, in a map
-/// levelled on gravity); otherwise up is estimated from the scan's floor-like planes.
+/// Which way is up in a scan's sensor frame, for [`propose`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ScanUp {
+    /// The map's z, when the client knows the sensor's tilt (an IMU's gravity, in a
+    /// map levelled on gravity).
+    Map(Vector3<f64>),
+    /// Up found from the scan's own floor-like planes ([`own_up`]); `None` when it has
+    /// none within the tilt gate (then nothing is proposed).
+    Own(Option<Vector3<f64>>),
+}
+
+/// Up from the scan's own floor-like planes, within `params.max_tilt_deg` of its z.
+pub fn own_up(scan: &[[f32; 3]], params: &RelocalizeParams) -> Option<Vector3<f64>> {
+    estimate_up(scan, params.max_tilt_deg)
+}
+
+/// Proposes placements of `scan` (sensor frame, `up` as [`ScanUp`] says) over `grid`.
 pub fn propose(
     grid: &GridView<'_>,
     scan: &[[f32; 3]],
-    map_up: Option<Vector3<f64>>,
+    up: ScanUp,
     params: &RelocalizeParams,
 ) -> Result<Proposal, CloudError> {
     // The grid is levelled on the map's floors: a scan levelled on its own floors is
     // already in that frame; one levelled on the map's z is turned into it per yaw.
-    let (up, grid_from_levelled) = match map_up {
-        Some(up) => (up, grid.grid_from_map()),
-        None => match estimate_up(scan, params.max_tilt_deg) {
-            Some(up) => (up, UnitQuaternion::identity()),
-            None => return Ok(Proposal::default()),
-        },
+    let (up, grid_from_levelled) = match up {
+        ScanUp::Map(up) => (up, grid.grid_from_map()),
+        ScanUp::Own(Some(up)) => (up, UnitQuaternion::identity()),
+        ScanUp::Own(None) => return Ok(Proposal::default()),
     };
     let level = levelling(&up);
     let searched = |ground: Ground| -> Result<SearchOutcome, CloudError> {

@@ -13,9 +13,6 @@
 //!
 //! A block's bits: word `z`, bit `x + 8 y` (local coordinates 0..8).
 
-use std::collections::HashSet;
-use std::hash::BuildHasher;
-
 use rustc_hash::{FxHashMap as HashMap, FxHashSet};
 
 /// Voxels per block edge.
@@ -107,8 +104,8 @@ pub struct SparseLevels {
 /// answered by the grid's first voxel, see [`crate::place::GridView::marked`]).
 /// `max_blocks` bounds the blocks kept (the top level's); past it, `Err` gives the
 /// blocks counted so far.
-pub fn build<S: BuildHasher>(
-    marked: &HashSet<[i64; 3], S>,
+pub fn build(
+    marked: &[[i64; 3]],
     dims: [i64; 3],
     levels: usize,
     max_blocks: u64,

@@ -56,7 +56,7 @@ fn dilated_levels_mark_the_cubes_that_hold_a_marked_voxel() {
         })
         .collect();
     let grid = PlaceGrid::from_voxels(
-        &marked,
+        &listed(&marked),
         &params(5),
         [0.0, 0.0, 0.0, 1.0],
         region([0.0; 3], [1.0; 3]),
@@ -107,7 +107,7 @@ fn the_search_finds_the_exhaustive_optimum() {
             })
             .collect();
         let grid = PlaceGrid::from_voxels(
-            &marked,
+            &listed(&marked),
             &params(6),
             [0.0, 0.0, 0.0, 1.0],
             region([0.0; 3], [1.0; 3]),
@@ -336,6 +336,80 @@ fn a_grid_levels_the_map_and_marks_every_point() {
     assert!(!view.marked(0, view.voxel_of([30.0, 30.0, 1.0])));
 }
 
+/// Clouds added one by one (their keys sorted in several times, some voxels in many
+/// clouds, some points not finite) mark exactly the voxels brute force finds: each
+/// point's half-resolution voxel centre, levelled as the grid is, within the reach of
+/// the anchors' box.
+#[test]
+fn a_builder_marks_exactly_the_voxels_of_its_points() {
+    let mut rng = StdRng::seed_from_u64(8);
+    let params = GridParams {
+        resolution: 0.5,
+        reach: 6.0,
+        ..GridParams::default()
+    };
+    let mut builder = GridBuilder::new(&params);
+    let mut every: Vec<[f64; 3]> = Vec::new();
+    for cloud in 0..30 {
+        let x0 = f64::from(cloud) * 0.7;
+        let mut points: Vec<[f64; 3]> = (0..400)
+            .map(|_| {
+                [
+                    x0 + rng.random_range(0.0..8.0),
+                    rng.random_range(-4.0..4.0),
+                    rng.random_range(0.0..3.0),
+                ]
+            })
+            .collect();
+        // A floor, so each cloud finds its up.
+        points.extend((0..300).map(|_| {
+            [
+                x0 + rng.random_range(0.0..8.0),
+                rng.random_range(-4.0..4.0),
+                0.0,
+            ]
+        }));
+        points.push([f64::NAN, 0.0, 0.0]);
+        builder.add_anchor([x0 + 4.0, 0.0, 1.5]);
+        builder.add_points(points.iter().copied());
+        every.extend(points.iter().filter(|p| p.iter().all(|v| v.is_finite())));
+    }
+    let grid = builder.finish(&params).unwrap();
+    let view = grid.view();
+    let rotation = view.grid_from_map();
+    let to_grid = |p: [f64; 3]| -> [f64; 3] { (rotation * Vector3::from(p)).into() };
+    let anchors: Vec<[f64; 3]> = (0..30)
+        .map(|c| to_grid([f64::from(c) * 0.7 + 4.0, 0.0, 1.5]))
+        .collect();
+    let low =
+        [0, 1, 2].map(|a| anchors.iter().map(|p| p[a]).fold(f64::MAX, f64::min) - params.reach);
+    let high =
+        [0, 1, 2].map(|a| anchors.iter().map(|p| p[a]).fold(f64::MIN, f64::max) + params.reach);
+    let fine = params.resolution / 2.0;
+    let expected: HashSet<[i64; 3]> = every
+        .iter()
+        .map(|p| to_grid(p.map(|v| ((v / fine).floor() + 0.5) * fine)))
+        .filter(|c| (0..3).all(|a| c[a] >= low[a] && c[a] <= high[a]))
+        .map(|c| c.map(|v| (v / params.resolution).floor() as i64))
+        .collect();
+    let origin = view
+        .origin()
+        .map(|o| (o / params.resolution).round() as i64);
+    let dims = view.dims();
+    let mut marked = HashSet::new();
+    for x in 0..dims[0] {
+        for y in 0..dims[1] {
+            for z in 0..dims[2] {
+                if view.marked(0, [x, y, z]) {
+                    marked.insert([x + origin[0], y + origin[1], z + origin[2]]);
+                }
+            }
+        }
+    }
+    assert!(expected.len() > 4000, "{} voxels", expected.len());
+    assert_eq!(marked, expected);
+}
+
 #[test]
 fn bad_grid_options_are_named() {
     let bad = GridParams {
@@ -412,7 +486,7 @@ fn sparse_levels_equal_the_brute_force_definition() {
         let low = [0, 1, 2].map(|a| list.iter().map(|k| k[a]).min().unwrap());
         let high = [0, 1, 2].map(|a| list.iter().map(|k| k[a]).max().unwrap());
         let grid = PlaceGrid::from_voxels(
-            &marked,
+            &listed(&marked),
             &params(levels),
             [0.0, 0.0, 0.0, 1.0],
             region([0.0; 3], [1.0; 3]),
@@ -513,7 +587,7 @@ fn a_sparse_site_costs_what_is_mapped() {
     }
     let levels = 8;
     let grid = PlaceGrid::from_voxels(
-        &marked,
+        &listed(&marked),
         &params(levels),
         [0.0, 0.0, 0.0, 1.0],
         region([0.0; 3], [1.0; 3]),
@@ -556,7 +630,7 @@ fn an_inconsistent_block_table_is_refused() {
     let mut rng = StdRng::seed_from_u64(9);
     let marked = clusters(&mut rng, 4, 2000);
     let grid = PlaceGrid::from_voxels(
-        &marked,
+        &listed(&marked),
         &params(6),
         [0.0, 0.0, 0.0, 1.0],
         region([0.0; 3], [1.0; 3]),
@@ -695,7 +769,7 @@ fn an_inconsistent_block_table_is_refused() {
     // A compact grid's directory: entries past the bits, or a directory of another size.
     let marked = clusters(&mut rng, 3, 12);
     let grid = PlaceGrid::from_voxels(
-        &marked,
+        &listed(&marked),
         &params(6),
         [0.0, 0.0, 0.0, 1.0],
         region([0.0; 3], [1.0; 3]),
@@ -747,8 +821,13 @@ fn a_cut_grid_holds_the_whole_grids_voxels_in_its_box() {
     let marked = clusters(&mut rng, 30, 24);
     let params = params(4);
     let whole_region = region([-30.0, -30.0, -2.0], [30.0, 30.0, 2.0]);
-    let whole =
-        PlaceGrid::from_voxels(&marked, &params, [0.0, 0.0, 0.0, 1.0], whole_region).unwrap();
+    let whole = PlaceGrid::from_voxels(
+        &listed(&marked),
+        &params,
+        [0.0, 0.0, 0.0, 1.0],
+        whole_region,
+    )
+    .unwrap();
     let whole = whole.view();
     let (low, high) = ([-12.0, -5.0], [20.0, 9.0]);
     let anchors = [[-2.3, 0.4, 0.7], [6.1, 2.2, 0.2]];
@@ -796,4 +875,9 @@ fn a_cut_grid_holds_the_whole_grids_voxels_in_its_box() {
         );
     }
     assert!(PlaceGrid::cut_from(&whole, low, high, &[]).is_err());
+}
+
+/// A set of voxels as the list a grid is built from.
+fn listed<S: std::hash::BuildHasher>(set: &HashSet<[i64; 3], S>) -> Vec<[i64; 3]> {
+    set.iter().copied().collect()
 }

@@ -89,10 +89,8 @@ pub(super) fn bake_synthetic_at(
                 Keyframe::build(i as u64, pose_of(i), i as f64, c, &options.covariance)
             })
             .collect::<Result<_, _>>()?;
-        for k in &keyframes {
-            writer.write_keyframe(k)?;
-            bar.inc(1);
-        }
+        writer.write_keyframes(&keyframes)?;
+        bar.inc(keyframes.len() as u64);
         seconds += started.elapsed().as_secs_f64();
     }
     let started = Instant::now();

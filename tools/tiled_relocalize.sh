@@ -1,0 +1,87 @@
+#!/usr/bin/env bash
+# Relocalization over a tile set against the merged map, through the commands a user
+# types (docs/DESIGN.md#notes-tiles): simulates the courtyard drive the tiled test
+# uses, bakes it into tiles of --tile-size metres (default 10; the test's) with the
+# merged map kept, serves the tiles on four emulated hosts (a `kfmap serve --tiles
+# --only` + `kfmap gateway` pair each, own iceoryx2 prefix and port) and the merged map
+# on a fifth server, then relocalizes every 24th scan with `kfmap relocalize --remote`
+# over the tiles and with `kfmap relocalize` on the merged map, and prints both
+# latencies. Runs itself inside a private network namespace (`unshare -rn`: only
+# loopback). Times are printed, never asserted; every host shares this machine's cores.
+#
+#   tools/tiled_relocalize.sh [TILE_SIZE_M]      (kfmap from target/release)
+set -euo pipefail
+tile_size=${1:-10}
+here=$(cd "$(dirname "$0")/.." && pwd)
+kfmap=${KFMAP:-$here/target/release/kfmap}
+if [ -z "${KFMAP_IN_NETNS:-}" ]; then
+    exec unshare -rn env KFMAP_IN_NETNS=1 KFMAP="$kfmap" bash "$0" "$tile_size"
+fi
+ip link set lo up
+work=$(mktemp -d)
+prefix="tiledreloc$$"
+pids=()
+cleanup() {
+    kill "${pids[@]}" 2>/dev/null || true
+    wait 2>/dev/null || true
+    # iceoryx2 keeps a prefix's management segment after its last node.
+    rm -rf "$work" /dev/shm/"$prefix"*
+}
+trap cleanup EXIT
+
+# Waits (at most 60 s) for a line starting with $2 in file $1.
+wait_ready() {
+    for _ in $(seq 600); do
+        grep -q "^$2" "$1" 2>/dev/null && return 0
+        sleep 0.1
+    done
+    echo "no '$2' in $1 after 60 s:" >&2
+    cat "$1" >&2
+    exit 1
+}
+
+"$kfmap" simulate --preset courtyard --seconds 36 --beams 16 --speed 8 --out "$work/sim" >/dev/null
+"$kfmap" bake --dataset "$work/sim" --out "$work/tiles" --tile-size "$tile_size" --halo 10 \
+    --keep-merged | grep "cut into"
+mapfile -t ids < <(sed -n 's/^id = "\(.*\)"/\1/p' "$work/tiles/tiles.toml")
+for h in 0 1 2 3; do
+    only=$(for ((i = h; i < ${#ids[@]}; i += 4)); do printf '%s,' "${ids[$i]}"; done)
+    only=${only%,}
+    [ -n "$only" ] || continue
+    "$kfmap" serve --tiles "$work/tiles" --only "$only" --map-name court \
+        --iceoryx-prefix "$prefix$h" >"$work/serve$h.out" 2>&1 &
+    pids+=($!)
+    wait_ready "$work/serve$h.out" "ready:"
+    printf '[gateway]\nrequest-timeout-s = 120.0\n' >"$work/gateway$h.toml"
+    "$kfmap" gateway --config "$work/gateway$h.toml" --tiles "$work/tiles" --only "$only" \
+        --map-name court --iceoryx-prefix "$prefix$h" \
+        --listen "tcp/127.0.0.1:$((17460 + h))" >"$work/gateway$h.out" 2>&1 &
+    pids+=($!)
+    wait_ready "$work/gateway$h.out" "ready: gateway"
+    endpoints+=("tcp/127.0.0.1:$((17460 + h))")
+done
+"$kfmap" serve --map "$work/tiles/merged.kfmap" --map-name merged \
+    --iceoryx-prefix "${prefix}m" >"$work/merged.out" 2>&1 &
+pids+=($!)
+wait_ready "$work/merged.out" "ready:"
+
+mapfile -t scans < <(ls "$work"/sim/scans/* | awk 'NR % 24 == 1')
+remote=$(IFS=,; echo "${endpoints[*]}")
+"$kfmap" relocalize --remote "$remote" --map-name court --timeout 120 --json "${scans[@]}" \
+    >"$work/tiled.jsonl"
+"$kfmap" relocalize --map-name merged --iceoryx-prefix "${prefix}m" --timeout 120 --json \
+    "${scans[@]}" >"$work/merged.jsonl"
+python3 - "$work/tiled.jsonl" "$work/merged.jsonl" "${#ids[@]}" <<'EOF'
+import json, sys
+tiled = [json.loads(l) for l in open(sys.argv[1])]
+merged = [json.loads(l) for l in open(sys.argv[2])]
+same = sum(a["status"] == b["status"] for a, b in zip(tiled, merged))
+t = sum(a["latency_ms"] for a in tiled)
+m = sum(b["latency_ms"] for b in merged)
+for a, b in zip(tiled, merged):
+    if a["status"] == "found" or b["status"] == "found":
+        print(f'  {a["scan"].rsplit("/", 1)[-1]}: {a["status"]} {a["latency_ms"]:.0f} ms over the tiles, '
+              f'{b["status"]} {b["latency_ms"]:.0f} ms on the merged map')
+print(f"{len(tiled)} scans over {sys.argv[3]} tiles: {same} with the merged map's status; "
+      f"{t:.0f} ms against {m:.0f} ms ({t / m:.2f}x)")
+EOF
