@@ -188,6 +188,7 @@ impl TileCut<'_> {
         // points came, and tries the same translations (docs/DESIGN.md#notes-tiles).
         // Relocalization searches around the core's keyframes: the halo's places are
         // the neighbours' to find.
+        let mut search_region = None;
         if let Some(whole_grid) = &self.whole_grid {
             let reach = GridParams::default().reach;
             let searched: Vec<[f64; 3]> = ids
@@ -197,7 +198,7 @@ impl TileCut<'_> {
                 .filter(|t| geometry.tile_of(t.x, t.y) == (col, row))
                 .map(Into::into)
                 .collect();
-            writer.use_place_grid(PlaceGrid::cut_from(
+            let grid = PlaceGrid::cut_from(
                 whole_grid,
                 [x0 - reach, y0 - reach],
                 [
@@ -205,7 +206,11 @@ impl TileCut<'_> {
                     y0 + geometry.tile_size + reach,
                 ],
                 &searched,
-            ));
+            );
+            // The index carries every tile's region: each server's share of a search
+            // over the set needs its neighbours' (`SearchShare`).
+            search_region = grid.as_ref().ok().map(|g| g.region);
+            writer.use_place_grid(grid);
         }
         let in_core = |p: &[f64; 3]| {
             p[0] >= x0
@@ -258,6 +263,8 @@ impl TileCut<'_> {
                 core_keyframes: core,
                 points: written.points,
                 bytes: written.bytes,
+                search_min: search_region.map(|r| r.min),
+                search_max: search_region.map(|r| r.max),
             },
             place_bytes: written.place_bytes,
             halo_check,

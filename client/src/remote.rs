@@ -234,12 +234,14 @@ impl RemoteLink {
         self.routing.as_ref().map(|(index, _)| index)
     }
 
-    /// The tile set's core squares, when the map is served in tiles.
-    fn tile_geometry(&self) -> Option<TileGeometry> {
-        self.tile_index().map(|index| TileGeometry {
-            tile_size: index.tile_size,
-            halo: index.halo,
-        })
+    /// The tile set's core squares, when the map is served in tiles whose searches
+    /// overlap: a cut by an older kfmap, whose index gives no search regions, so each
+    /// tile searches its whole region and neighbours propose the same places. A cut
+    /// with regions splits the search among the tiles (`SearchShare`).
+    fn overlapping_cores(&self) -> Option<TileGeometry> {
+        self.tile_index()
+            .filter(|index| index.tiles.iter().all(|t| t.search_min.is_none()))
+            .map(TileIndex::geometry)
     }
 
     /// The tile the last routed request went to.
@@ -315,7 +317,7 @@ impl RemoteLink {
         };
         let places = self.ask_every_tile(phase(FLAG_PLACES_ONLY, 0), timeout)?;
         let (chosen, order, searched_us) =
-            match crate::tiled::choose_places(&places, self.tile_geometry().as_ref())? {
+            match crate::tiled::choose_places(&places, self.overlapping_cores().as_ref())? {
                 Choice::Answer(frame) => return Ok(frame),
                 Choice::Score {
                     chosen,

@@ -65,9 +65,11 @@ type Proposed<'a> = (f64, &'a str, usize, usize, Pose);
 /// `[relocalize.search]`). A tile's relief places ([`PLACES_FROM_RELIEF`]) count only
 /// when no tile proposed from structure: one search of the whole map falls back to
 /// relief only when its structure search found nothing.
-/// `cores` (the tile set's geometry) names the tile whose core holds a place: a
-/// neighbour's copy of a place in an answering tile's core is left out, the owner's
-/// kept (it holds the keyframes nearest the place, as the halo check verifies).
+/// `cores` (the geometry of a tile set whose tiles' searches overlap, else `None`)
+/// names the tile whose core holds a place: a neighbour's copy of a place in an
+/// answering tile's core is left out, the owner's kept (it holds the keyframes nearest
+/// the place, as the halo check verifies). Tiles that share the search out
+/// (`SearchShare`) propose each translation once; then `cores` is `None`.
 pub(crate) fn choose_places(
     answers: &[(String, Vec<u8>)],
     cores: Option<&TileGeometry>,

@@ -14,7 +14,7 @@ pub mod config;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use kfmap_client::remote::zenoh_config;
 use kfmap_client::{ClientError, ClientOptions, Connection};
@@ -193,6 +193,7 @@ fn watch_servers(
     // server's ports stay registered until the dead-node cleanup below, which took 39 ms
     // for a three-tile server under load: its clients must hear sooner (issue 35: 50 ms).
     let mut watched: Vec<Vec<u32>> = options.tiles.iter().map(|_| Vec::new()).collect();
+    let mut last_cleanup = Instant::now();
     while !stop.load(Ordering::SeqCst) {
         for ((served, token), pids) in options.tiles.iter().zip(&mut tokens).zip(&mut watched) {
             if token.is_some() && !pids.is_empty() && !pids.iter().any(|&p| process_alive(p)) {
@@ -203,20 +204,36 @@ fn watch_servers(
                 );
             }
         }
-        // A killed server's ports stay registered until some node cleans them up.
-        node.try_cleanup_dead_nodes();
-        for (((served, token), service), pids) in options
-            .tiles
-            .iter()
-            .zip(&mut tokens)
-            .zip(&mut services)
-            .zip(&mut watched)
-        {
-            let key = alive_key(&options.map_name, &served.tile);
+        for (served, service) in options.tiles.iter().zip(&mut services) {
             if service.is_none() {
                 *service = open_rpc(&node, &served.local_map).ok();
             }
-            let servers = service.as_ref().map(server_processes).unwrap_or_default();
+        }
+        let listed = |services: &[Option<Rpc>]| -> Vec<Vec<u32>> {
+            services
+                .iter()
+                .map(|s| s.as_ref().map(server_processes).unwrap_or_default())
+                .collect()
+        };
+        let mut listing = listed(&services);
+        // A killed server's ports stay registered until some node cleans them up.
+        // Cleaning lists every node of the prefix (files read and parsed): every 10 ms
+        // it kept 7-18 % of a core busy per idle gateway, so only when a listed
+        // server's process is gone (or out of sight), and now and then for other nodes.
+        let dead_listed_server = listing.iter().flatten().any(|&p| !process_alive(p));
+        if dead_listed_server || last_cleanup.elapsed() >= CLEANUP_INTERVAL {
+            node.try_cleanup_dead_nodes();
+            last_cleanup = Instant::now();
+            listing = listed(&services);
+        }
+        for (((served, token), servers), pids) in options
+            .tiles
+            .iter()
+            .zip(&mut tokens)
+            .zip(listing)
+            .zip(&mut watched)
+        {
+            let key = alive_key(&options.map_name, &served.tile);
             // Servers whose processes were seen to die are not probed: their requests
             // would wait for the cleanup or the timeout.
             let dead_listed = !pids.is_empty() && servers.iter().all(|p| pids.contains(p));
@@ -250,6 +267,9 @@ fn watch_servers(
     }
     Ok(())
 }
+
+/// Dead nodes of the prefix are cleaned up at least this often.
+const CLEANUP_INTERVAL: Duration = Duration::from_secs(1);
 
 /// True while process `pid` exists (Linux: its /proc entry).
 fn process_alive(pid: u32) -> bool {

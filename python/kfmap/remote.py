@@ -149,6 +149,9 @@ class TileIndex:
     halo: float
     keyframes: int
     tiles: tuple[TileEntry, ...]
+    #: True when the index gives the tiles' search regions (``search-min``): the tiles
+    #: then split a relocalization's search among them, each translation tried once.
+    shares_search: bool = False
 
     @classmethod
     def parse(cls, text: str, where: str = "tiles.toml") -> TileIndex:
@@ -208,8 +211,9 @@ class TileIndex:
             seen.add((col, row))
             tiles.append(TileEntry(tid, col, row))
         keyframes = doc.get("keyframes", 0)
+        shares = any(isinstance(t, dict) and "search-min" in t for t in raw)
         return cls(size, halo, int(keyframes) if isinstance(keyframes, int) else 0,
-                   tuple(tiles))
+                   tuple(tiles), shares)
 
     def distance_to_core(self, i: int, x: float, y: float) -> float:
         """Chebyshev distance from ``(x, y)`` to tile ``i``'s core square (0 inside)."""
@@ -743,7 +747,11 @@ class RemoteConnection:
             return self._tiles.index(tile)
 
         places = self._ask_every_tile(phase(wire.FLAG_PLACES_ONLY, 0))
-        frame, chosen, order, searched_us = choose_places(places, self.tile_index)
+        # Tiles that split the search propose each place once; older cuts' tiles
+        # overlap, and a neighbour's copy of a place in an answering core is dropped.
+        index = self.tile_index
+        overlapping = None if index is None or index.shares_search else index
+        frame, chosen, order, searched_us = choose_places(places, overlapping)
         if frame is not None:
             return _decode_answer(frame)
         requests = [(tile_number(t), phase(wire.FLAG_SCORE_CHOSEN, bits)) for t, bits in chosen]

@@ -388,6 +388,9 @@ def tile_site(kfmap_bin, tmp_path_factory):
     subprocess.run([kfmap_bin, "bake", "--dataset", data, "--out", tiles, "--tile-size", "10",
                     "--halo", "10", "--keep-merged"], **run)
     index = kr.TileIndex.parse((tiles / "tiles.toml").read_text())
+    # The cut gives each tile its search region: the tiles split a relocalization.
+    assert index.shares_search
+    assert not _index([(0, 0)], 10.0, 5.0).shares_search
     ids = [t.id for t in index.tiles]
     shares = [ids[0::2], ids[1::2]]
     base = os.environ.get("KFMAP_TEST_PREFIX") or f"kfpytest{os.getpid()}_"

@@ -12,7 +12,9 @@ use std::time::Instant;
 
 use kfmap_shared::geometry::{rotation_distance, translation_distance};
 use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
-use kfmap_shared::place::{GridBuilder, GridParams, RelocalizeParams, ScanUp, own_up, propose};
+use kfmap_shared::place::{
+    Columns, GridBuilder, GridParams, RelocalizeParams, ScanUp, own_up, propose,
+};
 use kfmap_testdata::shared_data_dir;
 use nalgebra::Point3;
 
@@ -69,6 +71,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             &view,
             &points,
             ScanUp::Own(own_up(&points, &relocalize)),
+            Columns::All,
             &relocalize,
         )?;
         let ms = t0.elapsed().as_secs_f64() * 1e3;

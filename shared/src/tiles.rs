@@ -14,6 +14,9 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+mod share;
+pub use share::SearchShare;
+
 /// The index file of a tile set, in its directory.
 pub const INDEX_FILE: &str = "tiles.toml";
 /// Autoware's metadata of a divided point-cloud map, beside the index.
@@ -156,6 +159,14 @@ pub struct TileEntry {
     pub points: u64,
     /// The tile map's file size, bytes.
     pub bytes: u64,
+    /// Low corner of the translations its relocalization search tries (its place
+    /// grid's region, the grid's levelled frame, metres); with `search-max`, what
+    /// [`SearchShare`] splits among the tiles. Absent in cuts by older kfmap.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub search_min: Option<[f64; 3]>,
+    /// High corner; see `search-min`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub search_max: Option<[f64; 3]>,
 }
 
 /// `tiles.toml`: the tile set's geometry and tiles.
@@ -240,6 +251,18 @@ impl TileIndex {
                 if !plain_file_name(name) {
                     return Err(invalid(format!(
                         "tile {}: {what} {name:?} must be a plain file name in the tile set's directory",
+                        t.id
+                    )));
+                }
+            }
+            match (t.search_min, t.search_max) {
+                (None, None) => {}
+                (Some(low), Some(high))
+                    if low.iter().chain(&high).all(|v| v.is_finite())
+                        && (0..3).all(|a| low[a] <= high[a]) => {}
+                _ => {
+                    return Err(invalid(format!(
+                        "tile {}: search-min and search-max must both be given, finite, low corner first",
                         t.id
                     )));
                 }
@@ -404,6 +427,24 @@ impl TileRouter {
     }
 }
 
+/// Tile `(col, row)` as a cut lists it, with made-up counts and no search region.
+#[cfg(test)]
+pub(crate) fn test_entry(col: i32, row: i32) -> TileEntry {
+    TileEntry {
+        id: tile_id(col, row),
+        col,
+        row,
+        file: format!("{}.kfmap", tile_id(col, row)),
+        pcd: format!("{}.pcd", tile_id(col, row)),
+        keyframes: 0,
+        core_keyframes: 0,
+        points: 0,
+        bytes: 0,
+        search_min: None,
+        search_max: None,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -416,17 +457,7 @@ mod tests {
             keyframes: 0,
             tiles: tiles
                 .iter()
-                .map(|&(col, row)| TileEntry {
-                    id: tile_id(col, row),
-                    col,
-                    row,
-                    file: format!("{}.kfmap", tile_id(col, row)),
-                    pcd: format!("{}.pcd", tile_id(col, row)),
-                    keyframes: 0,
-                    core_keyframes: 0,
-                    points: 0,
-                    bytes: 0,
-                })
+                .map(|&(col, row)| test_entry(col, row))
                 .collect(),
         }
     }

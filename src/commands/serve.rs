@@ -10,7 +10,7 @@ use kfmap_protocol::remote::tile_map_name;
 use kfmap_service::config::ServerConfig;
 use kfmap_service::server::{LATENCY_WINDOW, ServeOptions, serve};
 use kfmap_shared::options::ConfigFile;
-use kfmap_shared::tiles::TileIndex;
+use kfmap_shared::tiles::{SearchShare, TileIndex};
 
 use super::report::p99_label;
 
@@ -120,6 +120,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         iceoryx_prefix: args.iceoryx_prefix.clone(),
         spin: args.spin,
         trust: args.trust,
+        search_share: None,
     };
     let stop = AtomicBool::new(false);
     // Writes ignore errors: a closed stdout or stderr (the reader gone) must not stop a
@@ -162,6 +163,7 @@ fn serve_tiles(args: &Args, dir: &Path, name: &str, config: ServerConfig) -> any
                     iceoryx_prefix: args.iceoryx_prefix.clone(),
                     spin: args.spin,
                     trust: args.trust,
+                    search_share: SearchShare::of(&index, &tile.id),
                 };
                 let (stop, ready) = (&stop, &ready);
                 scope.spawn(move || {

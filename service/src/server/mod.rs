@@ -39,6 +39,7 @@ use kfmap_protocol::transport::{
     iox, open_request_event, open_response_event, open_rpc,
 };
 use kfmap_shared::archive::ArchiveError;
+use kfmap_shared::tiles::SearchShare;
 use tracing::{info, warn};
 
 use crate::config::ServerConfig;
@@ -79,6 +80,8 @@ pub struct ServeOptions {
     pub spin: bool,
     /// Skip bytechecks of keyframe archives (checksums still verified).
     pub trust: bool,
+    /// A tile's share of relocalization over its tile set; `None` for a whole map.
+    pub search_share: Option<SearchShare>,
 }
 
 /// Why the server could not start or stopped with an error.
@@ -252,11 +255,12 @@ pub fn serve(
     let started = Instant::now();
     check_shared_memory()?;
     keep_freed_memory();
-    let map =
+    let mut map =
         ServedMap::open(&options.map_path, options.trust, 0).map_err(|error| ServeError::Map {
             path: options.map_path.clone(),
             error,
         })?;
+    map.search_share = options.search_share.clone();
     let slot = MapSlot::new(map);
     let config = iceoryx_config(options.iceoryx_prefix.as_deref())?;
     let node = create_node(&config, "kfmap-server")?;

@@ -12,8 +12,8 @@ use kfmap_protocol::{
 };
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::place::{
-    GridView, Proposal, Relocalization, RelocalizeParams, RelocalizeStatus, ScanUp, Scored, decide,
-    own_up, propose, score_places, verification_selection,
+    Columns, GridView, Proposal, Relocalization, RelocalizeParams, RelocalizeStatus, ScanUp,
+    Scored, decide, own_up, propose, score_places, verification_selection,
 };
 use kfmap_shared::tracking::{covariance_to_wire, pose_covariance};
 use nalgebra::Vector3;
@@ -107,7 +107,7 @@ pub fn relocalize(
         Some(kept) => (Some(kept.points), kept.proposal, kept.scored),
         None => (
             None,
-            proposed(&grid, scan.points, map_up, phase, &params)?,
+            proposed(&grid, map, scan.points, map_up, phase, &params)?,
             None,
         ),
     };
@@ -219,8 +219,12 @@ pub fn relocalize(
 }
 
 /// The search's places for `scan`: up from the client's tilt, else from its floors.
+/// The phases of a search over a tile set try only the tile's share of the
+/// translations, so that the tiles together try each once; a whole relocalization
+/// on a tile tries its whole region.
 fn proposed(
     grid: &GridView<'_>,
+    map: &ServedMap,
     scan: &[[f32; 3]],
     map_up: Option<Vector3<f64>>,
     phase: Phase,
@@ -232,7 +236,12 @@ fn proposed(
         None if phase == Phase::Places => ScanUp::Own(shared_own_up(scan, params)),
         None => ScanUp::Own(own_up(scan, params)),
     };
-    propose(grid, scan, up, params).map_err(|e| bad(format!("scan: {e}")))
+    let owns = |x: f64, y: f64| map.search_share.as_ref().is_some_and(|s| s.owns(x, y));
+    let columns = match (phase, &map.search_share) {
+        (Phase::Whole, _) | (_, None) => Columns::All,
+        (Phase::Places | Phase::Score(_) | Phase::Finish(_), Some(_)) => Columns::Owned(&owns),
+    };
+    propose(grid, scan, up, columns, params).map_err(|e| bad(format!("scan: {e}")))
 }
 
 /// A scan and the up found from its floors (with the tilt gate it was found under).

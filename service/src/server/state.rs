@@ -6,6 +6,7 @@ use std::sync::{Arc, RwLock};
 
 use kfmap_shared::archive::{ArchiveError, BakedPlaceGrid, OpenOptions, open_map};
 use kfmap_shared::map::KeyframeMap;
+use kfmap_shared::tiles::SearchShare;
 
 /// A loaded map.
 pub struct ServedMap {
@@ -27,6 +28,9 @@ pub struct ServedMap {
     pub exact_by_default: bool,
     /// The place grid of relocalization; `None` for maps baked without one.
     pub place: Option<BakedPlaceGrid>,
+    /// A tile's share of a relocalization over its tile set (`serve --tiles`): the
+    /// translations its places phase tries. `None` for a whole map.
+    pub search_share: Option<SearchShare>,
 }
 
 impl ServedMap {
@@ -49,6 +53,7 @@ impl ServedMap {
             map,
             path: path.to_path_buf(),
             generation,
+            search_share: None,
         })
     }
 }
@@ -79,7 +84,9 @@ impl MapSlot {
     pub fn reload(&self, path: Option<&Path>, trust: bool) -> Result<Arc<ServedMap>, ArchiveError> {
         let old = self.current();
         let path = path.unwrap_or(&old.path);
-        let new = Arc::new(ServedMap::open(path, trust, old.generation + 1)?);
+        let mut new = ServedMap::open(path, trust, old.generation + 1)?;
+        new.search_share = old.search_share.clone();
+        let new = Arc::new(new);
         *self.current.write().unwrap_or_else(|e| e.into_inner()) = new.clone();
         Ok(new)
     }

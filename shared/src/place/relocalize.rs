@@ -11,7 +11,7 @@ use serde::{Deserialize, Serialize};
 
 use super::grid::GridView;
 use super::level::{estimate_up, levelling};
-use super::search::{SearchOutcome, SearchParams, search};
+use super::search::{Columns, SearchOutcome, SearchParams, search};
 use crate::cloud::{CloudError, PointCloud};
 use crate::geometry::{Pose, rotation_distance, translation_distance};
 use crate::options::{InvalidOption, ensure, ensure_ratio};
@@ -212,11 +212,13 @@ pub fn own_up(scan: &[[f32; 3]], params: &RelocalizeParams) -> Option<Vector3<f6
     estimate_up(scan, params.max_tilt_deg)
 }
 
-/// Proposes placements of `scan` (sensor frame, `up` as [`ScanUp`] says) over `grid`.
+/// Proposes placements of `scan` (sensor frame, `up` as [`ScanUp`] says) over `grid`,
+/// at translations of the grid's region in `columns`.
 pub fn propose(
     grid: &GridView<'_>,
     scan: &[[f32; 3]],
     up: ScanUp,
+    columns: Columns<'_>,
     params: &RelocalizeParams,
 ) -> Result<Proposal, CloudError> {
     // The grid is levelled on the map's floors: a scan levelled on its own floors is
@@ -242,6 +244,7 @@ pub fn propose(
             grid,
             &points,
             &grid.region(),
+            columns,
             &params.search,
             &grid_from_levelled,
         ))

@@ -161,8 +161,18 @@ pub fn yaw_step(resolution: f64, range: f64) -> f64 {
     (resolution / range.max(resolution)).clamp(0.2_f64.to_radians(), 10.0_f64.to_radians())
 }
 
+/// Which columns (grid-frame x, y) of a region's lattice a search places the scan at.
+#[derive(Clone, Copy)]
+pub enum Columns<'a> {
+    /// Every column.
+    All,
+    /// Those `owns(x, y)` holds for: a tile's share of a search over a tile set
+    /// (`crate::tiles::SearchShare`), so that every translation is tried by one tile.
+    Owned(&'a (dyn Fn(f64, f64) -> bool + Sync)),
+}
+
 /// Places `points` (levelled sensor frame: z up, yaw unknown) over `grid` at every yaw
-/// and every lattice translation inside `region`, best bound first (see
+/// and every lattice translation inside `region` in `columns`, best bound first (see
 /// `Lattice::branch_and_bound`). `grid_from_levelled` turns the yawed points into the
 /// grid's frame: identity when the scan was levelled on its floors as the grid was,
 /// the grid's `grid_from_map` when it was levelled on the map's z (an IMU's gravity).
@@ -170,6 +180,7 @@ pub fn search(
     grid: &GridView<'_>,
     points: &[[f64; 3]],
     region: &SearchRegion,
+    columns: Columns<'_>,
     params: &SearchParams,
     grid_from_levelled: &UnitQuaternion<f64>,
 ) -> SearchOutcome {
@@ -183,7 +194,8 @@ pub fn search(
     let searched = if n == 0 || !region.min.iter().zip(&region.max).all(|(a, b)| a <= b) {
         SearchOutcome::default()
     } else {
-        Lattice::new(grid, points, region, yaws, grid_from_levelled).branch_and_bound(params)
+        Lattice::new(grid, points, region, columns, yaws, grid_from_levelled)
+            .branch_and_bound(params)
     };
     SearchOutcome {
         points: n,
@@ -208,6 +220,8 @@ struct Lattice<'g> {
     yaws: usize,
     /// Translations per axis: `region.min + k r`, `k` in `[0, spans)`.
     spans: [i32; 3],
+    /// The columns searched; `None`: all.
+    owned: Option<OwnedColumns>,
     /// The top level searched.
     top: usize,
     /// Applied after each yaw: see [`search`].
@@ -222,12 +236,17 @@ impl<'g> Lattice<'g> {
         grid: &'g GridView<'g>,
         points: &[[f64; 3]],
         region: &SearchRegion,
+        columns: Columns<'_>,
         yaws: usize,
         grid_from_levelled: &UnitQuaternion<f64>,
     ) -> Self {
         let r = grid.resolution();
         let spans: [i32; 3] =
             [0, 1, 2].map(|a| ((region.max[a] - region.min[a]) / r).floor() as i32 + 1);
+        let owned = match columns {
+            Columns::All => None,
+            Columns::Owned(owns) => Some(OwnedColumns::new(region, r, [spans[0], spans[1]], owns)),
+        };
         let origin = grid.origin();
         let voxels = (0..yaws)
             .into_par_iter()
@@ -251,10 +270,17 @@ impl<'g> Lattice<'g> {
             region: *region,
             yaws,
             spans,
+            owned,
             top,
             grid_from_levelled: *grid_from_levelled,
             voxels,
         }
+    }
+
+    /// True when the cube of `side` translations per axis from `k` holds a column
+    /// searched.
+    fn searched(&self, k: [i32; 3], side: i32) -> bool {
+        self.owned.as_ref().is_none_or(|o| o.any(k, side))
     }
 
     /// Points of yaw `yaw` landing on marked level-`level` voxels at translation `k`.
@@ -277,7 +303,9 @@ impl<'g> Lattice<'g> {
             for kz in (0..self.spans[2]).step_by(side) {
                 for ky in (0..self.spans[1]).step_by(side) {
                     for kx in (0..self.spans[0]).step_by(side) {
-                        tops.push((self.top, yaw as u16, [kx, ky, kz]));
+                        if self.searched([kx, ky, kz], side as i32) {
+                            tops.push((self.top, yaw as u16, [kx, ky, kz]));
+                        }
                     }
                 }
             }
@@ -336,7 +364,7 @@ impl<'g> Lattice<'g> {
                     for dy in [0, half] {
                         for dx in [0, half] {
                             let k = [node.k[0] + dx, node.k[1] + dy, node.k[2] + dz];
-                            if (0..3).all(|a| k[a] < self.spans[a]) {
+                            if (0..3).all(|a| k[a] < self.spans[a]) && self.searched(k, half) {
                                 children.push((level, node.yaw, k));
                             }
                         }
@@ -371,6 +399,50 @@ impl<'g> Lattice<'g> {
             })
             .collect();
         heap.extend(bounded);
+    }
+}
+
+/// The columns of a region's lattice a search may use, as a summed-area table: whether
+/// a node's square of columns holds one is a constant-time look.
+struct OwnedColumns {
+    /// Columns per axis (x, y).
+    spans: [i32; 2],
+    /// `sums[y * (spans[0] + 1) + x]`: owned columns with both indices below `(x, y)`.
+    sums: Vec<u32>,
+}
+
+impl OwnedColumns {
+    fn new(
+        region: &SearchRegion,
+        resolution: f64,
+        spans: [i32; 2],
+        owns: &(dyn Fn(f64, f64) -> bool + Sync),
+    ) -> Self {
+        let width = spans[0] as usize + 1;
+        let mut sums = vec![0_u32; width * (spans[1] as usize + 1)];
+        for ky in 0..spans[1] as usize {
+            let y = region.min[1] + ky as f64 * resolution;
+            let mut row = 0;
+            for kx in 0..spans[0] as usize {
+                row += u32::from(owns(region.min[0] + kx as f64 * resolution, y));
+                sums[(ky + 1) * width + kx + 1] = sums[ky * width + kx + 1] + row;
+            }
+        }
+        Self { spans, sums }
+    }
+
+    /// True when a column of the square of `side` from `k` (clipped to the lattice)
+    /// is owned.
+    fn any(&self, k: [i32; 3], side: i32) -> bool {
+        let width = self.spans[0] as usize + 1;
+        let [x0, y0] = [k[0].max(0), k[1].max(0)].map(|v| v as usize);
+        let x1 = (k[0] + side).min(self.spans[0]).max(0) as usize;
+        let y1 = (k[1] + side).min(self.spans[1]).max(0) as usize;
+        if x1 <= x0 || y1 <= y0 {
+            return false;
+        }
+        let at = |x: usize, y: usize| self.sums[y * width + x];
+        at(x1, y1) + at(x0, y0) > at(x0, y1) + at(x1, y0)
     }
 }
 

@@ -8,7 +8,7 @@ use rand::{Rng, SeedableRng};
 use super::grid::SearchRegion;
 use super::grid::{GridParams, GridView, PlaceGrid};
 use super::relocalize::{Ground, above_ground};
-use super::search::{SearchParams, search, yaw_step};
+use super::search::{Columns, SearchParams, search, yaw_step};
 use super::{GridBuilder, estimate_up, verification_selection};
 use crate::select::SelectionOptions;
 
@@ -55,13 +55,7 @@ fn dilated_levels_mark_the_cubes_that_hold_a_marked_voxel() {
             ]
         })
         .collect();
-    let grid = PlaceGrid::from_voxels(
-        &listed(&marked),
-        &params(5),
-        [0.0, 0.0, 0.0, 1.0],
-        region([0.0; 3], [1.0; 3]),
-    )
-    .unwrap();
+    let grid = unlevelled_grid(&marked, 5);
     let view = grid.view();
     let low = [-5, 0, -2]; // the grid's first voxel: the lowest marked key per axis
     for level in 0..5 {
@@ -91,43 +85,56 @@ fn dilated_levels_mark_the_cubes_that_hold_a_marked_voxel() {
     }
 }
 
+/// The grid of `marked` voxels (1 m, `levels` levels) in the map's own frame.
+fn unlevelled_grid(marked: &HashSet<[i64; 3]>, levels: usize) -> PlaceGrid {
+    PlaceGrid::from_voxels(
+        &listed(marked),
+        &params(levels),
+        [0.0, 0.0, 0.0, 1.0],
+        region([0.0; 3], [1.0; 3]),
+    )
+    .unwrap()
+}
+
+/// 400 marked voxels over 30 x 30 x 4 m (1 m voxels, 6 levels) and 40 scan points
+/// within 8 m of the sensor.
+fn random_site_and_scan(rng: &mut StdRng) -> (PlaceGrid, Vec<[f64; 3]>) {
+    let marked: HashSet<[i64; 3]> = (0..400)
+        .map(|_| {
+            [
+                rng.random_range(0..30),
+                rng.random_range(0..30),
+                rng.random_range(0..4),
+            ]
+        })
+        .collect();
+    let grid = unlevelled_grid(&marked, 6);
+    let points = (0..40)
+        .map(|_| {
+            [
+                rng.random_range(-8.0..8.0),
+                rng.random_range(-8.0..8.0),
+                rng.random_range(-1.0..1.0),
+            ]
+        })
+        .collect();
+    (grid, points)
+}
+
 /// The branch and bound finds the best placement an exhaustive scan of every yaw and
 /// lattice translation finds (same lattice, same hit count).
 #[test]
 fn the_search_finds_the_exhaustive_optimum() {
     let mut rng = StdRng::seed_from_u64(11);
     for trial in 0..4 {
-        let marked: HashSet<[i64; 3]> = (0..400)
-            .map(|_| {
-                [
-                    rng.random_range(0..30),
-                    rng.random_range(0..30),
-                    rng.random_range(0..4),
-                ]
-            })
-            .collect();
-        let grid = PlaceGrid::from_voxels(
-            &listed(&marked),
-            &params(6),
-            [0.0, 0.0, 0.0, 1.0],
-            region([0.0; 3], [1.0; 3]),
-        )
-        .unwrap();
+        let (grid, points) = random_site_and_scan(&mut rng);
         let view = grid.view();
-        let points: Vec<[f64; 3]> = (0..40)
-            .map(|_| {
-                [
-                    rng.random_range(-8.0..8.0),
-                    rng.random_range(-8.0..8.0),
-                    rng.random_range(-1.0..1.0),
-                ]
-            })
-            .collect();
         let area = region([5.3, 4.1, 0.2], [24.9, 22.7, 2.9]);
         let found = search(
             &view,
             &points,
             &area,
+            Columns::All,
             &SearchParams {
                 candidates: 1,
                 min_hit_ratio: 0.0,
@@ -138,31 +145,7 @@ fn the_search_finds_the_exhaustive_optimum() {
         let range = points.iter().map(|p| p[0].hypot(p[1])).fold(0.0, f64::max);
         let yaws = (TAU / yaw_step(1.0, range)).ceil() as usize;
         assert_eq!(found.yaws, yaws);
-        let spans = [0, 1, 2].map(|a| ((area.max[a] - area.min[a]) / 1.0).floor() as i64 + 1);
-        let mut best = 0;
-        for y in 0..yaws {
-            let rotation =
-                UnitQuaternion::from_axis_angle(&Vector3::z_axis(), y as f64 * TAU / yaws as f64);
-            for kx in 0..spans[0] {
-                for ky in 0..spans[1] {
-                    for kz in 0..spans[2] {
-                        let t = Vector3::new(
-                            area.min[0] + kx as f64,
-                            area.min[1] + ky as f64,
-                            area.min[2] + kz as f64,
-                        );
-                        let hits = points
-                            .iter()
-                            .filter(|p| {
-                                let w = rotation * Vector3::from(**p) + t;
-                                view.marked(0, view.voxel_of([w.x, w.y, w.z]))
-                            })
-                            .count();
-                        best = best.max(hits);
-                    }
-                }
-            }
-        }
+        let best = exhaustive_best(&view, &points, &area, yaws, |_, _| true);
         let first = found.placements.first().expect("a placement");
         assert_eq!(first.hits as usize, best, "trial {trial}");
         // The placement's own pose scores what it says.
@@ -174,6 +157,93 @@ fn the_search_finds_the_exhaustive_optimum() {
             })
             .count();
         assert_eq!(hits, best, "trial {trial}");
+    }
+}
+
+/// Most hits of `points` over every yaw of `yaws` and every lattice translation of
+/// `area` (1 m voxels) whose column `(x, y)` passes `column`: brute force.
+fn exhaustive_best(
+    view: &GridView<'_>,
+    points: &[[f64; 3]],
+    area: &SearchRegion,
+    yaws: usize,
+    column: impl Fn(f64, f64) -> bool,
+) -> usize {
+    let spans = [0, 1, 2].map(|a| ((area.max[a] - area.min[a]) / 1.0).floor() as i64 + 1);
+    let mut best = 0;
+    for y in 0..yaws {
+        let rotation =
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), y as f64 * TAU / yaws as f64);
+        for kx in 0..spans[0] {
+            for ky in 0..spans[1] {
+                let (x, y) = (area.min[0] + kx as f64, area.min[1] + ky as f64);
+                if !column(x, y) {
+                    continue;
+                }
+                for kz in 0..spans[2] {
+                    let t = Vector3::new(x, y, area.min[2] + kz as f64);
+                    let hits = points
+                        .iter()
+                        .filter(|p| {
+                            let w = rotation * Vector3::from(**p) + t;
+                            view.marked(0, view.voxel_of([w.x, w.y, w.z]))
+                        })
+                        .count();
+                    best = best.max(hits);
+                }
+            }
+        }
+    }
+    best
+}
+
+/// Searches restricted to the columns of three owners that share a region (in stripes
+/// no box describes, as tiles' shares of a tile set's search are) each find the best
+/// of their own columns by brute force, place only there, and the best of the three is
+/// the unrestricted search's.
+#[test]
+fn a_search_over_owned_columns_finds_the_best_of_those_columns() {
+    let mut rng = StdRng::seed_from_u64(12);
+    let owner = |x: f64, y: f64| ((x / 7.0).floor() + (y / 5.0).floor()).rem_euclid(3.0) as usize;
+    for trial in 0..3 {
+        let (grid, points) = random_site_and_scan(&mut rng);
+        let view = grid.view();
+        let area = region([5.3, 4.1, 0.2], [24.9, 22.7, 2.9]);
+        let params = SearchParams {
+            candidates: 3,
+            min_hit_ratio: 0.0,
+            ..SearchParams::default()
+        };
+        let identity = UnitQuaternion::identity();
+        let whole = search(&view, &points, &area, Columns::All, &params, &identity);
+        let mut best_of_shares = 0;
+        for share in 0..3 {
+            let owns = move |x: f64, y: f64| owner(x, y) == share;
+            let found = search(
+                &view,
+                &points,
+                &area,
+                Columns::Owned(&owns),
+                &params,
+                &identity,
+            );
+            assert_eq!(found.yaws, whole.yaws);
+            let best = exhaustive_best(&view, &points, &area, found.yaws, owns);
+            let first = found.placements.first().expect("a placement");
+            assert_eq!(first.hits as usize, best, "trial {trial}, share {share}");
+            for p in &found.placements {
+                let t = p.pose.translation.vector;
+                assert!(
+                    owns(t.x, t.y),
+                    "trial {trial}: share {share} placed at {t:?}"
+                );
+            }
+            best_of_shares = best_of_shares.max(best);
+        }
+        assert_eq!(
+            whole.placements[0].hits as usize, best_of_shares,
+            "trial {trial}"
+        );
     }
 }
 
@@ -485,13 +555,7 @@ fn sparse_levels_equal_the_brute_force_definition() {
         let list: Vec<[i64; 3]> = marked.iter().copied().collect();
         let low = [0, 1, 2].map(|a| list.iter().map(|k| k[a]).min().unwrap());
         let high = [0, 1, 2].map(|a| list.iter().map(|k| k[a]).max().unwrap());
-        let grid = PlaceGrid::from_voxels(
-            &listed(&marked),
-            &params(levels),
-            [0.0, 0.0, 0.0, 1.0],
-            region([0.0; 3], [1.0; 3]),
-        )
-        .unwrap();
+        let grid = unlevelled_grid(&marked, levels);
         let view = grid.view();
         kinds.insert(view.index().0);
         assert_eq!(view.dims(), [0, 1, 2].map(|a| high[a] - low[a] + 1));
@@ -586,13 +650,7 @@ fn a_sparse_site_costs_what_is_mapped() {
         street(1, at);
     }
     let levels = 8;
-    let grid = PlaceGrid::from_voxels(
-        &listed(&marked),
-        &params(levels),
-        [0.0, 0.0, 0.0, 1.0],
-        region([0.0; 3], [1.0; 3]),
-    )
-    .unwrap();
+    let grid = unlevelled_grid(&marked, levels);
     let view = grid.view();
     // Dense: one bit per voxel of the bounding box per level.
     let extent = |a: usize| {
@@ -629,13 +687,7 @@ fn a_sparse_site_costs_what_is_mapped() {
 fn an_inconsistent_block_table_is_refused() {
     let mut rng = StdRng::seed_from_u64(9);
     let marked = clusters(&mut rng, 4, 2000);
-    let grid = PlaceGrid::from_voxels(
-        &listed(&marked),
-        &params(6),
-        [0.0, 0.0, 0.0, 1.0],
-        region([0.0; 3], [1.0; 3]),
-    )
-    .unwrap();
+    let grid = unlevelled_grid(&marked, 6);
     let data = &grid.levels_data;
     assert_eq!(grid.view().index().0, "hash table");
     let view = |keys: &[u64], entries: &[u32], words: &[u64], dims: [u32; 3]| {
@@ -768,13 +820,7 @@ fn an_inconsistent_block_table_is_refused() {
 
     // A compact grid's directory: entries past the bits, or a directory of another size.
     let marked = clusters(&mut rng, 3, 12);
-    let grid = PlaceGrid::from_voxels(
-        &listed(&marked),
-        &params(6),
-        [0.0, 0.0, 0.0, 1.0],
-        region([0.0; 3], [1.0; 3]),
-    )
-    .unwrap();
+    let grid = unlevelled_grid(&marked, 6);
     assert_eq!(grid.view().index().0, "directory");
     let data = &grid.levels_data;
     let directory = |directory: &[u32], dims: [u32; 3]| {
