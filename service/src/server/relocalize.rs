@@ -236,10 +236,9 @@ fn proposed(
         None if phase == Phase::Places => ScanUp::Own(shared_own_up(scan, params)),
         None => ScanUp::Own(own_up(scan, params)),
     };
-    let owns = |x: f64, y: f64| map.search_share.as_ref().is_some_and(|s| s.owns(x, y));
-    let columns = match (phase, &map.search_share) {
+    let columns = match (phase, map.share_columns(grid)) {
         (Phase::Whole, _) | (_, None) => Columns::All,
-        (Phase::Places | Phase::Score(_) | Phase::Finish(_), Some(_)) => Columns::Owned(&owns),
+        (Phase::Places | Phase::Score(_) | Phase::Finish(_), Some(table)) => Columns::Owned(table),
     };
     propose(grid, scan, up, columns, params).map_err(|e| bad(format!("scan: {e}")))
 }

@@ -2,10 +2,11 @@
 //! map they started with (an `Arc`), new requests get the new one.
 
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, RwLock};
+use std::sync::{Arc, OnceLock, RwLock};
 
 use kfmap_shared::archive::{ArchiveError, BakedPlaceGrid, OpenOptions, open_map};
 use kfmap_shared::map::KeyframeMap;
+use kfmap_shared::place::{GridView, OwnedColumns};
 use kfmap_shared::tiles::SearchShare;
 
 /// A loaded map.
@@ -31,6 +32,8 @@ pub struct ServedMap {
     /// A tile's share of a relocalization over its tile set (`serve --tiles`): the
     /// translations its places phase tries. `None` for a whole map.
     pub search_share: Option<SearchShare>,
+    /// `search_share` over the place grid's lattice, built on first use.
+    share_columns: OnceLock<OwnedColumns>,
 }
 
 impl ServedMap {
@@ -54,7 +57,17 @@ impl ServedMap {
             path: path.to_path_buf(),
             generation,
             search_share: None,
+            share_columns: OnceLock::new(),
         })
+    }
+
+    /// The columns of `grid`'s search region (this map's place grid) in this tile's
+    /// share; `None` for a whole map.
+    pub fn share_columns(&self, grid: &GridView<'_>) -> Option<&OwnedColumns> {
+        let share = self.search_share.as_ref()?;
+        Some(self.share_columns.get_or_init(|| {
+            OwnedColumns::new(&grid.region(), grid.resolution(), |x, y| share.owns(x, y))
+        }))
     }
 }
 

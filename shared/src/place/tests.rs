@@ -8,7 +8,7 @@ use rand::{Rng, SeedableRng};
 use super::grid::SearchRegion;
 use super::grid::{GridParams, GridView, PlaceGrid};
 use super::relocalize::{Ground, above_ground};
-use super::search::{Columns, SearchParams, search, yaw_step};
+use super::search::{Columns, OwnedColumns, SearchParams, search, yaw_step};
 use super::{GridBuilder, estimate_up, verification_selection};
 use crate::select::SelectionOptions;
 
@@ -219,11 +219,12 @@ fn a_search_over_owned_columns_finds_the_best_of_those_columns() {
         let mut best_of_shares = 0;
         for share in 0..3 {
             let owns = move |x: f64, y: f64| owner(x, y) == share;
+            let table = OwnedColumns::new(&area, 1.0, owns);
             let found = search(
                 &view,
                 &points,
                 &area,
-                Columns::Owned(&owns),
+                Columns::Owned(&table),
                 &params,
                 &identity,
             );
