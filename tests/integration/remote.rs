@@ -27,6 +27,9 @@ use kfmap_testdata::require_capability;
 const IN_NAMESPACE: &str = "KFMAP_TEST_IN_NETNS";
 /// The gateway's endpoint inside the namespace (its own `lo`: no port conflicts).
 const ENDPOINT: &str = "tcp/127.0.0.1:17447";
+/// How far a place's score over the tiles may stand from the merged map's (see the
+/// tiled site's relocalizations).
+const SCORE_SLACK: f64 = 0.005;
 
 #[test]
 fn remote_clients_through_a_gateway_in_a_private_network_namespace() {
@@ -345,14 +348,20 @@ mod in_namespace {
                 whole.server_us / 1e3
             );
             assert_eq!(tiled.status, whole.status, "scan {i}");
-            // The same places scored alike (a tile's grid is the whole map's around its
-            // core, its places the whole map's there): the verdict's margins agree.
+            // The same places scored nearly alike (a tile's grid is the whole map's
+            // around its core, its places the whole map's there). A tile scores against
+            // its core and halo keyframes only, and this sensor reaches 30 m past a 10 m
+            // halo: a score may differ in the third decimal (measured: at most 0.0015 of
+            // 15), far below the ambiguity margin that turns it into a verdict.
             println!(
                 "relocalize scan {i}: scores {:.4} / {:.4} (tiles), {:.4} / {:.4} (merged)",
                 tiled.score, tiled.runner_up, whole.score, whole.runner_up
             );
-            assert!((tiled.score - whole.score).abs() < 1e-9, "scan {i}");
-            assert!((tiled.runner_up - whole.runner_up).abs() < 1e-9, "scan {i}");
+            assert!((tiled.score - whole.score).abs() < SCORE_SLACK, "scan {i}");
+            assert!(
+                (tiled.runner_up - whole.runner_up).abs() < SCORE_SLACK,
+                "scan {i}"
+            );
             // An ambiguous answer's pose is one of near-equal places: only found ones.
             // The best place settles from the same start against the keyframes nearest
             // it, which the halo check keeps in its tile; a wrong place would be metres
@@ -372,7 +381,12 @@ mod in_namespace {
             "relocalization: {compared} scans over {} tiles, the same status and place as the merged map's ({found} found); {tiled_ms:.0} ms against {whole_ms:.0} ms in all (every tile server shares this host's 2 cores)",
             index.tiles.len()
         );
-        assert!(found >= 2, "only {found} scans found");
+        // Every one of these scans was taken on the mapped drive (a 16-ring sensor,
+        // thinned as the client sends it): the merged map finds each.
+        assert!(
+            found + 1 >= compared,
+            "only {found} of {compared} scans found"
+        );
         drop(hosts);
     }
 }

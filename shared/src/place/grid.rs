@@ -262,24 +262,30 @@ fn bounds(points: &[[f64; 3]]) -> ([f64; 3], [f64; 3]) {
 }
 
 /// The translations searched around sensor positions spanning `[low, high]` (grid
-/// frame): the box grown by the search margin. With `lattice` (a region's low
-/// corner), its corners are moved out onto that region's lattice (steps of the
-/// resolution from it), so that a tile tries the whole map's translations.
+/// frame): the box grown by the search margin. Within `whole` (the whole map's region,
+/// for a tile), its corners are moved out onto that region's lattice (steps of the
+/// resolution from its low corner) and kept inside it, so that a tile tries the whole
+/// map's translations and no others.
 fn search_region(
     low: [f64; 3],
     high: [f64; 3],
     params: &GridParams,
-    lattice: Option<[f64; 3]>,
+    whole: Option<&SearchRegion>,
 ) -> SearchRegion {
     let (margin, r) = (params.search_margin, params.resolution);
     let min = [0, 1, 2].map(|a| low[a] - margin[a]);
     let max = [0, 1, 2].map(|a| high[a] + margin[a]);
-    match lattice {
+    match whole {
         None => SearchRegion { min, max },
-        Some(o) => SearchRegion {
-            min: [0, 1, 2].map(|a| o[a] + ((min[a] - o[a]) / r).floor() * r),
-            max: [0, 1, 2].map(|a| o[a] + ((max[a] - o[a]) / r).ceil() * r),
-        },
+        Some(whole) => {
+            let o = whole.min;
+            // The whole map's last translation per axis (its search's lattice ends there).
+            let last = [0, 1, 2].map(|a| ((whole.max[a] - o[a]) / r).floor());
+            SearchRegion {
+                min: [0, 1, 2].map(|a| o[a] + ((min[a] - o[a]) / r).floor().max(0.0) * r),
+                max: [0, 1, 2].map(|a| o[a] + ((max[a] - o[a]) / r).ceil().min(last[a]) * r),
+            }
+        }
     }
 }
 
@@ -407,7 +413,7 @@ impl PlaceGrid {
             .map(|p| (grid_from_map * Vector3::from(*p)).into())
             .collect();
         let (first_anchor, last_anchor) = bounds(&searched);
-        let region = search_region(first_anchor, last_anchor, &params, Some(whole.region().min));
+        let region = search_region(first_anchor, last_anchor, &params, Some(&whole.region()));
         let q = grid_from_map.quaternion();
         Self::from_voxels(&marked, &params, [q.i, q.j, q.k, q.w], region)
     }

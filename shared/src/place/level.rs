@@ -10,29 +10,45 @@ use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 use crate::eigen::sorted_symmetric_eigen;
 use crate::surfel::Surfel;
 
-/// Voxel edge of the planes voted with, metres.
-const PLANE_VOXEL_M: f64 = 1.0;
+/// Voxel edges of the planes voted with, metres, finest first: a sparse scan (few
+/// rings, or thinned before it was sent: `kfmap relocalize` sends 0.25 m voxels) has
+/// too few floor points in a 1 m voxel, so the next scale is tried.
+const PLANE_VOXELS_M: [f64; 3] = [1.0, 2.0, 4.0];
 /// A voxel votes when it holds this many points...
 const MIN_PLANE_POINTS: u32 = 8;
-/// ... and its smallest spread is below this share of the middle one (flat).
+/// ... its smallest spread is below this share of the middle one (flat)...
 const MAX_FLATNESS: f64 = 0.05;
+/// ... and its middle spread (standard deviation) is at least this share of its edge:
+/// one ring's arc through a voxel is flat in any plane holding it, so its normal
+/// says nothing (a filled square's spread is 0.29 of its edge; two rings 0.2 apart, 0.1).
+const MIN_WIDTH: f64 = 0.1;
+/// A scale's estimate stands when this many voxels voted for it in the last gate.
+const MIN_VOTING_VOXELS: usize = 5;
 
 /// The up direction of a sensor-frame scan, or `None` when too few planes lie within
 /// `max_tilt_deg` of the sensor's z axis to tell.
 pub fn estimate_up(points: &[[f32; 3]], max_tilt_deg: f64) -> Option<Vector3<f64>> {
+    PLANE_VOXELS_M
+        .iter()
+        .find_map(|&voxel| up_at_scale(points, max_tilt_deg, voxel))
+}
+
+/// [`estimate_up`] from the planes of `voxel`-metre voxels alone.
+fn up_at_scale(points: &[[f32; 3]], max_tilt_deg: f64, voxel: f64) -> Option<Vector3<f64>> {
     let mut voxels: HashMap<[i32; 3], Surfel> = HashMap::new();
     for p in points {
         let v = Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
         if !v.iter().all(|c| c.is_finite()) {
             continue;
         }
-        let key = [0, 1, 2].map(|a| (v[a] / PLANE_VOXEL_M).floor() as i32);
+        let key = [0, 1, 2].map(|a| (v[a] / voxel).floor() as i32);
         voxels.entry(key).or_default().add_point(v);
     }
     // In key order: summed in a hash map's (random) order, the estimate would differ in
     // its last bits from run to run, and so would the baked map's place grid.
     let mut voxels: Vec<([i32; 3], Surfel)> = voxels.into_iter().collect();
     voxels.sort_unstable_by_key(|(key, _)| *key);
+    let min_width_sq = (MIN_WIDTH * voxel).powi(2);
     let normals: Vec<(Vector3<f64>, f64)> = voxels
         .iter()
         .map(|(_, s)| s)
@@ -40,7 +56,7 @@ pub fn estimate_up(points: &[[f32; 3]], max_tilt_deg: f64) -> Option<Vector3<f64
         .filter_map(|s| {
             let eigen = s.eigen();
             let values = eigen.values;
-            (values[0] <= MAX_FLATNESS * values[1])
+            (values[0] <= MAX_FLATNESS * values[1] && values[1] >= min_width_sq)
                 .then(|| (eigen.vectors.column(0).into(), f64::from(s.num_points())))
         })
         .collect();
@@ -50,13 +66,15 @@ pub fn estimate_up(points: &[[f32; 3]], max_tilt_deg: f64) -> Option<Vector3<f64
         let cos_gate = gate_deg.to_radians().cos();
         let mut scatter = Matrix3::zeros();
         let mut votes = 0.0;
+        let mut voting = 0;
         for (n, w) in &normals {
             if n.dot(&up).abs() >= cos_gate {
                 scatter += *w * n * n.transpose();
                 votes += w;
+                voting += 1;
             }
         }
-        if votes < f64::from(MIN_PLANE_POINTS) * 4.0 {
+        if votes < f64::from(MIN_PLANE_POINTS) * 4.0 || voting < MIN_VOTING_VOXELS {
             return None;
         }
         let dominant: Vector3<f64> = sorted_symmetric_eigen(&scatter).vectors.column(2).into();
