@@ -9,13 +9,14 @@
 # latencies. Runs itself inside a private network namespace (`unshare -rn`: only
 # loopback). Times are printed, never asserted; every host shares this machine's cores.
 #
-#   tools/tiled_relocalize.sh [TILE_SIZE_M]      (kfmap from target/release)
+#   tools/tiled_relocalize.sh [TILE_SIZE_M [ROUNDS]]   (kfmap from target/release)
 set -euo pipefail
 tile_size=${1:-10}
+rounds=${2:-3}
 here=$(cd "$(dirname "$0")/.." && pwd)
 kfmap=${KFMAP:-$here/target/release/kfmap}
 if [ -z "${KFMAP_IN_NETNS:-}" ]; then
-    exec unshare -rn env KFMAP_IN_NETNS=1 KFMAP="$kfmap" bash "$0" "$tile_size"
+    exec unshare -rn env KFMAP_IN_NETNS=1 KFMAP="$kfmap" bash "$0" "$tile_size" "$rounds"
 fi
 ip link set lo up
 work=$(mktemp -d)
@@ -67,21 +68,29 @@ wait_ready "$work/merged.out" "ready:"
 
 mapfile -t scans < <(ls "$work"/sim/scans/* | awk 'NR % 24 == 1')
 remote=$(IFS=,; echo "${endpoints[*]}")
-"$kfmap" relocalize --remote "$remote" --map-name court --timeout 120 --json "${scans[@]}" \
-    >"$work/tiled.jsonl"
-"$kfmap" relocalize --map-name merged --iceoryx-prefix "${prefix}m" --timeout 120 --json \
-    "${scans[@]}" >"$work/merged.jsonl"
-python3 - "$work/tiled.jsonl" "$work/merged.jsonl" "${#ids[@]}" <<'EOF'
+# Rounds alternate the tiles and the merged map, so that a drift of this machine's
+# speed (up to 2x between hours) falls on both alike.
+for round in $(seq "$rounds"); do
+    "$kfmap" relocalize --remote "$remote" --map-name court --timeout 120 --json "${scans[@]}" \
+        >"$work/tiled$round.jsonl"
+    "$kfmap" relocalize --map-name merged --iceoryx-prefix "${prefix}m" --timeout 120 --json \
+        "${scans[@]}" >"$work/merged$round.jsonl"
+done
+python3 - "$work" "$rounds" "${#ids[@]}" <<'EOF'
 import json, sys
-tiled = [json.loads(l) for l in open(sys.argv[1])]
-merged = [json.loads(l) for l in open(sys.argv[2])]
-same = sum(a["status"] == b["status"] for a, b in zip(tiled, merged))
-t = sum(a["latency_ms"] for a in tiled)
-m = sum(b["latency_ms"] for b in merged)
-for a, b in zip(tiled, merged):
-    if a["status"] == "found" or b["status"] == "found":
-        print(f'  {a["scan"].rsplit("/", 1)[-1]}: {a["status"]} {a["latency_ms"]:.0f} ms over the tiles, '
-              f'{b["status"]} {b["latency_ms"]:.0f} ms on the merged map')
-print(f"{len(tiled)} scans over {sys.argv[3]} tiles: {same} with the merged map's status; "
-      f"{t:.0f} ms against {m:.0f} ms ({t / m:.2f}x)")
+work, rounds, tiles = sys.argv[1], int(sys.argv[2]), sys.argv[3]
+def read(path):
+    return [json.loads(l) for l in open(path)]
+totals = []
+for r in range(1, rounds + 1):
+    tiled, merged = read(f"{work}/tiled{r}.jsonl"), read(f"{work}/merged{r}.jsonl")
+    same = sum(a["status"] == b["status"] for a, b in zip(tiled, merged))
+    found = sum(b["status"] == "found" for b in merged)
+    t = sum(a["latency_ms"] for a in tiled)
+    m = sum(b["latency_ms"] for b in merged)
+    totals.append((t, m))
+    print(f"round {r}: {len(tiled)} scans over {tiles} tiles ({found} found on the merged map), "
+          f"{same} with the merged map's status; {t:.0f} ms against {m:.0f} ms ({t / m:.2f}x)")
+t, m = sum(a for a, _ in totals), sum(b for _, b in totals)
+print(f"{rounds} rounds: {t:.0f} ms over the tiles against {m:.0f} ms on the merged map ({t / m:.2f}x)")
 EOF

@@ -72,6 +72,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             &points,
             ScanUp::Own(own_up(&points, &relocalize)),
             Columns::All,
+            None,
             &relocalize,
         )?;
         let ms = t0.elapsed().as_secs_f64() * 1e3;

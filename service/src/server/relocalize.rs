@@ -4,7 +4,7 @@
 //! client runs the steps as three phases, one request each (docs/DESIGN.md#notes-tiles):
 //! places, scores of the chosen places, the final registration of the best.
 
-use std::sync::{Mutex, PoisonError};
+use std::sync::{Arc, Mutex, PoisonError};
 
 use kfmap_protocol::{
     DecodedScan, FLAG_FINISH_CHOSEN, FLAG_LEVELLED, FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN,
@@ -12,8 +12,8 @@ use kfmap_protocol::{
 };
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::place::{
-    Columns, GridView, Proposal, Relocalization, RelocalizeParams, RelocalizeStatus, ScanUp,
-    Scored, decide, own_up, propose, score_places, verification_selection,
+    Columns, GridView, PeerBest, Proposal, Relocalization, RelocalizeParams, RelocalizeStatus,
+    ScanUp, Scored, decide, own_up, propose, score_places, verification_selection,
 };
 use kfmap_shared::tracking::{covariance_to_wire, pose_covariance};
 use nalgebra::Vector3;
@@ -236,11 +236,39 @@ fn proposed(
         None if phase == Phase::Places => ScanUp::Own(shared_own_up(scan, params)),
         None => ScanUp::Own(own_up(scan, params)),
     };
-    let columns = match (phase, map.share_columns(grid)) {
-        (Phase::Whole, _) | (_, None) => Columns::All,
-        (Phase::Places | Phase::Score(_) | Phase::Finish(_), Some(table)) => Columns::Owned(table),
+    let (columns, peers) = match (phase, map.share_columns(grid)) {
+        (Phase::Whole, _) | (_, None) => (Columns::All, None),
+        (Phase::Places | Phase::Score(_) | Phase::Finish(_), Some(table)) => {
+            (Columns::Owned(table), Some(scan_peers(scan, map_up)))
+        }
     };
-    propose(grid, scan, up, columns, params).map_err(|e| bad(format!("scan: {e}")))
+    propose(grid, scan, up, columns, peers.as_deref(), params)
+        .map_err(|e| bad(format!("scan: {e}")))
+}
+
+/// The scan whose tile searches this process last ran, and their best (see
+/// [`PeerBest`]).
+type ScanPeers = (Vec<[f32; 3]>, Option<Vector3<f64>>, Arc<PeerBest>);
+
+/// The last scan's searches in this process, for the places phase over a tile set.
+/// A process serving several tiles answers each with its own search of the same scan;
+/// one that finds a place lets the others stop looking below what the client keeps
+/// (docs/DESIGN.md#notes-tiles).
+static LAST_PEERS: Mutex<Option<ScanPeers>> = Mutex::new(None);
+
+/// The searches of `scan` (levelled by `map_up`) in this process: a new set for a
+/// new scan.
+fn scan_peers(scan: &[[f32; 3]], map_up: Option<Vector3<f64>>) -> Arc<PeerBest> {
+    let mut last = LAST_PEERS.lock().unwrap_or_else(PoisonError::into_inner);
+    if let Some((points, up, peers)) = last.as_ref()
+        && points == scan
+        && *up == map_up
+    {
+        return Arc::clone(peers);
+    }
+    let peers = Arc::new(PeerBest::default());
+    *last = Some((scan.to_vec(), map_up, Arc::clone(&peers)));
+    peers
 }
 
 /// A scan and the up found from its floors (with the tilt gate it was found under).

@@ -28,7 +28,7 @@ pub use relocalize::{
     Proposal, Relocalization, RelocalizeParams, RelocalizeStatus, ScanUp, Scored, ScoredPlace,
     decide, own_up, propose, score_places, verification_selection, verify,
 };
-pub use search::{Columns, OwnedColumns, Placement, SearchOutcome, SearchParams, search};
+pub use search::{Columns, OwnedColumns, PeerBest, Placement, SearchOutcome, SearchParams, search};
 
 #[cfg(test)]
 pub(crate) mod tests;

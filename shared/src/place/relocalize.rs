@@ -11,7 +11,7 @@ use serde::{Deserialize, Serialize};
 
 use super::grid::GridView;
 use super::level::{estimate_up, levelling};
-use super::search::{Columns, SearchOutcome, SearchParams, search};
+use super::search::{Columns, PeerBest, SearchOutcome, SearchParams, search};
 use crate::cloud::{CloudError, PointCloud};
 use crate::geometry::{Pose, rotation_distance, translation_distance};
 use crate::options::{InvalidOption, ensure, ensure_ratio};
@@ -213,12 +213,14 @@ pub fn own_up(scan: &[[f32; 3]], params: &RelocalizeParams) -> Option<Vector3<f6
 }
 
 /// Proposes placements of `scan` (sensor frame, `up` as [`ScanUp`] says) over `grid`,
-/// at translations of the grid's region in `columns`.
+/// at translations of the grid's region in `columns`; with `peers` (other tiles'
+/// searches of the same scan), above their best as [`PeerBest`] says.
 pub fn propose(
     grid: &GridView<'_>,
     scan: &[[f32; 3]],
     up: ScanUp,
     columns: Columns<'_>,
+    peers: Option<&PeerBest>,
     params: &RelocalizeParams,
 ) -> Result<Proposal, CloudError> {
     // The grid is levelled on the map's floors: a scan levelled on its own floors is
@@ -229,7 +231,7 @@ pub fn propose(
         ScanUp::Own(None) => return Ok(Proposal::default()),
     };
     let level = levelling(&up);
-    let searched = |ground: Ground| -> Result<SearchOutcome, CloudError> {
+    let searched = |ground: Ground, peers| -> Result<SearchOutcome, CloudError> {
         let mut structure = structure_points(scan, &level, grid.resolution(), params, ground)?;
         // Thinned in order of range, not of voxel key: a turned copy of the scan keeps
         // the same points, so its heading does not change what is searched with.
@@ -245,17 +247,20 @@ pub fn propose(
             &points,
             &grid.region(),
             columns,
+            peers,
             &params.search,
             &grid_from_levelled,
         ))
     };
-    let mut outcome = searched(Ground::Every)?;
+    let mut outcome = searched(Ground::Every, peers)?;
     // Too little structure anywhere within reach (open rolling ground): the relief of
-    // the ground rising above the sensor is what is left to tell places apart.
-    let relief = outcome.placements.is_empty();
+    // the ground rising above the sensor is what is left to tell places apart. Not
+    // when a peer placed the scan by its structure: then every tile's relief places
+    // are left out of the ranking (one search falls back only when it found nothing).
+    let relief = outcome.placements.is_empty() && peers.is_none_or(|p| p.ratio() == 0.0);
     if relief {
         let first = outcome;
-        outcome = searched(Ground::BelowSensor)?;
+        outcome = searched(Ground::BelowSensor, None)?;
         outcome.nodes += first.nodes;
         outcome.exhausted |= first.exhausted;
     }

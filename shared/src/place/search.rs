@@ -9,6 +9,7 @@
 use std::cmp::Ordering;
 use std::collections::BinaryHeap;
 use std::f64::consts::TAU;
+use std::sync::atomic::{AtomicU64, Ordering as AtomicOrdering};
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use rayon::prelude::*;
@@ -171,16 +172,43 @@ pub enum Columns<'a> {
     Owned(&'a OwnedColumns),
 }
 
+/// The best hit ratio that other searches of the same scan have reached so far: the
+/// tiles one process serves, each searching its share at once. The client ranking
+/// every tile's places keeps none below `keep-ratio` of the best of them all, so a
+/// search need not look for one below `keep-ratio` of a peer's best either: the places
+/// it still returns are those it would have returned, in the same order, and only
+/// places no client keeps go unsearched.
+#[derive(Debug, Default)]
+pub struct PeerBest(AtomicU64);
+
+impl PeerBest {
+    /// The best hit ratio offered so far (0 before any).
+    pub fn ratio(&self) -> f64 {
+        f64::from_bits(self.0.load(AtomicOrdering::Relaxed))
+    }
+
+    /// Offers a placement's hit ratio (non-negative floats order as their bits do).
+    pub fn offer(&self, hit_ratio: f64) {
+        if hit_ratio.is_finite() && hit_ratio > 0.0 {
+            self.0
+                .fetch_max(hit_ratio.to_bits(), AtomicOrdering::Relaxed);
+        }
+    }
+}
+
 /// Places `points` (levelled sensor frame: z up, yaw unknown) over `grid` at every yaw
 /// and every lattice translation inside `region` in `columns`, best bound first (see
 /// `Lattice::branch_and_bound`). `grid_from_levelled` turns the yawed points into the
 /// grid's frame: identity when the scan was levelled on its floors as the grid was,
 /// the grid's `grid_from_map` when it was levelled on the map's z (an IMU's gravity).
+/// With `peers`, the search offers its best to them and keeps above their best (see
+/// [`PeerBest`]).
 pub fn search(
     grid: &GridView<'_>,
     points: &[[f64; 3]],
     region: &SearchRegion,
     columns: Columns<'_>,
+    peers: Option<&PeerBest>,
     params: &SearchParams,
     grid_from_levelled: &UnitQuaternion<f64>,
 ) -> SearchOutcome {
@@ -195,7 +223,7 @@ pub fn search(
         SearchOutcome::default()
     } else {
         Lattice::new(grid, points, region, columns, yaws, grid_from_levelled)
-            .branch_and_bound(params)
+            .branch_and_bound(params, peers)
     };
     SearchOutcome {
         points: n,
@@ -298,7 +326,7 @@ impl<'g, 'c> Lattice<'g, 'c> {
     /// Best-first branch and bound over every yaw. Nodes are expanded in batches of
     /// the best `EXPAND_BATCH` (their children bounded in parallel); a leaf is taken
     /// only when it is the best node left, so leaves still come out best first.
-    fn branch_and_bound(&self, params: &SearchParams) -> SearchOutcome {
+    fn branch_and_bound(&self, params: &SearchParams, peers: Option<&PeerBest>) -> SearchOutcome {
         let n = self.voxels.first().map_or(0, Vec::len);
         let r = self.grid.resolution();
         let mut outcome = SearchOutcome::default();
@@ -323,9 +351,20 @@ impl<'g, 'c> Lattice<'g, 'c> {
         lookups += (tops.len() * n) as u64;
         let mut batch = Vec::with_capacity(EXPAND_BATCH);
         let mut children = Vec::with_capacity(EXPAND_BATCH * 8);
+        // A peer's ratio as hits of this scan's points; the slack keeps its rounding
+        // from pruning a place the client would keep.
+        let peer_hits = || {
+            peers.map_or(0, |p| {
+                (params.keep_ratio * p.ratio() * n as f64 - 1e-6)
+                    .ceil()
+                    .max(0.0) as u32
+            })
+        };
         loop {
             let best = outcome.placements.first().map_or(0, |p| p.hits);
-            let threshold = floor_hits.max((params.keep_ratio * f64::from(best)).ceil() as u32);
+            let threshold = floor_hits
+                .max((params.keep_ratio * f64::from(best)).ceil() as u32)
+                .max(peer_hits());
             match heap.peek() {
                 None => break,
                 Some(node) if node.bound < threshold => break,
@@ -348,6 +387,9 @@ impl<'g, 'c> Lattice<'g, 'c> {
                         hit_ratio: f64::from(node.bound) / n as f64,
                     };
                     if !same_place(&outcome.placements, &placement, params) {
+                        if let Some(peers) = peers {
+                            peers.offer(placement.hit_ratio);
+                        }
                         outcome.placements.push(placement);
                     }
                     continue;

@@ -8,7 +8,9 @@ use rand::{Rng, SeedableRng};
 use super::grid::SearchRegion;
 use super::grid::{GridParams, GridView, PlaceGrid};
 use super::relocalize::{Ground, above_ground};
-use super::search::{Columns, OwnedColumns, SearchParams, search, yaw_step};
+use super::search::{
+    Columns, OwnedColumns, PeerBest, SearchOutcome, SearchParams, search, yaw_step,
+};
 use super::{GridBuilder, estimate_up, verification_selection};
 use crate::select::SelectionOptions;
 
@@ -135,6 +137,7 @@ fn the_search_finds_the_exhaustive_optimum() {
             &points,
             &area,
             Columns::All,
+            None,
             &SearchParams {
                 candidates: 1,
                 min_hit_ratio: 0.0,
@@ -158,6 +161,102 @@ fn the_search_finds_the_exhaustive_optimum() {
             .count();
         assert_eq!(hits, best, "trial {trial}");
     }
+}
+
+/// Shares searched one after another with a common [`PeerBest`] (tiles of one process)
+/// return, ranked together and kept above `keep-ratio` of the best as the client keeps
+/// them, exactly what the same shares return searched alone; a share after the best
+/// one bounds fewer nodes than alone; the peers end at the best hit ratio of all.
+#[test]
+fn shares_searched_with_peers_keep_what_the_client_keeps() {
+    let mut rng = StdRng::seed_from_u64(13);
+    let owner = |x: f64, y: f64| ((x / 7.0).floor() + (y / 5.0).floor()).rem_euclid(3.0) as usize;
+    let mut fewer = 0;
+    for trial in 0..4 {
+        let (grid, points) = random_site_and_scan(&mut rng);
+        let view = grid.view();
+        let area = region([5.3, 4.1, 0.2], [24.9, 22.7, 2.9]);
+        let params = SearchParams {
+            candidates: 8,
+            min_hit_ratio: 0.0,
+            keep_ratio: 0.8,
+            ..SearchParams::default()
+        };
+        let identity = UnitQuaternion::identity();
+        let tables: Vec<OwnedColumns> = (0..3)
+            .map(|share| OwnedColumns::new(&area, 1.0, move |x, y| owner(x, y) == share))
+            .collect();
+        let alone: Vec<SearchOutcome> = tables
+            .iter()
+            .map(|t| {
+                search(
+                    &view,
+                    &points,
+                    &area,
+                    Columns::Owned(t),
+                    None,
+                    &params,
+                    &identity,
+                )
+            })
+            .collect();
+        // The share holding the best place first, so the others search after it.
+        let best = alone
+            .iter()
+            .map(|o| o.placements[0].hit_ratio)
+            .fold(0.0, f64::max);
+        let mut order: Vec<usize> = (0..3).collect();
+        order.sort_by(|&a, &b| {
+            alone[b].placements[0]
+                .hit_ratio
+                .total_cmp(&alone[a].placements[0].hit_ratio)
+        });
+        let peers = PeerBest::default();
+        let mut with_peers: Vec<Option<SearchOutcome>> = vec![None, None, None];
+        for &share in &order {
+            let found = search(
+                &view,
+                &points,
+                &area,
+                Columns::Owned(&tables[share]),
+                Some(&peers),
+                &params,
+                &identity,
+            );
+            if share != order[0] {
+                assert!(found.nodes <= alone[share].nodes, "trial {trial}");
+                fewer += usize::from(found.nodes < alone[share].nodes);
+            }
+            with_peers[share] = Some(found);
+        }
+        assert_eq!(peers.ratio(), best, "trial {trial}");
+        // The client's keeping: every share's places at or above keep-ratio of the best.
+        let kept = |outcomes: Vec<&SearchOutcome>| -> Vec<(usize, u32, [i64; 3])> {
+            let mut kept: Vec<_> = outcomes
+                .iter()
+                .enumerate()
+                .flat_map(|(share, o)| o.placements.iter().map(move |p| (share, p)))
+                .filter(|(_, p)| p.hit_ratio >= params.keep_ratio * best)
+                .map(|(share, p)| {
+                    let t = p.pose.translation.vector;
+                    (
+                        share,
+                        p.hits,
+                        [t.x, t.y, t.z].map(|v| (v * 1e6).round() as i64),
+                    )
+                })
+                .collect();
+            kept.sort();
+            kept
+        };
+        let with_peers: Vec<&SearchOutcome> = with_peers.iter().flatten().collect();
+        assert_eq!(
+            kept(with_peers),
+            kept(alone.iter().collect()),
+            "trial {trial}"
+        );
+    }
+    assert!(fewer > 0, "the peers' best never pruned a search");
 }
 
 /// Most hits of `points` over every yaw of `yaws` and every lattice translation of
@@ -215,7 +314,15 @@ fn a_search_over_owned_columns_finds_the_best_of_those_columns() {
             ..SearchParams::default()
         };
         let identity = UnitQuaternion::identity();
-        let whole = search(&view, &points, &area, Columns::All, &params, &identity);
+        let whole = search(
+            &view,
+            &points,
+            &area,
+            Columns::All,
+            None,
+            &params,
+            &identity,
+        );
         let mut best_of_shares = 0;
         for share in 0..3 {
             let owns = move |x: f64, y: f64| owner(x, y) == share;
@@ -225,6 +332,7 @@ fn a_search_over_owned_columns_finds_the_best_of_those_columns() {
                 &points,
                 &area,
                 Columns::Owned(&table),
+                None,
                 &params,
                 &identity,
             );
