@@ -316,6 +316,7 @@ impl RemoteLink {
             encode_request(&h, &payload)
         };
         let places = self.ask_every_tile(phase(FLAG_PLACES_ONLY, 0), timeout)?;
+        let placed = started.elapsed();
         let (chosen, order, searched_us) =
             match crate::tiled::choose_places(&places, self.overlapping_cores().as_ref())? {
                 Choice::Answer(frame) => return Ok(frame),
@@ -337,6 +338,7 @@ impl RemoteLink {
             .map(|(at, rank)| (places[at].0.clone(), rank))
             .collect();
         let scored = self.ask_tiles(requests, left())?;
+        let scored_at = started.elapsed();
         let ranked = match crate::tiled::best_scored(&order, &scored)? {
             Ok(ranked) => ranked,
             Err(refusal) => return Ok(refusal),
@@ -349,6 +351,15 @@ impl RemoteLink {
             phase(FLAG_FINISH_CHOSEN, 1 << rank),
         );
         let finished = self.ask_tiles(vec![request], left())?;
+        let ms = |d: Duration| d.as_secs_f64() * 1e3;
+        tracing::debug!(
+            "relocalize over {} tiles: places {:.1} ms, scores {:.1} ms ({} tiles), finish {:.1} ms",
+            places.len(),
+            ms(placed),
+            ms(scored_at - placed),
+            scored.len(),
+            ms(started.elapsed() - scored_at)
+        );
         crate::tiled::finish(&finished[0].1, &ranked, searched_us)
     }
 
