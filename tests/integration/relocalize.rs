@@ -20,7 +20,9 @@ use crate::common;
 
 use std::path::{Path, PathBuf};
 
-use common::{Prefix, Server, bake_dataset, json, kfmap, linked_dataset, simulate, temp_dir};
+use common::{
+    Prefix, Server, TestDir, bake_dataset, json, kfmap, linked_dataset, simulate, temp_dir,
+};
 use kfmap_bake::dataset::find_scans;
 use kfmap_client::{Client, ClientOptions, Connection, RelocalizeOptions};
 use kfmap_protocol::{
@@ -123,6 +125,57 @@ fn map_from_input(name: &str, prefix: &Prefix) -> Pose {
         .status()
         .unwrap()
         .map_from_input
+}
+
+/// A simulated site mapped on one drive and served, and the same drive replayed at
+/// another lidar rate (other scans than the map's): its scans and their true poses in
+/// the simulator's frame and in the map's.
+struct ReplayedSite {
+    _server: Server,
+    prefix: Prefix,
+    name: String,
+    map: PathBuf,
+    scans: Vec<PathBuf>,
+    input: Vec<Pose>,
+    truth: Vec<Pose>,
+    /// Holds the map and the scans: removed last.
+    _dir: TestDir,
+}
+
+/// Simulates `preset` (`world`: options of both drives) with `beams`, bakes and serves
+/// the first drive as `name`, replays it at `lidar_rate` Hz.
+fn replayed_site(
+    name: &str,
+    preset: &str,
+    seconds: &str,
+    beams: &str,
+    world: &[&str],
+    lidar_rate: &str,
+) -> ReplayedSite {
+    let dir = temp_dir(&format!("{name}-relocalize"));
+    let (mapped, replayed) = (dir.join("mapped"), dir.join("replayed"));
+    simulate(&mapped, preset, seconds, beams, world);
+    let replay = [world, &["--lidar-rate", lidar_rate]].concat();
+    simulate(&replayed, preset, seconds, beams, &replay);
+    let map = dir.join(format!("{name}.kfmap"));
+    bake_dataset(&mapped, &map);
+    let prefix = Prefix::new(&format!("{name}-reloc"));
+    let server = Server::start(&map, name, &prefix.0, &[]);
+    let map_from_input = map_from_input(name, &prefix);
+    let input = read_trajectory(&replayed.join("poses_gt.txt"))
+        .unwrap()
+        .poses;
+    let truth = input.iter().map(|p| map_from_input * p).collect();
+    ReplayedSite {
+        _server: server,
+        prefix,
+        name: name.to_owned(),
+        map,
+        scans: find_scans(&replayed).unwrap(),
+        input,
+        truth,
+        _dir: dir,
+    }
 }
 
 /// The map of balm_os0's scans 0-115 at their reference poses, baked in `dir`.
@@ -374,28 +427,11 @@ fn turned_balm_scans_are_found_at_any_heading() {
 /// 0.3 m / 3 deg of the truth and `found`, none `found` more than 1 m or 5 deg off.
 #[test]
 fn a_tilted_campus_is_relocalized_with_the_imu_tilt() {
-    let dir = temp_dir("campus-relocalize");
-    let (mapped, replayed) = (dir.join("mapped"), dir.join("replayed"));
     let world = ["--seed", "7", "--tilt-deg", "2.0,-3.0"];
-    simulate(&mapped, "campus", "30", "64", &world);
-    simulate(
-        &replayed,
-        "campus",
-        "30",
-        "64",
-        &[&world[..], &["--lidar-rate", "3"]].concat(),
-    );
-    let map = dir.join("campus.kfmap");
-    bake_dataset(&mapped, &map);
-    let prefix = Prefix::new("campus-reloc");
-    let _server = Server::start(&map, "campus-reloc", &prefix.0, &[]);
-    let map_from_input = map_from_input("campus-reloc", &prefix);
-    let input = read_trajectory(&replayed.join("poses_gt.txt"))
-        .unwrap()
-        .poses;
+    let site = replayed_site("campus", "campus", "30", "64", &world, "3");
+    let (scans, input) = (&site.scans, &site.input);
     // Up in the simulator's frame (its world is tilted), from its gravity.
     let up = -gravity_in_map(2f64.to_radians(), -3f64.to_radians()).normalize();
-    let scans = find_scans(&replayed).unwrap();
     let (mut success, mut wrong) = (0, Vec::new());
     let chosen: Vec<usize> = (0..scans.len()).step_by(5).collect();
     assert_eq!(chosen.len(), 18);
@@ -408,13 +444,13 @@ fn a_tilted_campus_is_relocalized_with_the_imu_tilt() {
         assert!((tilt.inverse() * Vector3::z()).angle(&sensor_up) < 1e-9);
         let tilt_deg = format!("{},{}", roll.to_degrees(), pitch.to_degrees());
         let place = relocalize(
-            "campus-reloc",
-            &prefix,
+            &site.name,
+            &site.prefix,
             &[scans[i].clone()],
             &["--tilt-deg", &tilt_deg],
         )
         .remove(0);
-        let truth = map_from_input * input[i];
+        let truth = site.truth[i];
         println!(
             "campus scan {i} (tilt {tilt_deg} deg): {} {:?}, {:.0} ms",
             place.status,
@@ -437,28 +473,16 @@ fn a_tilted_campus_is_relocalized_with_the_imu_tilt() {
 /// 0.3 m and 3 deg; inside it the answers are `ambiguous` or right.
 #[test]
 fn a_corridor_is_never_answered_with_a_confident_wrong_place() {
-    let dir = temp_dir("corridor-relocalize");
-    let (mapped, replayed) = (dir.join("mapped"), dir.join("replayed"));
-    simulate(&mapped, "corridor", "90", "32", &[]);
-    simulate(&replayed, "corridor", "90", "32", &["--lidar-rate", "3"]);
-    let map = dir.join("corridor.kfmap");
-    bake_dataset(&mapped, &map);
-    let prefix = Prefix::new("corridor-reloc");
-    let _server = Server::start(&map, "corridor", &prefix.0, &[]);
-    let map_from_input = map_from_input("corridor", &prefix);
-    let input = read_trajectory(&replayed.join("poses_gt.txt"))
-        .unwrap()
-        .poses;
-    let truth: Vec<Pose> = input.iter().map(|p| map_from_input * p).collect();
-    let scans = find_scans(&replayed).unwrap();
+    let site = replayed_site("corridor", "corridor", "90", "32", &[], "3");
+    let (scans, input, truth) = (&site.scans, &site.input, &site.truth);
     let chosen: Vec<usize> = (0..scans.len()).step_by(6).collect();
     let places = relocalize(
-        "corridor",
-        &prefix,
+        &site.name,
+        &site.prefix,
         &chosen.iter().map(|&i| scans[i].clone()).collect::<Vec<_>>(),
         &[],
     );
-    let json_summary = json(&kfmap(&["inspect", map.to_str().unwrap(), "--json"]));
+    let json_summary = json(&kfmap(&["inspect", site.map.to_str().unwrap(), "--json"]));
     println!("place grid: {}", json_summary["place_grid"]);
     let (mut outside, mut outside_found, mut inside, mut inside_ambiguous) = (0, 0, 0, 0);
     for (place, &i) in places.iter().zip(&chosen) {
@@ -489,7 +513,7 @@ fn a_corridor_is_never_answered_with_a_confident_wrong_place() {
     assert!(outside >= 20 && inside >= 10, "{outside} / {inside} scans");
     assert_eq!(outside_found, outside);
     let sample: Vec<&PathBuf> = chosen.iter().step_by(4).map(|&i| &scans[i]).collect();
-    three_phases_answer_as_one("corridor", &prefix, &sample);
+    three_phases_answer_as_one(&site.name, &site.prefix, &sample);
 }
 
 /// A sparse sensor through the command a user types: a 16-ring courtyard drive, mapped,
@@ -499,36 +523,22 @@ fn a_corridor_is_never_answered_with_a_confident_wrong_place() {
 /// Every scan is `found` within 0.3 m / 3 deg of the simulator's truth; none wrong.
 #[test]
 fn a_sparse_sixteen_ring_scan_is_relocalized_as_sent() {
-    let dir = temp_dir("courtyard-relocalize");
-    let (mapped, replayed) = (dir.join("mapped"), dir.join("replayed"));
-    simulate(&mapped, "courtyard", "36", "16", &["--speed", "8"]);
-    simulate(
-        &replayed,
-        "courtyard",
-        "36",
-        "16",
-        &["--speed", "8", "--lidar-rate", "7"],
-    );
-    let map = dir.join("courtyard.kfmap");
-    bake_dataset(&mapped, &map);
-    let prefix = Prefix::new("courtyard-reloc");
-    let _server = Server::start(&map, "courtyard", &prefix.0, &[]);
-    let map_from_input = map_from_input("courtyard", &prefix);
-    let input = read_trajectory(&replayed.join("poses_gt.txt"))
-        .unwrap()
-        .poses;
-    let scans = find_scans(&replayed).unwrap();
-    let chosen: Vec<usize> = (0..scans.len()).step_by(9).collect();
+    let world = ["--speed", "8"];
+    let site = replayed_site("courtyard", "courtyard", "36", "16", &world, "7");
+    let chosen: Vec<usize> = (0..site.scans.len()).step_by(9).collect();
     let places = relocalize(
-        "courtyard",
-        &prefix,
-        &chosen.iter().map(|&i| scans[i].clone()).collect::<Vec<_>>(),
+        &site.name,
+        &site.prefix,
+        &chosen
+            .iter()
+            .map(|&i| site.scans[i].clone())
+            .collect::<Vec<_>>(),
         &[],
     );
     assert_eq!(places.len(), chosen.len());
     let mut worst: f64 = 0.0;
     for (place, &i) in places.iter().zip(&chosen) {
-        let truth = map_from_input * input[i];
+        let truth = site.truth[i];
         let gap = place.pose.map(|p| gap(&p, &truth));
         println!("scan {i}: {} {gap:?}", place.status);
         assert!(right(place, &truth), "scan {i}: {} {gap:?}", place.status);
