@@ -369,9 +369,10 @@ mod in_namespace {
             if tiled.status == RelocalizeStatus::Found {
                 let (a, b) = (tiled.pose.unwrap(), whole.pose.unwrap());
                 let apart = (a.translation.vector - b.translation.vector).norm();
-                println!("relocalize scan {i}: found {apart:.3} m from the merged map's place");
+                println!("relocalize scan {i}: found {apart:.4} m from the merged map's place");
+                // Measured: at most 1 mm (README), the scan 264 whose score differs.
                 assert!(
-                    apart < 0.01,
+                    apart < 0.003,
                     "scan {i}: tiled relocalization {apart} m from the merged map's"
                 );
                 found += 1;

@@ -246,53 +246,62 @@ fn proposed(
         .map_err(|e| bad(format!("scan: {e}")))
 }
 
-/// The scan whose tile searches this process last ran, and their best (see
-/// [`PeerBest`]).
-type ScanPeers = (Vec<[f32; 3]>, Option<Vector3<f64>>, Arc<PeerBest>);
-
-/// The last scan's searches in this process, for the places phase over a tile set.
-/// A process serving several tiles answers each with its own search of the same scan;
-/// one that finds a place lets the others stop looking below what the client keeps
+/// What the tiles one process serves share about the scan they were last asked to
+/// place: over a tile set the client asks every tile with the same scan at once
 /// (docs/DESIGN.md#notes-tiles).
-static LAST_PEERS: Mutex<Option<ScanPeers>> = Mutex::new(None);
-
-/// The searches of `scan` (levelled by `map_up`) in this process: a new set for a
-/// new scan.
-fn scan_peers(scan: &[[f32; 3]], map_up: Option<Vector3<f64>>) -> Arc<PeerBest> {
-    let mut last = LAST_PEERS.lock().unwrap_or_else(PoisonError::into_inner);
-    if let Some((points, up, peers)) = last.as_ref()
-        && points == scan
-        && *up == map_up
-    {
-        return Arc::clone(peers);
-    }
-    let peers = Arc::new(PeerBest::default());
-    *last = Some((scan.to_vec(), map_up, Arc::clone(&peers)));
-    peers
+struct SharedScan {
+    points: Vec<[f32; 3]>,
+    /// The client's tilt, when it sent one.
+    map_up: Option<Vector3<f64>>,
+    /// Up from the scan's floors and the tilt gate it was found under: found once for
+    /// every tile (most of a tile's first phase when the scan fits nowhere).
+    own_up: Option<(f64, Option<Vector3<f64>>)>,
+    /// The best of the tiles' searches: one that finds a place lets the others stop
+    /// looking below what the client keeps ([`PeerBest`]).
+    peers: Arc<PeerBest>,
 }
 
-/// A scan and the up found from its floors (with the tilt gate it was found under).
-type FoundUp = (Vec<[f32; 3]>, f64, Option<Vector3<f64>>);
+/// The last scan's [`SharedScan`] in this process.
+static LAST_SCAN: Mutex<Option<SharedScan>> = Mutex::new(None);
 
-/// The last scan's own up in this process, for the places phase. Over a tile set the
-/// client asks every tile with the same scan at once; a process serving several tiles
-/// finds up once for them (it is most of a tile's first phase when the scan fits
-/// nowhere: docs/DESIGN.md#notes-tiles).
-static LAST_UP: Mutex<Option<FoundUp>> = Mutex::new(None);
+/// Runs `f` on the [`SharedScan`] of `scan` (levelled by `map_up`), a fresh one for a
+/// new scan, with the lock held: a tile asking with the same scan meanwhile waits and
+/// reads what `f` found.
+fn with_shared_scan<R>(
+    scan: &[[f32; 3]],
+    map_up: Option<Vector3<f64>>,
+    f: impl FnOnce(&mut SharedScan) -> R,
+) -> R {
+    let mut last = LAST_SCAN.lock().unwrap_or_else(PoisonError::into_inner);
+    let same = last
+        .as_ref()
+        .is_some_and(|s| s.points == scan && s.map_up == map_up);
+    if !same {
+        *last = Some(SharedScan {
+            points: scan.to_vec(),
+            map_up,
+            own_up: None,
+            peers: Arc::new(PeerBest::default()),
+        });
+    }
+    f(last.as_mut().expect("set above"))
+}
+
+/// The searches of `scan` (levelled by `map_up`) in this process.
+fn scan_peers(scan: &[[f32; 3]], map_up: Option<Vector3<f64>>) -> Arc<PeerBest> {
+    with_shared_scan(scan, map_up, |shared| Arc::clone(&shared.peers))
+}
 
 /// [`own_up`] of `scan`, shared by the maps this process serves.
 fn shared_own_up(scan: &[[f32; 3]], params: &RelocalizeParams) -> Option<Vector3<f64>> {
-    // Held while finding up: a tile asking with the same scan waits and reads it.
-    let mut last = LAST_UP.lock().unwrap_or_else(PoisonError::into_inner);
-    if let Some((points, tilt, up)) = last.as_ref()
-        && points == scan
-        && *tilt == params.max_tilt_deg
-    {
-        return *up;
-    }
-    let up = own_up(scan, params);
-    *last = Some((scan.to_vec(), params.max_tilt_deg, up));
-    up
+    with_shared_scan(scan, None, |shared| match shared.own_up {
+        Some((tilt, up)) if tilt == params.max_tilt_deg => up,
+        _ => {
+            let up = own_up(scan, params);
+            shared.own_up = Some((params.max_tilt_deg, up));
+            up
+        }
+    })
 }
 
 /// The answer of a decided relocalization.

@@ -131,7 +131,7 @@ fn the_search_finds_the_exhaustive_optimum() {
     for trial in 0..4 {
         let (grid, points) = random_site_and_scan(&mut rng);
         let view = grid.view();
-        let area = region([5.3, 4.1, 0.2], [24.9, 22.7, 2.9]);
+        let area = searched_area();
         let found = search(
             &view,
             &points,
@@ -163,6 +163,17 @@ fn the_search_finds_the_exhaustive_optimum() {
     }
 }
 
+/// The region the searches over a random site try.
+fn searched_area() -> SearchRegion {
+    region([5.3, 4.1, 0.2], [24.9, 22.7, 2.9])
+}
+
+/// One of three owners of column `(x, y)`, in diagonal stripes no box describes (as
+/// tiles' shares of a tile set's search are).
+fn stripe_owner(x: f64, y: f64) -> usize {
+    ((x / 7.0).floor() + (y / 5.0).floor()).rem_euclid(3.0) as usize
+}
+
 /// Shares searched one after another with a common [`PeerBest`] (tiles of one process)
 /// return, ranked together and kept above `keep-ratio` of the best as the client keeps
 /// them, exactly what the same shares return searched alone; a share after the best
@@ -170,12 +181,11 @@ fn the_search_finds_the_exhaustive_optimum() {
 #[test]
 fn shares_searched_with_peers_keep_what_the_client_keeps() {
     let mut rng = StdRng::seed_from_u64(13);
-    let owner = |x: f64, y: f64| ((x / 7.0).floor() + (y / 5.0).floor()).rem_euclid(3.0) as usize;
     let mut fewer = 0;
     for trial in 0..4 {
         let (grid, points) = random_site_and_scan(&mut rng);
         let view = grid.view();
-        let area = region([5.3, 4.1, 0.2], [24.9, 22.7, 2.9]);
+        let area = searched_area();
         let params = SearchParams {
             candidates: 8,
             min_hit_ratio: 0.0,
@@ -184,7 +194,7 @@ fn shares_searched_with_peers_keep_what_the_client_keeps() {
         };
         let identity = UnitQuaternion::identity();
         let tables: Vec<OwnedColumns> = (0..3)
-            .map(|share| OwnedColumns::new(&area, 1.0, move |x, y| owner(x, y) == share))
+            .map(|share| OwnedColumns::new(&area, 1.0, move |x, y| stripe_owner(x, y) == share))
             .collect();
         let alone: Vec<SearchOutcome> = tables
             .iter()
@@ -303,11 +313,10 @@ fn exhaustive_best(
 #[test]
 fn a_search_over_owned_columns_finds_the_best_of_those_columns() {
     let mut rng = StdRng::seed_from_u64(12);
-    let owner = |x: f64, y: f64| ((x / 7.0).floor() + (y / 5.0).floor()).rem_euclid(3.0) as usize;
     for trial in 0..3 {
         let (grid, points) = random_site_and_scan(&mut rng);
         let view = grid.view();
-        let area = region([5.3, 4.1, 0.2], [24.9, 22.7, 2.9]);
+        let area = searched_area();
         let params = SearchParams {
             candidates: 3,
             min_hit_ratio: 0.0,
@@ -325,7 +334,7 @@ fn a_search_over_owned_columns_finds_the_best_of_those_columns() {
         );
         let mut best_of_shares = 0;
         for share in 0..3 {
-            let owns = move |x: f64, y: f64| owner(x, y) == share;
+            let owns = move |x: f64, y: f64| stripe_owner(x, y) == share;
             let table = OwnedColumns::new(&area, 1.0, owns);
             let found = search(
                 &view,
