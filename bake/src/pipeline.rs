@@ -20,6 +20,7 @@ use kfmap_shared::map::{Keyframe, KeyframeMapOptions};
 use kfmap_shared::motion::DeskewMode;
 use kfmap_shared::pose_graph::{PoseEdge, PoseGraph, write_g2o};
 use kfmap_shared::registration::Fitness;
+use kfmap_shared::tiles::TileGeometry;
 use kfmap_shared::trajectory_error::{absolute_trajectory_error, rigid_alignment};
 use rayon::prelude::*;
 
@@ -30,6 +31,7 @@ use crate::gravity::{BakeGravity, bake_gravity, check_overlap};
 use crate::mapping::{OdometryOutcome, ScanCheck, ScanVerdict, Stage, build_trajectory};
 use crate::scan_range::ScanRange;
 use crate::source::{ScanList, Source};
+use crate::tiling::{TileSetSummary, TileSetWriter};
 
 /// Where a bake reads from.
 #[derive(Debug, Clone)]
@@ -87,6 +89,18 @@ pub struct BakeOutput {
     /// `EDGE_SE3:QUAT` per consecutive and loop edge with its information; `FIX` on the
     /// first). Only when the poses are built from the scans.
     pub graph: Option<PathBuf>,
+    /// Bake a tile set into the directory `map` instead of one map file.
+    pub tiles: Option<TileOutput>,
+}
+
+/// A tile set baked instead of one map file (`kfmap bake --tile-size`,
+/// [`TileSetWriter`]).
+#[derive(Debug, Clone, Copy)]
+pub struct TileOutput {
+    /// How the map is cut.
+    pub geometry: TileGeometry,
+    /// Also write the whole map, as [`merged_map_path`](crate::tiling::merged_map_path).
+    pub keep_merged: bool,
 }
 
 /// The scan check's sidecar of a trajectory file: `FILE` + `.check.csv`, one line per
@@ -105,6 +119,7 @@ impl BakeOutput {
             map: path.into(),
             trajectory: None,
             graph: None,
+            tiles: None,
         }
     }
 }
@@ -124,6 +139,8 @@ pub enum BakeStage {
     Checking,
     /// Keyframes indexed and written.
     Writing,
+    /// A tile set's tiles finished (grids cut, indexes, Autoware clouds).
+    Tiling,
 }
 
 /// Progress of a bake.
@@ -222,8 +239,11 @@ pub struct BakeReport {
     pub mapping: Option<MappingSummary>,
     /// The gravity stage, when the dataset has an IMU log.
     pub gravity: Option<BakeGravity>,
-    /// The file written.
+    /// The file written (a tile set's: every keyframe once, the bytes and place grids of
+    /// all its tiles).
     pub written: WriteSummary,
+    /// The tile set, when one was baked.
+    pub tiles: Option<TileSetSummary>,
     /// Wall time, seconds.
     pub seconds: f64,
 }
@@ -434,7 +454,7 @@ pub fn bake(
     input: &BakeInput,
     config: &BakeConfig,
     output: &BakeOutput,
-    mut progress: impl FnMut(BakeProgress),
+    mut progress: impl FnMut(BakeProgress) + Send,
 ) -> Result<BakeReport, BakeError> {
     let started = Instant::now();
     let all_scans = input.source.scans(&mut |done, total| {
@@ -487,11 +507,11 @@ pub fn bake(
         stamps: &stamps,
         stamped,
     };
-    let written = write_map(
+    let (written, tiles) = write_map(
         &sequence,
         &chosen,
         config,
-        &output.map,
+        output,
         &map_from_input,
         gravity.as_ref(),
         &mut progress,
@@ -505,6 +525,7 @@ pub fn bake(
         mapping,
         gravity,
         written,
+        tiles,
         seconds: started.elapsed().as_secs_f64(),
     })
 }
@@ -587,18 +608,33 @@ struct Sequence<'a> {
     stamped: bool,
 }
 
-/// Writes the map file: the `chosen` scans read, downsampled and indexed into
-/// keyframes a chunk at a time (in parallel within a chunk), the covisibility graph
-/// and the gravity pool.
+/// Where a bake's keyframes go: one map file, or a tile set's files.
+enum KeyframeSink {
+    Map(Box<MapWriter>),
+    Tiles(Box<TileSetWriter>),
+}
+
+impl KeyframeSink {
+    fn write_keyframes(&mut self, keyframes: &[Keyframe]) -> Result<(), BakeError> {
+        match self {
+            Self::Map(writer) => Ok(writer.write_keyframes(keyframes)?),
+            Self::Tiles(writer) => writer.write_keyframes(keyframes),
+        }
+    }
+}
+
+/// Writes the map file (or tile set): the `chosen` scans read, downsampled and indexed
+/// into keyframes a chunk at a time (in parallel within a chunk), the covisibility
+/// graph and the gravity pool.
 fn write_map(
     sequence: &Sequence,
     chosen: &[usize],
     config: &BakeConfig,
-    path: &Path,
+    output: &BakeOutput,
     map_from_input: &Pose,
     gravity: Option<&BakeGravity>,
-    progress: &mut impl FnMut(BakeProgress),
-) -> Result<WriteSummary, BakeError> {
+    progress: &mut (impl FnMut(BakeProgress) + Send),
+) -> Result<(WriteSummary, Option<TileSetSummary>), BakeError> {
     let Sequence {
         scans,
         poses,
@@ -606,8 +642,20 @@ fn write_map(
         stamped,
     } = *sequence;
     let options: KeyframeMapOptions = config.map_options();
-    let mut writer = MapWriter::create(path, &options)?;
-    writer.set_map_from_input(map_from_input);
+    let mut sink = match output.tiles {
+        None => {
+            let mut writer = MapWriter::create(&output.map, &options)?;
+            writer.set_map_from_input(map_from_input);
+            KeyframeSink::Map(Box::new(writer))
+        }
+        Some(tiles) => KeyframeSink::Tiles(Box::new(TileSetWriter::create(
+            &output.map,
+            tiles.geometry,
+            &options,
+            map_from_input,
+            tiles.keep_merged,
+        )?)),
+    };
     let mut covis = CovisibilityGraph::new(options.covisibility);
     let chunk = 2 * rayon::current_num_threads();
     let mut done = BakeProgress {
@@ -616,8 +664,8 @@ fn write_map(
         total: chosen.len(),
         points_done: 0,
     };
-    for (chunk_index, batch) in chosen.chunks(chunk).enumerate() {
-        let keyframes: Vec<Keyframe> = batch
+    let build = |chunk_index: usize, batch: &[usize]| -> Result<Vec<Keyframe>, BakeError> {
+        batch
             .par_iter()
             .enumerate()
             .map(|(j, &scan)| {
@@ -631,17 +679,54 @@ fn write_map(
                         message: e.to_string(),
                     })
             })
-            .collect::<Result<_, _>>()?;
-        writer.write_keyframes(&keyframes)?;
-        for k in &keyframes {
+            .collect()
+    };
+    let mut write = |keyframes: &[Keyframe]| -> Result<(), BakeError> {
+        sink.write_keyframes(keyframes)?;
+        for k in keyframes {
             covis.set_keyframe(k.id, k.map_points()?);
             done.done += 1;
             done.points_done += k.len() as u64;
             progress(done);
         }
+        Ok(())
+    };
+    // A chunk is written while the next one is built: appending and the covisibility
+    // are sequential, and would leave the other cores idle.
+    let mut built: Option<Vec<Keyframe>> = None;
+    for (chunk_index, batch) in chosen.chunks(chunk).enumerate() {
+        let (next, wrote) = rayon::join(
+            || build(chunk_index, batch),
+            || built.take().map_or(Ok(()), |k| write(&k)),
+        );
+        wrote?;
+        built = Some(next?);
+    }
+    if let Some(keyframes) = built {
+        write(&keyframes)?;
     }
     let pool = gravity.map_or(&[][..], |g| &g.pool[..]);
-    Ok(writer.finish(chosen.len() as u64, &covis.snapshot(), pool)?)
+    let next_id = chosen.len() as u64;
+    match sink {
+        KeyframeSink::Map(writer) => Ok((writer.finish(next_id, &covis.snapshot(), pool)?, None)),
+        KeyframeSink::Tiles(writer) => {
+            let tiles = writer.finish(next_id, &covis.snapshot(), pool, |done, total| {
+                progress(BakeProgress {
+                    stage: BakeStage::Tiling,
+                    done,
+                    total,
+                    points_done: 0,
+                })
+            })?;
+            let written = WriteSummary {
+                keyframes: chosen.len(),
+                points: done.points_done,
+                bytes: tiles.map_bytes,
+                place_bytes: tiles.place_bytes,
+            };
+            Ok((written, Some(tiles)))
+        }
+    }
 }
 
 /// The files beside the map, each written atomically: the trajectory used (TUM) and,

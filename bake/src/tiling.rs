@@ -1,23 +1,29 @@
-//! Cutting a baked map into a tile set (`kfmap bake --tile-size`, docs/DESIGN.md#notes-tiles):
-//! one `.kfmap` per tile with the keyframes of its core square and of its halo, the
-//! index `tiles.toml`, and for Autoware each core square's points as `<id>.pcd` with
-//! `pointcloud_map_metadata.yaml`. Keyframes are copied from the baked map as they are
-//! (points, trees, covariances): nothing is rebuilt, so a tile answers exactly as the
-//! whole map does for a request it owns.
+//! Baking a map as a tile set (`kfmap bake --tile-size`, docs/DESIGN.md#notes-tiles): one
+//! `.kfmap` per tile with the keyframes of its core square and of its halo, the index
+//! `tiles.toml`, and for Autoware each core square's points as `<id>.pcd` with
+//! `pointcloud_map_metadata.yaml`. Each keyframe is built once and its bytes go to every
+//! tile holding it, so a tile answers exactly as the whole map does for a request it owns.
 
+use std::collections::btree_map::Entry;
 use std::collections::{BTreeMap, HashSet};
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::time::Instant;
 
 use kfmap_shared::KeyframeId;
-use kfmap_shared::archive::{GravityRecord, MapWriter, OpenOptions, open_map};
+use kfmap_shared::archive::{
+    ArchiveError, GravityRecord, MapWriter, OpenOptions, SerializedKeyframe, WriteSummary, open_map,
+};
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::covis::CovisSnapshot;
-use kfmap_shared::geometry::{Pose, pose_from_xyz_quat};
-use kfmap_shared::io::{IoError, PcdData, write_atomic, write_pcd};
-use kfmap_shared::map::KeyframeMap;
-use kfmap_shared::place::{GridParams, GridView, PlaceGrid};
+use kfmap_shared::geometry::Pose;
+use kfmap_shared::io::{
+    IoError, PcdData, sync_file_system, write_atomic, write_pcd, write_replacing,
+};
+use kfmap_shared::map::{Keyframe, KeyframeMapOptions};
+use kfmap_shared::place::{
+    GridBuilder, GridContribution, GridError, GridParams, GridView, PlaceGrid,
+};
 use kfmap_shared::select::{SelectionOptions, rank, select_active};
 use kfmap_shared::tiles::{
     AUTOWARE_METADATA_FILE, INDEX_FILE, INDEX_FORMAT, TileEntry, TileGeometry, TileIndex, tile_id,
@@ -30,7 +36,7 @@ use crate::error::BakeError;
 /// place seen from ten keyframes should not weigh ten times.
 const PCD_VOXEL_M: f64 = 0.1;
 
-/// What a cut produced.
+/// What writing a tile set produced.
 #[derive(Debug, Clone)]
 pub struct TileSetSummary {
     /// The index written.
@@ -44,104 +50,290 @@ pub struct TileSetSummary {
     /// The halo check: sampled guesses whose active set from the tile's keyframes is the
     /// whole map's, and guesses sampled.
     pub halo_check: (usize, usize),
-    /// Wall time, seconds.
-    pub seconds: f64,
+    /// The whole map, when it was kept ([`TileSetWriter::create`]'s `keep_merged`).
+    pub merged: Option<WriteSummary>,
+    /// Seconds finishing the tiles once every keyframe was written (grids cut, indexes,
+    /// fsyncs, Autoware clouds, halo check).
+    pub finish_seconds: f64,
 }
 
-/// Cuts the baked map at `map` into a tile set in `dir` (created; a tile set already
-/// there is replaced, any other non-empty directory refused). `progress(done, total)`
-/// after each tile.
-pub fn cut_into_tiles(
-    map: &Path,
-    dir: &Path,
+/// Buffer of each tile's writer: hundreds are open at once, and a keyframe's segment
+/// (tens of kilobytes and more) bypasses a buffer this size anyway.
+const TILE_WRITE_BUFFER: usize = 64 << 10;
+
+/// A tile being written: its file, its keyframes so far and how many are its own.
+struct TileInProgress {
+    writer: MapWriter,
+    ids: Vec<KeyframeId>,
+    core: u64,
+}
+
+/// A tile set written as the keyframes are baked (docs/DESIGN.md#notes-tiles): each
+/// keyframe is serialized once and appended to the file of every tile holding it (its
+/// core's and the halos it lies in), opened when its first keyframe comes; the whole
+/// map's place grid and covisibility are gathered on the way, and each tile's part is
+/// cut from them at [`finish`](Self::finish). No whole map is written unless kept, and
+/// nothing is read back but each tile's own points for its Autoware cloud.
+pub struct TileSetWriter {
+    dir: PathBuf,
     geometry: TileGeometry,
-    progress: impl FnMut(usize, usize) + Send,
-) -> Result<TileSetSummary, BakeError> {
-    let started = Instant::now();
-    geometry.validate().map_err(BakeError::Tiles)?;
-    let previous = prepare_directory(dir)?;
-    let opened = open_map(map, OpenOptions::default())?;
-    let whole = &opened.map;
-    let map_from_input =
-        pose_from_xyz_quat(opened.index.map_from_input).unwrap_or_else(Pose::identity);
-    // Each tile's keyframes (ascending ids, as a map file needs) and its core count.
-    let mut members: BTreeMap<(i32, i32), (Vec<KeyframeId>, u64)> = BTreeMap::new();
-    for keyframe in whole.keyframes() {
-        let t = keyframe.pose.translation.vector;
-        for (n, (col, row)) in geometry.tiles_holding(t.x, t.y).into_iter().enumerate() {
-            let entry = members.entry((row, col)).or_default();
-            entry.0.push(keyframe.id);
-            entry.1 += u64::from(n == 0);
-        }
-    }
-    // A tile is written when it owns a keyframe: a halo alone answers nothing.
-    members.retain(|_, (_, core)| *core > 0);
-    let total = members.len();
-    let mut index = TileIndex {
-        format: INDEX_FORMAT,
-        tile_size: geometry.tile_size,
-        halo: geometry.halo,
-        keyframes: whole.len() as u64,
-        tiles: Vec::with_capacity(total),
-    };
-    let everyone: Vec<(KeyframeId, Pose)> = whole.keyframes().map(|k| (k.id, k.pose)).collect();
-    // Tiles' place grids are cut from the whole map's (docs/DESIGN.md#notes-tiles).
-    let whole_grid = match &opened.place {
-        Some(place) => Some(place.view()?),
-        None => None,
-    };
-    let cut = TileCut {
-        whole,
-        pool: &opened.index.gravity_pool,
-        whole_grid,
-        whole_covis: whole.covisibility().snapshot(),
-        map_from_input,
-        geometry,
-        dir,
-        near: NearIndex::new(&everyone, geometry.halo.max(1.0)),
-    };
-    // Tiles are independent: written in parallel, each by one thread (a tile's own work
-    // is sequential), the results kept in tile order.
-    // Tiles finished so far, with the callback that reports them.
-    let progress = Mutex::new((0, progress));
-    let written: Vec<WrittenTile> = members
-        .par_iter()
-        .map(|(&(row, col), (ids, core))| {
-            let tile = cut.write_tile(col, row, ids, *core)?;
-            if let Ok(mut guard) = progress.lock() {
-                let (done, report) = &mut *guard;
-                *done += 1;
-                report(*done, total);
-            }
-            Ok(tile)
+    options: KeyframeMapOptions,
+    map_from_input: Pose,
+    /// The tile set being replaced, whose stale files go once the new one is complete.
+    previous: Option<TileIndex>,
+    /// The whole map's place grid, gathered from every keyframe.
+    grid: GridBuilder,
+    /// Every keyframe's id and pose, in order.
+    poses: Vec<(KeyframeId, Pose)>,
+    tiles: BTreeMap<(i32, i32), TileInProgress>,
+    /// The whole map as `DIR/merged.kfmap`, when kept.
+    merged: Option<MapWriter>,
+    /// Tiles appended to since their writeback was last started, and the bytes.
+    unsynced: (Vec<(i32, i32)>, u64),
+}
+
+/// Bytes appended over the tiles between starting their writeback: one tile's file
+/// grows a few megabytes in all, too little to start its own, and leaving every tile's
+/// writeback to its final fsync has the disk idle while the keyframes are built.
+const TILES_WRITEBACK_STEP: u64 = 32 << 20;
+
+impl TileSetWriter {
+    /// Starts a tile set of maps with `options` in `dir` (created; a tile set already
+    /// there is replaced once this one is finished, any other non-empty directory
+    /// refused). `keep_merged` also writes the whole map as [`merged_map_path`].
+    pub fn create(
+        dir: &Path,
+        geometry: TileGeometry,
+        options: &KeyframeMapOptions,
+        map_from_input: &Pose,
+        keep_merged: bool,
+    ) -> Result<Self, BakeError> {
+        geometry.validate().map_err(BakeError::Tiles)?;
+        let previous = prepare_directory(dir)?;
+        let merged = if keep_merged {
+            let mut writer = MapWriter::create(&merged_map_path(dir), options)?;
+            writer.set_map_from_input(map_from_input);
+            // The grid this writer gathers is the whole map's: built once, here.
+            writer.expect_place_grid();
+            Some(writer)
+        } else {
+            None
+        };
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            geometry,
+            options: *options,
+            map_from_input: *map_from_input,
+            previous,
+            grid: GridBuilder::new(&GridParams::default()),
+            poses: Vec::new(),
+            tiles: BTreeMap::new(),
+            merged,
+            unsynced: (Vec::new(), 0),
         })
-        .collect::<Result<_, BakeError>>()?;
-    let (mut map_bytes, mut place_bytes, mut worst_place_share) = (0, 0, 0.0_f64);
-    let mut halo_check = (0, 0);
-    for tile in written {
-        place_bytes += tile.place_bytes;
-        worst_place_share =
-            worst_place_share.max(tile.place_bytes as f64 / tile.entry.bytes.max(1) as f64);
-        map_bytes += tile.entry.bytes;
-        halo_check.0 += tile.halo_check.0;
-        halo_check.1 += tile.halo_check.1;
-        index.tiles.push(tile.entry);
     }
-    write_atomic(
-        &dir.join(AUTOWARE_METADATA_FILE),
-        index.autoware_metadata().as_bytes(),
-    )?;
-    // The index last: a directory with an index is a complete tile set.
-    write_atomic(&dir.join(INDEX_FILE), index.to_toml().as_bytes())?;
-    remove_stale(dir, previous, &index);
-    Ok(TileSetSummary {
-        index,
-        map_bytes,
-        place_bytes,
-        worst_place_share,
-        halo_check,
-        seconds: started.elapsed().as_secs_f64(),
-    })
+
+    /// Appends keyframes (ids ascending) to the tiles holding them: serialized and their
+    /// part of the place grid found in parallel, appended in order.
+    pub fn write_keyframes(&mut self, keyframes: &[Keyframe]) -> Result<(), BakeError> {
+        let (grid, options) = (&self.grid, &self.options);
+        let prepared: Vec<(SerializedKeyframe, GridContribution)> = keyframes
+            .par_iter()
+            .map(|k| {
+                let serialized = SerializedKeyframe::new(k, options)?;
+                Ok((serialized, grid.contribution(k.map_points()?)))
+            })
+            .collect::<Result<_, BakeError>>()?;
+        for (keyframe, (serialized, place)) in keyframes.iter().zip(prepared) {
+            self.append(keyframe, &serialized, place)?;
+        }
+        if self.unsynced.1 >= TILES_WRITEBACK_STEP {
+            let (mut touched, _) = std::mem::take(&mut self.unsynced);
+            touched.sort_unstable();
+            touched.dedup();
+            for key in touched {
+                if let Some(tile) = self.tiles.get_mut(&key) {
+                    tile.writer.write_back()?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn append(
+        &mut self,
+        keyframe: &Keyframe,
+        serialized: &SerializedKeyframe,
+        place: GridContribution,
+    ) -> Result<(), BakeError> {
+        let t = keyframe.pose.translation.vector;
+        self.grid.add_anchor(t.into());
+        self.grid.add(place);
+        self.poses.push((keyframe.id, keyframe.pose));
+        for (n, (col, row)) in self
+            .geometry
+            .tiles_holding(t.x, t.y)
+            .into_iter()
+            .enumerate()
+        {
+            let open = self.tiles.len();
+            let tile = match self.tiles.entry((row, col)) {
+                Entry::Occupied(e) => e.into_mut(),
+                Entry::Vacant(e) => {
+                    let path = self.dir.join(format!("{}.kfmap", tile_id(col, row)));
+                    let mut writer =
+                        MapWriter::create_buffered(&path, &self.options, TILE_WRITE_BUFFER)
+                            .map_err(|e| open_tile_error(e, open))?;
+                    writer.set_map_from_input(&self.map_from_input);
+                    writer.expect_place_grid();
+                    // The set is made durable at once, before its index (`finish`).
+                    writer.leave_sync_to_caller();
+                    e.insert(TileInProgress {
+                        writer,
+                        ids: Vec::new(),
+                        core: 0,
+                    })
+                }
+            };
+            tile.writer.append_serialized(keyframe, serialized)?;
+            self.unsynced.0.push((row, col));
+            self.unsynced.1 += serialized.len() as u64;
+            tile.ids.push(keyframe.id);
+            tile.core += u64::from(n == 0);
+        }
+        if let Some(merged) = &mut self.merged {
+            merged.append_serialized(keyframe, serialized)?;
+        }
+        Ok(())
+    }
+
+    /// Finishes every tile owning a keyframe (a halo alone answers nothing: those files
+    /// are dropped): its place grid cut from the whole map's, its part of `covis` and
+    /// of the gravity `pool`, its Autoware cloud, the halo check; then the index, last.
+    /// `progress(done, total)` after each tile.
+    pub fn finish(
+        self,
+        next_id: u64,
+        covis: &CovisSnapshot,
+        pool: &[GravityRecord],
+        progress: impl FnMut(usize, usize) + Send,
+    ) -> Result<TileSetSummary, BakeError> {
+        let started = Instant::now();
+        let Self {
+            dir,
+            geometry,
+            options,
+            previous,
+            grid,
+            poses,
+            mut tiles,
+            merged,
+            ..
+        } = self;
+        tiles.retain(|_, t| t.core > 0);
+        // From the first tile renamed into place the old set is no longer whole: its
+        // index goes first, so nothing serves a mix of the two.
+        if previous.is_some() {
+            std::fs::remove_file(dir.join(INDEX_FILE))
+                .map_err(|e| BakeError::Io(IoError::os(dir.join(INDEX_FILE), e)))?;
+        }
+        let whole_grid = match grid.finish(&GridParams::default()) {
+            Ok(g) => Some(g),
+            Err(e) => {
+                tracing::warn!("tile set written without place grids (no relocalization): {e}");
+                None
+            }
+        };
+        let total = tiles.len();
+        let mut index = TileIndex {
+            format: INDEX_FORMAT,
+            tile_size: geometry.tile_size,
+            halo: geometry.halo,
+            keyframes: poses.len() as u64,
+            tiles: Vec::with_capacity(total),
+        };
+        let finishing = TileFinish {
+            whole_grid: whole_grid.as_ref().map(PlaceGrid::view),
+            covis,
+            pool,
+            selection: options.selection,
+            geometry,
+            dir: &dir,
+            near: NearIndex::new(&poses, geometry.halo.max(1.0)),
+            poses: &poses,
+            next_id,
+        };
+        // Tiles are independent: finished in parallel, each by one thread, the results
+        // kept in tile order.
+        let progress = Mutex::new((0, progress));
+        let written: Vec<WrittenTile> = tiles
+            .into_iter()
+            .collect::<Vec<_>>()
+            .into_par_iter()
+            .map(|((row, col), tile)| {
+                let written = finishing.tile(col, row, tile)?;
+                if let Ok(mut guard) = progress.lock() {
+                    let (done, report) = &mut *guard;
+                    *done += 1;
+                    report(*done, total);
+                }
+                Ok(written)
+            })
+            .collect::<Result<_, BakeError>>()?;
+        let (mut map_bytes, mut place_bytes, mut worst_place_share) = (0, 0, 0.0_f64);
+        let mut halo_check = (0, 0);
+        for tile in written {
+            place_bytes += tile.place_bytes;
+            worst_place_share =
+                worst_place_share.max(tile.place_bytes as f64 / tile.entry.bytes.max(1) as f64);
+            map_bytes += tile.entry.bytes;
+            halo_check.0 += tile.halo_check.0;
+            halo_check.1 += tile.halo_check.1;
+            index.tiles.push(tile.entry);
+        }
+        let merged = match merged {
+            Some(mut writer) => {
+                writer.use_place_grid(whole_grid.ok_or(GridError::Empty));
+                Some(writer.finish(next_id, covis, pool)?)
+            }
+            None => {
+                // A whole map kept by an earlier bake would not be this set's.
+                let _ = std::fs::remove_file(merged_map_path(&dir));
+                None
+            }
+        };
+        write_replacing(
+            &dir.join(AUTOWARE_METADATA_FILE),
+            index.autoware_metadata().as_bytes(),
+        )?;
+        // Every tile durable, then the index: a directory with an index is a complete
+        // tile set (one file-system sync instead of one fsync per file).
+        sync_file_system(&dir)?;
+        write_atomic(&dir.join(INDEX_FILE), index.to_toml().as_bytes())?;
+        remove_stale(&dir, previous, &index);
+        Ok(TileSetSummary {
+            index,
+            map_bytes,
+            place_bytes,
+            worst_place_share,
+            halo_check,
+            merged,
+            finish_seconds: started.elapsed().as_secs_f64(),
+        })
+    }
+}
+
+/// Opening a tile's file failed: past the open-files limit, say which and what to do.
+fn open_tile_error(error: ArchiveError, open: usize) -> BakeError {
+    match &error {
+        ArchiveError::Io { message, .. } if message.contains("Too many open files") => {
+            BakeError::Tiles(format!(
+                "{error}: a tile set keeps every tile's file open while baking and {open} \
+                 are; raise the open-files limit (ulimit -n) or use a larger --tile-size"
+            ))
+        }
+        _ => error.into(),
+    }
 }
 
 /// One tile written: its index entry, its place grid's bytes, its halo check.
@@ -151,107 +343,89 @@ struct WrittenTile {
     halo_check: (usize, usize),
 }
 
-/// What every tile is cut from.
-struct TileCut<'a> {
-    whole: &'a KeyframeMap,
-    pool: &'a [GravityRecord],
+/// What finishing a tile needs of the whole map.
+struct TileFinish<'a> {
     /// The whole map's place grid, which every tile's is cut from.
     whole_grid: Option<GridView<'a>>,
     /// The whole map's covisibility, which every tile keeps the part of among its
     /// keyframes.
-    whole_covis: CovisSnapshot,
-    map_from_input: Pose,
+    covis: &'a CovisSnapshot,
+    pool: &'a [GravityRecord],
+    selection: SelectionOptions,
     geometry: TileGeometry,
     dir: &'a Path,
     /// Every keyframe of the whole map by position.
     near: NearIndex,
+    /// Every keyframe's pose, by id order.
+    poses: &'a [(KeyframeId, Pose)],
+    next_id: u64,
 }
 
-impl TileCut<'_> {
-    /// Writes tile `(col, row)` of keyframes `ids` (ascending; `core` of them its own):
-    /// its map, its Autoware point cloud, and checks its halo.
-    fn write_tile(
-        &self,
-        col: i32,
-        row: i32,
-        ids: &[KeyframeId],
-        core: u64,
-    ) -> Result<WrittenTile, BakeError> {
-        let (whole, geometry) = (self.whole, self.geometry);
+impl TileFinish<'_> {
+    /// Finishes tile `(col, row)`: its place grid, covisibility and gravity records,
+    /// its file, its Autoware point cloud, and checks its halo.
+    fn tile(&self, col: i32, row: i32, tile: TileInProgress) -> Result<WrittenTile, BakeError> {
+        let TileInProgress {
+            mut writer,
+            ids,
+            core,
+        } = tile;
+        let geometry = self.geometry;
         let id = tile_id(col, row);
-        let file = format!("{id}.kfmap");
-        let mut writer = MapWriter::create(&self.dir.join(&file), whole.options())?;
-        writer.set_map_from_input(&self.map_from_input);
         let [x0, y0] = geometry.core_min(col, row);
+        let own: Vec<(KeyframeId, Pose)> = ids
+            .iter()
+            .filter_map(|kf| {
+                let at = self.poses.binary_search_by_key(kf, |(id, _)| *id).ok()?;
+                Some(self.poses[at])
+            })
+            .collect();
         // The place grid is the whole map's within its reach of the core: a scan placed
         // in the core hits what it hits on the whole map, from whichever keyframes the
         // points came, and tries the same translations (docs/DESIGN.md#notes-tiles).
         // Relocalization searches around the core's keyframes: the halo's places are
         // the neighbours' to find.
         let mut search_region = None;
-        if let Some(whole_grid) = &self.whole_grid {
-            let reach = GridParams::default().reach;
-            let searched: Vec<[f64; 3]> = ids
-                .iter()
-                .filter_map(|&kf| whole.keyframe(kf))
-                .map(|k| k.pose.translation.vector)
-                .filter(|t| geometry.tile_of(t.x, t.y) == (col, row))
-                .map(Into::into)
-                .collect();
-            let grid = PlaceGrid::cut_from(
-                whole_grid,
-                [x0 - reach, y0 - reach],
-                [
-                    x0 + geometry.tile_size + reach,
-                    y0 + geometry.tile_size + reach,
-                ],
-                &searched,
-            );
-            // The index carries every tile's region: each server's share of a search
-            // over the set needs its neighbours' (`SearchShare`).
-            search_region = grid.as_ref().ok().map(|g| g.region);
-            writer.use_place_grid(grid);
-        }
-        let in_core = |p: &[f64; 3]| {
-            p[0] >= x0
-                && p[0] < x0 + geometry.tile_size
-                && p[1] >= y0
-                && p[1] < y0 + geometry.tile_size
-        };
-        let mut core_points: Vec<[f32; 3]> = Vec::new();
-        let mut own: Vec<(KeyframeId, Pose)> = Vec::with_capacity(ids.len());
-        for &kf in ids {
-            let keyframe = whole.keyframe(kf).expect("an id listed from the map");
-            let points = keyframe.map_points()?;
-            core_points.extend(
-                points
+        let grid = match &self.whole_grid {
+            Some(whole_grid) => {
+                let reach = GridParams::default().reach;
+                let searched: Vec<[f64; 3]> = own
                     .iter()
-                    .filter(|p| in_core(p))
-                    .map(|p| p.map(|v| v as f32)),
-            );
-            own.push((kf, keyframe.pose));
-            writer.write_keyframe(keyframe)?;
-        }
-        let halo_check = check_halo(
-            &own,
-            &self.near,
-            geometry,
-            (col, row),
-            &whole.options().selection,
-        );
+                    .map(|(_, p)| p.translation.vector)
+                    .filter(|t| geometry.tile_of(t.x, t.y) == (col, row))
+                    .map(Into::into)
+                    .collect();
+                let grid = PlaceGrid::cut_from(
+                    whole_grid,
+                    [x0 - reach, y0 - reach],
+                    [
+                        x0 + geometry.tile_size + reach,
+                        y0 + geometry.tile_size + reach,
+                    ],
+                    &searched,
+                );
+                // The index carries every tile's region: each server's share of a search
+                // over the set needs its neighbours' (`SearchShare`).
+                search_region = grid.as_ref().ok().map(|g| g.region);
+                grid
+            }
+            None => Err(GridError::Empty),
+        };
+        writer.use_place_grid(grid);
         let pool: Vec<_> = self
             .pool
             .iter()
             .filter(|g| ids.binary_search(&g.keyframe).is_ok())
             .cloned()
             .collect();
-        let covis = self.whole_covis.restricted_to(ids);
-        let written = writer.finish(whole.next_id(), &covis, &pool)?;
+        let covis = self.covis.restricted_to(&ids);
+        let file = format!("{id}.kfmap");
+        let written = writer.finish(self.next_id, &covis, &pool)?;
+        let halo_check = check_halo(&own, &self.near, geometry, (col, row), &self.selection);
         let pcd = format!("{id}.pcd");
-        let cloud = PointCloud::from_points(core_points)
-            .voxel_downsample(PCD_VOXEL_M)
-            .map_err(|e| BakeError::Tiles(format!("tile {id}: thinning its points: {e}")))?;
-        write_atomic(&self.dir.join(&pcd), &write_pcd(&cloud, PcdData::Binary))?;
+        let cloud = core_cloud(&self.dir.join(&file), geometry, (col, row))
+            .map_err(|e| BakeError::Tiles(format!("tile {id}: its Autoware cloud: {e}")))?;
+        write_replacing(&self.dir.join(&pcd), &write_pcd(&cloud, PcdData::Binary))?;
         Ok(WrittenTile {
             entry: TileEntry {
                 id,
@@ -270,6 +444,31 @@ impl TileCut<'_> {
             halo_check,
         })
     }
+}
+
+/// Tile `(col, row)`'s core points from its finished file, thinned to [`PCD_VOXEL_M`]
+/// (read back from the page cache: gathering them while baking would hold every
+/// tile's points at once).
+fn core_cloud(
+    file: &Path,
+    geometry: TileGeometry,
+    (col, row): (i32, i32),
+) -> Result<PointCloud, Box<dyn std::error::Error>> {
+    let opened = open_map(file, OpenOptions::default())?;
+    let [x0, y0] = geometry.core_min(col, row);
+    let s = geometry.tile_size;
+    let in_core = |p: &[f64; 3]| p[0] >= x0 && p[0] < x0 + s && p[1] >= y0 && p[1] < y0 + s;
+    let mut core_points: Vec<[f32; 3]> = Vec::new();
+    for keyframe in opened.map.keyframes() {
+        core_points.extend(
+            keyframe
+                .map_points()?
+                .iter()
+                .filter(|p| in_core(p))
+                .map(|p| p.map(|v| v as f32)),
+        );
+    }
+    Ok(PointCloud::from_points(core_points).voxel_downsample(PCD_VOXEL_M)?)
 }
 
 /// The halo check of one tile: for each of its core keyframes' poses, and each moved
@@ -522,5 +721,170 @@ mod tests {
         assert!(agree[0] < agree[1] && agree[1] < agree[2], "{per_halo:?}");
         let (_, wide_agree, wide_sampled) = per_halo[2];
         assert!(wide_agree * 100 >= wide_sampled * 99, "{per_halo:?}");
+    }
+
+    /// A synthetic scan in the sensor frame: ground, two walls and posts within 12 m.
+    fn scan(seed: u64) -> PointCloud {
+        let mut state = seed.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1);
+        let mut next = move |low: f32, high: f32| {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            low + (high - low) * ((state >> 40) as f32 / (1u64 << 24) as f32)
+        };
+        let points = (0..1500)
+            .map(|i| match i % 3 {
+                0 => [next(-12.0, 12.0), next(-12.0, 12.0), next(-0.02, 0.02)],
+                1 => [
+                    next(-12.0, 12.0),
+                    if i % 2 == 0 { -6.0 } else { 7.0 },
+                    next(0.0, 3.0),
+                ],
+                _ => [
+                    next(-12.0, 12.0).round(),
+                    next(-5.0, 6.0).round(),
+                    next(0.0, 2.0),
+                ],
+            })
+            .collect();
+        PointCloud::from_points(points)
+    }
+
+    /// A tile set streamed by [`TileSetWriter`] against independent oracles: its whole
+    /// map byte-identical to the one `MapWriter` bakes from the same keyframes; each
+    /// tile's keyframes by brute-force membership, each byte-identical to the whole
+    /// map's; each tile's grid the whole map's cut to the tile; covisibility edges the
+    /// whole map's among a tile's keyframes; the Autoware cloud inside its core.
+    #[test]
+    fn a_streamed_tile_set_holds_what_the_whole_map_holds() {
+        let dir = std::env::temp_dir().join(format!("kfmap-tiling-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let options = KeyframeMapOptions::default();
+        let keyframes: Vec<Keyframe> = spread(60, 55.0)
+            .into_iter()
+            .map(|(id, pose)| {
+                Keyframe::build(id, pose, id as f64, scan(id), &options.covariance).unwrap()
+            })
+            .collect();
+        let mut covis = kfmap_shared::covis::CovisibilityGraph::new(options.covisibility);
+        for k in &keyframes {
+            covis.set_keyframe(k.id, k.map_points().unwrap());
+        }
+        let covis = covis.snapshot();
+        let level = Pose::new(Vector3::new(0.5, -1.0, 0.0), Vector3::zeros());
+        let whole_path = dir.join("whole.kfmap");
+        let mut whole = MapWriter::create(&whole_path, &options).unwrap();
+        whole.set_map_from_input(&level);
+        for chunk in keyframes.chunks(7) {
+            whole.write_keyframes(chunk).unwrap();
+        }
+        whole.finish(60, &covis, &[]).unwrap();
+
+        let geometry = TileGeometry {
+            tile_size: 20.0,
+            halo: 6.0,
+        };
+        let tiles = dir.join("tiles");
+        let mut writer = TileSetWriter::create(&tiles, geometry, &options, &level, true).unwrap();
+        for chunk in keyframes.chunks(5) {
+            writer.write_keyframes(chunk).unwrap();
+        }
+        let set = writer.finish(60, &covis, &[], |_, _| {}).unwrap();
+        assert_eq!(
+            std::fs::read(merged_map_path(&tiles)).unwrap(),
+            std::fs::read(&whole_path).unwrap(),
+            "the kept whole map is the one MapWriter writes"
+        );
+        let whole = open_map(&whole_path, OpenOptions::default()).unwrap();
+        let whole_grid = whole.place.as_ref().unwrap().view().unwrap();
+        let (s, h) = (geometry.tile_size, geometry.halo);
+        let mut owned = 0;
+        for entry in &set.index.tiles {
+            let (x0, y0) = (f64::from(entry.col) * s, f64::from(entry.row) * s);
+            let (mut core, mut all) = (Vec::new(), Vec::new());
+            for k in &keyframes {
+                let t = k.pose.translation.vector;
+                if t.x >= x0 && t.x < x0 + s && t.y >= y0 && t.y < y0 + s {
+                    core.push(k.id);
+                }
+                if t.x >= x0 - h && t.x <= x0 + s + h && t.y >= y0 - h && t.y <= y0 + s + h {
+                    all.push(k.id);
+                }
+            }
+            assert!(!core.is_empty(), "tile {} owns nothing", entry.id);
+            owned += core.len();
+            assert_eq!(
+                entry.core_keyframes as usize,
+                core.len(),
+                "tile {}",
+                entry.id
+            );
+            let tile = open_map(&tiles.join(&entry.file), OpenOptions::default()).unwrap();
+            let ids: Vec<KeyframeId> = tile.index.keyframes.iter().map(|k| k.id).collect();
+            assert_eq!(ids, all, "tile {}", entry.id);
+            for k in &tile.index.keyframes {
+                let w = whole.index.keyframes.iter().find(|w| w.id == k.id).unwrap();
+                assert_eq!((k.checksum, k.len, k.pose), (w.checksum, w.len, w.pose));
+            }
+            let edges: Vec<_> = whole
+                .index
+                .covis_edges
+                .iter()
+                .filter(|(a, b, _)| all.contains(a) && all.contains(b))
+                .copied()
+                .collect();
+            assert_eq!(tile.index.covis_edges, edges, "tile {}", entry.id);
+            assert_eq!(tile.index.map_from_input, whole.index.map_from_input);
+            // The grid: the whole map's voxels within the grid's reach of the core.
+            let searched: Vec<[f64; 3]> = keyframes
+                .iter()
+                .filter(|k| core.contains(&k.id))
+                .map(|k| k.pose.translation.vector.into())
+                .collect();
+            let reach = GridParams::default().reach;
+            let expected = PlaceGrid::cut_from(
+                &whole_grid,
+                [x0 - reach, y0 - reach],
+                [x0 + s + reach, y0 + s + reach],
+                &searched,
+            )
+            .unwrap();
+            let expected = expected.view();
+            let got = tile.place.as_ref().unwrap().view().unwrap();
+            assert_eq!(
+                (got.origin(), got.dims(), got.region()),
+                (expected.origin(), expected.dims(), expected.region()),
+                "tile {}",
+                entry.id
+            );
+            let dims = got.dims();
+            let mut marked = 0;
+            for x in 0..dims[0] {
+                for y in 0..dims[1] {
+                    for z in 0..dims[2] {
+                        let v = [x, y, z];
+                        assert_eq!(got.marked(0, v), expected.marked(0, v), "{v:?}");
+                        marked += usize::from(got.marked(0, v));
+                    }
+                }
+            }
+            assert!(marked > 0, "tile {}: an empty grid", entry.id);
+            let pcd_path = tiles.join(&entry.pcd);
+            let bytes = std::fs::read(&pcd_path).unwrap();
+            let (cloud, _, _) = kfmap_shared::io::read_pcd(&pcd_path, &bytes).unwrap();
+            assert!(!cloud.points.is_empty(), "tile {}", entry.id);
+            for p in &cloud.points {
+                let (x, y) = (f64::from(p[0]), f64::from(p[1]));
+                assert!(x >= x0 - 0.1 && x < x0 + s + 0.1 && y >= y0 - 0.1 && y < y0 + s + 0.1);
+            }
+        }
+        assert_eq!(owned, keyframes.len(), "every keyframe in exactly one core");
+        assert!(
+            set.index.tiles.len() >= 6,
+            "{} tiles",
+            set.index.tiles.len()
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -8,10 +8,11 @@ use kfmap_bake::config::BakeConfig;
 use kfmap_bake::gravity::BakeGravity;
 use kfmap_bake::mapping::ScanVerdict;
 use kfmap_bake::pipeline::{
-    BakeInput, BakeOutput, BakeReport, BakeStage, MappingSummary, bake, scan_check_sidecar,
+    BakeInput, BakeOutput, BakeReport, BakeStage, MappingSummary, TileOutput, bake,
+    scan_check_sidecar,
 };
 use kfmap_bake::scan_range::ScanRange;
-use kfmap_bake::tiling::{TileSetSummary, cut_into_tiles, merged_map_path};
+use kfmap_bake::tiling::{TileSetSummary, merged_map_path};
 use kfmap_shared::gravity::GravityCorrection;
 use kfmap_shared::motion::DeskewMode;
 use kfmap_shared::options::ConfigFile;
@@ -112,9 +113,10 @@ pub struct Args {
     /// Output map file (conventionally *.kfmap); with --tile-size, the tile set's directory.
     #[arg(long)]
     out: PathBuf,
-    /// Cut the map into square tiles of this edge on the map's x-y grid (metres): --out
+    /// Bake the map as square tiles of this edge on the map's x-y grid (metres): --out
     /// is then a directory of one .kfmap per tile (its core square's keyframes plus those
-    /// within --halo), tiles.toml (the index `kfmap serve --tiles` and `kfmap gateway
+    /// within --halo; each keyframe built once, its bytes written to every tile holding
+    /// it, no whole map unless --keep-merged), tiles.toml (the index `kfmap serve --tiles` and `kfmap gateway
     /// --tiles` read) and, for Autoware's map loader, each core square's points as
     /// <tile>.pcd with pointcloud_map_metadata.yaml. See docs/DESIGN.md#notes-tiles.
     #[arg(long, value_name = "METRES")]
@@ -124,7 +126,8 @@ pub struct Args {
     /// use. At least the localizer's keyframe reach; default 50 m.
     #[arg(long, value_name = "METRES", requires = "tile_size")]
     halo: Option<f64>,
-    /// With --tile-size: keep the whole map the tiles were cut from as DIR/merged.kfmap.
+    /// With --tile-size: also write the whole map as DIR/merged.kfmap (the same keyframes'
+    /// bytes; tests and comparisons serve it beside the tiles).
     #[arg(long, requires = "tile_size")]
     keep_merged: bool,
     /// Bake only scans A to B-1 of the dataset's sorted scan list (A.., ..B: open end).
@@ -185,13 +188,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         })?;
     }
     let output = BakeOutput {
-        // A tile set is cut from the whole map, written into its directory first.
-        map: match tiles {
-            Some(_) => merged_map_path(&args.out),
-            None => args.out.clone(),
-        },
+        map: args.out.clone(),
         trajectory: args.trajectory_out.clone(),
         graph: args.graph_out.clone(),
+        tiles: tiles.map(|geometry| TileOutput {
+            geometry,
+            keep_merged: args.keep_merged,
+        }),
     };
     let input = BakeInput {
         source: args.source.source(),
@@ -205,20 +208,17 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .build()
         .context("cannot start worker threads")?;
     let report = bake_with_progress(&pool, &input, &config, &output, args.json)?;
-    let tile_set = match tiles {
-        Some(geometry) => Some(cut_with_progress(&pool, &args, &output.map, geometry)?),
-        None => None,
-    };
+    let tile_set = report.tiles.as_ref();
     let threads = pool.current_num_threads();
     if args.json {
         let mut summary = summary_json(&args, &output, &report, threads);
-        if let Some(t) = &tile_set {
+        if let Some(t) = tile_set {
             summary["tiles"] = tiles_json(t);
         }
         println!("{summary}");
     } else {
         print_summary(&output, &report, threads);
-        if let Some(t) = &tile_set {
+        if let Some(t) = tile_set {
             print_tiles(&args, t);
         }
     }
@@ -228,43 +228,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 /// The default halo of a tile set, metres: well past the localizer's keyframe reach.
 const DEFAULT_HALO_M: f64 = 50.0;
 
-/// Cuts the merged map at `merged` into the tile set `args.out` (then removes it unless
-/// --keep-merged), showing a progress bar.
-fn cut_with_progress(
-    pool: &rayon::ThreadPool,
-    args: &Args,
-    merged: &std::path::Path,
-    geometry: TileGeometry,
-) -> anyhow::Result<TileSetSummary> {
-    let bar = if args.json {
-        ProgressBar::hidden()
-    } else {
-        ProgressBar::new(0)
-    };
-    bar.set_style(
-        ProgressStyle::with_template("cutting tiles [{bar:40}] {pos}/{len} tiles, eta {eta}")
-            .expect("template")
-            .progress_chars("=> "),
-    );
-    let cut = pool.install(|| {
-        cut_into_tiles(merged, &args.out, geometry, |done, total| {
-            bar.set_length(total as u64);
-            bar.set_position(done as u64);
-        })
-    });
-    bar.finish_and_clear();
-    if !args.keep_merged {
-        let _ = std::fs::remove_file(merged);
-    }
-    Ok(cut?)
-}
-
 /// `--json`'s part for a tile set.
 fn tiles_json(t: &TileSetSummary) -> serde_json::Value {
     json!({
         "tile_size_m": t.index.tile_size, "halo_m": t.index.halo, "count": t.index.tiles.len(),
         "map_bytes": t.map_bytes, "place_grid_bytes": t.place_bytes,
-        "worst_place_grid_share": t.worst_place_share, "seconds": t.seconds,
+        "worst_place_grid_share": t.worst_place_share,
+        "finish_seconds": t.finish_seconds,
         "halo_check": {"agree": t.halo_check.0, "sampled": t.halo_check.1},
         "tiles": t.index.tiles.iter().map(|e| json!({
             "id": e.id, "file": e.file, "keyframes": e.keyframes,
@@ -278,7 +248,7 @@ fn print_tiles(args: &Args, t: &TileSetSummary) {
     let i = &t.index;
     let written: u64 = i.tiles.iter().map(|e| e.keyframes).sum();
     println!(
-        "  cut into {} tiles of {} m (halo {} m) -> {}: {} keyframes written for {} ({:.2}x), {:.1} MB, {:.2} s",
+        "  {} tiles of {} m (halo {} m) -> {}: {} keyframes written for {} ({:.2}x), {:.1} MB; tiles finished in {:.2} s",
         i.tiles.len(),
         i.tile_size,
         i.halo,
@@ -287,7 +257,7 @@ fn print_tiles(args: &Args, t: &TileSetSummary) {
         i.keyframes,
         written as f64 / i.keyframes.max(1) as f64,
         t.map_bytes as f64 / 1e6,
-        t.seconds
+        t.finish_seconds
     );
     println!(
         "  place grids: {:.2} MB in all, at most {:.2} % of a tile's file; index {}, Autoware metadata {}",
@@ -323,7 +293,11 @@ fn refuse_existing_outputs(output: &BakeOutput, built: bool, force: bool) -> any
         .filter(|_| built)
         .map(scan_check_sidecar);
     let paths = [
-        ("--out", Some(&output.map)),
+        // A tile set's directory is checked for its index above.
+        (
+            "--out",
+            Some(&output.map).filter(|_| output.tiles.is_none()),
+        ),
         ("--trajectory-out", output.trajectory.as_ref()),
         ("--trajectory-out's scan check", sidecar.as_ref()),
         ("--graph-out", output.graph.as_ref()),
@@ -373,6 +347,9 @@ fn bake_with_progress(
                 BakeStage::Optimizing => "loop closure and pose-graph optimization".to_string(),
                 BakeStage::Checking => "checking every scan against its neighbours".to_string(),
                 BakeStage::Writing => format!("writing keyframes, {:.2} M points/s", rate / 1e6),
+                BakeStage::Tiling => {
+                    "finishing tiles (place grids, indexes, Autoware clouds)".to_string()
+                }
             });
         })
     })?;

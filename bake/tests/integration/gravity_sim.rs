@@ -118,11 +118,7 @@ fn run(seed: u64) -> Figures {
     let without_bias = estimate_dataset_gravity(&input, &without_bias, None).unwrap();
 
     // `kfmap bake --dataset D --out D.kfmap`: the levelling applied to the map.
-    let output = BakeOutput {
-        map: tmp.0.join("campus.kfmap"),
-        trajectory: None,
-        graph: None,
-    };
+    let output = BakeOutput::map(tmp.0.join("campus.kfmap"));
     let baked = bake(
         &BakeInput::dataset(&dir),
         &BakeConfig::default(),

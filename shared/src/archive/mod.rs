@@ -21,7 +21,7 @@ mod writer;
 pub use baked::{BakedKeyframe, BakedPlaceGrid, OpenOptions, OpenedMap, open_map};
 pub use header::{FORMAT_VERSION, HEADER_LEN, Header, POINTER_WIDTH, SEGMENT_ALIGN};
 pub use records::{GravityRecord, KeyframeEntry, KeyframeRecord, MapIndex, PlaceEntry};
-pub use writer::{MapWriter, WriteSummary, save_map};
+pub use writer::{MapWriter, SerializedKeyframe, WriteSummary, save_map};
 
 #[cfg(not(target_endian = "little"))]
 compile_error!(

@@ -41,16 +41,81 @@ pub struct WriteSummary {
     pub place_bytes: u64,
 }
 
-/// A keyframe serialized, with its part of the place grid (none when the grid is given).
-struct PreparedKeyframe {
+/// A keyframe serialized for a map file: done once and appended to as many files as hold
+/// the keyframe (a tile set's tiles and halos), every copy byte-identical.
+pub struct SerializedKeyframe {
     bytes: AlignedVec<{ SEGMENT_ALIGN as usize }>,
     /// xxh3-64 of `bytes`.
     checksum: u64,
-    place: Option<GridContribution>,
     point_bytes: u64,
     covariance_bytes: u64,
     has_view_dirs: bool,
 }
+
+impl SerializedKeyframe {
+    /// `keyframe`'s segment as a map with `options` stores it.
+    pub fn new(keyframe: &Keyframe, options: &KeyframeMapOptions) -> Result<Self, ArchiveError> {
+        if keyframe.len() > MAX_KEYFRAME_POINTS {
+            return Err(ArchiveError::KeyframeTooLarge {
+                id: keyframe.id,
+                points: keyframe.len(),
+                max: MAX_KEYFRAME_POINTS,
+            });
+        }
+        let view = keyframe.view()?;
+        let tree = options.serialize_kdtrees.then(|| view.tree.into());
+        let record = KeyframeRecord {
+            id: keyframe.id,
+            points: view.points,
+            view_dirs: view.view_dirs,
+            covariances: options.serialize_covariances.then_some(view.covariances),
+            weights: view.weights,
+            tree,
+        };
+        let bytes = rkyv::api::high::to_bytes_in::<_, rancor::Error>(
+            &record,
+            AlignedVec::<{ SEGMENT_ALIGN as usize }>::new(),
+        )
+        .map_err(|e| ArchiveError::Serialize(format!("keyframe {}: {e}", keyframe.id)))?;
+        let n = keyframe.len() as u64;
+        Ok(Self {
+            checksum: xxh3_64(&bytes),
+            point_bytes: 12 * n * if record.view_dirs.is_some() { 2 } else { 1 }
+                + if record.weights.is_some() { 4 * n } else { 0 },
+            covariance_bytes: if record.covariances.is_some() {
+                24 * n
+            } else {
+                0
+            },
+            has_view_dirs: record.view_dirs.is_some(),
+            bytes,
+        })
+    }
+
+    /// The segment's size, bytes.
+    pub fn len(&self) -> usize {
+        self.bytes.len()
+    }
+
+    /// True for an empty segment (never: a segment holds at least its record).
+    pub fn is_empty(&self) -> bool {
+        self.bytes.is_empty()
+    }
+}
+
+/// Where a map's place grid comes from.
+enum PlaceSource {
+    /// Built from the keyframes written.
+    Built(GridBuilder),
+    /// Given ([`MapWriter::use_place_grid`]; a tile's, cut from its whole map's), `None`
+    /// until it is.
+    Given(Option<Result<PlaceGrid, GridError>>),
+}
+
+/// Bytes a writer appends between asking the kernel to start writing them back
+/// (`sync_file_range`), so the disk works while the bake computes instead of all at
+/// the final fsync.
+const WRITEBACK_STEP: u64 = 32 << 20;
 
 /// A map file being written. Dropping it before [`finish`](Self::finish) removes the
 /// temporary file: the target path is never left partial.
@@ -60,18 +125,29 @@ pub struct MapWriter {
     file: BufWriter<File>,
     payload: Xxh3,
     offset: u64,
+    /// `offset` when writeback was last started.
+    written_back: u64,
     options: KeyframeMapOptions,
     index: MapIndex,
-    /// Where the map's points are, for the place grid written at the end ...
-    place: GridBuilder,
-    /// ... unless the grid was given ([`Self::use_place_grid`]: a tile's).
-    given_place: Option<Result<PlaceGrid, GridError>>,
+    place: PlaceSource,
+    /// `finish` fsyncs the file (else the caller makes it durable: [`Self::leave_sync_to_caller`]).
+    sync: bool,
     finished: bool,
 }
 
 impl MapWriter {
     /// Starts writing a map with `options` to `path`.
     pub fn create(path: &Path, options: &KeyframeMapOptions) -> Result<Self, ArchiveError> {
+        Self::create_buffered(path, options, 1 << 20)
+    }
+
+    /// As [`Self::create`], buffering `buffer` bytes (a tile set holds hundreds of
+    /// writers open at once; segments larger than the buffer bypass it).
+    pub fn create_buffered(
+        path: &Path,
+        options: &KeyframeMapOptions,
+        buffer: usize,
+    ) -> Result<Self, ArchiveError> {
         let tmp = temp_path_beside(path).map_err(|e| ArchiveError::Io {
             path: path.to_path_buf(),
             message: e.to_string(),
@@ -82,16 +158,17 @@ impl MapWriter {
         let mut writer = Self {
             path: path.to_path_buf(),
             tmp,
-            file: BufWriter::with_capacity(1 << 20, file),
+            file: BufWriter::with_capacity(buffer, file),
             payload: Xxh3::new(),
             offset: 0,
+            written_back: 0,
             options: *options,
             index: MapIndex {
                 map_from_input: IDENTITY,
                 ..MapIndex::default()
             },
-            place: GridBuilder::new(&GridParams::default()),
-            given_place: None,
+            place: PlaceSource::Built(GridBuilder::new(&GridParams::default())),
+            sync: true,
             finished: false,
         };
         // Placeholder: the real header is written last, when the payload is known.
@@ -120,77 +197,96 @@ impl MapWriter {
 
     /// Appends one keyframe (ids must ascend); returns its segment's size in bytes.
     pub fn write_keyframe(&mut self, keyframe: &Keyframe) -> Result<u64, ArchiveError> {
-        let prepared = self.prepare(keyframe)?;
-        self.commit(keyframe, prepared)
+        let serialized = SerializedKeyframe::new(keyframe, &self.options)?;
+        let place = self.place_contribution(keyframe)?;
+        self.commit(keyframe, &serialized, place)
     }
 
     /// Appends keyframes (ids ascending), each serialized and its part of the place
     /// grid found in parallel; the bytes are appended in order, so the file is the
     /// one [`Self::write_keyframe`] one by one writes.
     pub fn write_keyframes(&mut self, keyframes: &[Keyframe]) -> Result<(), ArchiveError> {
-        let prepared: Vec<PreparedKeyframe> = keyframes
+        let prepared: Vec<(SerializedKeyframe, Option<GridContribution>)> = keyframes
             .par_iter()
-            .map(|k| self.prepare(k))
-            .collect::<Result<_, _>>()?;
-        for (keyframe, prepared) in keyframes.iter().zip(prepared) {
-            self.commit(keyframe, prepared)?;
+            .map(|k| {
+                Ok((
+                    SerializedKeyframe::new(k, &self.options)?,
+                    self.place_contribution(k)?,
+                ))
+            })
+            .collect::<Result<_, ArchiveError>>()?;
+        for (keyframe, (serialized, place)) in keyframes.iter().zip(prepared) {
+            self.commit(keyframe, &serialized, place)?;
+        }
+        self.start_writeback()
+    }
+
+    /// Appends `keyframe` as `serialized` (made with this map's options; ids must
+    /// ascend); returns its segment's size in bytes.
+    pub fn append_serialized(
+        &mut self,
+        keyframe: &Keyframe,
+        serialized: &SerializedKeyframe,
+    ) -> Result<u64, ArchiveError> {
+        let place = self.place_contribution(keyframe)?;
+        let len = self.commit(keyframe, serialized, place)?;
+        self.start_writeback()?;
+        Ok(len)
+    }
+
+    /// `keyframe`'s part of the place grid this writer builds (none when it is given).
+    fn place_contribution(
+        &self,
+        keyframe: &Keyframe,
+    ) -> Result<Option<GridContribution>, ArchiveError> {
+        Ok(match &self.place {
+            PlaceSource::Built(builder) => Some(builder.contribution(keyframe.map_points()?)),
+            PlaceSource::Given(_) => None,
+        })
+    }
+
+    /// Asks the kernel to start writing back what was appended (Linux; elsewhere the
+    /// final fsync does it all) once [`WRITEBACK_STEP`] bytes have piled up.
+    fn start_writeback(&mut self) -> Result<(), ArchiveError> {
+        if self.offset - self.written_back < WRITEBACK_STEP {
+            return Ok(());
+        }
+        self.write_back()
+    }
+
+    /// Asks the kernel to start writing back everything appended so far, without
+    /// waiting for it (a tile set's files each grow too little to ask on their own).
+    pub fn write_back(&mut self) -> Result<(), ArchiveError> {
+        if self.offset == self.written_back {
+            return Ok(());
+        }
+        self.written_back = self.offset;
+        self.file
+            .flush()
+            .map_err(|e| ArchiveError::io(&self.path, &e))?;
+        #[cfg(target_os = "linux")]
+        {
+            use std::os::fd::AsRawFd;
+            // SAFETY: the descriptor is this writer's open file; the call only starts
+            // writeback of its dirty pages (offset 0, length 0: the whole file).
+            unsafe {
+                libc::sync_file_range(
+                    self.file.get_ref().as_raw_fd(),
+                    0,
+                    0,
+                    libc::SYNC_FILE_RANGE_WRITE,
+                );
+            }
         }
         Ok(())
     }
 
-    /// A keyframe's segment bytes and its part of the place grid: the work that needs
-    /// no other keyframe.
-    fn prepare(&self, keyframe: &Keyframe) -> Result<PreparedKeyframe, ArchiveError> {
-        if keyframe.len() > MAX_KEYFRAME_POINTS {
-            return Err(ArchiveError::KeyframeTooLarge {
-                id: keyframe.id,
-                points: keyframe.len(),
-                max: MAX_KEYFRAME_POINTS,
-            });
-        }
-        let view = keyframe.view()?;
-        let tree = self.options.serialize_kdtrees.then(|| view.tree.into());
-        let record = KeyframeRecord {
-            id: keyframe.id,
-            points: view.points,
-            view_dirs: view.view_dirs,
-            covariances: self
-                .options
-                .serialize_covariances
-                .then_some(view.covariances),
-            weights: view.weights,
-            tree,
-        };
-        let bytes = rkyv::api::high::to_bytes_in::<_, rancor::Error>(
-            &record,
-            AlignedVec::<{ SEGMENT_ALIGN as usize }>::new(),
-        )
-        .map_err(|e| ArchiveError::Serialize(format!("keyframe {}: {e}", keyframe.id)))?;
-        let place = match self.given_place {
-            Some(_) => None,
-            None => Some(self.place.contribution(keyframe.map_points()?)),
-        };
-        let n = keyframe.len() as u64;
-        Ok(PreparedKeyframe {
-            checksum: xxh3_64(&bytes),
-            point_bytes: 12 * n * if record.view_dirs.is_some() { 2 } else { 1 }
-                + if record.weights.is_some() { 4 * n } else { 0 },
-            covariance_bytes: if record.covariances.is_some() {
-                24 * n
-            } else {
-                0
-            },
-            has_view_dirs: record.view_dirs.is_some(),
-            bytes,
-            place,
-        })
-    }
-
-    /// Appends a prepared keyframe and enters it in the index.
+    /// Appends a serialized keyframe and enters it in the index.
     fn commit(
         &mut self,
         keyframe: &Keyframe,
-        prepared: PreparedKeyframe,
+        serialized: &SerializedKeyframe,
+        place: Option<GridContribution>,
     ) -> Result<u64, ArchiveError> {
         if self
             .index
@@ -203,12 +299,11 @@ impl MapWriter {
                 keyframe.id
             )));
         }
-        let bytes = &prepared.bytes;
+        let bytes = &serialized.bytes;
         let offset = self.append(bytes, SEGMENT_ALIGN)?;
-        if let Some(place) = prepared.place {
-            self.place
-                .add_anchor(keyframe.pose.translation.vector.into());
-            self.place.add(place);
+        if let (Some(place), PlaceSource::Built(builder)) = (place, &mut self.place) {
+            builder.add_anchor(keyframe.pose.translation.vector.into());
+            builder.add(place);
         }
         let b = &keyframe.bbox;
         self.index.keyframes.push(KeyframeEntry {
@@ -219,10 +314,10 @@ impl MapWriter {
             points: keyframe.len() as u64,
             offset,
             len: bytes.len() as u64,
-            checksum: prepared.checksum,
-            point_bytes: prepared.point_bytes,
-            covariance_bytes: prepared.covariance_bytes,
-            has_view_dirs: prepared.has_view_dirs,
+            checksum: serialized.checksum,
+            point_bytes: serialized.point_bytes,
+            covariance_bytes: serialized.covariance_bytes,
+            has_view_dirs: serialized.has_view_dirs,
         });
         Ok(bytes.len() as u64)
     }
@@ -234,9 +329,25 @@ impl MapWriter {
 
     /// Writes `grid` as the map's place grid instead of one built from the keyframes
     /// (a tile's, cut from its whole map's: [`PlaceGrid::cut_from`]); an error is
-    /// written as a map without a grid, as a failed build is. Call before the keyframes.
+    /// written as a map without a grid, as a failed build is. Call it, or
+    /// [`Self::expect_place_grid`], before the keyframes, so they are not gathered for a
+    /// grid never written.
     pub fn use_place_grid(&mut self, grid: Result<PlaceGrid, GridError>) {
-        self.given_place = Some(grid);
+        self.place = PlaceSource::Given(Some(grid));
+    }
+
+    /// `finish` renames the file into place without an fsync: the caller makes it
+    /// durable (a tile set syncs its file system once, before writing its index).
+    pub fn leave_sync_to_caller(&mut self) {
+        self.sync = false;
+    }
+
+    /// The place grid will be given ([`Self::use_place_grid`]) once every keyframe is
+    /// written: a streamed tile's is cut from the whole map's, known only then.
+    pub fn expect_place_grid(&mut self) {
+        if let PlaceSource::Built(_) = self.place {
+            self.place = PlaceSource::Given(None);
+        }
     }
 
     /// Writes the index and the header, fsyncs and renames onto the target path.
@@ -252,9 +363,15 @@ impl MapWriter {
         self.index.covis_parents = covis.parents.clone();
         self.index.covis_in_tree = covis.in_tree.clone();
         self.index.gravity_pool = gravity_pool.to_vec();
-        let grid = match self.given_place.take() {
-            Some(given) => given,
-            None => self.place.finish(&GridParams::default()),
+        let place = std::mem::replace(&mut self.place, PlaceSource::Given(None));
+        let grid = match place {
+            PlaceSource::Built(builder) => builder.finish(&GridParams::default()),
+            PlaceSource::Given(Some(given)) => given,
+            PlaceSource::Given(None) => {
+                return Err(ArchiveError::Serialize(
+                    "no place grid was given before finishing (expect_place_grid)".into(),
+                ));
+            }
         };
         self.index.place = match grid {
             Ok(grid) => Some(self.write_place_grid(&grid)?),
@@ -279,9 +396,15 @@ impl MapWriter {
         self.file.seek(SeekFrom::Start(0)).map_err(io)?;
         self.file.write_all(&header_bytes).map_err(io)?;
         self.file.flush().map_err(io)?;
-        self.file.get_ref().sync_all().map_err(io)?;
+        if self.sync {
+            self.file.get_ref().sync_all().map_err(io)?;
+        }
         std::fs::rename(&self.tmp, &self.path).map_err(io)?;
-        if let Some(dir) = self.path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        if let Some(dir) = self
+            .path
+            .parent()
+            .filter(|d| self.sync && !d.as_os_str().is_empty())
+        {
             // Persist the rename itself; not every platform can open a directory.
             if let Ok(d) = File::open(dir) {
                 let _ = d.sync_all();

@@ -163,6 +163,40 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
     })
 }
 
+/// As [`write_atomic`] without the fsync: the file is whole or absent, and durable once
+/// the caller syncs the file system ([`sync_file_system`]); a tile set writes hundreds
+/// of files and makes them durable at once, before its index.
+pub fn write_replacing(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
+    let tmp = temp_path_beside(path)?;
+    std::fs::write(&tmp, bytes)
+        .and_then(|()| std::fs::rename(&tmp, path))
+        .map_err(|e| {
+            let _ = std::fs::remove_file(&tmp);
+            IoError::os(path, e)
+        })
+}
+
+/// Makes everything written to the file system holding `dir` durable (Linux `syncfs`;
+/// elsewhere a full `sync`).
+pub fn sync_file_system(dir: &Path) -> Result<(), IoError> {
+    #[cfg(target_os = "linux")]
+    {
+        use std::os::fd::AsRawFd;
+        let handle = std::fs::File::open(dir).map_err(|e| IoError::os(dir, e))?;
+        // SAFETY: the descriptor is open for the call's duration; syncfs only flushes.
+        if unsafe { libc::syncfs(handle.as_raw_fd()) } != 0 {
+            return Err(IoError::os(dir, std::io::Error::last_os_error()));
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    {
+        let _ = dir;
+        // SAFETY: sync takes no arguments and only flushes.
+        unsafe { libc::sync() };
+    }
+    Ok(())
+}
+
 /// A hidden temporary name in `path`'s directory (same file system, so a rename onto
 /// `path` is atomic): `.NAME.tmpPID`.
 pub fn temp_path_beside(path: &Path) -> Result<std::path::PathBuf, IoError> {

@@ -73,28 +73,62 @@ pub(super) fn bake_synthetic_at(
 ) -> anyhow::Result<f64> {
     let options = KeyframeMapOptions::default();
     let mut writer = MapWriter::create(path, &options)?;
+    let seconds = build_synthetic(count, points, pose_of, bar, |keyframes| {
+        Ok(writer.write_keyframes(keyframes)?)
+    })?;
+    let started = Instant::now();
+    writer.finish(count as u64, &CovisSnapshot::default(), &[])?;
+    Ok(seconds + started.elapsed().as_secs_f64())
+}
+
+/// Builds `count` synthetic keyframes of `points` points, keyframe `i` at `pose_of(i)`,
+/// a chunk at a time handed to `write`; returns seconds spent building and writing
+/// (generation of the raw points excluded).
+pub(super) fn build_synthetic(
+    count: usize,
+    points: usize,
+    pose_of: impl Fn(usize) -> Pose + Sync,
+    bar: &ProgressBar,
+    mut write: impl FnMut(&[Keyframe]) -> anyhow::Result<()> + Send,
+) -> anyhow::Result<f64> {
+    let options = KeyframeMapOptions::default();
     let chunk = 2 * rayon::current_num_threads();
     let mut seconds = 0.0;
-    for start in (0..count).step_by(chunk) {
-        let clouds: Vec<PointCloud> = (start..(start + chunk).min(count))
-            .into_par_iter()
-            .map(|i| synthetic_cloud(i as u64, points))
-            .collect();
-        let started = Instant::now();
-        let keyframes: Vec<Keyframe> = clouds
+    let build = |start: usize, clouds: Vec<PointCloud>| -> anyhow::Result<Vec<Keyframe>> {
+        Ok(clouds
             .into_par_iter()
             .enumerate()
             .map(|(j, c)| {
                 let i = start + j;
                 Keyframe::build(i as u64, pose_of(i), i as f64, c, &options.covariance)
             })
-            .collect::<Result<_, _>>()?;
-        writer.write_keyframes(&keyframes)?;
+            .collect::<Result<_, _>>()?)
+    };
+    let mut write = |keyframes: &[Keyframe]| -> anyhow::Result<()> {
+        write(keyframes)?;
         bar.inc(keyframes.len() as u64);
+        Ok(())
+    };
+    // A chunk is written while the next one is built, as `kfmap bake` does.
+    let mut built: Option<Vec<Keyframe>> = None;
+    for start in (0..count).step_by(chunk) {
+        let clouds: Vec<PointCloud> = (start..(start + chunk).min(count))
+            .into_par_iter()
+            .map(|i| synthetic_cloud(i as u64, points))
+            .collect();
+        let started = Instant::now();
+        let (next, wrote) = rayon::join(
+            || build(start, clouds),
+            || built.take().map_or(Ok(()), |k| write(&k)),
+        );
+        wrote?;
+        built = Some(next?);
         seconds += started.elapsed().as_secs_f64();
     }
     let started = Instant::now();
-    writer.finish(count as u64, &CovisSnapshot::default(), &[])?;
+    if let Some(keyframes) = built {
+        write(&keyframes)?;
+    }
     Ok(seconds + started.elapsed().as_secs_f64())
 }
 

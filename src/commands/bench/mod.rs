@@ -64,11 +64,11 @@ use anyhow::{Context, bail};
 /// user namespaces the table lists these rows as skipped.
 ///
 /// `kfmap bench city` lays 20 000 keyframes (2 000 points each) along a street grid over
-/// a 10 x 10 km site, bakes them into one map, cuts it into 250 m tiles with a 50 m halo
-/// as `kfmap bake --tile-size` does, and reports bake throughput whole and into tiles,
-/// the cold start of the largest tiles (a fresh process to its first answer) and the
-/// place grids' bytes against the tile files. About 9 GB on disk under --dir while it
-/// runs; --quick: 800 keyframes over 2 x 2 km.
+/// a 10 x 10 km site, bakes them into one map, then bakes the same keyframes into 250 m
+/// tiles with a 50 m halo as `kfmap bake --tile-size` does (streamed into the tiles), and
+/// reports bake throughput whole and into tiles, the cold start of the largest tiles (a
+/// fresh process to its first answer) and the place grids' bytes against the tile files.
+/// About 4 GB on disk under --dir while it runs; --quick: 800 keyframes over 2 x 2 km.
 ///
 /// `kfmap bench soak` starts `kfmap serve` on the same synthetic map and --clients
 /// client processes, each sending --rate requests per second for --seconds: scans of
