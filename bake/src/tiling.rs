@@ -197,7 +197,7 @@ impl TileSetWriter {
             };
             tile.writer.append_serialized(keyframe, serialized)?;
             self.unsynced.0.push((row, col));
-            self.unsynced.1 += serialized.len() as u64;
+            self.unsynced.1 += serialized.segment_bytes();
             tile.ids.push(keyframe.id);
             tile.core += u64::from(n == 0);
         }

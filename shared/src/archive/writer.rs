@@ -93,13 +93,8 @@ impl SerializedKeyframe {
     }
 
     /// The segment's size, bytes.
-    pub fn len(&self) -> usize {
-        self.bytes.len()
-    }
-
-    /// True for an empty segment (never: a segment holds at least its record).
-    pub fn is_empty(&self) -> bool {
-        self.bytes.is_empty()
+    pub fn segment_bytes(&self) -> u64 {
+        self.bytes.len() as u64
     }
 }
 
