@@ -43,7 +43,7 @@ wait_ready() {
 
 "$kfmap" simulate --preset courtyard --seconds 36 --beams 16 --speed 8 --out "$work/sim" >/dev/null
 "$kfmap" bake --dataset "$work/sim" --out "$work/tiles" --tile-size "$tile_size" --halo 10 \
-    --keep-merged | grep "cut into"
+    --keep-merged | grep "tiles of"
 mapfile -t ids < <(sed -n 's/^id = "\(.*\)"/\1/p' "$work/tiles/tiles.toml")
 for h in 0 1 2 3; do
     only=$(for ((i = h; i < ${#ids[@]}; i += 4)); do printf '%s,' "${ids[$i]}"; done)

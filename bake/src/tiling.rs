@@ -21,9 +21,7 @@ use kfmap_shared::io::{
     IoError, PcdData, sync_file_system, write_atomic, write_pcd, write_replacing,
 };
 use kfmap_shared::map::{Keyframe, KeyframeMapOptions};
-use kfmap_shared::place::{
-    GridBuilder, GridContribution, GridError, GridParams, GridView, PlaceGrid,
-};
+use kfmap_shared::place::{GridBuilder, GridContribution, GridError, GridParams, MarkedVoxels};
 use kfmap_shared::select::{SelectionOptions, rank, select_active};
 use kfmap_shared::tiles::{
     AUTOWARE_METADATA_FILE, INDEX_FILE, INDEX_FORMAT, TileEntry, TileGeometry, TileIndex, tile_id,
@@ -237,7 +235,8 @@ impl TileSetWriter {
             std::fs::remove_file(dir.join(INDEX_FILE))
                 .map_err(|e| BakeError::Io(IoError::os(dir.join(INDEX_FILE), e)))?;
         }
-        let whole_grid = match grid.finish(&GridParams::default()) {
+        // The whole map's voxels only: its levels are built for a kept merged map alone.
+        let whole_grid = match grid.marked_voxels(&GridParams::default()) {
             Ok(g) => Some(g),
             Err(e) => {
                 tracing::warn!("tile set written without place grids (no relocalization): {e}");
@@ -253,7 +252,7 @@ impl TileSetWriter {
             tiles: Vec::with_capacity(total),
         };
         let finishing = TileFinish {
-            whole_grid: whole_grid.as_ref().map(PlaceGrid::view),
+            whole_grid: whole_grid.as_ref(),
             covis,
             pool,
             selection: options.selection,
@@ -293,7 +292,7 @@ impl TileSetWriter {
         }
         let merged = match merged {
             Some(mut writer) => {
-                writer.use_place_grid(whole_grid.ok_or(GridError::Empty));
+                writer.use_place_grid(whole_grid.ok_or(GridError::Empty).and_then(|g| g.grid()));
                 Some(writer.finish(next_id, covis, pool)?)
             }
             None => {
@@ -345,8 +344,8 @@ struct WrittenTile {
 
 /// What finishing a tile needs of the whole map.
 struct TileFinish<'a> {
-    /// The whole map's place grid, which every tile's is cut from.
-    whole_grid: Option<GridView<'a>>,
+    /// The whole map's place-grid voxels, which every tile's grid is cut from.
+    whole_grid: Option<&'a MarkedVoxels>,
     /// The whole map's covisibility, which every tile keeps the part of among its
     /// keyframes.
     covis: &'a CovisSnapshot,
@@ -395,8 +394,7 @@ impl TileFinish<'_> {
                     .filter(|t| geometry.tile_of(t.x, t.y) == (col, row))
                     .map(Into::into)
                     .collect();
-                let grid = PlaceGrid::cut_from(
-                    whole_grid,
+                let grid = whole_grid.cut(
                     [x0 - reach, y0 - reach],
                     [
                         x0 + geometry.tile_size + reach,
@@ -454,7 +452,13 @@ fn core_cloud(
     geometry: TileGeometry,
     (col, row): (i32, i32),
 ) -> Result<PointCloud, Box<dyn std::error::Error>> {
-    let opened = open_map(file, OpenOptions::default())?;
+    // Written a moment ago by this bake: the archives' structure is not checked again
+    // (their checksums still are).
+    let trusted = OpenOptions {
+        trust: true,
+        ..OpenOptions::default()
+    };
+    let opened = open_map(file, trusted)?;
     let [x0, y0] = geometry.core_min(col, row);
     let s = geometry.tile_size;
     let in_core = |p: &[f64; 3]| p[0] >= x0 && p[0] < x0 + s && p[1] >= y0 && p[1] < y0 + s;
@@ -638,6 +642,7 @@ pub fn merged_map_path(dir: &Path) -> PathBuf {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use kfmap_shared::place::PlaceGrid;
     use nalgebra::Vector3;
 
     /// Keyframes spread over a `side` x `side` square (an R2 low-discrepancy sequence),

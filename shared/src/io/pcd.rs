@@ -404,6 +404,15 @@ pub fn write_pcd(cloud: &PointCloud, data: PcdData) -> Vec<u8> {
                 push_ascii_row(&mut out, cloud, &fields, i);
             }
         }
+        PcdData::Binary if fields.len() == 3 => {
+            // Positions alone (a map's Autoware cloud): the records are the points.
+            out.reserve(n * 12);
+            for p in &cloud.points {
+                for v in p {
+                    out.extend_from_slice(&v.to_le_bytes());
+                }
+            }
+        }
         PcdData::Binary => {
             for i in 0..n {
                 push_binary_row(&mut out, cloud, &fields, i);

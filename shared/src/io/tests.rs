@@ -33,6 +33,8 @@ fn every_writer_round_trips_through_its_reader() {
     let formats = [
         (CloudFormat::Pcd(PcdData::Ascii), "a.pcd", true),
         (CloudFormat::Pcd(PcdData::Binary), "b.pcd", true),
+        // Positions alone: written by their own path.
+        (CloudFormat::Pcd(PcdData::Binary), "xyz.pcd", false),
         (CloudFormat::Pcd(PcdData::BinaryCompressed), "c.pcd", true),
         (CloudFormat::Ply(PlyEncoding::Ascii), "a.ply", true),
         (

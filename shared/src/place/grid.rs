@@ -219,6 +219,13 @@ impl GridBuilder {
     /// whose z is not quite gravity still levels alike with a levelled scan), clipped
     /// to `params.reach` around the anchors.
     pub fn finish(&self, params: &GridParams) -> Result<PlaceGrid, GridError> {
+        self.marked_voxels(params)?.grid()
+    }
+
+    /// The grid's marked level-0 voxels, before its levels are built: what a tile set
+    /// cuts every tile's grid from ([`MarkedVoxels::cut`]) without building the whole
+    /// map's levels.
+    pub fn marked_voxels(&self, params: &GridParams) -> Result<MarkedVoxels, GridError> {
         if self.keys.is_empty() || self.anchors.is_empty() {
             return Err(GridError::Empty);
         }
@@ -231,7 +238,7 @@ impl GridBuilder {
         let reach = params.reach;
         let r = params.resolution;
         // Keys may repeat (clouds added since the last sort): the voxels are made unique.
-        let mut marked: Vec<[i64; 3]> = self
+        let mut keys: Vec<[i64; 3]> = self
             .keys
             .par_iter()
             .filter_map(|k| {
@@ -241,12 +248,105 @@ impl GridBuilder {
                     .then(|| p.map(|v| (v / r).floor() as i64))
             })
             .collect();
-        marked.par_sort_unstable();
-        marked.dedup();
-        let region = search_region(low, high, params, None);
-        let q = grid_from_map.quaternion();
-        PlaceGrid::from_voxels(&marked, params, [q.i, q.j, q.k, q.w], region)
+        keys.par_sort_unstable();
+        keys.dedup();
+        Ok(MarkedVoxels {
+            keys,
+            params: *params,
+            grid_from_map,
+            region: search_region(low, high, params, None),
+        })
     }
+}
+
+/// A grid's marked level-0 voxels, its rotation and search region: a [`PlaceGrid`]
+/// before its levels are built.
+#[derive(Debug, Clone)]
+pub struct MarkedVoxels {
+    /// Voxel keys (grid frame, `floor(p / resolution)`), sorted (x, then y, then z), unique.
+    keys: Vec<[i64; 3]>,
+    params: GridParams,
+    grid_from_map: UnitQuaternion<f64>,
+    region: SearchRegion,
+}
+
+impl MarkedVoxels {
+    /// The grid, its levels built.
+    pub fn grid(&self) -> Result<PlaceGrid, GridError> {
+        let q = self.grid_from_map.quaternion();
+        PlaceGrid::from_voxels(&self.keys, &self.params, [q.i, q.j, q.k, q.w], self.region)
+    }
+
+    /// As [`PlaceGrid::cut_from`] on [`Self::grid`], without building the whole grid:
+    /// the voxels of each x row in the box found by binary search (the keys are sorted).
+    pub fn cut(
+        &self,
+        low: [f64; 2],
+        high: [f64; 2],
+        searched: &[[f64; 3]],
+    ) -> Result<PlaceGrid, GridError> {
+        let r = self.params.resolution;
+        let first = low.map(|v| (v / r).floor() as i64);
+        let last = high.map(|v| (v / r).floor() as i64);
+        let mut marked = Vec::new();
+        let mut at = self.keys.partition_point(|k| k[0] < first[0]);
+        while at < self.keys.len() && self.keys[at][0] <= last[0] {
+            let x = self.keys[at][0];
+            let row = &self.keys[at..at + run_length(&self.keys[at..], |k| k[0] == x)];
+            let from = row.partition_point(|k| k[1] < first[1]);
+            let to = row.partition_point(|k| k[1] <= last[1]);
+            marked.extend_from_slice(&row[from..to]);
+            at += row.len();
+        }
+        tile_grid(
+            &marked,
+            self.params.levels,
+            r,
+            &self.grid_from_map,
+            &self.region,
+            searched,
+        )
+    }
+}
+
+/// How many of `items` from the first hold `pred` (true on a prefix), found by
+/// galloping: a row of a large sorted array is found near where it starts, not by
+/// binary searches over all of it (each a cache miss per step).
+fn run_length<T>(items: &[T], pred: impl Fn(&T) -> bool) -> usize {
+    let mut step = 1;
+    while step < items.len() && pred(&items[step]) {
+        step *= 2;
+    }
+    let (from, to) = (step / 2, step.min(items.len()));
+    from + items[from..to].partition_point(&pred)
+}
+
+/// A tile's grid: `marked` (a whole grid's voxels in the tile's box), levelled as the
+/// whole grid, its search region the whole's translations around `searched` (map frame).
+fn tile_grid(
+    marked: &[[i64; 3]],
+    levels: usize,
+    resolution: f64,
+    grid_from_map: &UnitQuaternion<f64>,
+    whole_region: &SearchRegion,
+    searched: &[[f64; 3]],
+) -> Result<PlaceGrid, GridError> {
+    if searched.is_empty() {
+        return Err(GridError::Empty);
+    }
+    let params = GridParams {
+        resolution,
+        levels,
+        ..GridParams::default()
+    };
+    let searched: Vec<[f64; 3]> = searched
+        .iter()
+        .map(|p| (grid_from_map * Vector3::from(*p)).into())
+        .collect();
+    let (first_anchor, last_anchor) = bounds(&searched);
+    let region = search_region(first_anchor, last_anchor, &params, Some(whole_region));
+    let q = grid_from_map.quaternion();
+    PlaceGrid::from_voxels(marked, &params, [q.i, q.j, q.k, q.w], region)
 }
 
 /// Box around `points`: (lowest, highest) per axis.
@@ -403,19 +503,14 @@ impl PlaceGrid {
                 }
             }
         }
-        let params = GridParams {
-            resolution: r,
-            levels: whole.levels(),
-            ..GridParams::default()
-        };
-        let searched: Vec<[f64; 3]> = searched
-            .iter()
-            .map(|p| (grid_from_map * Vector3::from(*p)).into())
-            .collect();
-        let (first_anchor, last_anchor) = bounds(&searched);
-        let region = search_region(first_anchor, last_anchor, &params, Some(&whole.region()));
-        let q = grid_from_map.quaternion();
-        Self::from_voxels(&marked, &params, [q.i, q.j, q.k, q.w], region)
+        tile_grid(
+            &marked,
+            whole.levels(),
+            r,
+            &grid_from_map,
+            &whole.region(),
+            searched,
+        )
     }
 
     /// The grid, read as a search reads it.

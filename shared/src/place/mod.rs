@@ -20,8 +20,8 @@ pub mod search;
 pub mod sparse;
 
 pub use grid::{
-    GridBuilder, GridContribution, GridError, GridParams, GridView, LevelBlocks, PlaceGrid,
-    SearchRegion,
+    GridBuilder, GridContribution, GridError, GridParams, GridView, LevelBlocks, MarkedVoxels,
+    PlaceGrid, SearchRegion,
 };
 pub use level::{estimate_up, levelling};
 pub use relocalize::{

@@ -13,7 +13,7 @@
 //!
 //! A block's bits: word `z`, bit `x + 8 y` (local coordinates 0..8).
 
-use rustc_hash::{FxHashMap as HashMap, FxHashSet};
+use rustc_hash::FxHashMap as HashMap;
 
 /// Voxels per block edge.
 pub const BLOCK_EDGE: i64 = 8;
@@ -119,14 +119,16 @@ pub fn build(
     let mut per_level: Vec<HashMap<[i64; 3], Bits>> = Vec::with_capacity(levels);
     for l in 0..levels {
         if l > 0 {
-            for axis in 0..3 {
+            let below = per_level.last().expect("level 0 is kept first");
+            level = dilate(below, 0, 1 << (l - 1));
+            for axis in 1..3 {
                 level = dilate(&level, axis, 1 << (l - 1));
             }
         }
         if level.len() as u64 > max_blocks {
             return Err(level.len() as u64);
         }
-        per_level.push(level.clone());
+        per_level.push(std::mem::take(&mut level));
     }
     // Every block of a level is one of the next level's: the top level's are all.
     let mut blocks: Vec<[i64; 3]> = per_level[levels - 1].keys().copied().collect();
@@ -254,7 +256,8 @@ fn shifted(low: &Bits, high: &Bits, axis: usize, r: u32) -> Bits {
 }
 
 /// One doubling step along `axis`: voxel `v` also takes the mark of `v + h` (`h` a
-/// power of two).
+/// power of two). Each block's bits are pushed to the blocks they mark (its own and
+/// the one or two `h` below it): one table update each, no lookups of absent blocks.
 fn dilate(src: &HashMap<[i64; 3], Bits>, axis: usize, h: i64) -> HashMap<[i64; 3], Bits> {
     let (q, r) = (h / BLOCK_EDGE, (h % BLOCK_EDGE) as u32);
     let zero = [0; BLOCK_WORDS];
@@ -263,28 +266,26 @@ fn dilate(src: &HashMap<[i64; 3], Bits>, axis: usize, h: i64) -> HashMap<[i64; 3
         b[axis] += d;
         b
     };
-    let mut targets: FxHashSet<[i64; 3]> =
-        FxHashSet::with_capacity_and_hasher(src.len() * 2, Default::default());
-    for &b in src.keys() {
-        targets.insert(b);
-        targets.insert(along(b, -q));
-        if r > 0 {
-            targets.insert(along(b, -q - 1));
-        }
-    }
-    let mut out = HashMap::with_capacity_and_hasher(targets.len(), Default::default());
-    for b in targets {
-        let get = |d: i64| src.get(&along(b, d)).unwrap_or(&zero);
-        let from = if r == 0 {
-            *get(q)
-        } else {
-            shifted(get(q), get(q + 1), axis, r)
-        };
-        let own = get(0);
-        let bits: Bits = std::array::from_fn(|w| own[w] | from[w]);
+    let mut out: HashMap<[i64; 3], Bits> =
+        HashMap::with_capacity_and_hasher(src.len() * 2, Default::default());
+    let mut mark = |b: [i64; 3], bits: Bits| {
         // Blocks below the grid's first voxel (which is a block corner) are not kept.
         if b.iter().all(|&c| c >= 0) && bits.iter().any(|&w| w != 0) {
-            out.insert(b, bits);
+            let kept = out.entry(b).or_insert(zero);
+            for (k, w) in kept.iter_mut().zip(bits) {
+                *k |= w;
+            }
+        }
+    };
+    for (&b, bits) in src {
+        mark(b, *bits);
+        if r == 0 {
+            mark(along(b, -q), *bits);
+        } else {
+            // The block `q` below sees these bits shifted down by `r`; the one below
+            // that, those shifted past its top.
+            mark(along(b, -q), shifted(bits, &zero, axis, r));
+            mark(along(b, -q - 1), shifted(&zero, bits, axis, r));
         }
     }
     out

@@ -1112,6 +1112,63 @@ fn a_cut_grid_holds_the_whole_grids_voxels_in_its_box() {
     assert!(PlaceGrid::cut_from(&whole, low, high, &[]).is_err());
 }
 
+/// A tile set cuts each tile's grid from the whole map's voxels without building the
+/// whole grid's levels: the oracle is the cut read through the built whole grid.
+#[test]
+fn cutting_the_voxels_equals_cutting_the_built_grid() {
+    let mut rng = StdRng::seed_from_u64(37);
+    let params = params(5);
+    let mut builder = GridBuilder::new(&params);
+    for _ in 0..6 {
+        let centre = [
+            rng.random_range(-40.0..40.0),
+            rng.random_range(-40.0..40.0),
+            0.0,
+        ];
+        builder.add_anchor(centre);
+        // A floor, and walls a few metres up.
+        builder.add_points((0..3000).map(|_| {
+            [
+                centre[0] + rng.random_range(-15.0..15.0),
+                centre[1] + rng.random_range(-15.0..15.0),
+                if rng.random_bool(0.5) {
+                    0.0
+                } else {
+                    rng.random_range(0.0..4.0)
+                },
+            ]
+        }));
+    }
+    let voxels = builder.marked_voxels(&params).unwrap();
+    let whole = builder.finish(&params).unwrap();
+    assert_eq!(voxels.grid().unwrap(), whole);
+    let view = whole.view();
+    let mut compared = 0;
+    for _ in 0..12 {
+        let low = [rng.random_range(-60.0..40.0), rng.random_range(-60.0..40.0)];
+        let high = [
+            low[0] + rng.random_range(1.0..40.0),
+            low[1] + rng.random_range(1.0..40.0),
+        ];
+        let searched = [[low[0] + 0.5, low[1] + 0.5, 0.3]];
+        match (
+            voxels.cut(low, high, &searched),
+            PlaceGrid::cut_from(&view, low, high, &searched),
+        ) {
+            (Ok(cut), Ok(expected)) => {
+                assert_eq!(cut, expected, "box {low:?}..{high:?}");
+                compared += 1;
+            }
+            (cut, expected) => assert_eq!(cut.is_ok(), expected.is_ok(), "box {low:?}..{high:?}"),
+        }
+    }
+    assert!(
+        compared >= 6,
+        "{compared} boxes held voxels: too few to test"
+    );
+    assert!(voxels.cut([-10.0, -10.0], [10.0, 10.0], &[]).is_err());
+}
+
 /// A set of voxels as the list a grid is built from.
 fn listed<S: std::hash::BuildHasher>(set: &HashSet<[i64; 3], S>) -> Vec<[i64; 3]> {
     set.iter().copied().collect()
