@@ -9,7 +9,7 @@
 
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
-use super::level::{estimate_up, levelling};
+use super::level::{estimate_map_up, levelling};
 use super::sparse::{
     self, ABSENT, BLOCK_EDGE, BLOCK_WORDS, EMPTY_KEY, MAX_EXTENT, ONES_BLOCK, SparseLevels,
     block_at, directory_index, home, key, shift_of, unentry, unkey,
@@ -183,7 +183,7 @@ impl GridBuilder {
         keys.dedup();
         // Up as a scan from here finds it, so the grid levels alike (a map frame from
         // poses or gravity need not have its floors level).
-        let up_vote = estimate_up(&cloud, MAP_MAX_TILT_DEG)
+        let up_vote = estimate_map_up(&cloud, MAP_MAX_TILT_DEG)
             .map_or_else(Vector3::zeros, |up| up * cloud.len() as f64);
         GridContribution { keys, up_vote }
     }

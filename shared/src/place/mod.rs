@@ -23,7 +23,7 @@ pub use grid::{
     GridBuilder, GridContribution, GridError, GridParams, GridView, LevelBlocks, MarkedVoxels,
     PlaceGrid, SearchRegion,
 };
-pub use level::{estimate_up, levelling};
+pub use level::{estimate_map_up, estimate_up, levelling};
 pub use relocalize::{
     Proposal, Relocalization, RelocalizeParams, RelocalizeStatus, ScanUp, Scored, ScoredPlace,
     decide, own_up, propose, score_places, verification_selection, verify,

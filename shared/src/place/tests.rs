@@ -11,7 +11,7 @@ use super::relocalize::{Ground, above_ground};
 use super::search::{
     Columns, OwnedColumns, PeerBest, SearchOutcome, SearchParams, search, yaw_step,
 };
-use super::{GridBuilder, estimate_up, verification_selection};
+use super::{GridBuilder, estimate_map_up, estimate_up, verification_selection};
 use crate::select::SelectionOptions;
 
 /// True when a marked level-0 voxel lies within half a half-resolution voxel's
@@ -401,6 +401,8 @@ fn up_is_found_from_the_floor_of_a_tilted_scan() {
             .map(|p| (tilt.inverse() * p).map(|v| v as f32).into())
             .collect();
         let up = estimate_up(&scan, 40.0).expect("floor planes");
+        // A bake's estimate hashes its voxels otherwise: the same answer, bit for bit.
+        assert_eq!(estimate_map_up(&scan, 40.0), Some(up));
         let truth = tilt.inverse() * Vector3::z();
         assert!(
             up.angle(&truth).to_degrees() < 0.5,
@@ -419,6 +421,7 @@ fn up_is_found_from_the_floor_of_a_tilted_scan() {
         })
         .collect();
     assert_eq!(estimate_up(&scattered, 40.0), None);
+    assert_eq!(estimate_map_up(&scattered, 40.0), None);
 }
 
 /// A 16-ring sensor 1.8 m above a walled yard (rings 2 deg apart, from -15 to +15 deg),
