@@ -278,7 +278,8 @@ impl MarkedVoxels {
     }
 
     /// As [`PlaceGrid::cut_from`] on [`Self::grid`], without building the whole grid:
-    /// the voxels of each x row in the box found by binary search (the keys are sorted).
+    /// each x row in the box found by galloping from the last, its y range by binary
+    /// search (the keys are sorted).
     pub fn cut(
         &self,
         low: [f64; 2],
