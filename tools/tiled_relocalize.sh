@@ -10,13 +10,17 @@
 # loopback). Times are printed, never asserted; every host shares this machine's cores.
 #
 #   tools/tiled_relocalize.sh [TILE_SIZE_M [ROUNDS]]   (kfmap from target/release)
+#
+# KFMAP_LOG=debug logs every request; KEEP_LOGS=DIR copies the servers' and gateways'
+# logs there before the work folder is removed.
 set -euo pipefail
 tile_size=${1:-10}
 rounds=${2:-3}
 here=$(cd "$(dirname "$0")/.." && pwd)
 kfmap=${KFMAP:-$here/target/release/kfmap}
 if [ -z "${KFMAP_IN_NETNS:-}" ]; then
-    exec unshare -rn env KFMAP_IN_NETNS=1 KFMAP="$kfmap" bash "$0" "$tile_size" "$rounds"
+    exec unshare -rn env KFMAP_IN_NETNS=1 KFMAP="$kfmap" KFMAP_LOG="${KFMAP_LOG:-}" \
+        KEEP_LOGS="${KEEP_LOGS:-}" bash "$0" "$tile_size" "$rounds"
 fi
 ip link set lo up
 work=$(mktemp -d)
@@ -25,6 +29,7 @@ pids=()
 cleanup() {
     kill "${pids[@]}" 2>/dev/null || true
     wait 2>/dev/null || true
+    if [ -n "${KEEP_LOGS:-}" ]; then cp "$work"/*.out "$KEEP_LOGS"/ 2>/dev/null || true; fi
     # iceoryx2 keeps a prefix's management segment after its last node.
     rm -rf "$work" /dev/shm/"$prefix"*
 }

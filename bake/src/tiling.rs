@@ -236,7 +236,7 @@ impl TileSetWriter {
                 .map_err(|e| BakeError::Io(IoError::os(dir.join(INDEX_FILE), e)))?;
         }
         // The whole map's voxels only: its levels are built for a kept merged map alone.
-        let whole_grid = match grid.marked_voxels(&GridParams::default()) {
+        let whole_voxels = match grid.marked_voxels(&GridParams::default()) {
             Ok(g) => Some(g),
             Err(e) => {
                 tracing::warn!("tile set written without place grids (no relocalization): {e}");
@@ -252,7 +252,7 @@ impl TileSetWriter {
             tiles: Vec::with_capacity(total),
         };
         let finishing = TileFinish {
-            whole_grid: whole_grid.as_ref(),
+            whole_voxels: whole_voxels.as_ref(),
             covis,
             pool,
             selection: options.selection,
@@ -292,7 +292,7 @@ impl TileSetWriter {
         }
         let merged = match merged {
             Some(mut writer) => {
-                writer.use_place_grid(whole_grid.ok_or(GridError::Empty).and_then(|g| g.grid()));
+                writer.use_place_grid(whole_voxels.ok_or(GridError::Empty).and_then(|g| g.grid()));
                 Some(writer.finish(next_id, covis, pool)?)
             }
             None => {
@@ -345,7 +345,7 @@ struct WrittenTile {
 /// What finishing a tile needs of the whole map.
 struct TileFinish<'a> {
     /// The whole map's place-grid voxels, which every tile's grid is cut from.
-    whole_grid: Option<&'a MarkedVoxels>,
+    whole_voxels: Option<&'a MarkedVoxels>,
     /// The whole map's covisibility, which every tile keeps the part of among its
     /// keyframes.
     covis: &'a CovisSnapshot,
@@ -385,8 +385,8 @@ impl TileFinish<'_> {
         // Relocalization searches around the core's keyframes: the halo's places are
         // the neighbours' to find.
         let mut search_region = None;
-        let grid = match &self.whole_grid {
-            Some(whole_grid) => {
+        let grid = match &self.whole_voxels {
+            Some(whole_voxels) => {
                 let reach = GridParams::default().reach;
                 let searched: Vec<[f64; 3]> = own
                     .iter()
@@ -394,7 +394,7 @@ impl TileFinish<'_> {
                     .filter(|t| geometry.tile_of(t.x, t.y) == (col, row))
                     .map(Into::into)
                     .collect();
-                let grid = whole_grid.cut(
+                let grid = whole_voxels.cut(
                     [x0 - reach, y0 - reach],
                     [
                         x0 + geometry.tile_size + reach,

@@ -323,7 +323,7 @@ impl MapWriter {
     }
 
     /// Writes `grid` as the map's place grid instead of one built from the keyframes
-    /// (a tile's, cut from its whole map's: [`PlaceGrid::cut_from`]); an error is
+    /// (a tile's, cut from its whole map's voxels: `place::MarkedVoxels::cut`); an error is
     /// written as a map without a grid, as a failed build is. Call it, or
     /// [`Self::expect_place_grid`], before the keyframes, so they are not gathered for a
     /// grid never written.
