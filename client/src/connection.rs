@@ -187,6 +187,8 @@ impl Connection {
         self.options.timeout
     }
 
+    // Without the `remote` feature a link is always local.
+    #[cfg_attr(not(feature = "remote"), allow(irrefutable_let_patterns))]
     fn ports(&mut self) -> Result<(&Node<Transport>, &Ports), ClientError> {
         let Link::Local { node, ports } = &mut self.link else {
             return Err(ClientError::Invalid(
@@ -464,6 +466,7 @@ impl Connection {
     }
 
     /// Cleans up dead nodes (e.g. a killed server) and rebuilds the ports on next use.
+    #[cfg_attr(not(feature = "remote"), allow(irrefutable_let_patterns))]
     pub fn reconnect(&mut self) {
         self.served_covariance = None;
         if let Link::Local { node, ports } = &mut self.link {

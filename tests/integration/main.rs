@@ -12,4 +12,5 @@ mod localize_sim;
 mod plot;
 mod relocalize;
 mod remote;
+mod ros2;
 mod serve;

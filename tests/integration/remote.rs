@@ -34,6 +34,7 @@ const SCORE_SLACK: f64 = 0.005;
 #[test]
 fn remote_clients_through_a_gateway_in_a_private_network_namespace() {
     in_private_network_namespace(
+        module_path!(),
         "remote_clients_through_a_gateway_in_a_private_network_namespace",
         "in_namespace::scenario",
     );
@@ -42,14 +43,15 @@ fn remote_clients_through_a_gateway_in_a_private_network_namespace() {
 #[test]
 fn a_tiled_site_on_four_hosts_in_a_private_network_namespace() {
     in_private_network_namespace(
+        module_path!(),
         "a_tiled_site_on_four_hosts_in_a_private_network_namespace",
         "in_namespace::tiled_site",
     );
 }
 
-/// Runs this binary's ignored test `inner` inside a new user and network namespace
-/// (`unshare -rn`, then `lo` up): only loopback exists there.
-fn in_private_network_namespace(test: &str, inner: &str) {
+/// Runs this binary's ignored test `inner` (of `module`) inside a new user and network
+/// namespace (`unshare -rn`, then `lo` up): only loopback exists there.
+pub(crate) fn in_private_network_namespace(module: &str, test: &str, inner: &str) {
     let works = Command::new("unshare")
         .args(["-rn", "sh", "-c", "ip link set lo up"])
         .status()
@@ -63,7 +65,7 @@ fn in_private_network_namespace(test: &str, inner: &str) {
     let out = Command::new("unshare")
         .args(["-rn", "sh", "-c", "ip link set lo up && exec \"$0\" \"$@\""])
         .arg(&me)
-        .args(["--exact", &common::test_name(module_path!(), inner)])
+        .args(["--exact", &common::test_name(module, inner)])
         .arg("--include-ignored")
         .args(["--nocapture", "--test-threads", "1"])
         .env(IN_NAMESPACE, "1")
@@ -643,7 +645,7 @@ impl TileHost {
 }
 
 /// Nothing but `lo` in this namespace: no address outside loopback can be reached.
-fn only_loopback_exists() {
+pub(crate) fn only_loopback_exists() {
     let out = Command::new("ip").args(["-o", "link"]).output().unwrap();
     let links = common::stdout(&out);
     let names: Vec<&str> = links

@@ -1,0 +1,707 @@
+//! The node: DDS readers forward messages into channels (on a smol executor thread, as
+//! ros2-client runs its spinner), and one loop localizes each cloud through the local
+//! `kfmap serve` with the same tracker `kfmap localize` uses, then publishes.
+
+use std::path::Path;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TrySendError};
+use std::time::{Duration, Instant};
+
+use anyhow::Context as _;
+use futures::StreamExt;
+use kfmap_client::{Client, ClientOptions, LocalizeOptions, TrackedScan, Tracker, TrackerOptions};
+use kfmap_protocol::Cov2CovMode;
+use kfmap_shared::archive::{OpenOptions, open_map};
+use kfmap_shared::cloud::PointCloud;
+use kfmap_shared::geometry::Pose;
+use kfmap_shared::imu::ImuSample;
+use ros2_client::qos::{Durability, History, WhenFull};
+use ros2_client::{
+    Context, ContextOptions, MessageTypeName, Name, Node, NodeName, NodeOptions, Publisher,
+    QosProfile, Subscription,
+};
+
+use crate::cloud::{BadCloud, scan_of, xyz_message};
+use crate::config::{ModeName, Ros2Config};
+use crate::frames::{Frames, parse_mounting};
+use crate::msgs::{
+    DiagnosticArray, Header, Imu, Odometry, PointCloud2, PoseWithCovarianceStamped, TfMessage,
+    Time, Vector3Stamped,
+};
+use crate::outputs::{Condition, FrameNames, base_velocity, diagnostics, scan_outputs};
+
+/// How long the loop waits for a cloud before it looks at the stop flag again.
+const IDLE: Duration = Duration::from_millis(100);
+/// Between two attempts to reach the server while it is away.
+const RECONNECT: Duration = Duration::from_millis(500);
+/// Diagnostics are published at least this often while no cloud arrives.
+const DIAGNOSTICS_PERIOD: Duration = Duration::from_secs(1);
+
+/// What the node did, for its closing line.
+#[derive(Debug, Default, Clone)]
+pub struct Summary {
+    /// Clouds received.
+    pub received: u64,
+    /// Clouds localized (a pose published).
+    pub localized: u64,
+    /// Clouds dropped because the loop was behind (the reader's queue full).
+    pub dropped: u64,
+    /// Clouds refused (bad layout, no valid point).
+    pub bad: u64,
+    /// Clouds that found no server.
+    pub unanswered: u64,
+}
+
+/// The node's counters, shared with the reader tasks.
+#[derive(Default)]
+struct Counters {
+    received: AtomicU64,
+    dropped: AtomicU64,
+}
+
+/// Messages from the readers.
+struct Inbox {
+    clouds: Receiver<PointCloud2>,
+    imu: Receiver<Imu>,
+    initial: Receiver<PoseWithCovarianceStamped>,
+    tf: Receiver<TfMessage>,
+    tf_static: Receiver<TfMessage>,
+}
+
+/// The node's publishers.
+struct Outbox {
+    pose: Publisher<PoseWithCovarianceStamped>,
+    odometry: Publisher<Odometry>,
+    tf: Publisher<TfMessage>,
+    diagnostics: Publisher<DiagnosticArray>,
+    map_cloud: Option<Publisher<PointCloud2>>,
+    gravity: Option<Publisher<Vector3Stamped>>,
+}
+
+/// A topic name split as ros2-client wants it.
+fn topic_name(full: &str) -> anyhow::Result<Name> {
+    Name::parse(full).map_err(|e| anyhow::anyhow!("topic {full}: {e:?}"))
+}
+
+fn reliable(depth: usize) -> QosProfile {
+    QosProfile::publisher_default()
+        .reliability_reliable(WhenFull::DEFAULT)
+        .history(History::KeepLast { depth })
+}
+
+fn latched() -> QosProfile {
+    reliable(1).durability(Durability::TransientLocal)
+}
+
+fn sensor_data(depth: usize) -> QosProfile {
+    QosProfile::subscription_default().history(History::KeepLast { depth })
+}
+
+fn subscribe<M: 'static>(
+    node: &mut Node,
+    topic: &str,
+    package: &str,
+    type_name: &str,
+    qos: QosProfile,
+) -> anyhow::Result<Subscription<M>> {
+    let t = node
+        .create_topic(
+            &topic_name(topic)?,
+            MessageTypeName::new(package, type_name),
+            &qos,
+        )
+        .with_context(|| format!("create topic {topic}"))?;
+    node.create_subscription::<M>(&t, Some(qos))
+        .with_context(|| format!("subscribe to {topic}"))
+}
+
+fn publish_on<M: serde::Serialize>(
+    node: &mut Node,
+    topic: &str,
+    package: &str,
+    type_name: &str,
+    qos: QosProfile,
+) -> anyhow::Result<Publisher<M>> {
+    let t = node
+        .create_topic(
+            &topic_name(topic)?,
+            MessageTypeName::new(package, type_name),
+            &qos,
+        )
+        .with_context(|| format!("create topic {topic}"))?;
+    node.create_publisher::<M>(&t, Some(qos))
+        .with_context(|| format!("publish on {topic}"))
+}
+
+/// Forwards a subscription's messages into `into` until `stop`; a full channel drops
+/// the message and counts it in `dropped` (the readers never wait on the loop).
+async fn forward<M: 'static + serde::de::DeserializeOwned>(
+    subscription: Subscription<M>,
+    into: SyncSender<M>,
+    received: Option<Arc<Counters>>,
+    what: &'static str,
+) {
+    let stream = subscription.async_stream();
+    futures::pin_mut!(stream);
+    while let Some(item) = stream.next().await {
+        match item {
+            Ok((message, _)) => {
+                if let Some(c) = &received {
+                    c.received.fetch_add(1, Ordering::Relaxed);
+                }
+                match into.try_send(message) {
+                    Ok(()) => {}
+                    Err(TrySendError::Full(_)) => {
+                        if let Some(c) = &received {
+                            c.dropped.fetch_add(1, Ordering::Relaxed);
+                        }
+                    }
+                    Err(TrySendError::Disconnected(_)) => return,
+                }
+            }
+            // A message that does not deserialize as its type: named, never fatal.
+            Err(e) => tracing::warn!("a {what} message could not be read: {e:?}"),
+        }
+    }
+}
+
+/// The tracker options `kfmap localize` uses, from the config.
+fn tracker_options(config: &Ros2Config) -> TrackerOptions {
+    let mode = match config.server.mode {
+        ModeName::MapDefault => Cov2CovMode::MapDefault,
+        ModeName::Approximate => Cov2CovMode::Approximate,
+        ModeName::Exact => Cov2CovMode::Exact,
+    };
+    TrackerOptions {
+        localize: LocalizeOptions {
+            mode,
+            ..LocalizeOptions::default()
+        },
+        server_side: config.server.server_side,
+        deskew: config.scans.deskew,
+        ..TrackerOptions::default()
+    }
+}
+
+/// The served map's points in the map frame, thinned to `voxel` metres.
+fn map_points(path: &Path, voxel: f64) -> anyhow::Result<Vec<[f32; 3]>> {
+    let opened = open_map(
+        path,
+        OpenOptions {
+            trust: true,
+            ..OpenOptions::default()
+        },
+    )
+    .with_context(|| format!("open the served map {}", path.display()))?;
+    let mut points = Vec::new();
+    for keyframe in opened.map.keyframes() {
+        let world = keyframe.map_points().context("read a keyframe")?;
+        points.extend(world.iter().map(|p| p.map(|v| v as f32)));
+    }
+    let cloud = PointCloud::from_points(points);
+    Ok(cloud
+        .voxel_downsample(voxel)
+        .context("thin the map")?
+        .points)
+}
+
+/// The state of one run.
+struct Localizer<'a> {
+    config: &'a Ros2Config,
+    frames: Frames,
+    names: FrameNames,
+    client: Option<Client>,
+    last_attempt: Option<Instant>,
+    tracker: Tracker,
+    /// `/initialpose` received, applied to the next cloud (its frame gives the mounting).
+    initial: Option<Pose>,
+    /// IMU samples since the last cloud.
+    imu: Vec<ImuSample>,
+    /// The last published base pose and its stamp.
+    last_base: Option<(f64, Pose)>,
+    scans: u64,
+    gravity_published: bool,
+    summary: Summary,
+    last_diagnostics: Instant,
+}
+
+impl Localizer<'_> {
+    fn client(&mut self) -> Result<&mut Client, String> {
+        connected(&mut self.client, &mut self.last_attempt, self.config)
+    }
+
+    /// `T_base_sensor` for a cloud in `frame`: `/tf_static`, else the config, else the
+    /// sensor is the base.
+    fn mounting(&self, frame: &str) -> Pose {
+        self.frames
+            .mounting(&self.names.base, frame)
+            .or_else(|| parse_mounting(&self.config.frames.sensor_mounting))
+            .unwrap_or_else(Pose::identity)
+    }
+
+    fn publish_diagnostics(&mut self, out: &Outbox, stamp: Time, condition: &Condition<'_>) {
+        let counters = [
+            ("clouds", self.summary.received.to_string()),
+            ("localized", self.summary.localized.to_string()),
+            ("dropped", self.summary.dropped.to_string()),
+            ("bad", self.summary.bad.to_string()),
+            ("unanswered", self.summary.unanswered.to_string()),
+        ];
+        let message = diagnostics(stamp, condition, &self.config.server.map_name, &counters);
+        if let Err(e) = out.diagnostics.publish(message) {
+            tracing::warn!("diagnostics not published: {e:?}");
+        }
+        self.last_diagnostics = Instant::now();
+    }
+
+    /// Localizes one cloud and publishes what follows from it.
+    fn on_cloud(&mut self, msg: &PointCloud2, out: &Outbox) {
+        let stamp = msg.header.stamp;
+        let t = stamp.seconds();
+        let scan = match scan_of(msg, self.config.scans.voxel) {
+            Ok(scan) => scan,
+            Err(e) => {
+                self.summary.bad += 1;
+                let why = e.to_string();
+                if !matches!(e, BadCloud::NoValidPoint(_)) {
+                    tracing::warn!("cloud at {t:.3}: {why}");
+                }
+                self.publish_diagnostics(out, stamp, &Condition::BadCloud(&why));
+                return;
+            }
+        };
+        let base_sensor = self.mounting(&msg.header.frame_id);
+        if let Some(map_base) = self.initial.take() {
+            let options = tracker_options(self.config);
+            self.tracker = Tracker::new(map_base * base_sensor, options);
+            tracing::info!("tracking restarted from /initialpose");
+        }
+        let tracked: Result<TrackedScan, String> =
+            match connected(&mut self.client, &mut self.last_attempt, self.config) {
+                Ok(client) => self
+                    .tracker
+                    .track_cloud(client, &scan, t)
+                    .map_err(|e| e.to_string()),
+                Err(e) => Err(e),
+            };
+        let tracked = match tracked {
+            Ok(tracked) => tracked,
+            Err(why) => {
+                // A server that went away is reached again on a later cloud.
+                self.client = None;
+                self.summary.unanswered += 1;
+                self.tracker.unanswered(t);
+                self.publish_diagnostics(out, stamp, &Condition::NoServer(&why));
+                return;
+            }
+        };
+        self.summary.localized += 1;
+        self.scans += 1;
+        let health = tracked.localized.health;
+        let map_sensor = tracked.localized.pose;
+        let sensor_base = base_sensor.inverse();
+        let map_base = map_sensor * sensor_base;
+        let velocity = self
+            .last_base
+            .and_then(|(t0, before)| base_velocity(&before, &map_base, t - t0));
+        let odom_base = self.frames.odometry_at(t);
+        let outputs = scan_outputs(
+            &self.names,
+            stamp,
+            &map_sensor,
+            &health,
+            &sensor_base,
+            odom_base.as_ref(),
+            velocity,
+        );
+        self.last_base = Some((t, map_base));
+        let lost = health.status == kfmap_shared::tracking::TrackingStatus::Lost;
+        if !lost {
+            if let Err(e) = out.pose.publish(outputs.pose) {
+                tracing::warn!("pose not published: {e:?}");
+            }
+            if let Err(e) = out.odometry.publish(outputs.odometry) {
+                tracing::warn!("odometry not published: {e:?}");
+            }
+            if self.config.frames.publish_tf {
+                let tf = TfMessage {
+                    transforms: vec![outputs.transform],
+                };
+                if let Err(e) = out.tf.publish(tf) {
+                    tracing::warn!("transform not published: {e:?}");
+                }
+            }
+        }
+        self.publish_diagnostics(out, stamp, &Condition::Tracked(&health));
+        self.push_imu_window(out, stamp, &map_sensor);
+    }
+
+    /// Sends the IMU samples since the last cloud to the server's gravity pool, and
+    /// publishes the gravity direction once it is pooled.
+    fn push_imu_window(&mut self, out: &Outbox, stamp: Time, map_sensor: &Pose) {
+        if self.imu.len() < 2 {
+            return;
+        }
+        let samples = std::mem::take(&mut self.imu);
+        let t = stamp.seconds();
+        let Some(client) = self.client.as_mut() else {
+            return;
+        };
+        match client.push_imu_window(self.scans, map_sensor, Some(t), &samples) {
+            Ok(answer) => {
+                if let (Some(publisher), Some(gravity)) = (&out.gravity, answer.gravity) {
+                    let message = Vector3Stamped {
+                        header: Header {
+                            stamp,
+                            frame_id: self.names.map.clone(),
+                        },
+                        vector: nalgebra::Vector3::from(gravity).into(),
+                    };
+                    if publisher.publish(message).is_ok() && !self.gravity_published {
+                        self.gravity_published = true;
+                        tracing::info!(
+                            "gravity pooled: published on {}",
+                            self.config.topics.gravity
+                        );
+                    }
+                }
+            }
+            Err(e) => tracing::warn!("IMU window at {t:.3}: {e}"),
+        }
+    }
+}
+
+/// The connection to the server in `slot`, made when there is none (at most every
+/// [`RECONNECT`]: a server that is away costs a failed attempt per half second).
+fn connected<'c>(
+    slot: &'c mut Option<Client>,
+    last_attempt: &mut Option<Instant>,
+    config: &Ros2Config,
+) -> Result<&'c mut Client, String> {
+    if slot.is_none() {
+        if last_attempt.is_some_and(|t| t.elapsed() < RECONNECT) {
+            return Err("the server is away; retrying".into());
+        }
+        *last_attempt = Some(Instant::now());
+        let options = ClientOptions {
+            iceoryx_prefix: (!config.server.iceoryx_prefix.is_empty())
+                .then(|| config.server.iceoryx_prefix.clone()),
+            timeout: Duration::from_secs_f64(config.server.timeout_s),
+            spin: false,
+        };
+        let client =
+            Client::connect(&config.server.map_name, options).map_err(|e| e.to_string())?;
+        tracing::info!(map = config.server.map_name, "connected to the server");
+        *slot = Some(client);
+    }
+    Ok(slot.as_mut().expect("connected above"))
+}
+
+/// Runs the node until `stop` is set. `ready` is called once every reader and writer
+/// exists.
+pub fn run(
+    config: &Ros2Config,
+    domain_id: u16,
+    stop: &Arc<AtomicBool>,
+    ready: impl FnOnce(),
+) -> anyhow::Result<Summary> {
+    let context = Context::with_options(ContextOptions::new().domain_id(domain_id))
+        .context("start DDS (domain participant)")?;
+    let mut node = context
+        .new_node(
+            NodeName::new(&config.node.namespace, &config.node.name)
+                .map_err(|e| anyhow::anyhow!("node name: {e:?}"))?,
+            NodeOptions::new().enable_rosout(false),
+        )
+        .context("create the ROS 2 node")?;
+    let topics = &config.topics;
+    let counters = Arc::new(Counters::default());
+    let (cloud_tx, clouds) = std::sync::mpsc::sync_channel(config.qos.points_depth);
+    let (imu_tx, imu) = std::sync::mpsc::sync_channel(config.qos.imu_depth);
+    let (initial_tx, initial) = std::sync::mpsc::sync_channel(8);
+    let (tf_tx, tf) = std::sync::mpsc::sync_channel(256);
+    let (tf_static_tx, tf_static) = std::sync::mpsc::sync_channel(64);
+    let executor = Arc::new(smol::Executor::new());
+    let points = subscribe::<PointCloud2>(
+        &mut node,
+        &topics.points,
+        "sensor_msgs",
+        "PointCloud2",
+        sensor_data(config.qos.points_depth),
+    )?;
+    executor
+        .spawn(forward(
+            points,
+            cloud_tx,
+            Some(counters.clone()),
+            "PointCloud2",
+        ))
+        .detach();
+    if !topics.imu.is_empty() {
+        let sub = subscribe::<Imu>(
+            &mut node,
+            &topics.imu,
+            "sensor_msgs",
+            "Imu",
+            sensor_data(config.qos.imu_depth),
+        )?;
+        executor.spawn(forward(sub, imu_tx, None, "Imu")).detach();
+    }
+    if !topics.initial_pose.is_empty() {
+        let sub = subscribe::<PoseWithCovarianceStamped>(
+            &mut node,
+            &topics.initial_pose,
+            "geometry_msgs",
+            "PoseWithCovarianceStamped",
+            reliable(8),
+        )?;
+        executor
+            .spawn(forward(sub, initial_tx, None, "PoseWithCovarianceStamped"))
+            .detach();
+    }
+    let sub = subscribe::<TfMessage>(
+        &mut node,
+        &topics.tf,
+        "tf2_msgs",
+        "TFMessage",
+        reliable(100),
+    )?;
+    executor
+        .spawn(forward(sub, tf_tx, None, "TFMessage"))
+        .detach();
+    let sub = subscribe::<TfMessage>(
+        &mut node,
+        &topics.tf_static,
+        "tf2_msgs",
+        "TFMessage",
+        reliable(100).durability(Durability::TransientLocal),
+    )?;
+    executor
+        .spawn(forward(sub, tf_static_tx, None, "TFMessage"))
+        .detach();
+    let out = Outbox {
+        pose: publish_on(
+            &mut node,
+            &topics.pose,
+            "geometry_msgs",
+            "PoseWithCovarianceStamped",
+            reliable(10),
+        )?,
+        odometry: publish_on(
+            &mut node,
+            &topics.odometry,
+            "nav_msgs",
+            "Odometry",
+            reliable(10),
+        )?,
+        tf: publish_on(
+            &mut node,
+            &topics.tf,
+            "tf2_msgs",
+            "TFMessage",
+            reliable(100),
+        )?,
+        diagnostics: publish_on(
+            &mut node,
+            &topics.diagnostics,
+            "diagnostic_msgs",
+            "DiagnosticArray",
+            reliable(10),
+        )?,
+        map_cloud: (!topics.map_cloud.is_empty() && config.map_cloud.voxel > 0.0)
+            .then(|| {
+                publish_on(
+                    &mut node,
+                    &topics.map_cloud,
+                    "sensor_msgs",
+                    "PointCloud2",
+                    latched(),
+                )
+            })
+            .transpose()?,
+        gravity: (!topics.gravity.is_empty())
+            .then(|| {
+                publish_on(
+                    &mut node,
+                    &topics.gravity,
+                    "geometry_msgs",
+                    "Vector3Stamped",
+                    latched(),
+                )
+            })
+            .transpose()?,
+    };
+    let spinner = node.spinner().context("start the node's spinner")?;
+    executor.spawn(spinner.spin()).detach();
+    let spinning = {
+        let executor = executor.clone();
+        let stop = stop.clone();
+        std::thread::Builder::new()
+            .name("kfmap-ros2-dds".into())
+            .spawn(move || {
+                smol::block_on(executor.run(async {
+                    while !stop.load(Ordering::SeqCst) {
+                        smol::Timer::after(IDLE).await;
+                    }
+                }))
+            })
+            .context("start the DDS thread")?
+    };
+    let inbox = Inbox {
+        clouds,
+        imu,
+        initial,
+        tf,
+        tf_static,
+    };
+    ready();
+    let summary = run_loop(config, &inbox, &out, &counters, stop);
+    stop.store(true, Ordering::SeqCst);
+    let _ = spinning.join();
+    Ok(summary)
+}
+
+fn run_loop(
+    config: &Ros2Config,
+    inbox: &Inbox,
+    out: &Outbox,
+    counters: &Counters,
+    stop: &AtomicBool,
+) -> Summary {
+    let mut state = Localizer {
+        config,
+        frames: Frames::default(),
+        names: FrameNames {
+            map: config.frames.map.clone(),
+            odom: config.frames.odom.clone(),
+            base: config.frames.base.clone(),
+        },
+        client: None,
+        last_attempt: None,
+        tracker: Tracker::relocalizing(tracker_options(config)),
+        initial: None,
+        imu: Vec::new(),
+        last_base: None,
+        scans: 0,
+        gravity_published: false,
+        summary: Summary::default(),
+        last_diagnostics: Instant::now() - DIAGNOSTICS_PERIOD,
+    };
+    let (map_tx, map_rx) = std::sync::mpsc::channel();
+    let mut map_requested = out.map_cloud.is_none();
+    while !stop.load(Ordering::SeqCst) {
+        // The map cloud is read once the server names its file, off this loop.
+        if !map_requested
+            && let Ok(client) = state.client()
+            && let Ok(status) = client.status()
+        {
+            map_requested = true;
+            let voxel = config.map_cloud.voxel;
+            let tx = map_tx.clone();
+            std::thread::spawn(move || {
+                let _ = tx.send(map_points(Path::new(&status.map_path), voxel));
+            });
+        }
+        if let (Ok(points), Some(publisher)) = (map_rx.try_recv(), &out.map_cloud) {
+            match points {
+                Ok(points) => {
+                    let header = Header {
+                        stamp: Time::from_seconds(now_seconds()),
+                        frame_id: config.frames.map.clone(),
+                    };
+                    let n = points.len();
+                    match publisher.publish(xyz_message(header, &points)) {
+                        Ok(()) => tracing::info!(points = n, "map cloud published"),
+                        Err(e) => tracing::warn!("map cloud not published: {e:?}"),
+                    }
+                }
+                Err(e) => tracing::warn!("no map cloud: {e:#}"),
+            }
+        }
+        for message in inbox.tf_static.try_iter() {
+            let skipped = state.frames.add_static(&message.transforms);
+            if skipped > 0 {
+                tracing::warn!(skipped, "malformed /tf_static transforms skipped");
+            }
+        }
+        for message in inbox.tf.try_iter() {
+            state.frames.add_dynamic(
+                &message.transforms,
+                &config.frames.odom,
+                &config.frames.base,
+            );
+        }
+        for message in inbox.initial.try_iter() {
+            match message.pose.pose.pose() {
+                Some(pose)
+                    if message.header.frame_id.trim_start_matches('/') == config.frames.map =>
+                {
+                    state.initial = Some(pose);
+                }
+                Some(_) => tracing::warn!(
+                    frame = message.header.frame_id,
+                    "an initial pose not in the map frame {} is ignored",
+                    config.frames.map
+                ),
+                None => tracing::warn!(
+                    "an initial pose that is not finite or not a rotation is ignored"
+                ),
+            }
+        }
+        for message in inbox.imu.try_iter() {
+            let t = message.header.stamp.seconds();
+            let sample = ImuSample {
+                t,
+                acc: [
+                    message.linear_acceleration.x,
+                    message.linear_acceleration.y,
+                    message.linear_acceleration.z,
+                ],
+                gyro: [
+                    message.angular_velocity.x,
+                    message.angular_velocity.y,
+                    message.angular_velocity.z,
+                ],
+            };
+            let finite =
+                sample.acc.iter().chain(&sample.gyro).all(|v| v.is_finite()) && t.is_finite();
+            if finite && state.imu.len() < config.qos.imu_depth {
+                state.imu.push(sample);
+            }
+        }
+        match inbox.clouds.recv_timeout(IDLE) {
+            Ok(cloud) => {
+                state.summary.received = counters.received.load(Ordering::Relaxed);
+                state.summary.dropped = counters.dropped.load(Ordering::Relaxed);
+                state.on_cloud(&cloud, out);
+            }
+            Err(RecvTimeoutError::Timeout) => {
+                if state.last_diagnostics.elapsed() >= DIAGNOSTICS_PERIOD {
+                    state.summary.received = counters.received.load(Ordering::Relaxed);
+                    state.summary.dropped = counters.dropped.load(Ordering::Relaxed);
+                    let stamp = Time::from_seconds(now_seconds());
+                    let condition = match state.client() {
+                        Ok(_) => Condition::Waiting,
+                        Err(why) => {
+                            let why = why.clone();
+                            state.publish_diagnostics(out, stamp, &Condition::NoServer(&why));
+                            continue;
+                        }
+                    };
+                    state.publish_diagnostics(out, stamp, &condition);
+                }
+            }
+            Err(RecvTimeoutError::Disconnected) => break,
+        }
+    }
+    state.summary.received = counters.received.load(Ordering::Relaxed);
+    state.summary.dropped = counters.dropped.load(Ordering::Relaxed);
+    state.summary
+}
+
+fn now_seconds() -> f64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0.0, |d| d.as_secs_f64())
+}

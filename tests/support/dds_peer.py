@@ -1,0 +1,318 @@
+"""An independent ROS 2 peer for kfmap-ros2's tests, on Eclipse Cyclone DDS (the DDS of
+rmw_cyclonedds_cpp) through its PyPI binding: it publishes clouds (and an initial pose)
+with the ROS 2 type and topic names and records what the node publishes.
+
+    dds_peer.py MANIFEST OUT
+
+MANIFEST (JSON): {"domain": 0, "wait_s": 30, "timeout_s": 20, "clouds": [{"stamp": s,
+"frame_id": "lidar", "fields": [[name, offset, datatype, count], ...], "point_step": 16,
+"width": n, "data": "path of the point bytes"}, ...], "initial_pose": {"before": k,
+"pose": [x, y, z, qx, qy, qz, qw]} (optional)}. Clouds are sent one at a time: the next
+only after the node's diagnostics for this one's stamp arrived (at most timeout_s), so
+every cloud is localized and none is dropped.
+
+OUT: JSON lines, one per message received: {"topic": "pose", "stamp": s, "pose": [...],
+"covariance": [...36]}, {"topic": "diagnostics", "stamp": s, "level": l, "message": m},
+{"topic": "odometry", ...}, {"topic": "tf", "stamp": s, "parent": p, "child": c,
+"transform": [...]}. Exits 1 when the node never matched or a cloud went unanswered.
+"""
+
+import json
+import sys
+import time
+from dataclasses import dataclass
+
+from cyclonedds.core import Qos, Policy
+from cyclonedds.domain import DomainParticipant
+from cyclonedds.idl import IdlStruct
+from cyclonedds.idl.types import array, float64, int32, sequence, uint8, uint32
+from cyclonedds.pub import DataWriter
+from cyclonedds.sub import DataReader
+from cyclonedds.topic import Topic
+
+
+@dataclass
+class Time(IdlStruct, typename="builtin_interfaces::msg::dds_::Time_"):
+    sec: int32
+    nanosec: uint32
+
+
+@dataclass
+class Header(IdlStruct, typename="std_msgs::msg::dds_::Header_"):
+    stamp: Time
+    frame_id: str
+
+
+@dataclass
+class PointField(IdlStruct, typename="sensor_msgs::msg::dds_::PointField_"):
+    name: str
+    offset: uint32
+    datatype: uint8
+    count: uint32
+
+
+@dataclass
+class PointCloud2(IdlStruct, typename="sensor_msgs::msg::dds_::PointCloud2_"):
+    header: Header
+    height: uint32
+    width: uint32
+    fields: sequence[PointField]
+    is_bigendian: bool
+    point_step: uint32
+    row_step: uint32
+    data: sequence[uint8]
+    is_dense: bool
+
+
+@dataclass
+class Vector3(IdlStruct, typename="geometry_msgs::msg::dds_::Vector3_"):
+    x: float64
+    y: float64
+    z: float64
+
+
+@dataclass
+class Point(IdlStruct, typename="geometry_msgs::msg::dds_::Point_"):
+    x: float64
+    y: float64
+    z: float64
+
+
+@dataclass
+class Quaternion(IdlStruct, typename="geometry_msgs::msg::dds_::Quaternion_"):
+    x: float64
+    y: float64
+    z: float64
+    w: float64
+
+
+@dataclass
+class Pose(IdlStruct, typename="geometry_msgs::msg::dds_::Pose_"):
+    position: Point
+    orientation: Quaternion
+
+
+@dataclass
+class PoseWithCovariance(IdlStruct, typename="geometry_msgs::msg::dds_::PoseWithCovariance_"):
+    pose: Pose
+    covariance: array[float64, 36]
+
+
+@dataclass
+class PoseWithCovarianceStamped(
+    IdlStruct, typename="geometry_msgs::msg::dds_::PoseWithCovarianceStamped_"
+):
+    header: Header
+    pose: PoseWithCovariance
+
+
+@dataclass
+class Twist(IdlStruct, typename="geometry_msgs::msg::dds_::Twist_"):
+    linear: Vector3
+    angular: Vector3
+
+
+@dataclass
+class TwistWithCovariance(IdlStruct, typename="geometry_msgs::msg::dds_::TwistWithCovariance_"):
+    twist: Twist
+    covariance: array[float64, 36]
+
+
+@dataclass
+class Odometry(IdlStruct, typename="nav_msgs::msg::dds_::Odometry_"):
+    header: Header
+    child_frame_id: str
+    pose: PoseWithCovariance
+    twist: TwistWithCovariance
+
+
+@dataclass
+class Transform(IdlStruct, typename="geometry_msgs::msg::dds_::Transform_"):
+    translation: Vector3
+    rotation: Quaternion
+
+
+@dataclass
+class TransformStamped(IdlStruct, typename="geometry_msgs::msg::dds_::TransformStamped_"):
+    header: Header
+    child_frame_id: str
+    transform: Transform
+
+
+@dataclass
+class TFMessage(IdlStruct, typename="tf2_msgs::msg::dds_::TFMessage_"):
+    transforms: sequence[TransformStamped]
+
+
+@dataclass
+class KeyValue(IdlStruct, typename="diagnostic_msgs::msg::dds_::KeyValue_"):
+    key: str
+    value: str
+
+
+@dataclass
+class DiagnosticStatus(IdlStruct, typename="diagnostic_msgs::msg::dds_::DiagnosticStatus_"):
+    level: uint8
+    name: str
+    message: str
+    hardware_id: str
+    values: sequence[KeyValue]
+
+
+@dataclass
+class DiagnosticArray(IdlStruct, typename="diagnostic_msgs::msg::dds_::DiagnosticArray_"):
+    header: Header
+    status: sequence[DiagnosticStatus]
+
+
+def stamp_of(seconds):
+    sec = int(seconds // 1)
+    nanosec = int(round((seconds - sec) * 1e9))
+    if nanosec >= 1_000_000_000:
+        sec, nanosec = sec + 1, nanosec - 1_000_000_000
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def seconds_of(t):
+    return t.sec + t.nanosec * 1e-9
+
+
+def main():
+    manifest = json.load(open(sys.argv[1]))
+    out = open(sys.argv[2], "w")
+    participant = DomainParticipant(manifest.get("domain", 0))
+    reliable = Qos(Policy.Reliability.Reliable(1_000_000_000), Policy.History.KeepLast(1000))
+    latched = Qos(
+        Policy.Reliability.Reliable(1_000_000_000),
+        Policy.Durability.TransientLocal,
+        Policy.History.KeepLast(1),
+    )
+    clouds_topic = Topic(participant, "rt/points", PointCloud2)
+    cloud_writer = DataWriter(participant, clouds_topic, reliable)
+    initial_writer = DataWriter(
+        participant, Topic(participant, "rt/initialpose", PoseWithCovarianceStamped), reliable
+    )
+    readers = {
+        "pose": DataReader(
+            participant, Topic(participant, "rt/kfmap/pose", PoseWithCovarianceStamped), reliable
+        ),
+        "odometry": DataReader(
+            participant, Topic(participant, "rt/kfmap/odometry", Odometry), reliable
+        ),
+        "tf": DataReader(participant, Topic(participant, "rt/tf", TFMessage), reliable),
+        "diagnostics": DataReader(
+            participant, Topic(participant, "rt/diagnostics", DiagnosticArray), reliable
+        ),
+        "map_cloud": DataReader(
+            participant, Topic(participant, "rt/kfmap/map_cloud", PointCloud2), latched
+        ),
+    }
+
+    def record(topic, sample):
+        if topic == "pose":
+            p = sample.pose.pose
+            line = {
+                "stamp": seconds_of(sample.header.stamp),
+                "frame": sample.header.frame_id,
+                "pose": [p.position.x, p.position.y, p.position.z, p.orientation.x,
+                         p.orientation.y, p.orientation.z, p.orientation.w],
+                "covariance": list(sample.pose.covariance),
+            }
+        elif topic == "odometry":
+            p = sample.pose.pose
+            line = {
+                "stamp": seconds_of(sample.header.stamp),
+                "child": sample.child_frame_id,
+                "pose": [p.position.x, p.position.y, p.position.z, p.orientation.x,
+                         p.orientation.y, p.orientation.z, p.orientation.w],
+            }
+        elif topic == "tf":
+            for t in sample.transforms:
+                r, q = t.transform.translation, t.transform.rotation
+                out.write(json.dumps({
+                    "topic": "tf", "stamp": seconds_of(t.header.stamp),
+                    "parent": t.header.frame_id, "child": t.child_frame_id,
+                    "transform": [r.x, r.y, r.z, q.x, q.y, q.z, q.w],
+                }) + "\n")
+            return []
+        elif topic == "diagnostics":
+            s = sample.status[0]
+            line = {
+                "stamp": seconds_of(sample.header.stamp),
+                "level": int(s.level),
+                "message": s.message,
+                "values": {kv.key: kv.value for kv in s.values},
+            }
+        else:
+            line = {"stamp": seconds_of(sample.header.stamp), "frame": sample.header.frame_id,
+                    "points": sample.width * sample.height}
+        line["topic"] = topic
+        out.write(json.dumps(line) + "\n")
+        return [line]
+
+    def drain():
+        got = []
+        for topic, reader in readers.items():
+            for sample in reader.take(N=1000):
+                got.extend(record(topic, sample))
+        out.flush()
+        return got
+
+    # Bounded wait for the node's cloud reader.
+    deadline = time.monotonic() + manifest.get("wait_s", 30)
+    while cloud_writer.get_matched_subscriptions() == []:
+        if time.monotonic() > deadline:
+            print("dds_peer: the node's /points reader never matched", file=sys.stderr)
+            sys.exit(1)
+        time.sleep(0.05)
+    timeout = manifest.get("timeout_s", 20)
+    initial = manifest.get("initial_pose")
+    for k, cloud in enumerate(manifest["clouds"]):
+        if initial is not None and initial["before"] == k:
+            x, y, z, qx, qy, qz, qw = initial["pose"]
+            initial_writer.write(PoseWithCovarianceStamped(
+                header=Header(stamp=stamp_of(cloud["stamp"]), frame_id="map"),
+                pose=PoseWithCovariance(
+                    pose=Pose(position=Point(x=x, y=y, z=z),
+                              orientation=Quaternion(x=qx, y=qy, z=qz, w=qw)),
+                    covariance=[0.0] * 36,
+                ),
+            ))
+            time.sleep(0.2)
+        data = open(cloud["data"], "rb").read()
+        message = PointCloud2(
+            header=Header(stamp=stamp_of(cloud["stamp"]), frame_id=cloud["frame_id"]),
+            height=1,
+            width=cloud["width"],
+            fields=[PointField(name=n, offset=o, datatype=d, count=c)
+                    for n, o, d, c in cloud["fields"]],
+            is_bigendian=False,
+            point_step=cloud["point_step"],
+            row_step=cloud["point_step"] * cloud["width"],
+            data=list(data),
+            is_dense=False,
+        )
+        stamp = seconds_of(message.header.stamp)
+        cloud_writer.write(message)
+        deadline = time.monotonic() + timeout
+        answered = False
+        while not answered:
+            for line in drain():
+                if line["topic"] == "diagnostics" and abs(line["stamp"] - stamp) < 1e-6:
+                    answered = True
+            if not answered:
+                if time.monotonic() > deadline:
+                    print(f"dds_peer: no diagnostics for cloud {k} (stamp {stamp}) "
+                          f"within {timeout} s", file=sys.stderr)
+                    sys.exit(1)
+                time.sleep(0.002)
+    # What else is in flight (the last transforms, the latched map cloud).
+    end = time.monotonic() + 1.0
+    while time.monotonic() < end:
+        drain()
+        time.sleep(0.05)
+    out.close()
+
+
+if __name__ == "__main__":
+    main()
