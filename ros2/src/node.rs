@@ -33,8 +33,6 @@ use crate::outputs::{Condition, FrameNames, base_velocity, diagnostics, scan_out
 
 /// How long the loop waits for a cloud before it looks at the stop flag again.
 const IDLE: Duration = Duration::from_millis(100);
-/// Between two attempts to reach the server while it is away.
-const RECONNECT: Duration = Duration::from_millis(500);
 /// Diagnostics are published at least this often while no cloud arrives.
 const DIAGNOSTICS_PERIOD: Duration = Duration::from_secs(1);
 
@@ -212,7 +210,6 @@ struct Localizer<'a> {
     frames: Frames,
     names: FrameNames,
     client: Option<Client>,
-    last_attempt: Option<Instant>,
     tracker: Tracker,
     /// `/initialpose` received, applied to the next cloud (its frame gives the mounting).
     initial: Option<Pose>,
@@ -228,7 +225,7 @@ struct Localizer<'a> {
 
 impl Localizer<'_> {
     fn client(&mut self) -> Result<&mut Client, String> {
-        connected(&mut self.client, &mut self.last_attempt, self.config)
+        connected(&mut self.client, self.config)
     }
 
     /// `T_base_sensor` for a cloud in `frame`: `/tf_static`, else the config, else the
@@ -277,14 +274,13 @@ impl Localizer<'_> {
             self.tracker = Tracker::new(map_base * base_sensor, options);
             tracing::info!("tracking restarted from /initialpose");
         }
-        let tracked: Result<TrackedScan, String> =
-            match connected(&mut self.client, &mut self.last_attempt, self.config) {
-                Ok(client) => self
-                    .tracker
-                    .track_cloud(client, &scan, t)
-                    .map_err(|e| e.to_string()),
-                Err(e) => Err(e),
-            };
+        let tracked: Result<TrackedScan, String> = match connected(&mut self.client, self.config) {
+            Ok(client) => self
+                .tracker
+                .track_cloud(client, &scan, t)
+                .map_err(|e| e.to_string()),
+            Err(e) => Err(e),
+        };
         let tracked = match tracked {
             Ok(tracked) => tracked,
             Err(why) => {
@@ -372,18 +368,14 @@ impl Localizer<'_> {
     }
 }
 
-/// The connection to the server in `slot`, made when there is none (at most every
-/// [`RECONNECT`]: a server that is away costs a failed attempt per half second).
+/// The connection to the server in `slot`, made when there is none: tried for every
+/// cloud while the server is away (a failed attempt costs about a millisecond), so
+/// tracking resumes with the first cloud after it is back.
 fn connected<'c>(
     slot: &'c mut Option<Client>,
-    last_attempt: &mut Option<Instant>,
     config: &Ros2Config,
 ) -> Result<&'c mut Client, String> {
     if slot.is_none() {
-        if last_attempt.is_some_and(|t| t.elapsed() < RECONNECT) {
-            return Err("the server is away; retrying".into());
-        }
-        *last_attempt = Some(Instant::now());
         let options = ClientOptions {
             iceoryx_prefix: (!config.server.iceoryx_prefix.is_empty())
                 .then(|| config.server.iceoryx_prefix.clone()),
@@ -578,7 +570,6 @@ fn run_loop(
             base: config.frames.base.clone(),
         },
         client: None,
-        last_attempt: None,
         tracker: Tracker::relocalizing(tracker_options(config)),
         initial: None,
         imu: Vec::new(),

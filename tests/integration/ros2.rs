@@ -136,7 +136,7 @@ impl Node {
         std::fs::write(
             &config,
             format!(
-                "[server]\nmap-name = \"court\"\niceoryx-prefix = \"{prefix}\"\ntimeout-s = 20.0\n\
+                "[server]\nmap-name = \"court\"\niceoryx-prefix = \"{prefix}\"\ntimeout-s = 2.0\n\
                  [map-cloud]\nvoxel = 0.5\n"
             ),
         )
@@ -184,27 +184,52 @@ impl Drop for Node {
     }
 }
 
-/// Runs the peer on `manifest`; its records.
-fn run_peer(python: &Path, dir: &Path, manifest: &Value, name: &str) -> Vec<Value> {
+/// Starts the peer on `manifest` (bounded: `timeout` ends it after 300 s).
+fn start_peer(python: &Path, dir: &Path, manifest: &Value, name: &str) -> Child {
     let manifest_path = dir.join(format!("{name}.json"));
     std::fs::write(&manifest_path, manifest.to_string()).unwrap();
-    let out_path = dir.join(format!("{name}.jsonl"));
     let peer = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/support/dds_peer.py");
-    let out = Command::new("timeout")
+    Command::new("timeout")
         .args(["300", python.to_str().unwrap(), peer.to_str().unwrap()])
-        .args([manifest_path.to_str().unwrap(), out_path.to_str().unwrap()])
-        .output()
-        .unwrap();
+        .arg(&manifest_path)
+        .arg(dir.join(format!("{name}.jsonl")))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+/// The records of the peer `name` once it ended (it must succeed).
+fn peer_records(peer: Child, dir: &Path, name: &str) -> Vec<Value> {
+    let out = peer.wait_with_output().unwrap();
     assert!(
         out.status.success(),
         "the DDS peer failed: {}",
         common::stderr(&out)
     );
-    std::fs::read_to_string(&out_path)
+    std::fs::read_to_string(dir.join(format!("{name}.jsonl")))
         .unwrap()
         .lines()
         .map(|l| serde_json::from_str(l).unwrap())
         .collect()
+}
+
+/// Runs the peer on `manifest`; its records.
+fn run_peer(python: &Path, dir: &Path, manifest: &Value, name: &str) -> Vec<Value> {
+    peer_records(start_peer(python, dir, manifest, name), dir, name)
+}
+
+/// Waits (at most 60 s) for `path` to exist.
+fn wait_for_file(path: &Path) {
+    let started = Instant::now();
+    while !path.exists() {
+        assert!(
+            started.elapsed() < Duration::from_secs(60),
+            "no {}",
+            path.display()
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
 }
 
 mod in_namespace {
@@ -443,6 +468,77 @@ mod in_namespace {
             "from /initialpose, {} scans: worst {worst_same:.2e} m from kfmap localize, \
              {worst_truth:.4} m from the ground truth",
             from_truth.len()
+        );
+
+        // The server killed mid-drive: the diagnostics say so (an error, not a stall),
+        // and tracking resumes once it is back.
+        let shift = last + 100.0 - poses.stamps[0];
+        let at = |k: usize| {
+            let mut c = clouds[k].clone();
+            c["stamp"] = json!(poses.stamps[k] + shift);
+            c
+        };
+        let pause = |n: usize| {
+            json!({"pause": {
+                "reached": dir.join(format!("reached{n}")),
+                "go": dir.join(format!("go{n}")),
+            }})
+        };
+        let count = scans.len().min(30);
+        let mut drive: Vec<Value> = (0..5).map(at).collect();
+        drive.push(pause(1));
+        drive.extend((5..8).map(at));
+        drive.push(pause(2));
+        drive.extend((8..count).map(at));
+        let manifest = json!({
+            "domain": 0,
+            "clouds": drive,
+            "initial_pose": {"before": 0, "pose": pose_to_xyz_quat(&truth[0])},
+        });
+        let peer = start_peer(&python, &dir, &manifest, "restart");
+        wait_for_file(&dir.join("reached1"));
+        server.kill();
+        std::fs::write(dir.join("go1"), "").unwrap();
+        wait_for_file(&dir.join("reached2"));
+        let server = Server::start(&map, "court", &prefix.0, &[]);
+        std::fs::write(dir.join("go2"), "").unwrap();
+        let records = peer_records(peer, &dir, "restart");
+        let diagnostics = by_stamp(&records, "diagnostics");
+        let pose_records = by_stamp(&records, "pose");
+        for k in 5..8 {
+            let d = &diagnostics[&key(poses.stamps[k] + shift)];
+            let message = d["message"].as_str().unwrap();
+            assert!(
+                message.starts_with("no server"),
+                "scan {k} without a server: {message}"
+            );
+            assert_eq!(d["level"], 2, "scan {k}");
+        }
+        let resumed = (8..count)
+            .find(|&k| diagnostics[&key(poses.stamps[k] + shift)]["values"]["status"] == "ok");
+        let said: Vec<&str> = (8..count)
+            .map(|k| {
+                diagnostics[&key(poses.stamps[k] + shift)]["message"]
+                    .as_str()
+                    .unwrap()
+            })
+            .collect();
+        let resumed =
+            resumed.unwrap_or_else(|| panic!("tracking never resumed after the restart: {said:?}"));
+        for k in resumed..count {
+            let stamp = key(poses.stamps[k] + shift);
+            assert_eq!(
+                diagnostics[&stamp]["values"]["status"], "ok",
+                "scan {k} after the restart"
+            );
+            let off = translation_distance(&pose_of(&pose_records[&stamp]["pose"]), &truth[k]);
+            assert!(
+                off <= TRUTH_M,
+                "scan {k} after the restart: {off} m from the truth"
+            );
+        }
+        println!(
+            "server killed after scan 4, restarted after scan 7: ok again from scan {resumed}"
         );
         drop(node);
         drop(server);

@@ -7,7 +7,9 @@ with the ROS 2 type and topic names and records what the node publishes.
 MANIFEST (JSON): {"domain": 0, "wait_s": 30, "timeout_s": 20, "clouds": [{"stamp": s,
 "frame_id": "lidar", "fields": [[name, offset, datatype, count], ...], "point_step": 16,
 "width": n, "data": "path of the point bytes"}, ...], "initial_pose": {"before": k,
-"pose": [x, y, z, qx, qy, qz, qw]} (optional)}. Clouds are sent one at a time: the next
+"pose": [x, y, z, qx, qy, qz, qw]} (optional)}. An entry {"pause": {"reached": path, "go":
+path}} among the clouds creates `reached` and waits (at most wait_s) for `go` to exist
+before the next cloud. Clouds are sent one at a time: the next
 only after the node's diagnostics for this one's stamp arrived (at most timeout_s), so
 every cloud is localized and none is dropped.
 
@@ -18,6 +20,7 @@ OUT: JSON lines, one per message received: {"topic": "pose", "stamp": s, "pose":
 """
 
 import json
+import os
 import sys
 import time
 from dataclasses import dataclass
@@ -268,6 +271,16 @@ def main():
     timeout = manifest.get("timeout_s", 20)
     initial = manifest.get("initial_pose")
     for k, cloud in enumerate(manifest["clouds"]):
+        if "pause" in cloud:
+            open(cloud["pause"]["reached"], "w").close()
+            deadline = time.monotonic() + manifest.get("wait_s", 30)
+            while not os.path.exists(cloud["pause"]["go"]):
+                if time.monotonic() > deadline:
+                    print(f"dds_peer: no {cloud['pause']['go']} within wait_s", file=sys.stderr)
+                    sys.exit(1)
+                drain()
+                time.sleep(0.02)
+            continue
         if initial is not None and initial["before"] == k:
             x, y, z, qx, qy, qz, qw = initial["pose"]
             initial_writer.write(PoseWithCovarianceStamped(
