@@ -525,13 +525,20 @@ mod in_namespace {
             .collect();
         let resumed =
             resumed.unwrap_or_else(|| panic!("tracking never resumed after the restart: {said:?}"));
-        for k in resumed..count {
-            let stamp = key(poses.stamps[k] + shift);
+        for (k, (t, reference)) in poses
+            .stamps
+            .iter()
+            .zip(&truth)
+            .enumerate()
+            .take(count)
+            .skip(resumed)
+        {
+            let stamp = key(t + shift);
             assert_eq!(
                 diagnostics[&stamp]["values"]["status"], "ok",
                 "scan {k} after the restart"
             );
-            let off = translation_distance(&pose_of(&pose_records[&stamp]["pose"]), &truth[k]);
+            let off = translation_distance(&pose_of(&pose_records[&stamp]["pose"]), reference);
             assert!(
                 off <= TRUTH_M,
                 "scan {k} after the restart: {off} m from the truth"
