@@ -16,6 +16,7 @@ use kfmap_shared::archive::{OpenOptions, open_map};
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::imu::ImuSample;
+use ros2_client::dds::rustdds::Topic;
 use ros2_client::qos::{Durability, History, WhenFull};
 use ros2_client::{
     Context, ContextOptions, MessageTypeName, Name, Node, NodeName, NodeOptions, Publisher,
@@ -96,40 +97,43 @@ fn sensor_data(depth: usize) -> QosProfile {
     QosProfile::subscription_default().history(History::KeepLast { depth })
 }
 
+/// A ROS 2 message type: its package and name (`sensor_msgs`, `PointCloud2`).
+type RosType = (&'static str, &'static str);
+
+fn topic(
+    node: &Node,
+    name: &str,
+    (package, type_name): RosType,
+    qos: &QosProfile,
+) -> anyhow::Result<Topic> {
+    node.create_topic(
+        &topic_name(name)?,
+        MessageTypeName::new(package, type_name),
+        qos,
+    )
+    .with_context(|| format!("create topic {name}"))
+}
+
 fn subscribe<M: 'static>(
     node: &mut Node,
-    topic: &str,
-    package: &str,
-    type_name: &str,
+    name: &str,
+    ros_type: RosType,
     qos: QosProfile,
 ) -> anyhow::Result<Subscription<M>> {
-    let t = node
-        .create_topic(
-            &topic_name(topic)?,
-            MessageTypeName::new(package, type_name),
-            &qos,
-        )
-        .with_context(|| format!("create topic {topic}"))?;
+    let t = topic(node, name, ros_type, &qos)?;
     node.create_subscription::<M>(&t, Some(qos))
-        .with_context(|| format!("subscribe to {topic}"))
+        .with_context(|| format!("subscribe to {name}"))
 }
 
 fn publish_on<M: serde::Serialize>(
     node: &mut Node,
-    topic: &str,
-    package: &str,
-    type_name: &str,
+    name: &str,
+    ros_type: RosType,
     qos: QosProfile,
 ) -> anyhow::Result<Publisher<M>> {
-    let t = node
-        .create_topic(
-            &topic_name(topic)?,
-            MessageTypeName::new(package, type_name),
-            &qos,
-        )
-        .with_context(|| format!("create topic {topic}"))?;
+    let t = topic(node, name, ros_type, &qos)?;
     node.create_publisher::<M>(&t, Some(qos))
-        .with_context(|| format!("publish on {topic}"))
+        .with_context(|| format!("publish on {name}"))
 }
 
 /// Forwards a subscription's messages into `into` until `stop`; a full channel drops
@@ -418,8 +422,7 @@ pub fn run(
     let points = subscribe::<PointCloud2>(
         &mut node,
         &topics.points,
-        "sensor_msgs",
-        "PointCloud2",
+        ("sensor_msgs", "PointCloud2"),
         sensor_data(config.qos.points_depth),
     )?;
     executor
@@ -434,8 +437,7 @@ pub fn run(
         let sub = subscribe::<Imu>(
             &mut node,
             &topics.imu,
-            "sensor_msgs",
-            "Imu",
+            ("sensor_msgs", "Imu"),
             sensor_data(config.qos.imu_depth),
         )?;
         executor.spawn(forward(sub, imu_tx, None, "Imu")).detach();
@@ -444,8 +446,7 @@ pub fn run(
         let sub = subscribe::<PoseWithCovarianceStamped>(
             &mut node,
             &topics.initial_pose,
-            "geometry_msgs",
-            "PoseWithCovarianceStamped",
+            ("geometry_msgs", "PoseWithCovarianceStamped"),
             reliable(8),
         )?;
         executor
@@ -455,8 +456,7 @@ pub fn run(
     let sub = subscribe::<TfMessage>(
         &mut node,
         &topics.tf,
-        "tf2_msgs",
-        "TFMessage",
+        ("tf2_msgs", "TFMessage"),
         reliable(100),
     )?;
     executor
@@ -465,8 +465,7 @@ pub fn run(
     let sub = subscribe::<TfMessage>(
         &mut node,
         &topics.tf_static,
-        "tf2_msgs",
-        "TFMessage",
+        ("tf2_msgs", "TFMessage"),
         reliable(100).durability(Durability::TransientLocal),
     )?;
     executor
@@ -476,29 +475,25 @@ pub fn run(
         pose: publish_on(
             &mut node,
             &topics.pose,
-            "geometry_msgs",
-            "PoseWithCovarianceStamped",
+            ("geometry_msgs", "PoseWithCovarianceStamped"),
             reliable(10),
         )?,
         odometry: publish_on(
             &mut node,
             &topics.odometry,
-            "nav_msgs",
-            "Odometry",
+            ("nav_msgs", "Odometry"),
             reliable(10),
         )?,
         tf: publish_on(
             &mut node,
             &topics.tf,
-            "tf2_msgs",
-            "TFMessage",
+            ("tf2_msgs", "TFMessage"),
             reliable(100),
         )?,
         diagnostics: publish_on(
             &mut node,
             &topics.diagnostics,
-            "diagnostic_msgs",
-            "DiagnosticArray",
+            ("diagnostic_msgs", "DiagnosticArray"),
             reliable(10),
         )?,
         map_cloud: (!topics.map_cloud.is_empty() && config.map_cloud.voxel > 0.0)
@@ -506,8 +501,7 @@ pub fn run(
                 publish_on(
                     &mut node,
                     &topics.map_cloud,
-                    "sensor_msgs",
-                    "PointCloud2",
+                    ("sensor_msgs", "PointCloud2"),
                     latched(),
                 )
             })
@@ -517,8 +511,7 @@ pub fn run(
                 publish_on(
                     &mut node,
                     &topics.gravity,
-                    "geometry_msgs",
-                    "Vector3Stamped",
+                    ("geometry_msgs", "Vector3Stamped"),
                     latched(),
                 )
             })

@@ -127,6 +127,32 @@ fn pose_of(values: &Value) -> Pose {
     )
 }
 
+/// `kfmap localize` of every scan of `data` (no IMU: the node is given none), one JSON
+/// object per scan.
+fn localized(prefix: &str, data: &Path, extra: &[&str]) -> Vec<Value> {
+    let mut args = vec![
+        "localize",
+        "--map-name",
+        "court",
+        "--iceoryx-prefix",
+        prefix,
+        "--dataset",
+        data.to_str().unwrap(),
+        "--rate",
+        "0",
+        "--json-lines",
+        "--no-imu",
+    ];
+    args.extend_from_slice(extra);
+    let out = kfmap(&args);
+    assert!(out.status.success(), "{}", common::stderr(&out));
+    common::stdout(&out)
+        .lines()
+        .map(|l| serde_json::from_str::<Value>(l).unwrap())
+        .filter(|v| v.get("index").is_some())
+        .collect()
+}
+
 /// The node, stopped (SIGTERM) and its output shown when dropped.
 struct Node(Child, PathBuf);
 
@@ -264,25 +290,7 @@ mod in_namespace {
 
         // The oracle: `kfmap localize` on the same scans, no pose given, no IMU (the
         // node is given none either).
-        let out = kfmap(&[
-            "localize",
-            "--map-name",
-            "court",
-            "--iceoryx-prefix",
-            &prefix.0,
-            "--dataset",
-            data.to_str().unwrap(),
-            "--rate",
-            "0",
-            "--json-lines",
-            "--no-imu",
-        ]);
-        assert!(out.status.success(), "{}", common::stderr(&out));
-        let oracle: Vec<Value> = common::stdout(&out)
-            .lines()
-            .map(|l| serde_json::from_str::<Value>(l).unwrap())
-            .filter(|v| v.get("index").is_some())
-            .collect();
+        let oracle = localized(&prefix.0, &data, &[]);
         let scans = find_scans(&data).unwrap();
         let poses = dataset_poses(&data, &scans).unwrap().unwrap();
         let to_map = map_from_input("court", &prefix.0);
@@ -404,26 +412,7 @@ mod in_namespace {
         // localize --initial-from-ground-truth` on the same scans and lie within 5 cm
         // of the ground truth (the relocalized start above settles over a few scans:
         // `kfmap localize` is 5-8 cm off on the first ones too).
-        let out = kfmap(&[
-            "localize",
-            "--map-name",
-            "court",
-            "--iceoryx-prefix",
-            &prefix.0,
-            "--dataset",
-            data.to_str().unwrap(),
-            "--rate",
-            "0",
-            "--json-lines",
-            "--no-imu",
-            "--initial-from-ground-truth",
-        ]);
-        assert!(out.status.success(), "{}", common::stderr(&out));
-        let from_truth: Vec<Value> = common::stdout(&out)
-            .lines()
-            .map(|l| serde_json::from_str::<Value>(l).unwrap())
-            .filter(|v| v.get("index").is_some())
-            .collect();
+        let from_truth = localized(&prefix.0, &data, &["--initial-from-ground-truth"]);
         let shift = last + 10.0 - poses.stamps[0];
         let again: Vec<Value> = (0..scans.len())
             .map(|k| {
