@@ -59,13 +59,16 @@ struct Counters {
     dropped: AtomicU64,
 }
 
+/// A message and when its reader took it.
+type Arrived<M> = (M, Instant);
+
 /// Messages from the readers.
 struct Inbox {
-    clouds: Receiver<PointCloud2>,
-    imu: Receiver<Imu>,
-    initial: Receiver<PoseWithCovarianceStamped>,
-    tf: Receiver<TfMessage>,
-    tf_static: Receiver<TfMessage>,
+    clouds: Receiver<Arrived<PointCloud2>>,
+    imu: Receiver<Arrived<Imu>>,
+    initial: Receiver<Arrived<PoseWithCovarianceStamped>>,
+    tf: Receiver<Arrived<TfMessage>>,
+    tf_static: Receiver<Arrived<TfMessage>>,
 }
 
 /// The node's publishers.
@@ -140,7 +143,7 @@ fn publish_on<M: serde::Serialize>(
 /// the message and counts it in `dropped` (the readers never wait on the loop).
 async fn forward<M: 'static + serde::de::DeserializeOwned>(
     subscription: Subscription<M>,
-    into: SyncSender<M>,
+    into: SyncSender<Arrived<M>>,
     received: Option<Arc<Counters>>,
     what: &'static str,
 ) {
@@ -152,7 +155,7 @@ async fn forward<M: 'static + serde::de::DeserializeOwned>(
                 if let Some(c) = &received {
                     c.received.fetch_add(1, Ordering::Relaxed);
                 }
-                match into.try_send(message) {
+                match into.try_send((message, Instant::now())) {
                     Ok(()) => {}
                     Err(TrySendError::Full(_)) => {
                         if let Some(c) = &received {
@@ -225,6 +228,9 @@ struct Localizer<'a> {
     gravity_published: bool,
     summary: Summary,
     last_diagnostics: Instant,
+    /// The last tracked cloud's time from its arrival to its pose published, for the
+    /// diagnostics that follow it.
+    latency_ms: Option<f64>,
 }
 
 impl Localizer<'_> {
@@ -249,6 +255,11 @@ impl Localizer<'_> {
             ("bad", self.summary.bad.to_string()),
             ("unanswered", self.summary.unanswered.to_string()),
         ];
+        let latency = self
+            .latency_ms
+            .take()
+            .map(|ms| ("latency_ms", format!("{ms:.3}")));
+        let counters: Vec<_> = counters.into_iter().chain(latency).collect();
         let message = diagnostics(stamp, condition, &self.config.server.map_name, &counters);
         if let Err(e) = out.diagnostics.publish(message) {
             tracing::warn!("diagnostics not published: {e:?}");
@@ -256,8 +267,9 @@ impl Localizer<'_> {
         self.last_diagnostics = Instant::now();
     }
 
-    /// Localizes one cloud and publishes what follows from it.
-    fn on_cloud(&mut self, msg: &PointCloud2, out: &Outbox) {
+    /// Localizes one cloud, which its reader took at `arrived`, and publishes what
+    /// follows from it.
+    fn on_cloud(&mut self, msg: &PointCloud2, arrived: Instant, out: &Outbox) {
         let stamp = msg.header.stamp;
         let t = stamp.seconds();
         let scan = match scan_of(msg, self.config.scans.voxel) {
@@ -333,6 +345,8 @@ impl Localizer<'_> {
                 }
             }
         }
+        // From the reader's take to the pose published (the cloud -> pose).
+        self.latency_ms = Some(arrived.elapsed().as_secs_f64() * 1e3);
         self.publish_diagnostics(out, stamp, &Condition::Tracked(&health));
         self.push_imu_window(out, stamp, &map_sensor);
     }
@@ -571,6 +585,7 @@ fn run_loop(
         gravity_published: false,
         summary: Summary::default(),
         last_diagnostics: Instant::now() - DIAGNOSTICS_PERIOD,
+        latency_ms: None,
     };
     let (map_tx, map_rx) = std::sync::mpsc::channel();
     let mut map_requested = out.map_cloud.is_none();
@@ -603,20 +618,20 @@ fn run_loop(
                 Err(e) => tracing::warn!("no map cloud: {e:#}"),
             }
         }
-        for message in inbox.tf_static.try_iter() {
+        for (message, _) in inbox.tf_static.try_iter() {
             let skipped = state.frames.add_static(&message.transforms);
             if skipped > 0 {
                 tracing::warn!(skipped, "malformed /tf_static transforms skipped");
             }
         }
-        for message in inbox.tf.try_iter() {
+        for (message, _) in inbox.tf.try_iter() {
             state.frames.add_dynamic(
                 &message.transforms,
                 &config.frames.odom,
                 &config.frames.base,
             );
         }
-        for message in inbox.initial.try_iter() {
+        for (message, _) in inbox.initial.try_iter() {
             match message.pose.pose.pose() {
                 Some(pose)
                     if message.header.frame_id.trim_start_matches('/') == config.frames.map =>
@@ -633,7 +648,7 @@ fn run_loop(
                 ),
             }
         }
-        for message in inbox.imu.try_iter() {
+        for (message, _) in inbox.imu.try_iter() {
             let t = message.header.stamp.seconds();
             let sample = ImuSample {
                 t,
@@ -655,10 +670,10 @@ fn run_loop(
             }
         }
         match inbox.clouds.recv_timeout(IDLE) {
-            Ok(cloud) => {
+            Ok((cloud, arrived)) => {
                 state.summary.received = counters.received.load(Ordering::Relaxed);
                 state.summary.dropped = counters.dropped.load(Ordering::Relaxed);
-                state.on_cloud(&cloud, out);
+                state.on_cloud(&cloud, arrived, out);
             }
             Err(RecvTimeoutError::Timeout) => {
                 if state.last_diagnostics.elapsed() >= DIAGNOSTICS_PERIOD {

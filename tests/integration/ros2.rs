@@ -339,10 +339,19 @@ mod in_namespace {
         let pose_records = by_stamp(&records, "pose");
         let diagnostics = by_stamp(&records, "diagnostics");
         let mut worst_same: f64 = 0.0;
+        let mut latencies = Vec::new();
         for (k, expected) in oracle.iter().enumerate() {
             let stamp = poses.stamps[k];
             let status = expected["status"].as_str().unwrap();
-            let said = &diagnostics[&key(stamp)]["values"]["status"];
+            let values = &diagnostics[&key(stamp)]["values"];
+            // Reported, never asserted as a speed: present and a time.
+            let latency: f64 = values["latency_ms"].as_str().unwrap().parse().unwrap();
+            assert!(
+                latency.is_finite() && latency > 0.0,
+                "scan {k}: latency {latency}"
+            );
+            latencies.push(latency);
+            let said = &values["status"];
             assert_eq!(
                 said, status,
                 "scan {k}: the node said {said}, kfmap localize {status}"
@@ -362,9 +371,12 @@ mod in_namespace {
                 "scan {k}: {same} m from kfmap localize's pose"
             );
         }
+        latencies.sort_by(f64::total_cmp);
         println!(
-            "relocalized start, {} scans: worst {worst_same:.2e} m from kfmap localize",
-            oracle.len()
+            "relocalized start, {} scans: worst {worst_same:.2e} m from kfmap localize; \
+             cloud -> pose p50 {:.1} ms in the node",
+            oracle.len(),
+            latencies[latencies.len() / 2]
         );
         // Odometry and TF carry the same pose (no odom frame here: map -> base_link).
         let odometry = by_stamp(&records, "odometry");
