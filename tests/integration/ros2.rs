@@ -23,8 +23,12 @@ use serde_json::{Value, json};
 const IN_NAMESPACE: &str = "KFMAP_TEST_IN_NETNS";
 /// The node's poses against `kfmap localize`'s on the same scans (issue 36: 1 mm).
 const SAME_POSE_M: f64 = 1e-3;
-/// The node's poses against the simulator's ground truth (issue 36: 5 cm).
+/// The node's poses against the simulator's ground truth after a restart of the server
+/// (issue 36: 5 cm).
 const TRUTH_M: f64 = 0.05;
+/// The same after `/initialpose` on the whole drive: measured 1.66 cm at worst (the
+/// README's figure; the run is deterministic), so a regression fails well before 5 cm.
+const TRUTH_FROM_INITIAL_M: f64 = 0.025;
 
 #[test]
 fn the_ros2_node_tracks_like_kfmap_localize_through_cyclone_dds() {
@@ -457,7 +461,7 @@ mod in_namespace {
                 "after /initialpose, scan {k}: {same} m from kfmap localize"
             );
             assert!(
-                off <= TRUTH_M,
+                off <= TRUTH_FROM_INITIAL_M,
                 "after /initialpose, scan {k}: {off} m from the ground truth"
             );
             assert!(
