@@ -128,11 +128,6 @@ impl Frames {
                 .map(|(_, pose)| *pose),
         }
     }
-
-    /// True once an `odom -> base` transform was seen.
-    pub fn has_odometry(&self) -> bool {
-        !self.odometry.is_empty()
-    }
 }
 
 /// Frame ids compare without a leading `/` (ROS 1 habit some drivers keep).

@@ -268,6 +268,21 @@ pub struct Imu {
     pub linear_acceleration_covariance: [f64; 9],
 }
 
+impl Imu {
+    /// The sample at the header stamp (as `kfmap_bag`'s `ImuMessage::sample` reads a
+    /// bag's), `None` when a value is not finite.
+    pub fn sample(&self) -> Option<kfmap_shared::imu::ImuSample> {
+        let v = |m: &Vector3Msg| [m.x, m.y, m.z];
+        let sample = kfmap_shared::imu::ImuSample {
+            t: self.header.stamp.seconds(),
+            acc: v(&self.linear_acceleration),
+            gyro: v(&self.angular_velocity),
+        };
+        let finite = sample.acc.iter().chain(&sample.gyro).all(|x| x.is_finite());
+        (finite && sample.t.is_finite()).then_some(sample)
+    }
+}
+
 /// `geometry_msgs/Vector3Stamped`: the gravity direction once pooled.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 pub struct Vector3Stamped {
@@ -327,6 +342,34 @@ mod tests {
                 nanosec: 250_000_000
             }
         );
+    }
+
+    #[test]
+    fn an_imu_message_is_a_sample_unless_a_value_is_not_finite() {
+        let mut imu = Imu {
+            header: Header {
+                stamp: Time::from_seconds(2.5),
+                frame_id: "imu".into(),
+            },
+            linear_acceleration: Vector3Msg {
+                x: 0.1,
+                y: 0.2,
+                z: 9.8,
+            },
+            angular_velocity: Vector3Msg {
+                x: 0.01,
+                y: 0.0,
+                z: -0.3,
+            },
+            ..Imu::default()
+        };
+        let sample = imu.sample().unwrap();
+        assert_eq!(
+            (sample.t, sample.acc, sample.gyro),
+            (2.5, [0.1, 0.2, 9.8], [0.01, 0.0, -0.3])
+        );
+        imu.angular_velocity.y = f64::NAN;
+        assert!(imu.sample().is_none());
     }
 
     #[test]

@@ -59,6 +59,14 @@ struct Counters {
     dropped: AtomicU64,
 }
 
+impl Counters {
+    /// Copies the readers' counts into `summary`.
+    fn fill(&self, summary: &mut Summary) {
+        summary.received = self.received.load(Ordering::Relaxed);
+        summary.dropped = self.dropped.load(Ordering::Relaxed);
+    }
+}
+
 /// A message and when its reader took it.
 type Arrived<M> = (M, Instant);
 
@@ -649,36 +657,20 @@ fn run_loop(
             }
         }
         for (message, _) in inbox.imu.try_iter() {
-            let t = message.header.stamp.seconds();
-            let sample = ImuSample {
-                t,
-                acc: [
-                    message.linear_acceleration.x,
-                    message.linear_acceleration.y,
-                    message.linear_acceleration.z,
-                ],
-                gyro: [
-                    message.angular_velocity.x,
-                    message.angular_velocity.y,
-                    message.angular_velocity.z,
-                ],
-            };
-            let finite =
-                sample.acc.iter().chain(&sample.gyro).all(|v| v.is_finite()) && t.is_finite();
-            if finite && state.imu.len() < config.qos.imu_depth {
+            if let Some(sample) = message.sample()
+                && state.imu.len() < config.qos.imu_depth
+            {
                 state.imu.push(sample);
             }
         }
         match inbox.clouds.recv_timeout(IDLE) {
             Ok((cloud, arrived)) => {
-                state.summary.received = counters.received.load(Ordering::Relaxed);
-                state.summary.dropped = counters.dropped.load(Ordering::Relaxed);
+                counters.fill(&mut state.summary);
                 state.on_cloud(&cloud, arrived, out);
             }
             Err(RecvTimeoutError::Timeout) => {
                 if state.last_diagnostics.elapsed() >= DIAGNOSTICS_PERIOD {
-                    state.summary.received = counters.received.load(Ordering::Relaxed);
-                    state.summary.dropped = counters.dropped.load(Ordering::Relaxed);
+                    counters.fill(&mut state.summary);
                     let stamp = Time::from_seconds(now_seconds());
                     let condition = match state.client() {
                         Ok(_) => Condition::Waiting,
@@ -694,8 +686,7 @@ fn run_loop(
             Err(RecvTimeoutError::Disconnected) => break,
         }
     }
-    state.summary.received = counters.received.load(Ordering::Relaxed);
-    state.summary.dropped = counters.dropped.load(Ordering::Relaxed);
+    counters.fill(&mut state.summary);
     state.summary
 }
 
