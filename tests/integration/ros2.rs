@@ -51,12 +51,13 @@ fn dds_python(test: &str) -> Option<PathBuf> {
     python
 }
 
-/// The node's binary, built beside `kfmap` by `cargo test --workspace`.
+/// The node's binary, built beside `kfmap` by `cargo test --workspace` (its crate's own
+/// integration test, ros2/tests/cli.rs, is what makes cargo build it).
 fn node_bin() -> PathBuf {
     let bin = Path::new(common::kfmap_bin()).with_file_name("kfmap-ros2");
     assert!(
         bin.is_file(),
-        "no {} (cargo build --release -p kfmap-ros2)",
+        "no {} (run the workspace's tests, or cargo build --release -p kfmap-ros2)",
         bin.display()
     );
     bin
