@@ -11,7 +11,8 @@ MANIFEST (JSON): {"domain": 0, "wait_s": 30, "timeout_s": 20, "clouds": [{"stamp
 path}} among the clouds creates `reached` and waits (at most wait_s) for `go` to exist
 before the next cloud. Clouds are sent one at a time: the next
 only after the node's diagnostics for this one's stamp arrived (at most timeout_s), so
-every cloud is localized and none is dropped.
+every cloud is localized and none is dropped; with "period_s": p, cloud k also waits
+until k periods after the first went out (a sensor's rate).
 
 OUT: JSON lines, one per message received: {"topic": "pose", "stamp": s, "pose": [...],
 "covariance": [...36]}, {"topic": "diagnostics", "stamp": s, "level": l, "message": m},
@@ -270,6 +271,10 @@ def main():
         time.sleep(0.05)
     timeout = manifest.get("timeout_s", 20)
     initial = manifest.get("initial_pose")
+    # Publishing rate: cloud k goes out at k periods after the first (a sensor's rate),
+    # or, when the node is slower, once the previous one is answered.
+    period = manifest.get("period_s", 0.0)
+    first_sent = None
     for k, cloud in enumerate(manifest["clouds"]):
         if "pause" in cloud:
             open(cloud["pause"]["reached"], "w").close()
@@ -306,6 +311,10 @@ def main():
             is_dense=False,
         )
         stamp = seconds_of(message.header.stamp)
+        if first_sent is None:
+            first_sent = time.monotonic()
+        else:
+            time.sleep(max(0.0, first_sent + k * period - time.monotonic()))
         cloud_writer.write(message)
         deadline = time.monotonic() + timeout
         answered = False
