@@ -1,6 +1,7 @@
 //! Bags as datasets: the containers robots record into (MCAP, rosbag2 sqlite3, ROS 1
 //! `.bag` v2.0) and the messages kfmap reads from them (`sensor_msgs/PointCloud2`,
-//! `sensor_msgs/Imu`, in ROS 2 CDR or ROS 1 serialization).
+//! `sensor_msgs/Imu`, and a localizer's recorded pose and diagnostics, in ROS 2 CDR or
+//! ROS 1 serialization).
 //!
 //! A bag is never read whole: [`Bag::messages`] streams one topic in log-time order with
 //! memory bounded by one chunk, and [`Bag::index`] + [`Bag::read`] fetch single messages
@@ -81,6 +82,16 @@ impl Topic {
     /// True for `sensor_msgs/Imu` in either spelling.
     pub fn is_imu(&self) -> bool {
         self.short_type() == "sensor_msgs/Imu"
+    }
+
+    /// True for `geometry_msgs/PoseWithCovarianceStamped` in either spelling.
+    pub fn is_pose_with_covariance(&self) -> bool {
+        self.short_type() == "geometry_msgs/PoseWithCovarianceStamped"
+    }
+
+    /// True for `diagnostic_msgs/DiagnosticArray` in either spelling.
+    pub fn is_diagnostics(&self) -> bool {
+        self.short_type() == "diagnostic_msgs/DiagnosticArray"
     }
 }
 
@@ -224,6 +235,24 @@ impl Bag {
     /// The topic named `name`, which must be an Imu topic.
     pub fn imu_topic(&self, name: &str) -> Result<&Topic, BagError> {
         self.typed_topic(name, "sensor_msgs/Imu", Topic::is_imu)
+    }
+
+    /// The topic `name`, which must carry `geometry_msgs/PoseWithCovarianceStamped`.
+    pub fn pose_with_covariance_topic(&self, name: &str) -> Result<&Topic, BagError> {
+        self.typed_topic(
+            name,
+            "geometry_msgs/PoseWithCovarianceStamped",
+            Topic::is_pose_with_covariance,
+        )
+    }
+
+    /// The topic `name`, which must carry `diagnostic_msgs/DiagnosticArray`.
+    pub fn diagnostics_topic(&self, name: &str) -> Result<&Topic, BagError> {
+        self.typed_topic(
+            name,
+            "diagnostic_msgs/DiagnosticArray",
+            Topic::is_diagnostics,
+        )
     }
 
     fn typed_topic(

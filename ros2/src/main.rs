@@ -8,6 +8,8 @@ use anyhow::Context as _;
 use clap::Parser;
 use kfmap_ros2::config::{DEFAULT_ROS2_TOML, Ros2Config};
 use kfmap_shared::options::ConfigFile;
+use tracing_subscriber::layer::SubscriberExt as _;
+use tracing_subscriber::util::SubscriberInitExt as _;
 
 /// A ROS 2 localization node over a running `kfmap serve` on this host.
 ///
@@ -58,10 +60,22 @@ fn main() -> std::process::ExitCode {
         .ok()
         .and_then(|l| l.parse::<tracing::Level>().ok())
         .unwrap_or(tracing::Level::INFO);
+    // RustDDS warns at every message it fragments (the map cloud, large scans): its
+    // errors show, the rest only from KFMAP_LOG=debug.
+    let rustdds = if level >= tracing::Level::DEBUG {
+        level
+    } else {
+        tracing::Level::ERROR
+    };
+    let filter = tracing_subscriber::filter::Targets::new()
+        .with_default(level)
+        .with_target("rustdds", rustdds);
     tracing_subscriber::fmt()
         .with_max_level(level)
         .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .with_writer(std::io::stderr)
+        .finish()
+        .with(filter)
         .init();
     match run(Args::parse()) {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -1,20 +1,24 @@
-//! `kfmap plot`: pictures of a map and of a trajectory against its reference.
+//! `kfmap plot`: pictures of a map, of a trajectory against its reference, and of a
+//! recorded localization run.
 
 mod draw;
 mod map;
+mod run;
 mod trajectory;
 
 use std::path::{Path, PathBuf};
 
 pub use map::MapSummary;
+pub use run::{RunSummary, RunTopics};
 pub use trajectory::{TrajectoryOptions, TrajectorySummary};
 
 use draw::Format;
 use map::MapFigure;
+use run::RunFigure;
 use trajectory::TrajectoryFigure;
 
-/// Draw a baked map, or a trajectory against its reference, as a PNG or SVG picture
-/// (the extension of --out decides).
+/// Draw a baked map, a trajectory against its reference, or a recorded localization run,
+/// as a PNG or SVG picture (the extension of --out decides).
 ///
 /// Map (kfmap plot MAP.kfmap --out FILE): the map seen from above (x right, y up,
 /// metres, equal scale on both axes). Points are coloured by height z in the map
@@ -49,6 +53,21 @@ use trajectory::TrajectoryFigure;
 /// and marks its lost or failed scans with red crosses and its degraded scans with
 /// orange triangles in both panels.
 ///
+/// Recorded run (kfmap plot --bag RUN.mcap --out FILE): what RViz shows of a localizer,
+/// from a bag of its outputs (e.g. `ros2 bag record /kfmap/pose /kfmap/map_cloud
+/// /diagnostics` beside kfmap-ros2; MCAP, rosbag2 sqlite3 or ROS 1). Top: the last map
+/// cloud on --map-cloud-topic (the latched, thinned map) from above on a dark ground,
+/// coloured by height; every pose of --pose-topic
+/// (geometry_msgs/PoseWithCovarianceStamped) as an arrow along its x axis, coloured by
+/// the health the diagnostics of the same stamp give (kfmap-ros2's `status` value: ok
+/// cyan, degraded orange; grey when no diagnostics match), joined by the path, with the
+/// 3-sigma ellipse of its x-y covariance at true scale; scans whose diagnostics came
+/// with no pose (lost, no server, a bad cloud) as red crosses where the last pose was.
+/// Bottom: each pose's horizontal standard deviation (the major axis of its x-y
+/// covariance) over time. The topics default to kfmap-ros2's: /kfmap/pose,
+/// /kfmap/map_cloud and /diagnostics; a defaulted map cloud or diagnostics topic the bag
+/// lacks is left out (and said), a named one is an error.
+///
 /// Prints one line: the file written and what it shows. The picture is written under a
 /// temporary name beside --out and renamed when complete. Exit code 2 with a message for
 /// a missing or unreadable input, an empty trajectory, an unknown extension or a bad
@@ -61,9 +80,10 @@ use trajectory::TrajectoryFigure;
 ///   kfmap plot --trajectory run.tum --ground-truth runs/site-2/poses_gt.txt \
 ///       --scan-log run.jsonl --out run.png
 ///   kfmap plot --trajectory odometry.tum --ground-truth gt.tum --align --out drift.svg
+///   kfmap plot --bag run.mcap --out run.png
 #[derive(clap::Args)]
 #[command(verbatim_doc_comment)]
-#[command(group(clap::ArgGroup::new("input").required(true).args(["map", "trajectory"])))]
+#[command(group(clap::ArgGroup::new("input").required(true).args(["map", "trajectory", "bag"])))]
 pub struct Args {
     /// The map to draw (.kfmap).
     map: Option<PathBuf>,
@@ -74,8 +94,23 @@ pub struct Args {
     #[arg(long, value_name = "WxH", default_value = "1600x1200", value_parser = parse_size)]
     size: Size,
     /// Map: leave out the covisibility edges.
-    #[arg(long, conflicts_with = "trajectory")]
+    #[arg(long, conflicts_with_all = ["trajectory", "bag"])]
     no_edges: bool,
+    /// A recorded localization run to draw: a bag (.mcap, .db3, rosbag2 folder, ROS 1
+    /// .bag) with the localizer's poses, diagnostics and map cloud.
+    #[arg(long, value_name = "RUN", conflicts_with_all = ["map", "trajectory"])]
+    bag: Option<PathBuf>,
+    /// Recorded run: the geometry_msgs/PoseWithCovarianceStamped topic [default: /kfmap/pose].
+    #[arg(long, value_name = "TOPIC", requires = "bag")]
+    pose_topic: Option<String>,
+    /// Recorded run: the map cloud topic (sensor_msgs/PointCloud2)
+    /// [default: /kfmap/map_cloud when present].
+    #[arg(long, value_name = "TOPIC", requires = "bag")]
+    map_cloud_topic: Option<String>,
+    /// Recorded run: the diagnostic_msgs/DiagnosticArray topic
+    /// [default: /diagnostics when present].
+    #[arg(long, value_name = "TOPIC", requires = "bag")]
+    diagnostics_topic: Option<String>,
     /// Estimated trajectory to draw (TUM: t x y z qx qy qz qw).
     #[arg(long, value_name = "EST.tum", requires = "ground_truth")]
     trajectory: Option<PathBuf>,
@@ -213,10 +248,55 @@ pub fn render_trajectory_summary(
     Ok(figure.summary().clone())
 }
 
+/// Draws the localization run recorded in `bag` to `out` (.png or .svg), `width` x
+/// `height` pixels, returning what the picture shows.
+pub fn render_run_summary(
+    bag: &Path,
+    topics: &RunTopics,
+    out: &Path,
+    width: u32,
+    height: u32,
+) -> anyhow::Result<RunSummary> {
+    let format = draw::check_out(out)?;
+    draw::check_size(width, height)?;
+    let max_points = match format {
+        Format::Png => map::MAX_POINTS_PNG,
+        Format::Svg => map::MAX_POINTS_SVG,
+    };
+    let figure = RunFigure::load(bag, topics, max_points)?;
+    draw::render_to_file(&figure, out, format, width, height)?;
+    Ok(figure.summary().clone())
+}
+
 /// Runs the subcommand.
 pub fn run(args: Args) -> anyhow::Result<()> {
     let Size { width, height } = args.size;
     let out = &args.out;
+    if let Some(bag) = &args.bag {
+        let topics = RunTopics {
+            pose: args.pose_topic.clone(),
+            map_cloud: args.map_cloud_topic.clone(),
+            diagnostics: args.diagnostics_topic.clone(),
+        };
+        let s = render_run_summary(bag, &topics, out, width, height)?;
+        let latency = s
+            .latency_ms_p50
+            .map_or(String::new(), |l| format!(", cloud -> pose p50 {l:.1} ms"));
+        println!(
+            "{}: {} poses ({} ok, {} degraded, {} without diagnostics), {} scans without a pose, \
+             map cloud {} points, horizontal sigma median {:.4} m, max {:.4} m{latency}; {width}x{height}",
+            out.display(),
+            s.poses,
+            s.ok,
+            s.degraded,
+            s.unrated,
+            s.without_pose,
+            draw::grouped(s.map_points as u64),
+            s.sigma_m.0,
+            s.sigma_m.1
+        );
+        return Ok(());
+    }
     if let Some(estimate) = &args.trajectory {
         let reference = args
             .ground_truth

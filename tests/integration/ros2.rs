@@ -154,6 +154,96 @@ fn loopback_for_dds() {
     assert!(up.success());
 }
 
+/// `kfmap plot --bag` of the run the peer recorded (as `ros2 bag record` would) says
+/// what the peer's own records say: the poses, their health, the scans without one,
+/// the map cloud's size and the largest horizontal sigma. `KFMAP_KEEP_ROS2_RUN=DIR`
+/// keeps the bag and the picture (the README's).
+fn plot_of_the_recorded_run(dir: &Path, bag: &Path, records: &[Value]) {
+    let picture = dir.join("run.png");
+    let out = kfmap(&[
+        "plot",
+        "--bag",
+        bag.to_str().unwrap(),
+        "--out",
+        picture.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", common::stderr(&out));
+    let line = common::stdout(&out);
+    println!("{}", line.trim());
+    let poses = by_stamp(records, "pose");
+    let diagnostics = by_stamp(records, "diagnostics");
+    let said = |status: &str| {
+        poses
+            .keys()
+            .filter(|k| {
+                diagnostics
+                    .get(k)
+                    .is_some_and(|d| d["values"]["status"] == status)
+            })
+            .count()
+    };
+    let without_pose = diagnostics
+        .keys()
+        .filter(|k| !poses.contains_key(k))
+        .count();
+    let map_points = records
+        .iter()
+        .rev()
+        .find(|r| r["topic"] == "map_cloud")
+        .map_or(0, |m| m["points"].as_u64().unwrap());
+    // The largest horizontal sigma: the major axis of each pose's x-y covariance.
+    let sigma_max = poses
+        .values()
+        .map(|p| {
+            let c: Vec<f64> = p["covariance"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|v| v.as_f64().unwrap())
+                .collect();
+            let (a, b, d) = (c[0], c[1], c[7]);
+            (0.5 * (a + d) + (0.25 * (a - d).powi(2) + b * b).sqrt()).sqrt()
+        })
+        .fold(0.0, f64::max);
+    let expected = format!(
+        "{} poses ({} ok, {} degraded, 0 without diagnostics), {without_pose} scans without a pose, map cloud {} points",
+        poses.len(),
+        said("ok"),
+        said("degraded"),
+        grouped(map_points)
+    );
+    assert!(line.contains(&expected), "{line}\nexpected: {expected}");
+    assert!(
+        line.contains(&format!("max {sigma_max:.4} m")),
+        "{line}\nlargest sigma {sigma_max:.4} m"
+    );
+    let png = std::fs::read(&picture).unwrap();
+    assert!(
+        png.starts_with(b"\x89PNG") && png.len() > 50_000,
+        "{} bytes",
+        png.len()
+    );
+    if let Some(keep) = std::env::var_os("KFMAP_KEEP_ROS2_RUN") {
+        let keep = PathBuf::from(keep);
+        std::fs::create_dir_all(&keep).unwrap();
+        std::fs::copy(bag, keep.join("balm-run.mcap")).unwrap();
+        std::fs::copy(&picture, keep.join("balm-run.png")).unwrap();
+    }
+}
+
+/// Thousands grouped by spaces, as `kfmap plot` prints counts.
+fn grouped(n: u64) -> String {
+    let digits = n.to_string();
+    let mut out = String::new();
+    for (i, c) in digits.chars().enumerate() {
+        if i > 0 && (digits.len() - i).is_multiple_of(3) {
+            out.push(' ');
+        }
+        out.push(c);
+    }
+    out
+}
+
 /// `kfmap localize` of every scan of `data` (no IMU: the node is given none), one JSON
 /// object per scan.
 fn localized(map_name: &str, prefix: &str, data: &Path, extra: &[&str]) -> Vec<Value> {
@@ -622,7 +712,8 @@ mod in_namespace {
             })
             .collect();
         let node = Node::start(&dir, "balm", &prefix.0);
-        let manifest = json!({"domain": 0, "clouds": clouds, "period_s": 0.5});
+        let bag = dir.join("balm-run.mcap");
+        let manifest = json!({"domain": 0, "clouds": clouds, "period_s": 0.5, "record_bag": bag});
         let records = run_peer(&python, &dir, &manifest, "balm");
         drop(node);
 
@@ -657,5 +748,6 @@ mod in_namespace {
         // README and issue 36: RMS 0.060 m, as `kfmap localize` (health.rs bounds the same
         // figure at 0.08 m from the reference pose; here the start is relocalized).
         assert!(rms < 0.08, "RMS {rms} m from balm's reference poses");
+        plot_of_the_recorded_run(&dir, &bag, &records);
     }
 }

@@ -18,6 +18,10 @@ OUT: JSON lines, one per message received: {"topic": "pose", "stamp": s, "pose":
 "covariance": [...36]}, {"topic": "diagnostics", "stamp": s, "level": l, "message": m},
 {"topic": "odometry", ...}, {"topic": "tf", "stamp": s, "parent": p, "child": c,
 "transform": [...]}. Exits 1 when the node never matched or a cloud went unanswered.
+
+With "record_bag": path in MANIFEST, the node's pose, diagnostics and map cloud are also
+written to an MCAP bag as `ros2 bag record` writes them (the CDR bytes as received,
+schemas in ros2msg), for `kfmap plot --bag`.
 """
 
 import json
@@ -181,6 +185,68 @@ def seconds_of(t):
     return t.sec + t.nanosec * 1e-9
 
 
+# The recorded types' definitions (ros2msg, dependencies after a separator line), as
+# rosbag2 stores them in an MCAP schema.
+SEPARATOR = "=" * 80 + "\n"
+HEADER = "MSG: std_msgs/Header\nbuiltin_interfaces/Time stamp\nstring frame_id\n"
+TIME = "MSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec\n"
+SCHEMAS = {
+    "pose": ("geometry_msgs/msg/PoseWithCovarianceStamped", [
+        "std_msgs/Header header\ngeometry_msgs/PoseWithCovariance pose\n", HEADER, TIME,
+        "MSG: geometry_msgs/PoseWithCovariance\ngeometry_msgs/Pose pose\n"
+        "float64[36] covariance\n",
+        "MSG: geometry_msgs/Pose\ngeometry_msgs/Point position\n"
+        "geometry_msgs/Quaternion orientation\n",
+        "MSG: geometry_msgs/Point\nfloat64 x\nfloat64 y\nfloat64 z\n",
+        "MSG: geometry_msgs/Quaternion\nfloat64 x 0\nfloat64 y 0\nfloat64 z 0\n"
+        "float64 w 1\n",
+    ]),
+    "diagnostics": ("diagnostic_msgs/msg/DiagnosticArray", [
+        "std_msgs/Header header\nDiagnosticStatus[] status\n", HEADER, TIME,
+        "MSG: diagnostic_msgs/DiagnosticStatus\nbyte OK=0\nbyte WARN=1\nbyte ERROR=2\n"
+        "byte STALE=3\nbyte level\nstring name\nstring message\nstring hardware_id\n"
+        "KeyValue[] values\n",
+        "MSG: diagnostic_msgs/KeyValue\nstring key\nstring value\n",
+    ]),
+    "map_cloud": ("sensor_msgs/msg/PointCloud2", [
+        "std_msgs/Header header\nuint32 height\nuint32 width\nPointField[] fields\n"
+        "bool is_bigendian\nuint32 point_step\nuint32 row_step\nuint8[] data\n"
+        "bool is_dense\n", HEADER, TIME,
+        "MSG: sensor_msgs/PointField\nuint8 INT8=1\nuint8 UINT8=2\nuint8 INT16=3\n"
+        "uint8 UINT16=4\nuint8 INT32=5\nuint8 UINT32=6\nuint8 FLOAT32=7\n"
+        "uint8 FLOAT64=8\nstring name\nuint32 offset\nuint8 datatype\nuint32 count\n",
+    ]),
+}
+TOPICS = {"pose": "/kfmap/pose", "diagnostics": "/diagnostics", "map_cloud": "/kfmap/map_cloud"}
+
+
+class BagRecorder:
+    """The node's outputs into an MCAP bag, as `ros2 bag record` stores them."""
+
+    def __init__(self, path):
+        from mcap.writer import Writer
+
+        self.file = open(path, "wb")
+        self.writer = Writer(self.file)
+        self.writer.start(profile="ros2", library="kfmap dds_peer.py")
+        self.channels = {}
+        for topic, (name, parts) in SCHEMAS.items():
+            schema = self.writer.register_schema(
+                name=name, encoding="ros2msg", data=SEPARATOR.join(parts).encode())
+            self.channels[topic] = self.writer.register_channel(
+                topic=TOPICS[topic], message_encoding="cdr", schema_id=schema)
+
+    def add(self, topic, sample):
+        if topic in self.channels:
+            now = time.time_ns()
+            self.writer.add_message(self.channels[topic], log_time=now,
+                                    data=sample.serialize(), publish_time=now)
+
+    def close(self):
+        self.writer.finish()
+        self.file.close()
+
+
 def main():
     manifest = json.load(open(sys.argv[1]))
     out = open(sys.argv[2], "w")
@@ -212,7 +278,11 @@ def main():
         ),
     }
 
+    recorder = BagRecorder(manifest["record_bag"]) if "record_bag" in manifest else None
+
     def record(topic, sample):
+        if recorder is not None:
+            recorder.add(topic, sample)
         if topic == "pose":
             p = sample.pose.pose
             line = {
@@ -334,6 +404,8 @@ def main():
         drain()
         time.sleep(0.05)
     out.close()
+    if recorder is not None:
+        recorder.close()
 
 
 if __name__ == "__main__":

@@ -1,11 +1,18 @@
-//! The messages kfmap reads from bags: `sensor_msgs/PointCloud2` and `sensor_msgs/Imu`,
-//! in ROS 2 CDR or ROS 1 serialization, decoded without copying the point data.
+//! The messages kfmap reads from bags: `sensor_msgs/PointCloud2` and `sensor_msgs/Imu`
+//! (the sensors), `geometry_msgs/PoseWithCovarianceStamped` and
+//! `diagnostic_msgs/DiagnosticArray` (a localizer's recorded outputs), in ROS 2 CDR or
+//! ROS 1 serialization, decoded without copying the point data.
 
 mod imu;
+mod localization;
 mod point_cloud2;
 mod reader;
 
 pub use imu::{ImuMessage, decode_imu};
+pub use localization::{
+    DiagnosticArrayMessage, DiagnosticStatusMessage, PoseWithCovarianceMessage,
+    decode_diagnostic_array, decode_pose_with_covariance,
+};
 pub use point_cloud2::{
     PointCloud2, PointField, TimeField, TimeUnit, datatype_name, decode_point_cloud2,
 };

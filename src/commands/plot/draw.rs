@@ -470,6 +470,50 @@ pub(super) fn colour_bar<DB: DrawingBackend>(
     Ok(())
 }
 
+/// Colour of a height, `t` in 0..=1 over the colour range: turbo without its darkest
+/// ends (blue to dark red), so the lowest points stay distinct from black arrows.
+pub(super) fn height_colour(t: f64) -> RGBColor {
+    turbo(0.1 + 0.85 * t.clamp(0.0, 1.0))
+}
+
+/// Draws `points` (x, y, z; sorted by z, so the highest are drawn last, as seen from
+/// above) coloured by height over `height_range`: squares of 2-3 pixels when the view
+/// has room for them (a thinned cloud), single pixels when not.
+pub(super) fn draw_height_points<DB: DrawingBackend>(
+    chart: &mut Chart2d<'_, DB>,
+    points: &[[f64; 3]],
+    height_range: (f64, f64),
+) -> anyhow::Result<()> {
+    let (pw, ph) = chart.plotting_area().dim_in_pixel();
+    let (lo, hi) = height_range;
+    let colour = |z: f64| height_colour((z - lo) / (hi - lo));
+    let room = pw as f64 * ph as f64 / points.len().max(1) as f64;
+    let side = if room >= 40.0 {
+        3
+    } else if room >= 10.0 {
+        2
+    } else {
+        1
+    };
+    if side > 1 {
+        chart
+            .draw_series(points.iter().map(|p| {
+                EmptyElement::at((p[0], p[1]))
+                    + Rectangle::new([(0, 0), (side, side)], colour(p[2]).filled())
+            }))
+            .map_err(draw_error)?;
+    } else {
+        chart
+            .draw_series(
+                points
+                    .iter()
+                    .map(|p| Pixel::new((p[0], p[1]), colour(p[2]))),
+            )
+            .map_err(draw_error)?;
+    }
+    Ok(())
+}
+
 /// A legend entry's symbol.
 #[derive(Debug, Clone, Copy)]
 pub(super) enum Symbol {

@@ -15,7 +15,8 @@ use plotters::style::text_anchor::{HPos, Pos, VPos};
 use super::MapPlotOptions;
 use super::draw::{
     Chart2d, Figure, GREY, REVISIT_MAGENTA, Sizes, Symbol, centred_text, colour_bar, draw_error,
-    grouped, legend, legend_height, padded_bounds, plural, quantile, top_down_chart, turbo,
+    draw_height_points, grouped, height_colour, legend, legend_height, padded_bounds, plural,
+    quantile, top_down_chart,
 };
 
 /// Most points drawn in a PNG (every n-th point of the map, n fixed by the total).
@@ -321,12 +322,6 @@ fn strongest_edges(edges: Vec<Edge>, keyframes: usize) -> Vec<Edge> {
         .collect()
 }
 
-/// Colour of a height, `t` in 0..=1 over the colour range: turbo without its darkest
-/// ends (blue to dark red), so the lowest points stay distinct from black arrows.
-fn height_colour(t: f64) -> RGBColor {
-    turbo(0.1 + 0.85 * t.clamp(0.0, 1.0))
-}
-
 impl MapFigure {
     /// The title: the map's name, keyframes and points (drawn).
     fn draw_title<DB: DrawingBackend>(
@@ -353,34 +348,7 @@ impl MapFigure {
     /// The points coloured by height: single pixels when dense, 2x2 or 3x3 squares when
     /// sparse.
     fn draw_points<DB: DrawingBackend>(&self, chart: &mut Chart2d<'_, DB>) -> anyhow::Result<()> {
-        let (pw, ph) = chart.plotting_area().dim_in_pixel();
-        let (lo, hi) = self.summary.height_range;
-        let colour = |z: f64| height_colour((z - lo) / (hi - lo));
-        let room = pw as f64 * ph as f64 / self.points.len().max(1) as f64;
-        let side = if room >= 40.0 {
-            3
-        } else if room >= 10.0 {
-            2
-        } else {
-            1
-        };
-        if side > 1 {
-            chart
-                .draw_series(self.points.iter().map(|p| {
-                    EmptyElement::at((p[0], p[1]))
-                        + Rectangle::new([(0, 0), (side, side)], colour(p[2]).filled())
-                }))
-                .map_err(draw_error)?;
-        } else {
-            chart
-                .draw_series(
-                    self.points
-                        .iter()
-                        .map(|p| Pixel::new((p[0], p[1]), colour(p[2]))),
-                )
-                .map_err(draw_error)?;
-        }
-        Ok(())
+        draw_height_points(chart, &self.points, self.summary.height_range)
     }
 
     /// The covisibility edges drawn: plain ones faint, revisits in magenta on top.
