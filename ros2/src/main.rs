@@ -61,11 +61,11 @@ fn main() -> std::process::ExitCode {
         .and_then(|l| l.parse::<tracing::Level>().ok())
         .unwrap_or(tracing::Level::INFO);
     // RustDDS warns at every message it fragments (the map cloud, large scans): its
-    // errors show, the rest only from KFMAP_LOG=debug.
-    let rustdds = if level >= tracing::Level::DEBUG {
-        level
-    } else {
-        tracing::Level::ERROR
+    // errors show, its warnings from KFMAP_LOG=debug, the rest from trace.
+    let rustdds = match level {
+        tracing::Level::TRACE => tracing::Level::TRACE,
+        tracing::Level::DEBUG => tracing::Level::WARN,
+        _ => tracing::Level::ERROR,
     };
     let filter = tracing_subscriber::filter::Targets::new()
         .with_default(level)

@@ -280,6 +280,7 @@ impl Localizer<'_> {
     fn on_cloud(&mut self, msg: &PointCloud2, arrived: Instant, out: &Outbox) {
         let stamp = msg.header.stamp;
         let t = stamp.seconds();
+        let queued = arrived.elapsed();
         let scan = match scan_of(msg, self.config.scans.voxel) {
             Ok(scan) => scan,
             Err(e) => {
@@ -298,6 +299,7 @@ impl Localizer<'_> {
             self.tracker = Tracker::new(map_base * base_sensor, options);
             tracing::info!("tracking restarted from /initialpose");
         }
+        let prepared = arrived.elapsed();
         let tracked: Result<TrackedScan, String> = match connected(&mut self.client, self.config) {
             Ok(client) => self
                 .tracker
@@ -316,6 +318,7 @@ impl Localizer<'_> {
                 return;
             }
         };
+        let localized = arrived.elapsed();
         self.summary.localized += 1;
         self.scans += 1;
         let health = tracked.localized.health;
@@ -354,7 +357,18 @@ impl Localizer<'_> {
             }
         }
         // From the reader's take to the pose published (the cloud -> pose).
-        self.latency_ms = Some(arrived.elapsed().as_secs_f64() * 1e3);
+        let published = arrived.elapsed();
+        self.latency_ms = Some(published.as_secs_f64() * 1e3);
+        let ms = |d: Duration| d.as_secs_f64() * 1e3;
+        tracing::debug!(
+            points = msg.width * msg.height,
+            thinned = scan.len(),
+            queued_ms = ms(queued),
+            prepare_ms = ms(prepared - queued),
+            track_ms = ms(localized - prepared),
+            publish_ms = ms(published - localized),
+            "cloud at {t:.3} localized"
+        );
         self.publish_diagnostics(out, stamp, &Condition::Tracked(&health));
         self.push_imu_window(out, stamp, &map_sensor);
     }
