@@ -11,8 +11,10 @@
 use kfmap_protocol::ScanPayload;
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::geometry::Pose;
+use kfmap_shared::imu::ImuSample;
 use kfmap_shared::motion::{
-    AdaptiveThreshold, AdaptiveThresholdParams, Gyro, PosePredictor, point_displacement,
+    AdaptiveThreshold, AdaptiveThresholdParams, Gyro, GyroError, GyroParams, PosePredictor,
+    point_displacement,
 };
 use kfmap_shared::tracking::{CORRECTION_RANGE_M, Reasons, ScanHealth, TrackingStatus};
 
@@ -160,6 +162,39 @@ impl Tracker {
     pub fn with_gyro(mut self, gyro: Gyro) -> Self {
         self.motion = PosePredictor::new(Some(gyro));
         self
+    }
+
+    /// Adds live IMU samples (on the scans' clock, after the last) to the gyro, made
+    /// with `params` by the first call; samples more than `keep_s` seconds older than
+    /// the newest are forgotten (a lost stretch longer than that is predicted without
+    /// the gyro). Returns the samples refused: not after the last, or not finite.
+    pub fn push_imu(
+        &mut self,
+        samples: &[ImuSample],
+        params: GyroParams,
+        keep_s: f64,
+    ) -> Result<usize, GyroError> {
+        if self.motion.gyro().is_none() {
+            self.motion.set_gyro(Gyro::new(Vec::new(), params)?);
+        }
+        let Some(gyro) = self.motion.gyro_mut() else {
+            return Ok(0);
+        };
+        let refused = gyro.extend(samples);
+        if let Some(newest) = samples
+            .iter()
+            .map(|s| s.t)
+            .filter(|t| t.is_finite())
+            .reduce(f64::max)
+        {
+            gyro.forget_before(newest - keep_s);
+        }
+        Ok(refused)
+    }
+
+    /// The gyro (`None` without one): to carry a live log over to a new tracker.
+    pub fn gyro(&self) -> Option<&Gyro> {
+        self.motion.gyro()
     }
 
     /// The gyro's bias estimate, IMU frame, rad/s (`None` without a gyro).

@@ -167,6 +167,25 @@ impl Default for ScansSection {
     }
 }
 
+/// `[imu]`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
+pub struct ImuSection {
+    pub gyro: bool,
+    pub lidar_from_imu_rpy_deg: [f64; 3],
+    pub keep_s: f64,
+}
+
+impl Default for ImuSection {
+    fn default() -> Self {
+        Self {
+            gyro: true,
+            lidar_from_imu_rpy_deg: [0.0; 3],
+            keep_s: 20.0,
+        }
+    }
+}
+
 /// `[map-cloud]`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
@@ -190,6 +209,7 @@ pub struct Ros2Config {
     pub frames: FramesSection,
     pub qos: QosSection,
     pub scans: ScansSection,
+    pub imu: ImuSection,
     pub map_cloud: MapCloudSection,
 }
 
@@ -304,6 +324,24 @@ impl ConfigFile for Ros2Config {
             "0 (every point) to 10 m",
         )
         .map_err(|e| ("scans", e))?;
+        let i = &self.imu;
+        ensure(
+            i.lidar_from_imu_rpy_deg
+                .iter()
+                .all(|a| a.is_finite() && a.abs() <= 360.0),
+            "lidar-from-imu-rpy-deg",
+            format!("{:?}", i.lidar_from_imu_rpy_deg),
+            "three finite angles within +-360 deg",
+        )
+        .and_then(|()| {
+            ensure(
+                i.keep_s.is_finite() && (1.0..=600.0).contains(&i.keep_s),
+                "keep-s",
+                i.keep_s,
+                "1 to 600 s",
+            )
+        })
+        .map_err(|e| ("imu", e))?;
         ensure(
             self.map_cloud.voxel.is_finite()
                 && (self.map_cloud.voxel == 0.0 || (0.05..=100.0).contains(&self.map_cloud.voxel)),

@@ -16,6 +16,7 @@ use kfmap_shared::archive::{OpenOptions, open_map};
 use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::imu::ImuSample;
+use kfmap_shared::motion::GyroParams;
 use ros2_client::dds::rustdds::Topic;
 use ros2_client::qos::{Durability, History, WhenFull};
 use ros2_client::{
@@ -230,6 +231,8 @@ struct Localizer<'a> {
     initial: Option<Pose>,
     /// IMU samples since the last cloud.
     imu: Vec<ImuSample>,
+    /// The IMU messages' frame (the last one read).
+    imu_frame: Option<String>,
     /// The last published base pose and its stamp.
     last_base: Option<(f64, Pose)>,
     scans: u64,
@@ -296,9 +299,15 @@ impl Localizer<'_> {
         let base_sensor = self.mounting(&msg.header.frame_id);
         if let Some(map_base) = self.initial.take() {
             let options = tracker_options(self.config);
-            self.tracker = Tracker::new(map_base * base_sensor, options);
+            // The gyro's log and bias carry over to the new track.
+            let mut tracker = Tracker::new(map_base * base_sensor, options);
+            if let Some(gyro) = self.tracker.gyro().cloned() {
+                tracker = tracker.with_gyro(gyro);
+            }
+            self.tracker = tracker;
             tracing::info!("tracking restarted from /initialpose");
         }
+        self.feed_gyro(&base_sensor);
         let prepared = arrived.elapsed();
         let tracked: Result<TrackedScan, String> = match connected(&mut self.client, self.config) {
             Ok(client) => self
@@ -371,6 +380,89 @@ impl Localizer<'_> {
         );
         self.publish_diagnostics(out, stamp, &Condition::Tracked(&health));
         self.push_imu_window(out, stamp, &map_sensor);
+    }
+
+    /// Takes the transforms, initial poses and IMU samples waiting in `inbox`.
+    fn read_inputs(&mut self, inbox: &Inbox) {
+        for (message, _) in inbox.tf_static.try_iter() {
+            let skipped = self.frames.add_static(&message.transforms);
+            if skipped > 0 {
+                tracing::warn!(skipped, "malformed /tf_static transforms skipped");
+            }
+        }
+        for (message, _) in inbox.tf.try_iter() {
+            self.frames.add_dynamic(
+                &message.transforms,
+                &self.config.frames.odom,
+                &self.config.frames.base,
+            );
+        }
+        for (message, _) in inbox.initial.try_iter() {
+            match message.pose.pose.pose() {
+                Some(pose)
+                    if message.header.frame_id.trim_start_matches('/')
+                        == self.config.frames.map =>
+                {
+                    self.initial = Some(pose);
+                }
+                Some(_) => tracing::warn!(
+                    frame = message.header.frame_id,
+                    "an initial pose not in the map frame {} is ignored",
+                    self.config.frames.map
+                ),
+                None => tracing::warn!(
+                    "an initial pose that is not finite or not a rotation is ignored"
+                ),
+            }
+        }
+        for (message, _) in inbox.imu.try_iter() {
+            if self.imu_frame.as_deref() != Some(message.header.frame_id.as_str()) {
+                self.imu_frame = Some(message.header.frame_id.clone());
+            }
+            if let Some(sample) = message.sample()
+                && self.imu.len() < self.config.qos.imu_depth
+            {
+                self.imu.push(sample);
+            }
+        }
+    }
+
+    /// Gives the tracker's gyro the IMU samples read since the last cloud (made on the
+    /// first, with the IMU's mounting from /tf_static or the config).
+    fn feed_gyro(&mut self, base_sensor: &Pose) {
+        if !self.config.imu.gyro || self.imu.is_empty() {
+            return;
+        }
+        let params = GyroParams {
+            lidar_from_imu_rpy_deg: self.lidar_from_imu_rpy_deg(base_sensor),
+            ..GyroParams::default()
+        };
+        match self
+            .tracker
+            .push_imu(&self.imu, params, self.config.imu.keep_s)
+        {
+            Ok(0) => {}
+            Ok(refused) => {
+                tracing::warn!(refused, "IMU samples out of order or not finite skipped")
+            }
+            Err(e) => tracing::warn!("no gyro: {e}"),
+        }
+    }
+
+    /// `R_lidar_imu` as roll, pitch, yaw degrees: from `/tf_static` (base -> IMU frame
+    /// and base -> LiDAR), else `[imu] lidar-from-imu-rpy-deg`.
+    fn lidar_from_imu_rpy_deg(&self, base_sensor: &Pose) -> [f64; 3] {
+        let base_imu = self
+            .imu_frame
+            .as_deref()
+            .and_then(|frame| self.frames.mounting(&self.names.base, frame));
+        match base_imu {
+            Some(base_imu) => {
+                let (r, p, y) = (base_sensor.rotation.inverse() * base_imu.rotation).euler_angles();
+                [r, p, y].map(f64::to_degrees)
+            }
+            None => self.config.imu.lidar_from_imu_rpy_deg,
+        }
     }
 
     /// Sends the IMU samples since the last cloud to the server's gravity pool, and
@@ -602,6 +694,7 @@ fn run_loop(
         tracker: Tracker::relocalizing(tracker_options(config)),
         initial: None,
         imu: Vec::new(),
+        imu_frame: None,
         last_base: None,
         scans: 0,
         gravity_published: false,
@@ -640,45 +733,11 @@ fn run_loop(
                 Err(e) => tracing::warn!("no map cloud: {e:#}"),
             }
         }
-        for (message, _) in inbox.tf_static.try_iter() {
-            let skipped = state.frames.add_static(&message.transforms);
-            if skipped > 0 {
-                tracing::warn!(skipped, "malformed /tf_static transforms skipped");
-            }
-        }
-        for (message, _) in inbox.tf.try_iter() {
-            state.frames.add_dynamic(
-                &message.transforms,
-                &config.frames.odom,
-                &config.frames.base,
-            );
-        }
-        for (message, _) in inbox.initial.try_iter() {
-            match message.pose.pose.pose() {
-                Some(pose)
-                    if message.header.frame_id.trim_start_matches('/') == config.frames.map =>
-                {
-                    state.initial = Some(pose);
-                }
-                Some(_) => tracing::warn!(
-                    frame = message.header.frame_id,
-                    "an initial pose not in the map frame {} is ignored",
-                    config.frames.map
-                ),
-                None => tracing::warn!(
-                    "an initial pose that is not finite or not a rotation is ignored"
-                ),
-            }
-        }
-        for (message, _) in inbox.imu.try_iter() {
-            if let Some(sample) = message.sample()
-                && state.imu.len() < config.qos.imu_depth
-            {
-                state.imu.push(sample);
-            }
-        }
+        state.read_inputs(inbox);
         match inbox.clouds.recv_timeout(IDLE) {
             Ok((cloud, arrived)) => {
+                // What came in while the loop waited (the IMU up to this cloud).
+                state.read_inputs(inbox);
                 counters.fill(&mut state.summary);
                 state.on_cloud(&cloud, arrived, out);
             }

@@ -244,8 +244,8 @@ fn grouped(n: u64) -> String {
     out
 }
 
-/// `kfmap localize` of every scan of `data` (no IMU: the node is given none), one JSON
-/// object per scan.
+/// `kfmap localize` of every scan of `data` with `extra` (`--no-imu` where the node is
+/// given no IMU), one JSON object per scan.
 fn localized(map_name: &str, prefix: &str, data: &Path, extra: &[&str]) -> Vec<Value> {
     let mut args = vec![
         "localize",
@@ -258,7 +258,6 @@ fn localized(map_name: &str, prefix: &str, data: &Path, extra: &[&str]) -> Vec<V
         "--rate",
         "0",
         "--json-lines",
-        "--no-imu",
     ];
     args.extend_from_slice(extra);
     let out = kfmap(&args);
@@ -280,6 +279,7 @@ impl Node {
             &config,
             format!(
                 "[server]\nmap-name = \"{map_name}\"\niceoryx-prefix = \"{prefix}\"\ntimeout-s = 2.0\n\
+                 [topics]\nimu = \"/imu\"\n\
                  [map-cloud]\nvoxel = 0.5\n"
             ),
         )
@@ -401,7 +401,7 @@ mod in_namespace {
 
         // The oracle: `kfmap localize` on the same scans, no pose given, no IMU (the
         // node is given none either).
-        let oracle = localized("court", &prefix.0, &data, &[]);
+        let oracle = localized("court", &prefix.0, &data, &["--no-imu"]);
         let scans = find_scans(&data).unwrap();
         let poses = dataset_poses(&data, &scans).unwrap().unwrap();
         let to_map = map_from_input("court", &prefix.0);
@@ -535,7 +535,12 @@ mod in_namespace {
         // localize --initial-from-ground-truth` on the same scans and lie within 5 cm
         // of the ground truth (the relocalized start above settles over a few scans:
         // `kfmap localize` is 5-8 cm off on the first ones too).
-        let from_truth = localized("court", &prefix.0, &data, &["--initial-from-ground-truth"]);
+        let from_truth = localized(
+            "court",
+            &prefix.0,
+            &data,
+            &["--no-imu", "--initial-from-ground-truth"],
+        );
         let shift = last + 10.0 - poses.stamps[0];
         let again: Vec<Value> = (0..scans.len())
             .map(|k| {
@@ -659,6 +664,68 @@ mod in_namespace {
         println!(
             "server killed after scan 4, restarted after scan 7: ok again from scan {resumed}"
         );
+
+        // With the IMU on /imu: the live gyro predicts each scan's rotation as `kfmap
+        // localize` does from the dataset's whole IMU log (its bias learned the same
+        // way), so the poses are the same again. Each cloud is preceded by the samples
+        // since the last one, up to 50 ms past its stamp (a driver's IMU runs ahead of a
+        // cloud that goes out when its sweep ends).
+        let with_imu = localized("court", &prefix.0, &data, &["--initial-from-ground-truth"]);
+        let imu = kfmap_shared::imu::read_imu_csv(&data.join("imu.csv")).unwrap();
+        let shift = last + 200.0 - poses.stamps[0];
+        let ahead = 0.05;
+        let mut sent = 0;
+        let drive: Vec<Value> = (0..scans.len())
+            .map(|k| {
+                let until = poses.stamps[k] + ahead;
+                let samples: Vec<Value> = imu[sent..]
+                    .iter()
+                    .take_while(|s| s.t <= until)
+                    .map(|s| {
+                        let [ax, ay, az] = s.acc;
+                        let [gx, gy, gz] = s.gyro;
+                        json!([s.t + shift, ax, ay, az, gx, gy, gz])
+                    })
+                    .collect();
+                sent += samples.len();
+                let mut c = clouds[k].clone();
+                c["stamp"] = json!(poses.stamps[k] + shift);
+                c["imu"] = json!(samples);
+                c
+            })
+            .collect();
+        let manifest = json!({
+            "domain": 0,
+            "clouds": drive,
+            "initial_pose": {"before": 0, "pose": pose_to_xyz_quat(&truth[0])},
+        });
+        let records = run_peer(&python, &dir, &manifest, "imu");
+        let pose_records = by_stamp(&records, "pose");
+        let mut worst_same: f64 = 0.0;
+        for (k, expected) in with_imu.iter().enumerate() {
+            let published = pose_of(&pose_records[&key(poses.stamps[k] + shift)]["pose"]);
+            let same = translation_distance(&published, &pose_of(&expected["pose"]));
+            worst_same = worst_same.max(same);
+            assert!(
+                same <= SAME_POSE_M,
+                "with the IMU, scan {k}: {same} m from kfmap localize"
+            );
+        }
+        // The gyro matters on this drive: without it the same scans end elsewhere.
+        let without = with_imu
+            .iter()
+            .zip(&from_truth)
+            .map(|(a, b)| translation_distance(&pose_of(&a["pose"]), &pose_of(&b["pose"])))
+            .fold(0.0, f64::max);
+        assert!(
+            without > 5.0 * SAME_POSE_M,
+            "the gyro changed nothing: {without} m"
+        );
+        println!(
+            "with the IMU ({sent} samples through Cyclone), {} scans: worst {worst_same:.2e} m \
+             from kfmap localize with the dataset's IMU log ({without:.2e} m from it without)",
+            with_imu.len()
+        );
         drop(node);
         drop(server);
     }
@@ -692,7 +759,12 @@ mod in_namespace {
 
         // The oracles: `kfmap localize` on the same scans with no pose given, and the
         // dataset's reference poses (moved into the map frame).
-        let oracle = localized("balm", &prefix.0, &balm, &["--scans", "116..177"]);
+        let oracle = localized(
+            "balm",
+            &prefix.0,
+            &balm,
+            &["--no-imu", "--scans", "116..177"],
+        );
         assert_eq!(oracle.len(), 61);
         let poses = dataset_poses(&balm, &scans).unwrap().unwrap();
         let to_map = map_from_input("balm", &prefix.0);

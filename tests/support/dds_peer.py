@@ -7,7 +7,8 @@ with the ROS 2 type and topic names and records what the node publishes.
 MANIFEST (JSON): {"domain": 0, "wait_s": 30, "timeout_s": 20, "clouds": [{"stamp": s,
 "frame_id": "lidar", "fields": [[name, offset, datatype, count], ...], "point_step": 16,
 "width": n, "data": "path of the point bytes"}, ...], "initial_pose": {"before": k,
-"pose": [x, y, z, qx, qy, qz, qw]} (optional)}. An entry {"pause": {"reached": path, "go":
+"pose": [x, y, z, qx, qy, qz, qw]} (optional)}; a cloud's "imu": [[t, ax, ay, az, gx, gy,
+gz], ...] goes out on /imu (frame "imu_frame", default "imu") just before it. An entry {"pause": {"reached": path, "go":
 path}} among the clouds creates `reached` and waits (at most wait_s) for `go` to exist
 before the next cloud. Clouds are sent one at a time: the next
 only after the node's diagnostics for this one's stamp arrived (at most timeout_s), so
@@ -111,6 +112,17 @@ class Quaternion(IdlStruct, typename="geometry_msgs::msg::dds_::Quaternion_"):
     y: float64
     z: float64
     w: float64
+
+
+@dataclass
+class Imu(IdlStruct, typename="sensor_msgs::msg::dds_::Imu_"):
+    header: Header
+    orientation: Quaternion
+    orientation_covariance: array[float64, 9]
+    angular_velocity: Vector3
+    angular_velocity_covariance: array[float64, 9]
+    linear_acceleration: Vector3
+    linear_acceleration_covariance: array[float64, 9]
 
 
 @dataclass
@@ -278,6 +290,7 @@ def main():
     )
     clouds_topic = Topic(participant, "rt/points", PointCloud2)
     cloud_writer = DataWriter(participant, clouds_topic, reliable)
+    imu_writer = DataWriter(participant, Topic(participant, "rt/imu", Imu), reliable)
     initial_writer = DataWriter(
         participant, Topic(participant, "rt/initialpose", PoseWithCovarianceStamped), reliable
     )
@@ -397,6 +410,20 @@ def main():
                 ),
             ))
             time.sleep(0.2)
+        # The IMU samples up to this cloud first (a driver's IMU runs ahead of the
+        # cloud, which goes out once the sweep is over), given a moment to arrive.
+        for t, ax, ay, az, gx, gy, gz in cloud.get("imu", []):
+            imu_writer.write(Imu(
+                header=Header(stamp=stamp_of(t), frame_id=cloud.get("imu_frame", "imu")),
+                orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0),
+                orientation_covariance=[-1.0] + [0.0] * 8,
+                angular_velocity=Vector3(x=gx, y=gy, z=gz),
+                angular_velocity_covariance=[0.0] * 9,
+                linear_acceleration=Vector3(x=ax, y=ay, z=az),
+                linear_acceleration_covariance=[0.0] * 9,
+            ))
+        if cloud.get("imu"):
+            time.sleep(0.02)
         data = open(cloud["data"], "rb").read()
         message = PointCloud2(
             header=Header(stamp=stamp_of(cloud["stamp"]), frame_id=cloud["frame_id"]),

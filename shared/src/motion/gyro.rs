@@ -147,6 +147,47 @@ impl Gyro {
         self.bias
     }
 
+    /// Appends live samples (an IMU topic read as it comes): each one that is finite
+    /// and after the last is kept, the others are refused and counted, so a late or
+    /// corrupt message never reorders the log. Returns the refused count.
+    pub fn extend(&mut self, samples: &[ImuSample]) -> usize {
+        let mut refused = 0;
+        for s in samples {
+            let finite = std::iter::once(s.t)
+                .chain(s.gyro)
+                .chain(s.acc)
+                .all(f64::is_finite);
+            if finite && self.samples.last().is_none_or(|last| s.t > last.t) {
+                self.samples.push(*s);
+            } else {
+                refused += 1;
+            }
+        }
+        refused
+    }
+
+    /// Forgets the samples before `t` but the last of them (it brackets an interval
+    /// starting at `t`): what a live log needs to stay bounded.
+    pub fn forget_before(&mut self, t: f64) {
+        let drop = self.samples.partition_point(|s| s.t < t).saturating_sub(1);
+        self.samples.drain(..drop);
+    }
+
+    /// Samples held.
+    pub fn len(&self) -> usize {
+        self.samples.len()
+    }
+
+    /// True when no sample is held.
+    pub fn is_empty(&self) -> bool {
+        self.samples.is_empty()
+    }
+
+    /// The settings it was made with.
+    pub fn params(&self) -> &GyroParams {
+        &self.params
+    }
+
     /// The LiDAR's rotation from time `t0` to `t1` (`R_lidar(t0)^T R_lidar(t1)`, seconds
     /// on the samples' clock), bias removed; `None` when the samples do not cover the
     /// interval.
@@ -435,5 +476,44 @@ mod tests {
                 .to_string()
                 .contains("max-gap")
         );
+    }
+
+    #[test]
+    fn a_log_extended_live_turns_as_the_whole_log() {
+        let rate = |t: f64| Vector3::new(0.3 * (2.0 * t).sin(), 0.1, 0.8 * t.cos());
+        let samples = log(6.0, 200.0, rate, Vector3::new(0.01, -0.02, 0.005));
+        let params = GyroParams::default();
+        let whole = Gyro::new(samples.clone(), params).unwrap();
+        let mut live = Gyro::new(Vec::new(), params).unwrap();
+        // Fed in bursts as messages arrive, one stale and one corrupt sample among them.
+        let mut refused = 0;
+        for burst in samples.chunks(37) {
+            refused += live.extend(burst);
+            refused += live.extend(&[burst[0]]);
+            let mut bad = burst[0];
+            bad.gyro[1] = f64::NAN;
+            refused += live.extend(&[bad]);
+        }
+        assert_eq!(refused, 2 * samples.len().div_ceil(37));
+        assert_eq!(live.len(), samples.len());
+        for (t0, t1) in [(0.0, 0.1), (1.234, 1.334), (3.0, 5.5), (5.9, 6.0)] {
+            let (a, b) = (
+                whole.rotation(t0, t1).unwrap(),
+                live.rotation(t0, t1).unwrap(),
+            );
+            assert!(a.angle_to(&b) < 1e-12, "{t0}..{t1}");
+        }
+        // Forgetting the past keeps every interval after it, and nothing before.
+        live.forget_before(3.0);
+        let kept = samples.iter().filter(|s| s.t >= 3.0).count();
+        assert_eq!(live.len(), kept + 1);
+        let (a, b) = (
+            whole.rotation(3.0, 4.0).unwrap(),
+            live.rotation(3.0, 4.0).unwrap(),
+        );
+        assert!(a.angle_to(&b) < 1e-12);
+        assert!(live.rotation(2.0, 4.0).is_none());
+        let up = (whole.up(5.0, 0.5).unwrap(), live.up(5.0, 0.5).unwrap());
+        assert!((up.0 - up.1).norm() < 1e-12);
     }
 }

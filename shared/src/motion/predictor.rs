@@ -46,6 +46,16 @@ impl PosePredictor {
         self.gyro.as_ref()
     }
 
+    /// The gyro, to extend a live log; `None` when there is none.
+    pub fn gyro_mut(&mut self) -> Option<&mut Gyro> {
+        self.gyro.as_mut()
+    }
+
+    /// Predicts rotation with `gyro` from now on (the poses and velocity stay).
+    pub fn set_gyro(&mut self, gyro: Gyro) {
+        self.gyro = Some(gyro);
+    }
+
     /// The last pose given to [`PosePredictor::update`].
     pub fn last(&self) -> Option<&Pose> {
         self.velocity.last()
