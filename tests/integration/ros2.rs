@@ -665,16 +665,30 @@ mod in_namespace {
             "server killed after scan 4, restarted after scan 7: ok again from scan {resumed}"
         );
 
-        // With the IMU on /imu: the live gyro predicts each scan's rotation as `kfmap
-        // localize` does from the dataset's whole IMU log (its bias learned the same
-        // way), so the poses are the same again. Each cloud is preceded by the samples
-        // since the last one, up to 50 ms past its stamp (a driver's IMU runs ahead of a
-        // cloud that goes out when its sweep ends).
+        // A robot's full set of inputs. The IMU on /imu: the live gyro predicts each
+        // scan's rotation as `kfmap localize` does from the dataset's whole IMU log (its
+        // bias learned the same way), so the sensor's poses are the same again. Each
+        // cloud is preceded by the samples since the last one, up to 50 ms past its stamp
+        // (a driver's IMU runs ahead of a cloud that goes out when its sweep ends). The
+        // LiDAR (and the IMU with it) mounted on the base by /tf_static, and an odometry
+        // `odom -> base_link` on /tf: the node publishes the base's pose and `map ->
+        // odom`.
         let with_imu = localized("court", &prefix.0, &data, &["--initial-from-ground-truth"]);
         let imu = kfmap_shared::imu::read_imu_csv(&data.join("imu.csv")).unwrap();
         let shift = last + 200.0 - poses.stamps[0];
         let ahead = 0.05;
         let mut sent = 0;
+        // The LiDAR 0.9 m up on the base, a little ahead, turned 90 deg; the odometry
+        // frame 5 m and 30 deg off the map.
+        let base_from_sensor = Isometry3::from_parts(
+            Translation3::new(0.2, -0.1, 0.9),
+            UnitQuaternion::from_euler_angles(0.0, 0.0, std::f64::consts::FRAC_PI_2),
+        );
+        let sensor_from_base = base_from_sensor.inverse();
+        let odom_from_map = Isometry3::from_parts(
+            Translation3::new(5.0, -3.0, 0.0),
+            UnitQuaternion::from_euler_angles(0.0, 0.0, 30f64.to_radians()),
+        );
         let drive: Vec<Value> = (0..scans.len())
             .map(|k| {
                 let until = poses.stamps[k] + ahead;
@@ -688,27 +702,60 @@ mod in_namespace {
                     })
                     .collect();
                 sent += samples.len();
+                let stamp = poses.stamps[k] + shift;
+                let odometry = odom_from_map * truth[k] * sensor_from_base;
+                let mut odom_base = vec![json!("odom"), json!("base_link"), json!(stamp)];
+                odom_base.extend(pose_to_xyz_quat(&odometry).map(|v| json!(v)));
                 let mut c = clouds[k].clone();
-                c["stamp"] = json!(poses.stamps[k] + shift);
+                c["stamp"] = json!(stamp);
                 c["imu"] = json!(samples);
+                c["tf"] = json!([odom_base]);
                 c
             })
             .collect();
+        let mounted = |child: &str| {
+            let mut t = vec![json!("base_link"), json!(child)];
+            t.extend(pose_to_xyz_quat(&base_from_sensor).map(|v| json!(v)));
+            t
+        };
         let manifest = json!({
             "domain": 0,
             "clouds": drive,
-            "initial_pose": {"before": 0, "pose": pose_to_xyz_quat(&truth[0])},
+            "tf_static": [mounted("lidar"), mounted("imu")],
+            "initial_pose": {"before": 0, "pose": pose_to_xyz_quat(&(truth[0] * sensor_from_base))},
         });
         let records = run_peer(&python, &dir, &manifest, "imu");
         let pose_records = by_stamp(&records, "pose");
+        let odometry_records = by_stamp(&records, "odometry");
+        let map_odom: std::collections::BTreeMap<i64, Value> = records
+            .iter()
+            .filter(|r| r["topic"] == "tf" && r["parent"] == "map")
+            .map(|r| (key(r["stamp"].as_f64().unwrap()), r.clone()))
+            .collect();
         let mut worst_same: f64 = 0.0;
         for (k, expected) in with_imu.iter().enumerate() {
-            let published = pose_of(&pose_records[&key(poses.stamps[k] + shift)]["pose"]);
+            let stamp = key(poses.stamps[k] + shift);
+            let base = pose_of(&pose_records[&stamp]["pose"]);
+            let published = base * base_from_sensor;
             let same = translation_distance(&published, &pose_of(&expected["pose"]));
             worst_same = worst_same.max(same);
             assert!(
                 same <= SAME_POSE_M,
                 "with the IMU, scan {k}: {same} m from kfmap localize"
+            );
+            assert!(
+                translation_distance(&base, &pose_of(&odometry_records[&stamp]["pose"])) < 1e-9
+            );
+            // map -> odom = T_map_base T_odom_base^-1, the odometry at the cloud's stamp.
+            let t = &map_odom[&stamp];
+            assert_eq!(t["child"], "odom", "scan {k}");
+            let odometry = odom_from_map * truth[k] * sensor_from_base;
+            let expected_map_odom = base * odometry.inverse();
+            let got = pose_of(&t["transform"]);
+            assert!(
+                translation_distance(&got, &expected_map_odom) < 1e-6
+                    && rotation_distance(&got, &expected_map_odom) < 1e-6,
+                "scan {k}: map -> odom {got:?}, expected {expected_map_odom:?}"
             );
         }
         // The gyro matters on this drive: without it the same scans end elsewhere.
@@ -722,8 +769,9 @@ mod in_namespace {
             "the gyro changed nothing: {without} m"
         );
         println!(
-            "with the IMU ({sent} samples through Cyclone), {} scans: worst {worst_same:.2e} m \
-             from kfmap localize with the dataset's IMU log ({without:.2e} m from it without)",
+            "with the IMU ({sent} samples through Cyclone), /tf_static and odometry on /tf, {} \
+             scans: worst {worst_same:.2e} m from kfmap localize with the dataset's IMU log \
+             ({without:.2e} m from it without); map -> odom as the odometry says",
             with_imu.len()
         );
         drop(node);

@@ -8,7 +8,9 @@ MANIFEST (JSON): {"domain": 0, "wait_s": 30, "timeout_s": 20, "clouds": [{"stamp
 "frame_id": "lidar", "fields": [[name, offset, datatype, count], ...], "point_step": 16,
 "width": n, "data": "path of the point bytes"}, ...], "initial_pose": {"before": k,
 "pose": [x, y, z, qx, qy, qz, qw]} (optional)}; a cloud's "imu": [[t, ax, ay, az, gx, gy,
-gz], ...] goes out on /imu (frame "imu_frame", default "imu") just before it. An entry {"pause": {"reached": path, "go":
+gz], ...] goes out on /imu (frame "imu_frame", default "imu") just before it, and its
+"tf": [[parent, child, stamp, x, y, z, qx, qy, qz, qw], ...] on /tf; "tf_static": [[parent,
+child, x, y, z, qx, qy, qz, qw], ...] goes out once, latched, before the first cloud. An entry {"pause": {"reached": path, "go":
 path}} among the clouds creates `reached` and waits (at most wait_s) for `go` to exist
 before the next cloud. Clouds are sent one at a time: the next
 only after the node's diagnostics for this one's stamp arrived (at most timeout_s), so
@@ -291,6 +293,18 @@ def main():
     clouds_topic = Topic(participant, "rt/points", PointCloud2)
     cloud_writer = DataWriter(participant, clouds_topic, reliable)
     imu_writer = DataWriter(participant, Topic(participant, "rt/imu", Imu), reliable)
+    tf_topic = Topic(participant, "rt/tf", TFMessage)
+    tf_writer = DataWriter(participant, tf_topic, reliable)
+    tf_static_writer = DataWriter(
+        participant, Topic(participant, "rt/tf_static", TFMessage), latched)
+
+    def transform(parent, child, stamp, x, y, z, qx, qy, qz, qw):
+        return TransformStamped(
+            header=Header(stamp=stamp_of(stamp), frame_id=parent),
+            child_frame_id=child,
+            transform=Transform(translation=Vector3(x=x, y=y, z=z),
+                                rotation=Quaternion(x=qx, y=qy, z=qz, w=qw)),
+        )
     initial_writer = DataWriter(
         participant, Topic(participant, "rt/initialpose", PoseWithCovarianceStamped), reliable
     )
@@ -301,7 +315,7 @@ def main():
         "odometry": DataReader(
             participant, Topic(participant, "rt/kfmap/odometry", Odometry), reliable
         ),
-        "tf": DataReader(participant, Topic(participant, "rt/tf", TFMessage), reliable),
+        "tf": DataReader(participant, tf_topic, reliable),
         "diagnostics": DataReader(
             participant, Topic(participant, "rt/diagnostics", DiagnosticArray), reliable
         ),
@@ -381,6 +395,11 @@ def main():
             print("dds_peer: the node's /points reader never matched", file=sys.stderr)
             sys.exit(1)
         time.sleep(0.05)
+    if manifest.get("tf_static"):
+        tf_static_writer.write(TFMessage(transforms=[
+            transform(parent, child, 0.0, *values)
+            for parent, child, *values in manifest["tf_static"]]))
+        time.sleep(0.2)
     timeout = manifest.get("timeout_s", 20)
     initial = manifest.get("initial_pose")
     # Publishing rate: cloud k goes out at k periods after the first (a sensor's rate),
@@ -422,7 +441,10 @@ def main():
                 linear_acceleration=Vector3(x=ax, y=ay, z=az),
                 linear_acceleration_covariance=[0.0] * 9,
             ))
-        if cloud.get("imu"):
+        if cloud.get("tf"):
+            tf_writer.write(TFMessage(transforms=[
+                transform(*t) for t in cloud["tf"]]))
+        if cloud.get("imu") or cloud.get("tf"):
             time.sleep(0.02)
         data = open(cloud["data"], "rb").read()
         message = PointCloud2(
