@@ -53,13 +53,15 @@ pub enum BagError {
         supported: &'static str,
     },
     /// No topic of that name.
-    #[error("{}: no topic '{topic}'; its PointCloud2 and Imu topics: {candidates}", path.display())]
+    #[error("{}: no topic '{topic}'; its {kinds} topics: {candidates}", path.display())]
     NoTopic {
         /// The bag.
         path: PathBuf,
         /// The name asked for.
         topic: String,
-        /// The bag's PointCloud2 and Imu topics (`name (type)`), or `none`.
+        /// What kinds of topic `candidates` lists, e.g. `PointCloud2 and Imu`.
+        kinds: String,
+        /// The bag's topics of those kinds (`name (type)`), or `none`.
         candidates: String,
     },
     /// A topic of another message type than the one asked for.

@@ -217,13 +217,26 @@ impl Bag {
 
     /// The topic named `name`; the error lists the bag's PointCloud2 and Imu topics.
     pub fn topic(&self, name: &str) -> Result<&Topic, BagError> {
+        self.named_topic(name, "PointCloud2 and Imu", |t| {
+            t.is_point_cloud() || t.is_imu()
+        })
+    }
+
+    /// The topic named `name`; the error lists the bag's topics of `kinds` (`is`).
+    fn named_topic(
+        &self,
+        name: &str,
+        kinds: &str,
+        is: impl Fn(&Topic) -> bool,
+    ) -> Result<&Topic, BagError> {
         self.topics()
             .iter()
             .find(|t| t.name == name)
             .ok_or_else(|| BagError::NoTopic {
                 path: self.path.clone(),
                 topic: name.to_string(),
-                candidates: self.listing(|t| t.is_point_cloud() || t.is_imu()),
+                kinds: kinds.to_string(),
+                candidates: self.listing(is),
             })
     }
 
@@ -261,7 +274,13 @@ impl Bag {
         wanted: &str,
         is: fn(&Topic) -> bool,
     ) -> Result<&Topic, BagError> {
-        let topic = self.topic(name)?;
+        // A sensor topic not found lists both sensors' topics (a cloud asked for under
+        // the IMU's name shows); a localizer's output, the topics of its type.
+        let topic = if wanted.starts_with("sensor_msgs/") {
+            self.topic(name)?
+        } else {
+            self.named_topic(name, wanted.rsplit('/').next().unwrap_or(wanted), is)?
+        };
         if !is(topic) {
             return Err(BagError::WrongType {
                 path: self.path.clone(),

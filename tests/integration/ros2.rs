@@ -112,6 +112,24 @@ fn cloud_entry(
     })
 }
 
+/// The peer's clouds of `scans[range]` as a dataset's files hold them (read as
+/// `kfmap localize` reads them), their point bytes written to `dir`.
+fn scan_clouds(
+    dir: &Path,
+    scans: &[PathBuf],
+    stamps: &[f64],
+    range: std::ops::Range<usize>,
+) -> Vec<Value> {
+    std::fs::create_dir_all(dir).unwrap();
+    let config = BakeConfig::default();
+    range
+        .map(|k| {
+            let cloud = load_raw_scan(&scans[k], &config).unwrap();
+            cloud_entry(dir, k, stamps[k], &cloud.points, cloud.time.as_deref())
+        })
+        .collect()
+}
+
 /// The peer's records of one topic by stamp (rounded to the microsecond).
 fn by_stamp(records: &[Value], topic: &str) -> std::collections::BTreeMap<i64, Value> {
     records
@@ -206,13 +224,22 @@ fn plot_of_the_recorded_run(dir: &Path, bag: &Path, records: &[Value]) {
         })
         .fold(0.0, f64::max);
     let expected = format!(
-        "{} poses ({} ok, {} degraded, 0 without diagnostics), {without_pose} scans without a pose, map cloud {} points",
+        "{} poses ({} ok, {} degraded, 0 without diagnostics), {without_pose} scans without a pose, map cloud ",
         poses.len(),
         said("ok"),
         said("degraded"),
-        grouped(map_points)
     );
     assert!(line.contains(&expected), "{line}\nexpected: {expected}");
+    // The map cloud's size, printed with its thousands apart.
+    let drawn: String = line
+        .split("map cloud ")
+        .nth(1)
+        .unwrap()
+        .split(" points")
+        .next()
+        .unwrap()
+        .replace(' ', "");
+    assert_eq!(drawn.parse::<u64>().unwrap(), map_points, "{line}");
     assert!(
         line.contains(&format!("max {sigma_max:.4} m")),
         "{line}\nlargest sigma {sigma_max:.4} m"
@@ -229,19 +256,6 @@ fn plot_of_the_recorded_run(dir: &Path, bag: &Path, records: &[Value]) {
         std::fs::copy(bag, keep.join("balm-run.mcap")).unwrap();
         std::fs::copy(&picture, keep.join("balm-run.png")).unwrap();
     }
-}
-
-/// Thousands grouped by spaces, as `kfmap plot` prints counts.
-fn grouped(n: u64) -> String {
-    let digits = n.to_string();
-    let mut out = String::new();
-    for (i, c) in digits.chars().enumerate() {
-        if i > 0 && (digits.len() - i).is_multiple_of(3) {
-            out.push(' ');
-        }
-        out.push(c);
-    }
-    out
 }
 
 /// `kfmap localize` of every scan of `data` with `extra` (`--no-imu` where the node is
@@ -409,22 +423,7 @@ mod in_namespace {
         assert_eq!(oracle.len(), scans.len());
 
         let clouds_dir = dir.join("clouds");
-        std::fs::create_dir_all(&clouds_dir).unwrap();
-        let config = BakeConfig::default();
-        let mut clouds: Vec<Value> = scans
-            .iter()
-            .enumerate()
-            .map(|(k, path)| {
-                let cloud = load_raw_scan(path, &config).unwrap();
-                cloud_entry(
-                    &clouds_dir,
-                    k,
-                    poses.stamps[k],
-                    &cloud.points,
-                    cloud.time.as_deref(),
-                )
-            })
-            .collect();
+        let mut clouds = scan_clouds(&clouds_dir, &scans, &poses.stamps, 0..scans.len());
         // Bad clouds after the drive: no x field, empty, NaN only. Each must give a
         // diagnostic, and the node must go on.
         let last = *poses.stamps.last().unwrap();
@@ -816,21 +815,7 @@ mod in_namespace {
         assert_eq!(oracle.len(), 61);
         let poses = dataset_poses(&balm, &scans).unwrap().unwrap();
         let to_map = map_from_input("balm", &prefix.0);
-        let clouds_dir = dir.join("clouds");
-        std::fs::create_dir_all(&clouds_dir).unwrap();
-        let config = BakeConfig::default();
-        let clouds: Vec<Value> = (116..177)
-            .map(|k| {
-                let cloud = load_raw_scan(&scans[k], &config).unwrap();
-                cloud_entry(
-                    &clouds_dir,
-                    k,
-                    poses.stamps[k],
-                    &cloud.points,
-                    cloud.time.as_deref(),
-                )
-            })
-            .collect();
+        let clouds = scan_clouds(&dir.join("clouds"), &scans, &poses.stamps, 116..177);
         let node = Node::start(&dir, "balm", &prefix.0);
         let bag = dir.join("balm-run.mcap");
         let manifest = json!({"domain": 0, "clouds": clouds, "period_s": 0.5, "record_bag": bag});

@@ -514,6 +514,82 @@ pub(super) fn draw_height_points<DB: DrawingBackend>(
     Ok(())
 }
 
+/// The areas of a two-panel figure (the trajectory and the recorded-run pictures): a
+/// title band (the title and a statistics line under it), a top view with a colour bar
+/// at its right, the legend band (drawn), and a lower panel as wide as the view.
+pub(super) struct Panels<DB: DrawingBackend> {
+    pub sizes: Sizes,
+    /// The whole top band (view and colour bar), for the bar's margins.
+    top: DrawingArea<DB, Shift>,
+    pub view: DrawingArea<DB, Shift>,
+    bar: DrawingArea<DB, Shift>,
+    pub bottom: DrawingArea<DB, Shift>,
+    /// The colour bar's width, pixels (the lower panel keeps it as a right margin).
+    pub bar_w: u32,
+}
+
+impl<DB: DrawingBackend> Panels<DB> {
+    /// Fills `root` white, draws the title band and splits the rest: the top view takes
+    /// `top_share` of what the legend (of `entries`) leaves.
+    pub(super) fn of(
+        root: &DrawingArea<DB, Shift>,
+        title: &str,
+        stats: &str,
+        entries: &[(Symbol, String)],
+        top_share: f64,
+    ) -> anyhow::Result<Self> {
+        let (width, height) = root.dim_in_pixel();
+        let sizes = Sizes::of(width, height);
+        root.fill(&WHITE).map_err(draw_error)?;
+        let title_h = (1.5 * sizes.title + 1.6 * sizes.text) as u32 + 2 * sizes.pad;
+        let (title_band, rest) = root.split_vertically(title_h);
+        centred_text(&title_band, title, sizes.title, BLACK, sizes.pad as i32)?;
+        centred_text(
+            &title_band,
+            stats,
+            sizes.text,
+            RGBColor(60, 60, 60),
+            (1.4 * sizes.title) as i32 + sizes.pad as i32,
+        )?;
+        let legend_h = legend_height(root, entries, width, &sizes)?;
+        let (_, rest_h) = rest.dim_in_pixel();
+        let top_h = ((rest_h.saturating_sub(legend_h)) as f64 * top_share) as u32;
+        let (top, rest) = rest.split_vertically(top_h);
+        let (legend_band, bottom) = rest.split_vertically(legend_h);
+        let bar_w = (9.0 * sizes.tick) as u32;
+        let (view, bar) = top.split_horizontally(width.saturating_sub(bar_w));
+        legend(&legend_band, entries, &sizes)?;
+        Ok(Self {
+            sizes,
+            top,
+            view,
+            bar,
+            bottom,
+            bar_w,
+        })
+    }
+
+    /// The colour bar beside the view, as tall as the view's plotting rows `view_rows`.
+    pub(super) fn colour_bar(
+        &self,
+        view_rows: std::ops::Range<i32>,
+        range: (f64, f64),
+        cmap: fn(f64) -> RGBColor,
+        label: &str,
+    ) -> anyhow::Result<()> {
+        let main_rows = self.top.get_pixel_range().1;
+        colour_bar(
+            &self.bar,
+            range,
+            cmap,
+            label,
+            &self.sizes,
+            (view_rows.start - main_rows.start).max(0) as u32,
+            (main_rows.end - view_rows.end).max(0) as u32,
+        )
+    }
+}
+
 /// A legend entry's symbol.
 #[derive(Debug, Clone, Copy)]
 pub(super) enum Symbol {

@@ -19,9 +19,8 @@ use plotters::coord::Shift;
 use plotters::prelude::*;
 
 use super::draw::{
-    DEGRADED_ORANGE, Figure, GREY, LOST_RED, Sizes, Symbol, centred_text, colour_bar, draw_error,
-    draw_grid, draw_height_points, grouped, height_colour, legend, legend_height, padded_bounds,
-    quantile, top_down_chart,
+    DEGRADED_ORANGE, Figure, GREY, LOST_RED, Panels, Sizes, Symbol, draw_error, draw_grid,
+    draw_height_points, grouped, height_colour, padded_bounds, quantile, top_down_chart,
 };
 
 /// kfmap-ros2's topics, the defaults of `--pose-topic`, `--map-cloud-topic` and
@@ -594,46 +593,16 @@ fn ellipse(covariance: Matrix2<f64>, sigmas: f64) -> Option<Vec<(f64, f64)>> {
 
 impl Figure for RunFigure {
     fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> anyhow::Result<()> {
-        let (width, height) = root.dim_in_pixel();
-        let sizes = Sizes::of(width, height);
-        root.fill(&WHITE).map_err(draw_error)?;
-        let title_h = (1.5 * sizes.title + 1.6 * sizes.text) as u32 + 2 * sizes.pad;
-        let (title_band, rest) = root.split_vertically(title_h);
-        centred_text(
-            &title_band,
-            &self.title,
-            sizes.title,
-            BLACK,
-            sizes.pad as i32,
-        )?;
-        centred_text(
-            &title_band,
-            &self.stats,
-            sizes.text,
-            RGBColor(60, 60, 60),
-            (1.4 * sizes.title) as i32 + sizes.pad as i32,
-        )?;
         let entries = self.legend_entries();
-        let legend_h = legend_height(root, &entries, width, &sizes)?;
-        let (_, rest_h) = rest.dim_in_pixel();
-        let top_h = ((rest_h.saturating_sub(legend_h)) as f64 * 0.72) as u32;
-        let (top, rest) = rest.split_vertically(top_h);
-        let (legend_band, bottom) = rest.split_vertically(legend_h);
-        let bar_w = (9.0 * sizes.tick) as u32;
-        let (view_area, bar_area) = top.split_horizontally(width.saturating_sub(bar_w));
-        let view_rows = self.draw_top_view(&view_area, &sizes)?;
-        let main_rows = top.get_pixel_range().1;
-        colour_bar(
-            &bar_area,
+        let panels = Panels::of(root, &self.title, &self.stats, &entries, 0.72)?;
+        let view_rows = self.draw_top_view(&panels.view, &panels.sizes)?;
+        panels.colour_bar(
+            view_rows,
             self.height_range,
             height_colour,
             "map cloud height z (m)",
-            &sizes,
-            (view_rows.start - main_rows.start).max(0) as u32,
-            (main_rows.end - view_rows.end).max(0) as u32,
         )?;
-        legend(&legend_band, &entries, &sizes)?;
-        self.draw_sigma_over_time(&bottom, bar_w, &sizes)
+        self.draw_sigma_over_time(&panels.bottom, panels.bar_w, &panels.sizes)
     }
 }
 

@@ -12,8 +12,8 @@ use plotters::prelude::*;
 
 use super::TrajectoryPlotInputs;
 use super::draw::{
-    DEGRADED_ORANGE, Figure, GREY, LOST_RED, Sizes, Symbol, centred_text, colour_bar, draw_error,
-    draw_grid, legend, legend_height, ms_label, padded_bounds, quantile, top_down_chart, viridis,
+    DEGRADED_ORANGE, Figure, GREY, LOST_RED, Panels, Sizes, Symbol, draw_error, draw_grid,
+    ms_label, padded_bounds, quantile, top_down_chart, viridis,
 };
 
 /// Default largest stamp difference between an estimated pose and its reference, s.
@@ -568,22 +568,6 @@ impl TrajectoryFigure {
 }
 
 impl TrajectoryFigure {
-    /// The title and the statistics line under it.
-    fn draw_title<DB: DrawingBackend>(
-        &self,
-        band: &DrawingArea<DB, Shift>,
-        sizes: &Sizes,
-    ) -> anyhow::Result<()> {
-        centred_text(band, &self.title, sizes.title, BLACK, sizes.pad as i32)?;
-        centred_text(
-            band,
-            &self.stats,
-            sizes.text,
-            RGBColor(60, 60, 60),
-            (1.4 * sizes.title) as i32 + sizes.pad as i32,
-        )
-    }
-
     /// Width of the estimate's line and radius of its dots, pixels.
     fn line_width(sizes: &Sizes) -> u32 {
         (0.2 * sizes.text).max(2.0) as u32
@@ -707,37 +691,13 @@ impl TrajectoryFigure {
 
 impl Figure for TrajectoryFigure {
     fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> anyhow::Result<()> {
-        let (width, height) = root.dim_in_pixel();
-        let sizes = Sizes::of(width, height);
-        root.fill(&WHITE).map_err(draw_error)?;
-        let title_h = (1.5 * sizes.title + 1.6 * sizes.text) as u32 + 2 * sizes.pad;
-        let (title_band, rest) = root.split_vertically(title_h);
-        self.draw_title(&title_band, &sizes)?;
         let entries = self.legend_entries();
-        let legend_h = legend_height(root, &entries, width, &sizes)?;
-        let (_, rest_h) = rest.dim_in_pixel();
-        let top_h = ((rest_h.saturating_sub(legend_h)) as f64 * 0.66) as u32;
-        let (top, rest) = rest.split_vertically(top_h);
-        let (legend_band, bottom) = rest.split_vertically(legend_h);
-        let bar_w = (9.0 * sizes.tick) as u32;
-        let (map_area, bar_area) = top.split_horizontally(width.saturating_sub(bar_w));
-
-        // Top: the view from above, its colour bar beside the plotting area.
-        let top_rows = self.draw_top_view(&map_area, &sizes)?;
-        let main_rows = top.get_pixel_range().1;
-        colour_bar(
-            &bar_area,
-            self.error_range,
-            viridis,
-            "position error (m)",
-            &sizes,
-            (top_rows.start - main_rows.start).max(0) as u32,
-            (main_rows.end - top_rows.end).max(0) as u32,
-        )?;
-        legend(&legend_band, &entries, &sizes)?;
-
-        // Bottom: the error over time.
-        self.draw_error_over_time(&bottom, bar_w, &sizes)
+        let panels = Panels::of(root, &self.title, &self.stats, &entries, 0.66)?;
+        // Top: the view from above, its colour bar beside the plotting area; bottom:
+        // the error over time.
+        let view_rows = self.draw_top_view(&panels.view, &panels.sizes)?;
+        panels.colour_bar(view_rows, self.error_range, viridis, "position error (m)")?;
+        self.draw_error_over_time(&panels.bottom, panels.bar_w, &panels.sizes)
     }
 }
 
