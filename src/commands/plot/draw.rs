@@ -374,6 +374,27 @@ pub(super) fn draw_grid<DB: DrawingBackend>(
         .map_err(draw_error)
 }
 
+/// A value-over-time chart on `area` (its right margin `bar_w` wide, under the colour
+/// bar of the view above): `times` on x, `0..top` on y, axis titles, labels and grid.
+pub(super) fn time_chart<'a, DB: DrawingBackend>(
+    area: &'a DrawingArea<DB, Shift>,
+    bar_w: u32,
+    times: (f64, f64),
+    top: f64,
+    titles: [&str; 2],
+    sizes: &Sizes,
+) -> anyhow::Result<Chart2d<'a, DB>> {
+    let mut chart = ChartBuilder::on(area)
+        .margin(sizes.pad)
+        .margin_right(bar_w + 2 * sizes.pad)
+        .x_label_area_size((2.6 * sizes.tick) as u32)
+        .y_label_area_size((4.2 * sizes.tick) as u32)
+        .build_cartesian_2d(times.0..times.1, 0.0..top)
+        .map_err(draw_error)?;
+    draw_grid(&mut chart, titles, (times.1 - times.0, top), (12, 6), sizes)?;
+    Ok(chart)
+}
+
 /// A top-down chart on `area`: x right, y up, equal aspect, metre labels and grid.
 /// Returns it with its scale, metres per pixel.
 pub(super) fn top_down_chart<'a, DB: DrawingBackend>(

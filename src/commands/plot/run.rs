@@ -19,8 +19,8 @@ use plotters::coord::Shift;
 use plotters::prelude::*;
 
 use super::draw::{
-    DEGRADED_ORANGE, Figure, GREY, LOST_RED, Panels, Sizes, Symbol, draw_error, draw_grid,
-    draw_height_points, grouped, height_colour, padded_bounds, quantile, top_down_chart,
+    DEGRADED_ORANGE, Figure, GREY, LOST_RED, Panels, Sizes, Symbol, draw_error, draw_height_points,
+    grouped, height_colour, padded_bounds, quantile, time_chart, top_down_chart,
 };
 
 /// kfmap-ros2's topics, the defaults of `--pose-topic`, `--map-cloud-topic` and
@@ -509,18 +509,12 @@ impl RunFigure {
             .fold(0.0f64, f64::max)
             .max(0.1)
             * 1.1;
-        let mut chart = ChartBuilder::on(area)
-            .margin(sizes.pad)
-            .margin_right(bar_w + 2 * sizes.pad)
-            .x_label_area_size((2.6 * sizes.tick) as u32)
-            .y_label_area_size((4.2 * sizes.tick) as u32)
-            .build_cartesian_2d(t_start..t_end, 0.0..top)
-            .map_err(draw_error)?;
-        draw_grid(
-            &mut chart,
+        let mut chart = time_chart(
+            area,
+            bar_w,
+            (t_start, t_end),
+            top,
             ["time since the first pose (s)", "horizontal sigma (cm)"],
-            (t_end - t_start, top),
-            (12, 6),
             sizes,
         )?;
         chart

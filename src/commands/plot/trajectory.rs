@@ -12,8 +12,8 @@ use plotters::prelude::*;
 
 use super::TrajectoryPlotInputs;
 use super::draw::{
-    DEGRADED_ORANGE, Figure, GREY, LOST_RED, Panels, Sizes, Symbol, draw_error, draw_grid,
-    ms_label, padded_bounds, quantile, top_down_chart, viridis,
+    DEGRADED_ORANGE, Figure, GREY, LOST_RED, Panels, Sizes, Symbol, draw_error, ms_label,
+    padded_bounds, quantile, time_chart, top_down_chart, viridis,
 };
 
 /// Default largest stamp difference between an estimated pose and its reference, s.
@@ -650,21 +650,15 @@ impl TrajectoryFigure {
             .fold(0.0f64, f64::max)
             .max(1e-3)
             * 1.08;
-        let mut chart = ChartBuilder::on(area)
-            .margin(sizes.pad)
-            .margin_right(bar_w + 2 * sizes.pad)
-            .x_label_area_size((2.6 * sizes.tick) as u32)
-            .y_label_area_size((4.2 * sizes.tick) as u32)
-            .build_cartesian_2d(t_start..t_end, 0.0..e_max)
-            .map_err(draw_error)?;
-        draw_grid(
-            &mut chart,
+        let mut chart = time_chart(
+            area,
+            bar_w,
+            (t_start, t_end),
+            e_max,
             [
                 "time since the first estimated pose (s)",
                 "position error (m)",
             ],
-            (t_end - t_start, e_max),
-            (12, 6),
             sizes,
         )?;
         chart
