@@ -283,7 +283,8 @@ impl Imu {
     }
 }
 
-/// `geometry_msgs/Vector3Stamped`: the gravity direction once pooled.
+/// `geometry_msgs/Vector3Stamped`: the pooled gravity estimate (m/s^2, map frame, as an
+/// accelerometer at rest reads it).
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 pub struct Vector3Stamped {
     pub header: Header,

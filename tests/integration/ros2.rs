@@ -757,6 +757,30 @@ mod in_namespace {
                 "scan {k}: map -> odom {got:?}, expected {expected_map_odom:?}"
             );
         }
+        // The IMU windows pooled into the map frame's gravity, published latched.
+        let gravity = records
+            .iter()
+            .rfind(|r| r["topic"] == "gravity")
+            .expect("no gravity published");
+        let g: Vec<f64> = gravity["vector"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect();
+        // The simulator's gravity, 9.81 m/s^2 along the (levelled) map's z, as an
+        // accelerometer at rest reads it: up. Measured 0.21 deg and 9.807 m/s^2.
+        let norm = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
+        let tilt_deg = (g[2] / norm).acos().to_degrees();
+        println!(
+            "gravity published in {}: {tilt_deg:.2} deg from the map's z, {norm:.3} m/s^2",
+            gravity["frame"]
+        );
+        assert_eq!(gravity["frame"], "map");
+        assert!(
+            tilt_deg < 0.4 && (norm - 9.81).abs() < 0.02,
+            "gravity {g:?}"
+        );
         // The gyro matters on this drive: without it the same scans end elsewhere.
         let without = with_imu
             .iter()

@@ -22,7 +22,7 @@ the peer listens "linger_s" (default 1) after the last.
 OUT: JSON lines, one per message received: {"topic": "pose", "stamp": s, "pose": [...],
 "covariance": [...36]}, {"topic": "diagnostics", "stamp": s, "level": l, "message": m},
 {"topic": "odometry", ...}, {"topic": "tf", "stamp": s, "parent": p, "child": c,
-"transform": [...]}. Exits 1 when the node never matched or a cloud went unanswered.
+"transform": [...]}, {"topic": "gravity", "stamp": s, "frame": f, "vector": [x, y, z]}. Exits 1 when the node never matched or a cloud went unanswered.
 
 With "record_bag": path in MANIFEST, the node's pose, diagnostics and map cloud are also
 written to an MCAP bag as `ros2 bag record` writes them (the CDR bytes as received,
@@ -114,6 +114,12 @@ class Quaternion(IdlStruct, typename="geometry_msgs::msg::dds_::Quaternion_"):
     y: float64
     z: float64
     w: float64
+
+
+@dataclass
+class Vector3Stamped(IdlStruct, typename="geometry_msgs::msg::dds_::Vector3Stamped_"):
+    header: Header
+    vector: Vector3
 
 
 @dataclass
@@ -322,6 +328,9 @@ def main():
         "map_cloud": DataReader(
             participant, Topic(participant, "rt/kfmap/map_cloud", PointCloud2), latched
         ),
+        "gravity": DataReader(
+            participant, Topic(participant, "rt/kfmap/gravity", Vector3Stamped), latched
+        ),
     }
 
     recorder = BagRecorder(manifest["record_bag"]) if "record_bag" in manifest else None
@@ -363,6 +372,10 @@ def main():
                 "message": s.message,
                 "values": {kv.key: kv.value for kv in s.values},
             }
+        elif topic == "gravity":
+            v = sample.vector
+            line = {"stamp": seconds_of(sample.header.stamp), "frame": sample.header.frame_id,
+                    "vector": [v.x, v.y, v.z]}
         else:
             line = {"stamp": seconds_of(sample.header.stamp), "frame": sample.header.frame_id,
                     "points": sample.width * sample.height}
