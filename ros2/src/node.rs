@@ -433,9 +433,13 @@ impl Localizer<'_> {
         if !self.config.imu.gyro || self.imu.is_empty() {
             return;
         }
-        let params = GyroParams {
-            lidar_from_imu_rpy_deg: self.lidar_from_imu_rpy_deg(base_sensor),
-            ..GyroParams::default()
+        // The mounting is read once, when the first samples make the gyro.
+        let params = match self.tracker.gyro() {
+            Some(gyro) => *gyro.params(),
+            None => GyroParams {
+                lidar_from_imu_rpy_deg: self.lidar_from_imu_rpy_deg(base_sensor),
+                ..GyroParams::default()
+            },
         };
         match self
             .tracker

@@ -159,10 +159,8 @@ impl RunFigure {
         max_points: usize,
     ) -> anyhow::Result<Self> {
         let bag = Bag::open(bag_path)?;
-        let pose_topic = match topics.pose.as_deref() {
-            Some(name) => bag.pose_with_covariance_topic(name)?,
-            None => bag.pose_with_covariance_topic(DEFAULT_POSE_TOPIC)?,
-        };
+        let pose_topic =
+            bag.pose_with_covariance_topic(topics.pose.as_deref().unwrap_or(DEFAULT_POSE_TOPIC))?;
         let map_topic = optional_topic(
             &bag,
             topics.map_cloud.as_deref(),
