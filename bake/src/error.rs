@@ -68,6 +68,9 @@ pub enum BakeError {
     /// The tile set could not be cut (bad geometry, directory, ...).
     #[error("tiles: {0}")]
     Tiles(String),
+    /// `--refine-only` cannot run as asked.
+    #[error("--refine-only: {0}")]
+    RefineOnly(String),
     /// A tile set's index could not be used.
     #[error(transparent)]
     TileIndex(#[from] kfmap_shared::tiles::TileError),

@@ -19,6 +19,7 @@ use kfmap_shared::io::{Trajectory, format_tum, write_atomic};
 use kfmap_shared::map::{Keyframe, KeyframeMapOptions};
 use kfmap_shared::motion::DeskewMode;
 use kfmap_shared::pose_graph::{PoseEdge, PoseGraph, write_g2o};
+use kfmap_shared::refine::{Consistency, RefineReport};
 use kfmap_shared::registration::Fitness;
 use kfmap_shared::tiles::TileGeometry;
 use kfmap_shared::trajectory_error::{absolute_trajectory_error, rigid_alignment};
@@ -28,7 +29,10 @@ use crate::config::BakeConfig;
 use crate::dataset::{ScanPoses, scan_poses};
 use crate::error::BakeError;
 use crate::gravity::{BakeGravity, bake_gravity, check_overlap};
-use crate::mapping::{OdometryOutcome, ScanCheck, ScanVerdict, Stage, build_trajectory};
+use crate::mapping::{
+    OdometryOutcome, RefineClouds, ScanCheck, ScanVerdict, Stage, build_trajectory,
+    refine_trajectory,
+};
 use crate::scan_range::ScanRange;
 use crate::source::{ScanList, Source};
 use crate::tiling::{TileSetSummary, TileSetWriter};
@@ -48,6 +52,10 @@ pub struct BakeInput {
     /// clouds in log-time order); scans named
     /// by frame number keep their number's pose, others their place in the pose file.
     pub scans: ScanRange,
+    /// Take the poses from the pose file (e.g. a trajectory an earlier bake built) and
+    /// only refine them jointly (`[build.refine]`) before baking; the dataset's own pose
+    /// file, when there is one besides, gives the ATE before and after.
+    pub refine_only: bool,
 }
 
 impl BakeInput {
@@ -58,6 +66,7 @@ impl BakeInput {
             poses: None,
             build_poses: false,
             scans: ScanRange::ALL,
+            refine_only: false,
         }
     }
 
@@ -137,6 +146,9 @@ pub enum BakeStage {
     Optimizing,
     /// Every scan checked against its neighbours (building poses).
     Checking,
+    /// Every pose refined jointly against the planes the scans share (building poses;
+    /// done/total count solver steps, total is an upper bound).
+    Refining,
     /// Keyframes indexed and written.
     Writing,
     /// A tile set's tiles finished (grids cut, indexes, Autoware clouds).
@@ -178,6 +190,16 @@ pub struct MappingSummary {
     pub built_from_file: Option<Pose>,
     /// ATE of every scan's pose against the pose file, metres.
     pub ate_scans: Option<f64>,
+    /// The same before the joint refinement.
+    pub ate_scans_before_refine: Option<f64>,
+    /// The joint refinement (`None`: disabled in `[build.refine]`).
+    pub refine: Option<RefineReport>,
+    /// The poses were given and only refined (`--refine-only`): no odometry, loops,
+    /// graph or scan check ran.
+    pub refined_only: bool,
+    /// The map consistency at the pose file's poses, on the same scans and keyframes as
+    /// the refinement's figures (`None`: no pose file, or no refinement).
+    pub reference_consistency: Option<Consistency>,
     /// Every loop candidate verified, in scan indices, with its fitness.
     pub loop_checks: Vec<LoopSummary>,
     /// Scans odometry found only after retrying wider hypotheses.
@@ -295,6 +317,7 @@ fn build_poses(
                 Stage::Keyframes(d, t) => report(BakeStage::Keyframes, d, t),
                 Stage::Optimizing => report(BakeStage::Optimizing, 0, 1),
                 Stage::Checking => report(BakeStage::Checking, 0, 1),
+                Stage::Refining(d, t) => report(BakeStage::Refining, d, t),
             })
         },
     )?;
@@ -324,6 +347,13 @@ fn build_poses(
         ate: ate(&built.poses),
         built_from_file: truth.map(|t| rigid_alignment(&t.poses, &built.poses)),
         ate_scans: truth.map(|t| absolute_trajectory_error(&built.poses, &t.poses)),
+        ate_scans_before_refine: truth
+            .map(|t| absolute_trajectory_error(&built.before_refine, &t.poses)),
+        refine: built.refine.clone(),
+        refined_only: false,
+        reference_consistency: truth
+            .zip(built.refine_clouds.as_ref())
+            .map(|(t, clouds)| clouds.consistency_at(&t.poses, &built.keyframe_scans)),
         loop_checks: built
             .loop_checks
             .iter()
@@ -409,6 +439,28 @@ pub fn settle_deskew(config: &BakeConfig, scans: &ScanList) -> BakeConfig {
     settled
 }
 
+/// Reads and filters scan `i` of `scans` and deskews it by `twist` as `[build.odometry]
+/// deskew` says (azimuth times first for raw sweeps without them).
+fn timed_and_deskewed(
+    scans: &ScanList,
+    i: usize,
+    config: &BakeConfig,
+    twist: Option<Twist>,
+) -> Result<PointCloud, BakeError> {
+    let mut raw = scans.load_raw(i, config)?;
+    let odometry = &config.build.odometry;
+    if odometry.deskew == DeskewMode::Azimuth {
+        odometry.sweep.time_scan(&mut raw);
+    }
+    if let Some(twist) = twist.filter(|_| odometry.deskew.uses_point_times()) {
+        deskew(&mut raw, &twist, 0.0).map_err(|e| BakeError::Scan {
+            path: scans.name(i).to_path_buf(),
+            message: e.to_string(),
+        })?;
+    }
+    Ok(raw)
+}
+
 /// Reads, filters and downsamples scan `i` of `scans`, taken at `pose` (map frame): on
 /// the map's voxel grid, with each point's raw count, when keyframes are fused.
 fn load_scan(
@@ -421,17 +473,7 @@ fn load_scan(
     let fused = config.map.fuse_overlapping_keyframes;
     let path = scans.name(i);
     let path = path.as_path();
-    let mut raw = scans.load_raw(i, config)?;
-    let odometry = &config.build.odometry;
-    if odometry.deskew == DeskewMode::Azimuth {
-        odometry.sweep.time_scan(&mut raw);
-    }
-    if let Some(twist) = twist.filter(|_| odometry.deskew.uses_point_times()) {
-        deskew(&mut raw, &twist, 0.0).map_err(|e| BakeError::Scan {
-            path: path.to_path_buf(),
-            message: e.to_string(),
-        })?;
-    }
+    let raw = timed_and_deskewed(scans, i, config, twist)?;
     let (cloud, weights) = raw
         .into_keyframe_points(config.keyframes.voxel_size, fused.then_some(pose))
         .map_err(|e| BakeError::Scan {
@@ -542,12 +584,33 @@ fn poses_of_scans(
     progress: &mut impl FnMut(BakeProgress),
 ) -> Result<(ScanPoses, Option<MappingSummary>), BakeError> {
     let pose_file = input.pose_file();
+    if input.refine_only && (input.build_poses || pose_file.is_none()) {
+        return Err(BakeError::RefineOnly(
+            "it refines given poses: pass them with --poses FILE (e.g. an earlier bake's \
+             --trajectory-out), without --build-poses"
+                .into(),
+        ));
+    }
     match pose_file {
         Some(path) if !input.build_poses => {
             if output.graph.is_some() {
                 return Err(BakeError::NoPoseGraph(path));
             }
-            Ok((scan_poses(&path, all_scans)?.select(range), None))
+            let given = scan_poses(&path, all_scans)?.select(range.clone());
+            if !input.refine_only {
+                return Ok((given, None));
+            }
+            // The dataset's own pose file, when --poses named another, is the reference.
+            let truth = input
+                .source
+                .pose_file()
+                .filter(|own| *own != path)
+                .map(|own| scan_poses(&own, all_scans).map(|t| t.select(range.clone())))
+                .transpose()?;
+            let scans = all_scans.select(range.clone());
+            let (refined, summary) =
+                refine_given_poses(&scans, config, given, truth.as_ref(), progress)?;
+            Ok((refined, Some(summary)))
         }
         truth => {
             let truth = truth
@@ -564,6 +627,96 @@ fn poses_of_scans(
             Ok((built, Some(summary)))
         }
     }
+}
+
+/// `kfmap bake --refine-only`: the given poses refined jointly on the scans (read and
+/// deskewed as a bake at given poses reads them, on the refinement's voxel grid), with
+/// the figures a build reports where they apply (no odometry, loops, graph or check).
+fn refine_given_poses(
+    scans: &ScanList,
+    config: &BakeConfig,
+    given: ScanPoses,
+    truth: Option<&ScanPoses>,
+    progress: &mut impl FnMut(BakeProgress),
+) -> Result<(ScanPoses, MappingSummary), BakeError> {
+    let params = config.build.refine;
+    if !params.enabled {
+        return Err(BakeError::RefineOnly(
+            "[build.refine] enabled = false in the config: nothing to do".into(),
+        ));
+    }
+    let count = scans.len();
+    let clouds = (0..count)
+        .into_par_iter()
+        .map(|i| {
+            let twist = given
+                .stamped
+                .then(|| scan_twist(&given.poses, &given.stamps, i))
+                .flatten();
+            let raw = timed_and_deskewed(scans, i, config, twist)?;
+            let path = scans.name(i);
+            raw.voxel_downsample(params.point_voxel)
+                .map(|c| c.points)
+                .map_err(|e| BakeError::Scan {
+                    path: path.to_path_buf(),
+                    message: e.to_string(),
+                })
+        })
+        .collect::<Result<Vec<_>, BakeError>>()?;
+    let clouds = RefineClouds::new(clouds, vec![Pose::identity(); count], &params);
+    let keyframes = choose_keyframes(config, &given.poses);
+    let mut poses = given.poses.clone();
+    let report = refine_trajectory(
+        &clouds,
+        &mut poses,
+        &given.poses,
+        &keyframes,
+        &params,
+        |d, t| {
+            progress(BakeProgress {
+                stage: BakeStage::Refining,
+                done: d,
+                total: t,
+                points_done: 0,
+            })
+        },
+    );
+    let at_keyframes = |p: &[Pose]| -> Vec<Pose> { keyframes.iter().map(|&i| p[i]).collect() };
+    let ate = |p: &[Pose]| {
+        truth.map(|t| absolute_trajectory_error(&at_keyframes(p), &at_keyframes(&t.poses)))
+    };
+    let summary = MappingSummary {
+        keyframes: keyframes.len(),
+        loops_found: 0,
+        graph_error: (0.0, 0.0),
+        graph: PoseGraph::default(),
+        ate: ate(&poses),
+        built_from_file: truth.map(|t| rigid_alignment(&t.poses, &poses)),
+        ate_scans: truth.map(|t| absolute_trajectory_error(&poses, &t.poses)),
+        ate_scans_before_refine: truth.map(|t| absolute_trajectory_error(&given.poses, &t.poses)),
+        reference_consistency: truth.map(|t| clouds.consistency_at(&t.poses, &keyframes)),
+        refine: Some(report),
+        refined_only: true,
+        loop_checks: Vec::new(),
+        recovered_scans: Vec::new(),
+        odometry_poor_scans: Vec::new(),
+        checks: vec![ScanCheck::UNCHECKED; count],
+        reregistered_scans: Vec::new(),
+        poor_scans: Vec::new(),
+        ate_odometry: None,
+        poses: poses.clone(),
+        gyro_bias: None,
+        deskew: config.build.odometry.deskew,
+        sweep_seconds: None,
+    };
+    Ok((
+        ScanPoses {
+            poses,
+            stamps: given.stamps,
+            stamped: given.stamped,
+        },
+        summary,
+    ))
 }
 
 /// The scans that become keyframes: the decider on the poses alone.

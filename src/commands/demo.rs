@@ -596,6 +596,7 @@ fn build_map(passes: &Passes, map: &Path, map_poses: &Path) -> anyhow::Result<(B
         poses: passes.reference_file.clone(),
         build_poses: true,
         scans: passes.mapped_scans,
+        refine_only: false,
     };
     let output = BakeOutput {
         trajectory: Some(map_poses.to_path_buf()),

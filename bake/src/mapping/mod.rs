@@ -5,6 +5,7 @@
 
 mod framework;
 mod odometry;
+mod refine;
 mod scan_check;
 #[cfg(test)]
 mod tests;
@@ -23,8 +24,10 @@ use kfmap_shared::imu::ImuSample;
 use kfmap_shared::map::KeyframeDecider;
 use kfmap_shared::options::InvalidOption;
 use kfmap_shared::pose_graph::{GraphParams, GraphReport, PoseEdge};
+use kfmap_shared::refine::{RefineParams, RefineReport};
 use kfmap_shared::registration::RegistrationError;
 pub use odometry::{Odometry, OdometryOutcome, OdometryParams, OdometryStep};
+pub use refine::{RefineClouds, refine_trajectory};
 pub use scan_check::{ScanCheck, ScanCheckParams, ScanVerdict};
 
 /// Map-building settings (`bake.toml`'s `[build]`).
@@ -41,6 +44,8 @@ pub struct BuildParams {
     pub graph: GraphParams,
     /// Every scan checked against its neighbours after the optimization.
     pub check: ScanCheckParams,
+    /// Every scan's pose refined jointly against the planes the scans share.
+    pub refine: RefineParams,
 }
 
 impl BuiltTrajectory {
@@ -85,7 +90,8 @@ impl BuildParams {
             .map_err(|e| ("build.keyframes", e))?;
         self.loops.validate().map_err(|e| ("build.loops", e))?;
         self.graph.validate().map_err(|e| ("build.graph", e))?;
-        self.check.validate().map_err(|e| ("build.check", e))
+        self.check.validate().map_err(|e| ("build.check", e))?;
+        self.refine.validate().map_err(|e| ("build.refine", e))
     }
 }
 
@@ -113,6 +119,12 @@ pub struct BuiltTrajectory {
     pub edges: Vec<PoseEdge>,
     /// The gyro bias the odometry learned, IMU frame, rad/s (`None`: no gyro used).
     pub gyro_bias: Option<Vector3<f64>>,
+    /// Every scan's pose before the joint refinement (after the scan check).
+    pub before_refine: Vec<Pose>,
+    /// The joint refinement (`None`: disabled).
+    pub refine: Option<RefineReport>,
+    /// The scans as the refinement saw them (`None`: disabled), to grade other poses.
+    pub refine_clouds: Option<RefineClouds>,
 }
 
 /// Which stage is running, for progress reports.
@@ -126,6 +138,8 @@ pub enum Stage {
     Optimizing,
     /// Every scan checked against its neighbours.
     Checking,
+    /// Every pose refined jointly (steps done, at most total).
+    Refining(usize, usize),
 }
 
 /// Builds a consistent trajectory for scans taken at `stamps` (seconds, increasing;
@@ -140,6 +154,11 @@ pub fn build_trajectory<E: From<RegistrationError> + From<GlobalError>>(
 ) -> Result<BuiltTrajectory, E> {
     let count = stamps.len();
     let mut odometry = Odometry::new(params.odometry, imu)?;
+    if params.refine.enabled {
+        odometry.keep_fine_points(params.refine.point_voxel);
+    }
+    // The refinement's finer sample of every scan (empty when it is off).
+    let mut fine_clouds = Vec::with_capacity(count);
     let mut odometry_poses = Vec::with_capacity(count);
     let mut outcomes = Vec::with_capacity(count);
     let mut keyframe_scans: Vec<usize> = Vec::new();
@@ -154,6 +173,7 @@ pub fn build_trajectory<E: From<RegistrationError> + From<GlobalError>>(
         outcomes.push(step.outcome);
         let scan_from_cloud = step.pose.inverse() * step.cloud_pose;
         scan_clouds.push(scan_check::ScanCloud::new(scan_from_cloud, &step.prepared));
+        fine_clouds.push(step.fine);
         // Against the last keyframe only: a revisit must still get graph vertices, or
         // its scans hang off one keyframe's pose for the rest of the run.
         if params.keyframes.should_create(
@@ -191,6 +211,21 @@ pub fn build_trajectory<E: From<RegistrationError> + From<GlobalError>>(
     }
     progress(Stage::Checking);
     let checks = scan_check::check_scans(&scan_clouds, stamps, &mut poses, &params.check)?;
+    let before_refine = poses.clone();
+    let refine_clouds = params.refine.enabled.then(|| {
+        let scan_from_cloud = scan_clouds.iter().map(|c| c.scan_from_cloud).collect();
+        RefineClouds::new(fine_clouds, scan_from_cloud, &params.refine)
+    });
+    let refine = refine_clouds.as_ref().map(|clouds| {
+        refine_trajectory(
+            clouds,
+            &mut poses,
+            &odometry_poses,
+            &keyframe_scans,
+            &params.refine,
+            |d, t| progress(Stage::Refining(d, t)),
+        )
+    });
     Ok(BuiltTrajectory {
         poses,
         odometry: odometry_poses,
@@ -202,5 +237,8 @@ pub fn build_trajectory<E: From<RegistrationError> + From<GlobalError>>(
         graph: report.graph,
         edges: global.edges().to_vec(),
         gyro_bias: odometry.gyro_bias(),
+        before_refine,
+        refine,
+        refine_clouds,
     })
 }

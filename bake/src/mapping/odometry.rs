@@ -177,6 +177,8 @@ pub struct Odometry {
     /// Local-map keyframes: pose and downsampled points (odometry frame).
     keyframes: VecDeque<(Pose, Vec<[f32; 3]>)>,
     local_map: Option<PreparedCloud>,
+    /// Voxel edge of the finer sample each step also returns (`None`: none).
+    fine_voxel: Option<f64>,
 }
 
 /// One odometry step.
@@ -193,6 +195,9 @@ pub struct OdometryStep {
     /// The scan as registered (deskewed, downsampled, covariances, tree; frame at
     /// `cloud_pose`), for callers that keep it.
     pub prepared: PreparedCloud,
+    /// The deskewed scan on a finer voxel grid (frame at `cloud_pose`), when asked for
+    /// by [`Odometry::keep_fine_points`]; else empty.
+    pub fine: Vec<[f32; 3]>,
 }
 
 impl Odometry {
@@ -209,7 +214,14 @@ impl Odometry {
             threshold: AdaptiveThreshold::new(params.adaptive_distance),
             keyframes: VecDeque::new(),
             local_map: None,
+            fine_voxel: None,
         })
+    }
+
+    /// Each step also returns the deskewed scan on a voxel grid of this edge (metres),
+    /// for the joint refinement.
+    pub fn keep_fine_points(&mut self, voxel: f64) {
+        self.fine_voxel = Some(voxel);
     }
 
     /// Registers the next scan (sensor frame, taken at `stamp` seconds) and returns its
@@ -233,6 +245,17 @@ impl Odometry {
         let mid = self.motion.mid_scan(scan, stamp, deskew)?;
         let scan = mid.deskewed.as_ref().unwrap_or(scan);
         let prepared = PreparedCloud::new(scan, &reg, "scan")?;
+        let fine = match self.fine_voxel {
+            Some(voxel) => {
+                scan.voxel_downsample(voxel)
+                    .map_err(|e| RegistrationError::Downsample {
+                        which: "scan",
+                        message: e.to_string(),
+                    })?
+                    .points
+            }
+            None => Vec::new(),
+        };
         let tracked_at = stamp + mid.offset;
         let predicted = self.motion.predict(tracked_at);
         let (cloud_pose, registration, outcome) = match (&self.local_map, predicted) {
@@ -258,6 +281,7 @@ impl Odometry {
             registration,
             outcome,
             prepared,
+            fine,
         })
     }
 

@@ -108,7 +108,8 @@ pub struct ScanCheck {
 }
 
 impl ScanCheck {
-    const UNCHECKED: ScanCheck = ScanCheck {
+    /// A scan the check did not look at.
+    pub const UNCHECKED: ScanCheck = ScanCheck {
         verdict: ScanVerdict::Unchecked,
         shift: None,
         fitness: None,

@@ -26,6 +26,7 @@ mod elch;
 mod g2o;
 mod se3;
 mod solve;
+pub(crate) use solve::linearize_edge;
 #[cfg(test)]
 mod tests;
 

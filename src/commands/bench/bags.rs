@@ -143,6 +143,7 @@ fn bake_rows(table: &mut Table, balm: &Path, dir: &Path) -> anyhow::Result<()> {
         poses: Some(bag_poses.clone()),
         scans: ScanRange::ALL,
         build_poses: false,
+        refine_only: false,
     };
     let map = dir.join(format!("kfmap-bench-bake-{}.kfmap", std::process::id()));
     let config = BakeConfig::default();
