@@ -7,7 +7,7 @@ use nalgebra::Vector3;
 use rayon::prelude::*;
 use serde::Serialize;
 
-use super::planes::Cluster;
+use super::planes::{Cluster, runs};
 use crate::eigen::sorted_symmetric_eigen;
 use crate::geometry::Pose;
 
@@ -55,33 +55,22 @@ pub fn consistency(clouds: &[&[[f32; 3]]], poses: &[Pose], measured: &[usize]) -
         })
         .collect();
     keyed.par_sort_unstable_by(|a, b| (a.0, a.1).cmp(&(b.0, b.1)));
-    let mut cubes = Vec::new();
-    let mut start = 0;
-    for k in 1..=keyed.len() {
-        if k == keyed.len() || keyed[k].0 != keyed[start].0 {
-            cubes.push(start..k);
-            start = k;
-        }
-    }
-    let figures: Vec<(f64, f64)> = cubes
+    let figures: Vec<(f64, f64)> = runs(&keyed, |e| e.0)
         .into_par_iter()
         .filter_map(|range| {
             let cube = &keyed[range];
-            let mut seen = Vec::new();
-            let mut start = 0;
-            for k in 1..=cube.len() {
-                if k == cube.len() || cube[k].1 != cube[start].1 {
-                    let points: Vec<Vector3<f64>> = cube[start..k].iter().map(|e| e.2).collect();
-                    if points.len() >= MIN_POINTS {
-                        let own = Cluster::of(&points);
-                        let values = sorted_symmetric_eigen(&own.scatter).values;
-                        if values[0] <= OWN_PLANE_RATIO * values[1] {
-                            seen.push(own);
-                        }
-                    }
-                    start = k;
-                }
-            }
+            let seen: Vec<Cluster> = runs(cube, |e| e.1)
+                .into_iter()
+                .filter(|scan| scan.len() >= MIN_POINTS)
+                .map(|scan| {
+                    let points: Vec<Vector3<f64>> = cube[scan].iter().map(|e| e.2).collect();
+                    Cluster::of(&points)
+                })
+                .filter(|own| {
+                    let values = sorted_symmetric_eigen(&own.scatter).values;
+                    values[0] <= OWN_PLANE_RATIO * values[1]
+                })
+                .collect();
             (seen.len() >= MIN_SCANS).then(|| {
                 let all = Cluster::merged(seen.iter());
                 let eigen = sorted_symmetric_eigen(&all.scatter);

@@ -2,6 +2,8 @@
 //! voxels (a root cube that is not planar is split into eight, a few times), each plane
 //! kept as one point cluster per scan that sees it, in that scan's own frame.
 
+use std::ops::Range;
+
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
@@ -100,15 +102,7 @@ pub(crate) fn find_planes(
         })
         .collect();
     keyed.par_sort_unstable();
-    let mut groups = Vec::new();
-    let mut start = 0;
-    for k in 1..=keyed.len() {
-        if k == keyed.len() || keyed[k].0 != keyed[start].0 {
-            groups.push(start..k);
-            start = k;
-        }
-    }
-    groups
+    runs(&keyed, |e| e.0)
         .into_par_iter()
         .map(|range| {
             let key = keyed[range.start].0;
@@ -196,15 +190,13 @@ fn cut(
 /// them spread evenly over the run. `None` when too few scans remain.
 fn plane_of(items: &[Item], poses: &[Pose], params: &RefineParams) -> Option<Plane> {
     // Items arrive sorted by scan (the root sort keeps its order through the splits).
-    let mut observers: Vec<(usize, Cluster)> = Vec::new();
-    let mut start = 0;
-    for k in 1..=items.len() {
-        if k == items.len() || items[k].scan != items[start].scan {
-            let local: Vec<Vector3<f64>> = items[start..k].iter().map(|i| i.local).collect();
-            observers.push((items[start].scan as usize, Cluster::of(&local)));
-            start = k;
-        }
-    }
+    let observers: Vec<(usize, Cluster)> = runs(items, |i| i.scan)
+        .into_iter()
+        .map(|run| {
+            let local: Vec<Vector3<f64>> = items[run.clone()].iter().map(|i| i.local).collect();
+            (items[run.start].scan as usize, Cluster::of(&local))
+        })
+        .collect();
     if observers.len() < params.min_observers {
         return None;
     }
@@ -234,6 +226,19 @@ fn plane_of(items: &[Item], poses: &[Pose], params: &RefineParams) -> Option<Pla
         kept
     };
     Some(Plane { observers })
+}
+
+/// The ranges of consecutive items with equal keys (`items` sorted by that key).
+pub(crate) fn runs<T, K: PartialEq>(items: &[T], key: impl Fn(&T) -> K) -> Vec<Range<usize>> {
+    let mut ranges = Vec::new();
+    let mut start = 0;
+    for k in 1..=items.len() {
+        if k == items.len() || key(&items[k]) != key(&items[start]) {
+            ranges.push(start..k);
+            start = k;
+        }
+    }
+    ranges
 }
 
 /// Scans that see fewer than `min-planes-per-scan` planes.
