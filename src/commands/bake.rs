@@ -100,7 +100,9 @@ use super::source_arg::SourceArgs;
 ///   --graph-out FILE.g2o  the keyframe pose graph of the built poses (VERTEX_SE3:QUAT
 ///       per graph keyframe, its id the scan's index in the dataset; EDGE_SE3:QUAT for
 ///       consecutive and loop edges with their information; FIX on the first), in the
-///       same map frame;
+///       same map frame; the vertices are the written poses (after the scan check and
+///       the joint refinement), the edges the pose graph's measurements, so optimizing
+///       the file alone returns to the pose graph's own optimum;
 ///       `kfmap optimize-graph` reads it. Only when the poses are built: with a given
 ///       pose file there is no graph and --graph-out is refused (pass --build-poses).
 ///

@@ -72,7 +72,7 @@ pub fn refine_trajectory(
         .iter()
         .zip(clouds.cloud_poses(poses))
         .map(|(points, pose)| RefineScan {
-            points: points.clone(),
+            points: points.as_slice(),
             pose,
         })
         .collect();

@@ -7,7 +7,7 @@ use nalgebra::Vector3;
 use rayon::prelude::*;
 use serde::Serialize;
 
-use super::planes::{Cluster, runs};
+use super::planes::{Cluster, keyed_points, runs};
 use crate::eigen::sorted_symmetric_eigen;
 use crate::geometry::Pose;
 
@@ -37,24 +37,7 @@ pub struct Consistency {
 /// The consistency of the scans `measured` (indices into `clouds`, points in each scan's
 /// frame) at `poses`.
 pub fn consistency(clouds: &[&[[f32; 3]]], poses: &[Pose], measured: &[usize]) -> Consistency {
-    let mut keyed: Vec<([i64; 3], u32, Vector3<f64>)> = measured
-        .par_iter()
-        .flat_map_iter(|&scan| {
-            let pose = poses[scan];
-            clouds[scan].iter().map(move |p| {
-                let w = pose
-                    .transform_point(&nalgebra::Point3::new(
-                        p[0] as f64,
-                        p[1] as f64,
-                        p[2] as f64,
-                    ))
-                    .coords;
-                let key = [0, 1, 2].map(|a| (w[a] / CUBE_M).floor() as i64);
-                (key, scan as u32, w)
-            })
-        })
-        .collect();
-    keyed.par_sort_unstable_by(|a, b| (a.0, a.1).cmp(&(b.0, b.1)));
+    let keyed = keyed_points(clouds, poses, measured, CUBE_M);
     let figures: Vec<(f64, f64)> = runs(&keyed, |e| e.0)
         .into_par_iter()
         .filter_map(|range| {
@@ -62,8 +45,16 @@ pub fn consistency(clouds: &[&[[f32; 3]]], poses: &[Pose], measured: &[usize]) -
             let seen: Vec<Cluster> = runs(cube, |e| e.1)
                 .into_iter()
                 .filter(|scan| scan.len() >= MIN_POINTS)
-                .map(|scan| {
-                    let points: Vec<Vector3<f64>> = cube[scan].iter().map(|e| e.2).collect();
+                .map(|run| {
+                    let points: Vec<Vector3<f64>> = cube[run]
+                        .iter()
+                        .map(|&(_, scan, k)| {
+                            let p = clouds[scan as usize][k as usize];
+                            let local =
+                                nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+                            poses[scan as usize].transform_point(&local).coords
+                        })
+                        .collect();
                     Cluster::of(&points)
                 })
                 .filter(|own| {

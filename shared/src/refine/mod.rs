@@ -197,10 +197,10 @@ impl RefineParams {
 }
 
 /// One scan to refine: its points in its own frame, and its pose (`T_map_cloud`).
-#[derive(Debug, Clone)]
-pub struct RefineScan {
+#[derive(Debug, Clone, Copy)]
+pub struct RefineScan<'a> {
     /// Points, the scan's frame (deskewed, thinned).
-    pub points: Vec<[f32; 3]>,
+    pub points: &'a [[f32; 3]],
     /// `T_map_cloud` before refining.
     pub pose: Pose,
 }
@@ -253,14 +253,14 @@ struct Prior {
 /// are taken over (e.g. the keyframes). Returns the poses to use (the input ones when
 /// the result is refused) and the report; `progress(done, total)` counts LM steps.
 pub fn refine_poses(
-    scans: &[RefineScan],
+    scans: &[RefineScan<'_>],
     odometry: &[Pose],
     measured: &[usize],
     params: &RefineParams,
     mut progress: impl FnMut(usize, usize),
 ) -> (Vec<Pose>, RefineReport) {
     let started = Instant::now();
-    let clouds: Vec<&[[f32; 3]]> = scans.iter().map(|s| s.points.as_slice()).collect();
+    let clouds: Vec<&[[f32; 3]]> = scans.iter().map(|s| s.points).collect();
     let input: Vec<Pose> = scans.iter().map(|s| s.pose).collect();
     let mut report = RefineReport {
         consistency_before: consistency(&clouds, &input, measured),

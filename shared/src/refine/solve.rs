@@ -21,6 +21,9 @@ use crate::sparse_blocks::BlockSystem;
 
 /// Planes per parallel chunk: sums in fixed chunks do not depend on the thread count.
 const CHUNK: usize = 256;
+/// Planes whose blocks are held at once (bounds the linearization's memory: about 400 B
+/// per observation).
+const BATCH: usize = 8192;
 
 /// What one plane set's solve did.
 pub(crate) struct LmOutcome {
@@ -227,6 +230,28 @@ pub(crate) fn levenberg_marquardt(
     outcome
 }
 
+/// Adds planes' blocks (each with its point count) to `system` and `gradient`.
+fn add_plane_blocks(
+    system: &mut BlockSystem,
+    gradient: &mut [f64],
+    blocks: &[(Vec<ObserverBlocks>, f64)],
+) {
+    let slot = |s: usize| s.checked_sub(1);
+    for (observers, n) in blocks {
+        for (a, oa) in observers.iter().enumerate() {
+            let Some(i) = slot(oa.scan) else { continue };
+            for r in 0..6 {
+                gradient[i * 6 + r] += oa.gradient[r];
+            }
+            system.add_diagonal(i, &(oa.d - oa.b * oa.b.transpose() / *n));
+            for ob in &observers[a + 1..] {
+                let Some(j) = slot(ob.scan) else { continue };
+                system.add_off_diagonal(i, j, &(-oa.b * ob.b.transpose() / *n));
+            }
+        }
+    }
+}
+
 /// Fills `system` with the Gauss-Newton Hessian at `poses` and returns the gradient (both
 /// halved, as the pose graph's).
 fn normal_equations(
@@ -239,24 +264,14 @@ fn normal_equations(
     let slot = |s: usize| s.checked_sub(1);
     let mut gradient = vec![0.0; system.dim()];
     system.clear();
-    // Computed in parallel, added in plane order.
-    let blocks: Vec<(Vec<ObserverBlocks>, f64)> = planes
-        .par_iter()
-        .with_min_len(CHUNK)
-        .map(|p| plane_blocks(p, poses, params))
-        .collect();
-    for (observers, n) in &blocks {
-        for (a, oa) in observers.iter().enumerate() {
-            let Some(i) = slot(oa.scan) else { continue };
-            for r in 0..6 {
-                gradient[i * 6 + r] += oa.gradient[r];
-            }
-            system.add_diagonal(i, &(oa.d - oa.b * oa.b.transpose() / *n));
-            for ob in &observers[a + 1..] {
-                let Some(j) = slot(ob.scan) else { continue };
-                system.add_off_diagonal(i, j, &(-oa.b * ob.b.transpose() / *n));
-            }
-        }
+    // Computed in parallel, added in plane order, a bounded batch of planes at a time.
+    for batch in planes.chunks(BATCH) {
+        let blocks: Vec<(Vec<ObserverBlocks>, f64)> = batch
+            .par_iter()
+            .with_min_len(CHUNK)
+            .map(|p| plane_blocks(p, poses, params))
+            .collect();
+        add_plane_blocks(system, &mut gradient, &blocks);
     }
     for p in priors {
         let e = linearize_edge(

@@ -218,7 +218,7 @@ fn gauss_newton_blocks_match_the_point_jacobians() {
 
 /// A room (floor, ceiling, four walls, two tilted boards and a box) sampled from 12 poses
 /// along a loop, 1 cm noise; every pose but the first pushed 5 cm and 1 deg off: the
-/// refinement brings them back within 4 mm and 0.07 deg of the truth.
+/// refinement brings them back within 4 mm and 0.075 deg of the truth.
 #[test]
 fn refinement_recovers_perturbed_poses_in_a_room() {
     let mut rng = Lcg(21);
@@ -231,23 +231,32 @@ fn refinement_recovers_perturbed_poses_in_a_room() {
             )
         })
         .collect();
-    let scans: Vec<RefineScan> = truth
+    // Each pose's sample, then its perturbation (scan 0 stays at the truth).
+    let sampled: Vec<(Vec<[f32; 3]>, Pose)> = truth
         .iter()
         .enumerate()
-        .map(|(k, t)| RefineScan {
-            points: room_points(&mut rng)
+        .map(|(k, t)| {
+            let points = room_points(&mut rng)
                 .into_iter()
                 .filter(|p| (p - t.translation.vector).norm() < 8.0)
                 .map(|p| {
                     let q = t.inverse_transform_point(&p.into()).coords;
                     [q.x as f32, q.y as f32, q.z as f32]
                 })
-                .collect(),
-            pose: if k == 0 {
+                .collect();
+            let start = if k == 0 {
                 *t
             } else {
                 t * pose(&mut rng, 1f64.to_radians(), 0.05)
-            },
+            };
+            (points, start)
+        })
+        .collect();
+    let scans: Vec<RefineScan> = sampled
+        .iter()
+        .map(|(points, pose)| RefineScan {
+            points,
+            pose: *pose,
         })
         .collect();
     let before: Vec<Pose> = scans.iter().map(|s| s.pose).collect();
@@ -268,8 +277,8 @@ fn refinement_recovers_perturbed_poses_in_a_room() {
     let (m0, d0) = worst(&before);
     let (m, d) = worst(&refined);
     println!("worst before {m0:.4} m {d0:.3} deg, after {m:.5} m {d:.4} deg");
-    // Measured 3.4 mm, 0.060 deg (1.8 mm with more iterations and no caps).
-    assert!(m < 0.004 && d < 0.07, "{m} m {d} deg");
+    // Measured 3.5 mm, 0.065 deg (1.8 mm with more iterations).
+    assert!(m < 0.004 && d < 0.075, "{m} m {d} deg");
     assert!(report.consistency_after.mean_spread < 0.5 * report.consistency_before.mean_spread);
 }
 
