@@ -90,7 +90,7 @@ pub(crate) fn find_planes(
     let size = params.voxel_size;
     let all: Vec<usize> = (0..clouds.len()).collect();
     let keyed = keyed_points(clouds, poses, &all, size);
-    runs(&keyed, |e| e.0)
+    let mut planes: Vec<Plane> = runs(&keyed, |e| e.0)
         .into_par_iter()
         .map(|range| {
             let key = keyed[range.start].0;
@@ -114,7 +114,11 @@ pub(crate) fn find_planes(
         .collect::<Vec<_>>()
         .into_iter()
         .flatten()
-        .collect()
+        .collect();
+    // Planes seen from nearby scans next to each other: their pair blocks land in the same
+    // part of the sparse matrix, which stays in cache (stable: deterministic).
+    planes.sort_by_key(|p: &Plane| p.observers[0].0);
+    planes
 }
 
 /// Keeps the voxel's points as a plane when they form one, else splits the voxel.
