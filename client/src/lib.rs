@@ -20,6 +20,7 @@
 
 mod connection;
 mod error;
+pub mod hypotheses;
 mod localize;
 mod relocalize;
 #[cfg(feature = "remote")]
@@ -31,7 +32,7 @@ mod tracker;
 pub use connection::{ClientOptions, Connection, Response};
 pub use error::ClientError;
 pub use localize::{LocalizeOptions, Localized};
-pub use relocalize::{RelocalizeOptions, Relocalized};
+pub use relocalize::{RelocalizeOptions, Relocalized, ScoredPlace};
 pub use tracker::{TrackedScan, Tracker, TrackerOptions};
 
 use kfmap_protocol::{

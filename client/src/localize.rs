@@ -122,6 +122,7 @@ impl Client {
                 registrations: h.registrations,
                 iterations: h.iterations,
                 converged: h.converged == 1,
+                tight_inlier_ratio: h.tight_fitness,
             },
         })
     }

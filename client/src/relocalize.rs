@@ -1,7 +1,8 @@
 //! Global relocalization of one scan by the server (`Relocalize`): no pose guess.
 
 use kfmap_protocol::{
-    FLAG_LEVELLED, RequestHeader, RequestKind, ScanPayload, pose_from_wire, pose_to_wire,
+    FLAG_LEVELLED, RequestHeader, RequestKind, ScanPayload, WirePlace, place_from_wire,
+    pose_from_wire, pose_to_wire,
 };
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::place::RelocalizeStatus;
@@ -32,8 +33,17 @@ impl Default for RelocalizeOptions {
     }
 }
 
-/// Where the server placed a scan.
+/// A place the server scored for a scan: where the scan settled there, and its score.
 #[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ScoredPlace {
+    /// `T_map_sensor` where the scan settled (coarse scan, fine pairing distance).
+    pub pose: Pose,
+    /// Share of the coarse scan paired at the fine distance there.
+    pub score: f64,
+}
+
+/// Where the server placed a scan.
+#[derive(Debug, Clone, PartialEq)]
 pub struct Relocalized {
     /// `found`, `ambiguous` or `not-found`.
     pub status: RelocalizeStatus,
@@ -55,6 +65,10 @@ pub struct Relocalized {
     pub runner_up: f64,
     /// Places the server's search proposed.
     pub candidates: u32,
+    /// Every place the server scored, best score first (empty from a server that does
+    /// not send them, e.g. over a tile set): a tracker keeps those near the best as
+    /// hypotheses.
+    pub places: Vec<ScoredPlace>,
     /// 6x6 pose covariance (rotation first), when known.
     pub covariance: Option<Matrix6<f64>>,
     /// Server compute time, microseconds.
@@ -94,7 +108,22 @@ impl Client {
             RelocalizeStatus::NotFound => None,
             _ => Some(pose_from_wire(&h.pose).ok_or_else(|| invalid("an invalid pose".into()))?),
         };
+        let mut places: Vec<ScoredPlace> = r
+            .pairings
+            .iter()
+            .map(|slot| {
+                let place = WirePlace::from_slot(*slot);
+                let pose = place_from_wire(&place)
+                    .ok_or_else(|| invalid("a scored place with an invalid pose".into()))?;
+                Ok(ScoredPlace {
+                    pose,
+                    score: place.score,
+                })
+            })
+            .collect::<Result<_, ClientError>>()?;
+        places.sort_by(|a, b| b.score.total_cmp(&a.score));
         Ok(Relocalized {
+            places,
             status,
             pose,
             inlier_ratio: h.fitness[0],

@@ -16,11 +16,13 @@ use kfmap_shared::motion::{
     AdaptiveThreshold, AdaptiveThresholdParams, Gyro, GyroError, GyroParams, PosePredictor,
     point_displacement,
 };
+use kfmap_shared::registration::{RegistrationParams, register};
 use kfmap_shared::tracking::{CORRECTION_RANGE_M, Reasons, ScanHealth, TrackingStatus};
 
-use kfmap_shared::place::{RelocalizeStatus, levelling};
+use kfmap_shared::place::{Ground, RelocalizeStatus, levelling, off_ground};
 
-use crate::{Client, ClientError, LocalizeOptions, Localized, RelocalizeOptions};
+use crate::hypotheses::{self, Hypothesis, HypothesisParams, distinct, near_best};
+use crate::{Client, ClientError, LocalizeOptions, Localized, RelocalizeOptions, ScoredPlace};
 
 /// Tracker settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -46,6 +48,19 @@ pub struct TrackerOptions {
     /// low fitness or a fitness drop) after which the tracker is `lost` (reason
     /// `unfit-streak`), and every further unfitting scan too until one is `ok` again.
     pub lost_after_unfit: usize,
+    /// How places a relocalization cannot tell apart are kept and compared
+    /// ([`crate::hypotheses`]).
+    pub hypotheses: HypothesisParams,
+    /// While tracking one place, every this many adopted scans the scan is also
+    /// relocalized: a place elsewhere that scores near the best becomes a hypothesis
+    /// beside the tracked one (0: never).
+    pub check_every: usize,
+    /// An adopted scan is `ok` only when the map explains at least this share of its
+    /// structure (points 1 m above their column's floor, paired within
+    /// `tight-distance`); below, `degraded` (`low-fitness`), and such scans count
+    /// towards `lost-after-unfit`. A place elsewhere explains the ground under it as
+    /// well as the right one, not what stands on it.
+    pub ok_explained: f64,
 }
 
 impl Default for TrackerOptions {
@@ -67,12 +82,15 @@ impl Default for TrackerOptions {
             // Half a second at 10 Hz: long enough for a few hard scans (a turn, an
             // open square), short enough that a wrong pose is not followed for long.
             lost_after_unfit: 5,
+            hypotheses: HypothesisParams::default(),
+            check_every: 10,
+            ok_explained: 0.5,
         }
     }
 }
 
 /// One tracked scan.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct TrackedScan {
     /// The scan's time, seconds.
     pub t: f64,
@@ -84,6 +102,9 @@ pub struct TrackedScan {
     /// The localized pose (the prediction when `lost`) and its health, with the
     /// tracker's status (a scan adopted while recovering is `degraded`).
     pub localized: Localized,
+    /// The places still in doubt, best first, when more than one is (then the scan is
+    /// `lost`, reason `ambiguous`, at the best one's pose); empty otherwise.
+    pub hypotheses: Vec<Hypothesis>,
 }
 
 /// Follows a sensor through a scan sequence against a map server.
@@ -103,10 +124,59 @@ pub struct Tracker {
     last_inlier_ratio: Option<f64>,
     /// Scans in a row that did not fit the map, since the last `ok` or relocalized one.
     unfit_streak: usize,
+    /// The places in doubt, best first (its pose is the motion model's last); empty
+    /// while tracking one place.
+    hypotheses: Vec<Hypothesis>,
+    /// Adopted scans since the last relocalization check.
+    since_check: usize,
+    /// The scan before (sensor frame, as sent): the motion between scans that carries
+    /// every hypothesis forward is registered from it.
+    previous_scan: Option<PointCloud>,
 }
 
 /// Seconds of accelerometer before a scan that give its tilt for relocalization.
 const TILT_WINDOW_S: f64 = 1.0;
+
+/// One place's localization of a scan.
+struct Evaluated {
+    /// Where the scan settled (where it started when lost there).
+    pose: Pose,
+    /// The localization.
+    localized: Localized,
+    /// The share of the scan's structure explained there; `None` when lost.
+    explained: Option<f64>,
+}
+
+/// Columns of [`Tracker::structure_explained`]'s ground, metres.
+const STRUCTURE_CELL_M: f64 = 1.0;
+/// Fewest structure points a scan is compared on (else it is measured whole)...
+const MIN_STRUCTURE_POINTS: usize = 50;
+/// ... and most (thinned evenly beyond).
+const MAX_STRUCTURE_POINTS: usize = 2000;
+
+/// `pose` with its rotation renormalized to unit length.
+fn renormalized(pose: &Pose) -> Pose {
+    Pose::from_parts(
+        pose.translation,
+        nalgebra::UnitQuaternion::new_normalize(pose.rotation.into_inner()),
+    )
+}
+
+/// The distinct places near the best of a relocalization ([`near_best`]), the verdict's
+/// registered `pose` standing for its own place (first when the server sent no places).
+fn places_with_verdict(
+    places: &[ScoredPlace],
+    pose: Pose,
+    score: f64,
+    params: &HypothesisParams,
+) -> Vec<ScoredPlace> {
+    let mut near = near_best(places, params);
+    match near.iter_mut().find(|p| !distinct(&p.pose, &pose, params)) {
+        Some(own) => own.pose = pose,
+        None => near.insert(0, ScoredPlace { pose, score }),
+    }
+    near
+}
 
 /// True when a scan was adopted without fitting the map: its registration did not
 /// converge or pairs too little of it (degeneracy alone is a corridor, not a misfit).
@@ -154,6 +224,9 @@ impl Tracker {
             adopted_streak: usize::MAX,
             last_inlier_ratio: None,
             unfit_streak: 0,
+            hypotheses: Vec::new(),
+            since_check: 0,
+            previous_scan: None,
         }
     }
 
@@ -227,14 +300,20 @@ impl Tracker {
         scan: &ScanPayload,
         t: f64,
     ) -> Result<TrackedScan, ClientError> {
+        let tracked = self.track_scan(client, scan, t);
+        self.previous_scan = Some(PointCloud::from_points(scan.points.to_vec()));
+        tracked
+    }
+
+    /// [`Self::track`] but for keeping the scan.
+    fn track_scan(
+        &mut self,
+        client: &mut Client,
+        scan: &ScanPayload,
+        t: f64,
+    ) -> Result<TrackedScan, ClientError> {
         let predicted = self.predict(t);
         let max_correction = self.max_correction();
-        let options = LocalizeOptions {
-            max_correction,
-            expected_inlier_ratio: self.last_inlier_ratio,
-            stamp: Some(t),
-            ..self.options.localize
-        };
         if self.initial.is_none() && self.motion.last().is_none() {
             // Nowhere to localize from yet: only the map can say where this is.
             let lost = Localized {
@@ -243,16 +322,91 @@ impl Tracker {
             };
             return self.relocalize(client, scan, t, predicted, None, lost);
         }
-        let mut localized = if self.options.server_side {
-            client.localize(scan, &predicted, &options)?
-        } else {
-            client.localize_client_side(scan, &predicted, &options)?
+        if !self.hypotheses.is_empty() {
+            return self.track_hypotheses(client, scan, t, predicted);
+        }
+        // The motion since the scan before, registered scan to scan: a velocity the map
+        // cannot pin (along a street) is then not carried forward from a wrong estimate.
+        let odometry = match self.motion.last() {
+            Some(last) if self.lost_streak == 0 => {
+                let last = *last;
+                self.registered_motion(scan, &(last.inverse() * predicted))
+                    .map(|moved| renormalized(&(last * moved)))
+            }
+            _ => None,
         };
+        let predicted = odometry.unwrap_or(predicted);
+        let expected = self.last_inlier_ratio;
+        let mut localized =
+            self.localize_from(client, scan, t, &predicted, max_correction, expected)?;
+        if odometry.is_some() && localized.health.reasons.contains(Reasons::IMPLAUSIBLE) {
+            // The map moved the scan farther from where the registered motion put it than
+            // the corrections so far allow: a place sliding away, not the sensor.
+            localized.pose = predicted;
+            localized.health.status = TrackingStatus::Lost;
+        }
+        self.demote_unexplained(client, scan, &mut localized, None)?;
         self.give_up_when_unfit(&predicted, &mut localized);
         if localized.health.status == TrackingStatus::Lost && self.options.relocalize_when_lost {
             return self.relocalize(client, scan, t, predicted, max_correction, localized);
         }
-        Ok(self.observe(t, predicted, max_correction, localized))
+        let tracked = self.observe(t, predicted, max_correction, localized);
+        if tracked.localized.health.status == TrackingStatus::Lost {
+            return Ok(tracked);
+        }
+        self.since_check += 1;
+        if self.options.check_every == 0 || self.since_check < self.options.check_every {
+            return Ok(tracked);
+        }
+        self.since_check = 0;
+        self.check(client, scan, tracked)
+    }
+
+    /// Localizes `scan` from `predicted`, on the server or here as the options say.
+    fn localize_from(
+        &self,
+        client: &mut Client,
+        scan: &ScanPayload,
+        t: f64,
+        predicted: &Pose,
+        max_correction: Option<f64>,
+        expected_inlier_ratio: Option<f64>,
+    ) -> Result<Localized, ClientError> {
+        let options = LocalizeOptions {
+            max_correction,
+            expected_inlier_ratio,
+            stamp: Some(t),
+            ..self.options.localize
+        };
+        if self.options.server_side {
+            client.localize(scan, predicted, &options)
+        } else {
+            client.localize_client_side(scan, predicted, &options)
+        }
+    }
+
+    /// An `ok` scan whose structure the map explains less than `ok-explained` of
+    /// (`explained`, else measured here) is `degraded` (`low-fitness`): the pose may
+    /// sit on a place that only looks alike on the ground, or on another place.
+    fn demote_unexplained(
+        &self,
+        client: &mut Client,
+        scan: &ScanPayload,
+        localized: &mut Localized,
+        explained: Option<f64>,
+    ) -> Result<(), ClientError> {
+        if localized.health.status != TrackingStatus::Ok {
+            return Ok(());
+        }
+        let explained = match explained {
+            Some(e) => e,
+            None => self.structure_explained(client, scan, &localized.pose)?,
+        };
+        if explained < self.options.ok_explained {
+            localized.health.status = TrackingStatus::Degraded;
+            localized.health.reasons.insert(Reasons::LOW_FITNESS);
+        }
+        Ok(())
     }
 
     /// Counts scans that do not fit the map and turns the `lost-after-unfit`th in a row,
@@ -280,9 +434,25 @@ impl Tracker {
         Some(levelling(&up))
     }
 
-    /// Asks the server where `scan` is; when it finds one place, tracking restarts
-    /// there (the scan `degraded`: relocalized, recovering); otherwise the scan is
-    /// `lost` as `lost` says.
+    /// The server's relocalization of `scan` (with the IMU's tilt when there is one).
+    fn ask_where(
+        &self,
+        client: &mut Client,
+        scan: &ScanPayload,
+        t: f64,
+    ) -> Result<crate::Relocalized, ClientError> {
+        let options = RelocalizeOptions {
+            max_pair_dist: self.options.localize.max_pair_dist,
+            max_iterations: self.options.localize.max_iterations,
+            tilt: self.tilt(t),
+        };
+        client.relocalize(scan, &options)
+    }
+
+    /// Asks the server where `scan` is. One place clearly best: tracking restarts there
+    /// (the scan `degraded`: relocalized, recovering). Several places near the best:
+    /// each is kept as a hypothesis and the scan is `lost` (`ambiguous`) until one
+    /// explains the scans clearly better. Nothing found: `lost` as `lost` says.
     fn relocalize(
         &mut self,
         client: &mut Client,
@@ -292,18 +462,25 @@ impl Tracker {
         max_correction: Option<f64>,
         lost: Localized,
     ) -> Result<TrackedScan, ClientError> {
-        let options = RelocalizeOptions {
-            max_pair_dist: self.options.localize.max_pair_dist,
-            max_iterations: self.options.localize.max_iterations,
-            tilt: self.tilt(t),
-        };
-        let place = client.relocalize(scan, &options)?;
-        let (RelocalizeStatus::Found, Some(pose)) = (place.status, place.pose) else {
+        let place = self.ask_where(client, scan, t)?;
+        let (RelocalizeStatus::Found | RelocalizeStatus::Ambiguous, Some(pose)) =
+            (place.status, place.pose)
+        else {
             return Ok(self.observe(t, predicted, max_correction, lost));
         };
+        let places =
+            places_with_verdict(&place.places, pose, place.score, &self.options.hypotheses);
+        if places.len() > 1 {
+            let evaluated = places
+                .iter()
+                .map(|p| self.evaluate(client, scan, t, &p.pose))
+                .collect::<Result<Vec<_>, _>>()?;
+            return Ok(self.start_hypotheses(t, predicted, evaluated, false));
+        }
         self.motion.restart();
         self.adopted_streak = 0;
         self.unfit_streak = 0;
+        self.since_check = 0;
         let localized = Localized {
             pose,
             health: ScanHealth {
@@ -315,10 +492,256 @@ impl Tracker {
                 converged: place.converged,
                 covariance: place.covariance,
                 correction: point_displacement(&predicted, &pose, CORRECTION_RANGE_M),
+                tight_inlier_ratio: place.tight_inlier_ratio,
                 ..ScanHealth::no_fit(lost.health.registrations, lost.health.iterations)
             },
         };
         Ok(self.observe(t, predicted, None, localized))
+    }
+
+    /// Relocalizes an adopted scan as a check on the place being tracked: a place
+    /// elsewhere that scores near the best and explains this scan's structure at least
+    /// `min-effect` better than the tracked place becomes a hypothesis beside it, and
+    /// the scan is `lost` (`ambiguous`) until the scans tell them apart.
+    fn check(
+        &mut self,
+        client: &mut Client,
+        scan: &ScanPayload,
+        tracked: TrackedScan,
+    ) -> Result<TrackedScan, ClientError> {
+        let place = self.ask_where(client, scan, tracked.t)?;
+        let current = tracked.localized.pose;
+        let params = self.options.hypotheses;
+        let others: Vec<Pose> = match place.status {
+            RelocalizeStatus::NotFound => Vec::new(),
+            RelocalizeStatus::Found | RelocalizeStatus::Ambiguous => {
+                near_best(&place.places, &params)
+                    .into_iter()
+                    .map(|p| p.pose)
+                    .filter(|p| distinct(p, &current, &params))
+                    .collect()
+            }
+        };
+        if others.is_empty() {
+            return Ok(tracked);
+        }
+        let explained = self.structure_explained(client, scan, &current)?;
+        let mut rivals = Vec::new();
+        for other in &others {
+            let rival = self.evaluate(client, scan, tracked.t, other)?;
+            // The place tracked so far has its continuity for it: another one must
+            // explain this scan clearly better to put it in doubt.
+            if rival
+                .explained
+                .is_some_and(|e| e >= explained + params.min_effect)
+            {
+                rivals.push(rival);
+            }
+        }
+        if rivals.is_empty() {
+            return Ok(tracked);
+        }
+        tracing::debug!(
+            "tracker: the check at t = {:.2} s found {} other place(s) explaining the scan as well",
+            tracked.t,
+            rivals.len()
+        );
+        let own = Evaluated {
+            pose: current,
+            localized: tracked.localized,
+            explained: Some(explained),
+        };
+        rivals.insert(0, own);
+        Ok(self.start_hypotheses(tracked.t, tracked.predicted, rivals, true))
+    }
+
+    /// Localizes `scan` from `start` (no expectation, the gate's smallest bound: the
+    /// start is a registered place or carried by the registered motion) and
+    /// measures the share of its structure explained there.
+    fn evaluate(
+        &self,
+        client: &mut Client,
+        scan: &ScanPayload,
+        t: f64,
+        start: &Pose,
+    ) -> Result<Evaluated, ClientError> {
+        let bound = Some(self.options.gate.min);
+        let localized = self.localize_from(client, scan, t, start, bound, None)?;
+        let (pose, explained) = match localized.health.status {
+            TrackingStatus::Lost => (*start, None),
+            _ => (
+                renormalized(&localized.pose),
+                Some(self.structure_explained(client, scan, &localized.pose)?),
+            ),
+        };
+        Ok(Evaluated {
+            pose,
+            localized,
+            explained,
+        })
+    }
+
+    /// Keeps the `evaluated` places as hypotheses and reports the scan `lost`
+    /// (`ambiguous`) at the best; the motion model goes on from the best, with the
+    /// velocity it had when `keep_velocity` (a check while tracking).
+    fn start_hypotheses(
+        &mut self,
+        t: f64,
+        predicted: Pose,
+        evaluated: Vec<Evaluated>,
+        keep_velocity: bool,
+    ) -> TrackedScan {
+        let mut live: Vec<Hypothesis> = evaluated
+            .iter()
+            .map(|e| Hypothesis::new(e.pose, e.explained))
+            .collect();
+        // Best first; nothing is dropped on one scan's evidence.
+        let order = hypotheses::rank(&mut live);
+        if keep_velocity {
+            // The motion's last pose is this scan's at the tracked place: the same
+            // motion from the best place.
+            self.motion.relocate(live[0].pose);
+        } else {
+            self.motion.restart();
+            self.motion.update(t, live[0].pose, false);
+        }
+        self.hypotheses = live;
+        self.adopted_streak = 0;
+        self.unfit_streak = 0;
+        self.since_check = 0;
+        self.undecided(t, predicted, evaluated[order[0]].localized)
+    }
+
+    /// Localizes `scan` at every hypothesis, each carried forward by the motion the
+    /// model predicts since the last scan; drops those the scans tell against; one
+    /// left is where tracking goes on (the scan `degraded`: relocalized), none left
+    /// relocalizes afresh, more stay undecided.
+    fn track_hypotheses(
+        &mut self,
+        client: &mut Client,
+        scan: &ScanPayload,
+        t: f64,
+        predicted: Pose,
+    ) -> Result<TrackedScan, ClientError> {
+        let last = *self
+            .motion
+            .last()
+            .expect("the best hypothesis is the motion's last pose");
+        // Renormalized: each place composes it every scan, and a rotation a hair off
+        // unit length would grow with every composition.
+        let moved = renormalized(&self.motion_since_previous(scan, &(last.inverse() * predicted)));
+        let previous: Vec<Pose> = self.hypotheses.iter().map(|h| h.pose).collect();
+        let mut localized = Vec::with_capacity(previous.len());
+        let mut outcomes = Vec::with_capacity(previous.len());
+        for from in &previous {
+            let prediction = renormalized(&(from * moved));
+            let e = self.evaluate(client, scan, t, &prediction)?;
+            outcomes.push((e.pose, e.explained));
+            localized.push((prediction, e.localized));
+        }
+        let kept = hypotheses::observe(&mut self.hypotheses, &outcomes, &self.options.hypotheses);
+        let Some(&lead) = kept.first() else {
+            self.motion.restart();
+            let (prediction, lost) = localized.swap_remove(0);
+            return self.relocalize(client, scan, t, prediction, None, lost);
+        };
+        self.motion.relocate(previous[lead]);
+        let (prediction, mut found) = localized.swap_remove(lead);
+        if kept.len() > 1 {
+            self.motion.update(t, self.hypotheses[0].pose, false);
+            return Ok(self.undecided(t, prediction, found));
+        }
+        self.hypotheses.clear();
+        self.adopted_streak = 0;
+        self.unfit_streak = 0;
+        self.lost_streak = 0;
+        found.health.reasons.insert(Reasons::RELOCALIZED);
+        let explained = outcomes[lead].1;
+        self.demote_unexplained(client, scan, &mut found, explained)?;
+        Ok(self.observe(t, prediction, None, found))
+    }
+
+    /// The share of `scan`'s structure that the map explains at `pose`: its points at
+    /// least 1 m above their column's floor (map frame), each paired when a map point
+    /// lies within `tight-distance` of the pairing distance. Places are compared on
+    /// this: the ground is alike under every placement and would drown the difference
+    /// (on a courtyard's rotated twin the whole scan's shares differed by 0.007). A scan
+    /// with too little structure is measured whole.
+    fn structure_explained(
+        &self,
+        client: &mut Client,
+        scan: &ScanPayload,
+        pose: &Pose,
+    ) -> Result<f64, ClientError> {
+        let in_map: Vec<[f64; 3]> = scan
+            .points
+            .iter()
+            .map(|p| {
+                let p =
+                    pose * nalgebra::Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+                [p.x, p.y, p.z]
+            })
+            .collect();
+        let off = off_ground(&in_map, STRUCTURE_CELL_M, Ground::Every);
+        let mut structure: Vec<[f32; 3]> = scan
+            .points
+            .iter()
+            .zip(off)
+            .filter_map(|(p, off)| off.then_some(*p))
+            .collect();
+        if structure.len() < MIN_STRUCTURE_POINTS {
+            structure = scan.points.to_vec();
+        }
+        let stride = structure.len().div_ceil(MAX_STRUCTURE_POINTS).max(1);
+        let structure: Vec<[f32; 3]> = structure.into_iter().step_by(stride).collect();
+        let tight = f64::from(self.options.localize.max_pair_dist)
+            * self.options.localize.tracking.tight_distance;
+        let pairings = client.nearest(&structure, pose, 1)?;
+        let mut paired = vec![false; structure.len()];
+        for p in pairings {
+            if f64::from(p.dist_sq) <= tight * tight
+                && let Some(slot) = paired.get_mut(p.query as usize)
+            {
+                *slot = true;
+            }
+        }
+        Ok(paired.iter().filter(|p| **p).count() as f64 / structure.len().max(1) as f64)
+    }
+
+    /// The sensor's motion from the previous scan to `scan`: registered scan to scan from
+    /// the motion model's `guess`, so that every place moves alike and none slides along
+    /// a street by following its own (possibly wrong) velocity; the guess itself when
+    /// the registration fails or pairs less than half of the scan.
+    fn motion_since_previous(&self, scan: &ScanPayload, guess: &Pose) -> Pose {
+        self.registered_motion(scan, guess).unwrap_or(*guess)
+    }
+
+    /// [`Self::motion_since_previous`] when the scan-to-scan registration holds.
+    fn registered_motion(&self, scan: &ScanPayload, guess: &Pose) -> Option<Pose> {
+        let previous = self.previous_scan.as_ref()?;
+        let current = PointCloud::from_points(scan.points.to_vec());
+        match register(previous, &current, guess, &RegistrationParams::default()) {
+            Ok(r) if r.converged && r.fitness.inlier_ratio >= 0.5 => Some(renormalized(&r.pose)),
+            _ => None,
+        }
+    }
+
+    /// A scan while several places are in doubt: `lost` (`ambiguous`) at the best's
+    /// pose, with every hypothesis.
+    fn undecided(&self, t: f64, predicted: Pose, best: Localized) -> TrackedScan {
+        let mut localized = Localized {
+            pose: self.hypotheses[0].pose,
+            ..best
+        };
+        localized.health.status = TrackingStatus::Lost;
+        localized.health.reasons.insert(Reasons::AMBIGUOUS);
+        TrackedScan {
+            t,
+            predicted,
+            max_correction: None,
+            localized,
+            hypotheses: self.hypotheses.clone(),
+        }
     }
 
     /// Localizes `cloud` (sensor frame, stamped `stamp` seconds): deskewed into its
@@ -398,6 +821,7 @@ impl Tracker {
             predicted,
             max_correction,
             localized,
+            hypotheses: Vec::new(),
         }
     }
 }

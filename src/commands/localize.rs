@@ -254,6 +254,13 @@ fn scan_line(
         "registrations": h.registrations,
         "iterations": h.iterations,
         "converged": h.converged,
+        "explained": h.tight_inlier_ratio,
+        "hypotheses": tracked.hypotheses.iter().map(|p| json!({
+            "pose": pose_to_xyz_quat(&p.pose),
+            "explained": p.mean_explained(),
+            "scans": p.explained.len(),
+            "error_m": reference.map(|r| translation_distance(&p.pose, r)),
+        })).collect::<Vec<_>>(),
         "error_m": gap.map(|g| g.0),
         "error_deg": gap.map(|g| g.1),
         "failure": error,

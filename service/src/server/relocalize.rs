@@ -13,7 +13,7 @@ use kfmap_protocol::{
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::place::{
     Columns, GridView, PeerBest, Proposal, Relocalization, RelocalizeParams, RelocalizeStatus,
-    ScanUp, Scored, decide, own_up, propose, score_places, verification_selection,
+    ScanUp, Scored, ScoredPlace, decide, own_up, propose, score_places, verification_selection,
 };
 use kfmap_shared::tracking::{covariance_to_wire, pose_covariance};
 use nalgebra::Vector3;
@@ -182,7 +182,11 @@ pub fn relocalize(
         Phase::Places => unreachable!("answered above"),
         Phase::Whole => {
             let every = score_places(&proposal, fine, &limits.tracking, settle)?;
-            decide(&every, proposal.poses.len() as u32, fine, &params, register)?
+            let found = decide(&every, proposal.poses.len() as u32, fine, &params, register)?;
+            log_verdict(searched, started, &found);
+            // Every scored place travels with the verdict: a tracker keeps the ones
+            // close to the best as hypotheses to tell apart on the next scans.
+            return Ok(verdict_answer(&found, &against.active, &every.places));
         }
         Phase::Score(ranks) => {
             let chosen = scored_ranks(ranks)?;
@@ -208,6 +212,12 @@ pub fn relocalize(
             found
         }
     };
+    log_verdict(searched, started, &found);
+    Ok(verdict_answer(&found, &against.active, &[]))
+}
+
+/// Logs a verdict's phases at debug: the search's time, the verification's, the verdict.
+fn log_verdict(searched: std::time::Duration, started: std::time::Instant, found: &Relocalization) {
     tracing::debug!(
         "relocalize: search {:.1} ms, verify {:.1} ms ({} registrations): {}",
         searched.as_secs_f64() * 1e3,
@@ -215,7 +225,6 @@ pub fn relocalize(
         found.registrations,
         found.status.name()
     );
-    Ok(verdict_answer(&found, &against.active))
 }
 
 /// The search's places for `scan`: up from the client's tilt, else from its floors.
@@ -304,9 +313,10 @@ fn shared_own_up(scan: &[[f32; 3]], params: &RelocalizeParams) -> Option<Vector3
     })
 }
 
-/// The answer of a decided relocalization.
-fn verdict_answer(found: &Relocalization, active: &[u64]) -> Answer {
-    let mut answer = with_active(AnswerPairings::default(), active);
+/// The answer of a decided relocalization, with the scored `places` in the pairings'
+/// slots ([`place_slots`]).
+fn verdict_answer(found: &Relocalization, active: &[u64], places: &[ScoredPlace]) -> Answer {
+    let mut answer = with_active(AnswerPairings::Wire(place_slots(places)), active);
     let h = &mut answer.header;
     h.relocalization = found.status as u32;
     h.candidates = found.candidates;
@@ -376,16 +386,20 @@ fn places_answer(proposal: &Proposal, verified_per_search: usize) -> Answer {
     answer
 }
 
+/// Scored places as [`kfmap_protocol::WirePlace`]s in pairings' slots, in rank order:
+/// settled pose, score, rank.
+fn place_slots(places: &[ScoredPlace]) -> Vec<kfmap_protocol::WirePairing> {
+    places
+        .iter()
+        .map(|p| place_to_wire(&p.pose, p.score, p.rank).to_slot())
+        .collect()
+}
+
 /// A `FLAG_SCORE_CHOSEN` answer: the chosen places that settled (pose, score, rank) in
 /// rank order; `candidates` the places chosen, `registrations` those run. Nothing is
 /// decided: `not-found`.
 fn scored_answer(scored: &Scored, chosen: u32) -> Answer {
-    let places: Vec<_> = scored
-        .places
-        .iter()
-        .map(|p| place_to_wire(&p.pose, p.score, p.rank).to_slot())
-        .collect();
-    let mut answer = with_active(AnswerPairings::Wire(places), &[]);
+    let mut answer = with_active(AnswerPairings::Wire(place_slots(&scored.places)), &[]);
     let h = &mut answer.header;
     h.relocalization = RelocalizeStatus::NotFound as u32;
     h.candidates = chosen;

@@ -89,6 +89,14 @@ impl ConstantVelocity {
     pub fn forget_velocity(&mut self) {
         self.motion = None;
     }
+
+    /// Puts the last pose at `pose` (same time), keeping the body-frame velocity: the
+    /// same motion, from another place.
+    pub fn relocate(&mut self, pose: Pose) {
+        if let Some((_, last)) = self.last.as_mut() {
+            *last = pose;
+        }
+    }
 }
 
 /// How far a pose is from another, seen from the points: translation plus the arc a

@@ -106,6 +106,12 @@ impl PosePredictor {
         self.velocity.forget_velocity();
     }
 
+    /// Puts the last pose at `pose` (same time) keeping the body-frame velocity and the
+    /// gyro: the same motion from another place (a tracker following several places).
+    pub fn relocate(&mut self, pose: Pose) {
+        self.velocity.relocate(pose);
+    }
+
     /// `pose` (at time `from`) carried to time `to` by the motion model's twist there.
     pub fn carry(&self, pose: &Pose, from: f64, to: f64) -> Pose {
         match self.twist_over(from.min(to), from.max(to)) {

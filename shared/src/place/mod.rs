@@ -25,8 +25,8 @@ pub use grid::{
 };
 pub use level::{estimate_map_up, estimate_up, levelling};
 pub use relocalize::{
-    Proposal, Relocalization, RelocalizeParams, RelocalizeStatus, ScanUp, Scored, ScoredPlace,
-    decide, own_up, propose, score_places, verification_selection, verify,
+    Ground, Proposal, Relocalization, RelocalizeParams, RelocalizeStatus, ScanUp, Scored,
+    ScoredPlace, decide, off_ground, own_up, propose, score_places, verification_selection, verify,
 };
 pub use search::{Columns, OwnedColumns, PeerBest, Placement, SearchOutcome, SearchParams, search};
 

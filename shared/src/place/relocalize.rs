@@ -293,7 +293,7 @@ const MIN_STRUCTURE_POINTS: usize = 100;
 
 /// Which columns' floors [`above_ground`] takes for ground.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(super) enum Ground {
+pub enum Ground {
     /// Every column's.
     Every,
     /// Only those below the sensor: ground rising above it (uphill) stays.
@@ -353,6 +353,18 @@ fn structure_points(
 /// its own ([`Ground::Every`] is searched first, [`Ground::BelowSensor`] when that
 /// proposes nothing).
 pub(super) fn above_ground(points: &[[f64; 3]], cell: f64, ground: Ground) -> Vec<[f64; 3]> {
+    let off = off_ground(points, cell, ground);
+    points
+        .iter()
+        .zip(off)
+        .filter_map(|(p, off)| off.then_some(*p))
+        .collect()
+}
+
+/// Which of `points` (levelled: z up) [`above_ground`] keeps: those at least `cell`
+/// above the floor of their `cell` x `cell` column, where `ground` takes it for ground.
+/// A tracker compares places on these: the ground is alike under every placement.
+pub fn off_ground(points: &[[f64; 3]], cell: f64, ground: Ground) -> Vec<bool> {
     let column = |p: &[f64; 3]| [(p[0] / cell).floor() as i64, (p[1] / cell).floor() as i64];
     let mut lowest: HashMap<[i64; 2], f64> = HashMap::new();
     for p in points {
@@ -361,11 +373,10 @@ pub(super) fn above_ground(points: &[[f64; 3]], cell: f64, ground: Ground) -> Ve
     }
     points
         .iter()
-        .filter(|p| {
+        .map(|p| {
             let floor = lowest[&column(p)];
             (ground == Ground::BelowSensor && floor >= 0.0) || p[2] >= floor + cell
         })
-        .copied()
         .collect()
 }
 

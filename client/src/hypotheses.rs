@@ -1,0 +1,297 @@
+//! Places a tracker may be at while the map cannot tell them apart yet
+//! (docs/DESIGN.md#tracking): a relocalization that leaves several places within a
+//! margin of the best keeps each as a hypothesis, every scan is localized at each, and
+//! a place is dropped once it explains the scans clearly worse than the best one. One
+//! left is the answer; look-alikes that stay alike stay undecided.
+
+use kfmap_shared::geometry::{Pose, rotation_distance, translation_distance};
+
+use crate::ScoredPlace;
+
+/// How hypotheses are kept, compared and dropped.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HypothesisParams {
+    /// Places a relocalization scored within this of its best are kept (share of the
+    /// scan paired; the server calls a runner-up within 0.05 ambiguous).
+    pub margin: f64,
+    /// Places kept at most.
+    pub max: usize,
+    /// Two places are the same when closer than this, metres...
+    pub distinct_m: f64,
+    /// ... and turned less than this, degrees.
+    pub distinct_deg: f64,
+    /// A place is dropped when the best explains this much more of the scans on
+    /// average (share of each scan paired tightly)...
+    pub min_effect: f64,
+    /// ... and that difference stands this many standard errors above zero (a
+    /// look-alike's differences are noise about zero and never get there).
+    pub z: f64,
+    /// Scans compared at least before a place is dropped for explaining less.
+    pub min_scans: usize,
+    /// A place lost this many scans in a row is dropped.
+    pub drop_after_lost: usize,
+    /// Places are compared over their last this many scans: evidence that appears late
+    /// (the sensor comes to see what differs) is not diluted by the scans before, where
+    /// the places looked alike.
+    pub window: usize,
+}
+
+impl Default for HypothesisParams {
+    fn default() -> Self {
+        Self {
+            margin: 0.1,
+            max: 5,
+            distinct_m: 1.0,
+            distinct_deg: 5.0,
+            min_effect: 0.015,
+            z: 4.0,
+            min_scans: 5,
+            drop_after_lost: 2,
+            window: 10,
+        }
+    }
+}
+
+/// One place the sensor may be at.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Hypothesis {
+    /// `T_map_sensor` at the last scan (its prediction when it was lost there).
+    pub pose: Pose,
+    /// The share of each scan's structure since it was proposed that the map explains
+    /// there (0 when lost), oldest first, at most `window` scans.
+    pub explained: Vec<f64>,
+    /// Scans in a row it was lost at.
+    pub misses: usize,
+}
+
+impl Hypothesis {
+    /// A place first seen with `explained` of the scan explained (`None`: lost there).
+    pub fn new(pose: Pose, explained: Option<f64>) -> Self {
+        Self {
+            pose,
+            explained: vec![explained.unwrap_or(0.0)],
+            misses: usize::from(explained.is_none()),
+        }
+    }
+
+    /// The mean explained share over its window.
+    pub fn mean_explained(&self) -> f64 {
+        self.explained.iter().sum::<f64>() / self.explained.len().max(1) as f64
+    }
+}
+
+/// True when `a` and `b` are different places by `params`.
+pub fn distinct(a: &Pose, b: &Pose, params: &HypothesisParams) -> bool {
+    translation_distance(a, b) > params.distinct_m
+        || rotation_distance(a, b).to_degrees() > params.distinct_deg
+}
+
+/// The distinct places among `places` (any order) that score within `margin` of the
+/// best, best first, at most `max`; of two places that are the same, the better stays.
+pub fn near_best(places: &[ScoredPlace], params: &HypothesisParams) -> Vec<ScoredPlace> {
+    let mut ranked = places.to_vec();
+    ranked.sort_by(|a, b| b.score.total_cmp(&a.score));
+    let Some(best) = ranked.first().map(|p| p.score) else {
+        return Vec::new();
+    };
+    let mut kept: Vec<ScoredPlace> = Vec::new();
+    for place in ranked {
+        if kept.len() == params.max || place.score + params.margin < best {
+            break;
+        }
+        if kept.iter().all(|k| distinct(&k.pose, &place.pose, params)) {
+            kept.push(place);
+        }
+    }
+    kept
+}
+
+/// Whether `lead` explains the scans so clearly better than `other` that `other` can
+/// go: over the scans both saw, the mean difference is at least `min-effect` and `z`
+/// standard errors above zero, after `min-scans` scans.
+pub fn clearly_better(lead: &Hypothesis, other: &Hypothesis, params: &HypothesisParams) -> bool {
+    let n = lead.explained.len().min(other.explained.len());
+    if n < params.min_scans.max(2) {
+        return false;
+    }
+    let differences: Vec<f64> = lead.explained[lead.explained.len() - n..]
+        .iter()
+        .zip(&other.explained[other.explained.len() - n..])
+        .map(|(a, b)| a - b)
+        .collect();
+    let mean = differences.iter().sum::<f64>() / n as f64;
+    let variance = differences.iter().map(|d| (d - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
+    let standard_error = (variance / n as f64).sqrt();
+    mean >= params.min_effect && mean >= params.z * standard_error
+}
+
+/// Records one scan's outcome at each hypothesis (`None`: lost there, the pose its
+/// prediction), then drops those lost `drop-after-lost` scans in a row and those the
+/// best explains clearly better, and puts the best first (most explained on average,
+/// of those not lost this scan when any). Returns the indices, in `live` as it was, of
+/// those kept, in their new order: empty when none is left.
+pub fn observe(
+    live: &mut Vec<Hypothesis>,
+    outcomes: &[(Pose, Option<f64>)],
+    params: &HypothesisParams,
+) -> Vec<usize> {
+    for (h, (pose, explained)) in live.iter_mut().zip(outcomes) {
+        h.pose = *pose;
+        h.explained.push(explained.unwrap_or(0.0));
+        if h.explained.len() > params.window.max(2) {
+            h.explained.remove(0);
+        }
+        h.misses = if explained.is_some() { 0 } else { h.misses + 1 };
+    }
+    let mut kept: Vec<usize> = (0..live.len())
+        .filter(|&i| live[i].misses < params.drop_after_lost.max(1))
+        .collect();
+    let Some(&lead) = kept.iter().max_by(|&&a, &&b| leads(&live[a], &live[b])) else {
+        live.clear();
+        return kept;
+    };
+    kept.retain(|&i| i == lead || !clearly_better(&live[lead], &live[i], params));
+    kept.sort_by(|&a, &b| leads(&live[b], &live[a]));
+    *live = kept.iter().map(|&i| live[i].clone()).collect();
+    kept
+}
+
+/// Puts the best hypothesis first (as [`observe`] orders them), dropping none; returns
+/// the indices, in `live` as it was, in the new order.
+pub fn rank(live: &mut Vec<Hypothesis>) -> Vec<usize> {
+    let mut order: Vec<usize> = (0..live.len()).collect();
+    order.sort_by(|&a, &b| leads(&live[b], &live[a]));
+    *live = order.iter().map(|&i| live[i].clone()).collect();
+    order
+}
+
+/// Orders hypotheses by how well they lead: found at the last scan first, then by the
+/// mean share explained.
+fn leads(a: &Hypothesis, b: &Hypothesis) -> std::cmp::Ordering {
+    (a.misses == 0)
+        .cmp(&(b.misses == 0))
+        .then(a.mean_explained().total_cmp(&b.mean_explained()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn at(x: f64) -> Pose {
+        Pose::translation(x, 0.0, 0.0)
+    }
+
+    fn place(x: f64, score: f64) -> ScoredPlace {
+        ScoredPlace { pose: at(x), score }
+    }
+
+    #[test]
+    fn places_near_the_best_are_kept_once_each_best_first() {
+        let params = HypothesisParams::default();
+        let places = [
+            place(20.0, 0.85),
+            place(0.0, 0.92),
+            place(0.3, 0.90),  // the best's place again
+            place(40.0, 0.80), // beyond the margin
+            place(-20.0, 0.83),
+        ];
+        let kept = near_best(&places, &params);
+        let xs: Vec<f64> = kept.iter().map(|p| p.pose.translation.x).collect();
+        assert_eq!(xs, vec![0.0, 20.0, -20.0]);
+        assert!(near_best(&[], &params).is_empty());
+        let capped = near_best(&places, &HypothesisParams { max: 2, ..params });
+        assert_eq!(capped.len(), 2);
+    }
+
+    /// Deterministic noise in [-1, 1] (an LCG), so the tests need no RNG crate.
+    fn noise(state: &mut u64) -> f64 {
+        *state = state
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        ((*state >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
+    }
+
+    #[test]
+    fn a_place_that_explains_less_is_dropped_and_a_look_alike_is_not() {
+        let params = HypothesisParams::default();
+        let mut state = 7;
+        // The right place explains 0.80 +- 0.05 of each scan, a worse one 0.05 less.
+        let mut live = vec![
+            Hypothesis::new(at(0.0), Some(0.8)),
+            Hypothesis::new(at(20.0), Some(0.8)),
+        ];
+        let mut scans = 1;
+        while live.len() == 2 {
+            let common = 0.8 + 0.05 * noise(&mut state);
+            let outcomes = [
+                (at(0.0), Some(common + 0.01 * noise(&mut state))),
+                (at(20.0), Some(common - 0.05 + 0.01 * noise(&mut state))),
+            ];
+            observe(&mut live, &outcomes, &params);
+            scans += 1;
+            assert!(scans < 50, "never decided");
+        }
+        assert_eq!(live[0].pose, at(0.0));
+        assert!(scans >= params.min_scans);
+        // The worse place led first: the order follows the evidence, not the start.
+        let mut live = vec![
+            Hypothesis::new(at(20.0), Some(0.9)),
+            Hypothesis::new(at(0.0), Some(0.7)),
+        ];
+        for _ in 0..20 {
+            let kept = observe(
+                &mut live,
+                &[(at(20.0), Some(0.5)), (at(0.0), Some(0.8))],
+                &params,
+            );
+            if kept.len() == 1 {
+                assert_eq!(kept, vec![1]);
+                break;
+            }
+        }
+        assert_eq!(live.len(), 1);
+        assert_eq!(live[0].pose, at(0.0));
+
+        // A true look-alike (same shares up to noise) stays undecided over 1000 scans.
+        let mut live = vec![
+            Hypothesis::new(at(0.0), Some(0.8)),
+            Hypothesis::new(at(20.0), Some(0.8)),
+        ];
+        for _ in 0..1000 {
+            let common = 0.8 + 0.05 * noise(&mut state);
+            let outcomes = [
+                (at(0.0), Some(common + 0.01 * noise(&mut state))),
+                (at(20.0), Some(common + 0.01 * noise(&mut state))),
+            ];
+            observe(&mut live, &outcomes, &params);
+            assert_eq!(live.len(), 2);
+        }
+    }
+
+    #[test]
+    fn a_place_lost_twice_in_a_row_is_dropped_and_none_left_is_none() {
+        let params = HypothesisParams::default();
+        let mut live = vec![
+            Hypothesis::new(at(0.0), Some(0.5)),
+            Hypothesis::new(at(20.0), Some(0.8)),
+        ];
+        let kept = observe(
+            &mut live,
+            &[(at(0.0), Some(0.5)), (at(20.0), None)],
+            &params,
+        );
+        // Found at the last scan leads a better average lost there.
+        assert_eq!(kept, vec![0, 1]);
+        assert_eq!(live[0].pose, at(0.0));
+        let kept = observe(
+            &mut live,
+            &[(at(0.0), Some(0.5)), (at(20.0), None)],
+            &params,
+        );
+        assert_eq!(kept, vec![0]);
+        assert_eq!(live.len(), 1);
+        assert_eq!(observe(&mut live, &[(at(0.0), None)], &params), vec![0]);
+        assert!(observe(&mut live, &[(at(0.0), None)], &params).is_empty());
+        assert!(live.is_empty());
+    }
+}
