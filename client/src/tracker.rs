@@ -84,7 +84,7 @@ impl Default for TrackerOptions {
             lost_after_unfit: 5,
             hypotheses: HypothesisParams::default(),
             check_every: 10,
-            ok_explained: 0.5,
+            ok_explained: 0.35,
         }
     }
 }
@@ -339,12 +339,6 @@ impl Tracker {
         let expected = self.last_inlier_ratio;
         let mut localized =
             self.localize_from(client, scan, t, &predicted, max_correction, expected)?;
-        if odometry.is_some() && localized.health.reasons.contains(Reasons::IMPLAUSIBLE) {
-            // The map moved the scan farther from where the registered motion put it than
-            // the corrections so far allow: a place sliding away, not the sensor.
-            localized.pose = predicted;
-            localized.health.status = TrackingStatus::Lost;
-        }
         self.demote_unexplained(client, scan, &mut localized, None)?;
         self.give_up_when_unfit(&predicted, &mut localized);
         if localized.health.status == TrackingStatus::Lost && self.options.relocalize_when_lost {
