@@ -103,6 +103,24 @@ impl BagError {
         }
     }
 
+    /// A [`BagError::Message`]: message `index` of `topic` in the bag at `path`, logged
+    /// at `log_time_ns`, is wrong as `reason` says.
+    pub fn message(
+        path: impl AsRef<Path>,
+        topic: &str,
+        index: usize,
+        log_time_ns: u64,
+        reason: impl ToString,
+    ) -> Self {
+        BagError::Message {
+            path: path.as_ref().to_path_buf(),
+            topic: topic.to_string(),
+            index,
+            log_time_ns,
+            reason: reason.to_string(),
+        }
+    }
+
     /// A [`BagError::Malformed`] at `offset`.
     pub fn malformed(path: impl AsRef<Path>, offset: u64, reason: impl Into<String>) -> Self {
         BagError::Malformed {

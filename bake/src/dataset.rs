@@ -1,45 +1,17 @@
-//! Reading a dataset: its scan files, the pose of every scan from its pose file, and
-//! one scan with invalid returns dropped.
+//! Reading a dataset: the pose of every scan from its pose file (its scan files and
+//! one scan with invalid returns dropped: [`crate::scan_files`], re-exported here).
 
 use std::ops::Range;
 use std::path::{Path, PathBuf};
 
-use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::geometry::Pose;
-use kfmap_shared::io::{IoError, ReadOptions, read_cloud, read_trajectory};
+use kfmap_shared::io::read_trajectory;
 
-use crate::config::BakeConfig;
 use crate::error::BakeError;
-use crate::gravity::{POSE_FILES, find_in};
+use crate::files::{POSE_FILES, find_in};
 use crate::source::ScanList;
-
-/// Scan file extensions a dataset may hold.
-const SCAN_EXTENSIONS: [&str; 3] = ["pcd", "ply", "bin"];
-
-/// Scan files of a dataset, sorted by name: `DIR/scans/` if it exists, else `DIR`.
-pub fn find_scans(dataset: &Path) -> Result<Vec<PathBuf>, BakeError> {
-    let dir = if dataset.join("scans").is_dir() {
-        dataset.join("scans")
-    } else {
-        dataset.to_path_buf()
-    };
-    let entries = std::fs::read_dir(&dir).map_err(|e| IoError::os(&dir, e))?;
-    let mut scans: Vec<PathBuf> = entries
-        .filter_map(Result::ok)
-        .map(|e| e.path())
-        .filter(|p| {
-            p.is_file()
-                && p.extension()
-                    .and_then(|e| e.to_str())
-                    .is_some_and(|e| SCAN_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
-        })
-        .collect();
-    scans.sort();
-    if scans.is_empty() {
-        return Err(BakeError::NoScans(dataset.to_path_buf()));
-    }
-    Ok(scans)
-}
+// Where they were first: callers read scans through `dataset`.
+pub use crate::scan_files::{find_scans, load_raw_scan};
 
 /// Every scan's pose and time from the dataset's pose file (the first of
 /// [`POSE_FILES`]), or `None` when it has none.
@@ -127,12 +99,3 @@ pub fn scan_poses(path: &Path, scans: &ScanList) -> Result<ScanPoses, BakeError>
 /// A stamped pose file this far from its clouds' header stamps is reported (seconds).
 const STAMP_MISMATCH_WARN_S: f64 = 0.01;
 
-/// Reads one scan and drops invalid returns (the bake configuration's filter).
-pub fn load_raw_scan(path: &Path, config: &BakeConfig) -> Result<PointCloud, BakeError> {
-    let sidecar = path.with_extension("bin.layout").is_file();
-    let options = ReadOptions {
-        bin_layout: (!sidecar).then_some(config.input.bin_layout),
-        filter: config.filter,
-    };
-    Ok(read_cloud(path, &options)?.cloud)
-}

@@ -16,17 +16,11 @@ use kfmap_shared::imu::{ImuSample, read_imu_csv};
 use kfmap_shared::io::{IoError, Trajectory, read_trajectory};
 use kfmap_shared::options::InvalidOption;
 
-use crate::source::ImuSource;
+use kfmap_bag::msg::decode_imu;
+use kfmap_bag::{Bag, BagError};
 
-/// IMU logs looked for in a dataset folder, in order.
-pub const IMU_FILES: [&str; 2] = ["imu.csv", "imu.txt"];
-/// Pose files looked for in a dataset folder, in order.
-pub const POSE_FILES: [&str; 4] = [
-    "poses_gt.txt",
-    "poses.txt",
-    "traj.txt",
-    "poses_velo_kitti.txt",
-];
+// Where they were first: gravity reads the dataset's files through here too.
+pub use crate::files::{IMU_FILES, POSE_FILES, find_in};
 
 /// Why gravity could not be estimated from a dataset.
 #[derive(Debug, thiserror::Error)]
@@ -72,11 +66,6 @@ pub enum GravityError {
     /// A parameter is out of range.
     #[error(transparent)]
     Invalid(#[from] InvalidOption),
-}
-
-/// The first of `names` present in `dir`.
-pub fn find_in(dir: &Path, names: &[&str]) -> Option<PathBuf> {
-    names.iter().map(|n| dir.join(n)).find(|p| p.is_file())
 }
 
 /// Where `kfmap gravity` reads from and how it picks keyframes.
@@ -322,4 +311,67 @@ impl From<kfmap_bag::BagError> for GravityError {
     fn from(error: kfmap_bag::BagError) -> Self {
         Self::Bag(Box::new(error))
     }
+}
+
+/// Where IMU samples come from.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ImuSource {
+    /// An `imu.csv` (or whitespace-separated `t ax ay az wx wy wz`) file.
+    File(PathBuf),
+    /// A `sensor_msgs/Imu` topic of a bag; samples at their header stamps.
+    Topic {
+        /// The bag.
+        bag: PathBuf,
+        /// The topic.
+        topic: String,
+    },
+}
+
+impl ImuSource {
+    /// A name for messages: the file, or `BAG:TOPIC`.
+    pub fn label(&self) -> PathBuf {
+        match self {
+            ImuSource::File(path) => path.clone(),
+            ImuSource::Topic { bag, topic } => PathBuf::from(format!("{}:{topic}", bag.display())),
+        }
+    }
+
+    /// Every sample, in time order; an empty log or a sample out of order is an error.
+    pub fn read(&self) -> Result<Vec<ImuSample>, GravityError> {
+        match self {
+            ImuSource::File(path) => read_imu(path),
+            ImuSource::Topic { bag, topic } => read_imu_topic(bag, topic),
+        }
+    }
+}
+
+/// The samples of a bag's Imu topic, at their header stamps.
+fn read_imu_topic(path: &Path, topic: &str) -> Result<Vec<ImuSample>, GravityError> {
+    let bag = Bag::open(path)?;
+    let topic = bag.imu_topic(topic)?.clone();
+    let mut samples: Vec<ImuSample> = Vec::with_capacity(topic.count.min(1 << 24) as usize);
+    for (index, message) in bag.messages(&topic)?.enumerate() {
+        let message = message?;
+        let imu = decode_imu(&message.data, topic.encoding)
+            .map_err(|e| BagError::message(bag.path(), &topic.name, index, message.log_time_ns, e))?;
+        let sample = imu.sample();
+        if let Some(last) = samples.last().filter(|last| sample.t < last.t) {
+            let reason = format!(
+                "header stamp {:.6} s is before the previous message's {:.6} s",
+                sample.t, last.t
+            );
+            return Err(BagError::message(bag.path(), &topic.name, index, message.log_time_ns, reason).into());
+        }
+        samples.push(sample);
+    }
+    if samples.is_empty() {
+        return Err(GravityError::NoImu(
+            ImuSource::Topic {
+                bag: path.to_path_buf(),
+                topic: topic.name.clone(),
+            }
+            .label(),
+        ));
+    }
+    Ok(samples)
 }

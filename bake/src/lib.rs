@@ -11,9 +11,11 @@
 pub mod config;
 pub mod dataset;
 pub mod error;
+pub mod files;
 pub mod gravity;
 pub mod mapping;
 pub mod pipeline;
 pub mod scan_range;
+pub mod scan_files;
 pub mod source;
 pub mod tiling;

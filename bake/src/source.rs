@@ -7,16 +7,17 @@ use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use kfmap_bag::msg::{decode_imu, decode_point_cloud2};
+use kfmap_bag::msg::decode_point_cloud2;
 use kfmap_bag::{Bag, BagError, MessageRef, Topic};
 use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::imu::ImuSample;
 use kfmap_shared::io::BinLayout;
 
 use crate::config::BakeConfig;
-use crate::dataset::{find_scans, load_raw_scan};
+use crate::scan_files::{find_scans, load_raw_scan};
 use crate::error::BakeError;
-use crate::gravity::{GravityError, IMU_FILES, POSE_FILES, find_in, read_imu};
+use crate::files::{IMU_FILES, POSE_FILES, find_in};
+// Where it was first: an IMU source is part of a dataset's source.
+pub use crate::gravity::ImuSource;
 
 /// A header stamp this far from the recorder's log time is reported (seconds): a
 /// driver stamping with another clock, or a recorder far behind.
@@ -81,86 +82,6 @@ impl Source {
     }
 }
 
-/// Where IMU samples come from.
-#[derive(Debug, Clone, PartialEq)]
-pub enum ImuSource {
-    /// An `imu.csv` (or whitespace-separated `t ax ay az wx wy wz`) file.
-    File(PathBuf),
-    /// A `sensor_msgs/Imu` topic of a bag; samples at their header stamps.
-    Topic {
-        /// The bag.
-        bag: PathBuf,
-        /// The topic.
-        topic: String,
-    },
-}
-
-impl ImuSource {
-    /// A name for messages: the file, or `BAG:TOPIC`.
-    pub fn label(&self) -> PathBuf {
-        match self {
-            ImuSource::File(path) => path.clone(),
-            ImuSource::Topic { bag, topic } => PathBuf::from(format!("{}:{topic}", bag.display())),
-        }
-    }
-
-    /// Every sample, in time order; an empty log or a sample out of order is an error.
-    pub fn read(&self) -> Result<Vec<ImuSample>, GravityError> {
-        match self {
-            ImuSource::File(path) => read_imu(path),
-            ImuSource::Topic { bag, topic } => read_imu_topic(bag, topic),
-        }
-    }
-}
-
-/// The samples of a bag's Imu topic, at their header stamps.
-fn read_imu_topic(path: &Path, topic: &str) -> Result<Vec<ImuSample>, GravityError> {
-    let bag = Bag::open(path)?;
-    let topic = bag.imu_topic(topic)?.clone();
-    let mut samples: Vec<ImuSample> = Vec::with_capacity(topic.count.min(1 << 24) as usize);
-    for (index, message) in bag.messages(&topic)?.enumerate() {
-        let message = message?;
-        let imu = decode_imu(&message.data, topic.encoding)
-            .map_err(|e| message_error(&bag, &topic, index, message.log_time_ns, e))?;
-        let sample = imu.sample();
-        if let Some(last) = samples.last().filter(|last| sample.t < last.t) {
-            let reason = format!(
-                "header stamp {:.6} s is before the previous message's {:.6} s",
-                sample.t, last.t
-            );
-            return Err(message_error(&bag, &topic, index, message.log_time_ns, reason).into());
-        }
-        samples.push(sample);
-    }
-    if samples.is_empty() {
-        return Err(GravityError::NoImu(
-            ImuSource::Topic {
-                bag: path.to_path_buf(),
-                topic: topic.name.clone(),
-            }
-            .label(),
-        ));
-    }
-    Ok(samples)
-}
-
-/// A [`BagError::Message`] for message `index` of `topic`.
-fn message_error(
-    bag: &Bag,
-    topic: &Topic,
-    index: usize,
-    log_time_ns: u64,
-    reason: impl ToString,
-) -> BagError {
-    BagError::Message {
-        path: bag.path().to_path_buf(),
-        topic: topic.name.clone(),
-        index,
-        log_time_ns,
-        reason: reason.to_string(),
-    }
-}
-
 /// The scans of a dataset, in order: files, or clouds of a bag topic. Cheap to clone
 /// (a bag is shared), and [`ScanList::select`] keeps a range of it.
 #[derive(Debug, Clone)]
@@ -209,7 +130,7 @@ impl ScanList {
         for (index, at) in refs.iter().enumerate() {
             let message = bag.read(at)?;
             let fail =
-                |reason: String| message_error(&bag, &topic, index, message.log_time_ns, reason);
+                |reason: String| BagError::message(bag.path(), &topic.name, index, message.log_time_ns, reason);
             let cloud = decode_point_cloud2(&message.data, topic.encoding)
                 .map_err(|e| fail(e.to_string()))?;
             let log_time = message.log_time_ns as f64 * 1e-9;
@@ -347,7 +268,7 @@ impl ScanList {
                 let at = &b.refs[i];
                 let message = b.bag.read(at)?;
                 let fail = |reason: String| {
-                    message_error(&b.bag, &b.topic, b.first + i, at.log_time_ns, reason)
+                    BagError::message(b.bag.path(), &b.topic.name, b.first + i, at.log_time_ns, reason)
                 };
                 let decoded = decode_point_cloud2(&message.data, b.topic.encoding)
                     .map_err(|e| fail(e.to_string()))?;

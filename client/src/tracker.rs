@@ -129,8 +129,8 @@ pub struct Tracker {
     hypotheses: Vec<Hypothesis>,
     /// Adopted scans since the last relocalization check.
     since_check: usize,
-    /// The scan before (sensor frame, as sent): the motion between scans that carries
-    /// every hypothesis forward is registered from it.
+    /// The scan before (sensor frame, as sent) while places are in doubt: the motion
+    /// between scans that carries every hypothesis forward is registered from it.
     previous_scan: Option<PointCloud>,
 }
 
@@ -301,7 +301,9 @@ impl Tracker {
         t: f64,
     ) -> Result<TrackedScan, ClientError> {
         let tracked = self.track_scan(client, scan, t);
-        self.previous_scan = Some(PointCloud::from_points(scan.points.to_vec()));
+        // Only hypotheses are carried by the motion registered from the scan before.
+        self.previous_scan = (!self.hypotheses.is_empty())
+            .then(|| PointCloud::from_points(scan.points.to_vec()));
         tracked
     }
 
@@ -325,17 +327,6 @@ impl Tracker {
         if !self.hypotheses.is_empty() {
             return self.track_hypotheses(client, scan, t, predicted);
         }
-        // The motion since the scan before, registered scan to scan: a velocity the map
-        // cannot pin (along a street) is then not carried forward from a wrong estimate.
-        let odometry = match self.motion.last() {
-            Some(last) if self.lost_streak == 0 => {
-                let last = *last;
-                self.registered_motion(scan, &(last.inverse() * predicted))
-                    .map(|moved| renormalized(&(last * moved)))
-            }
-            _ => None,
-        };
-        let predicted = odometry.unwrap_or(predicted);
         let expected = self.last_inlier_ratio;
         let mut localized =
             self.localize_from(client, scan, t, &predicted, max_correction, expected)?;
@@ -707,16 +698,13 @@ impl Tracker {
     /// a street by following its own (possibly wrong) velocity; the guess itself when
     /// the registration fails or pairs less than half of the scan.
     fn motion_since_previous(&self, scan: &ScanPayload, guess: &Pose) -> Pose {
-        self.registered_motion(scan, guess).unwrap_or(*guess)
-    }
-
-    /// [`Self::motion_since_previous`] when the scan-to-scan registration holds.
-    fn registered_motion(&self, scan: &ScanPayload, guess: &Pose) -> Option<Pose> {
-        let previous = self.previous_scan.as_ref()?;
+        let Some(previous) = self.previous_scan.as_ref() else {
+            return *guess;
+        };
         let current = PointCloud::from_points(scan.points.to_vec());
         match register(previous, &current, guess, &RegistrationParams::default()) {
-            Ok(r) if r.converged && r.fitness.inlier_ratio >= 0.5 => Some(renormalized(&r.pose)),
-            _ => None,
+            Ok(r) if r.converged && r.fitness.inlier_ratio >= 0.5 => renormalized(&r.pose),
+            _ => *guess,
         }
     }
 
