@@ -98,4 +98,3 @@ pub fn scan_poses(path: &Path, scans: &ScanList) -> Result<ScanPoses, BakeError>
 
 /// A stamped pose file this far from its clouds' header stamps is reported (seconds).
 const STAMP_MISMATCH_WARN_S: f64 = 0.01;
-

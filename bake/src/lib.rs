@@ -15,7 +15,7 @@ pub mod files;
 pub mod gravity;
 pub mod mapping;
 pub mod pipeline;
-pub mod scan_range;
 pub mod scan_files;
+pub mod scan_range;
 pub mod source;
 pub mod tiling;

@@ -13,9 +13,9 @@ use kfmap_shared::cloud::PointCloud;
 use kfmap_shared::io::BinLayout;
 
 use crate::config::BakeConfig;
-use crate::scan_files::{find_scans, load_raw_scan};
 use crate::error::BakeError;
 use crate::files::{IMU_FILES, POSE_FILES, find_in};
+use crate::scan_files::{find_scans, load_raw_scan};
 // Where it was first: an IMU source is part of a dataset's source.
 pub use crate::gravity::ImuSource;
 
@@ -129,8 +129,9 @@ impl ScanList {
         // By the refs already listed (not a second index pass), through the chunk cache.
         for (index, at) in refs.iter().enumerate() {
             let message = bag.read(at)?;
-            let fail =
-                |reason: String| BagError::message(bag.path(), &topic.name, index, message.log_time_ns, reason);
+            let fail = |reason: String| {
+                BagError::message(bag.path(), &topic.name, index, message.log_time_ns, reason)
+            };
             let cloud = decode_point_cloud2(&message.data, topic.encoding)
                 .map_err(|e| fail(e.to_string()))?;
             let log_time = message.log_time_ns as f64 * 1e-9;
@@ -268,7 +269,13 @@ impl ScanList {
                 let at = &b.refs[i];
                 let message = b.bag.read(at)?;
                 let fail = |reason: String| {
-                    BagError::message(b.bag.path(), &b.topic.name, b.first + i, at.log_time_ns, reason)
+                    BagError::message(
+                        b.bag.path(),
+                        &b.topic.name,
+                        b.first + i,
+                        at.log_time_ns,
+                        reason,
+                    )
                 };
                 let decoded = decode_point_cloud2(&message.data, b.topic.encoding)
                     .map_err(|e| fail(e.to_string()))?;

@@ -122,7 +122,6 @@ impl Client {
                 registrations: h.registrations,
                 iterations: h.iterations,
                 converged: h.converged == 1,
-                tight_inlier_ratio: h.tight_fitness,
             },
         })
     }

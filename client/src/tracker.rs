@@ -61,6 +61,9 @@ pub struct TrackerOptions {
     /// towards `lost-after-unfit`. A place elsewhere explains the ground under it as
     /// well as the right one, not what stands on it.
     pub ok_explained: f64,
+    /// A point is explained when a map point lies within this fraction of the pairing
+    /// distance (`max-pair-dist`) of it.
+    pub tight_distance: f64,
 }
 
 impl Default for TrackerOptions {
@@ -84,7 +87,8 @@ impl Default for TrackerOptions {
             lost_after_unfit: 5,
             hypotheses: HypothesisParams::default(),
             check_every: 10,
-            ok_explained: 0.35,
+            ok_explained: 0.5,
+            tight_distance: 0.3,
         }
     }
 }
@@ -105,6 +109,11 @@ pub struct TrackedScan {
     /// The places still in doubt, best first, when more than one is (then the scan is
     /// `lost`, reason `ambiguous`, at the best one's pose); empty otherwise.
     pub hypotheses: Vec<Hypothesis>,
+    /// The share of the scan's structure (points 1 m above their column's floor) with
+    /// a map point within `tight-distance` at the reported pose: what the map explains;
+    /// the rest moved since the map or was never mapped. `None` when nothing was
+    /// adopted.
+    pub explained: Option<f64>,
 }
 
 /// Follows a sensor through a scan sequence against a map server.
@@ -302,8 +311,8 @@ impl Tracker {
     ) -> Result<TrackedScan, ClientError> {
         let tracked = self.track_scan(client, scan, t);
         // Only hypotheses are carried by the motion registered from the scan before.
-        self.previous_scan = (!self.hypotheses.is_empty())
-            .then(|| PointCloud::from_points(scan.points.to_vec()));
+        self.previous_scan =
+            (!self.hypotheses.is_empty()).then(|| PointCloud::from_points(scan.points.to_vec()));
         tracked
     }
 
@@ -330,15 +339,20 @@ impl Tracker {
         let expected = self.last_inlier_ratio;
         let mut localized =
             self.localize_from(client, scan, t, &predicted, max_correction, expected)?;
-        self.demote_unexplained(client, scan, &mut localized, None)?;
+        let explained = match localized.health.status {
+            TrackingStatus::Lost => None,
+            _ => Some(self.structure_explained(client, scan, &localized.pose)?),
+        };
+        self.demote_unexplained(&mut localized, explained);
         self.give_up_when_unfit(&predicted, &mut localized);
         if localized.health.status == TrackingStatus::Lost && self.options.relocalize_when_lost {
             return self.relocalize(client, scan, t, predicted, max_correction, localized);
         }
-        let tracked = self.observe(t, predicted, max_correction, localized);
+        let mut tracked = self.observe(t, predicted, max_correction, localized);
         if tracked.localized.health.status == TrackingStatus::Lost {
             return Ok(tracked);
         }
+        tracked.explained = explained;
         self.since_check += 1;
         if self.options.check_every == 0 || self.since_check < self.options.check_every {
             return Ok(tracked);
@@ -370,28 +384,16 @@ impl Tracker {
         }
     }
 
-    /// An `ok` scan whose structure the map explains less than `ok-explained` of
-    /// (`explained`, else measured here) is `degraded` (`low-fitness`): the pose may
-    /// sit on a place that only looks alike on the ground, or on another place.
-    fn demote_unexplained(
-        &self,
-        client: &mut Client,
-        scan: &ScanPayload,
-        localized: &mut Localized,
-        explained: Option<f64>,
-    ) -> Result<(), ClientError> {
-        if localized.health.status != TrackingStatus::Ok {
-            return Ok(());
-        }
-        let explained = match explained {
-            Some(e) => e,
-            None => self.structure_explained(client, scan, &localized.pose)?,
-        };
-        if explained < self.options.ok_explained {
+    /// An `ok` scan whose structure the map explains less than `ok-explained` of is
+    /// `degraded` (`low-fitness`): the pose may sit on a place that only looks alike on
+    /// the ground, or on another place altogether.
+    fn demote_unexplained(&self, localized: &mut Localized, explained: Option<f64>) {
+        if localized.health.status == TrackingStatus::Ok
+            && explained.is_some_and(|e| e < self.options.ok_explained)
+        {
             localized.health.status = TrackingStatus::Degraded;
             localized.health.reasons.insert(Reasons::LOW_FITNESS);
         }
-        Ok(())
     }
 
     /// Counts scans that do not fit the map and turns the `lost-after-unfit`th in a row,
@@ -477,11 +479,13 @@ impl Tracker {
                 converged: place.converged,
                 covariance: place.covariance,
                 correction: point_displacement(&predicted, &pose, CORRECTION_RANGE_M),
-                tight_inlier_ratio: place.tight_inlier_ratio,
                 ..ScanHealth::no_fit(lost.health.registrations, lost.health.iterations)
             },
         };
-        Ok(self.observe(t, predicted, None, localized))
+        let explained = self.structure_explained(client, scan, &pose)?;
+        let mut tracked = self.observe(t, predicted, None, localized);
+        tracked.explained = Some(explained);
+        Ok(tracked)
     }
 
     /// Relocalizes an adopted scan as a check on the place being tracked: a place
@@ -510,7 +514,10 @@ impl Tracker {
         if others.is_empty() {
             return Ok(tracked);
         }
-        let explained = self.structure_explained(client, scan, &current)?;
+        let explained = match tracked.explained {
+            Some(e) => e,
+            None => self.structure_explained(client, scan, &current)?,
+        };
         let mut rivals = Vec::new();
         for other in &others {
             let rival = self.evaluate(client, scan, tracked.t, other)?;
@@ -642,8 +649,10 @@ impl Tracker {
         self.lost_streak = 0;
         found.health.reasons.insert(Reasons::RELOCALIZED);
         let explained = outcomes[lead].1;
-        self.demote_unexplained(client, scan, &mut found, explained)?;
-        Ok(self.observe(t, prediction, None, found))
+        self.demote_unexplained(&mut found, explained);
+        let mut tracked = self.observe(t, prediction, None, found);
+        tracked.explained = explained;
+        Ok(tracked)
     }
 
     /// The share of `scan`'s structure that the map explains at `pose`: its points at
@@ -679,8 +688,7 @@ impl Tracker {
         }
         let stride = structure.len().div_ceil(MAX_STRUCTURE_POINTS).max(1);
         let structure: Vec<[f32; 3]> = structure.into_iter().step_by(stride).collect();
-        let tight = f64::from(self.options.localize.max_pair_dist)
-            * self.options.localize.tracking.tight_distance;
+        let tight = f64::from(self.options.localize.max_pair_dist) * self.options.tight_distance;
         let pairings = client.nearest(&structure, pose, 1)?;
         let mut paired = vec![false; structure.len()];
         for p in pairings {
@@ -723,6 +731,11 @@ impl Tracker {
             max_correction: None,
             localized,
             hypotheses: self.hypotheses.clone(),
+            explained: self.hypotheses[0]
+                .explained
+                .last()
+                .copied()
+                .filter(|_| self.hypotheses[0].misses == 0),
         }
     }
 
@@ -804,6 +817,7 @@ impl Tracker {
             max_correction,
             localized,
             hypotheses: Vec::new(),
+            explained: None,
         }
     }
 }

@@ -263,9 +263,7 @@ pub struct ResponseHeader {
     /// (share of the coarse scan paired at the request's distance; 0: none).
     pub place_scores: [f64; 2],
     /// `Relocalize`: share of the scan paired within 0.3 times the request's distance
-    /// at the answered pose (`found` needs 0.4). `Localize`: the same share at the
-    /// adopted pose (`tight-distance` of `[tracking]`), what the map explains; 0 when
-    /// lost.
+    /// at the answered pose (`found` needs 0.4).
     pub tight_fitness: f64,
     /// `ImuWindow`: 1 when a correction is available.
     pub has_gravity: u32,

@@ -98,10 +98,6 @@ class Localized:
     iterations: int
     converged: bool
     server_us: float
-    #: Share of the scan paired within ``tight-distance`` of the pairing distance at the
-    #: adopted pose: what the map explains (the rest moved or was never mapped); 0 when
-    #: lost.
-    tight_inlier_ratio: float = 0.0
 
     @property
     def reason_names(self) -> list[str]:
@@ -125,7 +121,6 @@ class Localized:
             iterations=int(h.iterations),
             converged=h.converged == 1,
             server_us=h.server_us,
-            tight_inlier_ratio=h.tight_fitness,
         )
 
 

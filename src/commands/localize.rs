@@ -254,7 +254,7 @@ fn scan_line(
         "registrations": h.registrations,
         "iterations": h.iterations,
         "converged": h.converged,
-        "explained": h.tight_inlier_ratio,
+        "explained": tracked.explained,
         "hypotheses": tracked.hypotheses.iter().map(|p| json!({
             "pose": pose_to_xyz_quat(&p.pose),
             "explained": p.mean_explained(),

@@ -88,7 +88,6 @@ pub(super) fn localize(
     h.pose = pose_to_wire(&found.pose);
     h.covariance = covariance_to_wire(health.covariance.as_ref());
     h.fitness = [health.inlier_ratio, health.rmse];
-    h.tight_fitness = health.tight_inlier_ratio;
     h.iterations = health.iterations;
     h.converged = health.converged as u32;
     h.tracking = health.status as u32;

@@ -150,10 +150,6 @@ pub struct ScanHealth {
     pub iterations: u32,
     /// True when the registration the pose came from converged.
     pub converged: bool,
-    /// Share of the scan paired within `tight-distance` of the pairing distance at the
-    /// adopted pose: what the map explains; the rest is what changed or was never
-    /// mapped (0 when nothing was adopted).
-    pub tight_inlier_ratio: f64,
 }
 
 impl ScanHealth {
@@ -174,7 +170,6 @@ impl ScanHealth {
             registrations,
             iterations,
             converged: false,
-            tight_inlier_ratio: 0.0,
         }
     }
 }

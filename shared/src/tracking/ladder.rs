@@ -49,10 +49,6 @@ pub struct TrackingParams {
     /// A disagreeing registration whose inlier ratio is within this of the best makes
     /// the scan ambiguous.
     pub ambiguity_margin: f64,
-    /// The share of a scan the map explains is the share paired within this fraction of
-    /// the pairing distance at the adopted pose (the rest: moved things, new things, a
-    /// place that only looks alike).
-    pub tight_distance: f64,
 }
 
 impl Default for TrackingParams {
@@ -70,7 +66,6 @@ impl Default for TrackingParams {
             agree_translation: 0.3,
             agree_rotation_deg: 3.0,
             ambiguity_margin: 0.03,
-            tight_distance: 0.3,
         }
     }
 }
@@ -145,12 +140,6 @@ impl TrackingParams {
             "ambiguity-margin",
             self.ambiguity_margin,
             "0 to 1",
-        )?;
-        ensure(
-            positive(self.tight_distance) && self.tight_distance <= 1.0,
-            "tight-distance",
-            self.tight_distance,
-            "a fraction > 0 and <= 1 of the pairing distance",
         )
     }
 
@@ -283,42 +272,7 @@ impl<E, F: FnMut(&Pose, &Stage) -> Result<Option<RegistrationResult>, E>> Runner
 ///    beyond the bound is adopted (`degraded`) only when the wider search confirmed
 ///    it: the scan then pairs at least `ok-inlier-ratio` and as well as expected (an
 ///    expectation is needed), else the scan is `lost`.
-/// 4. An adopted pose gets its explained share ([`tight_inlier_ratio`]), one more
-///    registration.
 pub fn localize_scan<E>(
-    prediction: &Pose,
-    expected: &Expectation,
-    fine: Stage,
-    params: &TrackingParams,
-    mut register: impl FnMut(&Pose, &Stage) -> Result<Option<RegistrationResult>, E>,
-) -> Result<Localization, E> {
-    let mut found = ladder(prediction, expected, fine, params, &mut register)?;
-    if found.health.status != TrackingStatus::Lost {
-        found.health.tight_inlier_ratio =
-            tight_inlier_ratio(&found.pose, fine, params, &mut register)?;
-        found.health.registrations += 1;
-    }
-    Ok(found)
-}
-
-/// The share of a scan paired within `tight-distance` times the fine pairing distance
-/// at `pose` (one linearization there): how much of the scan the map explains.
-pub fn tight_inlier_ratio<E>(
-    pose: &Pose,
-    fine: Stage,
-    params: &TrackingParams,
-    mut register: impl FnMut(&Pose, &Stage) -> Result<Option<RegistrationResult>, E>,
-) -> Result<f64, E> {
-    let tight = Stage {
-        coarse: false,
-        max_pair_dist: fine.max_pair_dist * params.tight_distance,
-        max_iterations: 1,
-    };
-    Ok(register(pose, &tight)?.map_or(0.0, |r| r.fitness.inlier_ratio))
-}
-
-/// The retry ladder of [`localize_scan`], without the explained share.
-fn ladder<E>(
     prediction: &Pose,
     expected: &Expectation,
     fine: Stage,
@@ -461,7 +415,6 @@ where
         registrations: runner.registrations,
         iterations: runner.iterations,
         converged: result.converged,
-        tight_inlier_ratio: 0.0,
     }
 }
 
