@@ -377,6 +377,17 @@ impl Tracker {
             stamp: Some(t),
             ..self.options.localize
         };
+        self.localize_with(client, scan, predicted, &options)
+    }
+
+    /// Localizes `scan` from `predicted` with `options`, on the server or here.
+    fn localize_with(
+        &self,
+        client: &mut Client,
+        scan: &ScanPayload,
+        predicted: &Pose,
+        options: &LocalizeOptions,
+    ) -> Result<Localized, ClientError> {
         if self.options.server_side {
             client.localize(scan, predicted, &options)
         } else {
@@ -460,7 +471,7 @@ impl Tracker {
         if places.len() > 1 {
             let evaluated = places
                 .iter()
-                .map(|p| self.evaluate(client, scan, t, &p.pose))
+                .map(|p| self.evaluate(client, scan, &p.pose))
                 .collect::<Result<Vec<_>, _>>()?;
             return Ok(self.start_hypotheses(t, predicted, evaluated, false));
         }
@@ -520,7 +531,7 @@ impl Tracker {
         };
         let mut rivals = Vec::new();
         for other in &others {
-            let rival = self.evaluate(client, scan, tracked.t, other)?;
+            let rival = self.evaluate(client, scan, other)?;
             // The place tracked so far has its continuity for it: another one must
             // explain this scan clearly better to put it in doubt.
             if rival
@@ -554,11 +565,20 @@ impl Tracker {
         &self,
         client: &mut Client,
         scan: &ScanPayload,
-        t: f64,
         start: &Pose,
     ) -> Result<Evaluated, ClientError> {
-        let bound = Some(self.options.gate.min);
-        let localized = self.localize_from(client, scan, t, start, bound, None)?;
+        let mut options = LocalizeOptions {
+            max_correction: Some(self.options.gate.min),
+            expected_inlier_ratio: None,
+            // Places in doubt do not join the server's motion for the gravity pool.
+            stamp: None,
+            ..self.options.localize
+        };
+        // A place is followed, not searched for: yaw retries land beyond the bound and
+        // are never adopted without an expected fit, yet cost eight registrations (on a
+        // foreign map, seconds per place and scan). Server-side, the server's own ladder.
+        options.tracking.yaw_step_deg = 0.0;
+        let localized = self.localize_with(client, scan, start, &options)?;
         let (pose, explained) = match localized.health.status {
             TrackingStatus::Lost => (*start, None),
             _ => (
@@ -627,7 +647,7 @@ impl Tracker {
         let mut outcomes = Vec::with_capacity(previous.len());
         for from in &previous {
             let prediction = renormalized(&(from * moved));
-            let e = self.evaluate(client, scan, t, &prediction)?;
+            let e = self.evaluate(client, scan, &prediction)?;
             outcomes.push((e.pose, e.explained));
             localized.push((prediction, e.localized));
         }
