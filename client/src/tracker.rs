@@ -389,9 +389,9 @@ impl Tracker {
         options: &LocalizeOptions,
     ) -> Result<Localized, ClientError> {
         if self.options.server_side {
-            client.localize(scan, predicted, &options)
+            client.localize(scan, predicted, options)
         } else {
-            client.localize_client_side(scan, predicted, &options)
+            client.localize_client_side(scan, predicted, options)
         }
     }
 
