@@ -61,7 +61,8 @@ fn truth_in_map(dataset: &Path, name: &str, prefix: &Prefix) -> Vec<Pose> {
 }
 
 fn run_localize(data: &Path, prefix: &str, out: &Path, extra: &[&str]) -> Vec<u8> {
-    let output = Command::new(kfmap_bin())
+    let mut command = Command::new(kfmap_bin());
+    command
         .args([
             "localize",
             "--initial-from-ground-truth",
@@ -73,15 +74,8 @@ fn run_localize(data: &Path, prefix: &str, out: &Path, extra: &[&str]) -> Vec<u8
         .args(["--rate", "0", "--json", "--iceoryx-prefix", prefix, "--out"])
         .arg(out)
         .args(extra)
-        .stderr(Stdio::piped())
-        .output()
-        .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    output.stdout
+        .stderr(Stdio::piped());
+    common::succeeded(&mut command).stdout
 }
 
 /// The map: 10 s of the campus at 10 Hz with 64 beams, baked at its true poses. The
@@ -360,7 +354,8 @@ fn replay_json_lines(
     prefix: &Prefix,
     extra: &[&str],
 ) -> Vec<serde_json::Value> {
-    let output = Command::new(kfmap_bin())
+    let mut command = Command::new(kfmap_bin());
+    command
         .args([
             "localize",
             "--map-name",
@@ -373,15 +368,8 @@ fn replay_json_lines(
         .arg("--dataset")
         .arg(dataset)
         .args(extra)
-        .stderr(Stdio::piped())
-        .output()
-        .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    String::from_utf8(output.stdout)
+        .stderr(Stdio::piped());
+    String::from_utf8(common::succeeded(&mut command).stdout)
         .unwrap()
         .lines()
         .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())

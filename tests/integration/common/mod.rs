@@ -70,6 +70,18 @@ pub fn kfmap(args: &[&str]) -> Output {
         .expect("run kfmap")
 }
 
+/// Runs `command` (a `kfmap` invocation) and returns its output, failing the test with
+/// its standard error when it does not succeed.
+pub fn succeeded(command: &mut Command) -> Output {
+    let out = command.output().expect("run kfmap");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
 /// A test's temporary directory, removed with everything in it when dropped.
 pub struct TestDir(PathBuf);
 
@@ -271,16 +283,11 @@ pub fn bake_map_with(
 
 /// A simulated dataset written by `kfmap simulate`.
 pub fn simulate(dir: &Path, preset: &str, seconds: &str, beams: &str, extra: &[&str]) {
-    let out = Command::new(kfmap_bin())
-        .args(["simulate", "--preset", preset, "--seconds", seconds])
-        .args(["--beams", beams, "--out", dir.to_str().unwrap()])
-        .args(extra)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    succeeded(
+        Command::new(kfmap_bin())
+            .args(["simulate", "--preset", preset, "--seconds", seconds])
+            .args(["--beams", beams, "--out", dir.to_str().unwrap()])
+            .args(extra),
     );
 }
 
