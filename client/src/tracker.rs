@@ -64,6 +64,12 @@ pub struct TrackerOptions {
     /// A point is explained when a map point lies within this fraction of the pairing
     /// distance (`max-pair-dist`) of it.
     pub tight_distance: f64,
+    /// An adopted scan is `ok` only when sliding its pose 0.5 m along its least
+    /// constrained horizontal direction (either way) costs at least this share of the
+    /// structure the map explains there; below, `degraded` (`unpinned`): the scan does
+    /// not pin the pose to the distance `ok` promises (a street it slides along; a
+    /// negative cost means a better fit lies beside it).
+    pub ok_pinned: f64,
 }
 
 impl Default for TrackerOptions {
@@ -89,6 +95,7 @@ impl Default for TrackerOptions {
             check_every: 10,
             ok_explained: 0.5,
             tight_distance: 0.3,
+            ok_pinned: 0.05,
         }
     }
 }
@@ -114,6 +121,9 @@ pub struct TrackedScan {
     /// the rest moved since the map or was never mapped. `None` when nothing was
     /// adopted.
     pub explained: Option<f64>,
+    /// What a 0.5 m slide along the least constrained horizontal direction loses of
+    /// the explained structure ([`Tracker::slide_loss`]); `None` when not measured.
+    pub slide_loss: Option<f64>,
 }
 
 /// Follows a sensor through a scan sequence against a map server.
@@ -162,6 +172,8 @@ const STRUCTURE_CELL_M: f64 = 1.0;
 const MIN_STRUCTURE_POINTS: usize = 50;
 /// ... and most (thinned evenly beyond).
 const MAX_STRUCTURE_POINTS: usize = 2000;
+/// How far [`Tracker::slide_loss`] slides a pose: the distance `ok` promises, metres.
+const SLIDE_PROBE_M: f64 = 0.5;
 
 /// `pose` with its rotation renormalized to unit length.
 fn renormalized(pose: &Pose) -> Pose {
@@ -198,6 +210,56 @@ fn unfit(health: &ScanHealth) -> bool {
         ]
         .iter()
         .any(|r| health.reasons.contains(*r))
+}
+
+/// `scan`'s structure: its points (sensor frame) at least 1 m above their column's
+/// floor in the map frame at `pose`, thinned evenly to at most
+/// [`MAX_STRUCTURE_POINTS`]. Places are compared on this: the ground is alike under
+/// every placement and would drown the difference (on a courtyard's rotated twin the
+/// whole scan's shares differed by 0.007). A scan with too little structure is taken
+/// whole.
+fn structure(scan: &ScanPayload, pose: &Pose) -> Vec<[f32; 3]> {
+    let in_map: Vec<[f64; 3]> = scan
+        .points
+        .iter()
+        .map(|p| {
+            let p = pose * nalgebra::Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+            [p.x, p.y, p.z]
+        })
+        .collect();
+    let off = off_ground(&in_map, STRUCTURE_CELL_M, Ground::Every);
+    let mut structure: Vec<[f32; 3]> = scan
+        .points
+        .iter()
+        .zip(off)
+        .filter_map(|(p, off)| off.then_some(*p))
+        .collect();
+    if structure.len() < MIN_STRUCTURE_POINTS {
+        structure = scan.points.to_vec();
+    }
+    let stride = structure.len().div_ceil(MAX_STRUCTURE_POINTS).max(1);
+    structure.into_iter().step_by(stride).collect()
+}
+
+/// The horizontal direction (map frame, unit) along which `covariance` (sensor frame,
+/// right perturbation, rotation first) is widest; `None` when it is not finite.
+fn widest_horizontal(
+    covariance: &nalgebra::Matrix6<f64>,
+    pose: &Pose,
+) -> Option<nalgebra::Vector3<f64>> {
+    let rotation = pose.rotation.to_rotation_matrix();
+    let in_map =
+        rotation.matrix() * covariance.fixed_view::<3, 3>(3, 3) * rotation.matrix().transpose();
+    let horizontal = in_map.fixed_view::<2, 2>(0, 0).into_owned();
+    if !horizontal.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let eigen = nalgebra::SymmetricEigen::new(horizontal);
+    let widest = eigen.eigenvalues.imax();
+    let v = eigen.eigenvectors.column(widest);
+    let direction = nalgebra::Vector3::new(v[0], v[1], 0.0);
+    (direction.iter().all(|c| c.is_finite()) && direction.norm() > 0.5)
+        .then(|| direction.normalize())
 }
 
 impl Tracker {
@@ -343,7 +405,11 @@ impl Tracker {
             TrackingStatus::Lost => None,
             _ => Some(self.structure_explained(client, scan, &localized.pose)?),
         };
-        self.demote_unexplained(&mut localized, explained);
+        let slide_loss = match explained {
+            Some(here) => self.slide_loss(client, scan, &localized, here)?,
+            None => None,
+        };
+        self.demote_doubtful(&mut localized, explained, slide_loss);
         self.give_up_when_unfit(&predicted, &mut localized);
         if localized.health.status == TrackingStatus::Lost && self.options.relocalize_when_lost {
             return self.relocalize(client, scan, t, predicted, max_correction, localized);
@@ -353,6 +419,7 @@ impl Tracker {
             return Ok(tracked);
         }
         tracked.explained = explained;
+        tracked.slide_loss = slide_loss;
         self.since_check += 1;
         if self.options.check_every == 0 || self.since_check < self.options.check_every {
             return Ok(tracked);
@@ -395,15 +462,26 @@ impl Tracker {
         }
     }
 
-    /// An `ok` scan whose structure the map explains less than `ok-explained` of is
-    /// `degraded` (`low-fitness`): the pose may sit on a place that only looks alike on
-    /// the ground, or on another place altogether.
-    fn demote_unexplained(&self, localized: &mut Localized, explained: Option<f64>) {
-        if localized.health.status == TrackingStatus::Ok
-            && explained.is_some_and(|e| e < self.options.ok_explained)
-        {
+    /// An `ok` scan is `degraded` when the map explains less than `ok-explained` of its
+    /// structure (`low-fitness`: the pose may sit on a place that only looks alike on
+    /// the ground, or on another place altogether), or when its pose is not pinned to
+    /// the distance `ok` promises (`unpinned`: see [`Self::slide_loss`]).
+    fn demote_doubtful(
+        &self,
+        localized: &mut Localized,
+        explained: Option<f64>,
+        slide_loss: Option<f64>,
+    ) {
+        if localized.health.status != TrackingStatus::Ok {
+            return;
+        }
+        if explained.is_some_and(|e| e < self.options.ok_explained) {
             localized.health.status = TrackingStatus::Degraded;
             localized.health.reasons.insert(Reasons::LOW_FITNESS);
+        }
+        if slide_loss.is_some_and(|l| l < self.options.ok_pinned) {
+            localized.health.status = TrackingStatus::Degraded;
+            localized.health.reasons.insert(Reasons::UNPINNED);
         }
     }
 
@@ -669,47 +747,39 @@ impl Tracker {
         self.lost_streak = 0;
         found.health.reasons.insert(Reasons::RELOCALIZED);
         let explained = outcomes[lead].1;
-        self.demote_unexplained(&mut found, explained);
+        let slide_loss = match explained {
+            Some(here) => self.slide_loss(client, scan, &found, here)?,
+            None => None,
+        };
+        self.demote_doubtful(&mut found, explained, slide_loss);
         let mut tracked = self.observe(t, prediction, None, found);
         tracked.explained = explained;
+        tracked.slide_loss = slide_loss;
         Ok(tracked)
     }
 
-    /// The share of `scan`'s structure that the map explains at `pose`: its points at
-    /// least 1 m above their column's floor (map frame), each paired when a map point
-    /// lies within `tight-distance` of the pairing distance. Places are compared on
-    /// this: the ground is alike under every placement and would drown the difference
-    /// (on a courtyard's rotated twin the whole scan's shares differed by 0.007). A scan
-    /// with too little structure is measured whole.
+    /// The share of `scan`'s structure that the map explains at `pose` (see
+    /// [`Self::structure`] and [`Self::explained_share`]).
     fn structure_explained(
         &self,
         client: &mut Client,
         scan: &ScanPayload,
         pose: &Pose,
     ) -> Result<f64, ClientError> {
-        let in_map: Vec<[f64; 3]> = scan
-            .points
-            .iter()
-            .map(|p| {
-                let p =
-                    pose * nalgebra::Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
-                [p.x, p.y, p.z]
-            })
-            .collect();
-        let off = off_ground(&in_map, STRUCTURE_CELL_M, Ground::Every);
-        let mut structure: Vec<[f32; 3]> = scan
-            .points
-            .iter()
-            .zip(off)
-            .filter_map(|(p, off)| off.then_some(*p))
-            .collect();
-        if structure.len() < MIN_STRUCTURE_POINTS {
-            structure = scan.points.to_vec();
-        }
-        let stride = structure.len().div_ceil(MAX_STRUCTURE_POINTS).max(1);
-        let structure: Vec<[f32; 3]> = structure.into_iter().step_by(stride).collect();
+        let structure = structure(scan, pose);
+        self.explained_share(client, &structure, pose)
+    }
+
+    /// The share of `structure` (sensor frame) with a map point within
+    /// `tight-distance` of the pairing distance at `pose`.
+    fn explained_share(
+        &self,
+        client: &mut Client,
+        structure: &[[f32; 3]],
+        pose: &Pose,
+    ) -> Result<f64, ClientError> {
         let tight = f64::from(self.options.localize.max_pair_dist) * self.options.tight_distance;
-        let pairings = client.nearest(&structure, pose, 1)?;
+        let pairings = client.nearest(structure, pose, 1)?;
         let mut paired = vec![false; structure.len()];
         for p in pairings {
             if f64::from(p.dist_sq) <= tight * tight
@@ -719,6 +789,38 @@ impl Tracker {
             }
         }
         Ok(paired.iter().filter(|p| **p).count() as f64 / structure.len().max(1) as f64)
+    }
+
+    /// How much of the structure explained at the localized pose (`here`, its share) a
+    /// slide of `SLIDE_PROBE_M` along the pose's least constrained horizontal direction
+    /// (the covariance's widest) loses, at the worse side: near zero when the scan does
+    /// not pin the pose to that distance (a street it may slide along), below zero when
+    /// a better fit lies beside it. `None` without a covariance.
+    fn slide_loss(
+        &self,
+        client: &mut Client,
+        scan: &ScanPayload,
+        localized: &Localized,
+        here: f64,
+    ) -> Result<Option<f64>, ClientError> {
+        let Some(covariance) = localized.health.covariance else {
+            return Ok(None);
+        };
+        let pose = localized.pose;
+        let Some(direction) = widest_horizontal(&covariance, &pose) else {
+            return Ok(None);
+        };
+        let structure = structure(scan, &pose);
+        let mut worst = f64::INFINITY;
+        for side in [-1.0, 1.0] {
+            let shifted = Pose::from_parts(
+                (pose.translation.vector + direction * (side * SLIDE_PROBE_M)).into(),
+                pose.rotation,
+            );
+            let there = self.explained_share(client, &structure, &shifted)?;
+            worst = worst.min(here - there);
+        }
+        Ok(Some(worst))
     }
 
     /// The sensor's motion from the previous scan to `scan`: registered scan to scan from
@@ -756,6 +858,7 @@ impl Tracker {
                 .last()
                 .copied()
                 .filter(|_| self.hypotheses[0].misses == 0),
+            slide_loss: None,
         }
     }
 
@@ -838,6 +941,7 @@ impl Tracker {
             localized,
             hypotheses: Vec::new(),
             explained: None,
+            slide_loss: None,
         }
     }
 }
@@ -861,6 +965,29 @@ mod tests {
                 ..ScanHealth::no_fit(1, 3)
             },
         }
+    }
+
+    #[test]
+    fn the_widest_horizontal_direction_is_the_covariances_long_axis_in_the_map() {
+        // Sensor frame: 1 m^2 along its x, 0.01 along y and z; the sensor yawed 30 deg
+        // and pitched 10 deg in the map: the long axis is the sensor's x turned by the
+        // yaw (pitch tilts it, its horizontal part keeps the yaw's heading).
+        let mut covariance = nalgebra::Matrix6::<f64>::identity() * 1e-4;
+        covariance[(3, 3)] = 1.0;
+        covariance[(4, 4)] = 0.01;
+        covariance[(5, 5)] = 0.01;
+        let yaw = 30f64.to_radians();
+        let rotation = nalgebra::UnitQuaternion::from_euler_angles(0.0, 10f64.to_radians(), yaw);
+        let pose = Pose::from_parts(nalgebra::Translation3::new(5.0, -2.0, 1.0), rotation);
+        let direction = widest_horizontal(&covariance, &pose).unwrap();
+        let expected = nalgebra::Vector3::new(yaw.cos(), yaw.sin(), 0.0);
+        assert!(
+            (direction - expected).norm() < 1e-9 || (direction + expected).norm() < 1e-9,
+            "{direction}"
+        );
+        // A covariance that is not finite has no direction.
+        covariance[(3, 3)] = f64::NAN;
+        assert!(widest_horizontal(&covariance, &pose).is_none());
     }
 
     #[test]

@@ -165,6 +165,7 @@ REASON_NAMES: tuple[tuple[int, str], ...] = (
     (1 << 9, "fitness-drop"),
     (1 << 10, "relocalized"),
     (1 << 11, "unfit-streak"),
+    (1 << 12, "unpinned"),
 )
 
 

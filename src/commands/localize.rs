@@ -255,6 +255,7 @@ fn scan_line(
         "iterations": h.iterations,
         "converged": h.converged,
         "explained": tracked.explained,
+        "slide_loss": tracked.slide_loss,
         "hypotheses": tracked.hypotheses.iter().map(|p| json!({
             "pose": pose_to_xyz_quat(&p.pose),
             "explained": p.mean_explained(),

@@ -74,8 +74,12 @@ impl Reasons {
     /// fitting the map (not converged, low fitness, fitness falling), so it says `lost`
     /// and looks again instead of following its own prediction.
     pub const UNFIT_STREAK: Self = Self(1 << 11);
+    /// Set by the client's tracker: the pose is not pinned where it sits (sliding it
+    /// half a metre along its least constrained direction costs too little of what
+    /// the map explains, or explains more): a street it may be sliding along.
+    pub const UNPINNED: Self = Self(1 << 12);
 
-    const NAMES: [(Self, &'static str); 12] = [
+    const NAMES: [(Self, &'static str); 13] = [
         (Self::DEGENERATE, "degenerate"),
         (Self::NOT_CONVERGED, "not-converged"),
         (Self::LOW_FITNESS, "low-fitness"),
@@ -88,6 +92,7 @@ impl Reasons {
         (Self::FITNESS_DROP, "fitness-drop"),
         (Self::RELOCALIZED, "relocalized"),
         (Self::UNFIT_STREAK, "unfit-streak"),
+        (Self::UNPINNED, "unpinned"),
     ];
 
     /// No reason.
