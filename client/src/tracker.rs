@@ -257,9 +257,7 @@ fn widest_horizontal(
     let eigen = nalgebra::SymmetricEigen::new(horizontal);
     let widest = eigen.eigenvalues.imax();
     let v = eigen.eigenvectors.column(widest);
-    let direction = nalgebra::Vector3::new(v[0], v[1], 0.0);
-    (direction.iter().all(|c| c.is_finite()) && direction.norm() > 0.5)
-        .then(|| direction.normalize())
+    Some(nalgebra::Vector3::new(v[0], v[1], 0.0))
 }
 
 impl Tracker {
@@ -401,13 +399,14 @@ impl Tracker {
         let expected = self.last_inlier_ratio;
         let mut localized =
             self.localize_from(client, scan, t, &predicted, max_correction, expected)?;
-        let explained = match localized.health.status {
-            TrackingStatus::Lost => None,
-            _ => Some(self.structure_explained(client, scan, &localized.pose)?),
-        };
-        let slide_loss = match explained {
-            Some(here) => self.slide_loss(client, scan, &localized, here)?,
-            None => None,
+        let (explained, slide_loss) = match localized.health.status {
+            TrackingStatus::Lost => (None, None),
+            _ => {
+                let structure = structure(scan, &localized.pose);
+                let here = self.explained_share(client, &structure, &localized.pose)?;
+                let slide = self.slide_loss(client, &structure, &localized, here)?;
+                (Some(here), slide)
+            }
         };
         self.demote_doubtful(&mut localized, explained, slide_loss);
         self.give_up_when_unfit(&predicted, &mut localized);
@@ -748,7 +747,10 @@ impl Tracker {
         found.health.reasons.insert(Reasons::RELOCALIZED);
         let explained = outcomes[lead].1;
         let slide_loss = match explained {
-            Some(here) => self.slide_loss(client, scan, &found, here)?,
+            Some(here) => {
+                let structure = structure(scan, &found.pose);
+                self.slide_loss(client, &structure, &found, here)?
+            }
             None => None,
         };
         self.demote_doubtful(&mut found, explained, slide_loss);
@@ -799,7 +801,7 @@ impl Tracker {
     fn slide_loss(
         &self,
         client: &mut Client,
-        scan: &ScanPayload,
+        structure: &[[f32; 3]],
         localized: &Localized,
         here: f64,
     ) -> Result<Option<f64>, ClientError> {
@@ -810,14 +812,13 @@ impl Tracker {
         let Some(direction) = widest_horizontal(&covariance, &pose) else {
             return Ok(None);
         };
-        let structure = structure(scan, &pose);
         let mut worst = f64::INFINITY;
         for side in [-1.0, 1.0] {
             let shifted = Pose::from_parts(
                 (pose.translation.vector + direction * (side * SLIDE_PROBE_M)).into(),
                 pose.rotation,
             );
-            let there = self.explained_share(client, &structure, &shifted)?;
+            let there = self.explained_share(client, structure, &shifted)?;
             worst = worst.min(here - there);
         }
         Ok(Some(worst))
