@@ -33,7 +33,7 @@ pub use connection::{ClientOptions, Connection, Response};
 pub use error::ClientError;
 pub use localize::{LocalizeOptions, Localized};
 pub use relocalize::{RelocalizeOptions, Relocalized, ScoredPlace};
-pub use tracker::{TrackedScan, Tracker, TrackerOptions};
+pub use tracker::{TrackedScan, Tracker, TrackerOptions, TrustParams};
 
 use kfmap_protocol::{
     Cov2CovMode, KIND_SLOTS, RequestHeader, RequestKind, ScanPayload, WirePairing,

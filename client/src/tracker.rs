@@ -16,8 +16,10 @@ use kfmap_shared::motion::{
     AdaptiveThreshold, AdaptiveThresholdParams, Gyro, GyroError, GyroParams, PosePredictor,
     point_displacement,
 };
+use kfmap_shared::options::{InvalidOption, ensure, ensure_ratio};
 use kfmap_shared::registration::{RegistrationParams, register};
 use kfmap_shared::tracking::{CORRECTION_RANGE_M, Reasons, ScanHealth, TrackingStatus};
+use serde::{Deserialize, Serialize};
 
 use kfmap_shared::place::{Ground, RelocalizeStatus, levelling, off_ground};
 
@@ -36,21 +38,52 @@ pub struct TrackerOptions {
     /// point displacement at [`kfmap_shared::tracking::CORRECTION_RANGE_M`], whatever
     /// `range` says: the ladder measures corrections there), within `[min, max]`.
     pub gate: AdaptiveThresholdParams,
-    /// Scans in a row that must be adopted after `lost` before the status is `ok`
-    /// again (until then `degraded`, reason `recovering`).
-    pub recover_after: usize,
     /// Deskew scans that carry per-point times ([`Tracker::track_cloud`]).
     pub deskew: bool,
     /// Ask the server where a scan is (`Relocalize`, no guess) when it is `lost`, and
     /// restart tracking there when the server finds one place.
     pub relocalize_when_lost: bool,
+    /// How places a relocalization cannot tell apart are kept and compared
+    /// ([`crate::hypotheses`]).
+    pub hypotheses: HypothesisParams,
+    /// When a scan's pose is `ok` and when the tracker gives up on its place.
+    pub trust: TrustParams,
+}
+
+impl Default for TrackerOptions {
+    fn default() -> Self {
+        Self {
+            localize: LocalizeOptions::default(),
+            server_side: false,
+            gate: AdaptiveThresholdParams {
+                initial: 3.0,
+                min: 1.0,
+                max: 10.0,
+                range: CORRECTION_RANGE_M,
+                min_motion: 0.1,
+                sigmas: 3.0,
+            },
+            deskew: true,
+            relocalize_when_lost: false,
+            hypotheses: HypothesisParams::default(),
+            trust: TrustParams::default(),
+        }
+    }
+}
+
+/// When the tracker calls a scan's pose `ok` and when it gives up on the place it
+/// tracks: `kfmap localize`'s `--ok-explained`, `--ok-pinned`, `--check-every`,
+/// `--lost-after-unfit`, `--recover-after`, the ROS 2 node's `[tracker]`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
+pub struct TrustParams {
+    /// Scans in a row that must be adopted after `lost` before the status is `ok`
+    /// again (until then `degraded`, reason `recovering`).
+    pub recover_after: usize,
     /// Adopted scans in a row that do not fit the map (`degraded` for not converging,
     /// low fitness or a fitness drop) after which the tracker is `lost` (reason
     /// `unfit-streak`), and every further unfitting scan too until one is `ok` again.
     pub lost_after_unfit: usize,
-    /// How places a relocalization cannot tell apart are kept and compared
-    /// ([`crate::hypotheses`]).
-    pub hypotheses: HypothesisParams,
     /// While tracking one place, every this many adopted scans the scan is also
     /// relocalized: a place elsewhere that scores near the best becomes a hypothesis
     /// beside the tracked one (0: never).
@@ -68,35 +101,61 @@ pub struct TrackerOptions {
     /// constrained horizontal direction (either way) costs at least this share of the
     /// structure the map explains there; below, `degraded` (`unpinned`): the scan does
     /// not pin the pose to the distance `ok` promises (a street it slides along; a
-    /// negative cost means a better fit lies beside it).
+    /// negative cost means a better fit lies beside it). -1 turns the check off.
     pub ok_pinned: f64,
 }
 
-impl Default for TrackerOptions {
+impl Default for TrustParams {
     fn default() -> Self {
         Self {
-            localize: LocalizeOptions::default(),
-            server_side: false,
-            gate: AdaptiveThresholdParams {
-                initial: 3.0,
-                min: 1.0,
-                max: 10.0,
-                range: CORRECTION_RANGE_M,
-                min_motion: 0.1,
-                sigmas: 3.0,
-            },
             recover_after: 2,
-            deskew: true,
-            relocalize_when_lost: false,
             // Half a second at 10 Hz: long enough for a few hard scans (a turn, an
             // open square), short enough that a wrong pose is not followed for long.
             lost_after_unfit: 5,
-            hypotheses: HypothesisParams::default(),
             check_every: 10,
             ok_explained: 0.5,
             tight_distance: 0.3,
             ok_pinned: 0.05,
         }
+    }
+}
+
+impl TrustParams {
+    /// Checks every value; the error names the option.
+    pub fn validate(&self) -> Result<(), InvalidOption> {
+        ensure(
+            (1..=100).contains(&self.recover_after),
+            "recover-after",
+            self.recover_after,
+            "1 to 100 scans",
+        )?;
+        ensure(
+            (1..=1000).contains(&self.lost_after_unfit),
+            "lost-after-unfit",
+            self.lost_after_unfit,
+            "1 to 1000 scans",
+        )?;
+        ensure(
+            self.check_every <= 100_000,
+            "check-every",
+            self.check_every,
+            "0 (never) to 100000 scans",
+        )?;
+        ensure_ratio("ok-explained", self.ok_explained)?;
+        ensure(
+            self.tight_distance.is_finite()
+                && self.tight_distance > 0.0
+                && self.tight_distance <= 1.0,
+            "tight-distance",
+            self.tight_distance,
+            "a fraction > 0 and <= 1 of the pairing distance",
+        )?;
+        ensure(
+            self.ok_pinned.is_finite() && (-1.0..=1.0).contains(&self.ok_pinned),
+            "ok-pinned",
+            self.ok_pinned,
+            "a share from -1 (no check) to 1",
+        )
     }
 }
 
@@ -420,7 +479,8 @@ impl Tracker {
         tracked.explained = explained;
         tracked.slide_loss = slide_loss;
         self.since_check += 1;
-        if self.options.check_every == 0 || self.since_check < self.options.check_every {
+        if self.options.trust.check_every == 0 || self.since_check < self.options.trust.check_every
+        {
             return Ok(tracked);
         }
         self.since_check = 0;
@@ -474,11 +534,11 @@ impl Tracker {
         if localized.health.status != TrackingStatus::Ok {
             return;
         }
-        if explained.is_some_and(|e| e < self.options.ok_explained) {
+        if explained.is_some_and(|e| e < self.options.trust.ok_explained) {
             localized.health.status = TrackingStatus::Degraded;
             localized.health.reasons.insert(Reasons::LOW_FITNESS);
         }
-        if slide_loss.is_some_and(|l| l < self.options.ok_pinned) {
+        if slide_loss.is_some_and(|l| l < self.options.trust.ok_pinned) {
             localized.health.status = TrackingStatus::Degraded;
             localized.health.reasons.insert(Reasons::UNPINNED);
         }
@@ -495,7 +555,7 @@ impl Tracker {
             return;
         }
         self.unfit_streak += 1;
-        if self.unfit_streak >= self.options.lost_after_unfit.max(1) {
+        if self.unfit_streak >= self.options.trust.lost_after_unfit.max(1) {
             localized.pose = *predicted;
             localized.health.status = TrackingStatus::Lost;
             localized.health.reasons.insert(Reasons::UNFIT_STREAK);
@@ -780,7 +840,8 @@ impl Tracker {
         structure: &[[f32; 3]],
         pose: &Pose,
     ) -> Result<f64, ClientError> {
-        let tight = f64::from(self.options.localize.max_pair_dist) * self.options.tight_distance;
+        let tight =
+            f64::from(self.options.localize.max_pair_dist) * self.options.trust.tight_distance;
         let pairings = client.nearest(structure, pose, 1)?;
         let mut paired = vec![false; structure.len()];
         for p in pairings {
@@ -922,7 +983,7 @@ impl Tracker {
             self.adopted_streak = 0;
         } else {
             self.adopted_streak = self.adopted_streak.saturating_add(1);
-            if self.adopted_streak < self.options.recover_after {
+            if self.adopted_streak < self.options.trust.recover_after {
                 localized.health.reasons.insert(Reasons::RECOVERING);
                 localized.health.status = TrackingStatus::Degraded;
             }
@@ -1004,12 +1065,12 @@ mod tests {
         };
         let predicted = at(1.0);
         // Degenerate but converged and fitting (a corridor) is never counted.
-        for _ in 0..3 * options.lost_after_unfit {
+        for _ in 0..3 * options.trust.lost_after_unfit {
             let mut corridor = unfit(Reasons::DEGENERATE);
             tracker.give_up_when_unfit(&predicted, &mut corridor);
             assert_eq!(corridor.health.status, TrackingStatus::Degraded);
         }
-        for k in 1..=options.lost_after_unfit + 2 {
+        for k in 1..=options.trust.lost_after_unfit + 2 {
             let reasons = [
                 Reasons::NOT_CONVERGED,
                 Reasons::LOW_FITNESS,
@@ -1018,7 +1079,7 @@ mod tests {
                 | Reasons::DEGENERATE;
             let mut localized = unfit(reasons);
             tracker.give_up_when_unfit(&predicted, &mut localized);
-            if k < options.lost_after_unfit {
+            if k < options.trust.lost_after_unfit {
                 assert_eq!(
                     localized.health.status,
                     TrackingStatus::Degraded,

@@ -1,6 +1,7 @@
 //! `ros2.toml`: the node's configuration, validated (each key is explained in the
 //! shipped file, `config/ros2.toml`).
 
+use kfmap_client::TrustParams;
 use kfmap_shared::options::{ConfigFile, InvalidOption, ensure};
 use serde::{Deserialize, Serialize};
 
@@ -211,6 +212,9 @@ pub struct Ros2Config {
     pub scans: ScansSection,
     pub imu: ImuSection,
     pub map_cloud: MapCloudSection,
+    /// When a pose is `ok` and when the tracker gives up on its place, as
+    /// `kfmap localize`'s flags of the same names.
+    pub tracker: TrustParams,
 }
 
 /// True for a ROS 2 name: `/`-separated tokens of letters, digits and `_`, none starting
@@ -349,7 +353,8 @@ impl ConfigFile for Ros2Config {
             self.map_cloud.voxel,
             "0 (off) or 0.05 to 100 m",
         )
-        .map_err(|e| ("map-cloud", e))
+        .map_err(|e| ("map-cloud", e))?;
+        self.tracker.validate().map_err(|e| ("tracker", e))
     }
 }
 
@@ -380,6 +385,12 @@ mod tests {
             ("[map-cloud]\nvoxel = 0.01", "voxel"),
             ("[server]\nmode = \"fast\"", "mode"),
             ("[topics]\nlidar = \"/x\"", "lidar"),
+            ("[tracker]\nok-pinned = 3.0", "ok-pinned"),
+            ("[tracker]\nok-explained = 1.5", "ok-explained"),
+            ("[tracker]\ntight-distance = 0.0", "tight-distance"),
+            ("[tracker]\nlost-after-unfit = 0", "lost-after-unfit"),
+            ("[tracker]\nrecover-after = 0", "recover-after"),
+            ("[tracker]\nslide = 1", "slide"),
         ] {
             let err = Ros2Config::from_toml(text, Path::new("r.toml"))
                 .unwrap_err()
@@ -390,5 +401,23 @@ mod tests {
         let off =
             Ros2Config::from_toml("[topics]\nimu = \"\"\ngravity = \"\"", Path::new("r.toml"));
         assert!(off.is_ok());
+    }
+
+    /// The node's tracker takes `[tracker]` as written, the rest at its defaults.
+    #[test]
+    fn the_tracker_section_reaches_the_trackers_options() {
+        let config = Ros2Config::from_toml(
+            "[tracker]\nok-pinned = -1.0\ncheck-every = 0\nok-explained = 0.7",
+            Path::new("r.toml"),
+        )
+        .unwrap();
+        let trust = crate::node::tracker_options(&config).trust;
+        assert_eq!(trust.ok_pinned, -1.0);
+        assert_eq!(trust.check_every, 0);
+        assert_eq!(trust.ok_explained, 0.7);
+        assert_eq!(
+            trust.lost_after_unfit,
+            TrustParams::default().lost_after_unfit
+        );
     }
 }

@@ -181,7 +181,7 @@ async fn forward<M: 'static + serde::de::DeserializeOwned>(
 }
 
 /// The tracker options `kfmap localize` uses, from the config.
-fn tracker_options(config: &Ros2Config) -> TrackerOptions {
+pub(crate) fn tracker_options(config: &Ros2Config) -> TrackerOptions {
     let mode = match config.server.mode {
         ModeName::MapDefault => Cov2CovMode::MapDefault,
         ModeName::Approximate => Cov2CovMode::Approximate,
@@ -194,6 +194,7 @@ fn tracker_options(config: &Ros2Config) -> TrackerOptions {
         },
         server_side: config.server.server_side,
         deskew: config.scans.deskew,
+        trust: config.tracker,
         ..TrackerOptions::default()
     }
 }

@@ -11,7 +11,9 @@ use kfmap_bake::dataset::{load_raw_scan, scan_poses};
 use kfmap_bake::gravity::POSE_FILES;
 use kfmap_bake::scan_range::ScanRange;
 use kfmap_bake::source::ScanList;
-use kfmap_client::{Client, GravityAnswer, LocalizeOptions, TrackedScan, Tracker, TrackerOptions};
+use kfmap_client::{
+    Client, GravityAnswer, LocalizeOptions, TrackedScan, Tracker, TrackerOptions, TrustParams,
+};
 use kfmap_protocol::Cov2CovMode;
 use kfmap_service::config::ServerConfig;
 use kfmap_shared::cloud::PointCloud;
@@ -137,6 +139,32 @@ pub struct Args {
     /// Do not deskew scans that carry per-point times.
     #[arg(long)]
     no_deskew: bool,
+    /// A scan is `ok` only when the map explains at least this share of its structure
+    /// (points 1 m above their column's floor, paired within --tight-distance); below,
+    /// `degraded` (low-fitness). Raise it where much of the world stays as mapped.
+    #[arg(long, default_value_t = TrustParams::default().ok_explained)]
+    ok_explained: f64,
+    /// A point is explained when a map point lies within this fraction of
+    /// --max-pair-dist of it.
+    #[arg(long, default_value_t = TrustParams::default().tight_distance)]
+    tight_distance: f64,
+    /// A scan is `ok` only when sliding its pose 0.5 m (either way) along its least
+    /// constrained horizontal direction costs at least this share of the structure
+    /// explained; below, `degraded` (unpinned: a street it could slide along). -1 turns
+    /// the check off.
+    #[arg(long, default_value_t = TrustParams::default().ok_pinned, allow_hyphen_values = true)]
+    ok_pinned: f64,
+    /// Every this many adopted scans the scan is also relocalized, so that a look-alike
+    /// place elsewhere becomes a hypothesis beside the tracked one (0: never).
+    #[arg(long, default_value_t = TrustParams::default().check_every)]
+    check_every: usize,
+    /// Adopted scans in a row that do not fit the map after which the tracker says
+    /// `lost` (unfit-streak) and, with no start pose, relocalizes.
+    #[arg(long, default_value_t = TrustParams::default().lost_after_unfit)]
+    lost_after_unfit: usize,
+    /// Scans in a row adopted after `lost` before the status is `ok` again.
+    #[arg(long, default_value_t = TrustParams::default().recover_after)]
+    recover_after: usize,
     /// Print a JSON summary (scans, ok, degraded, lost, failed, ate_m, p50_ms, ...).
     #[arg(long)]
     json: bool,
@@ -273,6 +301,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if !(args.rate.is_finite() && args.rate >= 0.0) {
         anyhow::bail!("--rate must be >= 0 scans/s, got {}", args.rate);
     }
+    trust(&args)
+        .validate()
+        .map_err(|e| anyhow::anyhow!("--{}: {e}", e.option))?;
     let mut dataset = ReplayDataset::read(&args)?;
     let mut client = args.server.connect()?;
     let truth = dataset.truth_in_map_frame(&mut client)?;
@@ -387,6 +418,18 @@ impl ReplayDataset {
 
 /// The tracker: from `--initial`, the reference pose (`--initial-from-ground-truth`) or
 /// relocalizing, with the `--config` checks, the solver options and the gyro.
+/// The tracker's trust rules from the command line.
+fn trust(args: &Args) -> TrustParams {
+    TrustParams {
+        recover_after: args.recover_after,
+        lost_after_unfit: args.lost_after_unfit,
+        check_every: args.check_every,
+        ok_explained: args.ok_explained,
+        tight_distance: args.tight_distance,
+        ok_pinned: args.ok_pinned,
+    }
+}
+
 fn start_tracker(
     args: &Args,
     truth: Option<&[Pose]>,
@@ -408,6 +451,7 @@ fn start_tracker(
         },
         server_side: args.server_side,
         deskew: !args.no_deskew,
+        trust: trust(args),
         ..TrackerOptions::default()
     };
     let mut tracker = match initial {

@@ -132,6 +132,30 @@ fn bad_input_exits_2_with_a_message_naming_the_problem() {
             ],
             "below 90",
         ),
+        (
+            vec![
+                "localize",
+                "--map-name",
+                "none",
+                "--dataset",
+                "/nonexistent",
+                "--ok-pinned",
+                "3",
+            ],
+            "--ok-pinned",
+        ),
+        (
+            vec![
+                "localize",
+                "--map-name",
+                "none",
+                "--dataset",
+                "/nonexistent",
+                "--lost-after-unfit",
+                "0",
+            ],
+            "--lost-after-unfit",
+        ),
     ];
     for (args, expect) in cases {
         let out = kfmap(&args);

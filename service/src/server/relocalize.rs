@@ -13,7 +13,8 @@ use kfmap_protocol::{
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::place::{
     Columns, GridView, PeerBest, Proposal, Relocalization, RelocalizeParams, RelocalizeStatus,
-    ScanUp, Scored, ScoredPlace, decide, own_up, propose, score_places, verification_selection,
+    ScanUp, Scored, ScoredPlace, decide, own_up, propose, score_places, scoring_scan,
+    verification_selection,
 };
 use kfmap_shared::tracking::{covariance_to_wire, pose_covariance};
 use nalgebra::Vector3;
@@ -154,6 +155,9 @@ pub fn relocalize(
         Some(_) => None,
         None => Some(candidates.coarse().map_err(coarse_error)?),
     };
+    // Places are settled and scored on a thinned copy: the ranking needs no more.
+    let scoring = coarse.map(|(cloud, covs)| scoring_scan(cloud, covs, params.score_points));
+    let coarse = scoring.as_ref().map(|(c, v)| (c, v.as_slice()));
     let settle = |start: &Pose, stage: &_| {
         let (coarse_cloud, coarse_covs) =
             coarse.ok_or_else(|| Rejection::new(StatusCode::Internal, "no coarse scan"))?;
@@ -182,7 +186,14 @@ pub fn relocalize(
         Phase::Places => unreachable!("answered above"),
         Phase::Whole => {
             let every = score_places(&proposal, fine, &limits.tracking, settle)?;
+            let scored_at = started.elapsed();
             let found = decide(&every, proposal.poses.len() as u32, fine, &params, register)?;
+            tracing::debug!(
+                "relocalize: scoring {} places {:.1} ms, final registration {:.1} ms",
+                every.places.len(),
+                (scored_at - searched).as_secs_f64() * 1e3,
+                (started.elapsed() - scored_at).as_secs_f64() * 1e3
+            );
             log_verdict(searched, started, &found);
             // Every scored place travels with the verdict: a tracker keeps the ones
             // close to the best as hypotheses to tell apart on the next scans.

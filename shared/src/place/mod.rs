@@ -26,7 +26,8 @@ pub use grid::{
 pub use level::{estimate_map_up, estimate_up, levelling};
 pub use relocalize::{
     Ground, Proposal, Relocalization, RelocalizeParams, RelocalizeStatus, ScanUp, Scored,
-    ScoredPlace, decide, off_ground, own_up, propose, score_places, verification_selection, verify,
+    ScoredPlace, decide, off_ground, own_up, propose, score_places, scoring_scan,
+    verification_selection, verify,
 };
 pub use search::{Columns, OwnedColumns, PeerBest, Placement, SearchOutcome, SearchParams, search};
 

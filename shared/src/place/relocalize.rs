@@ -13,7 +13,7 @@ use super::grid::GridView;
 use super::level::{estimate_up, levelling};
 use super::search::{Columns, PeerBest, SearchOutcome, SearchParams, search};
 use crate::cloud::{CloudError, PointCloud};
-use crate::geometry::{Pose, rotation_distance, translation_distance};
+use crate::geometry::{PackedSym3, Pose, rotation_distance, translation_distance};
 use crate::options::{InvalidOption, ensure, ensure_ratio};
 use crate::registration::RegistrationResult;
 use crate::select::SelectionOptions;
@@ -33,6 +33,9 @@ pub struct RelocalizeParams {
     pub search_points: usize,
     /// The sensor tilts less than this from the vertical (levelling gate), degrees.
     pub max_tilt_deg: f64,
+    /// Each proposed place is settled and scored on the coarse scan thinned to at most
+    /// this many points ([`scoring_scan`]).
+    pub score_points: usize,
     /// The place search.
     pub search: SearchParams,
     /// `found` needs this share of the scan paired at the request's distance...
@@ -72,6 +75,12 @@ impl RelocalizeParams {
             "10 to 100000",
         )?;
         ensure(
+            (100..=100_000).contains(&self.score_points),
+            "score-points",
+            self.score_points,
+            "100 to 100000",
+        )?;
+        ensure(
             self.max_tilt_deg.is_finite() && (1.0..=90.0).contains(&self.max_tilt_deg),
             "max-tilt-deg",
             self.max_tilt_deg,
@@ -109,6 +118,7 @@ impl Default for RelocalizeParams {
             min_range: 0.5,
             search_points: 300,
             max_tilt_deg: 40.0,
+            score_points: 1000,
             search: SearchParams {
                 candidates: 5,
                 ..SearchParams::default()
@@ -417,6 +427,23 @@ pub fn verification_selection(
         num_diverse_keyframes: 0,
         ..*selection
     }
+}
+
+/// The coarse scan (`cloud`, with its covariances `covs`) as places are scored on it:
+/// every k-th point, the smallest k leaving at most `points`. Scoring took 45 % of a
+/// balm_os0 relocalization on its 2 100 coarse points; on every third it takes half as
+/// long and the places rank alike (docs/DESIGN.md#notes-relocalization). The
+/// covariances come from the whole coarse scan: a kept point's still describes its
+/// neighbourhood.
+pub fn scoring_scan(
+    cloud: &PointCloud,
+    covs: &[PackedSym3],
+    points: usize,
+) -> (PointCloud, Vec<PackedSym3>) {
+    let stride = cloud.len().div_ceil(points.max(1)).max(1);
+    let kept: Vec<usize> = (0..cloud.len()).step_by(stride).collect();
+    let covs = kept.iter().filter_map(|&i| covs.get(i).copied()).collect();
+    (cloud.select(&kept), covs)
 }
 
 /// Iterations of the scoring registration (coarse scan, fine pairing distance).

@@ -1176,3 +1176,24 @@ fn cutting_the_voxels_equals_cutting_the_built_grid() {
 fn listed<S: std::hash::BuildHasher>(set: &HashSet<[i64; 3], S>) -> Vec<[i64; 3]> {
     set.iter().copied().collect()
 }
+
+/// A coarse scan of 2 139 points (balm_os0's size) thinned for scoring to at most 1 000
+/// keeps every third point (713 of them, the smallest stride that fits) with the
+/// covariance it had; a scan already small enough is kept whole.
+#[test]
+fn a_scoring_scan_keeps_every_kth_point_with_its_own_covariance() {
+    let cloud =
+        crate::cloud::PointCloud::from_points((0..2139).map(|i| [i as f32, 0.0, 0.0]).collect());
+    let covs: Vec<crate::geometry::PackedSym3> = (0..2139)
+        .map(|i| [i as f32, 0.0, 0.0, 0.0, 0.0, 0.0])
+        .collect();
+    let (thinned, kept_covs) = super::scoring_scan(&cloud, &covs, 1000);
+    assert_eq!(thinned.len(), 713);
+    assert_eq!(kept_covs.len(), 713);
+    for (k, (p, c)) in thinned.points.iter().zip(&kept_covs).enumerate() {
+        assert_eq!(p[0], (3 * k) as f32);
+        assert_eq!(c[0], p[0], "point {k} lost its covariance");
+    }
+    let (whole, _) = super::scoring_scan(&cloud, &covs, 5000);
+    assert_eq!(whole.points, cloud.points);
+}

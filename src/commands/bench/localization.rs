@@ -1,14 +1,21 @@
 //! The table's localization rows on real data: balm_os0, a map of scans 0-115 at their
 //! reference poses, scans 116-176 tracked against it by `kfmap localize` over IPC, as
-//! tests/integration/health.rs checks.
+//! tests/integration/health.rs checks, and the same scans relocalized with no guess by
+//! `kfmap relocalize` on the same server, side by side (issue 55: a relocalization should
+//! cost at most two tracking steps).
 
 use std::ffi::OsStr;
 use std::path::Path;
+use std::process::{Command, Stdio};
+
+use anyhow::{Context, bail};
 
 use kfmap_bake::config::BakeConfig;
+use kfmap_bake::dataset::find_scans;
 use kfmap_bake::pipeline::{BakeInput, BakeOutput, bake};
 use kfmap_bake::scan_range::ScanRange;
 use kfmap_bake::source::Source;
+use kfmap_shared::percentile::percentile;
 
 use super::anchors::SMALL_GICP_LOCALIZE;
 use super::fixtures::data_file;
@@ -24,7 +31,7 @@ pub(super) fn measure(table: &mut Table, data: Option<&Path>, dir: &Path) -> any
         table.skip("localization on real data: needs balm_os0 of the shared data");
         return Ok(());
     };
-    let v = localize_balm(&balm, dir)?;
+    let (v, relocalized) = localize_balm(&balm, dir)?;
     let label = "balm_os0: map of scans 0-115, scans 116-176 tracked";
     let script = "tools/anchors/small_gicp_localize.py --motion-model";
     table.push(
@@ -63,12 +70,57 @@ pub(super) fn measure(table: &mut Table, data: Option<&Path>, dir: &Path) -> any
         "m",
     );
     table.anchored(anchor("small_gicp", SMALL_GICP_LOCALIZE[2], script));
+    let label = "balm_os0: map of scans 0-115, scans 116-176 relocalized with no guess";
+    let mut latencies: Vec<f64> = relocalized.iter().map(|r| r.latency_ms).collect();
+    latencies.sort_by(f64::total_cmp);
+    let mut server: Vec<f64> = relocalized.iter().map(|r| r.server_ms).collect();
+    server.sort_by(f64::total_cmp);
+    let median = percentile(&latencies, 0.5);
+    table.push(
+        "relocalization per scan over IPC (kfmap relocalize), median",
+        label,
+        2,
+        median,
+        "ms",
+    );
+    table.push(
+        &format!(
+            "relocalization per scan over IPC (kfmap relocalize), {}",
+            p99_label(latencies.len())
+        ),
+        label,
+        2,
+        percentile(&latencies, 0.99),
+        "ms",
+    );
+    table.push(
+        "relocalization per scan, server time, median",
+        label,
+        2,
+        percentile(&server, 0.5),
+        "ms",
+    );
+    table.push(
+        "relocalization median over the tracking step's median (same run)",
+        label,
+        2,
+        median / json_number(&v["p50_ms"]),
+        "x",
+    );
     Ok(())
 }
 
-/// Bakes scans 0-115 of balm_os0 into a map in `dir`, serves it and tracks scans
-/// 116-176 with `kfmap localize --json`: its summary.
-fn localize_balm(balm: &Path, dir: &Path) -> anyhow::Result<serde_json::Value> {
+/// One scan's answer of `kfmap relocalize --json`: its latencies.
+#[derive(serde::Deserialize)]
+struct Relocalized {
+    latency_ms: f64,
+    server_ms: f64,
+}
+
+/// Bakes scans 0-115 of balm_os0 into a map in `dir`, serves it, tracks scans 116-176
+/// with `kfmap localize --json` (its summary), then relocalizes each of them with
+/// `kfmap relocalize --json` on the same server (one answer per scan).
+fn localize_balm(balm: &Path, dir: &Path) -> anyhow::Result<(serde_json::Value, Vec<Relocalized>)> {
     let map = dir.join(format!("kfmap-bench-balm-{}.kfmap", std::process::id()));
     let input = BakeInput {
         scans: ScanRange {
@@ -99,7 +151,25 @@ fn localize_balm(balm: &Path, dir: &Path) -> anyhow::Result<serde_json::Value> {
         "--json",
     ];
     let source = Source::Folder(balm.to_path_buf());
-    let printed = run_localize(&server, &source, &args.map(OsStr::new));
-    drop(server);
-    Ok(serde_json::from_str(&printed?)?)
+    let tracked = serde_json::from_str(&run_localize(&server, &source, &args.map(OsStr::new))?)?;
+    let scans = find_scans(balm)?;
+    let revisit = scans
+        .get(116..177)
+        .context("balm_os0 has fewer than 177 scans")?;
+    let out = Command::new(std::env::current_exe()?)
+        .args(["relocalize", "--map-name", &server.name, "--iceoryx-prefix"])
+        .arg(&server.prefix)
+        .arg("--json")
+        .args(revisit)
+        .stderr(Stdio::inherit())
+        .output()
+        .context("run kfmap relocalize")?;
+    if !out.status.success() {
+        bail!("kfmap relocalize failed ({})", out.status);
+    }
+    let relocalized = String::from_utf8(out.stdout)?
+        .lines()
+        .map(serde_json::from_str)
+        .collect::<Result<Vec<Relocalized>, _>>()?;
+    Ok((tracked, relocalized))
 }

@@ -36,7 +36,8 @@ use anyhow::{Context, bail};
 /// set, exact cached), GICP per scan pair, pose-graph optimization, cold start against
 /// rebuild and bake throughput (`load`), IPC round trips of 1k/10k/100k points and
 /// cov2cov throughput (`ipc`), remote against local localize (`remote`), and localization per scan with its error on the real
-/// sequence balm_os0. Real data comes from ../shared/data (or $KFMAP_DATA_DIR); without
+/// sequence balm_os0, with the same scans relocalized with no guess beside it (median,
+/// p99, and its ratio to the tracking step's median). Real data comes from ../shared/data (or $KFMAP_DATA_DIR); without
 /// it, synthetic scans stand in and rows that need it are listed as skipped. About 75 s
 /// on 2 cores; --quick (fewer repetitions, a 40-keyframe generated map) under a
 /// minute, with noisier figures. --json: {"rows": [{name, data, threads, value, unit,
