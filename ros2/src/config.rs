@@ -402,22 +402,4 @@ mod tests {
             Ros2Config::from_toml("[topics]\nimu = \"\"\ngravity = \"\"", Path::new("r.toml"));
         assert!(off.is_ok());
     }
-
-    /// The node's tracker takes `[tracker]` as written, the rest at its defaults.
-    #[test]
-    fn the_tracker_section_reaches_the_trackers_options() {
-        let config = Ros2Config::from_toml(
-            "[tracker]\nok-pinned = -1.0\ncheck-every = 0\nok-explained = 0.7",
-            Path::new("r.toml"),
-        )
-        .unwrap();
-        let trust = crate::node::tracker_options(&config).trust;
-        assert_eq!(trust.ok_pinned, -1.0);
-        assert_eq!(trust.check_every, 0);
-        assert_eq!(trust.ok_explained, 0.7);
-        assert_eq!(
-            trust.lost_after_unfit,
-            TrustParams::default().lost_after_unfit
-        );
-    }
 }

@@ -773,3 +773,32 @@ fn now_seconds() -> f64 {
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(0.0, |d| d.as_secs_f64())
 }
+
+#[cfg(test)]
+mod tests {
+    use std::path::Path;
+
+    use kfmap_client::TrustParams;
+    use kfmap_shared::options::ConfigFile;
+
+    use super::tracker_options;
+    use crate::config::Ros2Config;
+
+    /// The node's tracker takes `[tracker]` as written, the rest at its defaults.
+    #[test]
+    fn the_tracker_section_reaches_the_trackers_options() {
+        let config = Ros2Config::from_toml(
+            "[tracker]\nok-pinned = -1.0\ncheck-every = 0\nok-explained = 0.7",
+            Path::new("r.toml"),
+        )
+        .unwrap();
+        let trust = tracker_options(&config).trust;
+        assert_eq!(trust.ok_pinned, -1.0);
+        assert_eq!(trust.check_every, 0);
+        assert_eq!(trust.ok_explained, 0.7);
+        assert_eq!(
+            trust.lost_after_unfit,
+            TrustParams::default().lost_after_unfit
+        );
+    }
+}

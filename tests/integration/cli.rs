@@ -77,6 +77,18 @@ fn bad_input_exits_2_with_a_message_naming_the_problem() {
     std::fs::write(&bad_config, "[covariance]\nk-correspondences-for-cov = 1\n").unwrap();
     let empty = dir.join("empty.ply");
     std::fs::write(&empty, b"ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\nproperty float z\nend_header\n").unwrap();
+    // Bad tracker flags are refused before any dataset is read or server asked.
+    let localize_with = |flags: &[&'static str]| {
+        let mut args = vec![
+            "localize",
+            "--map-name",
+            "none",
+            "--dataset",
+            "/nonexistent",
+        ];
+        args.extend_from_slice(flags);
+        args
+    };
     let cases: Vec<(Vec<&str>, &str)> = vec![
         (vec!["inspect-cloud", "/nonexistent/scan.pcd"], "scan.pcd"),
         (
@@ -132,28 +144,9 @@ fn bad_input_exits_2_with_a_message_naming_the_problem() {
             ],
             "below 90",
         ),
+        (localize_with(&["--ok-pinned", "3"]), "--ok-pinned"),
         (
-            vec![
-                "localize",
-                "--map-name",
-                "none",
-                "--dataset",
-                "/nonexistent",
-                "--ok-pinned",
-                "3",
-            ],
-            "--ok-pinned",
-        ),
-        (
-            vec![
-                "localize",
-                "--map-name",
-                "none",
-                "--dataset",
-                "/nonexistent",
-                "--lost-after-unfit",
-                "0",
-            ],
+            localize_with(&["--lost-after-unfit", "0"]),
             "--lost-after-unfit",
         ),
     ];
