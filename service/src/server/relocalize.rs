@@ -155,7 +155,7 @@ pub fn relocalize(
         Some(_) => None,
         None => Some(candidates.coarse().map_err(coarse_error)?),
     };
-    // Places are settled and scored on a thinned copy: the ranking needs no more.
+    // Places are settled and scored on the coarse scan, thinned as `score-points` says.
     let scoring = coarse.map(|(cloud, covs)| scoring_scan(cloud, covs, params.score_points));
     let coarse = scoring.as_ref().map(|(c, v)| (c, v.as_slice()));
     let settle = |start: &Pose, stage: &_| {

@@ -34,7 +34,7 @@ pub struct RelocalizeParams {
     /// The sensor tilts less than this from the vertical (levelling gate), degrees.
     pub max_tilt_deg: f64,
     /// Each proposed place is settled and scored on the coarse scan thinned to at most
-    /// this many points ([`scoring_scan`]).
+    /// this many points ([`scoring_scan`]); 0: on every coarse point.
     pub score_points: usize,
     /// The place search.
     pub search: SearchParams,
@@ -75,10 +75,10 @@ impl RelocalizeParams {
             "10 to 100000",
         )?;
         ensure(
-            (100..=100_000).contains(&self.score_points),
+            self.score_points == 0 || (100..=100_000).contains(&self.score_points),
             "score-points",
             self.score_points,
-            "100 to 100000",
+            "0 (every coarse point) or 100 to 100000",
         )?;
         ensure(
             self.max_tilt_deg.is_finite() && (1.0..=90.0).contains(&self.max_tilt_deg),
@@ -118,7 +118,7 @@ impl Default for RelocalizeParams {
             min_range: 0.5,
             search_points: 300,
             max_tilt_deg: 40.0,
-            score_points: 1000,
+            score_points: 0,
             search: SearchParams {
                 candidates: 5,
                 ..SearchParams::default()
@@ -430,9 +430,10 @@ pub fn verification_selection(
 }
 
 /// The coarse scan (`cloud`, with its covariances `covs`) as places are scored on it:
-/// every k-th point, the smallest k leaving at most `points`. Scoring took 45 % of a
-/// balm_os0 relocalization on its 2 100 coarse points; on every third it takes half as
-/// long and the places rank alike (docs/DESIGN.md#notes-relocalization). The
+/// every k-th point, the smallest k leaving at most `points` (0: every point). On
+/// balm_os0 1 000 halved the scoring time and ranked places alike, but over a tile set
+/// one place's score then stood 0.016 from the merged map's (0.0015 on every coarse
+/// point), so it is not the default (docs/DESIGN.md#notes-relocalization). The
 /// covariances come from the whole coarse scan: a kept point's still describes its
 /// neighbourhood.
 pub fn scoring_scan(
@@ -440,7 +441,10 @@ pub fn scoring_scan(
     covs: &[PackedSym3],
     points: usize,
 ) -> (PointCloud, Vec<PackedSym3>) {
-    let stride = cloud.len().div_ceil(points.max(1)).max(1);
+    let stride = match points {
+        0 => 1,
+        n => cloud.len().div_ceil(n).max(1),
+    };
     let kept: Vec<usize> = (0..cloud.len()).step_by(stride).collect();
     let covs = kept.iter().filter_map(|&i| covs.get(i).copied()).collect();
     (cloud.select(&kept), covs)

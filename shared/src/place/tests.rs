@@ -1179,7 +1179,7 @@ fn listed<S: std::hash::BuildHasher>(set: &HashSet<[i64; 3], S>) -> Vec<[i64; 3]
 
 /// A coarse scan of 2 139 points (balm_os0's size) thinned for scoring to at most 1 000
 /// keeps every third point (713 of them, the smallest stride that fits) with the
-/// covariance it had; a scan already small enough is kept whole.
+/// covariance it had; a scan already small enough, or `points` 0, is kept whole.
 #[test]
 fn a_scoring_scan_keeps_every_kth_point_with_its_own_covariance() {
     let cloud =
@@ -1196,4 +1196,6 @@ fn a_scoring_scan_keeps_every_kth_point_with_its_own_covariance() {
     }
     let (whole, _) = super::scoring_scan(&cloud, &covs, 5000);
     assert_eq!(whole.points, cloud.points);
+    let (off, _) = super::scoring_scan(&cloud, &covs, 0);
+    assert_eq!(off.points, cloud.points);
 }
