@@ -416,8 +416,6 @@ impl ReplayDataset {
     }
 }
 
-/// The tracker: from `--initial`, the reference pose (`--initial-from-ground-truth`) or
-/// relocalizing, with the `--config` checks, the solver options and the gyro.
 /// The tracker's trust rules from the command line.
 fn trust(args: &Args) -> TrustParams {
     TrustParams {
@@ -430,6 +428,8 @@ fn trust(args: &Args) -> TrustParams {
     }
 }
 
+/// The tracker: from `--initial`, the reference pose (`--initial-from-ground-truth`) or
+/// relocalizing, with the `--config` checks, the solver options and the gyro.
 fn start_tracker(
     args: &Args,
     truth: Option<&[Pose]>,

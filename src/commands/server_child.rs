@@ -87,22 +87,33 @@ pub(super) fn run_localize(
     source: &Source,
     args: &[&OsStr],
 ) -> anyhow::Result<String> {
+    let mut all = source_args(source);
+    all.extend(["--rate".into(), "0".into()]);
+    all.extend(args.iter().map(|a| a.to_os_string()));
+    run_client(server, "localize", &all)
+}
+
+/// Runs `kfmap COMMAND --map-name .. --iceoryx-prefix .. ARGS` against `server`; its
+/// stdout, or an error naming the command when it fails (its stderr passes through).
+pub(super) fn run_client(
+    server: &ServerChild,
+    command: &str,
+    args: &[std::ffi::OsString],
+) -> anyhow::Result<String> {
     let out = Command::new(std::env::current_exe()?)
         .args([
-            "localize",
+            command,
             "--map-name",
             &server.name,
             "--iceoryx-prefix",
             &server.prefix,
         ])
-        .args(source_args(source))
-        .args(["--rate", "0"])
         .args(args)
         .stderr(Stdio::inherit())
         .output()
-        .context("run kfmap localize")?;
+        .with_context(|| format!("run kfmap {command}"))?;
     if !out.status.success() {
-        bail!("kfmap localize failed ({})", out.status);
+        bail!("kfmap {command} failed ({})", out.status);
     }
     Ok(String::from_utf8(out.stdout)?)
 }

@@ -155,9 +155,12 @@ pub fn relocalize(
         Some(_) => None,
         None => Some(candidates.coarse().map_err(coarse_error)?),
     };
-    // Places are settled and scored on the coarse scan, thinned as `score-points` says.
-    let scoring = coarse.map(|(cloud, covs)| scoring_scan(cloud, covs, params.score_points));
-    let coarse = scoring.as_ref().map(|(c, v)| (c, v.as_slice()));
+    // Places are settled and scored on the coarse scan, thinned when `score-points`
+    // asks for fewer points than it has (copied only then).
+    let thinned = coarse
+        .filter(|(cloud, _)| params.score_points > 0 && cloud.len() > params.score_points)
+        .map(|(cloud, covs)| scoring_scan(cloud, covs, params.score_points));
+    let coarse = thinned.as_ref().map(|(c, v)| (c, v.as_slice())).or(coarse);
     let settle = |start: &Pose, stage: &_| {
         let (coarse_cloud, coarse_covs) =
             coarse.ok_or_else(|| Rejection::new(StatusCode::Internal, "no coarse scan"))?;

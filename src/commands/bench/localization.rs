@@ -6,9 +6,8 @@
 
 use std::ffi::OsStr;
 use std::path::Path;
-use std::process::{Command, Stdio};
 
-use anyhow::{Context, bail};
+use anyhow::Context;
 
 use kfmap_bake::config::BakeConfig;
 use kfmap_bake::dataset::find_scans;
@@ -21,7 +20,7 @@ use super::anchors::SMALL_GICP_LOCALIZE;
 use super::fixtures::data_file;
 use super::table::{Table, anchor};
 use crate::commands::report::{json_number, p99_label};
-use crate::commands::server_child::{ServerChild, run_localize};
+use crate::commands::server_child::{ServerChild, run_client, run_localize};
 
 /// Bakes the map in `dir`, serves it from a child process and measures the rows
 /// (skipped without balm_os0).
@@ -156,18 +155,10 @@ fn localize_balm(balm: &Path, dir: &Path) -> anyhow::Result<(serde_json::Value, 
     let revisit = scans
         .get(116..177)
         .context("balm_os0 has fewer than 177 scans")?;
-    let out = Command::new(std::env::current_exe()?)
-        .args(["relocalize", "--map-name", &server.name, "--iceoryx-prefix"])
-        .arg(&server.prefix)
-        .arg("--json")
-        .args(revisit)
-        .stderr(Stdio::inherit())
-        .output()
-        .context("run kfmap relocalize")?;
-    if !out.status.success() {
-        bail!("kfmap relocalize failed ({})", out.status);
-    }
-    let relocalized = String::from_utf8(out.stdout)?
+    let mut args: Vec<std::ffi::OsString> = vec!["--json".into()];
+    args.extend(revisit.iter().map(|p| p.as_os_str().to_os_string()));
+    let printed = run_client(&server, "relocalize", &args)?;
+    let relocalized = printed
         .lines()
         .map(serde_json::from_str)
         .collect::<Result<Vec<Relocalized>, _>>()?;
