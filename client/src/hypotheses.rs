@@ -26,8 +26,20 @@ pub struct HypothesisParams {
     /// ... and that difference stands this many standard errors above zero (a
     /// look-alike's differences are noise about zero and never get there).
     pub z: f64,
-    /// Scans compared at least before a place is dropped for explaining less.
+    /// Scans compared at least before a place is dropped for explaining less on the
+    /// spread its differences show...
     pub min_scans: usize,
+    /// ... and sooner only when the difference on the scans since the places were
+    /// proposed stands `z` standard errors above zero with each scan's spread taken
+    /// as at least this (share of the scan): few scans cannot show their spread. The
+    /// proposing scan itself is left out there, as every place was chosen for fitting it.
+    pub early_spread: f64,
+    /// The place being tracked when a check put it in doubt keeps its continuity: it
+    /// is not dropped for explaining less while it explains at least this much of the
+    /// scans on average (share of each scan's structure; `ok-explained`'s default). On
+    /// a street whose buildings changed, a look-alike 25 m along may explain them
+    /// better than the right place: that is a doubt, not a reason to jump.
+    pub hold_explained: f64,
     /// A place lost this many scans in a row is dropped.
     pub drop_after_lost: usize,
     /// Places are compared over their last this many scans: evidence that appears late
@@ -46,6 +58,8 @@ impl Default for HypothesisParams {
             min_effect: 0.015,
             z: 4.0,
             min_scans: 5,
+            early_spread: 0.05,
+            hold_explained: 0.5,
             drop_after_lost: 2,
             window: 10,
         }
@@ -62,6 +76,10 @@ pub struct Hypothesis {
     pub explained: Vec<f64>,
     /// Scans in a row it was lost at.
     pub misses: usize,
+    /// Scans seen since it was proposed, the proposing scan included.
+    pub seen: usize,
+    /// The place tracked before a check put it in doubt (see `hold-explained`).
+    pub incumbent: bool,
 }
 
 impl Hypothesis {
@@ -71,6 +89,8 @@ impl Hypothesis {
             pose,
             explained: vec![explained.unwrap_or(0.0)],
             misses: usize::from(explained.is_none()),
+            seen: 1,
+            incumbent: false,
         }
     }
 
@@ -108,21 +128,31 @@ pub fn near_best(places: &[ScoredPlace], params: &HypothesisParams) -> Vec<Score
 
 /// Whether `lead` explains the scans so clearly better than `other` that `other` can
 /// go: over the scans both saw, the mean difference is at least `min-effect` and `z`
-/// standard errors above zero, after `min-scans` scans.
+/// standard errors above zero, after `min-scans` scans; or sooner, over the scans
+/// since the proposal, with the spread taken as at least `early-spread` (a place lost
+/// at a scan explained none of it there).
 pub fn clearly_better(lead: &Hypothesis, other: &Hypothesis, params: &HypothesisParams) -> bool {
     let n = lead.explained.len().min(other.explained.len());
-    if n < params.min_scans.max(2) {
-        return false;
-    }
-    let differences: Vec<f64> = lead.explained[lead.explained.len() - n..]
-        .iter()
-        .zip(&other.explained[other.explained.len() - n..])
-        .map(|(a, b)| a - b)
-        .collect();
-    let mean = differences.iter().sum::<f64>() / n as f64;
-    let variance = differences.iter().map(|d| (d - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
-    let standard_error = (variance / n as f64).sqrt();
-    mean >= params.min_effect && mean >= params.z * standard_error
+    let since_proposal = (lead.seen.min(other.seen) - 1).min(n);
+    let differences = |n: usize| -> Vec<f64> {
+        lead.explained[lead.explained.len() - n..]
+            .iter()
+            .zip(&other.explained[other.explained.len() - n..])
+            .map(|(a, b)| a - b)
+            .collect()
+    };
+    let stands = |d: &[f64], spread_at_least: f64| {
+        let n = d.len() as f64;
+        let mean = d.iter().sum::<f64>() / n;
+        let spread = if d.len() > 1 {
+            (d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt()
+        } else {
+            0.0
+        };
+        mean >= params.min_effect && mean >= params.z * spread.max(spread_at_least) / n.sqrt()
+    };
+    (n >= params.min_scans.max(2) && stands(&differences(n), 0.0))
+        || (since_proposal >= 1 && stands(&differences(since_proposal), params.early_spread))
 }
 
 /// Records one scan's outcome at each hypothesis (`None`: lost there, the pose its
@@ -142,6 +172,7 @@ pub fn observe(
             h.explained.remove(0);
         }
         h.misses = if explained.is_some() { 0 } else { h.misses + 1 };
+        h.seen += 1;
     }
     let mut kept: Vec<usize> = (0..live.len())
         .filter(|&i| live[i].misses < params.drop_after_lost.max(1))
@@ -150,7 +181,10 @@ pub fn observe(
         live.clear();
         return kept;
     };
-    kept.retain(|&i| i == lead || !clearly_better(&live[lead], &live[i], params));
+    let holds = |h: &Hypothesis| h.incumbent && h.mean_explained() >= params.hold_explained;
+    kept.retain(|&i| {
+        i == lead || holds(&live[i]) || !clearly_better(&live[lead], &live[i], params)
+    });
     kept.sort_by(|&a, &b| leads(&live[b], &live[a]));
     *live = kept.iter().map(|&i| live[i].clone()).collect();
     kept
@@ -270,6 +304,109 @@ mod tests {
         }
     }
 
+    /// Two places proposed on one scan (`first`: what each explained there), then
+    /// `after` scans with these shares each; how many observations kept both.
+    fn undecided_for(first: [f64; 2], after: [f64; 2], scans: usize) -> usize {
+        let params = HypothesisParams::default();
+        let mut live = vec![
+            Hypothesis::new(at(0.0), Some(first[0])),
+            Hypothesis::new(at(20.0), Some(first[1])),
+        ];
+        for k in 0..scans {
+            let outcomes: Vec<(Pose, Option<f64>)> = live
+                .iter()
+                .map(|h| {
+                    let share = if h.pose == at(0.0) {
+                        after[0]
+                    } else {
+                        after[1]
+                    };
+                    (h.pose, Some(share))
+                })
+                .collect();
+            if observe(&mut live, &outcomes, &params).len() == 1 {
+                assert_eq!(live[0].pose, at(0.0));
+                return k;
+            }
+        }
+        scans
+    }
+
+    #[test]
+    fn a_large_difference_after_the_proposal_decides_on_its_first_scan() {
+        let params = HypothesisParams::default();
+        // The closed form: one scan decides when the difference reaches z times the
+        // spread taken at least (0.2 with the defaults), n scans at z * spread / sqrt(n).
+        let one_scan = params.z * params.early_spread;
+        assert!((one_scan - 0.2).abs() < 1e-12);
+        // balm_os0's look-alikes 4.7 m away: 0.57 against 0.26 on the scan after.
+        assert_eq!(undecided_for([0.57, 0.52], [0.57, 0.26], 10), 0);
+        assert_eq!(
+            undecided_for([0.6, 0.6], [0.6, 0.6 - one_scan - 1e-9], 10),
+            0
+        );
+        // Just short of it on one scan, decided on the second (z * 0.05 / sqrt 2).
+        assert_eq!(undecided_for([0.6, 0.6], [0.6, 0.6 - 0.15], 10), 1);
+        // The proposing scan is no evidence: every place was chosen for fitting it, so
+        // a difference there alone decides nothing.
+        let params_first_only = undecided_for([0.9, 0.3], [0.6, 0.6], 20);
+        assert_eq!(params_first_only, 20);
+        // A small steady difference waits for `min-scans` and its own spread.
+        let k = undecided_for([0.6, 0.6], [0.6, 0.56], 20);
+        assert!(k + 2 >= params.min_scans && k < 20, "{k}");
+    }
+
+    #[test]
+    fn the_tracked_place_holds_while_it_explains_the_scans_and_goes_when_it_does_not() {
+        let params = HypothesisParams::default();
+        // A check put the tracked place (0.73 of each scan) in doubt beside a look-alike
+        // that explains more (0.84): the doubt stays, no jump.
+        let mut live = vec![
+            Hypothesis::new(at(0.0), Some(0.73)),
+            Hypothesis::new(at(25.0), Some(0.84)),
+        ];
+        live[0].incumbent = true;
+        for _ in 0..30 {
+            let outcomes: Vec<(Pose, Option<f64>)> = live
+                .iter()
+                .map(|h| (h.pose, Some(if h.incumbent { 0.73 } else { 0.84 })))
+                .collect();
+            assert_eq!(observe(&mut live, &outcomes, &params).len(), 2);
+        }
+        // Once it explains less than `hold-explained` on average (the robot was
+        // carried elsewhere), the better place takes over.
+        let mut decided = false;
+        for _ in 0..30 {
+            let outcomes: Vec<(Pose, Option<f64>)> = live
+                .iter()
+                .map(|h| (h.pose, Some(if h.incumbent { 0.2 } else { 0.84 })))
+                .collect();
+            if observe(&mut live, &outcomes, &params).len() == 1 {
+                decided = true;
+                break;
+            }
+        }
+        assert!(decided);
+        assert_eq!(live[0].pose, at(25.0));
+        // Not an incumbent: the same shares drop the worse place.
+        let mut live = vec![
+            Hypothesis::new(at(0.0), Some(0.73)),
+            Hypothesis::new(at(25.0), Some(0.84)),
+        ];
+        let outcomes = [(at(0.0), Some(0.73)), (at(25.0), Some(0.84))];
+        let mut scans = 0;
+        while live.len() == 2 && scans < 30 {
+            let ordered: Vec<(Pose, Option<f64>)> = live
+                .iter()
+                .map(|h| *outcomes.iter().find(|o| o.0 == h.pose).unwrap())
+                .collect();
+            observe(&mut live, &ordered, &params);
+            scans += 1;
+        }
+        assert_eq!(live.len(), 1);
+        assert_eq!(live[0].pose, at(25.0));
+    }
+
     #[test]
     fn a_place_lost_twice_in_a_row_is_dropped_and_none_left_is_none() {
         let params = HypothesisParams::default();
@@ -279,15 +416,16 @@ mod tests {
         ];
         let kept = observe(
             &mut live,
-            &[(at(0.0), Some(0.5)), (at(20.0), None)],
+            &[(at(0.0), Some(0.1)), (at(20.0), None)],
             &params,
         );
-        // Found at the last scan leads a better average lost there.
+        // Found at the last scan leads a better average lost there; a difference of
+        // 0.1 is not enough to drop it on one scan (0.2 is).
         assert_eq!(kept, vec![0, 1]);
         assert_eq!(live[0].pose, at(0.0));
         let kept = observe(
             &mut live,
-            &[(at(0.0), Some(0.5)), (at(20.0), None)],
+            &[(at(0.0), Some(0.1)), (at(20.0), None)],
             &params,
         );
         assert_eq!(kept, vec![0]);

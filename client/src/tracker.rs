@@ -731,22 +731,25 @@ impl Tracker {
     }
 
     /// Keeps the `evaluated` places as hypotheses and reports the scan `lost`
-    /// (`ambiguous`) at the best; the motion model goes on from the best, with the
-    /// velocity it had when `keep_velocity` (a check while tracking).
+    /// (`ambiguous`) at the best; the motion model goes on from the best. `from_check`:
+    /// a check while tracking put the tracked place (the first evaluated) in doubt;
+    /// the motion keeps its velocity and the tracked place its continuity.
     fn start_hypotheses(
         &mut self,
         t: f64,
         predicted: Pose,
         evaluated: Vec<Evaluated>,
-        keep_velocity: bool,
+        from_check: bool,
     ) -> TrackedScan {
         let mut live: Vec<Hypothesis> = evaluated
             .iter()
             .map(|e| Hypothesis::new(e.pose, e.explained))
             .collect();
+        // A check's first place is the one tracked so far: it keeps its continuity.
+        live[0].incumbent = from_check;
         // Best first; nothing is dropped on one scan's evidence.
         let order = hypotheses::rank(&mut live);
-        if keep_velocity {
+        if from_check {
             // The motion's last pose is this scan's at the tracked place: the same
             // motion from the best place.
             self.motion.relocate(live[0].pose);
@@ -801,6 +804,10 @@ impl Tracker {
             return Ok(self.undecided(t, prediction, found));
         }
         self.hypotheses.clear();
+        // Decided as a relocalization is: the motion starts afresh at this scan. The
+        // scan-to-scan motion that carried the places says nothing of how wrong the
+        // model's predictions are, so it neither sets the velocity nor feeds the gate.
+        self.motion.restart();
         self.adopted_streak = 0;
         self.unfit_streak = 0;
         self.lost_streak = 0;

@@ -198,9 +198,10 @@ fn balm_replay_is_accurate_and_reports_no_wrong_pose_ok() {
 
     // No start pose, from every third scan of the revisit (6 scans each, as a robot
     // switched on there): no wrong pose is ever `ok` (> 0.5 m or 5 deg from the
-    // reference), and most starts are `ok` and right within 3 scans (issue 55's target
-    // is every start; measured 15 of these 20: an ambiguous relocalization keeps its
-    // places for at least `min-scans` 5 scans; one start of slack).
+    // reference), and most starts are `ok` and right within 3 scans (the target is
+    // every start; measured 17 of these 20: the others' look-alikes explain nearly as
+    // much as the right place and are told apart only after `min-scans`; one start of
+    // slack).
     let mut quick = 0;
     let starts: Vec<usize> = (116..176).step_by(3).collect();
     for &start in &starts {
@@ -236,7 +237,7 @@ fn balm_replay_is_accurate_and_reports_no_wrong_pose_ok() {
         "no start: {quick} of {} starts ok and right within 3 scans",
         starts.len()
     );
-    assert!(quick >= 14, "{quick} of {}", starts.len());
+    assert!(quick >= 16, "{quick} of {}", starts.len());
 }
 
 /// A campus drive at 7 Hz against the map of another drive, with one scan replaced by

@@ -492,15 +492,16 @@ fn a_later_recording_with_moved_clutter_is_never_confidently_wrong() {
 /// its IMU log; the runs: seeds 43 and 42, `kfmap localize --initial-from-ground-truth`.
 /// Oracles: the simulator's poses, every error computed here. Before the slide check
 /// (`unpinned`), seed 43 had 2 `ok` scans 90-97 m off and seed 42 had 5 (a slide to
-/// 0.64 m, then 8-75 m on look-alikes); measured now 0 and 1 (34 m, on a look-alike the
-/// hypotheses decided for: a place 25 m along explains the changed street better than
-/// the right one), with 22 % and 45 % of the scans `ok` and right.
+/// 0.64 m, then 8-75 m on look-alikes), and seed 42 one at 34 m while the hypotheses
+/// jumped to a place 25 m along that explains the changed street better than the right
+/// one; measured now 0 and 0 (the tracked place holds), with 22 % and 45 % of the scans
+/// `ok` and right.
 #[test]
 fn a_street_whose_buildings_changed_is_not_called_ok_while_sliding_along_it() {
     let dir = temp_dir("street-later");
     let (prefix, _server) = serve_the_map_day(&dir, "street", "street");
     // (seed, wrong `ok` scans at most, share `ok` and right at least)
-    for (seed, max_wrong, min_right) in [("43", 0, 0.18), ("42", 1, 0.40)] {
+    for (seed, max_wrong, min_right) in [("43", 0, 0.18), ("42", 0, 0.40)] {
         let run = dir.join(format!("run-{seed}"));
         simulate(&run, "street", "12", "64", &["--seed", seed]);
         let truth = truth_in_map(&run, "street", &prefix);
