@@ -133,7 +133,7 @@ pub fn near_best(places: &[ScoredPlace], params: &HypothesisParams) -> Vec<Score
 /// at a scan explained none of it there).
 pub fn clearly_better(lead: &Hypothesis, other: &Hypothesis, params: &HypothesisParams) -> bool {
     let n = lead.explained.len().min(other.explained.len());
-    let since_proposal = (lead.seen.min(other.seen) - 1).min(n);
+    let since_proposal = lead.seen.min(other.seen).saturating_sub(1).min(n);
     let differences = |n: usize| -> Vec<f64> {
         lead.explained[lead.explained.len() - n..]
             .iter()
@@ -349,8 +349,7 @@ mod tests {
         assert_eq!(undecided_for([0.6, 0.6], [0.6, 0.6 - 0.15], 10), 1);
         // The proposing scan is no evidence: every place was chosen for fitting it, so
         // a difference there alone decides nothing.
-        let params_first_only = undecided_for([0.9, 0.3], [0.6, 0.6], 20);
-        assert_eq!(params_first_only, 20);
+        assert_eq!(undecided_for([0.9, 0.3], [0.6, 0.6], 20), 20);
         // A small steady difference waits for `min-scans` and its own spread.
         let k = undecided_for([0.6, 0.6], [0.6, 0.56], 20);
         assert!(k + 2 >= params.min_scans && k < 20, "{k}");

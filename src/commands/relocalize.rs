@@ -47,8 +47,9 @@ pub struct Args {
     tilt_deg: Option<String>,
     /// One JSON object per scan: scan, status, pose [x,y,z,qx,qy,qz,qw] (map frame,
     /// null when not-found), fitness (inlier ratio), rmse_m, score and runner_up (the
-    /// verification scores of the best and the best other place), candidates,
-    /// latency_ms, server_ms.
+    /// verification scores of the best and the best other place), runner_up_pose (that
+    /// other place, null when none), places (every place scored, {pose, score}, best
+    /// first), candidates, latency_ms, server_ms.
     #[arg(long)]
     json: bool,
 }
@@ -84,7 +85,19 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let place = client.relocalize(&scan, &options)?;
         let latency_ms = started.elapsed().as_secs_f64() * 1e3;
         let pose = place.pose.map(|p| pose_to_xyz_quat(&p));
+        // The place the runner-up's score is of: what an `ambiguous` scan may also be.
+        let runner_up = place
+            .places
+            .iter()
+            .skip(1)
+            .find(|p| place.pose.is_some() && place.runner_up > 0.0 && p.score == place.runner_up)
+            .map(|p| pose_to_xyz_quat(&p.pose));
         if args.json {
+            let places: Vec<_> = place
+                .places
+                .iter()
+                .map(|p| json!({ "pose": pose_to_xyz_quat(&p.pose), "score": p.score }))
+                .collect();
             println!(
                 "{}",
                 json!({
@@ -96,6 +109,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                     "tight_fitness": place.tight_inlier_ratio,
                     "score": place.score,
                     "runner_up": place.runner_up,
+                    "runner_up_pose": runner_up,
+                    "places": places,
                     "candidates": place.candidates,
                     "latency_ms": latency_ms,
                     "server_ms": place.server_us / 1e3,
@@ -108,8 +123,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                     p[0], p[1], p[2], p[3], p[4], p[5], p[6]
                 )
             });
+            let other = runner_up.map_or(String::new(), |p| {
+                format!(" at x {:.2} y {:.2} z {:.2}", p[0], p[1], p[2])
+            });
             println!(
-                "{}: {} at {at}; fitness {:.2}, score {:.2} vs runner-up {:.2}, {:.0} ms",
+                "{}: {} at {at}; fitness {:.2}, score {:.2} vs runner-up {:.2}{other}, {:.0} ms",
                 path.display(),
                 place.status.name(),
                 place.inlier_ratio,

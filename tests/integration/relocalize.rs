@@ -81,6 +81,7 @@ fn relocalize(map_name: &str, prefix: &Prefix, scans: &[PathBuf], extra: &[&str]
                 let p: Vec<f64> = p.iter().map(|x| x.as_f64().unwrap()).collect();
                 pose_from_xyz_quat(p.try_into().unwrap()).unwrap()
             });
+            check_places(&v, pose.as_ref());
             Place {
                 scan: PathBuf::from(v["scan"].as_str().unwrap()),
                 status: v["status"].as_str().unwrap().to_owned(),
@@ -89,6 +90,39 @@ fn relocalize(map_name: &str, prefix: &Prefix, scans: &[PathBuf], extra: &[&str]
             }
         })
         .collect()
+}
+
+/// A line's scored places: best score first, the first the best's score; the
+/// runner-up's place, when there is one, scored `runner_up` and is another place than
+/// the answer (the server's 1 m / 5 deg apart).
+fn check_places(line: &serde_json::Value, pose: Option<&Pose>) {
+    let pose_of = |v: &serde_json::Value| {
+        let p: Vec<f64> = serde_json::from_value(v.clone()).unwrap();
+        pose_from_xyz_quat(p.try_into().unwrap()).unwrap()
+    };
+    let places = line["places"].as_array().unwrap();
+    let scores: Vec<f64> = places
+        .iter()
+        .map(|p| p["score"].as_f64().unwrap())
+        .collect();
+    assert!(scores.windows(2).all(|w| w[0] >= w[1]), "{line}");
+    let runner_up = line["runner_up"].as_f64().unwrap();
+    match (&line["runner_up_pose"], pose) {
+        (serde_json::Value::Null, _) => assert!(runner_up == 0.0 || pose.is_none(), "{line}"),
+        (other, Some(pose)) => {
+            assert_eq!(scores[0], line["score"].as_f64().unwrap(), "{line}");
+            let other = pose_of(other);
+            assert!(
+                places
+                    .iter()
+                    .any(|p| pose_of(&p["pose"]) == other && p["score"].as_f64() == Some(runner_up)),
+                "{line}"
+            );
+            let (m, deg) = gap(&other, pose);
+            assert!(m > 1.0 || deg > 5.0, "{line}");
+        }
+        (_, None) => panic!("a runner-up place without an answer: {line}"),
+    }
 }
 
 /// Translation (m) and rotation (deg) from the reference.
