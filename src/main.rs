@@ -31,7 +31,8 @@ enum Command {
     Demo(commands::demo::Args),
     Gateway(commands::gateway::Args),
     Gravity(commands::gravity::Args),
-    Localize(commands::localize::Args),
+    // Boxed: its many tracker flags make it the largest command by far.
+    Localize(Box<commands::localize::Args>),
     Query(commands::query::Args),
     Relocalize(commands::relocalize::Args),
     Serve(commands::serve::Args),
@@ -96,7 +97,7 @@ fn main() -> ExitCode {
         Command::Demo(args) => commands::demo::run(args),
         Command::Gateway(args) => commands::gateway::run(args),
         Command::Gravity(args) => commands::gravity::run(args),
-        Command::Localize(args) => commands::localize::run(args),
+        Command::Localize(args) => commands::localize::run(*args),
         Command::Query(args) => commands::query::run(args),
         Command::Relocalize(args) => commands::relocalize::run(args),
         Command::Serve(args) => commands::serve::run(args),

@@ -5,11 +5,15 @@
 //! left is the answer; look-alikes that stay alike stay undecided.
 
 use kfmap_shared::geometry::{Pose, rotation_distance, translation_distance};
+use kfmap_shared::options::{InvalidOption, ensure, ensure_distance, ensure_ratio};
+use serde::{Deserialize, Serialize};
 
 use crate::ScoredPlace;
 
-/// How hypotheses are kept, compared and dropped.
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// How hypotheses are kept, compared and dropped: `kfmap localize`'s
+/// `--hypothesis-<key>` flags, the ROS 2 node's `[hypotheses]`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
 pub struct HypothesisParams {
     /// Places a relocalization scored within this of its best are kept (share of the
     /// scan paired; the server calls a runner-up within 0.05 ambiguous).
@@ -63,6 +67,58 @@ impl Default for HypothesisParams {
             drop_after_lost: 2,
             window: 10,
         }
+    }
+}
+
+impl HypothesisParams {
+    /// Checks every value; the error names the key.
+    pub fn validate(&self) -> Result<(), InvalidOption> {
+        ensure_ratio("margin", self.margin)?;
+        ensure(
+            (1..=64).contains(&self.max),
+            "max",
+            self.max,
+            "1 to 64 places",
+        )?;
+        ensure_distance("distinct-m", self.distinct_m)?;
+        ensure(
+            self.distinct_deg > 0.0 && self.distinct_deg <= 180.0,
+            "distinct-deg",
+            self.distinct_deg,
+            "> 0 and <= 180 deg",
+        )?;
+        ensure_ratio("min-effect", self.min_effect)?;
+        ensure(
+            self.z > 0.0 && self.z <= 100.0,
+            "z",
+            self.z,
+            "> 0 and <= 100 standard errors",
+        )?;
+        ensure(
+            (2..=1000).contains(&self.min_scans),
+            "min-scans",
+            self.min_scans,
+            "2 to 1000 scans",
+        )?;
+        ensure(
+            self.early_spread > 0.0 && self.early_spread <= 1.0,
+            "early-spread",
+            self.early_spread,
+            "a share > 0 and <= 1 (1: no early decisions)",
+        )?;
+        ensure_ratio("hold-explained", self.hold_explained)?;
+        ensure(
+            (1..=100).contains(&self.drop_after_lost),
+            "drop-after-lost",
+            self.drop_after_lost,
+            "1 to 100 scans",
+        )?;
+        ensure(
+            self.window >= self.min_scans && self.window <= 1000,
+            "window",
+            self.window,
+            "min-scans to 1000 scans",
+        )
     }
 }
 
@@ -217,6 +273,81 @@ mod tests {
 
     fn place(x: f64, score: f64) -> ScoredPlace {
         ScoredPlace { pose: at(x), score }
+    }
+
+    #[test]
+    fn the_defaults_are_valid_and_bad_values_name_their_key() {
+        let params = HypothesisParams::default();
+        params.validate().unwrap();
+        for (bad, key) in [
+            (
+                HypothesisParams {
+                    margin: 1.5,
+                    ..params
+                },
+                "margin",
+            ),
+            (HypothesisParams { max: 0, ..params }, "max"),
+            (
+                HypothesisParams {
+                    distinct_m: -1.0,
+                    ..params
+                },
+                "distinct-m",
+            ),
+            (
+                HypothesisParams {
+                    distinct_deg: f64::NAN,
+                    ..params
+                },
+                "distinct-deg",
+            ),
+            (
+                HypothesisParams {
+                    min_effect: -0.1,
+                    ..params
+                },
+                "min-effect",
+            ),
+            (HypothesisParams { z: 0.0, ..params }, "z"),
+            (
+                HypothesisParams {
+                    min_scans: 1,
+                    ..params
+                },
+                "min-scans",
+            ),
+            (
+                HypothesisParams {
+                    early_spread: 0.0,
+                    ..params
+                },
+                "early-spread",
+            ),
+            (
+                HypothesisParams {
+                    hold_explained: 2.0,
+                    ..params
+                },
+                "hold-explained",
+            ),
+            (
+                HypothesisParams {
+                    drop_after_lost: 0,
+                    ..params
+                },
+                "drop-after-lost",
+            ),
+            (
+                HypothesisParams {
+                    window: 4,
+                    ..params
+                },
+                "window",
+            ),
+        ] {
+            assert_eq!(bad.validate().unwrap_err().option, key);
+        }
     }
 
     #[test]

@@ -31,6 +31,7 @@ mod tracker;
 
 pub use connection::{ClientOptions, Connection, Response};
 pub use error::ClientError;
+pub use hypotheses::HypothesisParams;
 pub use localize::{LocalizeOptions, Localized};
 pub use relocalize::{RelocalizeOptions, Relocalized, ScoredPlace};
 pub use tracker::{TrackedScan, Tracker, TrackerOptions, TrustParams};

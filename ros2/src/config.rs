@@ -1,7 +1,7 @@
 //! `ros2.toml`: the node's configuration, validated (each key is explained in the
 //! shipped file, `config/ros2.toml`).
 
-use kfmap_client::TrustParams;
+use kfmap_client::{HypothesisParams, TrustParams};
 use kfmap_shared::options::{ConfigFile, InvalidOption, ensure};
 use serde::{Deserialize, Serialize};
 
@@ -215,6 +215,9 @@ pub struct Ros2Config {
     /// When a pose is `ok` and when the tracker gives up on its place, as
     /// `kfmap localize`'s flags of the same names.
     pub tracker: TrustParams,
+    /// How the tracker keeps and drops places in doubt, as `kfmap localize`'s
+    /// `--hypothesis-<key>` flags.
+    pub hypotheses: HypothesisParams,
 }
 
 /// True for a ROS 2 name: `/`-separated tokens of letters, digits and `_`, none starting
@@ -354,7 +357,8 @@ impl ConfigFile for Ros2Config {
             "0 (off) or 0.05 to 100 m",
         )
         .map_err(|e| ("map-cloud", e))?;
-        self.tracker.validate().map_err(|e| ("tracker", e))
+        self.tracker.validate().map_err(|e| ("tracker", e))?;
+        self.hypotheses.validate().map_err(|e| ("hypotheses", e))
     }
 }
 
@@ -391,6 +395,10 @@ mod tests {
             ("[tracker]\nlost-after-unfit = 0", "lost-after-unfit"),
             ("[tracker]\nrecover-after = 0", "recover-after"),
             ("[tracker]\nslide = 1", "slide"),
+            ("[hypotheses]\nearly-spread = 0.0", "early-spread"),
+            ("[hypotheses]\nhold-explained = 1.5", "hold-explained"),
+            ("[hypotheses]\nwindow = 3", "window"),
+            ("[hypotheses]\ncount = 3", "count"),
         ] {
             let err = Ros2Config::from_toml(text, Path::new("r.toml"))
                 .unwrap_err()

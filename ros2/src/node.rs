@@ -195,6 +195,7 @@ pub(crate) fn tracker_options(config: &Ros2Config) -> TrackerOptions {
         server_side: config.server.server_side,
         deskew: config.scans.deskew,
         trust: config.tracker,
+        hypotheses: config.hypotheses,
         ..TrackerOptions::default()
     }
 }
@@ -778,7 +779,7 @@ fn now_seconds() -> f64 {
 mod tests {
     use std::path::Path;
 
-    use kfmap_client::TrustParams;
+    use kfmap_client::{HypothesisParams, TrustParams};
     use kfmap_shared::options::ConfigFile;
 
     use super::tracker_options;
@@ -800,5 +801,23 @@ mod tests {
             trust.lost_after_unfit,
             TrustParams::default().lost_after_unfit
         );
+    }
+
+    /// The node's tracker takes `[hypotheses]` as written, the rest at its defaults.
+    #[test]
+    fn the_hypotheses_section_reaches_the_trackers_options() {
+        let config = Ros2Config::from_toml(
+            "[hypotheses]
+early-spread = 1.0
+hold-explained = 0.0
+min-scans = 8",
+            Path::new("r.toml"),
+        )
+        .unwrap();
+        let hypotheses = tracker_options(&config).hypotheses;
+        assert_eq!(hypotheses.early_spread, 1.0);
+        assert_eq!(hypotheses.hold_explained, 0.0);
+        assert_eq!(hypotheses.min_scans, 8);
+        assert_eq!(hypotheses.margin, HypothesisParams::default().margin);
     }
 }

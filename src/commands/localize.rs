@@ -12,7 +12,8 @@ use kfmap_bake::gravity::POSE_FILES;
 use kfmap_bake::scan_range::ScanRange;
 use kfmap_bake::source::ScanList;
 use kfmap_client::{
-    Client, GravityAnswer, LocalizeOptions, TrackedScan, Tracker, TrackerOptions, TrustParams,
+    Client, GravityAnswer, HypothesisParams, LocalizeOptions, TrackedScan, Tracker, TrackerOptions,
+    TrustParams,
 };
 use kfmap_protocol::Cov2CovMode;
 use kfmap_service::config::ServerConfig;
@@ -165,6 +166,44 @@ pub struct Args {
     /// Scans in a row adopted after `lost` before the status is `ok` again.
     #[arg(long, default_value_t = TrustParams::default().recover_after)]
     recover_after: usize,
+    /// Places a relocalization scored within this of its best are kept as hypotheses
+    /// (share of the scan paired) and told apart on the scans that follow.
+    #[arg(long, default_value_t = HypothesisParams::default().margin)]
+    hypothesis_margin: f64,
+    /// Hypotheses kept at most.
+    #[arg(long, default_value_t = HypothesisParams::default().max)]
+    hypothesis_max: usize,
+    /// Two places are one hypothesis when closer than this, metres...
+    #[arg(long, default_value_t = HypothesisParams::default().distinct_m)]
+    hypothesis_distinct_m: f64,
+    /// ... and turned less than this, degrees.
+    #[arg(long, default_value_t = HypothesisParams::default().distinct_deg)]
+    hypothesis_distinct_deg: f64,
+    /// A place is dropped when the best explains at least this much more of the scans'
+    /// structure on average...
+    #[arg(long, default_value_t = HypothesisParams::default().min_effect)]
+    hypothesis_min_effect: f64,
+    /// ... and that mean stands this many standard errors above zero...
+    #[arg(long, default_value_t = HypothesisParams::default().z)]
+    hypothesis_z: f64,
+    /// ... after this many scans, on the differences' own spread...
+    #[arg(long, default_value_t = HypothesisParams::default().min_scans)]
+    hypothesis_min_scans: usize,
+    /// ... or sooner, on the scans since the places were proposed, with each scan's
+    /// spread taken as at least this (one scan decides at --hypothesis-z times it; 1:
+    /// never early).
+    #[arg(long, default_value_t = HypothesisParams::default().early_spread)]
+    hypothesis_early_spread: f64,
+    /// The tracked place, when a check puts it in doubt, is not dropped for explaining
+    /// less while it explains at least this share of the scans on average.
+    #[arg(long, default_value_t = HypothesisParams::default().hold_explained)]
+    hypothesis_hold_explained: f64,
+    /// A place lost this many scans in a row is dropped.
+    #[arg(long, default_value_t = HypothesisParams::default().drop_after_lost)]
+    hypothesis_drop_after_lost: usize,
+    /// Places are compared over their last this many scans (at least --hypothesis-min-scans).
+    #[arg(long, default_value_t = HypothesisParams::default().window)]
+    hypothesis_window: usize,
     /// Print a JSON summary (scans, ok, degraded, lost, failed, ate_m, p50_ms, ...).
     #[arg(long)]
     json: bool,
@@ -304,6 +343,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     trust(&args)
         .validate()
         .map_err(|e| anyhow::anyhow!("--{}: {e}", e.option))?;
+    hypotheses(&args)
+        .validate()
+        .map_err(|e| anyhow::anyhow!("--hypothesis-{}: {e}", e.option))?;
     let mut dataset = ReplayDataset::read(&args)?;
     let mut client = args.server.connect()?;
     let truth = dataset.truth_in_map_frame(&mut client)?;
@@ -428,6 +470,23 @@ fn trust(args: &Args) -> TrustParams {
     }
 }
 
+/// How the tracker keeps and drops places in doubt, from the command line.
+fn hypotheses(args: &Args) -> HypothesisParams {
+    HypothesisParams {
+        margin: args.hypothesis_margin,
+        max: args.hypothesis_max,
+        distinct_m: args.hypothesis_distinct_m,
+        distinct_deg: args.hypothesis_distinct_deg,
+        min_effect: args.hypothesis_min_effect,
+        z: args.hypothesis_z,
+        min_scans: args.hypothesis_min_scans,
+        early_spread: args.hypothesis_early_spread,
+        hold_explained: args.hypothesis_hold_explained,
+        drop_after_lost: args.hypothesis_drop_after_lost,
+        window: args.hypothesis_window,
+    }
+}
+
 /// The tracker: from `--initial`, the reference pose (`--initial-from-ground-truth`) or
 /// relocalizing, with the `--config` checks, the solver options and the gyro.
 fn start_tracker(
@@ -452,6 +511,7 @@ fn start_tracker(
         server_side: args.server_side,
         deskew: !args.no_deskew,
         trust: trust(args),
+        hypotheses: hypotheses(args),
         ..TrackerOptions::default()
     };
     let mut tracker = match initial {

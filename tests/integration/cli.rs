@@ -149,6 +149,14 @@ fn bad_input_exits_2_with_a_message_naming_the_problem() {
             localize_with(&["--lost-after-unfit", "0"]),
             "--lost-after-unfit",
         ),
+        (
+            localize_with(&["--hypothesis-early-spread", "0"]),
+            "--hypothesis-early-spread",
+        ),
+        (
+            localize_with(&["--hypothesis-window", "3"]),
+            "--hypothesis-window",
+        ),
     ];
     for (args, expect) in cases {
         let out = kfmap(&args);
