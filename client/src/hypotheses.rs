@@ -435,106 +435,78 @@ mod tests {
         }
     }
 
-    /// Two places proposed on one scan (`first`: what each explained there), then
-    /// `after` scans with these shares each; how many observations kept both.
-    fn undecided_for(first: [f64; 2], after: [f64; 2], scans: usize) -> usize {
+    /// Observes `live` on up to `scans` scans, each place explaining `share(place)`;
+    /// the scan (from 0) at which one place was left, and that place's pose.
+    fn decide(
+        live: &mut Vec<Hypothesis>,
+        share: impl Fn(&Hypothesis) -> f64,
+        scans: usize,
+    ) -> Option<(usize, Pose)> {
         let params = HypothesisParams::default();
+        for k in 0..scans {
+            let outcomes: Vec<(Pose, Option<f64>)> =
+                live.iter().map(|h| (h.pose, Some(share(h)))).collect();
+            if observe(live, &outcomes, &params).len() == 1 {
+                return Some((k, live[0].pose));
+            }
+        }
+        None
+    }
+
+    /// Places at x = 0 and 20 proposed on one scan (`first`: what each explained
+    /// there), then `after` on every later scan: the scan the one at 0 won on.
+    fn decided_at(first: [f64; 2], after: [f64; 2], scans: usize) -> Option<usize> {
         let mut live = vec![
             Hypothesis::new(at(0.0), Some(first[0])),
             Hypothesis::new(at(20.0), Some(first[1])),
         ];
-        for k in 0..scans {
-            let outcomes: Vec<(Pose, Option<f64>)> = live
-                .iter()
-                .map(|h| {
-                    let share = if h.pose == at(0.0) {
-                        after[0]
-                    } else {
-                        after[1]
-                    };
-                    (h.pose, Some(share))
-                })
-                .collect();
-            if observe(&mut live, &outcomes, &params).len() == 1 {
-                assert_eq!(live[0].pose, at(0.0));
-                return k;
-            }
-        }
-        scans
+        let share = |h: &Hypothesis| after[usize::from(h.pose != at(0.0))];
+        decide(&mut live, share, scans).map(|(k, winner)| {
+            assert_eq!(winner, at(0.0));
+            k
+        })
     }
 
     #[test]
     fn a_large_difference_after_the_proposal_decides_on_its_first_scan() {
-        let params = HypothesisParams::default();
-        // The closed form: one scan decides when the difference reaches z times the
-        // spread taken at least (0.2 with the defaults), n scans at z * spread / sqrt(n).
-        let one_scan = params.z * params.early_spread;
-        assert!((one_scan - 0.2).abs() < 1e-12);
+        // The closed form with the defaults (z 4, early-spread 0.05): one scan decides
+        // at a difference of 4 * 0.05 = 0.2, n scans at 0.2 / sqrt(n).
         // balm_os0's look-alikes 4.7 m away: 0.57 against 0.26 on the scan after.
-        assert_eq!(undecided_for([0.57, 0.52], [0.57, 0.26], 10), 0);
-        assert_eq!(
-            undecided_for([0.6, 0.6], [0.6, 0.6 - one_scan - 1e-9], 10),
-            0
-        );
-        // Just short of it on one scan, decided on the second (z * 0.05 / sqrt 2).
-        assert_eq!(undecided_for([0.6, 0.6], [0.6, 0.6 - 0.15], 10), 1);
+        assert_eq!(decided_at([0.57, 0.52], [0.57, 0.26], 10), Some(0));
+        assert_eq!(decided_at([0.6, 0.6], [0.6, 0.3999], 10), Some(0));
+        // Just short of it on one scan, decided on the second (0.2 / sqrt 2 = 0.141).
+        assert_eq!(decided_at([0.6, 0.6], [0.6, 0.45], 10), Some(1));
         // The proposing scan is no evidence: every place was chosen for fitting it, so
         // a difference there alone decides nothing.
-        assert_eq!(undecided_for([0.9, 0.3], [0.6, 0.6], 20), 20);
-        // A small steady difference waits for `min-scans` and its own spread.
-        let k = undecided_for([0.6, 0.6], [0.6, 0.56], 20);
-        assert!(k + 2 >= params.min_scans && k < 20, "{k}");
+        assert_eq!(decided_at([0.9, 0.3], [0.6, 0.6], 20), None);
+        // A small steady difference (0.04, below the early bar until 25 scans) waits
+        // for `min-scans` (5, the proposing scan included) and its own spread (none).
+        assert_eq!(decided_at([0.6, 0.56], [0.6, 0.56], 20), Some(3));
     }
 
     #[test]
     fn the_tracked_place_holds_while_it_explains_the_scans_and_goes_when_it_does_not() {
-        let params = HypothesisParams::default();
-        // A check put the tracked place (0.73 of each scan) in doubt beside a look-alike
-        // that explains more (0.84): the doubt stays, no jump.
-        let mut live = vec![
-            Hypothesis::new(at(0.0), Some(0.73)),
-            Hypothesis::new(at(25.0), Some(0.84)),
-        ];
+        let tracked_then_other = || {
+            vec![
+                Hypothesis::new(at(0.0), Some(0.73)),
+                Hypothesis::new(at(25.0), Some(0.84)),
+            ]
+        };
+        let (tracked, other) = (0.73, 0.84);
+        // Not the tracked place: one that explains 0.11 less of each scan goes.
+        let mut live = tracked_then_other();
+        let steady = |h: &Hypothesis| if h.pose == at(0.0) { tracked } else { other };
+        assert_eq!(decide(&mut live, steady, 30).map(|d| d.1), Some(at(25.0)));
+        // A check put the tracked place in doubt beside a look-alike that explains
+        // more: the doubt stays, no jump.
+        let mut live = tracked_then_other();
         live[0].incumbent = true;
-        for _ in 0..30 {
-            let outcomes: Vec<(Pose, Option<f64>)> = live
-                .iter()
-                .map(|h| (h.pose, Some(if h.incumbent { 0.73 } else { 0.84 })))
-                .collect();
-            assert_eq!(observe(&mut live, &outcomes, &params).len(), 2);
-        }
-        // Once it explains less than `hold-explained` on average (the robot was
+        assert_eq!(decide(&mut live, steady, 30), None);
+        assert_eq!(live.len(), 2);
+        // Once it explains less than `hold-explained` (0.5) on average (the robot was
         // carried elsewhere), the better place takes over.
-        let mut decided = false;
-        for _ in 0..30 {
-            let outcomes: Vec<(Pose, Option<f64>)> = live
-                .iter()
-                .map(|h| (h.pose, Some(if h.incumbent { 0.2 } else { 0.84 })))
-                .collect();
-            if observe(&mut live, &outcomes, &params).len() == 1 {
-                decided = true;
-                break;
-            }
-        }
-        assert!(decided);
-        assert_eq!(live[0].pose, at(25.0));
-        // Not an incumbent: the same shares drop the worse place.
-        let mut live = vec![
-            Hypothesis::new(at(0.0), Some(0.73)),
-            Hypothesis::new(at(25.0), Some(0.84)),
-        ];
-        let outcomes = [(at(0.0), Some(0.73)), (at(25.0), Some(0.84))];
-        let mut scans = 0;
-        while live.len() == 2 && scans < 30 {
-            let ordered: Vec<(Pose, Option<f64>)> = live
-                .iter()
-                .map(|h| *outcomes.iter().find(|o| o.0 == h.pose).unwrap())
-                .collect();
-            observe(&mut live, &ordered, &params);
-            scans += 1;
-        }
-        assert_eq!(live.len(), 1);
-        assert_eq!(live[0].pose, at(25.0));
+        let carried = |h: &Hypothesis| if h.incumbent { 0.2 } else { other };
+        assert_eq!(decide(&mut live, carried, 30).map(|d| d.1), Some(at(25.0)));
     }
 
     #[test]

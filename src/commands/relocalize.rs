@@ -86,11 +86,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let latency_ms = started.elapsed().as_secs_f64() * 1e3;
         let pose = place.pose.map(|p| pose_to_xyz_quat(&p));
         // The place the runner-up's score is of: what an `ambiguous` scan may also be.
-        let runner_up = place
-            .places
-            .iter()
-            .skip(1)
-            .find(|p| place.pose.is_some() && place.runner_up > 0.0 && p.score == place.runner_up)
+        let runner_up = (place.pose.is_some() && place.runner_up > 0.0)
+            .then(|| {
+                place
+                    .places
+                    .iter()
+                    .skip(1)
+                    .find(|p| p.score == place.runner_up)
+            })
+            .flatten()
             .map(|p| pose_to_xyz_quat(&p.pose));
         if args.json {
             let places: Vec<_> = place
