@@ -12,9 +12,9 @@ use kfmap_protocol::{
 };
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::place::{
-    Columns, GridView, PeerBest, Proposal, Relocalization, RelocalizeParams, RelocalizeStatus,
-    ScanUp, Scored, ScoredPlace, decide, own_up, propose, score_places, scoring_scan,
-    verification_selection,
+    Columns, GridView, PeerBest, PlaceStep, Proposal, Relocalization, RelocalizeParams,
+    RelocalizeStatus, ScanUp, Scored, ScoredPlace, decide, own_up, propose, score_places,
+    thinned_scan, verification_selection,
 };
 use kfmap_shared::tracking::{covariance_to_wire, pose_covariance};
 use nalgebra::Vector3;
@@ -155,27 +155,31 @@ pub fn relocalize(
         Some(_) => None,
         None => Some(candidates.coarse().map_err(coarse_error)?),
     };
-    // Places are settled and scored on the coarse scan, thinned when `score-points`
-    // asks for fewer points than it has (copied only then).
-    let thinned = coarse
-        .filter(|(cloud, _)| params.score_points > 0 && cloud.len() > params.score_points)
-        .map(|(cloud, covs)| scoring_scan(cloud, covs, params.score_points));
-    let coarse = thinned.as_ref().map(|(c, v)| (c, v.as_slice())).or(coarse);
-    let settle = |start: &Pose, stage: &_| {
-        let (coarse_cloud, coarse_covs) =
-            coarse.ok_or_else(|| Rejection::new(StatusCode::Internal, "no coarse scan"))?;
-        register_approximate(
-            map,
-            &activation.selection,
-            coarse_cloud,
-            coarse_covs,
-            start,
-            stage,
-        )
+    // Places are settled and scored on the coarse scan, thinned when `settle-points`
+    // and `score-points` ask for fewer points than it has (copied only then).
+    let thinned = |points: usize| {
+        coarse
+            .filter(|(cloud, _)| points > 0 && cloud.len() > points)
+            .map(|(cloud, covs)| thinned_scan(cloud, covs, points))
+    };
+    let (to_settle, to_score) = (thinned(params.settle_points), thinned(params.score_points));
+    let settle_scan = to_settle
+        .as_ref()
+        .map(|(c, v)| (c, v.as_slice()))
+        .or(coarse);
+    let score_scan = to_score.as_ref().map(|(c, v)| (c, v.as_slice())).or(coarse);
+    let settle = |start: &Pose, stage: &_, step| {
+        let scan = match step {
+            PlaceStep::Settle => settle_scan,
+            PlaceStep::Score => score_scan,
+        };
+        let (cloud, covs) =
+            scan.ok_or_else(|| Rejection::new(StatusCode::Internal, "no coarse scan"))?;
+        register_approximate(map, &activation.selection, cloud, covs, start, stage)
     };
     let scored_ranks = |ranks: u64| -> Result<Scored, Rejection> {
         let (chosen, of) = chosen_places(&proposal, ranks)?;
-        let mut scored = score_places(&chosen, fine, &limits.tracking, settle)?;
+        let mut scored = score_places(&chosen, fine, &limits.tracking, &params, settle)?;
         for place in &mut scored.places {
             place.rank = of[place.rank];
         }
@@ -188,7 +192,7 @@ pub fn relocalize(
     let found = match phase {
         Phase::Places => unreachable!("answered above"),
         Phase::Whole => {
-            let every = score_places(&proposal, fine, &limits.tracking, settle)?;
+            let every = score_places(&proposal, fine, &limits.tracking, &params, settle)?;
             let scored_at = started.elapsed();
             let found = decide(&every, proposal.poses.len() as u32, fine, &params, register)?;
             tracing::debug!(

@@ -33,8 +33,13 @@ pub struct RelocalizeParams {
     pub search_points: usize,
     /// The sensor tilts less than this from the vertical (levelling gate), degrees.
     pub max_tilt_deg: f64,
-    /// Each proposed place is settled and scored on the coarse scan thinned to at most
-    /// this many points ([`scoring_scan`]); 0: on every coarse point.
+    /// Each proposed place is settled (coarse iterations from where the search put it)
+    /// on the coarse scan thinned to at most this many points ([`thinned_scan`]); 0: on
+    /// every coarse point. Settling is most of the scoring phase's work; thinned, the
+    /// runner-up places settle otherwise (docs/DESIGN.md#notes-relocalization).
+    pub settle_points: usize,
+    /// ... and scored (fine pairing distance) on the coarse scan thinned to at most this
+    /// many points; 0: on every coarse point.
     pub score_points: usize,
     /// The place search.
     pub search: SearchParams,
@@ -74,12 +79,17 @@ impl RelocalizeParams {
             self.search_points,
             "10 to 100000",
         )?;
-        ensure(
-            self.score_points == 0 || (100..=100_000).contains(&self.score_points),
-            "score-points",
-            self.score_points,
-            "0 (every coarse point) or 100 to 100000",
-        )?;
+        for (key, points) in [
+            ("settle-points", self.settle_points),
+            ("score-points", self.score_points),
+        ] {
+            ensure(
+                points == 0 || (100..=100_000).contains(&points),
+                key,
+                points,
+                "0 (every coarse point) or 100 to 100000",
+            )?;
+        }
         ensure(
             self.max_tilt_deg.is_finite() && (1.0..=90.0).contains(&self.max_tilt_deg),
             "max-tilt-deg",
@@ -118,6 +128,7 @@ impl Default for RelocalizeParams {
             min_range: 0.5,
             search_points: 300,
             max_tilt_deg: 40.0,
+            settle_points: 0,
             score_points: 0,
             search: SearchParams {
                 candidates: 5,
@@ -274,6 +285,17 @@ pub fn propose(
         outcome.nodes += first.nodes;
         outcome.exhausted |= first.exhausted;
     }
+    tracing::debug!(
+        "relocalize: searched {} points over {} yaws, {} nodes{}",
+        outcome.points,
+        outcome.yaws,
+        outcome.nodes,
+        if outcome.exhausted {
+            " (work limit)"
+        } else {
+            ""
+        }
+    );
     let map_from_grid: UnitQuaternion<f64> = grid.grid_from_map().inverse();
     for p in &outcome.placements {
         tracing::debug!(
@@ -429,14 +451,15 @@ pub fn verification_selection(
     }
 }
 
-/// The coarse scan (`cloud`, with its covariances `covs`) as places are scored on it:
-/// every k-th point, the smallest k leaving at most `points` (0: every point). On
-/// balm_os0 1 000 halved the scoring time and ranked places alike, but over a tile set
-/// one place's score then stood 0.016 from the merged map's (0.0015 on every coarse
-/// point), so it is not the default (docs/DESIGN.md#notes-relocalization). The
-/// covariances come from the whole coarse scan: a kept point's still describes its
-/// neighbourhood.
-pub fn scoring_scan(
+/// The coarse scan (`cloud`, with its covariances `covs`) as places are settled or
+/// scored on it: every k-th point, the smallest k leaving at most `points` (0: every
+/// point). The covariances come from the whole coarse scan: a kept point's still
+/// describes its neighbourhood. Neither is thinned by default: settling on 1 100 of
+/// balm_os0's 2 100 coarse points took a third off the scoring phase but changed which
+/// look-alikes the simulated street's runs took for right; scoring on 1 000 halved it
+/// but over a tile set one place's score then stood 0.016 from the merged map's (0.0015
+/// on every coarse point) (docs/DESIGN.md#notes-relocalization).
+pub fn thinned_scan(
     cloud: &PointCloud,
     covs: &[PackedSym3],
     points: usize,
@@ -452,6 +475,16 @@ pub fn scoring_scan(
 
 /// Iterations of the scoring registration (coarse scan, fine pairing distance).
 const SCORE_ITERATIONS: usize = 10;
+
+/// Which step of [`score_places`] a registration of a proposed place runs: each has a
+/// scan of its own (`settle-points`, `score-points`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PlaceStep {
+    /// Coarse iterations from where the search put the place.
+    Settle,
+    /// Iterations at the fine pairing distance from where it settled; the score.
+    Score,
+}
 
 /// A proposed place settled by registration and scored.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -473,31 +506,18 @@ pub struct Scored {
     pub registrations: u32,
 }
 
-/// Verifies `proposal` by registration and decides: [`score_places`], then [`decide`].
-/// `settle(start, stage)` runs one registration against the map for a proposed place
-/// (on any thread: places are verified in parallel); `register` runs the final one (as
-/// for [`crate::tracking::localize_scan`]); `fine` is the request's pairing distance
-/// and iterations.
-pub fn verify<E: Send>(
-    proposal: &Proposal,
-    fine: Stage,
-    tracking: &TrackingParams,
-    params: &RelocalizeParams,
-    settle: impl Fn(&Pose, &Stage) -> Result<Option<RegistrationResult>, E> + Sync,
-    register: impl FnMut(&Pose, &Stage) -> Result<Option<RegistrationResult>, E>,
-) -> Result<Relocalization, E> {
-    let scored = score_places(proposal, fine, tracking, settle)?;
-    decide(&scored, proposal.poses.len() as u32, fine, params, register)
-}
-
 /// Settles and scores each proposed place: coarse iterations from it, then
 /// [`SCORE_ITERATIONS`] at the fine pairing distance on the coarse scan, whose inlier
-/// ratio is the score (places in parallel).
+/// ratio is the score (places in parallel; `settle(start, stage, step)` runs one
+/// registration against the map). A place that settles within `distinct-m`
+/// and `distinct-deg` of a better-ranked one's settled pose is that place: it is not
+/// scored again (on balm_os0 nearly half the proposed places settle onto another's).
 pub fn score_places<E: Send>(
     proposal: &Proposal,
     fine: Stage,
     tracking: &TrackingParams,
-    settle: impl Fn(&Pose, &Stage) -> Result<Option<RegistrationResult>, E> + Sync,
+    params: &RelocalizeParams,
+    settle: impl Fn(&Pose, &Stage, PlaceStep) -> Result<Option<RegistrationResult>, E> + Sync,
 ) -> Result<Scored, E> {
     let coarse = Stage {
         coarse: true,
@@ -511,29 +531,41 @@ pub fn score_places<E: Send>(
         max_pair_dist: fine.max_pair_dist,
         max_iterations: SCORE_ITERATIONS,
     };
-    let verified: Vec<(Option<(Pose, f64)>, u32)> = proposal
+    let settled: Vec<Option<RegistrationResult>> = proposal
         .poses
         .par_iter()
-        .map(|(start, _)| {
-            let Some(settled) = settle(start, &coarse)? else {
-                return Ok((None, 1));
-            };
-            let score = settle(&settled.pose, &score_stage)?;
-            Ok((score.map(|s| (s.pose, s.fitness.inlier_ratio)), 2))
-        })
+        .map(|(start, _)| settle(start, &coarse, PlaceStep::Settle))
         .collect::<Result<_, E>>()?;
-    let registrations = verified.iter().map(|(_, n)| n).sum();
-    let places = verified
-        .into_iter()
-        .enumerate()
-        .filter_map(|(rank, (place, _))| {
-            place.map(|(pose, score)| ScoredPlace { rank, pose, score })
+    let mut distinct: Vec<(usize, Pose)> = Vec::new();
+    for (rank, result) in settled.iter().enumerate() {
+        if let Some(result) = result
+            && distinct
+                .iter()
+                .all(|(_, kept)| another_place(kept, &result.pose, params))
+        {
+            distinct.push((rank, result.pose));
+        }
+    }
+    let places: Vec<ScoredPlace> = distinct
+        .par_iter()
+        .map(|&(rank, pose)| {
+            Ok(
+                settle(&pose, &score_stage, PlaceStep::Score)?.map(|s| ScoredPlace {
+                    rank,
+                    pose: s.pose,
+                    score: s.fitness.inlier_ratio,
+                }),
+            )
         })
-        .collect::<Vec<_>>();
+        .collect::<Result<Vec<_>, E>>()?
+        .into_iter()
+        .flatten()
+        .collect();
     for place in &places {
         let t = place.pose.translation.vector;
         tracing::debug!(
-            "relocalize: settled at ({:.2}, {:.2}, {:.2}) yaw {:.1} deg, score {:.3}",
+            "relocalize: rank {} settled at ({:.2}, {:.2}, {:.2}) yaw {:.1} deg, score {:.3}",
+            place.rank,
             t.x,
             t.y,
             t.z,
@@ -543,8 +575,15 @@ pub fn score_places<E: Send>(
     }
     Ok(Scored {
         places,
-        registrations,
+        registrations: (proposal.poses.len() + distinct.len()) as u32,
     })
+}
+
+/// True when `b` is another place than `a`: farther than `distinct-m` or turned more
+/// than `distinct-deg`.
+fn another_place(a: &Pose, b: &Pose, params: &RelocalizeParams) -> bool {
+    translation_distance(a, b) > params.distinct_m
+        || rotation_distance(a, b).to_degrees() > params.distinct_deg
 }
 
 /// The best of `scored` (the first of equal scores) gets fine iterations; it fits when
@@ -580,14 +619,10 @@ pub fn decide<E>(
     let Some(result) = register(&start, &fine)? else {
         return Ok(answer);
     };
-    let distinct = |p: &Pose| {
-        translation_distance(p, &result.pose) > params.distinct_m
-            || rotation_distance(p, &result.pose).to_degrees() > params.distinct_deg
-    };
     answer.runner_up = ranked
         .iter()
         .skip(1)
-        .filter(|(p, _)| distinct(p))
+        .filter(|(p, _)| another_place(p, &result.pose, params))
         .map(|(_, s)| *s)
         .fold(0.0, f64::max);
     answer.pose = result.pose;

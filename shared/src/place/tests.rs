@@ -1181,21 +1181,129 @@ fn listed<S: std::hash::BuildHasher>(set: &HashSet<[i64; 3], S>) -> Vec<[i64; 3]
 /// keeps every third point (713 of them, the smallest stride that fits) with the
 /// covariance it had; a scan already small enough, or `points` 0, is kept whole.
 #[test]
-fn a_scoring_scan_keeps_every_kth_point_with_its_own_covariance() {
+fn a_thinned_scan_keeps_every_kth_point_with_its_own_covariance() {
     let cloud =
         crate::cloud::PointCloud::from_points((0..2139).map(|i| [i as f32, 0.0, 0.0]).collect());
     let covs: Vec<crate::geometry::PackedSym3> = (0..2139)
         .map(|i| [i as f32, 0.0, 0.0, 0.0, 0.0, 0.0])
         .collect();
-    let (thinned, kept_covs) = super::scoring_scan(&cloud, &covs, 1000);
+    let (thinned, kept_covs) = super::thinned_scan(&cloud, &covs, 1000);
     assert_eq!(thinned.len(), 713);
     assert_eq!(kept_covs.len(), 713);
     for (k, (p, c)) in thinned.points.iter().zip(&kept_covs).enumerate() {
         assert_eq!(p[0], (3 * k) as f32);
         assert_eq!(c[0], p[0], "point {k} lost its covariance");
     }
-    let (whole, _) = super::scoring_scan(&cloud, &covs, 5000);
+    let (whole, _) = super::thinned_scan(&cloud, &covs, 5000);
     assert_eq!(whole.points, cloud.points);
-    let (off, _) = super::scoring_scan(&cloud, &covs, 0);
+    let (off, _) = super::thinned_scan(&cloud, &covs, 0);
     assert_eq!(off.points, cloud.points);
+}
+
+/// A registration result at `pose` pairing `inlier_ratio` of the scan.
+fn settled_at(
+    pose: crate::geometry::Pose,
+    inlier_ratio: f64,
+) -> crate::registration::RegistrationResult {
+    crate::registration::RegistrationResult {
+        pose,
+        hessian: nalgebra::Matrix6::identity(),
+        fitness: crate::registration::Fitness {
+            inlier_ratio,
+            rmse: 0.1,
+        },
+        iterations: 3,
+        converged: true,
+        constraint: crate::registration::Constraint {
+            rotation_ratio: 1.0,
+            translation_ratio: 1.0,
+        },
+        unobservable: 0,
+        degenerate: false,
+        cost: 1.0,
+        pairs: 100,
+    }
+}
+
+/// Places that settle onto a better-ranked place's pose (within `distinct-m` and
+/// `distinct-deg`) are scored once, as that place: a map with two basins, at x = 0 (score
+/// 0.8) and x = 10 (0.6), where the settling registration moves each proposed place to
+/// the nearer basin and the place at x = 30 fails to register. Proposed in the order
+/// x = 0.3, 9.6, 0.1, 30, 10.4: ranks 0 and 1 are scored, 2 and 4 are their places again,
+/// 3 is left out; 5 proposals settled and 2 scored make 7 registrations.
+#[test]
+fn places_settling_onto_a_better_ranked_one_are_scored_once() {
+    use super::relocalize::{PlaceStep, RelocalizeParams, score_places};
+    use crate::tracking::{Stage, TrackingParams};
+    let at = |x: f64| {
+        crate::geometry::Pose::from_parts(
+            Translation3::new(x, 0.0, 0.0),
+            UnitQuaternion::identity(),
+        )
+    };
+    let proposal = super::Proposal {
+        poses: [0.3, 9.6, 0.1, 30.0, 10.4].map(|x| (at(x), 0.5)).to_vec(),
+        ..Default::default()
+    };
+    let steps = std::sync::Mutex::new(Vec::new());
+    let settle = |start: &crate::geometry::Pose, _: &Stage, step: PlaceStep| {
+        steps.lock().unwrap().push((start.translation.x, step));
+        let x = start.translation.x;
+        Ok::<_, ()>(match x {
+            x if x > 20.0 => None,
+            x if x < 5.0 => Some(settled_at(at(0.0), 0.8)),
+            _ => Some(settled_at(at(10.0), 0.6)),
+        })
+    };
+    let fine = Stage {
+        coarse: false,
+        max_pair_dist: 1.0,
+        max_iterations: 10,
+    };
+    let scored = score_places(
+        &proposal,
+        fine,
+        &TrackingParams::default(),
+        &RelocalizeParams::default(),
+        settle,
+    )
+    .unwrap();
+    let places: Vec<(usize, f64, f64)> = scored
+        .places
+        .iter()
+        .map(|p| (p.rank, p.pose.translation.x, p.score))
+        .collect();
+    assert_eq!(places, vec![(0, 0.0, 0.8), (1, 10.0, 0.6)]);
+    assert_eq!(scored.registrations, 7);
+    let steps = steps.into_inner().unwrap();
+    let scored_from: Vec<f64> = steps
+        .iter()
+        .filter(|(_, step)| *step == PlaceStep::Score)
+        .map(|(x, _)| *x)
+        .collect();
+    assert_eq!(scored_from.len(), 2, "scored from the settled poses only");
+    assert!(scored_from.contains(&0.0) && scored_from.contains(&10.0));
+}
+
+/// A thinning count below 100 (and not 0) is refused, naming the key it came from.
+#[test]
+fn settle_and_score_points_are_checked_by_name() {
+    use super::relocalize::RelocalizeParams;
+    assert!(RelocalizeParams::default().validate().is_ok());
+    let settle = RelocalizeParams {
+        settle_points: 50,
+        ..RelocalizeParams::default()
+    };
+    assert_eq!(settle.validate().unwrap_err().option, "settle-points");
+    let score = RelocalizeParams {
+        score_points: 99,
+        ..RelocalizeParams::default()
+    };
+    assert_eq!(score.validate().unwrap_err().option, "score-points");
+    let off = RelocalizeParams {
+        settle_points: 0,
+        score_points: 0,
+        ..RelocalizeParams::default()
+    };
+    assert!(off.validate().is_ok());
 }
