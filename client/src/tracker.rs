@@ -72,8 +72,8 @@ impl Default for TrackerOptions {
 }
 
 /// When the tracker calls a scan's pose `ok` and when it gives up on the place it
-/// tracks: `kfmap localize`'s `--ok-explained`, `--ok-pinned`, `--check-every`,
-/// `--lost-after-unfit`, `--recover-after`, the ROS 2 node's `[tracker]`.
+/// tracks: `kfmap localize`'s `--ok-explained`, `--ok-pinned`, `--confirm-after-unpinned`,
+/// `--check-every`, `--lost-after-unfit`, `--recover-after`, the ROS 2 node's `[tracker]`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
 pub struct TrustParams {
@@ -103,6 +103,13 @@ pub struct TrustParams {
     /// not pin the pose to the distance `ok` promises (a street it slides along; a
     /// negative cost means a better fit lies beside it). -1 turns the check off.
     pub ok_pinned: f64,
+    /// After this many adopted scans in a row that do not pin the pose (`unpinned` or
+    /// `degenerate`), a pinned scan is `ok` only when a relocalization of it finds the
+    /// tracked place itself (`found`, within the hypotheses' `distinct-m` /
+    /// `distinct-deg`); else `degraded` (`unpinned`). A slide along a street ends
+    /// somewhere unknown, and a scan pinned by what is near (a pole, a doorway) does
+    /// not say where. 0 turns the check off.
+    pub confirm_after_unpinned: usize,
 }
 
 impl Default for TrustParams {
@@ -116,6 +123,7 @@ impl Default for TrustParams {
             ok_explained: 0.5,
             tight_distance: 0.3,
             ok_pinned: 0.05,
+            confirm_after_unpinned: 3,
         }
     }
 }
@@ -155,6 +163,12 @@ impl TrustParams {
             "ok-pinned",
             self.ok_pinned,
             "a share from -1 (no check) to 1",
+        )?;
+        ensure(
+            self.confirm_after_unpinned <= 1000,
+            "confirm-after-unpinned",
+            self.confirm_after_unpinned,
+            "0 (never) to 1000 scans",
         )
     }
 }
@@ -205,6 +219,8 @@ pub struct Tracker {
     /// The places in doubt, best first (its pose is the motion model's last); empty
     /// while tracking one place.
     hypotheses: Vec<Hypothesis>,
+    /// Adopted scans in a row that did not pin the pose (`confirm-after-unpinned`).
+    unpinned_run: usize,
     /// Adopted scans since the last relocalization check.
     since_check: usize,
     /// The scan before (sensor frame, as sent) while places are in doubt: the motion
@@ -353,6 +369,7 @@ impl Tracker {
             last_inlier_ratio: None,
             unfit_streak: 0,
             hypotheses: Vec::new(),
+            unpinned_run: 0,
             since_check: 0,
             previous_scan: None,
         }
@@ -468,6 +485,7 @@ impl Tracker {
             }
         };
         self.demote_doubtful(&mut localized, explained, slide_loss);
+        self.confirm_after_unpinned_run(client, scan, t, &mut localized)?;
         self.give_up_when_unfit(&predicted, &mut localized);
         if localized.health.status == TrackingStatus::Lost && self.options.relocalize_when_lost {
             return self.relocalize(client, scan, t, predicted, max_correction, localized);
@@ -542,6 +560,46 @@ impl Tracker {
             localized.health.status = TrackingStatus::Degraded;
             localized.health.reasons.insert(Reasons::UNPINNED);
         }
+    }
+
+    /// Counts adopted scans in a row that do not pin the pose; after
+    /// `confirm-after-unpinned` of them, an `ok` scan stays `ok` only when the map
+    /// finds the tracked place itself there (see [`TrustParams::confirm_after_unpinned`]).
+    fn confirm_after_unpinned_run(
+        &mut self,
+        client: &mut Client,
+        scan: &ScanPayload,
+        t: f64,
+        localized: &mut Localized,
+    ) -> Result<(), ClientError> {
+        let needed = self.options.trust.confirm_after_unpinned;
+        let health = &mut localized.health;
+        if needed == 0 || health.status == TrackingStatus::Lost {
+            return Ok(());
+        }
+        if health.reasons.contains(Reasons::UNPINNED) || health.degenerate {
+            self.unpinned_run += 1;
+            return Ok(());
+        }
+        if health.status != TrackingStatus::Ok {
+            return Ok(());
+        }
+        if self.unpinned_run < needed {
+            self.unpinned_run = 0;
+            return Ok(());
+        }
+        let place = self.ask_where(client, scan, t)?;
+        let itself = place.status == RelocalizeStatus::Found
+            && place
+                .pose
+                .is_some_and(|p| !distinct(&p, &localized.pose, &self.options.hypotheses));
+        if itself {
+            self.unpinned_run = 0;
+        } else {
+            localized.health.status = TrackingStatus::Degraded;
+            localized.health.reasons.insert(Reasons::UNPINNED);
+        }
+        Ok(())
     }
 
     /// Counts scans that do not fit the map and turns the `lost-after-unfit`th in a row,

@@ -390,6 +390,10 @@ mod tests {
             ("[server]\nmode = \"fast\"", "mode"),
             ("[topics]\nlidar = \"/x\"", "lidar"),
             ("[tracker]\nok-pinned = 3.0", "ok-pinned"),
+            (
+                "[tracker]\nconfirm-after-unpinned = 5000",
+                "confirm-after-unpinned",
+            ),
             ("[tracker]\nok-explained = 1.5", "ok-explained"),
             ("[tracker]\ntight-distance = 0.0", "tight-distance"),
             ("[tracker]\nlost-after-unfit = 0", "lost-after-unfit"),

@@ -155,6 +155,11 @@ pub struct Args {
     /// the check off.
     #[arg(long, default_value_t = TrustParams::default().ok_pinned, allow_hyphen_values = true)]
     ok_pinned: f64,
+    /// After this many scans in a row that do not pin the pose (unpinned, degenerate),
+    /// a pinned scan is `ok` only when relocalizing it finds the tracked place itself:
+    /// a slide along a street ends somewhere unknown (0: no check).
+    #[arg(long, default_value_t = TrustParams::default().confirm_after_unpinned)]
+    confirm_after_unpinned: usize,
     /// Every this many adopted scans the scan is also relocalized, so that a look-alike
     /// place elsewhere becomes a hypothesis beside the tracked one (0: never).
     #[arg(long, default_value_t = TrustParams::default().check_every)]
@@ -467,6 +472,7 @@ fn trust(args: &Args) -> TrustParams {
         ok_explained: args.ok_explained,
         tight_distance: args.tight_distance,
         ok_pinned: args.ok_pinned,
+        confirm_after_unpinned: args.confirm_after_unpinned,
     }
 }
 

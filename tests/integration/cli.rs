@@ -146,6 +146,10 @@ fn bad_input_exits_2_with_a_message_naming_the_problem() {
         ),
         (localize_with(&["--ok-pinned", "3"]), "--ok-pinned"),
         (
+            localize_with(&["--confirm-after-unpinned", "5000"]),
+            "--confirm-after-unpinned",
+        ),
+        (
             localize_with(&["--lost-after-unfit", "0"]),
             "--lost-after-unfit",
         ),
