@@ -13,7 +13,7 @@ use kfmap_protocol::{
     PLACES_FROM_RELIEF, ResponseHeader, StatusCode, WirePlace, place_from_wire, pose_from_wire,
 };
 use kfmap_shared::geometry::{Pose, rotation_distance, translation_distance};
-use kfmap_shared::place::{RelocalizeParams, RelocalizeStatus, SearchParams};
+use kfmap_shared::place::{RelocalizeParams, RelocalizeStatus, SearchParams, another_place};
 use kfmap_shared::tiles::{TileGeometry, tile_id};
 
 use crate::ClientError;
@@ -270,14 +270,12 @@ pub(crate) fn finish(
     header.server_us += searched_us + ranked.scored_us;
     let fits = header.relocalization != RelocalizeStatus::NotFound as u32;
     if let (true, Some(settled), Some(best)) = (fits, pose_from_wire(&header.pose), &ranked.best) {
-        let distinct = |p: &Pose| {
-            translation_distance(p, &settled) > params.distinct_m
-                || rotation_distance(p, &settled).to_degrees() > params.distinct_deg
-        };
         let runner_up = ranked
             .places
             .iter()
-            .filter(|(t, r, pose, _)| (t, r) != (&best.0, &best.1) && distinct(pose))
+            .filter(|(t, r, pose, _)| {
+                (t, r) != (&best.0, &best.1) && another_place(pose, &settled, &params)
+            })
             .map(|(_, _, _, score)| *score)
             .fold(0.0, f64::max);
         header.place_scores[1] = runner_up;

@@ -562,6 +562,15 @@ impl Tracker {
         }
     }
 
+    /// The scan counts that judge a tracked place start afresh: the map has just
+    /// placed the scan (a relocalization, hypotheses proposed or decided).
+    fn restart_streaks(&mut self) {
+        self.adopted_streak = 0;
+        self.unfit_streak = 0;
+        self.since_check = 0;
+        self.unpinned_run = 0;
+    }
+
     /// Counts adopted scans in a row that do not pin the pose; after
     /// `confirm-after-unpinned` of them, an `ok` scan stays `ok` only when the map
     /// finds the tracked place itself there (see [`TrustParams::confirm_after_unpinned`]).
@@ -588,6 +597,8 @@ impl Tracker {
             self.unpinned_run = 0;
             return Ok(());
         }
+        // Not counted as the periodic check: that one weighs rivals against the tracked
+        // place, and skipping it here let a look-alike 3.6 m along pass on the street.
         let place = self.ask_where(client, scan, t)?;
         let itself = place.status == RelocalizeStatus::Found
             && place
@@ -671,9 +682,7 @@ impl Tracker {
             return Ok(self.start_hypotheses(t, predicted, evaluated, false));
         }
         self.motion.restart();
-        self.adopted_streak = 0;
-        self.unfit_streak = 0;
-        self.since_check = 0;
+        self.restart_streaks();
         let localized = Localized {
             pose,
             health: ScanHealth {
@@ -816,9 +825,7 @@ impl Tracker {
             self.motion.update(t, live[0].pose, false);
         }
         self.hypotheses = live;
-        self.adopted_streak = 0;
-        self.unfit_streak = 0;
-        self.since_check = 0;
+        self.restart_streaks();
         self.undecided(t, predicted, evaluated[order[0]].localized)
     }
 
@@ -866,8 +873,7 @@ impl Tracker {
         // scan-to-scan motion that carried the places says nothing of how wrong the
         // model's predictions are, so it neither sets the velocity nor feeds the gate.
         self.motion.restart();
-        self.adopted_streak = 0;
-        self.unfit_streak = 0;
+        self.restart_streaks();
         self.lost_streak = 0;
         found.health.reasons.insert(Reasons::RELOCALIZED);
         let explained = outcomes[lead].1;

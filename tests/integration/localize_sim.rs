@@ -506,18 +506,8 @@ fn a_street_whose_buildings_changed_is_not_called_ok_while_sliding_along_it() {
     for (seed, max_wrong, min_right) in [("43", 0, 0.18), ("42", 0, 0.40)] {
         let run = dir.join(format!("run-{seed}"));
         simulate(&run, "street", "12", "64", &["--seed", seed]);
-        let truth = truth_in_map(&run, "street", &prefix);
-        let scans = replay_json_lines(&run, "street", &prefix, &["--initial-from-ground-truth"]);
-        assert_eq!(scans.len(), truth.len());
-        let poses: Vec<Pose> = scans.iter().map(|s| pose_of(&s["pose"])).collect();
-        let errors = pose_errors(&poses, &truth);
-        let right = |k: usize| errors[k].0 <= 0.5 && errors[k].1 <= 5.0;
-        let ok = |k: usize| scans[k]["status"] == "ok";
-        let wrong: Vec<(usize, f64)> = (0..scans.len())
-            .filter(|&k| ok(k) && !right(k))
-            .map(|k| (k, errors[k].0))
-            .collect();
-        let right_ok = (0..scans.len()).filter(|&k| ok(k) && right(k)).count();
+        let (scans, wrong, right_ok) =
+            street_replay(&run, &prefix, &["--initial-from-ground-truth"]);
         let unpinned = scans
             .iter()
             .filter(|s| {
@@ -538,16 +528,30 @@ fn a_street_whose_buildings_changed_is_not_called_ok_while_sliding_along_it() {
         // The check engaged: a changed street is not pinned everywhere.
         assert!(unpinned > 0, "seed {seed}");
     }
-    let run = dir.join("run-42");
-    let truth = truth_in_map(&run, "street", &prefix);
-    let scans = replay_json_lines(&run, "street", &prefix, &[]);
+    let (_, wrong, _) = street_replay(&dir.join("run-42"), &prefix, &[]);
+    println!("street seed 42 on the map of seed 41, no start: wrong ok {wrong:?}");
+    assert!(wrong.is_empty(), "seed 42 with no start: {wrong:?}");
+}
+
+/// Replays a street `run` against the served street map with `extra` flags: the
+/// scans reported, the `ok` ones more than 0.5 m or 5 deg off the simulator's truth
+/// (index, metres off), and how many are `ok` and right.
+fn street_replay(
+    run: &Path,
+    prefix: &Prefix,
+    extra: &[&str],
+) -> (Vec<serde_json::Value>, Vec<(usize, f64)>, usize) {
+    let truth = truth_in_map(run, "street", prefix);
+    let scans = replay_json_lines(run, "street", prefix, extra);
     assert_eq!(scans.len(), truth.len());
     let poses: Vec<Pose> = scans.iter().map(|s| pose_of(&s["pose"])).collect();
     let errors = pose_errors(&poses, &truth);
-    let wrong: Vec<(usize, f64)> = (0..scans.len())
-        .filter(|&k| scans[k]["status"] == "ok" && !(errors[k].0 <= 0.5 && errors[k].1 <= 5.0))
+    let right = |k: usize| errors[k].0 <= 0.5 && errors[k].1 <= 5.0;
+    let ok = |k: usize| scans[k]["status"] == "ok";
+    let wrong = (0..scans.len())
+        .filter(|&k| ok(k) && !right(k))
         .map(|k| (k, errors[k].0))
         .collect();
-    println!("street seed 42 on the map of seed 41, no start: wrong ok {wrong:?}");
-    assert!(wrong.is_empty(), "seed 42 with no start: {wrong:?}");
+    let right_ok = (0..scans.len()).filter(|&k| ok(k) && right(k)).count();
+    (scans, wrong, right_ok)
 }

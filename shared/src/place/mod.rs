@@ -26,8 +26,8 @@ pub use grid::{
 pub use level::{estimate_map_up, estimate_up, levelling};
 pub use relocalize::{
     Ground, PlaceStep, Proposal, Relocalization, RelocalizeParams, RelocalizeStatus, ScanUp,
-    Scored, ScoredPlace, decide, off_ground, own_up, propose, score_places, thinned_scan,
-    verification_selection,
+    Scored, ScoredPlace, another_place, decide, off_ground, own_up, propose, score_places,
+    thinned_scan, verification_selection,
 };
 pub use search::{Columns, OwnedColumns, PeerBest, Placement, SearchOutcome, SearchParams, search};
 

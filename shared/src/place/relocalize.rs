@@ -580,8 +580,8 @@ pub fn score_places<E: Send>(
 }
 
 /// True when `b` is another place than `a`: farther than `distinct-m` or turned more
-/// than `distinct-deg`.
-fn another_place(a: &Pose, b: &Pose, params: &RelocalizeParams) -> bool {
+/// than `distinct-deg` (a runner-up counts only then).
+pub fn another_place(a: &Pose, b: &Pose, params: &RelocalizeParams) -> bool {
     translation_distance(a, b) > params.distinct_m
         || rotation_distance(a, b).to_degrees() > params.distinct_deg
 }
