@@ -431,22 +431,15 @@ fn a_later_recording_with_moved_clutter_is_never_confidently_wrong() {
             bare
         };
         let seed = format!("{seed}{}", if imu { "" } else { " without IMU" });
-        let truth = truth_in_map(&run, "later", &prefix);
         let stamps = read_trajectory(&run.join("poses_gt.txt"))
             .unwrap()
             .stamps
             .unwrap();
-        let scans = replay_json_lines(&run, "later", &prefix, &[]);
-        assert_eq!(scans.len(), truth.len());
-        let poses: Vec<Pose> = scans.iter().map(|s| pose_of(&s["pose"])).collect();
-        let errors = pose_errors(&poses, &truth);
-        let right = |k: usize| errors[k].0 <= 0.5 && errors[k].1 <= 5.0;
-        let ok = |k: usize| scans[k]["status"] == "ok";
-        let wrong_ok = (0..scans.len()).filter(|&k| ok(k) && !right(k)).count();
-        let right_ok = (0..scans.len()).filter(|&k| ok(k) && right(k)).count();
-        let first = (0..scans.len())
-            .find(|&k| ok(k) && right(k))
-            .map(|k| stamps[k] - stamps[0]);
+        let replayed = replay_against_truth(&run, "later", &prefix, &[]);
+        let (scans, truth) = (&replayed.scans, &replayed.truth);
+        let wrong_ok = replayed.wrong.len();
+        let right_ok = replayed.right_ok.len();
+        let first = replayed.right_ok.first().map(|&k| stamps[k] - stamps[0]);
         // Every undecided scan keeps the right place among its hypotheses.
         let mut undecided = 0;
         for (k, scan) in scans.iter().enumerate() {
@@ -506,8 +499,9 @@ fn a_street_whose_buildings_changed_is_not_called_ok_while_sliding_along_it() {
     for (seed, max_wrong, min_right) in [("43", 0, 0.18), ("42", 0, 0.40)] {
         let run = dir.join(format!("run-{seed}"));
         simulate(&run, "street", "12", "64", &["--seed", seed]);
-        let (scans, wrong, right_ok) =
-            street_replay(&run, &prefix, &["--initial-from-ground-truth"]);
+        let replayed =
+            replay_against_truth(&run, "street", &prefix, &["--initial-from-ground-truth"]);
+        let (scans, wrong) = (&replayed.scans, &replayed.wrong);
         let unpinned = scans
             .iter()
             .filter(|s| {
@@ -518,7 +512,7 @@ fn a_street_whose_buildings_changed_is_not_called_ok_while_sliding_along_it() {
                     .any(|r| r == "unpinned")
             })
             .count();
-        let share = right_ok as f64 / scans.len() as f64;
+        let share = replayed.right_ok.len() as f64 / scans.len() as f64;
         println!(
             "street seed {seed} on the map of seed 41, true start: wrong ok {wrong:?}, {:.0} % ok and right, {unpinned} scans unpinned",
             share * 100.0
@@ -528,30 +522,45 @@ fn a_street_whose_buildings_changed_is_not_called_ok_while_sliding_along_it() {
         // The check engaged: a changed street is not pinned everywhere.
         assert!(unpinned > 0, "seed {seed}");
     }
-    let (_, wrong, _) = street_replay(&dir.join("run-42"), &prefix, &[]);
+    let wrong = replay_against_truth(&dir.join("run-42"), "street", &prefix, &[]).wrong;
     println!("street seed 42 on the map of seed 41, no start: wrong ok {wrong:?}");
     assert!(wrong.is_empty(), "seed 42 with no start: {wrong:?}");
 }
 
-/// Replays a street `run` against the served street map with `extra` flags: the
-/// scans reported, the `ok` ones more than 0.5 m or 5 deg off the simulator's truth
-/// (index, metres off), and how many are `ok` and right.
-fn street_replay(
-    run: &Path,
-    prefix: &Prefix,
-    extra: &[&str],
-) -> (Vec<serde_json::Value>, Vec<(usize, f64)>, usize) {
-    let truth = truth_in_map(run, "street", prefix);
-    let scans = replay_json_lines(run, "street", prefix, extra);
+/// A later recording replayed against a served map, judged against the simulator's
+/// truth (every error computed here).
+struct Replayed {
+    /// Each scan's `--json-lines` object.
+    scans: Vec<serde_json::Value>,
+    /// The simulator's poses in the map frame.
+    truth: Vec<Pose>,
+    /// The `ok` scans more than 0.5 m or 5 deg off the truth: (index, metres off).
+    wrong: Vec<(usize, f64)>,
+    /// The `ok` scans within both, in order.
+    right_ok: Vec<usize>,
+}
+
+/// Replays `run` against the map served as `name` with `extra` flags ([`Replayed`]).
+fn replay_against_truth(run: &Path, name: &str, prefix: &Prefix, extra: &[&str]) -> Replayed {
+    let truth = truth_in_map(run, name, prefix);
+    let scans = replay_json_lines(run, name, prefix, extra);
     assert_eq!(scans.len(), truth.len());
     let poses: Vec<Pose> = scans.iter().map(|s| pose_of(&s["pose"])).collect();
     let errors = pose_errors(&poses, &truth);
     let right = |k: usize| errors[k].0 <= 0.5 && errors[k].1 <= 5.0;
-    let ok = |k: usize| scans[k]["status"] == "ok";
-    let wrong = (0..scans.len())
-        .filter(|&k| ok(k) && !right(k))
-        .map(|k| (k, errors[k].0))
+    let ok: Vec<usize> = (0..scans.len())
+        .filter(|&k| scans[k]["status"] == "ok")
         .collect();
-    let right_ok = (0..scans.len()).filter(|&k| ok(k) && right(k)).count();
-    (scans, wrong, right_ok)
+    let wrong = ok
+        .iter()
+        .filter(|&&k| !right(k))
+        .map(|&k| (k, errors[k].0))
+        .collect();
+    let right_ok = ok.into_iter().filter(|&k| right(k)).collect();
+    Replayed {
+        scans,
+        truth,
+        wrong,
+        right_ok,
+    }
 }
