@@ -28,7 +28,7 @@ const POLL_BEFORE_SLEEP: Duration = Duration::from_micros(50);
 
 /// Longest sleep on the response event between looks at whether the server is still
 /// there: a killed server sends no event, so this bounds how late its death is noticed
-/// (a gateway turns it into a remote client's error; issue 35 asks for 50 ms).
+/// (a gateway turns it into a remote client's error, to be heard within 50 ms).
 const PRESENCE_CHECK: Duration = Duration::from_millis(5);
 
 /// How to connect.
@@ -441,8 +441,9 @@ impl Connection {
             unreachable!("called for remote links only")
         };
         let answer = link.call(&header, frame, self.options.timeout)?;
-        let (header, pairings) = kfmap_protocol::remote::decode_answer(&answer)
-            .map_err(|e| ClientError::Remote(format!("the gateway's answer: {e}")))?;
+        let (header, pairings) = kfmap_protocol::remote::decode_answer(&answer).map_err(|e| {
+            crate::error::RemoteError::BadAnswer(format!("the gateway's answer: {e}"))
+        })?;
         check_status(&header)?;
         Ok(read(&header, &pairings))
     }

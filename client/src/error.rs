@@ -46,13 +46,72 @@ pub enum ClientError {
     /// Client-side registration failed.
     #[error(transparent)]
     Registration(#[from] RegistrationError),
-    /// The remote link (Zenoh) failed: no gateway reachable, a bad Zenoh configuration, or
-    /// the gateway could not use its local server.
+    /// The remote link (Zenoh, through `kfmap gateway`) failed; [`RemoteError`] says how.
     #[error("remote: {0}")]
-    Remote(String),
+    Remote(#[from] RemoteError),
     /// A parameter of the call is out of range.
     #[error("{0}")]
     Invalid(String),
+}
+
+/// How a remote link failed, so a caller can tell a configuration mistake from an
+/// unreachable gateway, a denial, a gateway's own failure or a broken answer. (A missing
+/// server, its death and timeouts are [`ClientError`]'s own variants, as locally.)
+#[derive(Debug, thiserror::Error)]
+pub enum RemoteError {
+    /// A Zenoh configuration file or setting was refused.
+    #[error("the Zenoh configuration: {0}")]
+    Config(String),
+    /// No gateway answered at the endpoints.
+    #[error("connect to the gateway at {endpoints}: {reason}")]
+    Unreachable {
+        /// The endpoints tried.
+        endpoints: String,
+        /// Zenoh's reason.
+        reason: String,
+    },
+    /// A Zenoh operation on an open session failed (declare, send a query).
+    #[error("{what}: {reason}")]
+    Zenoh {
+        /// What was done, with its key.
+        what: String,
+        /// Zenoh's reason.
+        reason: String,
+    },
+    /// No reply while the tile's server lives: the gateway's access control list denies
+    /// this client's key.
+    #[error(
+        "the gateway of {map} answered nothing while its server lives: its access control list may deny this client's key {key}"
+    )]
+    Denied {
+        /// The map (and tile) asked.
+        map: String,
+        /// The key the query went out on.
+        key: String,
+    },
+    /// The gateway failed on its side and said why.
+    #[error("the gateway of {map} failed: {message}")]
+    Gateway {
+        /// The map (and tile) asked.
+        map: String,
+        /// The gateway's message.
+        message: String,
+    },
+    /// A frame, tile index or answer that does not decode or does not fit the request.
+    #[error("{0}")]
+    BadAnswer(String),
+    /// A map served in tiles whose gateways publish no tile index.
+    #[error(
+        "{map} is served in tiles, but no gateway answers its tile index on {key} within {waited:?}"
+    )]
+    NoIndex {
+        /// The map asked.
+        map: String,
+        /// The index's key.
+        key: String,
+        /// How long the client waited.
+        waited: Duration,
+    },
 }
 
 impl ClientError {

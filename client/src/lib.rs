@@ -30,7 +30,7 @@ mod tiled;
 mod tracker;
 
 pub use connection::{ClientOptions, Connection, Response};
-pub use error::ClientError;
+pub use error::{ClientError, RemoteError};
 pub use hypotheses::HypothesisParams;
 pub use localize::{LocalizeOptions, Localized};
 pub use relocalize::{RelocalizeOptions, Relocalized, ScoredPlace};

@@ -19,7 +19,7 @@ use zenoh::Wait;
 use zenoh::query::{ConsolidationMode, QueryTarget};
 use zenoh::sample::SampleKind;
 
-use crate::error::ClientError;
+use crate::error::{ClientError, RemoteError};
 use crate::tiled::Choice;
 
 /// How a pending answer is watched: the token check runs this often, so a client learns
@@ -75,15 +75,14 @@ pub fn zenoh_config(
     connect: &[String],
 ) -> Result<zenoh::Config, ClientError> {
     let mut config = match base {
-        Some(path) => zenoh::Config::from_file(path).map_err(|e| {
-            ClientError::Remote(format!("read the Zenoh config {}: {e}", path.display()))
-        })?,
+        Some(path) => zenoh::Config::from_file(path)
+            .map_err(|e| RemoteError::Config(format!("read {}: {e}", path.display())))?,
         None => zenoh::Config::default(),
     };
     let set = |config: &mut zenoh::Config, key: &str, value: String| {
-        config
-            .insert_json5(key, &value)
-            .map_err(|e| ClientError::Remote(format!("set Zenoh config {key} = {value}: {e}")))
+        config.insert_json5(key, &value).map_err(|e| {
+            ClientError::from(RemoteError::Config(format!("set {key} = {value}: {e}")))
+        })
     };
     set(&mut config, "mode", "\"peer\"".into())?;
     set(&mut config, "scouting/multicast/enabled", "false".into())?;
@@ -141,10 +140,10 @@ impl RemoteLink {
         }
         let config = zenoh_config(remote.zenoh_config.as_deref(), &[], &remote.endpoints)?;
         let session = zenoh::open(config).wait().map_err(|e| {
-            ClientError::Remote(format!(
-                "connect to the gateway at {}: {e}",
-                remote.endpoints.join(", ")
-            ))
+            ClientError::from(RemoteError::Unreachable {
+                endpoints: remote.endpoints.join(", "),
+                reason: e.to_string(),
+            })
         })?;
         let alive: Arc<Mutex<HashSet<String>>> = Arc::default();
         let pattern = alive_pattern(map_name);
@@ -164,14 +163,14 @@ impl RemoteLink {
                 }
             })
             .wait()
-            .map_err(|e| ClientError::Remote(format!("watch {pattern}: {e}")))?;
+            .map_err(|e| zenoh_failed(format!("watch {pattern}"), e))?;
         // The tokens alive now (the subscriber above keeps the set current after).
         let present: Vec<String> = session
             .liveliness()
             .get(&pattern)
             .timeout(CONNECT_WAIT)
             .wait()
-            .map_err(|e| ClientError::Remote(format!("look up {pattern}: {e}")))?
+            .map_err(|e| zenoh_failed(format!("look up {pattern}"), e))?
             .iter()
             .filter_map(|reply| {
                 let sample = reply.into_result().ok()?;
@@ -366,10 +365,11 @@ impl RemoteLink {
     /// The index of tile `id` in this link's tiles.
     fn tile_number(&self, id: &str) -> Result<usize, ClientError> {
         self.tiles.iter().position(|t| t == id).ok_or_else(|| {
-            ClientError::Remote(format!(
+            RemoteError::BadAnswer(format!(
                 "an answer came from tile {id:?}, which is not in {}'s tile index",
                 self.map_name
             ))
+            .into()
         })
     }
 
@@ -394,7 +394,7 @@ impl RemoteLink {
                 .consolidation(ConsolidationMode::None)
                 .timeout(timeout)
                 .wait()
-                .map_err(|e| ClientError::Remote(format!("send to {key}: {e}")))?;
+                .map_err(|e| zenoh_failed(format!("send to {key}"), e))?;
             pending.push((i, key, replies));
         }
         let deadline = Instant::now() + timeout;
@@ -444,7 +444,7 @@ impl RemoteLink {
             .consolidation(ConsolidationMode::None)
             .timeout(timeout)
             .wait()
-            .map_err(|e| ClientError::Remote(format!("send to {key}: {e}")))?;
+            .map_err(|e| zenoh_failed(format!("send to {key}"), e))?;
         let deadline = Instant::now() + timeout;
         let mut answers: Vec<(String, Vec<u8>)> = Vec::new();
         let mut failures: Vec<ClientError> = Vec::new();
@@ -488,10 +488,11 @@ impl RemoteLink {
             }
             std::thread::sleep(WATCH_SLICE);
         }
-        ClientError::Remote(format!(
-            "the gateway of {} answered nothing while its server lives: its access control list may deny this client's key {key}",
-            self.describe(i),
-        ))
+        RemoteError::Denied {
+            map: self.describe(i),
+            key: key.to_string(),
+        }
+        .into()
     }
 
     fn answer(&self, i: usize, reply: zenoh::query::Reply) -> Result<Vec<u8>, ClientError> {
@@ -520,9 +521,11 @@ impl RemoteLink {
                 map_name: name,
                 waited: Duration::ZERO,
             },
-            RemoteFailure::Gateway => {
-                ClientError::Remote(format!("the gateway of {name} failed: {message}"))
+            RemoteFailure::Gateway => RemoteError::Gateway {
+                map: name,
+                message: message.to_string(),
             }
+            .into(),
         }
     }
 
@@ -541,19 +544,32 @@ fn fetch_index(session: &zenoh::Session, map_name: &str) -> Result<TileIndex, Cl
             .get(&key)
             .timeout(CONNECT_WAIT)
             .wait()
-            .map_err(|e| ClientError::Remote(format!("ask {key}: {e}")))?;
+            .map_err(|e| zenoh_failed(format!("ask {key}"), e))?;
         if let Some(sample) = replies.iter().find_map(|r| r.into_result().ok()) {
             let text = sample.payload().try_to_string().map_err(|e| {
-                ClientError::Remote(format!("the tile index on {key} is not text: {e}"))
+                RemoteError::BadAnswer(format!("the tile index on {key} is not text: {e}"))
             })?;
-            return TileIndex::parse(&text, std::path::Path::new(&key))
-                .map_err(|e| ClientError::Remote(format!("the gateway's tile index: {e}")));
+            return TileIndex::parse(&text, std::path::Path::new(&key)).map_err(|e| {
+                RemoteError::BadAnswer(format!("the gateway's tile index: {e}")).into()
+            });
         }
         std::thread::sleep(Duration::from_millis(20));
     }
-    Err(ClientError::Remote(format!(
-        "{map_name} is served in tiles, but no gateway answers its tile index on {key} within {CONNECT_WAIT:?}"
-    )))
+    Err(RemoteError::NoIndex {
+        map: map_name.to_string(),
+        key,
+        waited: CONNECT_WAIT,
+    }
+    .into())
+}
+
+/// A failed Zenoh operation on an open session.
+fn zenoh_failed(what: String, reason: impl std::fmt::Display) -> ClientError {
+    RemoteError::Zenoh {
+        what,
+        reason: reason.to_string(),
+    }
+    .into()
 }
 
 /// A client id unlikely to collide: process id and clock.

@@ -17,6 +17,7 @@ use kfmap_shared::place::{RelocalizeParams, RelocalizeStatus, SearchParams, anot
 use kfmap_shared::tiles::{TileGeometry, tile_id};
 
 use crate::ClientError;
+use crate::error::RemoteError;
 
 /// What the first phase decided.
 #[derive(Debug, PartialEq)]
@@ -40,7 +41,7 @@ fn decoded(
     frame: &[u8],
 ) -> Result<(ResponseHeader, Vec<WirePlace>), ClientError> {
     let (header, slots) = decode_answer(frame)
-        .map_err(|e| ClientError::Remote(format!("tile {tile}'s {what}: {e}")))?;
+        .map_err(|e| RemoteError::BadAnswer(format!("tile {tile}'s {what}: {e}")))?;
     Ok((
         header,
         slots.into_iter().map(WirePlace::from_slot).collect(),
@@ -85,11 +86,12 @@ pub(crate) fn choose_places(
             return Ok(Choice::Answer(frame.clone()));
         }
         if slots.len() != header.candidates as usize {
-            return Err(ClientError::Remote(format!(
+            return Err(RemoteError::BadAnswer(format!(
                 "tile {tile} proposed {} places but sent {}",
                 header.candidates,
                 slots.len()
-            )));
+            ))
+            .into());
         }
         keep = keep.max(header.detail.min(64) as usize);
         searched_us = searched_us.max(header.server_us);
@@ -100,7 +102,7 @@ pub(crate) fn choose_places(
         };
         for (rank, slot) in slots.into_iter().enumerate() {
             let pose = place_from_wire(&slot).ok_or_else(|| {
-                ClientError::Remote(format!("tile {tile} proposed an invalid pose"))
+                RemoteError::BadAnswer(format!("tile {tile} proposed an invalid pose"))
             })?;
             into.push((slot.score, tile, at, rank, pose));
         }
@@ -203,7 +205,7 @@ pub(crate) fn best_scored(
         ranked.scored_us = ranked.scored_us.max(header.server_us);
         for slot in slots {
             let pose = place_from_wire(&slot).ok_or_else(|| {
-                ClientError::Remote(format!("tile {tile} scored an invalid pose"))
+                RemoteError::BadAnswer(format!("tile {tile} scored an invalid pose"))
             })?;
             ranked
                 .places
@@ -224,9 +226,9 @@ pub(crate) fn best_scored(
         .iter()
         .any(|(t, r, _, _)| position(t, *r) == usize::MAX)
     {
-        return Err(ClientError::Remote(
-            "a tile scored a place that was not chosen".into(),
-        ));
+        return Err(
+            RemoteError::BadAnswer("a tile scored a place that was not chosen".into()).into(),
+        );
     }
     // The first of equal best scores, as a stable sort by score keeps it.
     let mut best: Option<&(String, usize, Pose, f64)> = None;
@@ -260,7 +262,7 @@ pub(crate) fn finish(
     searched_us: f64,
 ) -> Result<Vec<u8>, ClientError> {
     let (mut header, pairings) = decode_answer(frame)
-        .map_err(|e| ClientError::Remote(format!("the best place's final answer: {e}")))?;
+        .map_err(|e| RemoteError::BadAnswer(format!("the best place's final answer: {e}")))?;
     if StatusCode::from_code(header.status) != StatusCode::Ok {
         return Ok(frame.to_vec());
     }

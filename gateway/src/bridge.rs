@@ -2,9 +2,9 @@
 //! through a connection (and so a server session) of its own.
 
 use std::collections::HashMap;
-use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{Receiver, SyncSender, TrySendError};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use kfmap_client::{ClientError, ClientOptions, Connection};
@@ -28,6 +28,52 @@ pub(crate) struct Upstream {
     pub tile: String,
     pub iceoryx_prefix: Option<String>,
     pub limits: GatewaySection,
+    /// The remote clients the whole gateway serves (every tile, every worker).
+    pub clients: Arc<ClientCap>,
+}
+
+/// The gateway's one cap on remote clients served at once (`max-sessions`): a client
+/// holds a place while it has a session with any tile's server, whichever worker owns it.
+pub(crate) struct ClientCap {
+    max: usize,
+    /// Per client id, its open sessions (one per tile it talks to).
+    sessions: Mutex<HashMap<String, usize>>,
+}
+
+impl ClientCap {
+    pub fn new(max: usize) -> Self {
+        Self {
+            max,
+            sessions: Mutex::new(HashMap::new()),
+        }
+    }
+
+    /// Takes a session for `client`: always granted to a client already served (another
+    /// tile of the same robot), to a new one only while fewer than `max` are served.
+    /// `Err` holds the count served.
+    fn admit(&self, client: &str) -> Result<(), usize> {
+        let mut sessions = self.sessions.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(open) = sessions.get_mut(client) {
+            *open += 1;
+            return Ok(());
+        }
+        if sessions.len() >= self.max {
+            return Err(sessions.len());
+        }
+        sessions.insert(client.to_string(), 1);
+        Ok(())
+    }
+
+    /// Gives back one session of `client`.
+    fn release(&self, client: &str) {
+        let mut sessions = self.sessions.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(open) = sessions.get_mut(client) {
+            *open -= 1;
+            if *open == 0 {
+                sessions.remove(client);
+            }
+        }
+    }
 }
 
 impl Upstream {
@@ -130,9 +176,11 @@ impl Worker {
 
     fn close_idle(&mut self) {
         let idle = Duration::from_secs_f64(self.upstream.limits.session_idle_s);
+        let clients = &self.upstream.clients;
         self.sessions.retain(|client, session| {
             let keep = session.last_used.elapsed() < idle;
             if !keep {
+                clients.release(client);
                 tracing::info!(client, "remote session closed after {idle:?} idle");
             }
             keep
@@ -172,7 +220,17 @@ impl Worker {
         let max_answer = self.upstream.limits.max_answer_bytes;
         let session = match self.session(&client) {
             Ok(session) => session,
-            Err(failure) => return reply_failure(query, failure),
+            Err(SessionRefused::Full(served)) => {
+                let refusal = ResponseHeader::refusal(
+                    header.request_id,
+                    StatusCode::Busy,
+                    &format!(
+                        "the gateway serves {served} remote clients already (gateway.toml max-sessions); a session idle for session-idle-s frees a place, retry later"
+                    ),
+                );
+                return reply_frame(query, key, encode_answer(&refusal, &[]));
+            }
+            Err(SessionRefused::Local(failure)) => return reply_failure(query, failure),
         };
         session.last_used = Instant::now();
         let request_id = header.request_id;
@@ -202,31 +260,33 @@ impl Worker {
                     started.elapsed()
                 );
                 // A connection that lost its server is rebuilt on the client's next request.
-                self.sessions.remove(&client);
+                if self.sessions.remove(&client).is_some() {
+                    self.upstream.clients.release(&client);
+                }
                 reply_failure(query, failure_of(&error));
             }
         }
     }
 
     /// The client's session, opened on first use.
-    fn session(&mut self, client: &str) -> Result<&mut Session, (RemoteFailure, String)> {
+    fn session(&mut self, client: &str) -> Result<&mut Session, SessionRefused> {
         if !self.sessions.contains_key(client) {
-            if self.sessions.len() >= self.upstream.limits.max_sessions {
-                return Err((
-                    RemoteFailure::Gateway,
-                    format!(
-                        "the gateway serves {} remote clients already (gateway.toml max-sessions)",
-                        self.sessions.len()
-                    ),
-                ));
-            }
+            self.upstream
+                .clients
+                .admit(client)
+                .map_err(SessionRefused::Full)?;
             let options = ClientOptions {
                 iceoryx_prefix: self.upstream.iceoryx_prefix.clone(),
                 timeout: Duration::from_secs_f64(self.upstream.limits.request_timeout_s),
                 spin: false,
             };
-            let connection = Connection::connect(&self.upstream.local_map, options)
-                .map_err(|e| failure_of(&e))?;
+            let connection = match Connection::connect(&self.upstream.local_map, options) {
+                Ok(connection) => connection,
+                Err(e) => {
+                    self.upstream.clients.release(client);
+                    return Err(SessionRefused::Local(failure_of(&e)));
+                }
+            };
             tracing::info!(client, "remote session opened");
             self.sessions.insert(
                 client.to_string(),
@@ -238,6 +298,14 @@ impl Worker {
         }
         Ok(self.sessions.get_mut(client).expect("inserted above"))
     }
+}
+
+/// Why a client got no session.
+enum SessionRefused {
+    /// `max-sessions` clients are served already (this many).
+    Full(usize),
+    /// The local server could not be reached.
+    Local((RemoteFailure, String)),
 }
 
 /// The remote failure a local client error stands for.

@@ -88,15 +88,31 @@ impl GatewayOptions {
 /// Why the gateway could not start.
 #[derive(Debug, thiserror::Error)]
 pub enum GatewayError {
-    /// A name that cannot be a key chunk, or a bad setting.
-    #[error("{0}")]
-    Invalid(String),
-    /// Zenoh could not be set up.
-    #[error("zenoh: {0}")]
-    Zenoh(String),
+    /// A map or tile name that cannot be a key chunk.
+    #[error(transparent)]
+    BadName(#[from] kfmap_protocol::remote::FrameError),
+    /// No tile to announce.
+    #[error("no tile to announce")]
+    NoTiles,
+    /// Zenoh could not be set up (open the session, declare a queryable or token).
+    #[error("zenoh: {what}: {reason}")]
+    Zenoh {
+        /// What was done, with its key.
+        what: String,
+        /// Zenoh's reason.
+        reason: String,
+    },
     /// The local iceoryx2 side could not be set up.
     #[error(transparent)]
     Local(#[from] ClientError),
+}
+
+/// A failed Zenoh set-up step.
+fn zenoh_failed(what: String, reason: impl std::fmt::Display) -> GatewayError {
+    GatewayError::Zenoh {
+        what,
+        reason: reason.to_string(),
+    }
 }
 
 /// Runs the gateway until `stop` is set: declares each tile's queryable (and the index's),
@@ -108,22 +124,22 @@ pub fn run(
     stop: &Arc<AtomicBool>,
     ready: impl FnOnce(&[String]),
 ) -> Result<(), GatewayError> {
-    let invalid = |e: kfmap_protocol::remote::FrameError| GatewayError::Invalid(e.to_string());
-    check_key_chunk("map name", &options.map_name).map_err(invalid)?;
+    check_key_chunk("map name", &options.map_name)?;
     if options.tiles.is_empty() {
-        return Err(GatewayError::Invalid("no tile to announce".into()));
+        return Err(GatewayError::NoTiles);
     }
     for served in &options.tiles {
-        check_key_chunk("tile", &served.tile).map_err(invalid)?;
+        check_key_chunk("tile", &served.tile)?;
     }
     let g = &options.config;
     let base = (!g.zenoh_config.is_empty()).then(|| PathBuf::from(&g.zenoh_config));
     let zconfig = zenoh_config(base.as_deref(), &g.listen, &g.connect)?;
     let session = zenoh::open(zconfig)
         .wait()
-        .map_err(|e| GatewayError::Zenoh(format!("open a session: {e}")))?;
+        .map_err(|e| zenoh_failed("open a session".into(), e))?;
     let mut queryables = Vec::new();
     let mut workers = Vec::new();
+    let clients = Arc::new(bridge::ClientCap::new(g.max_sessions));
     for served in &options.tiles {
         let upstream = bridge::Upstream {
             local_map: served.local_map.clone(),
@@ -131,6 +147,7 @@ pub fn run(
             tile: served.tile.clone(),
             iceoryx_prefix: options.iceoryx_prefix.clone(),
             limits: g.clone(),
+            clients: clients.clone(),
         };
         let (dispatch, threads) = bridge::Dispatch::start(&upstream, stop);
         workers.extend(threads);
@@ -141,7 +158,7 @@ pub fn run(
                 .complete(true)
                 .callback(move |query| dispatch.dispatch(query))
                 .wait()
-                .map_err(|e| GatewayError::Zenoh(format!("declare the queryable {key}: {e}")))?,
+                .map_err(|e| zenoh_failed(format!("declare the queryable {key}"), e))?,
         );
         tracing::info!(key, listen = ?g.listen, "gateway answering");
     }
@@ -158,7 +175,7 @@ pub fn run(
                     }
                 })
                 .wait()
-                .map_err(|e| GatewayError::Zenoh(format!("declare the queryable {key}: {e}")))?,
+                .map_err(|e| zenoh_failed(format!("declare the queryable {key}"), e))?,
         );
     }
     // Ready once the servers' tokens are declared (if they run): a client that connects
@@ -191,7 +208,7 @@ fn watch_servers(
     let mut services: Vec<Option<Rpc>> = options.tiles.iter().map(|_| None).collect();
     // Per tile, the server processes seen alive when its token was declared. A killed
     // server's ports stay registered until the dead-node cleanup below, which took 39 ms
-    // for a three-tile server under load: its clients must hear sooner (issue 35: 50 ms).
+    // for a three-tile server under load: its clients must hear sooner (the target: within 50 ms).
     let mut watched: Vec<Vec<u32>> = options.tiles.iter().map(|_| Vec::new()).collect();
     let mut last_cleanup = Instant::now();
     while !stop.load(Ordering::SeqCst) {
@@ -248,7 +265,7 @@ fn watch_servers(
                         .liveliness()
                         .declare_token(&key)
                         .wait()
-                        .map_err(|e| GatewayError::Zenoh(format!("declare {key}: {e}")))?,
+                        .map_err(|e| zenoh_failed(format!("declare {key}"), e))?,
                 );
                 // Only processes this gateway can see (not another PID namespace's).
                 *pids = servers.into_iter().filter(|&p| process_alive(p)).collect();

@@ -9,6 +9,7 @@
 pub mod cloud;
 pub mod config;
 pub mod frames;
+mod keep_last;
 pub mod msgs;
 pub mod node;
 pub mod outputs;

@@ -127,8 +127,13 @@ fn run(args: Args) -> anyhow::Result<()> {
         );
     })?;
     eprintln!(
-        "stopped: {} clouds received, {} localized, {} dropped, {} bad, {} without a server",
-        summary.received, summary.localized, summary.dropped, summary.bad, summary.unanswered
+        "stopped: {} clouds received, {} localized, {} skipped for newer ones, {} bad, {} without a server; {} IMU samples dropped",
+        summary.received,
+        summary.localized,
+        summary.skipped,
+        summary.bad,
+        summary.unanswered,
+        summary.imu_dropped
     );
     Ok(())
 }

@@ -5,7 +5,6 @@
 use std::path::Path;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TrySendError};
 use std::time::{Duration, Instant};
 
 use anyhow::Context as _;
@@ -27,6 +26,7 @@ use ros2_client::{
 use crate::cloud::{BadCloud, scan_of, xyz_message};
 use crate::config::{ModeName, Ros2Config};
 use crate::frames::{Frames, parse_mounting};
+use crate::keep_last::KeepLast;
 use crate::msgs::{
     DiagnosticArray, Header, Imu, Odometry, PointCloud2, PoseWithCovarianceStamped, TfMessage,
     Time, Vector3Stamped,
@@ -45,39 +45,47 @@ pub struct Summary {
     pub received: u64,
     /// Clouds localized (a pose published).
     pub localized: u64,
-    /// Clouds dropped because the loop was behind (the reader's queue full).
-    pub dropped: u64,
+    /// Clouds skipped for newer ones while the loop was behind (`[qos] points-depth`
+    /// kept: the newest).
+    pub skipped: u64,
+    /// IMU samples dropped for newer ones (more than `[qos] imu-depth` between clouds).
+    pub imu_dropped: u64,
+    /// Of those, the ones the loop's own buffer gave up (the rest, the reader's queue).
+    imu_overflow: u64,
     /// Clouds refused (bad layout, no valid point).
     pub bad: u64,
     /// Clouds that found no server.
     pub unanswered: u64,
 }
 
-/// The node's counters, shared with the reader tasks.
+/// Clouds received, counted by the cloud reader.
 #[derive(Default)]
 struct Counters {
     received: AtomicU64,
-    dropped: AtomicU64,
-}
-
-impl Counters {
-    /// Copies the readers' counts into `summary`.
-    fn fill(&self, summary: &mut Summary) {
-        summary.received = self.received.load(Ordering::Relaxed);
-        summary.dropped = self.dropped.load(Ordering::Relaxed);
-    }
 }
 
 /// A message and when its reader took it.
 type Arrived<M> = (M, Instant);
 
+/// A reader's queue into the loop.
+type Queue<M> = Arc<KeepLast<Arrived<M>>>;
+
 /// Messages from the readers.
 struct Inbox {
-    clouds: Receiver<Arrived<PointCloud2>>,
-    imu: Receiver<Arrived<Imu>>,
-    initial: Receiver<Arrived<PoseWithCovarianceStamped>>,
-    tf: Receiver<Arrived<TfMessage>>,
-    tf_static: Receiver<Arrived<TfMessage>>,
+    clouds: Queue<PointCloud2>,
+    imu: Queue<Imu>,
+    initial: Queue<PoseWithCovarianceStamped>,
+    tf: Queue<TfMessage>,
+    tf_static: Queue<TfMessage>,
+}
+
+impl Inbox {
+    /// Copies the readers' counts into `summary`.
+    fn fill(&self, counters: &Counters, summary: &mut Summary) {
+        summary.received = counters.received.load(Ordering::Relaxed);
+        summary.skipped = self.clouds.evicted();
+        summary.imu_dropped = self.imu.evicted() + summary.imu_overflow;
+    }
 }
 
 /// The node's publishers.
@@ -148,11 +156,11 @@ fn publish_on<M: serde::Serialize>(
         .with_context(|| format!("publish on {name}"))
 }
 
-/// Forwards a subscription's messages into `into` until `stop`; a full channel drops
-/// the message and counts it in `dropped` (the readers never wait on the loop).
+/// Forwards a subscription's messages into `into`, a keep-newest queue (the readers
+/// never wait on the loop; a full queue gives up its oldest, counted).
 async fn forward<M: 'static + serde::de::DeserializeOwned>(
     subscription: Subscription<M>,
-    into: SyncSender<Arrived<M>>,
+    into: Queue<M>,
     received: Option<Arc<Counters>>,
     what: &'static str,
 ) {
@@ -164,15 +172,7 @@ async fn forward<M: 'static + serde::de::DeserializeOwned>(
                 if let Some(c) = &received {
                     c.received.fetch_add(1, Ordering::Relaxed);
                 }
-                match into.try_send((message, Instant::now())) {
-                    Ok(()) => {}
-                    Err(TrySendError::Full(_)) => {
-                        if let Some(c) = &received {
-                            c.dropped.fetch_add(1, Ordering::Relaxed);
-                        }
-                    }
-                    Err(TrySendError::Disconnected(_)) => return,
-                }
+                into.push((message, Instant::now()));
             }
             // A message that does not deserialize as its type: named, never fatal.
             Err(e) => tracing::warn!("a {what} message could not be read: {e:?}"),
@@ -264,7 +264,8 @@ impl Localizer<'_> {
         let counters = [
             ("clouds", self.summary.received.to_string()),
             ("localized", self.summary.localized.to_string()),
-            ("dropped", self.summary.dropped.to_string()),
+            ("skipped", self.summary.skipped.to_string()),
+            ("imu_dropped", self.summary.imu_dropped.to_string()),
             ("bad", self.summary.bad.to_string()),
             ("unanswered", self.summary.unanswered.to_string()),
         ];
@@ -386,20 +387,20 @@ impl Localizer<'_> {
 
     /// Takes the transforms, initial poses and IMU samples waiting in `inbox`.
     fn read_inputs(&mut self, inbox: &Inbox) {
-        for (message, _) in inbox.tf_static.try_iter() {
+        for (message, _) in inbox.tf_static.drain() {
             let skipped = self.frames.add_static(&message.transforms);
             if skipped > 0 {
                 tracing::warn!(skipped, "malformed /tf_static transforms skipped");
             }
         }
-        for (message, _) in inbox.tf.try_iter() {
+        for (message, _) in inbox.tf.drain() {
             self.frames.add_dynamic(
                 &message.transforms,
                 &self.config.frames.odom,
                 &self.config.frames.base,
             );
         }
-        for (message, _) in inbox.initial.try_iter() {
+        for (message, _) in inbox.initial.drain() {
             match message.pose.pose.pose() {
                 Some(pose)
                     if message.header.frame_id.trim_start_matches('/')
@@ -417,13 +418,16 @@ impl Localizer<'_> {
                 ),
             }
         }
-        for (message, _) in inbox.imu.try_iter() {
+        for (message, _) in inbox.imu.drain() {
             if self.imu_frame.as_deref() != Some(message.header.frame_id.as_str()) {
                 self.imu_frame = Some(message.header.frame_id.clone());
             }
-            if let Some(sample) = message.sample()
-                && self.imu.len() < self.config.qos.imu_depth
-            {
+            if let Some(sample) = message.sample() {
+                // More than imu-depth since the last cloud: the oldest go (counted).
+                if self.imu.len() == self.config.qos.imu_depth {
+                    self.imu.remove(0);
+                    self.summary.imu_overflow += 1;
+                }
                 self.imu.push(sample);
             }
         }
@@ -547,11 +551,13 @@ pub fn run(
         .context("create the ROS 2 node")?;
     let topics = &config.topics;
     let counters = Arc::new(Counters::default());
-    let (cloud_tx, clouds) = std::sync::mpsc::sync_channel(config.qos.points_depth);
-    let (imu_tx, imu) = std::sync::mpsc::sync_channel(config.qos.imu_depth);
-    let (initial_tx, initial) = std::sync::mpsc::sync_channel(8);
-    let (tf_tx, tf) = std::sync::mpsc::sync_channel(256);
-    let (tf_static_tx, tf_static) = std::sync::mpsc::sync_channel(64);
+    let inbox = Inbox {
+        clouds: Arc::new(KeepLast::new(config.qos.points_depth)),
+        imu: Arc::new(KeepLast::new(config.qos.imu_depth)),
+        initial: Arc::new(KeepLast::new(8)),
+        tf: Arc::new(KeepLast::new(256)),
+        tf_static: Arc::new(KeepLast::new(64)),
+    };
     let executor = Arc::new(smol::Executor::new());
     let points = subscribe::<PointCloud2>(
         &mut node,
@@ -562,7 +568,7 @@ pub fn run(
     executor
         .spawn(forward(
             points,
-            cloud_tx,
+            inbox.clouds.clone(),
             Some(counters.clone()),
             "PointCloud2",
         ))
@@ -574,7 +580,9 @@ pub fn run(
             ("sensor_msgs", "Imu"),
             sensor_data(config.qos.imu_depth),
         )?;
-        executor.spawn(forward(sub, imu_tx, None, "Imu")).detach();
+        executor
+            .spawn(forward(sub, inbox.imu.clone(), None, "Imu"))
+            .detach();
     }
     if !topics.initial_pose.is_empty() {
         let sub = subscribe::<PoseWithCovarianceStamped>(
@@ -584,7 +592,12 @@ pub fn run(
             reliable(8),
         )?;
         executor
-            .spawn(forward(sub, initial_tx, None, "PoseWithCovarianceStamped"))
+            .spawn(forward(
+                sub,
+                inbox.initial.clone(),
+                None,
+                "PoseWithCovarianceStamped",
+            ))
             .detach();
     }
     let sub = subscribe::<TfMessage>(
@@ -594,7 +607,7 @@ pub fn run(
         reliable(100),
     )?;
     executor
-        .spawn(forward(sub, tf_tx, None, "TFMessage"))
+        .spawn(forward(sub, inbox.tf.clone(), None, "TFMessage"))
         .detach();
     let sub = subscribe::<TfMessage>(
         &mut node,
@@ -603,7 +616,7 @@ pub fn run(
         reliable(100).durability(Durability::TransientLocal),
     )?;
     executor
-        .spawn(forward(sub, tf_static_tx, None, "TFMessage"))
+        .spawn(forward(sub, inbox.tf_static.clone(), None, "TFMessage"))
         .detach();
     let out = Outbox {
         pose: publish_on(
@@ -666,13 +679,6 @@ pub fn run(
                 }))
             })
             .context("start the DDS thread")?
-    };
-    let inbox = Inbox {
-        clouds,
-        imu,
-        initial,
-        tf,
-        tf_static,
     };
     ready();
     let summary = run_loop(config, &inbox, &out, &counters, stop);
@@ -740,16 +746,16 @@ fn run_loop(
             }
         }
         state.read_inputs(inbox);
-        match inbox.clouds.recv_timeout(IDLE) {
-            Ok((cloud, arrived)) => {
+        match inbox.clouds.pop_timeout(IDLE) {
+            Some((cloud, arrived)) => {
                 // What came in while the loop waited (the IMU up to this cloud).
                 state.read_inputs(inbox);
-                counters.fill(&mut state.summary);
+                inbox.fill(counters, &mut state.summary);
                 state.on_cloud(&cloud, arrived, out);
             }
-            Err(RecvTimeoutError::Timeout) => {
+            None => {
                 if state.last_diagnostics.elapsed() >= DIAGNOSTICS_PERIOD {
-                    counters.fill(&mut state.summary);
+                    inbox.fill(counters, &mut state.summary);
                     let stamp = Time::from_seconds(now_seconds());
                     let condition = match state.client() {
                         Ok(_) => Condition::Waiting,
@@ -762,10 +768,9 @@ fn run_loop(
                     state.publish_diagnostics(out, stamp, &condition);
                 }
             }
-            Err(RecvTimeoutError::Disconnected) => break,
         }
     }
-    counters.fill(&mut state.summary);
+    inbox.fill(counters, &mut state.summary);
     state.summary
 }
 

@@ -13,10 +13,22 @@ use faer::sparse::{SparseColMat, SymbolicSparseColMat};
 use faer::{Conj, Mat, Par, Side};
 use nalgebra::Matrix6;
 
-/// The factorization failed: the ordering, the symbolic analysis, or a matrix that is not
-/// positive definite (the message says which).
-#[derive(Debug, Clone)]
-pub struct Singular(pub String);
+/// Why a block system could not be set up or solved. Callers tell them apart: a matrix
+/// that is not positive definite may be damped more; a failed set-up cannot be retried.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum BlockError {
+    /// The ordering or the symbolic analysis failed (faer's message: out of memory, an
+    /// index overflow).
+    #[error("the block system could not be set up: {0}")]
+    Setup(String),
+    /// The values are not positive definite: an unknown no constraint pins, or too
+    /// little damping.
+    #[error("the system is not positive definite (pivot {pivot})")]
+    NotPositiveDefinite {
+        /// The unknown whose pivot was not positive (in the ordered system).
+        pivot: usize,
+    },
+}
 
 /// A block-sparse symmetric system over `free` poses with a fixed pattern.
 pub struct BlockSystem {
@@ -37,7 +49,7 @@ impl BlockSystem {
     pub fn new(
         free: usize,
         pairs: impl IntoIterator<Item = (usize, usize)>,
-    ) -> Result<Self, Singular> {
+    ) -> Result<Self, BlockError> {
         let mut below: Vec<Vec<usize>> = vec![Vec::new(); free];
         for (a, b) in pairs {
             if a != b {
@@ -70,7 +82,7 @@ impl BlockSystem {
             SymmetricOrdering::Custom(PermRef::new_checked(&forward, &inverse, n)),
             Default::default(),
         )
-        .map_err(|e| Singular(format!("{e:?}")))?;
+        .map_err(|e| BlockError::Setup(format!("symbolic analysis: {e:?}")))?;
         let factor = vec![0.0; symbolic.len_val()];
         let memory = MemBuffer::new(
             symbolic
@@ -150,7 +162,7 @@ impl BlockSystem {
     }
 
     /// Solves `A x = rhs` with the current values.
-    pub fn solve(&mut self, rhs: &[f64]) -> Result<Vec<f64>, Singular> {
+    pub fn solve(&mut self, rhs: &[f64]) -> Result<Vec<f64>, BlockError> {
         let llt = self
             .symbolic
             .factorize_numeric_llt(
@@ -162,7 +174,11 @@ impl BlockSystem {
                 MemStack::new(&mut self.memory),
                 Default::default(),
             )
-            .map_err(|e| Singular(format!("{e:?}")))?;
+            .map_err(|e| match e {
+                faer::linalg::solvers::LltError::NonPositivePivot { index } => {
+                    BlockError::NotPositiveDefinite { pivot: index }
+                }
+            })?;
         let mut x = Mat::<f64>::from_fn(rhs.len(), 1, |r, _| rhs[r]);
         llt.solve_in_place_with_conj(
             Conj::No,
@@ -176,7 +192,7 @@ impl BlockSystem {
 
 /// AMD on the block graph, expanded to the six unknowns of each block, so supernodes
 /// follow the blocks (and AMD runs on 36x fewer entries).
-fn block_ordering(below: &[Vec<usize>]) -> Result<(Vec<usize>, Vec<usize>), Singular> {
+fn block_ordering(below: &[Vec<usize>]) -> Result<(Vec<usize>, Vec<usize>), BlockError> {
     let free = below.len();
     let (mut col_ptr, mut row_idx) = (vec![0usize], Vec::new());
     for (c, rows) in below.iter().enumerate() {
@@ -195,7 +211,7 @@ fn block_ordering(below: &[Vec<usize>]) -> Result<(Vec<usize>, Vec<usize>), Sing
         amd::Control::default(),
         MemStack::new(&mut memory),
     )
-    .map_err(|e| Singular(format!("ordering failed: {e:?}")))?;
+    .map_err(|e| BlockError::Setup(format!("ordering: {e:?}")))?;
     let expand = |p: &[usize]| (0..free * 6).map(|k| p[k / 6] * 6 + k % 6).collect();
     Ok((expand(&perm), expand(&perm_inv)))
 }
@@ -247,5 +263,26 @@ mod tests {
                 expected[k]
             );
         }
+    }
+
+    /// A pose nothing constrains (its block zero) is told apart from a failed set-up:
+    /// `NotPositiveDefinite` at one of its six unknowns, which a damped solve can fix.
+    #[test]
+    fn an_unconstrained_pose_is_not_positive_definite() {
+        let mut system = BlockSystem::new(3, [(0, 1)]).unwrap();
+        system.add_diagonal(0, &(Matrix6::identity() * 2.0));
+        system.add_diagonal(1, &(Matrix6::identity() * 2.0));
+        let rhs = vec![1.0; 18];
+        let error = system.solve(&rhs).unwrap_err();
+        assert!(
+            matches!(error, BlockError::NotPositiveDefinite { .. }),
+            "{error:?}"
+        );
+        system.damp(|_| 1e-6);
+        let x = system.solve(&rhs).unwrap();
+        assert!(
+            (x[0] - 0.5).abs() < 1e-6 && (x[12] - 1e6).abs() < 1e-3,
+            "{x:?}"
+        );
     }
 }

@@ -439,7 +439,7 @@ fn gravity_json(g: &BakeGravity) -> serde_json::Value {
 /// The joint refinement's part of the JSON summary: before/after figures.
 fn refine_json(r: &RefineReport, m: &MappingSummary) -> serde_json::Value {
     json!({
-        "accepted": r.accepted, "refused": r.refused, "seconds": r.seconds,
+        "accepted": r.accepted(), "refused": r.refused, "seconds": r.seconds,
         "ate_scans_before_m": m.ate_scans_before_refine, "ate_scans_after_m": m.ate_scans,
         "consistency_before": r.consistency_before, "consistency_after": r.consistency_after,
         "consistency_reference": m.reference_consistency,

@@ -628,7 +628,7 @@ fn gravity_and_bake_recover_a_tilted_world() {
         let applied = k.pose.rotation.to_rotation_matrix()
             * truth.poses[scan].rotation.to_rotation_matrix().inverse();
         let off = (applied * world_from_map.inverse()).angle().to_degrees();
-        // Measured 0.052 deg (issue 33): 12 s of a courtyard barely turn, so the bias and
+        // Measured 0.052 deg: 12 s of a courtyard barely turn, so the bias and
         // the tilt are hard to tell apart; before, the first keyframe's one raw sample
         // (at rest here, noise off) outweighed the pool and gave 0.004 deg.
         assert!(off < 0.06, "keyframe {}: {off} deg", k.id);
@@ -896,7 +896,7 @@ fn bake_with_built_poses_writes_its_pose_graph_and_trajectory() {
     }
 }
 
-/// Issue 20: output into a closed pipe (`kfmap ... | head`) ends the process quietly
+/// Output into a closed pipe (`kfmap ... | head`) ends the process quietly
 /// (killed by SIGPIPE, status 141 in a shell, or 0), never with a panic.
 #[test]
 fn a_closed_output_pipe_ends_quietly() {

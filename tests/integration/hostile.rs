@@ -1,4 +1,4 @@
-//! Hostile and careless clients against a real `kfmap serve` (issue 20's table): each
+//! Hostile and careless clients against a real `kfmap serve` (README's table of limits): each
 //! test sends what once took the server down or crossed into another client's state,
 //! and checks the refusal names the limit and the server's memory stays bounded. Each
 //! test runs under its own iceoryx2 prefix (removed at teardown).

@@ -284,7 +284,7 @@ fn client_options(prefix: &Prefix) -> ClientOptions {
     }
 }
 
-/// Issue 33 (tracking never wanders), through `kfmap localize` with no start pose as a
+/// Tracking never wanders, through `kfmap localize` with no start pose as a
 /// user runs it: the campus, 20 s at 10 Hz, seed 5, baked at its true poses and replayed
 /// as recorded. Every scan is relocalized or tracked; the test takes the poses from the
 /// written trajectory and the statuses from `--json-lines`, and the truth from the

@@ -7,7 +7,7 @@
 //!   reference poses, each of scans 116-176 relocalized with no guess; scans of other
 //!   places (KITTI, small_gicp's outdoor scans) must all be `not-found`; a replay that
 //!   starts with no pose and jumps 10 m and 120 deg (a kidnapped sensor) recovers.
-//! - The same revisit scans turned about the sensor's z (issue 33): as well found at
+//! - The same revisit scans turned about the sensor's z: as well found at
 //!   every turn.
 //! - Simulated corridor (a tunnel, repeated structure): no confident wrong answer;
 //!   outside the tunnel every scan is found.
@@ -381,7 +381,7 @@ fn balm_scans_are_relocalized_and_foreign_scans_are_not_found() {
     }
 }
 
-/// Issue 33: the balm_os0 revisit scans turned about the sensor's z by 37, 143, 180 and
+/// The balm_os0 revisit scans turned about the sensor's z by 37, 143, 180 and
 /// 250 deg (a copy holds `Rz(turn) p`, so its reference is `T_ref Rz(-turn)`) are
 /// relocalized as well as the scans as recorded: at every turn at least 56 of 61 within
 /// 0.3 m / 3 deg of `poses.txt` and `found`, none `found` more than 1 m or 5 deg off.
@@ -454,7 +454,7 @@ fn turned_balm_scans_are_found_at_any_heading() {
     }
 }
 
-/// Issue 33: the simulated campus (rolling ground, world tilted 2 / -3 deg), mapped
+/// The simulated campus (rolling ground, world tilted 2 / -3 deg), mapped
 /// over 30 s at 10 Hz and baked with its IMU; every 5th scan of the same drive at 3 Hz
 /// relocalized with `kfmap relocalize --tilt-deg R,P`, R and P the sensor's true tilt
 /// (the simulator's gravity seen through `poses_gt.txt`): at least 16 of 18 within

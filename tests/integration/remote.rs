@@ -161,7 +161,7 @@ mod in_namespace {
             ),
             "{error:?}"
         );
-        let _gateway = Gateway::start(&prefix.0, &gateway_toml);
+        let gateway = Gateway::start(&prefix.0, &gateway_toml);
         let restarted = Instant::now();
         let back = poll(|| remote.status().is_ok(), 1000);
         println!(
@@ -172,6 +172,8 @@ mod in_namespace {
             back,
             "no answer within 1000 tries after the gateway's restart"
         );
+        drop(gateway);
+        remote_clients_are_capped_per_gateway(&dir, &prefix.0);
         mutual_tls_and_access_control_as_shipped(&dir, &prefix.0);
         drop(server);
     }
@@ -770,6 +772,64 @@ fn broken_frames_are_refused_with_a_reason() {
         assert!(pairings.is_empty());
     }
     let _ = session.close().wait();
+}
+
+/// `max-sessions` caps the remote clients of the whole gateway, not of each worker:
+/// with 2 places and 3 workers, of six clients (raw Zenoh sessions with ids of their
+/// own, spread over the workers) two are served and four answered Busy; an admitted
+/// client keeps its place, and an idle session frees one.
+fn remote_clients_are_capped_per_gateway(dir: &Path, prefix: &str) {
+    use kfmap_protocol::remote::encode_request;
+    use kfmap_protocol::{RequestHeader, RequestKind};
+    use zenoh::Wait;
+    let config = dir.join("capped.toml");
+    std::fs::write(
+        &config,
+        "[gateway]\nmax-sessions = 2\nworkers = 3\nsession-idle-s = 1.0\n",
+    )
+    .unwrap();
+    let gateway = Gateway::start(prefix, &config);
+    let zconfig = kfmap_client::remote::zenoh_config(None, &[], &[ENDPOINT.into()]).unwrap();
+    let session = zenoh::open(zconfig).wait().unwrap();
+    let status = |client: &str| -> StatusCode {
+        let header = RequestHeader {
+            kind: RequestKind::Status as u32,
+            request_id: 1,
+            ..Default::default()
+        };
+        let replies = session
+            .get(rpc_key("court", "whole", client))
+            .payload(encode_request(&header, &[]))
+            .timeout(Duration::from_secs(10))
+            .wait()
+            .unwrap();
+        let reply = replies.recv().expect("one reply");
+        let sample = reply.into_result().expect("an answer frame");
+        let (header, _) = decode_answer(&sample.payload().to_bytes()).unwrap();
+        let code = StatusCode::from_code(header.status);
+        if code == StatusCode::Busy {
+            assert!(
+                header.message().contains("max-sessions"),
+                "{}",
+                header.message()
+            );
+        }
+        code
+    };
+    let clients = ["cap-a", "cap-b", "cap-c", "cap-d", "cap-e", "cap-f"];
+    let answers: Vec<StatusCode> = clients.iter().map(|c| status(c)).collect();
+    let served = answers.iter().filter(|&&a| a == StatusCode::Ok).count();
+    let busy = answers.iter().filter(|&&a| a == StatusCode::Busy).count();
+    assert_eq!((served, busy), (2, 4), "{answers:?}");
+    // The admitted ones keep their places.
+    assert_eq!(status(clients[0]), StatusCode::Ok);
+    assert_eq!(status(clients[1]), StatusCode::Ok);
+    assert_eq!(status(clients[5]), StatusCode::Busy);
+    // Idle for longer than session-idle-s (1 s): the places are free again.
+    std::thread::sleep(Duration::from_millis(1500));
+    assert_eq!(status(clients[5]), StatusCode::Ok);
+    let _ = session.close().wait();
+    drop(gateway);
 }
 
 fn the_cli_localizes_remotely_as_locally(data: &Path, dir: &Path, prefix: &str) {

@@ -21,10 +21,10 @@ use serde_json::{Value, json};
 
 /// Set in the namespace's child: the scenario runs only there.
 const IN_NAMESPACE: &str = "KFMAP_TEST_IN_NETNS";
-/// The node's poses against `kfmap localize`'s on the same scans (issue 36: 1 mm).
+/// The node's poses against `kfmap localize`'s on the same scans (the node runs the same tracker: 1 mm).
 const SAME_POSE_M: f64 = 1e-3;
 /// The node's poses against the simulator's ground truth after a restart of the server
-/// (issue 36: 5 cm).
+/// (5 cm).
 const TRUTH_M: f64 = 0.05;
 /// The same after `/initialpose` on the whole drive: measured 1.66 cm at worst (the
 /// README's figure; the run is deterministic), so a regression fails well before 5 cm.
@@ -138,6 +138,19 @@ fn scan_clouds(
 }
 
 /// The peer's records of one topic by stamp (rounded to the microsecond).
+/// A cloud of `clouds` re-stamped `shift` seconds later (by its index).
+fn at_shift<'a>(
+    clouds: &'a [Value],
+    stamps: &'a [f64],
+    shift: f64,
+) -> impl Fn(usize) -> Value + 'a {
+    move |k| {
+        let mut c = clouds[k].clone();
+        c["stamp"] = json!(stamps[k] + shift);
+        c
+    }
+}
+
 fn by_stamp(records: &[Value], topic: &str) -> std::collections::BTreeMap<i64, Value> {
     records
         .iter()
@@ -549,11 +562,7 @@ mod in_namespace {
         );
         let shift = last + 10.0 - poses.stamps[0];
         let again: Vec<Value> = (0..scans.len())
-            .map(|k| {
-                let mut c = clouds[k].clone();
-                c["stamp"] = json!(poses.stamps[k] + shift);
-                c
-            })
+            .map(at_shift(&clouds, &poses.stamps, shift))
             .collect();
         let manifest = json!({
             "domain": 0,
@@ -596,11 +605,7 @@ mod in_namespace {
         // The server killed mid-drive: the diagnostics say so (an error, not a stall),
         // and tracking resumes once it is back.
         let shift = last + 100.0 - poses.stamps[0];
-        let at = |k: usize| {
-            let mut c = clouds[k].clone();
-            c["stamp"] = json!(poses.stamps[k] + shift);
-            c
-        };
+        let at = at_shift(&clouds, &poses.stamps, shift);
         let pause = |n: usize| {
             json!({"pause": {
                 "reached": dir.join(format!("reached{n}")),
@@ -608,11 +613,11 @@ mod in_namespace {
             }})
         };
         let count = scans.len().min(30);
-        let mut drive: Vec<Value> = (0..5).map(at).collect();
+        let mut drive: Vec<Value> = (0..5).map(&at).collect();
         drive.push(pause(1));
-        drive.extend((5..8).map(at));
+        drive.extend((5..8).map(&at));
         drive.push(pause(2));
-        drive.extend((8..count).map(at));
+        drive.extend((8..count).map(&at));
         let manifest = json!({
             "domain": 0,
             "clouds": drive,
@@ -670,6 +675,43 @@ mod in_namespace {
         println!(
             "server killed after scan 4, restarted after scan 7: ok again from scan {resumed}"
         );
+
+        // A sensor faster than the node: the drive's clouds in one burst, none waiting
+        // for an answer. The node keeps the newest (`[qos] points-depth` 5): the last
+        // cloud of the burst is always localized, and every cloud received is
+        // localized or counted as skipped for a newer one.
+        let shift = last + 150.0 - poses.stamps[0];
+        let burst: Vec<Value> = (0..scans.len())
+            .map(at_shift(&clouds, &poses.stamps, shift))
+            .collect();
+        let manifest = json!({
+            "domain": 0,
+            "clouds": burst,
+            "lockstep": false,
+            "linger_s": 3.0,
+            "initial_pose": {"before": 0, "pose": pose_to_xyz_quat(&truth[0])},
+        });
+        let records = run_peer(&python, &dir, &manifest, "burst");
+        let diagnostics = by_stamp(&records, "diagnostics");
+        let newest = *poses.stamps.last().unwrap() + shift;
+        let values = &diagnostics
+            .get(&key(newest))
+            .expect("the burst's newest cloud was not localized")["values"];
+        let count = |name: &str| -> u64 { values[name].as_str().unwrap().parse().unwrap() };
+        let (received, tracked, skipped) = (count("clouds"), count("localized"), count("skipped"));
+        let (bad, unanswered) = (count("bad"), count("unanswered"));
+        println!(
+            "a burst of {} clouds: the newest localized; so far {received} received, \
+             {tracked} localized, {skipped} skipped for newer ones, {bad} bad, \
+             {unanswered} without a server",
+            scans.len()
+        );
+        assert!(skipped > 0, "the burst never filled the queue");
+        assert_eq!(received, tracked + skipped + bad + unanswered);
+        let burst_localized = (0..scans.len())
+            .filter(|&k| diagnostics.contains_key(&key(poses.stamps[k] + shift)))
+            .count() as u64;
+        assert!(burst_localized < scans.len() as u64);
 
         // A robot's full set of inputs. The IMU on /imu: the live gyro predicts each
         // scan's rotation as `kfmap localize` does from the dataset's whole IMU log (its
@@ -881,7 +923,7 @@ mod in_namespace {
             "balm_os0 116-176 at 2 Hz, relocalized start: {ok} of 61 ok, worst {worst_same:.2e} m \
              from kfmap localize, RMS {rms:.3} m from the reference"
         );
-        // README and issue 36: RMS 0.060 m, as `kfmap localize` (health.rs bounds the same
+        // README: RMS 0.060 m, as `kfmap localize` (health.rs bounds the same
         // figure at 0.08 m from the reference pose; here the start is relocalized).
         assert!(rms < 0.08, "RMS {rms} m from balm's reference poses");
         plot_of_the_recorded_run(&dir, &bag, &records);

@@ -639,7 +639,7 @@ fn sighup_reloads_the_map_and_sigterm_stops_cleanly() {
     assert!(left.iter().all(|n| n.ends_with("global_mgmt")), "{left:?}");
 }
 
-/// Issue 20: a server sent SIGSTOP then SIGCONT shut down, taking the WaitSet's
+/// A server sent SIGSTOP then SIGCONT shut down, taking the WaitSet's
 /// interrupt (any signal) for a stop request. After SIGSTOP, SIGCONT and SIGWINCH it
 /// must keep serving; only SIGINT/SIGTERM stop it.
 #[test]
@@ -667,7 +667,7 @@ fn job_control_signals_do_not_stop_the_server() {
     );
 }
 
-/// Issue 20: a server whose stdout and stderr readers are gone (closed pipes) must
+/// A server whose stdout and stderr readers are gone (closed pipes) must
 /// still serve and stop cleanly, not panic on its ready line or its summary.
 #[test]
 fn a_server_with_closed_output_pipes_serves_and_stops_cleanly() {

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""small_gicp as an independent oracle for map consistency on balm_os0 (issue 37; install
+"""small_gicp as an independent oracle for map consistency on balm_os0 (the joint refinement's check; install
 `small-gicp numpy scipy` in a venv outside the repository, as for kiss_icp_odometry.py).
 
 Which trajectory agrees best with small_gicp's own registration of scan pairs: revisit

@@ -38,7 +38,41 @@ impl Stamp {
     }
 }
 
-/// A message that does not decode as its type: what is wrong.
+/// A message that does not decode as its type: what is wrong, by kind (a reader may
+/// skip a truncated message but refuse a layout it cannot read at all).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("{0}")]
-pub struct DecodeError(pub String);
+pub enum DecodeError {
+    /// The message ends before a field.
+    #[error("message truncated reading {what}: needs {needed} bytes at byte {at}, {left} left")]
+    Truncated {
+        what: String,
+        needed: usize,
+        at: usize,
+        left: usize,
+    },
+    /// A CDR message too short for its 4-byte encapsulation header.
+    #[error("a CDR message of {0} bytes, shorter than its 4-byte encapsulation header")]
+    NoEncapsulation(usize),
+    /// A CDR representation other than plain CDR.
+    #[error(
+        "CDR representation 0x{id:04x} ({name}) is not read; only plain CDR (0x0000 big-endian, 0x0001 little-endian) is, as rmw implementations write by default"
+    )]
+    Representation { id: u16, name: &'static str },
+    /// A value out of its type's range (a bool of 2).
+    #[error("{what} is {value}, not {expected}")]
+    BadValue {
+        what: String,
+        value: String,
+        expected: &'static str,
+    },
+    /// A sequence whose count the bytes left cannot hold.
+    #[error("{what} claims {count} elements, more than the {left} bytes left can hold")]
+    BadCount {
+        what: String,
+        count: usize,
+        left: usize,
+    },
+    /// A cloud whose layout cannot be read (the message names the field or size).
+    #[error("{0}")]
+    Layout(String),
+}

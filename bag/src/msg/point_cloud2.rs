@@ -276,7 +276,7 @@ impl PointCloud2<'_> {
     fn check_layout(&self) -> Result<[Slot; 3], DecodeError> {
         for f in &self.fields {
             let Some(datatype) = Datatype::from_code(f.datatype) else {
-                return Err(DecodeError(format!(
+                return Err(DecodeError::Layout(format!(
                     "field '{}' has unknown datatype {} (known: 1 INT8, 2 UINT8, 3 INT16, \
                      4 UINT16, 5 INT32, 6 UINT32, 7 FLOAT32, 8 FLOAT64)",
                     f.name, f.datatype
@@ -285,7 +285,7 @@ impl PointCloud2<'_> {
             // A count of 0 is read as 1, as PCL does.
             let bytes = datatype.size() as u64 * u64::from(f.count.max(1));
             if u64::from(f.offset) + bytes > u64::from(self.point_step) {
-                return Err(DecodeError(format!(
+                return Err(DecodeError::Layout(format!(
                     "field '{}' at offset {} ({bytes} bytes) runs past point_step {}",
                     f.name, f.offset, self.point_step
                 )));
@@ -299,7 +299,7 @@ impl PointCloud2<'_> {
         for (slot, axis) in xyz.iter_mut().zip(["x", "y", "z"]) {
             *slot = self.slot(axis).ok_or_else(|| {
                 let names: Vec<&str> = self.fields.iter().map(|f| f.name.as_str()).collect();
-                DecodeError(format!(
+                DecodeError::Layout(format!(
                     "cloud has no field '{axis}' (fields: {})",
                     if names.is_empty() {
                         "none".to_string()
@@ -309,7 +309,7 @@ impl PointCloud2<'_> {
                 ))
             })?;
             if !slot.datatype.is_float() {
-                return Err(DecodeError(format!(
+                return Err(DecodeError::Layout(format!(
                     "field '{axis}' is {}; x, y and z must be FLOAT32 or FLOAT64",
                     slot.datatype.name()
                 )));
@@ -320,14 +320,14 @@ impl PointCloud2<'_> {
         // every row offset `to_cloud` computes in usize.
         let row_bytes = u64::from(self.width) * u64::from(self.point_step);
         if u64::from(self.row_step) < row_bytes {
-            return Err(DecodeError(format!(
+            return Err(DecodeError::Layout(format!(
                 "row_step {} is less than width {} x point_step {} = {row_bytes}",
                 self.row_step, self.width, self.point_step
             )));
         }
         let needed = u64::from(self.height) * u64::from(self.row_step);
         if (self.data.len() as u64) < needed {
-            return Err(DecodeError(format!(
+            return Err(DecodeError::Layout(format!(
                 "data holds {} bytes, fewer than height {} x row_step {} = {needed}",
                 self.data.len(),
                 self.height,

@@ -42,10 +42,7 @@ impl<'a> Reader<'a> {
             }),
             Encoding::Cdr => {
                 let Some((header, body)) = bytes.split_first_chunk::<4>() else {
-                    return Err(DecodeError(format!(
-                        "a CDR message of {} bytes, shorter than its 4-byte encapsulation header",
-                        bytes.len()
-                    )));
+                    return Err(DecodeError::NoEncapsulation(bytes.len()));
                 };
                 // The representation identifier is big-endian; the options bytes after it
                 // only count padding at the end, which the decoders ignore.
@@ -81,11 +78,12 @@ impl<'a> Reader<'a> {
     /// The next `n` bytes, borrowed.
     fn take(&mut self, n: usize, what: &str) -> Result<&'a [u8], DecodeError> {
         if n > self.remaining() {
-            return Err(DecodeError(format!(
-                "message truncated reading {what}: needs {n} bytes at byte {}, {} left",
-                self.pos,
-                self.remaining()
-            )));
+            return Err(DecodeError::Truncated {
+                what: what.to_string(),
+                needed: n,
+                at: self.pos,
+                left: self.remaining(),
+            });
         }
         let bytes = &self.body[self.pos..self.pos + n];
         self.pos += n;
@@ -114,7 +112,11 @@ impl<'a> Reader<'a> {
         match self.u8(what)? {
             0 => Ok(false),
             1 => Ok(true),
-            b => Err(DecodeError(format!("{what} is {b}, not a bool (0 or 1)"))),
+            b => Err(DecodeError::BadValue {
+                what: what.to_string(),
+                value: b.to_string(),
+                expected: "a bool (0 or 1)",
+            }),
         }
     }
 
@@ -169,10 +171,11 @@ impl<'a> Reader<'a> {
     ) -> Result<usize, DecodeError> {
         let count = self.u32(what)? as usize;
         if count.saturating_mul(min_element_bytes) > self.remaining() {
-            return Err(DecodeError(format!(
-                "{what} claims {count} elements, more than the {} bytes left can hold",
-                self.remaining()
-            )));
+            return Err(DecodeError::BadCount {
+                what: what.to_string(),
+                count,
+                left: self.remaining(),
+            });
         }
         Ok(count)
     }
@@ -213,10 +216,7 @@ fn unsupported_representation(id: u16) -> DecodeError {
         0x000b => "PL_CDR2_LE (XCDR2 parameter list)",
         _ => "unknown",
     };
-    DecodeError(format!(
-        "CDR representation 0x{id:04x} ({name}) is not read; only plain CDR (0x0000 big-endian, \
-         0x0001 little-endian) is, as rmw implementations write by default"
-    ))
+    DecodeError::Representation { id, name }
 }
 
 /// Test-only: serializes values the way [`Reader`] reads them, to build messages by
@@ -358,21 +358,32 @@ mod tests {
     #[test]
     fn other_representations_are_refused_by_name() {
         for (id, name) in [(0x03u8, "PL_CDR_LE"), (0x07, "CDR2_LE"), (0x06, "CDR2_BE")] {
-            let err = Reader::new(&[0, id, 0, 0], Encoding::Cdr).unwrap_err().0;
-            assert!(err.contains(name), "{err}");
+            let err = Reader::new(&[0, id, 0, 0], Encoding::Cdr).unwrap_err();
+            assert!(
+                matches!(err, DecodeError::Representation { id: got, .. } if got == u16::from(id)),
+                "{err:?}"
+            );
+            assert!(err.to_string().contains(name), "{err}");
         }
-        let err = Reader::new(&[0, 1], Encoding::Cdr).unwrap_err().0;
-        assert!(err.contains("encapsulation header"), "{err}");
+        let err = Reader::new(&[0, 1], Encoding::Cdr).unwrap_err();
+        assert_eq!(err, DecodeError::NoEncapsulation(2));
+        assert!(err.to_string().contains("encapsulation header"), "{err}");
     }
 
     #[test]
     fn truncation_and_hostile_lengths_are_errors() {
         let mut r = Reader::new(&[0, 1, 0, 0, 1, 2], Encoding::Cdr).unwrap();
-        let err = r.u32("height").unwrap_err().0;
-        assert!(
-            err.contains("height") && err.contains("needs 4 bytes"),
-            "{err}"
+        let err = r.u32("height").unwrap_err();
+        assert_eq!(
+            err,
+            DecodeError::Truncated {
+                what: "height".into(),
+                needed: 4,
+                at: 0,
+                left: 2
+            }
         );
+        assert!(err.to_string().contains("needs 4 bytes"), "{err}");
 
         let mut bytes = vec![0, 1, 0, 0];
         bytes.extend(u32::MAX.to_le_bytes());
@@ -380,13 +391,25 @@ mod tests {
         let mut r = Reader::new(&bytes, Encoding::Cdr).unwrap();
         assert!(r.clone().byte_sequence("data").is_err());
         assert!(r.clone().string("frame").is_err());
-        let err = r.sequence_len("fields", 13).unwrap_err().0;
-        assert!(err.contains("4294967295"), "{err}");
+        let err = r.sequence_len("fields", 13).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                DecodeError::BadCount {
+                    count: 4294967295,
+                    left: 8,
+                    ..
+                }
+            ),
+            "{err:?}"
+        );
     }
 
     #[test]
     fn a_bool_other_than_zero_or_one_is_an_error() {
         let mut r = Reader::new(&[2], Encoding::Ros1).unwrap();
-        assert!(r.bool("is_dense").unwrap_err().0.contains("not a bool"));
+        let err = r.bool("is_dense").unwrap_err();
+        assert!(matches!(err, DecodeError::BadValue { .. }), "{err:?}");
+        assert!(err.to_string().contains("not a bool"), "{err}");
     }
 }

@@ -156,8 +156,8 @@ fn run(seed: u64) -> Figures {
     }
 }
 
-/// Issue 33: the CLI reaches what the estimator can, on every seed. Measured (issue 33,
-/// docs/DESIGN.md#gravity): `kfmap gravity` 0.031 / 0.037 / 0.041 / 0.035 deg, bias
+/// The CLI reaches what the estimator can, on every seed. Measured
+/// (docs/DESIGN.md#gravity): `kfmap gravity` 0.031 / 0.037 / 0.041 / 0.035 deg, bias
 /// 0.006 / 0.007 / 0.008 / 0.007 m/s^2 off; `kfmap bake` 0.036 / 0.031 / 0.030 / 0.012
 /// deg, bias 0.007 / 0.006 / 0.006 / 0.003 m/s^2 off; served 0.026 / 0.024 / 0.026 /
 /// 0.014 deg, 0.049 / 0.019 / 0.017 / 0.049 deg from the CLI's answer (other windows:

@@ -1,4 +1,4 @@
-//! Raw (not deskewed) automotive scans without per-point times (issue 33, item 6): KITTI
+//! Raw (not deskewed) automotive scans without per-point times: KITTI
 //! 00 frames 0-5 through `kfmap bake --build-poses` (the function the CLI calls, on a
 //! dataset folder like the CLI reads), and the simulated street driven raw at 5 Hz with
 //! its per-point times stripped, deskewed from the points' azimuths.

@@ -1,4 +1,4 @@
-//! Global relocalization's parts (issue 21): where in the map a scan with no pose
+//! Global relocalization's parts: where in the map a scan with no pose
 //! guess was taken.
 //!
 //! - [`level`]: the scan's up direction from its floor-like planes (when no IMU gives it);

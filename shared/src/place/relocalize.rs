@@ -379,7 +379,7 @@ fn structure_points(
 /// `cell` column whose floor (lowest point) `ground` takes for ground, the points less
 /// than `cell` above it (terrain may roll; a column's floor is local). Ground lies under
 /// every placement at the right height, so it tells places apart by little while it
-/// fills most of an outdoor scan's sample. On rolling ground (issue 33's campus) the
+/// fills most of an outdoor scan's sample. On rolling ground (the simulated campus) the
 /// uphill ground is a floor above the sensor: kept as structure, it was 272 of a scan's
 /// 296 search points, which then hit marked voxels at places 130 m away more than at
 /// its own ([`Ground::Every`] is searched first, [`Ground::BelowSensor`] when that

@@ -98,9 +98,10 @@ pub enum GraphError {
     /// The graph has no vertices.
     #[error("the graph has no vertices")]
     Empty,
-    /// The normal equations are singular (a vertex with no constraint).
-    #[error("the linear system is singular: some vertex is not connected to the fixed one ({0})")]
-    Singular(String),
+    /// The normal equations could not be solved: not positive definite (a vertex with no
+    /// constraint) or not set up.
+    #[error("the pose graph's linear system: {0} (is every vertex connected to the fixed one?)")]
+    Solve(#[from] crate::sparse_blocks::BlockError),
 }
 
 /// Optimizer settings (GTSAM's Gauss-Newton defaults).

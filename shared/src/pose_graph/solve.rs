@@ -110,7 +110,7 @@ pub(super) fn optimize(
             _ => None,
         }
     });
-    let mut system = BlockSystem::new(free, pairs).map_err(|e| GraphError::Singular(e.0))?;
+    let mut system = BlockSystem::new(free, pairs)?;
     let mut error = initial_error;
     let mut lambda = 1e-5;
     report.converged = false;
@@ -144,7 +144,7 @@ pub(super) fn optimize(
                 system.damp(|_| lambda);
             }
             let rhs: Vec<f64> = gradient.iter().map(|g| -g).collect();
-            let step = system.solve(&rhs).map_err(|e| GraphError::Singular(e.0))?;
+            let step = system.solve(&rhs)?;
             let before = damped.then(|| graph.poses.clone());
             for (i, slot) in slots.iter().enumerate() {
                 if let Some(s) = slot {

@@ -208,9 +208,8 @@ pub struct RefineScan<'a> {
 /// What the refinement did.
 #[derive(Debug, Clone, Default)]
 pub struct RefineReport {
-    /// The refined poses were kept (false: refused, see `refused`, or nothing to do).
-    pub accepted: bool,
-    /// Why the result was refused, when it was.
+    /// Why the result was refused (the input poses kept); `None`: the refined poses
+    /// were kept.
     pub refused: Option<String>,
     /// Planes of the last plane set.
     pub planes: usize,
@@ -236,6 +235,39 @@ pub struct RefineReport {
     pub consistency_after: Consistency,
     /// Wall time, seconds.
     pub seconds: f64,
+}
+
+/// Why a refinement that ran as `report` says is refused, if it is: the solve could not
+/// run, nothing to refine, a scan moved too far, or the map got less consistent.
+fn verdict(
+    report: &RefineReport,
+    scans: usize,
+    unsolvable: Option<&crate::sparse_blocks::BlockError>,
+    max_move: f64,
+) -> Option<String> {
+    if let Some(e) = unsolvable {
+        Some(format!("the plane system could not be solved: {e}"))
+    } else if scans < 2 {
+        Some("fewer than two scans: nothing to refine".into())
+    } else if report.outer_iterations == 0 {
+        Some("no planes seen from two scans".into())
+    } else if report.largest_move > max_move {
+        Some(format!(
+            "a scan would move {:.2} m (max-move {max_move} m)",
+            report.largest_move
+        ))
+    } else if report.consistency_after.mean_spread > report.consistency_before.mean_spread {
+        Some("the map got less consistent".into())
+    } else {
+        None
+    }
+}
+
+impl RefineReport {
+    /// The refined poses were kept (not refused).
+    pub fn accepted(&self) -> bool {
+        self.refused.is_none()
+    }
 }
 
 /// A relative-pose prior between two scans (`T_from^-1 T_to ~ measurement`).
@@ -279,6 +311,8 @@ pub fn refine_poses(
     };
     let mut poses = input.clone();
     let total = params.outer_iterations * params.max_iterations;
+    // Why the solve could not run, when it could not.
+    let mut unsolvable = None;
     for outer in 0..params.outer_iterations {
         let planes = planes::find_planes(&clouds, &poses, params);
         report.planes = planes.len();
@@ -287,9 +321,15 @@ pub fn refine_poses(
             break;
         }
         let before = poses.clone();
-        let lm = solve::levenberg_marquardt(&planes, &priors, &mut poses, params, |k| {
+        let lm = match solve::levenberg_marquardt(&planes, &priors, &mut poses, params, |k| {
             progress(outer * params.max_iterations + k, total)
-        });
+        }) {
+            Ok(lm) => lm,
+            Err(e) => {
+                unsolvable = Some(e);
+                break;
+            }
+        };
         report.outer_iterations += 1;
         report.iterations += lm.iterations;
         if outer == 0 {
@@ -316,20 +356,8 @@ pub fn refine_poses(
     report.largest_move = moves.iter().copied().fold(0.0, f64::max);
     report.moved_scans = (0..moves.len()).filter(|&i| moves[i] > 0.1).collect();
     report.consistency_after = consistency(&clouds, &poses, measured);
-    report.refused = if report.outer_iterations == 0 {
-        Some("no planes seen from two scans".into())
-    } else if report.largest_move > params.max_move {
-        Some(format!(
-            "a scan would move {:.2} m (max-move {} m)",
-            report.largest_move, params.max_move
-        ))
-    } else if report.consistency_after.mean_spread > report.consistency_before.mean_spread {
-        Some("the map got less consistent".into())
-    } else {
-        None
-    };
-    report.accepted = report.refused.is_none();
-    if !report.accepted {
+    report.refused = verdict(&report, scans.len(), unsolvable.as_ref(), params.max_move);
+    if !report.accepted() {
         poses = input;
         report.consistency_after = report.consistency_before;
     }

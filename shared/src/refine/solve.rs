@@ -17,7 +17,7 @@ use crate::eigen::sorted_symmetric_eigen;
 use crate::geometry::Pose;
 use crate::pose_graph::{exp, linearize_edge, log};
 use crate::registration::RobustKernel;
-use crate::sparse_blocks::BlockSystem;
+use crate::sparse_blocks::{BlockError, BlockSystem};
 
 /// Planes per parallel chunk: sums in fixed chunks do not depend on the thread count.
 const CHUNK: usize = 256;
@@ -146,14 +146,15 @@ pub(crate) fn plane_blocks(
     (blocks, all.n)
 }
 
-/// Levenberg-Marquardt over every pose but scan 0's, the planes held.
+/// Levenberg-Marquardt over every pose but scan 0's, the planes held. `Err` when the
+/// block system cannot be set up (the poses are then untouched).
 pub(crate) fn levenberg_marquardt(
     planes: &[Plane],
     priors: &[Prior],
     poses: &mut [Pose],
     params: &RefineParams,
     mut progress: impl FnMut(usize),
-) -> LmOutcome {
+) -> Result<LmOutcome, BlockError> {
     let start = total_cost(planes, priors, poses, params);
     let mut outcome = LmOutcome {
         iterations: 0,
@@ -161,7 +162,7 @@ pub(crate) fn levenberg_marquardt(
     };
     let free = poses.len() - 1;
     if free == 0 {
-        return outcome;
+        return Ok(outcome);
     }
     // Scan s > 0 is unknown s - 1; scan 0 is the gauge.
     let slot = |s: usize| s.checked_sub(1);
@@ -180,9 +181,7 @@ pub(crate) fn levenberg_marquardt(
                 .iter()
                 .filter_map(|p| Some((slot(p.from)?, slot(p.to)?))),
         );
-    let Ok(mut system) = BlockSystem::new(free, pairs) else {
-        return outcome;
-    };
+    let mut system = BlockSystem::new(free, pairs)?;
     let mut cost = start;
     let mut mu = 1e-4;
     for _ in 0..params.max_iterations {
@@ -196,9 +195,14 @@ pub(crate) fn levenberg_marquardt(
             // Marquardt's scaling: rotations and translations differ in units.
             system.damp(|d| mu * d + 1e-9);
             let rhs: Vec<f64> = gradient.iter().map(|g| -g).collect();
-            let Ok(step) = system.solve(&rhs) else {
-                mu *= 10.0;
-                continue;
+            let step = match system.solve(&rhs) {
+                Ok(step) => step,
+                // Too little damping for a weakly held pose: damp more.
+                Err(BlockError::NotPositiveDefinite { .. }) => {
+                    mu *= 10.0;
+                    continue;
+                }
+                Err(e) => return Err(e),
             };
             let trial: Vec<Pose> = poses
                 .iter()
@@ -227,7 +231,7 @@ pub(crate) fn levenberg_marquardt(
         }
     }
     outcome.cost.1 = cost;
-    outcome
+    Ok(outcome)
 }
 
 /// Adds planes' blocks (each with its point count) to `system` and `gradient`.

@@ -263,7 +263,7 @@ fn refinement_recovers_perturbed_poses_in_a_room() {
     let all: Vec<usize> = (0..scans.len()).collect();
     let (refined, report) = refine_poses(&scans, &[], &all, &RefineParams::default(), |_, _| {});
     println!("{report:?}");
-    assert!(report.accepted, "{:?}", report.refused);
+    assert!(report.accepted(), "{:?}", report.refused);
     let worst = |poses: &[Pose]| {
         poses
             .iter()
@@ -317,4 +317,45 @@ fn room_points(rng: &mut Lcg) -> Vec<Vector3<f64>> {
     surface(Vector3::new(5.0, 3.5, 0.0), y * 1.0, z * 1.0, 400);
     surface(Vector3::new(4.0, 3.5, 1.0), x * 1.0, y * 1.0, 400);
     points
+}
+
+/// A solve that could not run (the block system not set up) is a refusal naming why,
+/// never `accepted` with nothing done, even when every other figure looks fine.
+#[test]
+fn an_unsolvable_system_is_refused_not_accepted() {
+    use crate::sparse_blocks::BlockError;
+    let ran = RefineReport {
+        outer_iterations: 1,
+        ..RefineReport::default()
+    };
+    assert_eq!(verdict(&ran, 12, None, 0.5), None);
+    let setup = BlockError::Setup("ordering: OutOfMemory".into());
+    let refused = verdict(&ran, 12, Some(&setup), 0.5).expect("refused");
+    assert!(refused.contains("could not be solved") && refused.contains("OutOfMemory"));
+    let report = RefineReport {
+        refused: Some(refused),
+        ..ran
+    };
+    assert!(!report.accepted());
+}
+
+/// One scan: nothing to refine, said so, and its pose kept.
+#[test]
+fn one_scan_is_refused_with_its_pose_kept() {
+    let mut rng = Lcg(5);
+    let points: Vec<[f32; 3]> = room_points(&mut rng)
+        .into_iter()
+        .map(|p| [p.x as f32, p.y as f32, p.z as f32])
+        .collect();
+    let start = pose(&mut rng, 0.1, 1.0);
+    let scans = [RefineScan {
+        points: &points,
+        pose: start,
+    }];
+    let (poses, report) = refine_poses(&scans, &[], &[0], &RefineParams::default(), |_, _| {});
+    assert_eq!(poses, [start]);
+    assert_eq!(
+        report.refused.as_deref(),
+        Some("fewer than two scans: nothing to refine")
+    );
 }

@@ -1,8 +1,8 @@
 //! The table's localization rows on real data: balm_os0, a map of scans 0-115 at their
 //! reference poses, scans 116-176 tracked against it by `kfmap localize` over IPC, as
 //! tests/integration/health.rs checks, and the same scans relocalized with no guess by
-//! `kfmap relocalize` on the same server, side by side (issue 55: a relocalization should
-//! cost at most two tracking steps).
+//! `kfmap relocalize` on the same server, side by side (the target: a relocalization
+//! costs at most two tracking steps).
 
 use std::ffi::OsStr;
 use std::path::Path;

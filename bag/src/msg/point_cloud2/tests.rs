@@ -167,7 +167,10 @@ fn layout_errors_name_the_problem() {
             steps,
             data,
         );
-        decode_point_cloud2(&bytes, Encoding::Ros1).unwrap_err().0
+        match decode_point_cloud2(&bytes, Encoding::Ros1).unwrap_err() {
+            DecodeError::Layout(why) => why,
+            other => panic!("not a layout error: {other:?}"),
+        }
     };
     let e = err(&PACKED[..2], (18, 54), &data);
     assert_eq!(e, "cloud has no field 'z' (fields: x y)");
