@@ -250,6 +250,7 @@ impl TileSetWriter {
             halo: geometry.halo,
             keyframes: poses.len() as u64,
             tiles: Vec::with_capacity(total),
+            ranking: None,
         };
         let finishing = TileFinish {
             whole_voxels: whole_voxels.as_ref(),

@@ -316,15 +316,24 @@ impl RemoteLink {
         };
         let places = self.ask_every_tile(phase(FLAG_PLACES_ONLY, 0), timeout)?;
         let placed = started.elapsed();
-        let (chosen, order, searched_us) =
-            match crate::tiled::choose_places(&places, self.overlapping_cores().as_ref())? {
-                Choice::Answer(frame) => return Ok(frame),
-                Choice::Score {
-                    chosen,
-                    order,
-                    searched_us,
-                } => (chosen, order, searched_us),
-            };
+        // The servers' ranking as their gateway published it (defaults from a gateway
+        // that predates it).
+        let ranking = self
+            .tile_index()
+            .and_then(|index| index.ranking)
+            .unwrap_or_default();
+        let (chosen, order, searched_us) = match crate::tiled::choose_places(
+            &places,
+            self.overlapping_cores().as_ref(),
+            &ranking,
+        )? {
+            Choice::Answer(frame) => return Ok(frame),
+            Choice::Score {
+                chosen,
+                order,
+                searched_us,
+            } => (chosen, order, searched_us),
+        };
         let requests = chosen
             .into_iter()
             .map(|(at, ranks)| {
@@ -359,7 +368,7 @@ impl RemoteLink {
             scored.len(),
             ms(started.elapsed() - scored_at)
         );
-        crate::tiled::finish(&finished[0].1, &ranked, searched_us)
+        crate::tiled::finish(&finished[0].1, &ranked, searched_us, &ranking)
     }
 
     /// The index of tile `id` in this link's tiles.

@@ -13,8 +13,8 @@ use kfmap_protocol::{
     PLACES_FROM_RELIEF, ResponseHeader, StatusCode, WirePlace, place_from_wire, pose_from_wire,
 };
 use kfmap_shared::geometry::{Pose, rotation_distance, translation_distance};
-use kfmap_shared::place::{RelocalizeParams, RelocalizeStatus, SearchParams, another_place};
-use kfmap_shared::tiles::{TileGeometry, tile_id};
+use kfmap_shared::place::{RelocalizeParams, RelocalizeStatus, another_place};
+use kfmap_shared::tiles::{PlaceRanking, TileGeometry, tile_id};
 
 use crate::ClientError;
 use crate::error::RemoteError;
@@ -74,6 +74,7 @@ type Proposed<'a> = (f64, &'a str, usize, usize, Pose);
 pub(crate) fn choose_places(
     answers: &[(String, Vec<u8>)],
     cores: Option<&TileGeometry>,
+    ranking: &PlaceRanking,
 ) -> Result<Choice, ClientError> {
     let mut structure: Vec<Proposed> = Vec::new();
     let mut relief: Vec<Proposed> = Vec::new();
@@ -126,13 +127,12 @@ pub(crate) fn choose_places(
             .then_with(|| a.1.cmp(b.1))
             .then(a.3.cmp(&b.3))
     });
-    let search = SearchParams::default();
-    let floor = proposed.first().map_or(0.0, |p| p.0) * search.keep_ratio;
+    let floor = proposed.first().map_or(0.0, |p| p.0) * ranking.keep_ratio;
     // Lattice placements lie exact multiples of the voxel apart, often exactly the
     // separation (2 m: distinct to the search); the wire's f32 must not make them one.
     let same_place = |a: &Pose, b: &Pose| {
-        translation_distance(a, b) < search.separation_m - WIRE_SLACK_M
-            && rotation_distance(a, b).to_degrees() < search.separation_deg - WIRE_SLACK_DEG
+        translation_distance(a, b) < ranking.separation_m - WIRE_SLACK_M
+            && rotation_distance(a, b).to_degrees() < ranking.separation_deg - WIRE_SLACK_DEG
     };
     let mut places: Vec<Proposed> = Vec::with_capacity(keep);
     for place in proposed {
@@ -260,13 +260,14 @@ pub(crate) fn finish(
     frame: &[u8],
     ranked: &Ranked,
     searched_us: f64,
+    ranking: &PlaceRanking,
 ) -> Result<Vec<u8>, ClientError> {
     let (mut header, pairings) = decode_answer(frame)
         .map_err(|e| RemoteError::BadAnswer(format!("the best place's final answer: {e}")))?;
     if StatusCode::from_code(header.status) != StatusCode::Ok {
         return Ok(frame.to_vec());
     }
-    let params = RelocalizeParams::default();
+    let params = ranking.applied_to(RelocalizeParams::default());
     header.candidates = ranked.candidates;
     header.registrations += ranked.registrations;
     header.server_us += searched_us + ranked.scored_us;
@@ -379,7 +380,9 @@ mod tests {
                 places(&[near(12.0, 90.0, 0.8, 0)], 1, 6),
             ),
         ];
-        let Choice::Score { order, .. } = choose_places(&answers, Some(&cores)).unwrap() else {
+        let Choice::Score { order, .. } =
+            choose_places(&answers, Some(&cores), &PlaceRanking::default()).unwrap()
+        else {
             panic!("places to score expected");
         };
         assert_eq!(order, vec![(1, 0), (2, 0)]);
@@ -394,7 +397,7 @@ mod tests {
     }
 
     fn chosen_order(answers: &[(String, Vec<u8>)]) -> Vec<(usize, usize)> {
-        match choose_places(answers, None).unwrap() {
+        match choose_places(answers, None, &PlaceRanking::default()).unwrap() {
             Choice::Score { order, .. } => order,
             Choice::Answer(_) => panic!("places to score expected"),
         }
@@ -426,7 +429,7 @@ mod tests {
             chosen,
             order,
             searched_us,
-        } = choose_places(&answers, None).unwrap()
+        } = choose_places(&answers, None, &PlaceRanking::default()).unwrap()
         else {
             panic!("places to score expected");
         };
@@ -441,8 +444,12 @@ mod tests {
         assert_eq!(chosen, vec![(0, 0b1), (1, 0b11)]);
         assert_eq!(searched_us, 300.0);
         // No place anywhere: not found at once, nothing to score.
-        let Choice::Answer(frame) = choose_places(&named(vec![proposed(&[], 5)]), None).unwrap()
-        else {
+        let Choice::Answer(frame) = choose_places(
+            &named(vec![proposed(&[], 5)]),
+            None,
+            &PlaceRanking::default(),
+        )
+        .unwrap() else {
             panic!("an answer expected");
         };
         let h = decode_answer(&frame).unwrap().0;
@@ -452,13 +459,13 @@ mod tests {
         let refused = encode_answer(&ResponseHeader::refusal(7, StatusCode::Busy, "busy"), &[]);
         let answers = named(vec![proposed(&[0.9], 5), refused.clone()]);
         assert_eq!(
-            choose_places(&answers, None).unwrap(),
+            choose_places(&answers, None, &PlaceRanking::default()).unwrap(),
             Choice::Answer(refused)
         );
         // A frame whose places disagree with its count is an error, not a guess.
         let mut broken = proposed(&[0.9, 0.8], 5);
         broken.truncate(broken.len() - 56);
-        assert!(choose_places(&named(vec![broken]), None).is_err());
+        assert!(choose_places(&named(vec![broken]), None, &PlaceRanking::default()).is_err());
     }
 
     /// The final answer of a place at `settled` with `score`, as the finishing tile
@@ -502,7 +509,13 @@ mod tests {
         assert_eq!((r.candidates, r.registrations, r.scored_us), (3, 6, 200.0));
         // A place far away within the margin: ambiguous (0.8 vs 0.8).
         let h = |frame: Vec<u8>| decode_answer(&frame).unwrap().0;
-        let out = h(finish(&finished(&at(50.1, 1.0), 0.8, true), &r, 1000.0).unwrap());
+        let out = h(finish(
+            &finished(&at(50.1, 1.0), 0.8, true),
+            &r,
+            1000.0,
+            &PlaceRanking::default(),
+        )
+        .unwrap());
         assert_eq!(out.relocalization, RelocalizeStatus::Ambiguous as u32);
         assert_eq!(out.place_scores, [0.8, 0.8]);
         assert_eq!((out.candidates, out.registrations), (3, 8));
@@ -514,23 +527,59 @@ mod tests {
             (at(50.0, 0.0), 0.8),
             (at(50.3, 2.0), 0.79),
         ]);
-        let out = h(finish(&finished(&at(50.0, 0.0), 0.8, true), &r, 0.0).unwrap());
+        let out = h(finish(
+            &finished(&at(50.0, 0.0), 0.8, true),
+            &r,
+            0.0,
+            &PlaceRanking::default(),
+        )
+        .unwrap());
         assert_eq!(out.relocalization, RelocalizeStatus::Found as u32);
         assert_eq!(out.place_scores, [0.8, 0.6]);
+        // The servers' own settings, as the gateway publishes them, decide: with an
+        // ambiguity margin of 0.25 the same runner-up (0.6 against 0.8) is too close.
+        let wide = PlaceRanking {
+            ambiguity_margin: 0.25,
+            ..PlaceRanking::default()
+        };
+        let out = h(finish(&finished(&at(50.0, 0.0), 0.8, true), &r, 0.0, &wide).unwrap());
+        assert_eq!(out.relocalization, RelocalizeStatus::Ambiguous as u32);
         // Turned more than distinct-deg, it is another place: ambiguous.
         let r = ranked([
             (at(0.0, 0.0), 0.1),
             (at(50.0, 0.0), 0.8),
             (at(50.0, 10.0), 0.79),
         ]);
-        let out = h(finish(&finished(&at(50.0, 0.0), 0.8, true), &r, 0.0).unwrap());
+        let out = h(finish(
+            &finished(&at(50.0, 0.0), 0.8, true),
+            &r,
+            0.0,
+            &PlaceRanking::default(),
+        )
+        .unwrap());
         assert_eq!(out.relocalization, RelocalizeStatus::Ambiguous as u32);
+        // Unless the servers count 15 deg as the same place (distinct-deg 15).
+        let lenient = PlaceRanking {
+            distinct_deg: 15.0,
+            ..PlaceRanking::default()
+        };
+        let out = h(finish(&finished(&at(50.0, 0.0), 0.8, true), &r, 0.0, &lenient).unwrap());
+        assert_eq!(out.relocalization, RelocalizeStatus::Found as u32);
         // The best place does not fit: not found, whatever the others scored.
-        let out = h(finish(&finished(&at(50.0, 0.0), 0.8, false), &r, 0.0).unwrap());
+        let out = h(finish(
+            &finished(&at(50.0, 0.0), 0.8, false),
+            &r,
+            0.0,
+            &PlaceRanking::default(),
+        )
+        .unwrap());
         assert_eq!(out.relocalization, RelocalizeStatus::NotFound as u32);
         // A refusal of a phase is the answer.
         let refused = encode_answer(&ResponseHeader::refusal(7, StatusCode::Busy, "busy"), &[]);
-        assert_eq!(finish(&refused, &r, 0.0).unwrap(), refused);
+        assert_eq!(
+            finish(&refused, &r, 0.0, &PlaceRanking::default()).unwrap(),
+            refused
+        );
         let order = vec![("t0".to_string(), 0)];
         assert_eq!(
             best_scored(&order, &named(vec![refused.clone()])).unwrap(),

@@ -12,8 +12,8 @@ mod bridge;
 pub mod config;
 
 use std::path::PathBuf;
-use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use kfmap_client::remote::zenoh_config;
@@ -22,6 +22,7 @@ use kfmap_protocol::remote::{
     WHOLE_MAP_TILE, alive_key, check_key_chunk, rpc_queryable_key, tile_index_key, tile_map_name,
 };
 use kfmap_protocol::transport::{Rpc, create_node, iceoryx_config, open_rpc, server_processes};
+use kfmap_shared::tiles::PlaceRanking;
 use zenoh::Wait;
 
 pub use config::{GatewayConfig, GatewaySection};
@@ -162,14 +163,20 @@ pub fn run(
         );
         tracing::info!(key, listen = ?g.listen, "gateway answering");
     }
+    // The servers' ranking settings, learnt from their status when their tokens are
+    // declared, published with the index.
+    let ranking: Arc<Mutex<Option<PlaceRanking>>> = Arc::default();
     if let Some(index) = &options.index {
         let key = tile_index_key(&options.map_name);
-        let text = index.clone();
+        let index = index.clone();
+        let known = ranking.clone();
         let reply_key = key.clone();
         queryables.push(
             session
                 .declare_queryable(&key)
                 .callback(move |query| {
+                    let ranking = *known.lock().unwrap_or_else(|e| e.into_inner());
+                    let text = index_with_ranking(&index, ranking.as_ref());
                     if let Err(e) = query.reply(&reply_key, text.as_bytes()).wait() {
                         tracing::warn!("could not send the tile index: {e}");
                     }
@@ -180,7 +187,7 @@ pub fn run(
     }
     // Ready once the servers' tokens are declared (if they run): a client that connects
     // on the ready line finds them.
-    let watched = watch_servers(&session, options, stop, || ready(&g.listen));
+    let watched = watch_servers(&session, options, &ranking, stop, || ready(&g.listen));
     drop(queryables);
     for worker in workers {
         let _ = worker.join();
@@ -194,6 +201,7 @@ pub fn run(
 fn watch_servers(
     session: &zenoh::Session,
     options: &GatewayOptions,
+    ranking: &Mutex<Option<PlaceRanking>>,
     stop: &AtomicBool,
     first_look: impl FnOnce(),
 ) -> Result<(), GatewayError> {
@@ -258,8 +266,18 @@ fn watch_servers(
             if present
                 && token.is_none()
                 && !dead_listed
-                && server_answers(options, &served.local_map)
+                && let Some(answered) = server_ranking(options, &served.local_map)
             {
+                let mut known = ranking.lock().unwrap_or_else(|e| e.into_inner());
+                match *known {
+                    Some(first) if first != answered => tracing::warn!(
+                        tile = served.tile,
+                        "this tile's server ranks relocalization places otherwise ({answered:?}) than the first ({first:?}): clients rank by the first; give every tile's server the same [relocalize]"
+                    ),
+                    Some(_) => {}
+                    None => *known = Some(answered),
+                }
+                drop(known);
                 *token = Some(
                     session
                         .liveliness()
@@ -293,20 +311,40 @@ fn process_alive(pid: u32) -> bool {
     std::path::Path::new(&format!("/proc/{pid}")).exists()
 }
 
-/// True when the local server of `local_map` answers a status request (its map is
-/// loaded).
-fn server_answers(options: &GatewayOptions, local_map: &str) -> bool {
+/// The index text a gateway answers: the tile set's `tiles.toml`, with its servers'
+/// ranking settings once known (a `[ranking]` table).
+fn index_with_ranking(index: &str, ranking: Option<&PlaceRanking>) -> String {
+    match ranking.map(toml::to_string) {
+        Some(Ok(table)) => format!("{index}\n[ranking]\n{table}"),
+        _ => index.to_string(),
+    }
+}
+
+/// The local server of `local_map`'s ranking settings, when it answers a status request
+/// (its map is loaded); `None` when it does not answer.
+fn server_ranking(options: &GatewayOptions, local_map: &str) -> Option<PlaceRanking> {
     let client_options = ClientOptions {
         iceoryx_prefix: options.iceoryx_prefix.clone(),
         timeout: Duration::from_secs_f64(options.config.request_timeout_s),
         spin: false,
     };
-    let Ok(mut connection) = Connection::connect(local_map, client_options) else {
-        return false;
-    };
+    let mut connection = Connection::connect(local_map, client_options).ok()?;
     let probe = kfmap_protocol::RequestHeader {
         kind: kfmap_protocol::RequestKind::Status as u32,
         ..Default::default()
     };
-    connection.call(probe, 0, |_, _| {}).is_ok()
+    let answer = connection.call(probe, 0, |_, _| {}).ok()?;
+    Some(
+        answer
+            .header
+            .relocalize_ranking
+            .to_ranking()
+            .unwrap_or_else(|| {
+                tracing::warn!(
+                    local_map,
+                    "the server sent invalid ranking settings: defaults published"
+                );
+                PlaceRanking::default()
+            }),
+    )
 }

@@ -27,7 +27,7 @@ pub use wire::{
     FLAG_COVARIANCES, FLAG_FINISH_CHOSEN, FLAG_LEVELLED, FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN,
     FLAG_STAMPED, FLAG_VIEW_DIRS, KIND_SLOTS, MESSAGE_LEN, NAME_LEN, PLACES_FROM_RELIEF,
     RequestHeader, ResponseHeader, STATUS_SESSIONS, WireCovOptions, WirePairing, WirePlace,
-    WireSessionGravity, read_text, write_text,
+    WireRanking, WireSessionGravity, read_text, write_text,
 };
 
 use kfmap_shared::geometry::{Pose, pose_from_xyz_quat, pose_to_xyz_quat};
@@ -35,7 +35,7 @@ pub use kfmap_shared::map::Cov2CovMode;
 use kfmap_shared::tracking::Stage;
 
 /// Version of this protocol; a peer of another version gets `VersionMismatch`.
-pub const PROTOCOL_VERSION: u32 = 8;
+pub const PROTOCOL_VERSION: u32 = 9;
 /// Default limit on points per request.
 pub const DEFAULT_MAX_POINTS: usize = 1 << 20;
 /// Floats per IMU sample in an `ImuWindow` payload.

@@ -205,7 +205,7 @@ fn header_layouts_are_the_documented_ones() {
     assert_eq!(align_of::<WirePlace>(), align_of::<WirePairing>());
     layout!(
         ResponseHeader,
-        3232,
+        3280,
         version = 0,
         status = 4,
         request_id = 8,
@@ -256,7 +256,18 @@ fn header_layouts_are_the_documented_ones() {
         message = 1028,
         message_reserved = 1268,
         session_gravity = 1272,
-        scan_covariance = 3192
+        scan_covariance = 3192,
+        relocalize_ranking = 3232
+    );
+    layout!(
+        WireRanking,
+        48,
+        keep_ratio = 0,
+        separation_m = 8,
+        separation_deg = 16,
+        ambiguity_margin = 24,
+        distinct_m = 32,
+        distinct_deg = 40
     );
     layout!(
         WireCovOptions,
@@ -380,7 +391,7 @@ mod remote_frames {
         }; 3];
         let frame = encode_answer(&header, &pairings);
         assert_eq!(frame.len(), answer_frame_len(3));
-        assert_eq!(frame.len(), 3232 + 3 * 56);
+        assert_eq!(frame.len(), 3280 + 3 * 56);
         let (h, p) = decode_answer(&frame).unwrap();
         assert_eq!(h, header);
         assert_eq!(h.message(), "slots");

@@ -7,6 +7,7 @@
 use bytemuck::{Pod, Zeroable};
 use iceoryx2::prelude::ZeroCopySend;
 use kfmap_shared::cov::{CovCenter, CovOptions};
+use kfmap_shared::tiles::PlaceRanking;
 
 /// Bytes of a response's status message (UTF-8, zero padded).
 pub const MESSAGE_LEN: usize = 240;
@@ -192,7 +193,7 @@ impl WirePlace {
 
 /// Header of every response; the payload is `[WirePairing]`.
 ///
-/// Layout (protocol 7, 3232 bytes, byte offsets): version 0, status 4, request_id 8,
+/// Layout (protocol 9, 3280 bytes, byte offsets): version 0, status 4, request_id 8,
 /// detail 16, message_len 24, active_len 28, active 32, server_us 160, pose 168,
 /// covariance 224, fitness 512, iterations 528, converged 532, tracking 536 (new in
 /// protocol 3, as the next five), reasons 540, registrations 544, degenerate 548,
@@ -204,7 +205,8 @@ impl WirePlace {
 /// 708, gravity_spread_deg 712, accel_bias 720, accel_bias_sigma 744, map_keyframes
 /// 768, map_points 776, uptime_s 784, counts 792, p50_us 872, p99_us 912, sessions
 /// 952, in_flight 956, map_name_len 960, map_name 964, message 1028, message_reserved 1268, session_gravity
-/// 1272 (new in protocol 4), scan_covariance 3192 (new in protocol 7).
+/// 1272 (new in protocol 4), scan_covariance 3192 (new in protocol 7),
+/// relocalize_ranking 3232 (new in protocol 9).
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend, Pod, Zeroable)]
 #[repr(C)]
 #[type_name("kfmap::ResponseHeader")]
@@ -330,6 +332,61 @@ pub struct ResponseHeader {
     /// (`server.toml` `[covariance]`). A client that estimates its own (client-side
     /// localization) uses these, so both sides register the same scan alike.
     pub scan_covariance: WireCovOptions,
+    /// `Status`: how the server ranks relocalization places (`server.toml`
+    /// `[relocalize]`); a gateway publishes them with a tile set's index, so clients
+    /// merging tiles rank as the servers do.
+    pub relocalize_ranking: WireRanking,
+}
+
+/// A server's place-ranking settings as a status report carries them
+/// ([`kfmap_shared::tiles::PlaceRanking`]).
+///
+/// Layout (48 bytes): keep_ratio 0, separation_m 8, separation_deg 16,
+/// ambiguity_margin 24, distinct_m 32, distinct_deg 40.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Pod, Zeroable)]
+#[repr(C)]
+#[type_name("kfmap::WireRanking")]
+pub struct WireRanking {
+    /// `[relocalize.search] keep-ratio`.
+    pub keep_ratio: f64,
+    /// `[relocalize.search] separation-m`.
+    pub separation_m: f64,
+    /// `[relocalize.search] separation-deg`.
+    pub separation_deg: f64,
+    /// `[relocalize] ambiguity-margin`.
+    pub ambiguity_margin: f64,
+    /// `[relocalize] distinct-m`.
+    pub distinct_m: f64,
+    /// `[relocalize] distinct-deg`.
+    pub distinct_deg: f64,
+}
+
+impl From<&PlaceRanking> for WireRanking {
+    fn from(r: &PlaceRanking) -> Self {
+        Self {
+            keep_ratio: r.keep_ratio,
+            separation_m: r.separation_m,
+            separation_deg: r.separation_deg,
+            ambiguity_margin: r.ambiguity_margin,
+            distinct_m: r.distinct_m,
+            distinct_deg: r.distinct_deg,
+        }
+    }
+}
+
+impl WireRanking {
+    /// The settings, when valid ([`PlaceRanking::validate`]).
+    pub fn to_ranking(&self) -> Option<PlaceRanking> {
+        let ranking = PlaceRanking {
+            keep_ratio: self.keep_ratio,
+            separation_m: self.separation_m,
+            separation_deg: self.separation_deg,
+            ambiguity_margin: self.ambiguity_margin,
+            distinct_m: self.distinct_m,
+            distinct_deg: self.distinct_deg,
+        };
+        ranking.validate().ok().map(|()| ranking)
+    }
 }
 
 /// Covariance-estimation options as a status report carries them
@@ -485,6 +542,7 @@ impl Default for ResponseHeader {
             message_reserved: 0,
             session_gravity: [WireSessionGravity::default(); STATUS_SESSIONS],
             scan_covariance: WireCovOptions::default(),
+            relocalize_ranking: WireRanking::default(),
         }
     }
 }

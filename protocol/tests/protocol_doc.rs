@@ -14,7 +14,7 @@ use kfmap_protocol::{
     FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN, FLAG_STAMPED, FLAG_VIEW_DIRS, IMU_SAMPLE_FLOATS,
     KIND_SLOTS, MESSAGE_LEN, NAME_LEN, PROTOCOL_VERSION, RequestHeader, RequestKind,
     ResponseHeader, STATUS_SESSIONS, ScanPayload, StatusCode, WireCovOptions, WirePairing,
-    WirePlace, WireSessionGravity, decode_scan, imu_payload,
+    WirePlace, WireRanking, WireSessionGravity, decode_scan, imu_payload,
 };
 use kfmap_shared::imu::ImuSample;
 use kfmap_shared::place::RelocalizeStatus;
@@ -395,6 +395,15 @@ fn wire_layouts() -> Vec<Layout> {
             message_reserved,
             session_gravity,
             scan_covariance,
+            relocalize_ranking,
+        }),
+        layout!(WireRanking {
+            keep_ratio,
+            separation_m,
+            separation_deg,
+            ambiguity_margin,
+            distinct_m,
+            distinct_deg,
         }),
         layout!(WireCovOptions {
             k_correspondences,

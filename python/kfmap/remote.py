@@ -140,6 +140,43 @@ class TileEntry:
 
 
 @dataclass(frozen=True)
+class Ranking:
+    """How the tiles' servers rank relocalization places (their ``[relocalize]``
+    settings, ``kfmap_shared::tiles::PlaceRanking``), as a gateway publishes them with the
+    tile index; the defaults are the servers' defaults."""
+
+    keep_ratio: float = KEEP_RATIO
+    separation_m: float = SEPARATION_M
+    separation_deg: float = SEPARATION_DEG
+    ambiguity_margin: float = AMBIGUITY_MARGIN
+    distinct_m: float = DISTINCT_M
+    distinct_deg: float = DISTINCT_DEG
+
+    #: The ``[ranking]`` keys, as the Rust side names them.
+    KEYS = ("keep-ratio", "separation-m", "separation-deg", "ambiguity-margin",
+            "distinct-m", "distinct-deg")
+
+    @classmethod
+    def parse(cls, table: object, invalid) -> Ranking:
+        """A ``[ranking]`` table, checked as ``PlaceRanking::validate``."""
+        if not isinstance(table, dict) or set(table) != set(cls.KEYS):
+            raise invalid(f"ranking {table!r} must have exactly the keys {', '.join(cls.KEYS)}")
+        values = []
+        for key in cls.KEYS:
+            v = table[key]
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise invalid(f"ranking {key} {v!r} is not a number")
+            v = float(v)
+            unit = key in ("keep-ratio", "ambiguity-margin")
+            if unit and not 0.0 <= v <= 1.0:
+                raise invalid(f"ranking {key} {v} is not within [0, 1]")
+            if not unit and not (math.isfinite(v) and v >= 0.0):
+                raise invalid(f"ranking {key} {v} is not a finite distance >= 0")
+            values.append(v)
+        return cls(*values)
+
+
+@dataclass(frozen=True)
 class TileIndex:
     """A tile set's index (``tiles.toml``, format 1) as far as routing needs it: tile
     ``(col, row)``'s core square is ``[col s, (col+1) s) x [row s, (row+1) s)`` for
@@ -152,6 +189,8 @@ class TileIndex:
     #: True when the index gives the tiles' search regions (``search-min``): the tiles
     #: then split a relocalization's search among them, each translation tried once.
     shares_search: bool = False
+    #: The servers' ranking settings when the gateway published them (``[ranking]``).
+    ranking: Ranking | None = None
 
     @classmethod
     def parse(cls, text: str, where: str = "tiles.toml") -> TileIndex:
@@ -212,8 +251,9 @@ class TileIndex:
             tiles.append(TileEntry(tid, col, row))
         keyframes = doc.get("keyframes", 0)
         shares = any(isinstance(t, dict) and "search-min" in t for t in raw)
+        ranking = Ranking.parse(doc["ranking"], invalid) if "ranking" in doc else None
         return cls(size, halo, int(keyframes) if isinstance(keyframes, int) else 0,
-                   tuple(tiles), shares)
+                   tuple(tiles), shares, ranking)
 
     def distance_to_core(self, i: int, x: float, y: float) -> float:
         """Chebyshev distance from ``(x, y)`` to tile ``i``'s core square (0 inside)."""
@@ -301,40 +341,41 @@ def _fmax(a: float, b: float) -> float:
     return max(a, b)
 
 
-def _distinct(a: Sequence[float], b: Sequence[float]) -> bool:
-    """Places farther than ``DISTINCT_M`` or turned more than ``DISTINCT_DEG`` apart
+def _distinct(a: Sequence[float], b: Sequence[float], ranking: Ranking) -> bool:
+    """Places farther than ``distinct_m`` or turned more than ``distinct_deg`` apart
     (an invalid pose is distinct from everything)."""
     if not (wire_pose_is_valid(a) and wire_pose_is_valid(b)):
         return True
     pa, pb = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
-    if float(np.linalg.norm(pa[:3] - pb[:3])) > DISTINCT_M:
+    if float(np.linalg.norm(pa[:3] - pb[:3])) > ranking.distinct_m:
         return True
     qa, qb = pa[3:] / np.linalg.norm(pa[3:]), pb[3:] / np.linalg.norm(pb[3:])
     w = abs(float(np.dot(qa, qb)))
     angle = 0.0 if w > 1.0 else 2.0 * math.acos(w)
-    return math.degrees(angle) > DISTINCT_DEG
+    return math.degrees(angle) > ranking.distinct_deg
 
 
-def _same_place(a: Sequence[float], b: Sequence[float]) -> bool:
-    """Placements within ``SEPARATION_M`` and ``SEPARATION_DEG`` of each other."""
+def _same_place(a: Sequence[float], b: Sequence[float], ranking: Ranking) -> bool:
+    """Placements within ``separation_m`` and ``separation_deg`` of each other."""
     pa, pb = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
     # Lattice placements often lie exactly the separation apart (distinct to the search):
     # the wire's f32 must not make them one (``WIRE_SLACK_M``, ``WIRE_SLACK_DEG``).
-    if float(np.linalg.norm(pa[:3] - pb[:3])) >= SEPARATION_M - WIRE_SLACK_M:
+    if float(np.linalg.norm(pa[:3] - pb[:3])) >= ranking.separation_m - WIRE_SLACK_M:
         return False
     qa, qb = pa[3:] / np.linalg.norm(pa[3:]), pb[3:] / np.linalg.norm(pb[3:])
     w = abs(float(np.dot(qa, qb)))
     angle = 0.0 if w > 1.0 else 2.0 * math.acos(w)
-    return math.degrees(angle) < SEPARATION_DEG - WIRE_SLACK_DEG
+    return math.degrees(angle) < ranking.separation_deg - WIRE_SLACK_DEG
 
 
 def choose_places(answers: Sequence[tuple[str, bytes]], cores: "TileIndex | None" = None,
+                  ranking: Ranking = Ranking(),
                   ) -> tuple[bytes | None, list[tuple[str, int]], list[tuple[str, int]], float]:
     """The first phase's decision, as ``client/src/tiled.rs`` ``choose_places``: every
     tile's proposed places (``(tile, FLAG_PLACES_ONLY answer frame)``) ranked by hit
     ratio (ties by tile id, then rank), the best ``max(detail)`` kept as one search keeps
     them: a place within the separation of a better one is the same place (neighbours'
-    regions overlap), one below ``KEEP_RATIO`` of the best is dropped, and a tile's relief
+    regions overlap), one below ``ranking.keep_ratio`` of the best is dropped, and a tile's relief
     places (``reasons`` has ``PLACES_FROM_RELIEF``) count only when no tile proposed from
     structure, as one search of the whole map falls back; with ``cores`` (the tile
     index) a neighbour's copy of a place in an answering tile's core is left out, the
@@ -382,11 +423,11 @@ def choose_places(answers: Sequence[tuple[str, bytes]], cores: "TileIndex | None
         proposed = [p for p in proposed if owned(p[1], p[3])]
     places: list[tuple[int, str, int, list[float], float]] = []
     if proposed:
-        floor = KEEP_RATIO * proposed[0][4]
+        floor = ranking.keep_ratio * proposed[0][4]
         for place in proposed:
             if len(places) == keep or place[4] < floor:
                 break
-            if not any(_same_place(kept[3], place[3]) for kept in places):
+            if not any(_same_place(kept[3], place[3], ranking) for kept in places):
                 places.append(place)
     if not places:
         header = wire.ResponseHeader.from_buffer_copy(first)
@@ -458,12 +499,14 @@ def nothing_settled(ranked: Ranked, searched_us: float) -> bytes:
     return _header_bytes(header)
 
 
-def finish(frame: bytes, ranked: Ranked, searched_us: float) -> bytes:
+def finish(frame: bytes, ranked: Ranked, searched_us: float,
+           ranking: Ranking = Ranking()) -> bytes:
     """The final answer from the best place's ``FLAG_FINISH_CHOSEN`` answer frame, as
     ``client/src/tiled.rs`` ``finish``: the runner-up is the best score among the other
-    scored places distinct from where the best settled (farther than ``DISTINCT_M`` or
-    turned more than ``DISTINCT_DEG``); within ``AMBIGUITY_MARGIN`` a fitting answer is
-    ``AMBIGUOUS``, else ``FOUND``; a place that does not fit is ``NOT_FOUND``."""
+    scored places distinct from where the best settled (farther than
+    ``ranking.distinct_m`` or turned more than ``ranking.distinct_deg``); within
+    ``ranking.ambiguity_margin`` a fitting answer is ``AMBIGUOUS``, else ``FOUND``; a
+    place that does not fit is ``NOT_FOUND``."""
     header, rest = _split_answer(frame)
     if header.status != wire.StatusCode.OK:
         return frame
@@ -474,10 +517,10 @@ def finish(frame: bytes, ranked: Ranked, searched_us: float) -> bytes:
     if fits and ranked.best is not None and wire_pose_is_valid(header.pose):
         runner_up = 0.0
         for tile, rank, pose, score in ranked.places:
-            if (tile, rank) != ranked.best and _distinct(header.pose, pose):
+            if (tile, rank) != ranked.best and _distinct(header.pose, pose, ranking):
                 runner_up = _fmax(runner_up, score)
         header.place_scores[1] = runner_up
-        close = runner_up + AMBIGUITY_MARGIN >= header.place_scores[0]
+        close = runner_up + ranking.ambiguity_margin >= header.place_scores[0]
         header.relocalization = (
             wire.RelocalizeStatus.AMBIGUOUS if close else wire.RelocalizeStatus.FOUND
         )
@@ -751,7 +794,9 @@ class RemoteConnection:
         # overlap, and a neighbour's copy of a place in an answering core is dropped.
         index = self.tile_index
         overlapping = None if index is None or index.shares_search else index
-        frame, chosen, order, searched_us = choose_places(places, overlapping)
+        # The servers' ranking as their gateway published it (defaults from an older one).
+        ranking = (index.ranking if index is not None else None) or Ranking()
+        frame, chosen, order, searched_us = choose_places(places, overlapping, ranking)
         if frame is not None:
             return _decode_answer(frame)
         requests = [(tile_number(t), phase(wire.FLAG_SCORE_CHOSEN, bits)) for t, bits in chosen]
@@ -763,7 +808,7 @@ class RemoteConnection:
         tile, rank = ranked.best
         finished = self._ask_tiles([(tile_number(tile), phase(wire.FLAG_FINISH_CHOSEN, 1 << rank))],
                                    left())
-        return _decode_answer(finish(finished[0][1], ranked, searched_us))
+        return _decode_answer(finish(finished[0][1], ranked, searched_us, ranking))
 
     def _ask_tiles(self, requests: list[tuple[int, bytes]], timeout: float) -> list[tuple[str, bytes]]:
         """Sends request frames to tiles (each its own) at once and waits for every

@@ -1,4 +1,4 @@
-"""The kfmap wire protocol (protocol 8): the ``#[repr(C)]`` headers as ctypes
+"""The kfmap wire protocol (protocol 9): the ``#[repr(C)]`` headers as ctypes
 structures, request kinds, flags and status codes.
 
 Mirrors ``protocol/src/wire.rs`` and ``lib.rs``. iceoryx2 refuses to open a
@@ -15,7 +15,7 @@ import enum
 import numpy as np
 
 #: Version of the protocol; a server of another version answers VERSION_MISMATCH.
-PROTOCOL_VERSION = 8
+PROTOCOL_VERSION = 9
 #: Bytes of a response's status message.
 MESSAGE_LEN = 240
 #: Request kinds counted in a status report (index = kind code).
@@ -243,8 +243,22 @@ class WireCovOptions(C.Structure):
         return "kfmap::WireCovOptions"
 
 
+class WireRanking(C.Structure):
+    """The server's place-ranking settings in a status report (48 bytes)."""
+
+    _fields_ = [
+        ("keep_ratio", f64), ("separation_m", f64), ("separation_deg", f64),
+        ("ambiguity_margin", f64), ("distinct_m", f64), ("distinct_deg", f64),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        """The type name in the Rust sources (iceoryx2 checks only the outer header)."""
+        return "kfmap::WireRanking"
+
+
 class ResponseHeader(C.Structure):
-    """Header of every response (3232 bytes); the payload is ``[WirePairing]``."""
+    """Header of every response (3280 bytes); the payload is ``[WirePairing]``."""
 
     _fields_ = [
         ("version", u32), ("status", u32), ("request_id", u64), ("detail", u64),
@@ -265,6 +279,7 @@ class ResponseHeader(C.Structure):
         ("message", C.c_uint8 * MESSAGE_LEN), ("message_reserved", u32),
         ("session_gravity", WireSessionGravity * STATUS_SESSIONS),
         ("scan_covariance", WireCovOptions),
+        ("relocalize_ranking", WireRanking),
     ]
 
     @staticmethod
@@ -320,7 +335,9 @@ def _check_layouts() -> None:
         (WirePairing.information.offset, 32),
         (C.sizeof(WireSessionGravity), 120),
         (C.sizeof(WireCovOptions), 40),
-        (C.sizeof(ResponseHeader), 3232),
+        (C.sizeof(WireRanking), 48),
+        (C.sizeof(ResponseHeader), 3280),
+        (ResponseHeader.relocalize_ranking.offset, 3232),
         (ResponseHeader.scan_covariance.offset, 3192),
         (ResponseHeader.relocalization.offset, 576),
         (ResponseHeader.map_keyframes.offset, 768),

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import atexit
 import ctypes
+import dataclasses
+import json
 import math
 import os
 import signal
@@ -326,6 +328,9 @@ def test_the_best_score_is_finished_and_judged_against_every_distinct_place():
 # -- tile sets: two emulated hosts against the merged map ----------------------------
 
 TILE_PORTS = (17451, 17452)
+#: The site's servers rank places otherwise than the defaults (their server.toml); the
+#: gateways publish it with the index, and every client must rank as the servers do.
+SITE_RANKING = kr.Ranking(keep_ratio=0.6, ambiguity_margin=0.2)
 #: Longest the tiled drive may take, seconds.
 DRIVE_BUDGET_S = 240.0
 
@@ -342,6 +347,7 @@ class TileSite:
     gateways: list[subprocess.Popen]
     oracle_name: str
     oracle_prefix: str
+    tiles: Path
 
 
 def _die_with_parent() -> None:
@@ -405,6 +411,12 @@ def tile_site(kfmap_bin, tmp_path_factory):
             remove_prefix_files(prefix)
 
     atexit.register(cleanup)
+    # Every server of the site (and the merged map's) with the site's ranking.
+    server_toml = out / "server.toml"
+    server_toml.write_text(
+        f"[relocalize]\nambiguity-margin = {SITE_RANKING.ambiguity_margin}\n\n"
+        f"[relocalize.search]\nkeep-ratio = {SITE_RANKING.keep_ratio}\n"
+    )
     try:
         gateways, endpoints = [], []
         # Every tile of a host searches at once on this machine's 2 cores: give them time.
@@ -414,7 +426,8 @@ def tile_site(kfmap_bin, tmp_path_factory):
             only = ",".join(share)
             processes.append(_start(
                 [kfmap_bin, "serve", "--tiles", tiles, "--map-name", map_name, "--only", only,
-                 "--iceoryx-prefix", prefixes[h]], out / f"serve{h}.log", "ready:"))
+                 "--iceoryx-prefix", prefixes[h], "--config", server_toml],
+                out / f"serve{h}.log", "ready:"))
             endpoints.append(f"tcp/127.0.0.1:{TILE_PORTS[h]}")
             gateways.append(_start(
                 [kfmap_bin, "gateway", "--tiles", tiles, "--map-name", map_name, "--only", only,
@@ -425,9 +438,10 @@ def tile_site(kfmap_bin, tmp_path_factory):
         oracle_name = f"{map_name}-merged"
         processes.append(_start(
             [kfmap_bin, "serve", "--map", tiles / "merged.kfmap", "--map-name", oracle_name,
-             "--iceoryx-prefix", prefixes[-1]], out / "oracle.log", "ready:"))
+             "--iceoryx-prefix", prefixes[-1], "--config", server_toml],
+            out / "oracle.log", "ready:"))
         yield TileSite(data, index, map_name, endpoints, shares, gateways, oracle_name,
-                       prefixes[-1])
+                       prefixes[-1], tiles)
     finally:
         cleanup()
         atexit.unregister(cleanup)
@@ -445,7 +459,8 @@ def test_a_tile_set_on_two_hosts_answers_as_the_merged_map(tile_site):
     with kfmap.Client.remote(",".join(site.endpoints), site.map_name, timeout=120.0) as remote, \
             kfmap.Client(site.oracle_name, iceoryx_prefix=site.oracle_prefix,
                          timeout=30.0) as oracle:
-        assert remote._conn.tile_index == site.index
+        # The cut's index, with the servers' ranking as the gateways publish it.
+        assert remote._conn.tile_index == dataclasses.replace(site.index, ranking=SITE_RANKING)
         assert remote.current_tile is None
         started = time.monotonic()
         guess = previous = kfmap.pose_from_wire(truth[0, 1:])
@@ -501,6 +516,48 @@ def test_a_tile_set_on_two_hosts_answers_as_the_merged_map(tile_site):
                 assert apart < 0.05, f"scan {i}: {apart} m from the merged map's"
     # Exactly one tile answered each scan, from the keyframes the whole map would use.
     assert not differ, f"{len(differ)} of {compared} answers differ: {differ}"
+
+
+def test_the_rust_and_python_clients_rank_a_tile_set_as_its_servers(kfmap_bin, tile_site):
+    """Relocalization over the tiles, by the Python client and by ``kfmap relocalize
+    --remote`` (the Rust client) on the same scans: the same verdicts, scores and places,
+    both ranked with the servers' settings (``SITE_RANKING``, published by the gateways
+    with the index). The settings matter: some verdict differs from what the defaults
+    would have said."""
+    site = tile_site
+    truth = ground_truth(site.data)
+    picked = list(range(0, len(truth), len(truth) // 4))
+    files = [site.data / "scans" / f"{i:06d}.pcd" for i in picked]
+    with kfmap.Client.remote(",".join(site.endpoints), site.map_name, timeout=120.0) as remote:
+        assert remote._conn.tile_index.ranking == SITE_RANKING
+        python = [remote.relocalize(scan_points(site.data, i)[0]) for i in picked]
+    out = subprocess.run(
+        [kfmap_bin, "relocalize", "--remote", ",".join(site.endpoints), "--map-name",
+         site.map_name, "--voxel", "0", "--timeout", "120", "--json", *files],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert out.returncode in (0, 1), out.stderr
+    rust = [json.loads(line) for line in out.stdout.splitlines() if line.startswith("{")]
+    assert len(rust) == len(picked), out.stdout
+    by_defaults = 0
+    for i, p, r in zip(picked, python, rust):
+        status = p.status.name.lower().replace("_", "-")
+        print(f"scan {i}: python {status} {p.score:.4f} / {p.runner_up:.4f}, "
+              f"rust {r['status']} {r['score']:.4f} / {r['runner_up']:.4f}")
+        assert status == r["status"], f"scan {i}"
+        assert abs(p.score - r["score"]) < 1e-9, f"scan {i}"
+        assert abs(p.runner_up - r["runner_up"]) < 1e-9, f"scan {i}"
+        assert (p.pose is None) == (r["pose"] is None), f"scan {i}"
+        if p.pose is not None:
+            apart = float(np.linalg.norm(_translation(p.pose) - np.asarray(r["pose"][:3])))
+            assert apart < 1e-4, f"scan {i}: {apart} m apart"
+        # What the default margin would have said of the same fitting scores.
+        if status in ("found", "ambiguous"):
+            default_close = p.runner_up + kr.AMBIGUITY_MARGIN >= p.score
+            if default_close != (status == "ambiguous"):
+                by_defaults += 1
+    assert by_defaults > 0, "the site's ranking decided nothing the defaults would not"
+    print(f"{by_defaults} of {len(picked)} verdicts differ from the defaults'")
 
 
 def _wait_for(ok, seconds: float = 10.0) -> bool:

@@ -42,7 +42,7 @@ def test_layouts_match_the_rust_layout_test() -> None:
     layouts = rust_layouts()
     types = {"RequestHeader": wire.RequestHeader, "ResponseHeader": wire.ResponseHeader,
              "WirePairing": wire.WirePairing, "WireSessionGravity": wire.WireSessionGravity,
-             "WireCovOptions": wire.WireCovOptions}
+             "WireCovOptions": wire.WireCovOptions, "WireRanking": wire.WireRanking}
     # A place travels in a pairing's slot: a numpy record, not a ctypes structure.
     place_size, place_offsets = layouts.pop("WirePlace")
     assert wire.PLACE_DTYPE.itemsize == place_size
@@ -64,7 +64,8 @@ def test_type_names_and_protocol_match_the_rust_side() -> None:
     wire_rs = require_rust_side("wire.rs").read_text()
     names = re.findall(r'#\[type_name\("([^"]+)"\)\]\s*pub struct (\w+)', wire_rs)
     declared = {struct: name for name, struct in names}
-    for t in (wire.RequestHeader, wire.ResponseHeader, wire.WirePairing, wire.WireCovOptions):
+    for t in (wire.RequestHeader, wire.ResponseHeader, wire.WirePairing, wire.WireCovOptions,
+              wire.WireRanking):
         assert t.type_name() == declared[t.__name__]
     mod_rs = require_rust_side("lib.rs").read_text()
     assert f"PROTOCOL_VERSION: u32 = {wire.PROTOCOL_VERSION};" in mod_rs

@@ -184,6 +184,92 @@ pub struct TileIndex {
     /// The tiles, by row then column.
     #[serde(rename = "tile", default)]
     pub tiles: Vec<TileEntry>,
+    /// How the tiles' servers rank places (their `[relocalize]` settings), as a gateway
+    /// publishes the index; absent in `tiles.toml` (the servers' config decides).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ranking: Option<PlaceRanking>,
+}
+
+/// The servers' `[relocalize]` settings a client merging every tile's relocalization
+/// needs to rank places as one search of the merged map would: which places the search
+/// keeps (`keep-ratio`, the separation), and when the best is `ambiguous` (the margin,
+/// what counts as another place). A gateway reads them from its servers' status and
+/// publishes them with the tile index, so a site whose `server.toml` changes them is
+/// ranked by its clients as its servers rank.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case", deny_unknown_fields)]
+pub struct PlaceRanking {
+    /// `[relocalize.search] keep-ratio`.
+    pub keep_ratio: f64,
+    /// `[relocalize.search] separation-m`.
+    pub separation_m: f64,
+    /// `[relocalize.search] separation-deg`.
+    pub separation_deg: f64,
+    /// `[relocalize] ambiguity-margin`.
+    pub ambiguity_margin: f64,
+    /// `[relocalize] distinct-m`.
+    pub distinct_m: f64,
+    /// `[relocalize] distinct-deg`.
+    pub distinct_deg: f64,
+}
+
+impl PlaceRanking {
+    /// The ranking settings of `params`.
+    pub fn of(params: &crate::place::RelocalizeParams) -> Self {
+        Self {
+            keep_ratio: params.search.keep_ratio,
+            separation_m: params.search.separation_m,
+            separation_deg: params.search.separation_deg,
+            ambiguity_margin: params.ambiguity_margin,
+            distinct_m: params.distinct_m,
+            distinct_deg: params.distinct_deg,
+        }
+    }
+
+    /// `params` with these ranking settings.
+    pub fn applied_to(
+        &self,
+        mut params: crate::place::RelocalizeParams,
+    ) -> crate::place::RelocalizeParams {
+        params.search.keep_ratio = self.keep_ratio;
+        params.search.separation_m = self.separation_m;
+        params.search.separation_deg = self.separation_deg;
+        params.ambiguity_margin = self.ambiguity_margin;
+        params.distinct_m = self.distinct_m;
+        params.distinct_deg = self.distinct_deg;
+        params
+    }
+
+    /// The settings are usable: finite, ratios and margins in [0, 1], distances >= 0.
+    pub fn validate(&self) -> Result<(), String> {
+        let unit = [
+            ("keep-ratio", self.keep_ratio),
+            ("ambiguity-margin", self.ambiguity_margin),
+        ];
+        let lengths = [
+            ("separation-m", self.separation_m),
+            ("separation-deg", self.separation_deg),
+            ("distinct-m", self.distinct_m),
+            ("distinct-deg", self.distinct_deg),
+        ];
+        for (name, v) in unit {
+            if !(0.0..=1.0).contains(&v) {
+                return Err(format!("ranking {name} {v} is not within [0, 1]"));
+            }
+        }
+        for (name, v) in lengths {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!("ranking {name} {v} is not a finite distance >= 0"));
+            }
+        }
+        Ok(())
+    }
+}
+
+impl Default for PlaceRanking {
+    fn default() -> Self {
+        Self::of(&crate::place::RelocalizeParams::default())
+    }
 }
 
 impl TileIndex {
@@ -224,6 +310,9 @@ impl TileIndex {
             )));
         }
         index.geometry().validate().map_err(invalid)?;
+        if let Some(ranking) = &index.ranking {
+            ranking.validate().map_err(invalid)?;
+        }
         if index.tiles.is_empty() {
             return Err(invalid("the index lists no tile".into()));
         }
@@ -459,6 +548,7 @@ mod tests {
                 .iter()
                 .map(|&(col, row)| test_entry(col, row))
                 .collect(),
+            ranking: None,
         }
     }
 

@@ -11,11 +11,12 @@ use iceoryx2::port::notifier::Notifier;
 use kfmap_protocol::log_limit::warn_limited;
 use kfmap_protocol::transport::Transport;
 use kfmap_protocol::{
-    Rejection, RequestHeader, RequestKind, ResponseHeader, StatusCode, WireCovOptions,
+    Rejection, RequestHeader, RequestKind, ResponseHeader, StatusCode, WireCovOptions, WireRanking,
     WireSessionGravity, check_version, write_text,
 };
 use kfmap_shared::archive::ArchiveError;
 use kfmap_shared::gravity::LiveAnswer;
+use kfmap_shared::tiles::PlaceRanking;
 use tracing::{debug, info, warn};
 
 use super::answer::{Answer, AnswerPairings};
@@ -291,6 +292,7 @@ impl WorkerContext<'_> {
             in_flight: self.stats.in_flight().saturating_sub(1),
             pose: map.map_from_input,
             scan_covariance: WireCovOptions::from(&self.limits.scan_covariance),
+            relocalize_ranking: WireRanking::from(&PlaceRanking::of(&self.limits.relocalize)),
             ..Default::default()
         };
         for (slot, f) in self.stats.figures().iter().enumerate() {

@@ -94,6 +94,7 @@ mod tests {
             halo: 10.0,
             keyframes: 0,
             tiles,
+            ranking: None,
         }
     }
 
