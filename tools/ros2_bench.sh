@@ -10,7 +10,7 @@
 #       clouds go out one at a time (the next once the last is answered).
 #   tools/ros2_bench.sh soak [SECONDS [HZ [BEAMS]]]   clouds of about 100 000 points
 #       (64 beams) at 10 Hz for 60 s by default, free-running (the peer never waits):
-#       clouds sent, received, localized and dropped, the statuses, the latency, and
+#       clouds sent, received, localized and skipped for newer ones, the statuses, the latency, and
 #       the node's and the server's resident memory sampled every second.
 #
 # kfmap and kfmap-ros2 from target/release (cargo build --release --workspace).
