@@ -44,7 +44,6 @@ use kfmap_shared::KeyframeId;
 use kfmap_shared::cov::CovOptions;
 use kfmap_shared::geometry::Pose;
 use kfmap_shared::imu::ImuSample;
-use kfmap_shared::tiles::PlaceRanking;
 
 /// Cov2cov pairings and the keyframes they came from.
 #[derive(Debug, Clone)]
@@ -140,9 +139,6 @@ pub struct StatusReport {
     /// How the server estimates covariances of scans sent without them (its
     /// `server.toml` `[covariance]`).
     pub scan_covariance: CovOptions,
-    /// How the server ranks relocalization places (`server.toml` `[relocalize]`); a
-    /// gateway publishes them with a tile set's index.
-    pub relocalize_ranking: PlaceRanking,
 }
 
 /// One session's gravity pool in a status report.
@@ -330,12 +326,7 @@ impl Client {
             ))
         })?;
         self.connection.served_covariance = Some(scan_covariance);
-        let relocalize_ranking = h.relocalize_ranking.to_ranking().ok_or_else(|| {
-            ClientError::Invalid(format!(
-                "the server sent invalid ranking settings {:?}",
-                h.relocalize_ranking
-            ))
-        })?;
+
         let kinds = RequestKind::ALL
             .into_iter()
             .filter(|k| (*k as usize) < KIND_SLOTS && h.counts[*k as usize] > 0)
@@ -365,7 +356,6 @@ impl Client {
                 })
                 .collect(),
             scan_covariance,
-            relocalize_ranking,
         })
     }
 

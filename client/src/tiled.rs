@@ -509,13 +509,8 @@ mod tests {
         assert_eq!((r.candidates, r.registrations, r.scored_us), (3, 6, 200.0));
         // A place far away within the margin: ambiguous (0.8 vs 0.8).
         let h = |frame: Vec<u8>| decode_answer(&frame).unwrap().0;
-        let out = h(finish(
-            &finished(&at(50.1, 1.0), 0.8, true),
-            &r,
-            1000.0,
-            &PlaceRanking::default(),
-        )
-        .unwrap());
+        let defaults = PlaceRanking::default();
+        let out = h(finish(&finished(&at(50.1, 1.0), 0.8, true), &r, 1000.0, &defaults).unwrap());
         assert_eq!(out.relocalization, RelocalizeStatus::Ambiguous as u32);
         assert_eq!(out.place_scores, [0.8, 0.8]);
         assert_eq!((out.candidates, out.registrations), (3, 8));
@@ -527,13 +522,11 @@ mod tests {
             (at(50.0, 0.0), 0.8),
             (at(50.3, 2.0), 0.79),
         ]);
-        let out = h(finish(
-            &finished(&at(50.0, 0.0), 0.8, true),
-            &r,
-            0.0,
-            &PlaceRanking::default(),
-        )
-        .unwrap());
+        // The best settled at (50, 0) with 0.8, fitting or not, judged with `ranking`.
+        let judged = |r: &Ranked, fits: bool, ranking: &PlaceRanking| {
+            h(finish(&finished(&at(50.0, 0.0), 0.8, fits), r, 0.0, ranking).unwrap())
+        };
+        let out = judged(&r, true, &defaults);
         assert_eq!(out.relocalization, RelocalizeStatus::Found as u32);
         assert_eq!(out.place_scores, [0.8, 0.6]);
         // The servers' own settings, as the gateway publishes them, decide: with an
@@ -542,44 +535,37 @@ mod tests {
             ambiguity_margin: 0.25,
             ..PlaceRanking::default()
         };
-        let out = h(finish(&finished(&at(50.0, 0.0), 0.8, true), &r, 0.0, &wide).unwrap());
-        assert_eq!(out.relocalization, RelocalizeStatus::Ambiguous as u32);
+        assert_eq!(
+            judged(&r, true, &wide).relocalization,
+            RelocalizeStatus::Ambiguous as u32
+        );
         // Turned more than distinct-deg, it is another place: ambiguous.
         let r = ranked([
             (at(0.0, 0.0), 0.1),
             (at(50.0, 0.0), 0.8),
             (at(50.0, 10.0), 0.79),
         ]);
-        let out = h(finish(
-            &finished(&at(50.0, 0.0), 0.8, true),
-            &r,
-            0.0,
-            &PlaceRanking::default(),
-        )
-        .unwrap());
-        assert_eq!(out.relocalization, RelocalizeStatus::Ambiguous as u32);
+        assert_eq!(
+            judged(&r, true, &defaults).relocalization,
+            RelocalizeStatus::Ambiguous as u32
+        );
         // Unless the servers count 15 deg as the same place (distinct-deg 15).
         let lenient = PlaceRanking {
             distinct_deg: 15.0,
             ..PlaceRanking::default()
         };
-        let out = h(finish(&finished(&at(50.0, 0.0), 0.8, true), &r, 0.0, &lenient).unwrap());
-        assert_eq!(out.relocalization, RelocalizeStatus::Found as u32);
+        assert_eq!(
+            judged(&r, true, &lenient).relocalization,
+            RelocalizeStatus::Found as u32
+        );
         // The best place does not fit: not found, whatever the others scored.
-        let out = h(finish(
-            &finished(&at(50.0, 0.0), 0.8, false),
-            &r,
-            0.0,
-            &PlaceRanking::default(),
-        )
-        .unwrap());
-        assert_eq!(out.relocalization, RelocalizeStatus::NotFound as u32);
+        assert_eq!(
+            judged(&r, false, &defaults).relocalization,
+            RelocalizeStatus::NotFound as u32
+        );
         // A refusal of a phase is the answer.
         let refused = encode_answer(&ResponseHeader::refusal(7, StatusCode::Busy, "busy"), &[]);
-        assert_eq!(
-            finish(&refused, &r, 0.0, &PlaceRanking::default()).unwrap(),
-            refused
-        );
+        assert_eq!(finish(&refused, &r, 0.0, &defaults).unwrap(), refused);
         let order = vec![("t0".to_string(), 0)];
         assert_eq!(
             best_scored(&order, &named(vec![refused.clone()])).unwrap(),

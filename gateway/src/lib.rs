@@ -22,7 +22,7 @@ use kfmap_protocol::remote::{
     WHOLE_MAP_TILE, alive_key, check_key_chunk, rpc_queryable_key, tile_index_key, tile_map_name,
 };
 use kfmap_protocol::transport::{Rpc, create_node, iceoryx_config, open_rpc, server_processes};
-use kfmap_shared::tiles::PlaceRanking;
+use kfmap_shared::tiles::{PlaceRanking, TileIndex};
 use zenoh::Wait;
 
 pub use config::{GatewayConfig, GatewaySection};
@@ -43,9 +43,9 @@ pub struct GatewayOptions {
     pub map_name: String,
     /// The tiles announced, each forwarded to its local server.
     pub tiles: Vec<ServedTile>,
-    /// A tile set's index (`tiles.toml`'s text), answered on the map's index key so
-    /// remote clients can route by pose; `None` for a map served whole.
-    pub index: Option<String>,
+    /// A tile set's index (`tiles.toml`), answered with its servers' ranking on the map's
+    /// index key so remote clients can route by pose; `None` for a map served whole.
+    pub index: Option<TileIndex>,
     /// iceoryx2 prefix of the local server.
     pub iceoryx_prefix: Option<String>,
     /// `gateway.toml`.
@@ -67,9 +67,14 @@ impl GatewayOptions {
         }
     }
 
-    /// A gateway for `tiles` of a tile set whose index text is `index`, each served
+    /// A gateway for `tiles` of the tile set indexed by `index`, each served
     /// locally as `<map_name>.<tile>` (`kfmap serve --tiles`).
-    pub fn tiled(map_name: &str, index: String, tiles: &[String], config: GatewaySection) -> Self {
+    pub fn tiled(
+        map_name: &str,
+        index: TileIndex,
+        tiles: &[String],
+        config: GatewaySection,
+    ) -> Self {
         Self {
             map_name: map_name.to_string(),
             tiles: tiles
@@ -175,8 +180,11 @@ pub fn run(
             session
                 .declare_queryable(&key)
                 .callback(move |query| {
-                    let ranking = *known.lock().unwrap_or_else(|e| e.into_inner());
-                    let text = index_with_ranking(&index, ranking.as_ref());
+                    let published = TileIndex {
+                        ranking: *known.lock().unwrap_or_else(|e| e.into_inner()),
+                        ..index.clone()
+                    };
+                    let text = published.to_toml();
                     if let Err(e) = query.reply(&reply_key, text.as_bytes()).wait() {
                         tracing::warn!("could not send the tile index: {e}");
                     }
@@ -309,15 +317,6 @@ const CLEANUP_INTERVAL: Duration = Duration::from_secs(1);
 /// True while process `pid` exists (Linux: its /proc entry).
 fn process_alive(pid: u32) -> bool {
     std::path::Path::new(&format!("/proc/{pid}")).exists()
-}
-
-/// The index text a gateway answers: the tile set's `tiles.toml`, with its servers'
-/// ranking settings once known (a `[ranking]` table).
-fn index_with_ranking(index: &str, ranking: Option<&PlaceRanking>) -> String {
-    match ranking.map(toml::to_string) {
-        Some(Ok(table)) => format!("{index}\n[ranking]\n{table}"),
-        _ => index.to_string(),
-    }
 }
 
 /// The local server of `local_map`'s ranking settings, when it answers a status request

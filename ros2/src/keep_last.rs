@@ -12,6 +12,7 @@ pub(crate) struct KeepLast<T> {
     queue: Mutex<VecDeque<T>>,
     arrived: Condvar,
     depth: usize,
+    pushed: AtomicU64,
     evicted: AtomicU64,
 }
 
@@ -22,6 +23,7 @@ impl<T> KeepLast<T> {
             queue: Mutex::new(VecDeque::with_capacity(depth.max(1))),
             arrived: Condvar::new(),
             depth: depth.max(1),
+            pushed: AtomicU64::new(0),
             evicted: AtomicU64::new(0),
         }
     }
@@ -33,6 +35,7 @@ impl<T> KeepLast<T> {
 
     /// Adds `message`; when the queue is full its oldest message goes (counted).
     pub fn push(&self, message: T) {
+        self.pushed.fetch_add(1, Ordering::Relaxed);
         let mut queue = self.lock();
         if queue.len() == self.depth {
             queue.pop_front();
@@ -58,6 +61,11 @@ impl<T> KeepLast<T> {
         self.lock().drain(..).collect()
     }
 
+    /// Messages pushed so far.
+    pub fn pushed(&self) -> u64 {
+        self.pushed.load(Ordering::Relaxed)
+    }
+
     /// Messages evicted by newer ones so far.
     pub fn evicted(&self) -> u64 {
         self.evicted.load(Ordering::Relaxed)
@@ -74,7 +82,7 @@ mod tests {
         for k in 0..8 {
             queue.push(k);
         }
-        assert_eq!(queue.evicted(), 5);
+        assert_eq!((queue.pushed(), queue.evicted()), (8, 5));
         assert_eq!(queue.pop_timeout(Duration::ZERO), Some(5));
         assert_eq!(queue.drain(), [6, 7]);
         assert_eq!(queue.pop_timeout(Duration::from_millis(1)), None);

@@ -4,7 +4,7 @@
 
 use std::path::Path;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use anyhow::Context as _;
@@ -50,18 +50,10 @@ pub struct Summary {
     pub skipped: u64,
     /// IMU samples dropped for newer ones (more than `[qos] imu-depth` between clouds).
     pub imu_dropped: u64,
-    /// Of those, the ones the loop's own buffer gave up (the rest, the reader's queue).
-    imu_overflow: u64,
     /// Clouds refused (bad layout, no valid point).
     pub bad: u64,
     /// Clouds that found no server.
     pub unanswered: u64,
-}
-
-/// Clouds received, counted by the cloud reader.
-#[derive(Default)]
-struct Counters {
-    received: AtomicU64,
 }
 
 /// A message and when its reader took it.
@@ -77,15 +69,6 @@ struct Inbox {
     initial: Queue<PoseWithCovarianceStamped>,
     tf: Queue<TfMessage>,
     tf_static: Queue<TfMessage>,
-}
-
-impl Inbox {
-    /// Copies the readers' counts into `summary`.
-    fn fill(&self, counters: &Counters, summary: &mut Summary) {
-        summary.received = counters.received.load(Ordering::Relaxed);
-        summary.skipped = self.clouds.evicted();
-        summary.imu_dropped = self.imu.evicted() + summary.imu_overflow;
-    }
 }
 
 /// The node's publishers.
@@ -161,19 +144,13 @@ fn publish_on<M: serde::Serialize>(
 async fn forward<M: 'static + serde::de::DeserializeOwned>(
     subscription: Subscription<M>,
     into: Queue<M>,
-    received: Option<Arc<Counters>>,
     what: &'static str,
 ) {
     let stream = subscription.async_stream();
     futures::pin_mut!(stream);
     while let Some(item) = stream.next().await {
         match item {
-            Ok((message, _)) => {
-                if let Some(c) = &received {
-                    c.received.fetch_add(1, Ordering::Relaxed);
-                }
-                into.push((message, Instant::now()));
-            }
+            Ok((message, _)) => into.push((message, Instant::now())),
             // A message that does not deserialize as its type: named, never fatal.
             Err(e) => tracing::warn!("a {what} message could not be read: {e:?}"),
         }
@@ -233,6 +210,8 @@ struct Localizer<'a> {
     initial: Option<Pose>,
     /// IMU samples since the last cloud.
     imu: Vec<ImuSample>,
+    /// Samples this buffer gave up, oldest first, past `[qos] imu-depth`.
+    imu_overflow: u64,
     /// The IMU messages' frame (the last one read).
     imu_frame: Option<String>,
     /// The last published base pose and its stamp.
@@ -423,14 +402,20 @@ impl Localizer<'_> {
                 self.imu_frame = Some(message.header.frame_id.clone());
             }
             if let Some(sample) = message.sample() {
-                // More than imu-depth since the last cloud: the oldest go (counted).
-                if self.imu.len() == self.config.qos.imu_depth {
-                    self.imu.remove(0);
-                    self.summary.imu_overflow += 1;
-                }
                 self.imu.push(sample);
             }
         }
+        // More than imu-depth since the last cloud (none arrives): the oldest go.
+        let excess = self.imu.len().saturating_sub(self.config.qos.imu_depth);
+        self.imu.drain(..excess);
+        self.imu_overflow += excess as u64;
+    }
+
+    /// Copies the readers' counts into the summary.
+    fn count(&mut self, inbox: &Inbox) {
+        self.summary.received = inbox.clouds.pushed();
+        self.summary.skipped = inbox.clouds.evicted();
+        self.summary.imu_dropped = inbox.imu.evicted() + self.imu_overflow;
     }
 
     /// Gives the tracker's gyro the IMU samples read since the last cloud (made on the
@@ -550,7 +535,6 @@ pub fn run(
         )
         .context("create the ROS 2 node")?;
     let topics = &config.topics;
-    let counters = Arc::new(Counters::default());
     let inbox = Inbox {
         clouds: Arc::new(KeepLast::new(config.qos.points_depth)),
         imu: Arc::new(KeepLast::new(config.qos.imu_depth)),
@@ -566,12 +550,7 @@ pub fn run(
         sensor_data(config.qos.points_depth),
     )?;
     executor
-        .spawn(forward(
-            points,
-            inbox.clouds.clone(),
-            Some(counters.clone()),
-            "PointCloud2",
-        ))
+        .spawn(forward(points, inbox.clouds.clone(), "PointCloud2"))
         .detach();
     if !topics.imu.is_empty() {
         let sub = subscribe::<Imu>(
@@ -581,7 +560,7 @@ pub fn run(
             sensor_data(config.qos.imu_depth),
         )?;
         executor
-            .spawn(forward(sub, inbox.imu.clone(), None, "Imu"))
+            .spawn(forward(sub, inbox.imu.clone(), "Imu"))
             .detach();
     }
     if !topics.initial_pose.is_empty() {
@@ -595,7 +574,6 @@ pub fn run(
             .spawn(forward(
                 sub,
                 inbox.initial.clone(),
-                None,
                 "PoseWithCovarianceStamped",
             ))
             .detach();
@@ -607,7 +585,7 @@ pub fn run(
         reliable(100),
     )?;
     executor
-        .spawn(forward(sub, inbox.tf.clone(), None, "TFMessage"))
+        .spawn(forward(sub, inbox.tf.clone(), "TFMessage"))
         .detach();
     let sub = subscribe::<TfMessage>(
         &mut node,
@@ -616,7 +594,7 @@ pub fn run(
         reliable(100).durability(Durability::TransientLocal),
     )?;
     executor
-        .spawn(forward(sub, inbox.tf_static.clone(), None, "TFMessage"))
+        .spawn(forward(sub, inbox.tf_static.clone(), "TFMessage"))
         .detach();
     let out = Outbox {
         pose: publish_on(
@@ -681,19 +659,13 @@ pub fn run(
             .context("start the DDS thread")?
     };
     ready();
-    let summary = run_loop(config, &inbox, &out, &counters, stop);
+    let summary = run_loop(config, &inbox, &out, stop);
     stop.store(true, Ordering::SeqCst);
     let _ = spinning.join();
     Ok(summary)
 }
 
-fn run_loop(
-    config: &Ros2Config,
-    inbox: &Inbox,
-    out: &Outbox,
-    counters: &Counters,
-    stop: &AtomicBool,
-) -> Summary {
+fn run_loop(config: &Ros2Config, inbox: &Inbox, out: &Outbox, stop: &AtomicBool) -> Summary {
     let mut state = Localizer {
         config,
         frames: Frames::default(),
@@ -706,6 +678,7 @@ fn run_loop(
         tracker: Tracker::relocalizing(tracker_options(config)),
         initial: None,
         imu: Vec::new(),
+        imu_overflow: 0,
         imu_frame: None,
         last_base: None,
         scans: 0,
@@ -750,12 +723,12 @@ fn run_loop(
             Some((cloud, arrived)) => {
                 // What came in while the loop waited (the IMU up to this cloud).
                 state.read_inputs(inbox);
-                inbox.fill(counters, &mut state.summary);
+                state.count(inbox);
                 state.on_cloud(&cloud, arrived, out);
             }
             None => {
                 if state.last_diagnostics.elapsed() >= DIAGNOSTICS_PERIOD {
-                    inbox.fill(counters, &mut state.summary);
+                    state.count(inbox);
                     let stamp = Time::from_seconds(now_seconds());
                     let condition = match state.client() {
                         Ok(_) => Condition::Waiting,
@@ -770,7 +743,7 @@ fn run_loop(
             }
         }
     }
-    inbox.fill(counters, &mut state.summary);
+    state.count(inbox);
     state.summary
 }
 

@@ -240,29 +240,12 @@ impl PlaceRanking {
         params
     }
 
-    /// The settings are usable: finite, ratios and margins in [0, 1], distances >= 0.
+    /// The settings are usable: the server's own checks of them
+    /// ([`crate::place::RelocalizeParams::validate`]), the message naming the option.
     pub fn validate(&self) -> Result<(), String> {
-        let unit = [
-            ("keep-ratio", self.keep_ratio),
-            ("ambiguity-margin", self.ambiguity_margin),
-        ];
-        let lengths = [
-            ("separation-m", self.separation_m),
-            ("separation-deg", self.separation_deg),
-            ("distinct-m", self.distinct_m),
-            ("distinct-deg", self.distinct_deg),
-        ];
-        for (name, v) in unit {
-            if !(0.0..=1.0).contains(&v) {
-                return Err(format!("ranking {name} {v} is not within [0, 1]"));
-            }
-        }
-        for (name, v) in lengths {
-            if !(v.is_finite() && v >= 0.0) {
-                return Err(format!("ranking {name} {v} is not a finite distance >= 0"));
-            }
-        }
-        Ok(())
+        self.applied_to(crate::place::RelocalizeParams::default())
+            .validate()
+            .map_err(|e| format!("ranking: {e}"))
     }
 }
 

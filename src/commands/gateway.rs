@@ -86,7 +86,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 .iter()
                 .map(|t| t.id.clone())
                 .collect();
-            GatewayOptions::tiled(&args.map_name, index.to_toml(), &tiles, config)
+            GatewayOptions::tiled(&args.map_name, index, &tiles, config)
         }
     };
     options.iceoryx_prefix = args.iceoryx_prefix.clone();
