@@ -104,8 +104,25 @@ pub fn relocalize(
             .filter(|p| p.points == scan.points && p.map_up == map_up),
         Phase::Whole | Phase::Places => None,
     };
+    // The final registration's scan and the candidates' coarse one: each a copy with
+    // covariances, built once on first use.
+    let mut stages = prepare(scan, limits);
+    let mut candidates = prepare(scan, limits);
     let (points, proposal, scored) = match kept {
         Some(kept) => (Some(kept.points), kept.proposal, kept.scored),
+        None if phase == Phase::Whole => {
+            // Both scans are built while the search runs: its batches of bounds leave
+            // a core idle much of the time (docs/DESIGN.md#notes-relocalization).
+            let (proposal, ()) = rayon::join(
+                || proposed(&grid, map, scan.points, map_up, phase, &params),
+                || {
+                    stages.fine();
+                    // A failure shows where the coarse scan is used, below.
+                    let _ = candidates.coarse();
+                },
+            );
+            (None, proposal?, None)
+        }
         None => (
             None,
             proposed(&grid, map, scan.points, map_up, phase, &params)?,
@@ -134,7 +151,6 @@ pub fn relocalize(
         ),
         exact,
     };
-    let mut stages = prepare(scan, limits);
     let mut against = MapRegistration {
         map,
         session,
@@ -150,7 +166,6 @@ pub fn relocalize(
             .and_then(|s| s.places.iter().find(|p| p.rank == rank).copied()),
         Phase::Whole | Phase::Places | Phase::Score(_) => None,
     };
-    let mut candidates = prepare(scan, limits);
     let coarse = match kept_place {
         Some(_) => None,
         None => Some(candidates.coarse().map_err(coarse_error)?),

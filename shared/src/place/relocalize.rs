@@ -531,11 +531,7 @@ pub fn score_places<E: Send>(
         max_pair_dist: fine.max_pair_dist,
         max_iterations: SCORE_ITERATIONS,
     };
-    let settled: Vec<Option<RegistrationResult>> = proposal
-        .poses
-        .par_iter()
-        .map(|(start, _)| settle(start, &coarse, PlaceStep::Settle))
-        .collect::<Result<_, E>>()?;
+    let settled = settle_in_rounds(proposal, &coarse, params, &settle)?;
     let mut distinct: Vec<(usize, Pose)> = Vec::new();
     for (rank, result) in settled.iter().enumerate() {
         if let Some(result) = result
@@ -577,6 +573,92 @@ pub fn score_places<E: Send>(
         places,
         registrations: (proposal.poses.len() + distinct.len()) as u32,
     })
+}
+
+/// Iterations per round of [`settle_in_rounds`].
+const SETTLE_ROUND: usize = 2;
+
+/// Where each proposed place settles: `coarse` iterations from it, every place in
+/// rounds of [`SETTLE_ROUND`] iterations (Gauss-Newton keeps no state but the pose, so
+/// a place iterates as in one registration). After each round a place within half of
+/// `distinct-m` and `distinct-deg` of a better-ranked place still in play is that place
+/// and stops (`None`, as a place whose registration failed): a search's places are
+/// often the shoulders of one peak 2 m apart (on balm_os0 2.2 of 4.7 places per scan
+/// settle onto a better-ranked one's; docs/DESIGN.md#notes-relocalization).
+fn settle_in_rounds<E: Send>(
+    proposal: &Proposal,
+    coarse: &Stage,
+    params: &RelocalizeParams,
+    settle: &(impl Fn(&Pose, &Stage, PlaceStep) -> Result<Option<RegistrationResult>, E> + Sync),
+) -> Result<Vec<Option<RegistrationResult>>, E> {
+    /// One place's settling so far.
+    struct Settling {
+        result: Option<RegistrationResult>,
+        start: Pose,
+        iterations: usize,
+        running: bool,
+    }
+    let mut places: Vec<Settling> = proposal
+        .poses
+        .iter()
+        .map(|(start, _)| Settling {
+            result: None,
+            start: *start,
+            iterations: 0,
+            running: true,
+        })
+        .collect();
+    let same = |a: &Pose, b: &Pose| {
+        translation_distance(a, b) <= params.distinct_m / 2.0
+            && rotation_distance(a, b).to_degrees() <= params.distinct_deg / 2.0
+    };
+    let (mut rounds, mut merged) = (0, 0);
+    while places.iter().any(|p| p.running) {
+        rounds += 1;
+        places
+            .par_iter_mut()
+            .filter(|p| p.running)
+            .try_for_each(|place| -> Result<(), E> {
+                let round = SETTLE_ROUND.min(coarse.max_iterations - place.iterations);
+                let stage = Stage {
+                    max_iterations: round,
+                    ..*coarse
+                };
+                let result = settle(&place.start, &stage, PlaceStep::Settle)?;
+                let iterations = result.as_ref().map_or(0, |r| r.iterations);
+                place.iterations += round;
+                // Converged, stopped on a step it could not take, or out of iterations.
+                place.running = result.as_ref().is_some_and(|r| {
+                    !r.converged && iterations == round && place.iterations < coarse.max_iterations
+                });
+                if let Some(r) = &result {
+                    place.start = r.pose;
+                }
+                place.result = result;
+                Ok(())
+            })?;
+        for later in 1..places.len() {
+            let (better, rest) = places.split_at_mut(later);
+            let place = &mut rest[0];
+            let Some(at) = place.result.as_ref().map(|r| r.pose) else {
+                continue;
+            };
+            let merged_here = better
+                .iter()
+                .any(|b| b.result.as_ref().is_some_and(|r| same(&r.pose, &at)));
+            if merged_here {
+                place.running = false;
+                place.result = None;
+                merged += 1;
+            }
+        }
+    }
+    tracing::debug!(
+        "relocalize: settled {} places in {rounds} rounds, {} iterations, {merged} onto a better one",
+        places.len(),
+        places.iter().map(|p| p.iterations).sum::<usize>()
+    );
+    Ok(places.into_iter().map(|p| p.result).collect())
 }
 
 /// True when `b` is another place than `a`: farther than `distinct-m` or turned more

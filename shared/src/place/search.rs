@@ -21,7 +21,7 @@ use crate::options::{InvalidOption, ensure, ensure_ratio};
 
 /// Nodes expanded together (their children bounded in parallel): enough to keep
 /// every thread busy, few enough that little is expanded a best-first order would not.
-const EXPAND_BATCH: usize = 32;
+const EXPAND_BATCH: usize = 128;
 
 /// How the search runs (`server.toml [relocalize.search]`).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -222,8 +222,12 @@ pub fn search(
     let searched = if n == 0 || !region.min.iter().zip(&region.max).all(|(a, b)| a <= b) {
         SearchOutcome::default()
     } else {
-        Lattice::new(grid, points, region, columns, yaws, grid_from_levelled)
-            .branch_and_bound(params, peers)
+        // On one of the pool's threads: each of the search's hundreds of batches is a
+        // parallel step, which a thread outside the pool would hand over and wait for.
+        rayon::scope(|_| {
+            Lattice::new(grid, points, region, columns, yaws, grid_from_levelled)
+                .branch_and_bound(params, peers)
+        })
     };
     SearchOutcome {
         points: n,

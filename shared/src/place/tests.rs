@@ -1285,6 +1285,88 @@ fn places_settling_onto_a_better_ranked_one_are_scored_once() {
     assert!(scored_from.contains(&0.0) && scored_from.contains(&10.0));
 }
 
+/// Places settle in rounds: a place that comes within half of `distinct-m` of a
+/// better-ranked place stops there, and a place left alone iterates as one registration
+/// would. A fake registration moves a place 1 m per iteration toward the nearer basin (x =
+/// 0 or 10) and converges there. Rank 0 starts at 0.2 (there after 1 iteration), rank 1 at
+/// -5 (5 iterations: rounds of 2, 2 and 1), rank 2 at 9 (1 iteration), and rank 3 at 4.4:
+/// at 2.4 after its first round and at 0.4, within 0.5 m of rank 0, after its second, so
+/// it stops one iteration short of converging and is not scored.
+#[test]
+fn places_settle_in_rounds_and_stop_on_a_better_ranked_one() {
+    use super::relocalize::{PlaceStep, RelocalizeParams, score_places};
+    use crate::tracking::{Stage, TrackingParams};
+    let at = |x: f64| {
+        crate::geometry::Pose::from_parts(
+            Translation3::new(x, 0.0, 0.0),
+            UnitQuaternion::identity(),
+        )
+    };
+    let proposal = super::Proposal {
+        poses: [0.2, -5.0, 9.0, 4.4].map(|x| (at(x), 0.5)).to_vec(),
+        ..Default::default()
+    };
+    let settles = std::sync::Mutex::new(Vec::new());
+    let settle = |start: &crate::geometry::Pose, stage: &Stage, step: PlaceStep| {
+        let x0 = start.translation.x;
+        let basin = if x0 < 5.0 { 0.0 } else { 10.0 };
+        let score = if basin == 0.0 { 0.8 } else { 0.6 };
+        if step == PlaceStep::Score {
+            return Ok::<_, ()>(Some(settled_at(at(x0), score)));
+        }
+        settles.lock().unwrap().push((x0, stage.max_iterations));
+        let (mut x, mut used) = (x0, 0);
+        while used < stage.max_iterations && x != basin {
+            x += (basin - x).clamp(-1.0, 1.0);
+            used += 1;
+        }
+        let mut result = settled_at(at(x), score);
+        result.iterations = used.max(1);
+        result.converged = x == basin && used < stage.max_iterations;
+        Ok(Some(result))
+    };
+    let fine = Stage {
+        coarse: false,
+        max_pair_dist: 1.0,
+        max_iterations: 10,
+    };
+    let scored = score_places(
+        &proposal,
+        fine,
+        &TrackingParams::default(),
+        &RelocalizeParams::default(),
+        settle,
+    )
+    .unwrap();
+    let places: Vec<(usize, f64)> = scored
+        .places
+        .iter()
+        .map(|p| (p.rank, p.pose.translation.x))
+        .collect();
+    assert_eq!(
+        places,
+        vec![(0, 0.0), (2, 10.0)],
+        "rank 1 settles onto rank 0 too"
+    );
+    let mut settles = settles.into_inner().unwrap();
+    settles.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let rounded = |v: f64| (v * 10.0).round() / 10.0;
+    let starts: Vec<(f64, usize)> = settles.iter().map(|&(x, n)| (rounded(x), n)).collect();
+    assert_eq!(
+        starts,
+        vec![
+            (-5.0, 2),
+            (-3.0, 2),
+            (-1.0, 2),
+            (0.2, 2),
+            (2.4, 2),
+            (4.4, 2),
+            (9.0, 2)
+        ],
+        "rank 3 is not settled from 0.4: it stopped within 0.5 m of rank 0"
+    );
+}
+
 /// A thinning count below 100 (and not 0) is refused, naming the key it came from.
 #[test]
 fn settle_and_score_points_are_checked_by_name() {
