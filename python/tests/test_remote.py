@@ -331,8 +331,6 @@ TILE_PORTS = (17451, 17452)
 #: The site's servers rank places otherwise than the defaults (their server.toml); the
 #: gateways publish it with the index, and every client must rank as the servers do.
 SITE_RANKING = kr.Ranking(keep_ratio=0.6, ambiguity_margin=0.2)
-#: Longest the tiled drive may take, seconds.
-DRIVE_BUDGET_S = 240.0
 
 
 @dataclass
@@ -462,12 +460,12 @@ def test_a_tile_set_on_two_hosts_answers_as_the_merged_map(tile_site):
         # The cut's index, with the servers' ranking as the gateways publish it.
         assert remote._conn.tile_index == dataclasses.replace(site.index, ranking=SITE_RANKING)
         assert remote.current_tile is None
-        started = time.monotonic()
         guess = previous = kfmap.pose_from_wire(truth[0, 1:])
         compared, crossings, worst_apart, worst_crossing = 0, 0, 0.0, 0.0
         last, seen, differ = None, set(), []
+        # Bounded by its scans and each request's timeout (120 s remote, 30 s whole);
+        # how long the drive takes is a benchmark's question, not this test's.
         for i in range(0, len(truth), 2):
-            assert time.monotonic() - started < DRIVE_BUDGET_S, f"drive over budget at scan {i}"
             points, _ = scan_points(site.data, i)
             tiled = remote.localize(points, guess)
             tile = remote.current_tile

@@ -1,13 +1,16 @@
-//! `kfmap bench ipc`: round trips, cov2cov overhead and multi-client throughput of a
-//! real `kfmap serve` child process. Also the table's rows of it.
+//! `kfmap bench ipc`: round trips, cov2cov overhead, multi-client throughput and the
+//! requests right after a client process was SIGKILLed, of a real `kfmap serve` child
+//! process. Also the table's rows of it.
 
+use std::io::BufRead;
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use anyhow::bail;
+use anyhow::{Context, bail};
 use indicatif::ProgressBar;
 use kfmap_client::{Client, ClientOptions};
+use kfmap_protocol::transport::{create_node, iceoryx_config, open_rpc};
 use kfmap_protocol::{Cov2CovMode, RequestHeader, RequestKind, ScanPayload, pose_to_wire};
 use kfmap_service::server::ServedMap;
 use kfmap_service::server::session::Session;
@@ -211,6 +214,87 @@ pub(super) fn worker(prefix: &str, seconds: f64) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Client ports of the process the bench kills: 63, the case that stalled every other
+/// client for 1.8-3.3 s when iceoryx2 scanned a 16 times larger chunk table per dead
+/// connection on the request path (tests/integration/hostile.rs checks the behaviour).
+const KILLED_PORTS: usize = 63;
+
+/// Seconds of requests after the kill.
+const AFTER_KILL_SECONDS: f64 = 3.0;
+
+/// The hidden `kfmap bench ipc-holder PREFIX --ports N`: opens `ports` raw client ports
+/// to the server of `prefix`, says so, and waits to be killed (10 minutes at most).
+pub(super) fn holder(prefix: &str, ports: usize) -> anyhow::Result<()> {
+    let config = iceoryx_config(Some(prefix))?;
+    let mut held = Vec::with_capacity(ports);
+    for _ in 0..ports {
+        let node = create_node(&config, "holder")?;
+        let port = open_rpc(&node, "bench")?
+            .client_builder()
+            .create()
+            .map_err(|e| anyhow::anyhow!("client port: {e:?}"))?;
+        held.push((port, node));
+    }
+    println!("ports open: {}", held.len());
+    std::thread::sleep(Duration::from_secs(600));
+    Ok(())
+}
+
+/// A child process, SIGKILLed when dropped (an error leaves none behind).
+struct Killed(Child);
+
+impl Drop for Killed {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Echo requests of one client in the [`AFTER_KILL_SECONDS`] after another client
+/// process holding [`KILLED_PORTS`] ports was SIGKILLed, 10 ms apart.
+struct AfterKill {
+    requests: usize,
+    /// Slowest round trip, milliseconds.
+    slowest_ms: f64,
+}
+
+/// Starts a port holder (`kfmap bench ipc-holder`), kills it once its ports are open,
+/// and times `c`'s requests while the server reclaims the dead ports.
+fn after_killed_client(c: &mut Client, prefix: &str) -> anyhow::Result<AfterKill> {
+    let exe = std::env::current_exe()?;
+    let mut holder = Killed(
+        Command::new(exe)
+            .args(["bench", "ipc-holder", prefix, "--ports"])
+            .arg(KILLED_PORTS.to_string())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()?,
+    );
+    let stdout = holder.0.stdout.take().context("the port holder's stdout")?;
+    let mut said = String::new();
+    // The holder prints one line, or exits (end of file) on an error.
+    std::io::BufReader::new(stdout).read_line(&mut said)?;
+    if said.trim() != format!("ports open: {KILLED_PORTS}") {
+        bail!("the port holder did not open its ports: {said:?}");
+    }
+    let points = synthetic_cloud(7, 1_000).points;
+    c.echo(&points)?;
+    drop(holder);
+    let started = Instant::now();
+    let (mut requests, mut slowest) = (0, Duration::ZERO);
+    while started.elapsed().as_secs_f64() < AFTER_KILL_SECONDS {
+        let t = Instant::now();
+        c.echo(&points)?;
+        slowest = slowest.max(t.elapsed());
+        requests += 1;
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    Ok(AfterKill {
+        requests,
+        slowest_ms: slowest.as_secs_f64() * 1e3,
+    })
+}
+
 /// Starts a throughput client process (`kfmap bench ipc-worker`) against the server of
 /// `prefix` for `seconds`; its stdout is piped.
 fn spawn_worker(exe: &Path, prefix: &str, seconds: f64) -> std::io::Result<Child> {
@@ -291,6 +375,7 @@ struct IpcFigures {
     /// Cov2cov with the server estimating the covariances.
     estimated: Overhead,
     throughput: Throughput,
+    after_kill: AfterKill,
 }
 
 /// Serves `map` under `prefix`, measures echo, cov2cov overhead and throughput, and
@@ -315,6 +400,10 @@ fn measure(
     let estimated = ipc_against_in_process(&mut c, map, effort.alternate_seconds, false)?;
     bar.set_message("throughput: 1 client, then 4 client processes");
     let throughput = throughput(&mut c, prefix, effort.throughput_seconds)?;
+    bar.set_message(format!(
+        "requests after a client process with {KILLED_PORTS} ports was killed"
+    ));
+    let after_kill = after_killed_client(&mut c, prefix)?;
     bar.finish_and_clear();
     drop(c);
     drop(server);
@@ -324,6 +413,7 @@ fn measure(
         sent,
         estimated,
         throughput,
+        after_kill,
     };
     if json_out {
         println!("{}", serde_json::to_string_pretty(&figures.json())?);
@@ -402,6 +492,8 @@ impl IpcFigures {
             "cov2cov_10k_server_covariances": self.estimated.json(),
             "throughput_10k_cov2cov": {"one_client_scans_per_s": t.one_rate, "one_client_p99_us": t.one.p99,
                 "four_clients_scans_per_s": t.four_rate, "four_clients_p99_us": t.four.p99},
+            "after_killed_client": {"ports": KILLED_PORTS, "seconds": AFTER_KILL_SECONDS,
+                "requests": self.after_kill.requests, "slowest_ms": self.after_kill.slowest_ms},
         })
     }
 
@@ -444,6 +536,10 @@ impl IpcFigures {
             t.four_rate,
             p99_label(t.four.samples),
             t.four.p99 / 1e3
+        );
+        println!(
+            "after a client process with {KILLED_PORTS} ports was SIGKILLed: {} echo requests in {AFTER_KILL_SECONDS} s, slowest {:.1} ms",
+            self.after_kill.requests, self.after_kill.slowest_ms
         );
     }
 }
@@ -491,6 +587,16 @@ pub(super) fn table_rows(table: &mut Table, dir: &Path) -> anyhow::Result<()> {
         4,
         json_number(&t["four_clients_scans_per_s"]),
         "scans/s",
+    );
+    let k = &v["after_killed_client"];
+    table.push(
+        &format!(
+            "slowest request in the {AFTER_KILL_SECONDS} s after a client process with {KILLED_PORTS} ports was SIGKILLed"
+        ),
+        label,
+        1,
+        json_number(&k["slowest_ms"]),
+        "ms",
     );
     Ok(())
 }

@@ -151,6 +151,15 @@ enum What {
         #[arg(long)]
         seconds: f64,
     },
+    /// Internal (ipc): hold PORTS raw client ports to the server under PREFIX until
+    /// killed (the client process the IPC bench SIGKILLs).
+    #[command(hide = true)]
+    IpcHolder {
+        prefix: String,
+        /// Client ports to open.
+        #[arg(long)]
+        ports: usize,
+    },
     /// Internal (soak): run as one soak client of the server under PREFIX.
     #[command(hide = true)]
     SoakClient {
@@ -272,6 +281,7 @@ pub fn run(args: Args, process_start: Instant) -> anyhow::Result<()> {
         Some(What::Probe { map }) => load::probe(map, process_start),
         Some(What::BagRead { file }) => bags::run_read(file),
         Some(What::IpcWorker { prefix, seconds }) => ipc::worker(prefix, *seconds),
+        Some(What::IpcHolder { prefix, ports }) => ipc::holder(prefix, *ports),
         Some(What::RemoteWorker {
             prefix,
             seconds,
