@@ -1225,6 +1225,36 @@ fn settled_at(
     }
 }
 
+/// A pose `x` metres along the map's x axis.
+fn at_x(x: f64) -> crate::geometry::Pose {
+    crate::geometry::Pose::from_parts(Translation3::new(x, 0.0, 0.0), UnitQuaternion::identity())
+}
+
+/// [`super::score_places`] of `proposal` with the default settings, pairs within 1 m.
+fn scored_with_defaults(
+    proposal: &super::Proposal,
+    settle: impl Fn(
+        &crate::geometry::Pose,
+        &crate::tracking::Stage,
+        super::relocalize::PlaceStep,
+    ) -> Result<Option<crate::registration::RegistrationResult>, ()>
+    + Sync,
+) -> super::Scored {
+    let fine = crate::tracking::Stage {
+        coarse: false,
+        max_pair_dist: 1.0,
+        max_iterations: 10,
+    };
+    super::score_places(
+        proposal,
+        fine,
+        &crate::tracking::TrackingParams::default(),
+        &super::relocalize::RelocalizeParams::default(),
+        settle,
+    )
+    .unwrap()
+}
+
 /// Places that settle onto a better-ranked place's pose (within `distinct-m` and
 /// `distinct-deg`) are scored once, as that place: a map with two basins, at x = 0 (score
 /// 0.8) and x = 10 (0.6), where the settling registration moves each proposed place to
@@ -1233,14 +1263,9 @@ fn settled_at(
 /// 3 is left out; 5 proposals settled and 2 scored make 7 registrations.
 #[test]
 fn places_settling_onto_a_better_ranked_one_are_scored_once() {
-    use super::relocalize::{PlaceStep, RelocalizeParams, score_places};
-    use crate::tracking::{Stage, TrackingParams};
-    let at = |x: f64| {
-        crate::geometry::Pose::from_parts(
-            Translation3::new(x, 0.0, 0.0),
-            UnitQuaternion::identity(),
-        )
-    };
+    use super::relocalize::PlaceStep;
+    use crate::tracking::Stage;
+    let at = at_x;
     let proposal = super::Proposal {
         poses: [0.3, 9.6, 0.1, 30.0, 10.4].map(|x| (at(x), 0.5)).to_vec(),
         ..Default::default()
@@ -1255,19 +1280,7 @@ fn places_settling_onto_a_better_ranked_one_are_scored_once() {
             _ => Some(settled_at(at(10.0), 0.6)),
         })
     };
-    let fine = Stage {
-        coarse: false,
-        max_pair_dist: 1.0,
-        max_iterations: 10,
-    };
-    let scored = score_places(
-        &proposal,
-        fine,
-        &TrackingParams::default(),
-        &RelocalizeParams::default(),
-        settle,
-    )
-    .unwrap();
+    let scored = scored_with_defaults(&proposal, settle);
     let places: Vec<(usize, f64, f64)> = scored
         .places
         .iter()
@@ -1294,14 +1307,9 @@ fn places_settling_onto_a_better_ranked_one_are_scored_once() {
 /// it stops one iteration short of converging and is not scored.
 #[test]
 fn places_settle_in_rounds_and_stop_on_a_better_ranked_one() {
-    use super::relocalize::{PlaceStep, RelocalizeParams, score_places};
-    use crate::tracking::{Stage, TrackingParams};
-    let at = |x: f64| {
-        crate::geometry::Pose::from_parts(
-            Translation3::new(x, 0.0, 0.0),
-            UnitQuaternion::identity(),
-        )
-    };
+    use super::relocalize::PlaceStep;
+    use crate::tracking::Stage;
+    let at = at_x;
     let proposal = super::Proposal {
         poses: [0.2, -5.0, 9.0, 4.4].map(|x| (at(x), 0.5)).to_vec(),
         ..Default::default()
@@ -1325,19 +1333,7 @@ fn places_settle_in_rounds_and_stop_on_a_better_ranked_one() {
         result.converged = x == basin && used < stage.max_iterations;
         Ok(Some(result))
     };
-    let fine = Stage {
-        coarse: false,
-        max_pair_dist: 1.0,
-        max_iterations: 10,
-    };
-    let scored = score_places(
-        &proposal,
-        fine,
-        &TrackingParams::default(),
-        &RelocalizeParams::default(),
-        settle,
-    )
-    .unwrap();
+    let scored = scored_with_defaults(&proposal, settle);
     let places: Vec<(usize, f64)> = scored
         .places
         .iter()
