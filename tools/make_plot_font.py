@@ -3,7 +3,7 @@
 
     pip install fonttools
     python3 tools/make_plot_font.py /usr/share/fonts/truetype/dejavu/DejaVuSans.ttf \
-        src/commands/plot/DejaVuSans-subset.ttf
+        plot/src/DejaVuSans-subset.ttf
 
 1. Subset DejaVu Sans to the characters the pictures use, without hinting or OpenType
    layout tables (the legacy `kern` table is kept).

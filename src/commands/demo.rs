@@ -25,7 +25,7 @@ use kfmap_shared::io::{
 use kfmap_sim::{LidarParams, Preset, SimConfig, gravity_in_map, write_dataset};
 
 use super::localize::LocalizeLog;
-use super::plot::{MapPlotOptions, TrajectoryPlotInputs, render_map, render_trajectory};
+use kfmap_plot::{MapPlotOptions, TrajectoryPlotInputs, render_map, render_trajectory};
 use super::report::{json_number, p99_label};
 use super::server_child::{ServerChild, run_localize};
 

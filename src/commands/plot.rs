@@ -1,21 +1,12 @@
 //! `kfmap plot`: pictures of a map, of a trajectory against its reference, and of a
-//! recorded localization run.
+//! recorded localization run (drawn by the kfmap-plot crate).
 
-mod draw;
-mod map;
-mod run;
-mod trajectory;
+use std::path::PathBuf;
 
-use std::path::{Path, PathBuf};
-
-pub use map::MapSummary;
-pub use run::{RunSummary, RunTopics};
-pub use trajectory::{TrajectoryOptions, TrajectorySummary};
-
-use draw::Format;
-use map::MapFigure;
-use run::RunFigure;
-use trajectory::TrajectoryFigure;
+use kfmap_plot::{
+    MapPlotOptions, RunTopics, TrajectoryOptions, TrajectoryPlotInputs, render_map_summary,
+    render_run_summary, render_trajectory_summary,
+};
 
 /// Draw a baked map, a trajectory against its reference, or a recorded localization run,
 /// as a PNG or SVG picture (the extension of --out decides).
@@ -132,7 +123,7 @@ pub struct Args {
     #[arg(
         long,
         value_name = "MS",
-        default_value_t = trajectory::DEFAULT_MAX_DT * 1e3,
+        default_value_t = kfmap_plot::DEFAULT_MAX_DT * 1e3,
         requires = "trajectory"
     )]
     max_dt_ms: f64,
@@ -153,119 +144,15 @@ fn parse_size(s: &str) -> Result<Size, String> {
     let bad = || {
         format!(
             "'{s}' is not a size: expected WIDTHxHEIGHT in pixels, e.g. 1600x1200, each side {}..={}",
-            draw::MIN_SIDE,
-            draw::MAX_SIDE
+            kfmap_plot::MIN_SIDE,
+            kfmap_plot::MAX_SIDE
         )
     };
     let (w, h) = s.split_once(['x', 'X']).ok_or_else(bad)?;
     let width: u32 = w.trim().parse().map_err(|_| bad())?;
     let height: u32 = h.trim().parse().map_err(|_| bad())?;
-    draw::check_size(width, height).map_err(|_| bad())?;
+    kfmap_plot::check_size(width, height).map_err(|_| bad())?;
     Ok(Size { width, height })
-}
-
-/// How to draw a map.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct MapPlotOptions {
-    /// Draw the covisibility edges between keyframes (revisits distinct).
-    pub edges: bool,
-    /// Picture width, pixels.
-    pub width: u32,
-    /// Picture height, pixels.
-    pub height: u32,
-}
-
-impl Default for MapPlotOptions {
-    fn default() -> Self {
-        Self {
-            edges: true,
-            width: 1600,
-            height: 1200,
-        }
-    }
-}
-
-/// Draws the map file `map` to `out` (.png or .svg): points from above coloured by
-/// height, keyframe poses, covisibility edges with `options.edges`.
-pub fn render_map(map: &Path, out: &Path, options: &MapPlotOptions) -> anyhow::Result<()> {
-    render_map_summary(map, out, options).map(|_| ())
-}
-
-/// As [`render_map`], returning what the picture shows.
-pub fn render_map_summary(
-    map: &Path,
-    out: &Path,
-    options: &MapPlotOptions,
-) -> anyhow::Result<MapSummary> {
-    let format = draw::check_out(out)?;
-    draw::check_size(options.width, options.height)?;
-    let max_points = match format {
-        Format::Png => map::MAX_POINTS_PNG,
-        Format::Svg => map::MAX_POINTS_SVG,
-    };
-    let figure = MapFigure::load(map, options, max_points)?;
-    draw::render_to_file(&figure, out, format, options.width, options.height)?;
-    Ok(figure.summary().clone())
-}
-
-/// The files of a trajectory picture.
-#[derive(Debug, Clone, Copy)]
-pub struct TrajectoryPlotInputs<'a> {
-    /// Estimated trajectory, TUM.
-    pub estimate: &'a Path,
-    /// Reference trajectory, TUM, same frame as the estimate.
-    pub reference: &'a Path,
-    /// `kfmap localize --json-lines` output whose lost/failed/degraded scans are marked.
-    pub scan_log: Option<&'a Path>,
-    /// Picture title; default: the two file names.
-    pub title: Option<&'a str>,
-}
-
-/// Draws the estimate against the reference to `out` (.png or .svg), `width` x
-/// `height` pixels; poses are matched by stamp within 5 ms.
-pub fn render_trajectory(
-    inputs: &TrajectoryPlotInputs,
-    out: &Path,
-    width: u32,
-    height: u32,
-) -> anyhow::Result<()> {
-    render_trajectory_summary(inputs, out, width, height, &TrajectoryOptions::default()).map(|_| ())
-}
-
-/// As [`render_trajectory`] with `options` (stamp tolerance, alignment), returning
-/// what the picture shows.
-pub fn render_trajectory_summary(
-    inputs: &TrajectoryPlotInputs,
-    out: &Path,
-    width: u32,
-    height: u32,
-    options: &TrajectoryOptions,
-) -> anyhow::Result<TrajectorySummary> {
-    let format = draw::check_out(out)?;
-    draw::check_size(width, height)?;
-    let figure = TrajectoryFigure::load(inputs, options)?;
-    draw::render_to_file(&figure, out, format, width, height)?;
-    Ok(figure.summary().clone())
-}
-
-/// Draws the localization run recorded in `bag` to `out` (.png or .svg), `width` x
-/// `height` pixels, returning what the picture shows.
-pub fn render_run_summary(
-    bag: &Path,
-    topics: &RunTopics,
-    out: &Path,
-    width: u32,
-    height: u32,
-) -> anyhow::Result<RunSummary> {
-    let format = draw::check_out(out)?;
-    draw::check_size(width, height)?;
-    let max_points = match format {
-        Format::Png => map::MAX_POINTS_PNG,
-        Format::Svg => map::MAX_POINTS_SVG,
-    };
-    let figure = RunFigure::load(bag, topics, max_points)?;
-    draw::render_to_file(&figure, out, format, width, height)?;
-    Ok(figure.summary().clone())
 }
 
 /// Runs the subcommand.
@@ -291,7 +178,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             s.degraded,
             s.unrated,
             s.without_pose,
-            draw::grouped(s.map_points as u64),
+            kfmap_plot::grouped(s.map_points as u64),
             s.sigma_m.0,
             s.sigma_m.1
         );
@@ -332,7 +219,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             out.display(),
             s.matched,
             s.estimate_poses,
-            draw::ms_label(options.max_dt),
+            kfmap_plot::ms_label(options.max_dt),
             s.rmse,
             s.max
         );
@@ -361,9 +248,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     println!(
         "{}: {}, {} points (drawn {}), height colours {:.2}..{:.2} m{edges}; {width}x{height}",
         out.display(),
-        draw::plural(s.keyframes, "keyframe"),
-        draw::grouped(s.points),
-        draw::grouped(s.drawn as u64),
+        kfmap_plot::plural(s.keyframes, "keyframe"),
+        kfmap_plot::grouped(s.points),
+        kfmap_plot::grouped(s.drawn as u64),
         s.height_range.0,
         s.height_range.1
     );

@@ -17,7 +17,7 @@ use super::draw::{
 };
 
 /// Default largest stamp difference between an estimated pose and its reference, s.
-pub(super) const DEFAULT_MAX_DT: f64 = 0.005;
+pub const DEFAULT_MAX_DT: f64 = 0.005;
 /// Error colours saturate at this quantile of the errors.
 const ERROR_QUANTILE: f64 = 0.98;
 

@@ -67,8 +67,8 @@ pub(super) fn draw_error(e: impl std::fmt::Display) -> anyhow::Error {
 }
 
 /// Smallest and largest accepted picture side, pixels.
-pub(super) const MIN_SIDE: u32 = 300;
-pub(super) const MAX_SIDE: u32 = 10_000;
+pub const MIN_SIDE: u32 = 300;
+pub const MAX_SIDE: u32 = 10_000;
 
 /// Renders `figure` at `width` x `height` pixels and writes it to `out` atomically (a
 /// temporary file beside it, renamed when complete): a failed render leaves nothing.
@@ -123,7 +123,7 @@ pub(super) fn check_out(out: &Path) -> anyhow::Result<Format> {
 }
 
 /// Refuses sizes outside `MIN_SIDE..=MAX_SIDE`.
-pub(super) fn check_size(width: u32, height: u32) -> anyhow::Result<()> {
+pub fn check_size(width: u32, height: u32) -> anyhow::Result<()> {
     anyhow::ensure!(
         (MIN_SIDE..=MAX_SIDE).contains(&width) && (MIN_SIDE..=MAX_SIDE).contains(&height),
         "picture size {width}x{height} is outside {MIN_SIDE}..={MAX_SIDE} pixels a side"
@@ -280,12 +280,12 @@ pub(super) fn tick_label(span: f64) -> impl Fn(&f64) -> String {
 }
 
 /// A duration in seconds as milliseconds, shortest form: 0.005 -> "5".
-pub(super) fn ms_label(seconds: f64) -> String {
+pub fn ms_label(seconds: f64) -> String {
     format!("{}", (seconds * 1e9).round() / 1e6)
 }
 
 /// "1 keyframe", "2 keyframes".
-pub(super) fn plural(n: usize, noun: &str) -> String {
+pub fn plural(n: usize, noun: &str) -> String {
     if n == 1 {
         format!("1 {noun}")
     } else {
@@ -294,7 +294,7 @@ pub(super) fn plural(n: usize, noun: &str) -> String {
 }
 
 /// `n` with thin groups of three digits: 412 345.
-pub(super) fn grouped(n: u64) -> String {
+pub fn grouped(n: u64) -> String {
     let digits = n.to_string();
     let mut out = String::new();
     for (i, c) in digits.chars().enumerate() {
