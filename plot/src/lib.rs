@@ -123,4 +123,3 @@ pub fn render_run_summary(
     draw::render_to_file(&figure, out, format, width, height)?;
     Ok(figure.summary().clone())
 }
-

@@ -25,9 +25,9 @@ use kfmap_shared::io::{
 use kfmap_sim::{LidarParams, Preset, SimConfig, gravity_in_map, write_dataset};
 
 use super::localize::LocalizeLog;
-use kfmap_plot::{MapPlotOptions, TrajectoryPlotInputs, render_map, render_trajectory};
 use super::report::{json_number, p99_label};
 use super::server_child::{ServerChild, run_localize};
+use kfmap_plot::{MapPlotOptions, TrajectoryPlotInputs, render_map, render_trajectory};
 
 /// Run the kfmap pipeline end to end on built-in defaults and draw the result.
 ///
