@@ -326,7 +326,6 @@ impl Client {
             ))
         })?;
         self.connection.served_covariance = Some(scan_covariance);
-
         let kinds = RequestKind::ALL
             .into_iter()
             .filter(|k| (*k as usize) < KIND_SLOTS && h.counts[*k as usize] > 0)

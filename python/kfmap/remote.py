@@ -158,7 +158,8 @@ class Ranking:
 
     @classmethod
     def parse(cls, table: object, invalid) -> Ranking:
-        """A ``[ranking]`` table, checked as ``PlaceRanking::validate``."""
+        """A ``[ranking]`` table, checked as ``PlaceRanking::validate`` (the server's own
+        bounds: ratios within [0, 1], distances and angles finite and > 0)."""
         if not isinstance(table, dict) or set(table) != set(cls.KEYS):
             raise invalid(f"ranking {table!r} must have exactly the keys {', '.join(cls.KEYS)}")
         values = []
@@ -170,8 +171,8 @@ class Ranking:
             unit = key in ("keep-ratio", "ambiguity-margin")
             if unit and not 0.0 <= v <= 1.0:
                 raise invalid(f"ranking {key} {v} is not within [0, 1]")
-            if not unit and not (math.isfinite(v) and v >= 0.0):
-                raise invalid(f"ranking {key} {v} is not a finite distance >= 0")
+            if not unit and not (math.isfinite(v) and v > 0.0):
+                raise invalid(f"ranking {key} {v} is not finite and > 0")
             values.append(v)
         return cls(*values)
 

@@ -176,6 +176,19 @@ def test_a_bad_tile_index_is_refused_naming_the_problem():
     for text, expected in cases:
         with pytest.raises(kfmap.TransportError, match=expected):
             kr.TileIndex.parse(text)
+    # A published ranking (``[ranking]``) is read, and refused where the servers' own
+    # check (``PlaceRanking::validate``) refuses it, naming the key.
+    one_tile = "format = 1\ntile-size = 10.0\nhalo = 1.0\n[[tile]]\nid = 'x0_y0'\ncol = 0\nrow = 0\n"
+    ranking = ("[ranking]\nkeep-ratio = 0.6\nseparation-m = 2.0\nseparation-deg = 20.0\n"
+               "ambiguity-margin = 0.2\ndistinct-m = 1.0\ndistinct-deg = 5.0\n")
+    assert kr.TileIndex.parse(one_tile + ranking).ranking == kr.Ranking(
+        keep_ratio=0.6, ambiguity_margin=0.2)
+    for old, new, expected in [("distinct-m = 1.0", "distinct-m = 0.0", "distinct-m"),
+                               ("keep-ratio = 0.6", "keep-ratio = 1.5", "keep-ratio"),
+                               ("separation-deg = 20.0", "separation-deg = nan", "separation-deg"),
+                               ("distinct-deg = 5.0\n", "", "exactly the keys")]:
+        with pytest.raises(kfmap.TransportError, match=expected):
+            kr.TileIndex.parse(one_tile + ranking.replace(old, new))
 
 
 FOUND, AMBIGUOUS, NOT_FOUND = (

@@ -626,5 +626,46 @@ mod tests {
             .select(&["x9_y9".into()], Path::new("/site"))
             .unwrap_err();
         assert!(e.to_string().contains("x0_y0, x-1_y2"), "{e}");
+        // A published ranking round-trips; one the servers would refuse is refused
+        // here too, naming the option (the server's own check).
+        let ranked = TileIndex {
+            ranking: Some(PlaceRanking {
+                ambiguity_margin: 0.2,
+                ..PlaceRanking::default()
+            }),
+            ..idx.clone()
+        };
+        assert_eq!(TileIndex::parse(&ranked.to_toml(), path).unwrap(), ranked);
+        for (bad, option) in [
+            (
+                PlaceRanking {
+                    distinct_m: 0.0,
+                    ..PlaceRanking::default()
+                },
+                "distinct-m",
+            ),
+            (
+                PlaceRanking {
+                    keep_ratio: 1.5,
+                    ..PlaceRanking::default()
+                },
+                "keep-ratio",
+            ),
+            (
+                PlaceRanking {
+                    separation_deg: f64::NAN,
+                    ..PlaceRanking::default()
+                },
+                "separation-deg",
+            ),
+        ] {
+            let text = TileIndex {
+                ranking: Some(bad),
+                ..idx.clone()
+            }
+            .to_toml();
+            let e = TileIndex::parse(&text, path).unwrap_err();
+            assert!(e.to_string().contains(option), "{e}");
+        }
     }
 }

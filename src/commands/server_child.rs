@@ -57,14 +57,22 @@ impl ServerChild {
     }
 }
 
+/// The map name the server benchmarks serve their map under.
+pub(super) const BENCH_MAP_NAME: &str = "bench";
+
 /// Starts `kfmap serve` on `map` for the server benchmarks (ipc, soak): the map name
-/// `bench` under `prefix`; `spin`: server polls instead of waiting on events.
+/// [`BENCH_MAP_NAME`] under `prefix`; `spin`: server polls instead of waiting on events.
 pub(super) fn start_bench_server(
     map: &Path,
     prefix: &str,
     spin: bool,
 ) -> anyhow::Result<ServerChild> {
-    ServerChild::start(map, "bench", prefix, if spin { &["--spin"] } else { &[] })
+    ServerChild::start(
+        map,
+        BENCH_MAP_NAME,
+        prefix,
+        if spin { &["--spin"] } else { &[] },
+    )
 }
 
 impl Drop for ServerChild {

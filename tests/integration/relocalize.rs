@@ -42,7 +42,7 @@ use nalgebra::{UnitQuaternion, Vector3};
 
 /// The README's figure: revisit scans of balm_os0 relocalized within [`RIGHT_M`] and
 /// [`RIGHT_DEG`] with no guess, of 61.
-const CLAIMED_FOUND: usize = 57;
+const CLAIMED_FOUND: usize = 58;
 
 /// The issue's bounds: a relocalization within these is a success...
 const RIGHT_M: f64 = 0.3;
@@ -225,7 +225,7 @@ fn balm_map(balm: &Path, dir: &Path) -> PathBuf {
 }
 
 /// Issue targets on balm_os0: the 61 revisit scans relocalized within 0.3 m and 3 deg
-/// as the README claims (57 of 61; at least 56 here, the issue's floor was 90 %, 55),
+/// as the README claims (58 of 61; at least 57 here, the issue's floor was 90 %, 55),
 /// no confident wrong answer, every foreign scan `not-found`. Then a
 /// replay with no start and a jump: the first scan and the scan after the jump are
 /// relocalized, every adopted pose is right, and the tracker is `ok` again within 3
@@ -285,7 +285,7 @@ fn balm_scans_are_relocalized_and_foreign_scans_are_not_found() {
         }
     );
     assert!(wrong.is_empty(), "confident wrong answers: {wrong:?}");
-    // README and DESIGN.md: 57 of 61 (the 4 others `ambiguous`, at the right place).
+    // README and DESIGN.md: 58 of 61 (the 3 others `ambiguous`, at the right place).
     assert!(success >= CLAIMED_FOUND - 1, "{success} of 61");
 
     let mut foreign: Vec<PathBuf> = find_scans(&kitti00).unwrap();
@@ -450,7 +450,8 @@ fn turned_balm_scans_are_found_at_any_heading() {
             wrong.is_empty(),
             "{turn_deg} deg: confident wrong {wrong:?}"
         );
-        assert!(success >= 56, "{turn_deg} deg: {success} of 61");
+        // README: 59 / 59 / 58 / 58 at 37 / 143 / 180 / 250 deg; one of slack below the least.
+        assert!(success >= 57, "{turn_deg} deg: {success} of 61");
     }
 }
 

@@ -213,7 +213,8 @@ pub struct Relocalization {
     pub runner_up: f64,
     /// Places proposed by the search.
     pub candidates: u32,
-    /// Registrations run.
+    /// Registrations run: one settling per proposed place (however many rounds it
+    /// took, [`settle_in_rounds`]) and one scoring per distinct place.
     pub registrations: u32,
 }
 
@@ -502,7 +503,8 @@ pub struct ScoredPlace {
 pub struct Scored {
     /// In rank order; a place whose registration failed is left out.
     pub places: Vec<ScoredPlace>,
-    /// Registrations run.
+    /// Registrations run: one settling per proposed place (however many rounds it
+    /// took, [`settle_in_rounds`]) and one scoring per distinct place.
     pub registrations: u32,
 }
 

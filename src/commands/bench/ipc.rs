@@ -23,7 +23,7 @@ use super::child::child_bench;
 use super::fixtures::{bake_served_map, keyframe_pose, synthetic_cloud};
 use super::table::Table;
 use crate::commands::report::{json_number, p99_label};
-use crate::commands::server_child::start_bench_server;
+use crate::commands::server_child::{BENCH_MAP_NAME, start_bench_server};
 
 /// Median and 99th percentile of samples, and how many there were.
 #[derive(Debug, Clone, Copy)]
@@ -46,7 +46,7 @@ fn p50_p99(mut v: Vec<f64>) -> Percentiles {
 /// Connects to the benchmark server under `prefix`.
 fn client(prefix: &str, spin: bool) -> anyhow::Result<Client> {
     Ok(Client::connect(
-        "bench",
+        BENCH_MAP_NAME,
         ClientOptions {
             iceoryx_prefix: Some(prefix.to_string()),
             timeout: Duration::from_secs(30),
@@ -229,7 +229,7 @@ pub(super) fn holder(prefix: &str, ports: usize) -> anyhow::Result<()> {
     let mut held = Vec::with_capacity(ports);
     for _ in 0..ports {
         let node = create_node(&config, "holder")?;
-        let port = open_rpc(&node, "bench")?
+        let port = open_rpc(&node, BENCH_MAP_NAME)?
             .client_builder()
             .create()
             .map_err(|e| anyhow::anyhow!("client port: {e:?}"))?;
