@@ -451,9 +451,13 @@ impl Tracker {
         t: f64,
     ) -> Result<TrackedScan, ClientError> {
         let tracked = self.track_scan(client, scan, t);
-        // Only hypotheses are carried by the motion registered from the scan before.
-        self.previous_scan =
-            (!self.hypotheses.is_empty()).then(|| PointCloud::from_points(scan.points.to_vec()));
+        // The motion registered from the scan before carries hypotheses, and the scan
+        // after one adopted with no velocity known (see `Self::predict_scan`).
+        let adopted_at_rest = tracked.as_ref().is_ok_and(|t| {
+            t.localized.health.status != TrackingStatus::Lost && !self.motion.has_velocity()
+        });
+        self.previous_scan = (!self.hypotheses.is_empty() || adopted_at_rest)
+            .then(|| PointCloud::from_points(scan.points.to_vec()));
         tracked
     }
 
@@ -464,7 +468,7 @@ impl Tracker {
         scan: &ScanPayload,
         t: f64,
     ) -> Result<TrackedScan, ClientError> {
-        let predicted = self.predict(t);
+        let (predicted, by_model) = self.predict_scan(scan, t);
         let max_correction = self.max_correction();
         if self.initial.is_none() && self.motion.last().is_none() {
             // Nowhere to localize from yet: only the map can say where this is.
@@ -495,7 +499,7 @@ impl Tracker {
         if localized.health.status == TrackingStatus::Lost && self.options.relocalize_when_lost {
             return self.relocalize(client, scan, t, predicted, max_correction, localized);
         }
-        let mut tracked = self.observe(t, predicted, max_correction, localized);
+        let mut tracked = self.adopt(t, predicted, max_correction, localized, by_model);
         if tracked.localized.health.status == TrackingStatus::Lost {
             return Ok(tracked);
         }
@@ -508,6 +512,25 @@ impl Tracker {
         }
         self.since_check = 0;
         self.check(client, scan, tracked)
+    }
+
+    /// The pose expected for `scan` at `t`: the motion model's prediction or, while the
+    /// model knows no velocity (the scan before was relocalized or decided among
+    /// hypotheses) and one place is tracked, the last pose moved by the motion
+    /// registered from the scan before. Starting from rest, a handheld sensor at 2 Hz is
+    /// metres (at the gate's range) from the model's prediction, beyond its bound.
+    /// The flag: whether the pose is the model's (only its errors size the gate).
+    fn predict_scan(&self, scan: &ScanPayload, t: f64) -> (Pose, bool) {
+        let predicted = self.predict(t);
+        match self.motion.last() {
+            Some(last) if !self.motion.has_velocity() && self.hypotheses.is_empty() => {
+                match self.registered_motion(scan, &(last.inverse() * predicted)) {
+                    Some(moved) => (renormalized(&(last * moved)), false),
+                    None => (predicted, true),
+                }
+            }
+            _ => (predicted, true),
+        }
     }
 
     /// Localizes `scan` from `predicted`, on the server or here as the options say.
@@ -986,13 +1009,16 @@ impl Tracker {
     /// a street by following its own (possibly wrong) velocity; the guess itself when
     /// the registration fails or pairs less than half of the scan.
     fn motion_since_previous(&self, scan: &ScanPayload, guess: &Pose) -> Pose {
-        let Some(previous) = self.previous_scan.as_ref() else {
-            return *guess;
-        };
+        self.registered_motion(scan, guess).unwrap_or(*guess)
+    }
+
+    /// [`Self::motion_since_previous`], `None` where it falls back to the guess.
+    fn registered_motion(&self, scan: &ScanPayload, guess: &Pose) -> Option<Pose> {
+        let previous = self.previous_scan.as_ref()?;
         let current = PointCloud::from_points(scan.points.to_vec());
         match register(previous, &current, guess, &RegistrationParams::default()) {
-            Ok(r) if r.converged && r.fitness.inlier_ratio >= 0.5 => renormalized(&r.pose),
-            _ => *guess,
+            Ok(r) if r.converged && r.fitness.inlier_ratio >= 0.5 => Some(renormalized(&r.pose)),
+            _ => None,
         }
     }
 
@@ -1071,7 +1097,20 @@ impl Tracker {
         t: f64,
         predicted: Pose,
         max_correction: Option<f64>,
+        localized: Localized,
+    ) -> TrackedScan {
+        self.adopt(t, predicted, max_correction, localized, true)
+    }
+
+    /// [`Self::observe`]; `by_model`: `predicted` is the motion model's, so the
+    /// correction from it teaches the gate how wrong the model's predictions are.
+    fn adopt(
+        &mut self,
+        t: f64,
+        predicted: Pose,
+        max_correction: Option<f64>,
         mut localized: Localized,
+        by_model: bool,
     ) -> TrackedScan {
         if localized.health.status == TrackingStatus::Lost {
             // Keep predicting from the last adopted pose at the last velocity.
@@ -1083,7 +1122,7 @@ impl Tracker {
                 localized.health.reasons.insert(Reasons::RECOVERING);
                 localized.health.status = TrackingStatus::Degraded;
             }
-            if let Some(last) = self.motion.last() {
+            if let (Some(last), true) = (self.motion.last(), by_model) {
                 let moved = last.inverse() * localized.pose;
                 self.gate.observe(&predicted, &localized.pose, &moved);
             }

@@ -100,6 +100,12 @@ impl PosePredictor {
         self.velocity.update(t, pose);
     }
 
+    /// Whether a velocity is known (two poses since the last restart, the velocity not
+    /// forgotten): without one the prediction is the last pose, turned by the gyro.
+    pub fn has_velocity(&self) -> bool {
+        self.velocity.velocity().is_some()
+    }
+
     /// Keeps the last pose but forgets the velocity (the motion since is unknown); the
     /// gyro still predicts rotation.
     pub fn forget_velocity(&mut self) {
