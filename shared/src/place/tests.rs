@@ -1363,6 +1363,58 @@ fn places_settle_in_rounds_and_stop_on_a_better_ranked_one() {
     );
 }
 
+/// Places on a line, each iteration 1 m towards its basin: rank 0 at 0.2 (basin 0,
+/// inlier ratio 0.8), rank 1 at 30 (basin 10, 0.6: 0.2 below the best) and rank 2 at
+/// -30 (basin -10, 0.75: 0.05 below). Rank 1 stops after its second round (at 26) and
+/// is scored there; rank 2, near the best, settles all 20 coarse iterations.
+#[test]
+fn a_place_pairing_far_less_than_the_best_stops_settling_after_two_rounds() {
+    use super::relocalize::PlaceStep;
+    use crate::tracking::Stage;
+    let proposal = super::Proposal {
+        poses: [0.2, 30.0, -30.0].map(|x| (at_x(x), 0.5)).to_vec(),
+        ..Default::default()
+    };
+    let basin = |x: f64| match x {
+        x if x > 5.0 => (10.0, 0.6),
+        x if x < -5.0 => (-10.0, 0.75),
+        _ => (0.0, 0.8),
+    };
+    let settles = std::sync::Mutex::new(Vec::new());
+    let settle = |start: &crate::geometry::Pose, stage: &Stage, step: PlaceStep| {
+        let x0 = start.translation.x;
+        let (to, ratio) = basin(x0);
+        if step == PlaceStep::Score {
+            return Ok::<_, ()>(Some(settled_at(at_x(x0), ratio)));
+        }
+        settles.lock().unwrap().push(x0);
+        let (mut x, mut used) = (x0, 0);
+        while used < stage.max_iterations && x != to {
+            x += (to - x).clamp(-1.0, 1.0);
+            used += 1;
+        }
+        let mut result = settled_at(at_x(x), ratio);
+        result.iterations = used.max(1);
+        result.converged = x == to && used < stage.max_iterations;
+        Ok(Some(result))
+    };
+    let scored = scored_with_defaults(&proposal, settle);
+    let places: Vec<(usize, f64)> = scored
+        .places
+        .iter()
+        .map(|p| (p.rank, p.pose.translation.x))
+        .collect();
+    assert_eq!(places, vec![(0, 0.0), (1, 26.0), (2, -10.0)]);
+    let settles = settles.into_inner().unwrap();
+    let from_rank_1: Vec<f64> = settles.iter().copied().filter(|&x| x > 5.0).collect();
+    assert_eq!(from_rank_1, vec![30.0, 28.0], "two rounds, then it stops");
+    let from_rank_2 = settles.iter().filter(|&&x| x < -5.0).count();
+    assert_eq!(
+        from_rank_2, 10,
+        "ten rounds of two: all 20 coarse iterations"
+    );
+}
+
 /// A thinning count below 100 (and not 0) is refused, naming the key it came from.
 #[test]
 fn settle_and_score_points_are_checked_by_name() {
