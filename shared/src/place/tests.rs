@@ -1230,6 +1230,35 @@ fn at_x(x: f64) -> crate::geometry::Pose {
     crate::geometry::Pose::from_parts(Translation3::new(x, 0.0, 0.0), UnitQuaternion::identity())
 }
 
+/// A settling on a line that walks 1 m per iteration from `x0` towards `basin` for at
+/// most `max_iterations`, pairing `inlier_ratio` of the scan: converged when it got
+/// there with iterations to spare.
+fn walked_towards(
+    x0: f64,
+    basin: f64,
+    inlier_ratio: f64,
+    max_iterations: usize,
+) -> crate::registration::RegistrationResult {
+    let (mut x, mut used) = (x0, 0);
+    while used < max_iterations && x != basin {
+        x += (basin - x).clamp(-1.0, 1.0);
+        used += 1;
+    }
+    let mut result = settled_at(at_x(x), inlier_ratio);
+    result.iterations = used.max(1);
+    result.converged = x == basin && used < max_iterations;
+    result
+}
+
+/// Each scored place's rank and x.
+fn ranked_x(scored: &super::Scored) -> Vec<(usize, f64)> {
+    scored
+        .places
+        .iter()
+        .map(|p| (p.rank, p.pose.translation.x))
+        .collect()
+}
+
 /// [`super::score_places`] of `proposal` with the default settings, pairs within 1 m.
 fn scored_with_defaults(
     proposal: &super::Proposal,
@@ -1323,22 +1352,9 @@ fn places_settle_in_rounds_and_stop_on_a_better_ranked_one() {
             return Ok::<_, ()>(Some(settled_at(at(x0), score)));
         }
         settles.lock().unwrap().push((x0, stage.max_iterations));
-        let (mut x, mut used) = (x0, 0);
-        while used < stage.max_iterations && x != basin {
-            x += (basin - x).clamp(-1.0, 1.0);
-            used += 1;
-        }
-        let mut result = settled_at(at(x), score);
-        result.iterations = used.max(1);
-        result.converged = x == basin && used < stage.max_iterations;
-        Ok(Some(result))
+        Ok(Some(walked_towards(x0, basin, score, stage.max_iterations)))
     };
-    let scored = scored_with_defaults(&proposal, settle);
-    let places: Vec<(usize, f64)> = scored
-        .places
-        .iter()
-        .map(|p| (p.rank, p.pose.translation.x))
-        .collect();
+    let places = ranked_x(&scored_with_defaults(&proposal, settle));
     assert_eq!(
         places,
         vec![(0, 0.0), (2, 10.0)],
@@ -1388,22 +1404,9 @@ fn a_place_pairing_far_less_than_the_best_stops_settling_after_two_rounds() {
             return Ok::<_, ()>(Some(settled_at(at_x(x0), ratio)));
         }
         settles.lock().unwrap().push(x0);
-        let (mut x, mut used) = (x0, 0);
-        while used < stage.max_iterations && x != to {
-            x += (to - x).clamp(-1.0, 1.0);
-            used += 1;
-        }
-        let mut result = settled_at(at_x(x), ratio);
-        result.iterations = used.max(1);
-        result.converged = x == to && used < stage.max_iterations;
-        Ok(Some(result))
+        Ok(Some(walked_towards(x0, to, ratio, stage.max_iterations)))
     };
-    let scored = scored_with_defaults(&proposal, settle);
-    let places: Vec<(usize, f64)> = scored
-        .places
-        .iter()
-        .map(|p| (p.rank, p.pose.translation.x))
-        .collect();
+    let places = ranked_x(&scored_with_defaults(&proposal, settle));
     assert_eq!(places, vec![(0, 0.0), (1, 26.0), (2, -10.0)]);
     let settles = settles.into_inner().unwrap();
     let from_rank_1: Vec<f64> = settles.iter().copied().filter(|&x| x > 5.0).collect();
