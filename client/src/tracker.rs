@@ -1122,7 +1122,7 @@ impl Tracker {
                 localized.health.reasons.insert(Reasons::RECOVERING);
                 localized.health.status = TrackingStatus::Degraded;
             }
-            if let (Some(last), true) = (self.motion.last(), by_model) {
+            if by_model && let Some(last) = self.motion.last() {
                 let moved = last.inverse() * localized.pose;
                 self.gate.observe(&predicted, &localized.pose, &moved);
             }

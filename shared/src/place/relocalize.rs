@@ -651,19 +651,11 @@ fn settle_in_rounds<E: Send>(
             })?;
         // From the second round on, a place pairing far less of the coarse scan than
         // the best one stops where it is and is scored there (see `SETTLE_GIVE_UP`).
-        let best = places
-            .iter()
-            .filter_map(|p| p.result.as_ref().map(|r| r.fitness.inlier_ratio))
-            .fold(0.0, f64::max);
         if rounds >= 2 {
+            let ratio = |p: &Settling| p.result.as_ref().map(|r| r.fitness.inlier_ratio);
+            let best = places.iter().filter_map(ratio).fold(0.0, f64::max);
             for place in places.iter_mut().filter(|p| p.running) {
-                if place
-                    .result
-                    .as_ref()
-                    .is_some_and(|r| r.fitness.inlier_ratio + SETTLE_GIVE_UP < best)
-                {
-                    place.running = false;
-                }
+                place.running = ratio(place).is_none_or(|r| r + SETTLE_GIVE_UP >= best);
             }
         }
         for later in 1..places.len() {
