@@ -1,5 +1,6 @@
 //! `kfmap`: the command-line front end. Each subcommand lives in `commands/`; the work
-//! itself is in the `kfmap-shared`, `kfmap-service` and `kfmap-client` crates.
+//! itself is in the `kfmap-geometry`, `kfmap-map`, `kfmap-graph`, `kfmap-service` and
+//! `kfmap-client` crates.
 
 mod commands;
 mod data_dir;

@@ -1,14 +1,14 @@
 //! `bake.toml`: how `kfmap bake` reads a dataset, builds poses and what the baked map
 //! holds, validated section by section.
 
-use kfmap_shared::cloud::FilterOptions;
-use kfmap_shared::cov::CovOptions;
-use kfmap_shared::covis::CovisOptions;
-use kfmap_shared::gravity::GravityParams;
-use kfmap_shared::io::BinLayout;
-use kfmap_shared::map::{ActiveSetMode, Cov2CovMode, KeyframeDecider, KeyframeMapOptions};
-use kfmap_shared::options::{ConfigFile, InvalidOption, ensure};
-use kfmap_shared::select::SelectionOptions;
+use kfmap_geometry::cloud::FilterOptions;
+use kfmap_geometry::cov::CovOptions;
+use kfmap_geometry::gravity::GravityParams;
+use kfmap_geometry::io::BinLayout;
+use kfmap_geometry::options::{ConfigFile, InvalidOption, ensure};
+use kfmap_map::covis::CovisOptions;
+use kfmap_map::map::{ActiveSetMode, Cov2CovMode, KeyframeDecider, KeyframeMapOptions};
+use kfmap_map::select::SelectionOptions;
 use serde::{Deserialize, Serialize};
 
 use crate::mapping::BuildParams;

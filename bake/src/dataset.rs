@@ -4,8 +4,8 @@
 use std::ops::Range;
 use std::path::{Path, PathBuf};
 
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::io::read_trajectory;
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::io::read_trajectory;
 
 use crate::error::BakeError;
 use crate::files::{POSE_FILES, find_in};

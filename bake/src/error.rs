@@ -3,10 +3,10 @@
 
 use std::path::PathBuf;
 
-use kfmap_shared::archive::ArchiveError;
-use kfmap_shared::io::IoError;
-use kfmap_shared::pose_graph::{G2oError, GraphError};
-use kfmap_shared::registration::RegistrationError;
+use kfmap_geometry::io::IoError;
+use kfmap_geometry::registration::RegistrationError;
+use kfmap_graph::pose_graph::{G2oError, GraphError};
+use kfmap_map::archive::ArchiveError;
 
 use crate::gravity::GravityError;
 use crate::mapping::GlobalError;
@@ -73,7 +73,7 @@ pub enum BakeError {
     RefineOnly(String),
     /// A tile set's index could not be used.
     #[error(transparent)]
-    TileIndex(#[from] kfmap_shared::tiles::TileError),
+    TileIndex(#[from] kfmap_map::tiles::TileError),
     /// The pose graph could not be assembled or written.
     #[error("writing the pose graph: {0}")]
     Graph(#[from] G2oError),

@@ -5,16 +5,16 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use kfmap_shared::KeyframeId;
-use kfmap_shared::archive::GravityRecord;
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::gravity::{
+use kfmap_geometry::KeyframeId;
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::gravity::{
     GravityAligner, GravityCorrection, GravityParams, KeyframeStamp, MotionModel, PoolFill,
     fill_pool,
 };
-use kfmap_shared::imu::{ImuSample, read_imu_csv};
-use kfmap_shared::io::{IoError, Trajectory, read_trajectory};
-use kfmap_shared::options::InvalidOption;
+use kfmap_geometry::imu::{ImuSample, read_imu_csv};
+use kfmap_geometry::io::{IoError, Trajectory, read_trajectory};
+use kfmap_geometry::options::InvalidOption;
+use kfmap_map::archive::GravityRecord;
 
 use kfmap_bag::msg::decode_imu;
 use kfmap_bag::{Bag, BagError};

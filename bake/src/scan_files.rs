@@ -4,8 +4,8 @@
 
 use std::path::{Path, PathBuf};
 
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::io::{IoError, ReadOptions, read_cloud};
+use kfmap_geometry::cloud::PointCloud;
+use kfmap_geometry::io::{IoError, ReadOptions, read_cloud};
 
 use crate::config::BakeConfig;
 use crate::error::BakeError;

@@ -9,8 +9,8 @@ use std::sync::Arc;
 
 use kfmap_bag::msg::decode_point_cloud2;
 use kfmap_bag::{Bag, BagError, MessageRef, Topic};
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::io::BinLayout;
+use kfmap_geometry::cloud::PointCloud;
+use kfmap_geometry::io::BinLayout;
 
 use crate::config::BakeConfig;
 use crate::error::BakeError;

@@ -10,20 +10,20 @@ use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::time::Instant;
 
-use kfmap_shared::KeyframeId;
-use kfmap_shared::archive::{
-    ArchiveError, GravityRecord, MapWriter, OpenOptions, SerializedKeyframe, WriteSummary, open_map,
-};
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::covis::CovisSnapshot;
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::io::{
+use kfmap_geometry::KeyframeId;
+use kfmap_geometry::cloud::PointCloud;
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::io::{
     IoError, PcdData, sync_file_system, write_atomic, write_pcd, write_replacing,
 };
-use kfmap_shared::map::{Keyframe, KeyframeMapOptions};
-use kfmap_shared::place::{GridBuilder, GridContribution, GridError, GridParams, MarkedVoxels};
-use kfmap_shared::select::{SelectionOptions, rank, select_active};
-use kfmap_shared::tiles::{
+use kfmap_map::archive::{
+    ArchiveError, GravityRecord, MapWriter, OpenOptions, SerializedKeyframe, WriteSummary, open_map,
+};
+use kfmap_map::covis::CovisSnapshot;
+use kfmap_map::map::{Keyframe, KeyframeMapOptions};
+use kfmap_map::place::{GridBuilder, GridContribution, GridError, GridParams, MarkedVoxels};
+use kfmap_map::select::{SelectionOptions, rank, select_active};
+use kfmap_map::tiles::{
     AUTOWARE_METADATA_FILE, INDEX_FILE, INDEX_FORMAT, TileEntry, TileGeometry, TileIndex, tile_id,
 };
 use rayon::prelude::*;
@@ -643,7 +643,7 @@ pub fn merged_map_path(dir: &Path) -> PathBuf {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use kfmap_shared::place::PlaceGrid;
+    use kfmap_map::place::PlaceGrid;
     use nalgebra::Vector3;
 
     /// Keyframes spread over a `side` x `side` square (an R2 low-discrepancy sequence),
@@ -773,7 +773,7 @@ mod tests {
                 Keyframe::build(id, pose, id as f64, scan(id), &options.covariance).unwrap()
             })
             .collect();
-        let mut covis = kfmap_shared::covis::CovisibilityGraph::new(options.covisibility);
+        let mut covis = kfmap_map::covis::CovisibilityGraph::new(options.covisibility);
         for k in &keyframes {
             covis.set_keyframe(k.id, k.map_points().unwrap());
         }
@@ -878,7 +878,7 @@ mod tests {
             assert!(marked > 0, "tile {}: an empty grid", entry.id);
             let pcd_path = tiles.join(&entry.pcd);
             let bytes = std::fs::read(&pcd_path).unwrap();
-            let (cloud, _, _) = kfmap_shared::io::read_pcd(&pcd_path, &bytes).unwrap();
+            let (cloud, _, _) = kfmap_geometry::io::read_pcd(&pcd_path, &bytes).unwrap();
             assert!(!cloud.points.is_empty(), "tile {}", entry.id);
             for p in &cloud.points {
                 let (x, y) = (f64::from(p[0]), f64::from(p[1]));

@@ -4,7 +4,7 @@
 //! `cargo run --release -p kfmap-client --example track -- MAP_NAME SCAN_DIR`
 
 use kfmap_client::{Client, ClientOptions, Tracker, TrackerOptions};
-use kfmap_shared::io::{ReadOptions, read_cloud};
+use kfmap_geometry::io::{ReadOptions, read_cloud};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();

@@ -9,11 +9,11 @@ use iceoryx2::port::client::Client as RpcClient;
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::prelude::PortFactory;
+use kfmap_geometry::cov::CovOptions;
 use kfmap_protocol::transport::{
     ALLOCATION, INITIAL_SLICE_LEN, Transport, create_node, iceoryx_config, iox, no_room_for_client,
     open_request_event, open_response_event, open_rpc,
 };
-use kfmap_shared::cov::CovOptions;
 use std::mem::MaybeUninit;
 
 use kfmap_protocol::{
@@ -145,7 +145,7 @@ impl Connection {
 
     /// The tile set's index when the map is served remotely in tiles.
     #[cfg(feature = "remote")]
-    pub fn tile_index(&self) -> Option<&kfmap_shared::tiles::TileIndex> {
+    pub fn tile_index(&self) -> Option<&kfmap_map::tiles::TileIndex> {
         match &self.link {
             Link::Remote(link) => link.tile_index(),
             Link::Local { .. } => None,

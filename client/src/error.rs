@@ -2,9 +2,9 @@
 
 use std::time::Duration;
 
+use kfmap_geometry::registration::RegistrationError;
 use kfmap_protocol::StatusCode;
 use kfmap_protocol::transport::TransportError;
-use kfmap_shared::registration::RegistrationError;
 
 /// Why a call failed.
 #[derive(Debug, thiserror::Error)]

@@ -4,8 +4,8 @@
 //! a place is dropped once it explains the scans clearly worse than the best one. One
 //! left is the answer; look-alikes that stay alike stay undecided.
 
-use kfmap_shared::geometry::{Pose, rotation_distance, translation_distance};
-use kfmap_shared::options::{InvalidOption, ensure, ensure_distance, ensure_ratio};
+use kfmap_geometry::geometry::{Pose, rotation_distance, translation_distance};
+use kfmap_geometry::options::{InvalidOption, ensure, ensure_distance, ensure_ratio};
 use serde::{Deserialize, Serialize};
 
 use crate::ScoredPlace;

@@ -5,7 +5,7 @@
 //!
 //! ```no_run
 //! use kfmap_client::{Client, ClientOptions};
-//! use kfmap_shared::geometry::Pose;
+//! use kfmap_geometry::geometry::Pose;
 //!
 //! let mut client = Client::connect("site", ClientOptions::default())?;
 //! let scan = vec![[1.0f32, 0.0, 0.0]; 1000];
@@ -36,14 +36,14 @@ pub use localize::{LocalizeOptions, Localized};
 pub use relocalize::{RelocalizeOptions, Relocalized, ScoredPlace};
 pub use tracker::{TrackedScan, Tracker, TrackerOptions, TrustParams};
 
+use kfmap_geometry::KeyframeId;
+use kfmap_geometry::cov::CovOptions;
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::imu::ImuSample;
 use kfmap_protocol::{
     Cov2CovMode, KIND_SLOTS, RequestHeader, RequestKind, ScanPayload, WirePairing,
     WireSessionGravity, imu_payload, pose_from_wire, pose_to_wire,
 };
-use kfmap_shared::KeyframeId;
-use kfmap_shared::cov::CovOptions;
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::imu::ImuSample;
 
 /// Cov2cov pairings and the keyframes they came from.
 #[derive(Debug, Clone)]

@@ -1,18 +1,18 @@
 //! Localization of one scan against the server: server-side (`Localize`, for thin
 //! clients) or client-side (this process iterates the shared GICP solver over
 //! `Cov2Cov` answers). Both run the same checks and retry ladder
-//! ([`kfmap_shared::tracking::localize_scan`]) on the same pairings, so they land on the
+//! ([`kfmap_geometry::tracking::localize_scan`]) on the same pairings, so they land on the
 //! same pose with the same health.
 
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::registration::{Constraint, RegistrationError, solve_pose};
+use kfmap_geometry::tracking::{
+    Expectation, PreparedScan, Reasons, ScanHealth, TrackingParams, TrackingStatus,
+    covariance_from_wire, localize_scan,
+};
 use kfmap_protocol::{
     Cov2CovMode, FLAG_STAMPED, RequestHeader, RequestKind, ScanPayload, correspondences_from_wire,
     localize_stage, pose_from_wire, pose_to_wire,
-};
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::registration::{Constraint, RegistrationError, solve_pose};
-use kfmap_shared::tracking::{
-    Expectation, PreparedScan, Reasons, ScanHealth, TrackingParams, TrackingStatus,
-    covariance_from_wire, localize_scan,
 };
 
 use crate::{Client, ClientError};
@@ -28,7 +28,7 @@ pub struct LocalizeOptions {
     pub mode: Cov2CovMode,
     /// The largest correction from the guess the caller's motion model allows: metres
     /// of translation plus the chord a point at
-    /// [`kfmap_shared::tracking::CORRECTION_RANGE_M`] sweeps; `None` for no bound (no
+    /// [`kfmap_geometry::tracking::CORRECTION_RANGE_M`] sweeps; `None` for no bound (no
     /// motion model yet). Sent as f32.
     pub max_correction: Option<f64>,
     /// The inlier ratio the caller expects (e.g. that of the scans before); a first

@@ -1,12 +1,12 @@
 //! Global relocalization of one scan by the server (`Relocalize`): no pose guess.
 
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::tracking::covariance_from_wire;
+use kfmap_map::place::RelocalizeStatus;
 use kfmap_protocol::{
     FLAG_LEVELLED, RequestHeader, RequestKind, ScanPayload, WirePlace, place_from_wire,
     pose_from_wire, pose_to_wire,
 };
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::place::RelocalizeStatus;
-use kfmap_shared::tracking::covariance_from_wire;
 use nalgebra::{Matrix6, UnitQuaternion};
 
 use crate::{Client, ClientError};

@@ -7,6 +7,7 @@ use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use kfmap_map::tiles::{Route, TileGeometry, TileIndex, TileRouter};
 use kfmap_protocol::remote::{
     RemoteFailure, WHOLE_MAP_TILE, alive_pattern, check_key_chunk, decode_request, encode_request,
     rpc_all_tiles_key, rpc_key, tile_index_key, tile_of_alive_key, tile_of_rpc_key,
@@ -14,7 +15,6 @@ use kfmap_protocol::remote::{
 use kfmap_protocol::{
     FLAG_FINISH_CHOSEN, FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN, RequestHeader, RequestKind,
 };
-use kfmap_shared::tiles::{Route, TileGeometry, TileIndex, TileRouter};
 use zenoh::Wait;
 use zenoh::query::{ConsolidationMode, QueryTarget};
 use zenoh::sample::SampleKind;

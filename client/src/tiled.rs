@@ -8,13 +8,13 @@
 //! farther than `distinct-m` / `distinct-deg` from it is a runner-up, and a runner-up
 //! within `ambiguity-margin` makes the answer `ambiguous`.
 
+use kfmap_geometry::geometry::{Pose, rotation_distance, translation_distance};
+use kfmap_map::place::{RelocalizeParams, RelocalizeStatus, another_place};
+use kfmap_map::tiles::{PlaceRanking, TileGeometry, tile_id};
 use kfmap_protocol::remote::{decode_answer, encode_answer};
 use kfmap_protocol::{
     PLACES_FROM_RELIEF, ResponseHeader, StatusCode, WirePlace, place_from_wire, pose_from_wire,
 };
-use kfmap_shared::geometry::{Pose, rotation_distance, translation_distance};
-use kfmap_shared::place::{RelocalizeParams, RelocalizeStatus, another_place};
-use kfmap_shared::tiles::{PlaceRanking, TileGeometry, tile_id};
 
 use crate::ClientError;
 use crate::error::RemoteError;

@@ -8,20 +8,20 @@
 //! adopted scans in a row that do not fit the map it says `lost` (and relocalizes, with
 //! the IMU's tilt when it has one) instead of following its own prediction.
 
-use kfmap_protocol::ScanPayload;
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::imu::ImuSample;
-use kfmap_shared::motion::{
+use kfmap_geometry::cloud::PointCloud;
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::imu::ImuSample;
+use kfmap_geometry::motion::{
     AdaptiveThreshold, AdaptiveThresholdParams, Gyro, GyroError, GyroParams, PosePredictor,
     point_displacement,
 };
-use kfmap_shared::options::{InvalidOption, ensure, ensure_ratio};
-use kfmap_shared::registration::{RegistrationParams, register};
-use kfmap_shared::tracking::{CORRECTION_RANGE_M, Reasons, ScanHealth, TrackingStatus};
+use kfmap_geometry::options::{InvalidOption, ensure, ensure_ratio};
+use kfmap_geometry::registration::{RegistrationParams, register};
+use kfmap_geometry::tracking::{CORRECTION_RANGE_M, Reasons, ScanHealth, TrackingStatus};
+use kfmap_protocol::ScanPayload;
 use serde::{Deserialize, Serialize};
 
-use kfmap_shared::place::{Ground, RelocalizeStatus, levelling, off_ground};
+use kfmap_map::place::{Ground, RelocalizeStatus, levelling, off_ground};
 
 use crate::hypotheses::{self, Hypothesis, HypothesisParams, distinct, near_best};
 use crate::{Client, ClientError, LocalizeOptions, Localized, RelocalizeOptions, ScoredPlace};
@@ -35,7 +35,7 @@ pub struct TrackerOptions {
     /// process (cov2cov answers); both decide alike.
     pub server_side: bool,
     /// The correction gate: `sigmas` times the RMS of past corrections (metres of
-    /// point displacement at [`kfmap_shared::tracking::CORRECTION_RANGE_M`], whatever
+    /// point displacement at [`kfmap_geometry::tracking::CORRECTION_RANGE_M`], whatever
     /// `range` says: the ladder measures corrections there), within `[min, max]`.
     pub gate: AdaptiveThresholdParams,
     /// Deskew scans that carry per-point times ([`Tracker::track_cloud`]).
@@ -1058,7 +1058,7 @@ impl Tracker {
         let mid = self
             .motion
             .mid_scan(cloud, stamp, self.options.deskew)
-            .map_err(kfmap_shared::registration::RegistrationError::from)?;
+            .map_err(kfmap_geometry::registration::RegistrationError::from)?;
         let cloud = mid.deskewed.as_ref().unwrap_or(cloud);
         let scan = ScanPayload {
             points: &cloud.points,
@@ -1146,7 +1146,7 @@ impl Tracker {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use kfmap_shared::geometry::translation_distance;
+    use kfmap_geometry::geometry::translation_distance;
 
     fn at(x: f64) -> Pose {
         Pose::translation(x, 0.0, 0.0)

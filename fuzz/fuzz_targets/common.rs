@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 
-use kfmap_shared::cloud::PointCloud;
+use kfmap_geometry::cloud::PointCloud;
 use std::sync::OnceLock;
 
 /// A temporary file path private to this process: `kfmap-fuzz-<tag>-<pid><ext>`.

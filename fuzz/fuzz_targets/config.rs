@@ -12,9 +12,9 @@ mod common;
 use std::path::Path;
 
 use kfmap_bake::config::BakeConfig;
+use kfmap_geometry::options::{ConfigError, ConfigFile};
+use kfmap_map::map::KeyframeMapOptions;
 use kfmap_service::config::ServerConfig;
-use kfmap_shared::options::{ConfigError, ConfigFile};
-use kfmap_shared::map::KeyframeMapOptions;
 use libfuzzer_sys::fuzz_target;
 
 fn round_trip<C: ConfigFile + serde::Serialize>(config: &C, path: &Path) {

@@ -9,8 +9,8 @@
 #[path = "common.rs"]
 mod common;
 
-use kfmap_shared::pose_graph::{GraphParams, read_g2o, write_g2o};
-use kfmap_shared::registration::Optimizer;
+use kfmap_geometry::registration::Optimizer;
+use kfmap_graph::pose_graph::{GraphParams, read_g2o, write_g2o};
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {

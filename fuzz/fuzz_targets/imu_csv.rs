@@ -9,7 +9,7 @@ mod common;
 
 use std::path::Path;
 
-use kfmap_shared::imu::{format_imu_csv, parse_imu_csv};
+use kfmap_geometry::imu::{format_imu_csv, parse_imu_csv};
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {

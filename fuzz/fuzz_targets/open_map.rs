@@ -3,7 +3,7 @@
 //! (seed the corpus with a small baked map, e.g. from `kfmap bake`).
 #![no_main]
 
-use kfmap_shared::archive::{OpenOptions, open_map};
+use kfmap_map::archive::{OpenOptions, open_map};
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {

@@ -9,7 +9,7 @@ mod common;
 
 use std::path::Path;
 
-use kfmap_shared::io::{BinLayout, read_bin, write_bin};
+use kfmap_geometry::io::{BinLayout, read_bin, write_bin};
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {

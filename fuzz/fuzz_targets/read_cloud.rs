@@ -9,8 +9,8 @@
 #[path = "common.rs"]
 mod common;
 
-use kfmap_shared::cloud::FilterOptions;
-use kfmap_shared::io::{BinLayout, ReadOptions, read_cloud};
+use kfmap_geometry::cloud::FilterOptions;
+use kfmap_geometry::io::{BinLayout, ReadOptions, read_cloud};
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {

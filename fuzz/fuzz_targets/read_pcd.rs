@@ -10,7 +10,7 @@ mod common;
 
 use std::path::Path;
 
-use kfmap_shared::io::{PcdData, read_pcd, write_pcd};
+use kfmap_geometry::io::{PcdData, read_pcd, write_pcd};
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {

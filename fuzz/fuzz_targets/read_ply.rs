@@ -10,7 +10,7 @@ mod common;
 
 use std::path::Path;
 
-use kfmap_shared::io::{PlyEncoding, read_ply, write_ply};
+use kfmap_geometry::io::{PlyEncoding, read_ply, write_ply};
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {

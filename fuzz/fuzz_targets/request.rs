@@ -12,13 +12,13 @@
 mod common;
 
 use arbitrary::{Arbitrary, Unstructured};
-use kfmap_service::server::localize_params;
 use kfmap_protocol::{
     Cov2CovMode, FLAG_COVARIANCES, FLAG_STAMPED, FLAG_VIEW_DIRS, IMU_SAMPLE_FLOATS, MESSAGE_LEN,
     PROTOCOL_VERSION, RequestHeader, RequestKind, StatusCode, WirePairing, check_version,
     correspondences_from_wire, decode_imu, decode_scan, decode_stamp, pose_from_wire, read_text,
     write_text,
 };
+use kfmap_service::server::localize_params;
 use libfuzzer_sys::fuzz_target;
 
 /// The server's limits (`DEFAULT_MAX_POINTS`, and `MAX_IMU_SAMPLES` of answer.rs).

@@ -10,8 +10,10 @@ mod common;
 
 use std::path::Path;
 
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::io::{Trajectory, format_kitti_poses, format_tum, parse_kitti_poses, parse_tum};
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::io::{
+    Trajectory, format_kitti_poses, format_tum, parse_kitti_poses, parse_tum,
+};
 use libfuzzer_sys::fuzz_target;
 
 fn check_poses(what: &str, traj: &Trajectory) {

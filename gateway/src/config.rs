@@ -1,6 +1,6 @@
 //! `gateway.toml`: the gateway's configuration, validated.
 
-use kfmap_shared::options::{ConfigFile, InvalidOption, ensure};
+use kfmap_geometry::options::{ConfigFile, InvalidOption, ensure};
 use serde::{Deserialize, Serialize};
 
 /// The default `config/gateway.toml`, as shipped.

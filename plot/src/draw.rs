@@ -102,7 +102,7 @@ pub(super) fn render_to_file(
             svg.into_bytes()
         }
     };
-    kfmap_shared::io::write_atomic(out, &bytes).context("cannot write the picture")?;
+    kfmap_geometry::io::write_atomic(out, &bytes).context("cannot write the picture")?;
     Ok(())
 }
 
@@ -750,9 +750,9 @@ fn draw_symbol<DB: DrawingBackend>(
 }
 
 /// The `q`-quantile (0..=1) of sorted values by nearest rank, the definition of
-/// `kfmap_shared::percentile`; `None` when empty.
+/// `kfmap_geometry::percentile`; `None` when empty.
 pub(super) fn quantile(sorted: &[f64], q: f64) -> Option<f64> {
-    (!sorted.is_empty()).then(|| kfmap_shared::percentile::percentile(sorted, q))
+    (!sorted.is_empty()).then(|| kfmap_geometry::percentile::percentile(sorted, q))
 }
 
 #[cfg(test)]

@@ -5,8 +5,8 @@ use std::collections::HashMap;
 use std::path::Path;
 
 use anyhow::Context;
-use kfmap_shared::archive::{ArchiveError, OpenOptions, open_map};
-use kfmap_shared::map::KeyframeMap;
+use kfmap_map::archive::{ArchiveError, OpenOptions, open_map};
+use kfmap_map::map::KeyframeMap;
 use nalgebra::Vector3;
 use plotters::coord::Shift;
 use plotters::prelude::*;
@@ -118,7 +118,7 @@ impl Sampled {
                 .with_context(|| format!("{}: cannot read keyframe {}", path.display(), k.id))?;
             let first = (stride - seen % stride) % stride;
             for p in view.points.iter().skip(first).step_by(stride) {
-                let q = kfmap_shared::geometry::transform_point(&k.pose, p);
+                let q = kfmap_geometry::geometry::transform_point(&k.pose, p);
                 out.points.push([q.x, q.y, q.z]);
             }
             seen += view.points.len();

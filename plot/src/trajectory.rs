@@ -4,9 +4,9 @@
 use std::path::Path;
 
 use anyhow::Context;
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::io::read_trajectory;
-use kfmap_shared::trajectory_error::rigid_alignment;
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::io::read_trajectory;
+use kfmap_geometry::trajectory_error::rigid_alignment;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 

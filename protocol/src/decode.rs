@@ -8,10 +8,10 @@ use super::wire::{
     FLAG_STAMPED, FLAG_VIEW_DIRS, RequestHeader, WirePairing,
 };
 use super::{IMU_SAMPLE_FLOATS, PROTOCOL_VERSION, StatusCode};
-use kfmap_shared::geometry::{PackedSym3, to_vec3, unpack_sym3};
-use kfmap_shared::imu::ImuSample;
-use kfmap_shared::map::Pairing;
-use kfmap_shared::registration::Correspondence;
+use kfmap_geometry::geometry::{PackedSym3, to_vec3, unpack_sym3};
+use kfmap_geometry::imu::ImuSample;
+use kfmap_geometry::registration::Correspondence;
+use kfmap_map::map::Pairing;
 
 /// Why a request was refused: the status, a message naming the problem, a detail value.
 #[derive(Debug, Clone, PartialEq)]

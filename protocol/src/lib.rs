@@ -30,9 +30,9 @@ pub use wire::{
     WireRanking, WireSessionGravity, read_text, write_text,
 };
 
-use kfmap_shared::geometry::{Pose, pose_from_xyz_quat, pose_to_xyz_quat};
-pub use kfmap_shared::map::Cov2CovMode;
-use kfmap_shared::tracking::Stage;
+use kfmap_geometry::geometry::{Pose, pose_from_xyz_quat, pose_to_xyz_quat};
+use kfmap_geometry::tracking::Stage;
+pub use kfmap_map::map::Cov2CovMode;
 
 /// Version of this protocol; a peer of another version gets `VersionMismatch`.
 pub const PROTOCOL_VERSION: u32 = 9;

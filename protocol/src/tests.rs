@@ -1,5 +1,5 @@
 use super::*;
-use kfmap_shared::imu::ImuSample;
+use kfmap_geometry::imu::ImuSample;
 
 fn scan_header(kind: RequestKind) -> RequestHeader {
     RequestHeader {
@@ -301,7 +301,7 @@ fn header_layouts_are_the_documented_ones() {
 
 #[test]
 fn covariance_options_round_trip_through_a_status_report() {
-    use kfmap_shared::cov::{CovCenter, CovOptions};
+    use kfmap_geometry::cov::{CovCenter, CovOptions};
     // Every field off its default, so a swapped or dropped field fails.
     let options = CovOptions {
         k_correspondences_for_cov: 12,

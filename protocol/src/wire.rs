@@ -6,8 +6,8 @@
 // (crate::remote) rely on it.
 use bytemuck::{Pod, Zeroable};
 use iceoryx2::prelude::ZeroCopySend;
-use kfmap_shared::cov::{CovCenter, CovOptions};
-use kfmap_shared::tiles::PlaceRanking;
+use kfmap_geometry::cov::{CovCenter, CovOptions};
+use kfmap_map::tiles::PlaceRanking;
 
 /// Bytes of a response's status message (UTF-8, zero padded).
 pub const MESSAGE_LEN: usize = 240;
@@ -60,7 +60,7 @@ pub struct RequestHeader {
     pub max_iterations: u32,
     /// `Localize`: the largest correction from the pose guess (the client's prediction)
     /// its motion model allows, metres of translation plus the chord a point at
-    /// [`kfmap_shared::tracking::CORRECTION_RANGE_M`] sweeps; 0 = no motion model (no bound).
+    /// [`kfmap_geometry::tracking::CORRECTION_RANGE_M`] sweeps; 0 = no motion model (no bound).
     pub max_correction: f32,
     /// Keyframe or scan the IMU window belongs to (`ImuWindow`); `Relocalize` with
     /// `FLAG_SCORE_CHOSEN` or `FLAG_FINISH_CHOSEN`: the ranks chosen, bit r for rank r.
@@ -233,7 +233,7 @@ pub struct ResponseHeader {
     /// `Localize`: 6x6 pose covariance, row-major, all zero when unknown: the inverse
     /// Hessian scaled by the residual variance, of the perturbation `T exp(d)` with `d`
     /// = (rotation rad, translation m) in the sensor frame, rotation first
-    /// ([`kfmap_shared::tracking::pose_covariance`]).
+    /// ([`kfmap_geometry::tracking::pose_covariance`]).
     pub covariance: [f64; 36],
     /// `Localize`: inlier ratio and RMSE (metres).
     pub fitness: [f64; 2],
@@ -242,10 +242,10 @@ pub struct ResponseHeader {
     pub iterations: u32,
     /// See `iterations`.
     pub converged: u32,
-    /// `Localize`: [`kfmap_shared::tracking::TrackingStatus`] code (0 ok, 1 degraded, 2 lost;
+    /// `Localize`: [`kfmap_geometry::tracking::TrackingStatus`] code (0 ok, 1 degraded, 2 lost;
     /// lost answers carry the pose guess).
     pub tracking: u32,
-    /// `Localize`: [`kfmap_shared::tracking::Reasons`] bits.
+    /// `Localize`: [`kfmap_geometry::tracking::Reasons`] bits.
     pub reasons: u32,
     /// `Localize`: registrations run (1 when the first passed every check).
     pub registrations: u32,
@@ -256,7 +256,7 @@ pub struct ResponseHeader {
     pub constraint: [f64; 2],
     /// `Localize`: correction from the pose guess, metres (as `max_correction`).
     pub pose_correction: f64,
-    /// `Relocalize`: [`kfmap_shared::place::RelocalizeStatus`] code (0 found, 1 ambiguous,
+    /// `Relocalize`: [`kfmap_map::place::RelocalizeStatus`] code (0 found, 1 ambiguous,
     /// 2 not-found). `pose`, `covariance`, `fitness` are the best place's.
     pub relocalization: u32,
     /// `Relocalize`: places the search proposed (each verified by registration).
@@ -339,7 +339,7 @@ pub struct ResponseHeader {
 }
 
 /// A server's place-ranking settings as a status report carries them
-/// ([`kfmap_shared::tiles::PlaceRanking`]).
+/// ([`kfmap_map::tiles::PlaceRanking`]).
 ///
 /// Layout (48 bytes): keep_ratio 0, separation_m 8, separation_deg 16,
 /// ambiguity_margin 24, distinct_m 32, distinct_deg 40.
@@ -390,7 +390,7 @@ impl WireRanking {
 }
 
 /// Covariance-estimation options as a status report carries them
-/// ([`kfmap_shared::cov::CovOptions`]).
+/// ([`kfmap_geometry::cov::CovOptions`]).
 ///
 /// Layout (40 bytes): k_correspondences 0, min_correspondences 4, center 8, reserved
 /// 12, max_distance 16, lambda 24, max_plane_deviation 32.

@@ -8,6 +8,9 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::fmt::{Debug, Display};
 use std::mem::{align_of, offset_of, size_of};
 
+use kfmap_geometry::imu::ImuSample;
+use kfmap_geometry::tracking::{CORRECTION_RANGE_M, Reasons, TrackingStatus};
+use kfmap_map::place::RelocalizeStatus;
 use kfmap_protocol::transport::{INITIAL_SLICE_LEN, MAX_CLIENTS, MAX_CLIENTS_PER_PROCESS};
 use kfmap_protocol::{
     Cov2CovMode, DEFAULT_MAX_POINTS, FLAG_COVARIANCES, FLAG_FINISH_CHOSEN, FLAG_LEVELLED,
@@ -16,9 +19,6 @@ use kfmap_protocol::{
     ResponseHeader, STATUS_SESSIONS, ScanPayload, StatusCode, WireCovOptions, WirePairing,
     WirePlace, WireRanking, WireSessionGravity, decode_scan, imu_payload,
 };
-use kfmap_shared::imu::ImuSample;
-use kfmap_shared::place::RelocalizeStatus;
-use kfmap_shared::tracking::{CORRECTION_RANGE_M, Reasons, TrackingStatus};
 
 /// A file of the repository, by its path from the workspace root.
 fn repo_file(path: &str) -> String {
@@ -247,7 +247,7 @@ fn eval(expr: &str, names: &BTreeMap<&str, f64>) -> Option<f64> {
     Some(value)
 }
 
-/// A type name without module paths or spaces: `[kfmap_shared::x::T; 16]` -> `[T;16]`.
+/// A type name without module paths or spaces: `[kfmap_geometry::x::T; 16]` -> `[T;16]`.
 fn bare_type(name: &str) -> String {
     let mut out = String::new();
     let mut ident = String::new();
@@ -784,11 +784,11 @@ fn constants() -> Vec<(&'static str, f64)> {
             INITIAL_SLICE_LEN as f64,
         ),
         (
-            "kfmap_shared::gravity::MAX_MEMBERS",
-            kfmap_shared::gravity::MAX_MEMBERS as f64,
+            "kfmap_geometry::gravity::MAX_MEMBERS",
+            kfmap_geometry::gravity::MAX_MEMBERS as f64,
         ),
         (
-            "kfmap_shared::tracking::CORRECTION_RANGE_M",
+            "kfmap_geometry::tracking::CORRECTION_RANGE_M",
             CORRECTION_RANGE_M,
         ),
     ]
@@ -858,7 +858,13 @@ fn source_const(text: &str, name: &str) -> Option<f64> {
 
 /// The value a limit's source gives, or why it cannot be read.
 fn limit_source(source: &str) -> Result<f64, String> {
-    if source.starts_with("kfmap_shared::") || source.starts_with("kfmap_protocol::") {
+    let crates = [
+        "kfmap_geometry::",
+        "kfmap_map::",
+        "kfmap_graph::",
+        "kfmap_protocol::",
+    ];
+    if crates.iter().any(|c| source.starts_with(c)) {
         return constants()
             .into_iter()
             .find(|(n, _)| *n == source)

@@ -142,7 +142,7 @@ class TileEntry:
 @dataclass(frozen=True)
 class Ranking:
     """How the tiles' servers rank relocalization places (their ``[relocalize]``
-    settings, ``kfmap_shared::tiles::PlaceRanking``), as a gateway publishes them with the
+    settings, ``kfmap_map::tiles::PlaceRanking``), as a gateway publishes them with the
     tile index; the defaults are the servers' defaults."""
 
     keep_ratio: float = KEEP_RATIO

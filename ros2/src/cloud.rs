@@ -3,7 +3,7 @@
 //! included), and the served map written as a positions-only `PointCloud2`.
 
 use kfmap_bag::msg::{PointCloud2 as Layout, PointField as LayoutField};
-use kfmap_shared::cloud::{FilterOptions, PointCloud};
+use kfmap_geometry::cloud::{FilterOptions, PointCloud};
 
 use crate::msgs::{Header, PointCloud2, PointField};
 

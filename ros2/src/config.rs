@@ -2,7 +2,7 @@
 //! shipped file, `config/ros2.toml`).
 
 use kfmap_client::{HypothesisParams, TrustParams};
-use kfmap_shared::options::{ConfigFile, InvalidOption, ensure};
+use kfmap_geometry::options::{ConfigFile, InvalidOption, ensure};
 use serde::{Deserialize, Serialize};
 
 /// The default `config/ros2.toml`, as shipped.

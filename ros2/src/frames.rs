@@ -4,7 +4,7 @@
 
 use std::collections::{HashMap, VecDeque};
 
-use kfmap_shared::geometry::Pose;
+use kfmap_geometry::geometry::Pose;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 
 use crate::msgs::TransformStamped;

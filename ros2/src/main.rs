@@ -6,8 +6,8 @@ use std::sync::atomic::AtomicBool;
 
 use anyhow::Context as _;
 use clap::Parser;
+use kfmap_geometry::options::ConfigFile;
 use kfmap_ros2::config::{DEFAULT_ROS2_TOML, Ros2Config};
-use kfmap_shared::options::ConfigFile;
 use tracing_subscriber::layer::SubscriberExt as _;
 use tracing_subscriber::util::SubscriberInitExt as _;
 

@@ -2,7 +2,7 @@
 //! field order: DDS carries them as CDR, which is positional (docs/ROS2-INTEROP.md).
 //! Only the node's own messages live here; `kfmap_bag` decodes the point layouts.
 
-use kfmap_shared::geometry::Pose;
+use kfmap_geometry::geometry::Pose;
 use nalgebra::{Isometry3, Quaternion as NaQuaternion, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 use serde_big_array::BigArray;
@@ -271,9 +271,9 @@ pub struct Imu {
 impl Imu {
     /// The sample at the header stamp (as `kfmap_bag`'s `ImuMessage::sample` reads a
     /// bag's), `None` when a value is not finite.
-    pub fn sample(&self) -> Option<kfmap_shared::imu::ImuSample> {
+    pub fn sample(&self) -> Option<kfmap_geometry::imu::ImuSample> {
         let v = |m: &Vector3Msg| [m.x, m.y, m.z];
-        let sample = kfmap_shared::imu::ImuSample {
+        let sample = kfmap_geometry::imu::ImuSample {
             t: self.header.stamp.seconds(),
             acc: v(&self.linear_acceleration),
             gyro: v(&self.angular_velocity),

@@ -10,12 +10,12 @@ use std::time::{Duration, Instant};
 use anyhow::Context as _;
 use futures::StreamExt;
 use kfmap_client::{Client, ClientOptions, LocalizeOptions, TrackedScan, Tracker, TrackerOptions};
+use kfmap_geometry::cloud::PointCloud;
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::imu::ImuSample;
+use kfmap_geometry::motion::GyroParams;
+use kfmap_map::archive::{OpenOptions, open_map};
 use kfmap_protocol::Cov2CovMode;
-use kfmap_shared::archive::{OpenOptions, open_map};
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::imu::ImuSample;
-use kfmap_shared::motion::GyroParams;
 use ros2_client::dds::rustdds::Topic;
 use ros2_client::qos::{Durability, History, WhenFull};
 use ros2_client::{
@@ -330,7 +330,7 @@ impl Localizer<'_> {
             velocity,
         );
         self.last_base = Some((t, map_base));
-        let lost = health.status == kfmap_shared::tracking::TrackingStatus::Lost;
+        let lost = health.status == kfmap_geometry::tracking::TrackingStatus::Lost;
         if !lost {
             if let Err(e) = out.pose.publish(outputs.pose) {
                 tracing::warn!("pose not published: {e:?}");
@@ -758,7 +758,7 @@ mod tests {
     use std::path::Path;
 
     use kfmap_client::{HypothesisParams, TrustParams};
-    use kfmap_shared::options::ConfigFile;
+    use kfmap_geometry::options::ConfigFile;
 
     use super::tracker_options;
     use crate::config::Ros2Config;

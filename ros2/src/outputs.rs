@@ -2,8 +2,8 @@
 //! odometry, the map -> odom (or map -> base) transform and the diagnostics, built from
 //! the tracker's `T_map_sensor` and health.
 
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::tracking::{ScanHealth, TrackingStatus};
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::tracking::{ScanHealth, TrackingStatus};
 use nalgebra::{Matrix3, Matrix6, Vector3};
 
 use crate::msgs::{

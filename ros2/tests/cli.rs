@@ -5,8 +5,8 @@
 use std::path::PathBuf;
 use std::process::{Command, Output};
 
+use kfmap_geometry::options::ConfigFile;
 use kfmap_ros2::config::Ros2Config;
-use kfmap_shared::options::ConfigFile;
 
 fn node(args: &[&str], envs: &[(&str, &str)]) -> Output {
     let mut command = Command::new(env!("CARGO_BIN_EXE_kfmap-ros2"));

@@ -1,12 +1,12 @@
 //! `server.toml`: the map server's configuration, validated section by section.
 
+use kfmap_geometry::cloud::FilterOptions;
+use kfmap_geometry::cov::CovOptions;
+use kfmap_geometry::options::{ConfigFile, InvalidOption, ensure};
+use kfmap_geometry::tracking::TrackingParams;
+use kfmap_map::place::RelocalizeParams;
 use kfmap_protocol::Cov2CovMode;
 use kfmap_protocol::transport::{MAX_CLIENTS, MAX_CLIENTS_PER_PROCESS};
-use kfmap_shared::cloud::FilterOptions;
-use kfmap_shared::cov::CovOptions;
-use kfmap_shared::options::{ConfigFile, InvalidOption, ensure};
-use kfmap_shared::place::RelocalizeParams;
-use kfmap_shared::tracking::TrackingParams;
 use serde::{Deserialize, Serialize};
 
 /// The default `config/server.toml`, as shipped.
@@ -158,7 +158,7 @@ impl ConfigFile for ServerConfig {
 mod tests {
     use std::path::Path;
 
-    use kfmap_shared::options::ConfigError;
+    use kfmap_geometry::options::ConfigError;
 
     use super::*;
 

@@ -1,5 +1,5 @@
 //! Simulator speed: one 64-beam sweep (0.2 deg, ~115 000 rays) per site, on one thread.
-//! Target: at least 20 sweeps/s on one core. Run: `cargo bench -p kfmap-shared --bench sim`.
+//! Target: at least 20 sweeps/s on one core. Run: `cargo bench -p kfmap-sim --bench sim`.
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use kfmap_sim::{Preset, SimConfig, Simulation};

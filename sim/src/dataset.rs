@@ -13,13 +13,13 @@ use super::imu::{ImuParams, gravity_in_map, imu_samples};
 use super::lidar::{LidarParams, sweep};
 use super::noise::stream;
 use super::presets::{Preset, Site, build_site};
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::imu::{ImuSample, format_imu_csv};
-use kfmap_shared::io::{
+use kfmap_geometry::cloud::PointCloud;
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::imu::{ImuSample, format_imu_csv};
+use kfmap_geometry::io::{
     CloudFormat, IoError, PcdData, Trajectory as PoseList, encode_cloud, format_tum, write_atomic,
 };
-use kfmap_shared::options::{InvalidOption, ensure};
+use kfmap_geometry::options::{InvalidOption, ensure};
 
 /// Everything that defines a simulation run; saved as `meta.toml`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

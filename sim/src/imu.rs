@@ -7,8 +7,8 @@ use serde::{Deserialize, Serialize};
 
 use super::noise::{gaussian, stream};
 use super::trajectory::Trajectory;
-use kfmap_shared::imu::ImuSample;
-use kfmap_shared::options::{InvalidOption, ensure};
+use kfmap_geometry::imu::ImuSample;
+use kfmap_geometry::options::{InvalidOption, ensure};
 
 /// Standard gravity magnitude, m/s^2.
 pub const GRAVITY: f64 = 9.81;

@@ -10,9 +10,9 @@ use super::noise::gaussian;
 use super::scene::Scene;
 use super::shapes::Ray;
 use super::trajectory::Trajectory;
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::geometry::to_point;
-use kfmap_shared::options::{InvalidOption, ensure};
+use kfmap_geometry::cloud::PointCloud;
+use kfmap_geometry::geometry::to_point;
+use kfmap_geometry::options::{InvalidOption, ensure};
 
 /// LiDAR model parameters.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -1,7 +1,7 @@
 use nalgebra::{Point3, UnitQuaternion, Vector3};
 
 use super::*;
-use kfmap_shared::io::{ReadOptions, read_cloud};
+use kfmap_geometry::io::{ReadOptions, read_cloud};
 use kfmap_testdata::Scratch;
 
 fn ray(origin: Vector3<f64>, dir: Vector3<f64>) -> Ray {
@@ -260,9 +260,9 @@ fn raw_scans_read_back_with_view_directions_toward_the_sensor() {
         );
         assert!((0.0..0.1).contains(t));
     }
-    let gt = kfmap_shared::io::read_trajectory(&dir.join("poses_gt.txt")).unwrap();
+    let gt = kfmap_geometry::io::read_trajectory(&dir.join("poses_gt.txt")).unwrap();
     assert_eq!(gt.poses.len(), 2);
-    let imu = kfmap_shared::imu::read_imu_csv(&dir.join("imu.csv")).unwrap();
+    let imu = kfmap_geometry::imu::read_imu_csv(&dir.join("imu.csv")).unwrap();
     assert_eq!(imu.len(), 41); // 0.2 s at 200 Hz, both ends included
 }
 

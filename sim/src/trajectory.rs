@@ -6,7 +6,7 @@
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector2, Vector3};
 
 use super::scene::Terrain;
-use kfmap_shared::geometry::Pose;
+use kfmap_geometry::geometry::Pose;
 
 /// 8-point Gauss-Legendre nodes and weights on [-1, 1].
 const GL_NODES: [(f64, f64); 8] = [

@@ -13,11 +13,11 @@ use kfmap_bake::pipeline::{
 };
 use kfmap_bake::scan_range::ScanRange;
 use kfmap_bake::tiling::{TileSetSummary, merged_map_path};
-use kfmap_shared::gravity::GravityCorrection;
-use kfmap_shared::motion::DeskewMode;
-use kfmap_shared::options::ConfigFile;
-use kfmap_shared::refine::RefineReport;
-use kfmap_shared::tiles::{AUTOWARE_METADATA_FILE, INDEX_FILE, TileGeometry};
+use kfmap_geometry::gravity::GravityCorrection;
+use kfmap_geometry::motion::DeskewMode;
+use kfmap_geometry::options::ConfigFile;
+use kfmap_graph::refine::RefineReport;
+use kfmap_map::tiles::{AUTOWARE_METADATA_FILE, INDEX_FILE, TileGeometry};
 use serde_json::json;
 
 use super::source_arg::SourceArgs;

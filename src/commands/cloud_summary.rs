@@ -6,9 +6,9 @@ use std::time::Instant;
 
 use serde::Serialize;
 
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::cov::{CovOptions, estimate_covariances};
-use kfmap_shared::spatial::{TreeError, build_tree};
+use kfmap_geometry::cloud::PointCloud;
+use kfmap_geometry::cov::{CovOptions, estimate_covariances};
+use kfmap_geometry::spatial::{TreeError, build_tree};
 
 /// Statistics of a cloud and of its per-point covariances.
 #[derive(Debug, Clone, Serialize)]

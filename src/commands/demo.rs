@@ -16,12 +16,12 @@ use kfmap_bake::dataset::scan_poses;
 use kfmap_bake::pipeline::{BakeInput, BakeOutput, bake};
 use kfmap_bake::scan_range::ScanRange;
 use kfmap_bake::source::{BagSource, Source};
-use kfmap_shared::archive::{OpenOptions, open_map};
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::gravity::{GravityCorrection, roll_pitch_from_gravity};
-use kfmap_shared::io::{
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::gravity::{GravityCorrection, roll_pitch_from_gravity};
+use kfmap_geometry::io::{
     ReadOptions, Trajectory, format_tum, read_cloud, read_trajectory, write_atomic,
 };
+use kfmap_map::archive::{OpenOptions, open_map};
 use kfmap_sim::{LidarParams, Preset, SimConfig, gravity_in_map, write_dataset};
 
 use super::localize::LocalizeLog;

@@ -7,8 +7,8 @@ use std::sync::atomic::AtomicBool;
 
 use anyhow::Context;
 use kfmap_gateway::{GatewayConfig, GatewayOptions};
-use kfmap_shared::options::ConfigFile;
-use kfmap_shared::tiles::TileIndex;
+use kfmap_geometry::options::ConfigFile;
+use kfmap_map::tiles::TileIndex;
 
 /// Answer remote clients (other hosts) through the local `kfmap serve`, over Zenoh,
 /// until SIGINT or SIGTERM.

@@ -7,8 +7,8 @@ use kfmap_bake::config::BakeConfig;
 use kfmap_bake::gravity::{GravityInput, PerKeyframe, estimate_dataset_gravity};
 use kfmap_bake::source::ImuSource;
 use kfmap_client::GravityAnswer;
-use kfmap_shared::gravity::{AccelBias, GravityCorrection};
-use kfmap_shared::options::ConfigFile;
+use kfmap_geometry::gravity::{AccelBias, GravityCorrection};
+use kfmap_geometry::options::ConfigFile;
 use serde_json::{Value, json};
 
 /// Estimate gravity in a trajectory's frame from its IMU log: every --keyframe-interval

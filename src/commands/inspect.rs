@@ -4,8 +4,8 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use indicatif::{ProgressBar, ProgressStyle};
-use kfmap_shared::archive::{OpenOptions, OpenedMap, open_map};
-use kfmap_shared::place::GridView;
+use kfmap_map::archive::{OpenOptions, OpenedMap, open_map};
+use kfmap_map::place::GridView;
 use serde_json::json;
 
 /// Describe a baked map: header, options, keyframes, points, size breakdown, bounding

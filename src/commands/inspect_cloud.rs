@@ -5,8 +5,8 @@ use std::path::PathBuf;
 use crate::commands::cloud_summary::summarize;
 use anyhow::Context;
 use kfmap_bake::config::BakeConfig;
-use kfmap_shared::io::{BinLayout, ReadOptions, read_cloud};
-use kfmap_shared::options::ConfigFile;
+use kfmap_geometry::io::{BinLayout, ReadOptions, read_cloud};
+use kfmap_geometry::options::ConfigFile;
 use serde_json::json;
 
 use super::report::print_summary;

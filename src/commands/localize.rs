@@ -15,18 +15,18 @@ use kfmap_client::{
     Client, GravityAnswer, HypothesisParams, LocalizeOptions, TrackedScan, Tracker, TrackerOptions,
     TrustParams,
 };
+use kfmap_geometry::cloud::PointCloud;
+use kfmap_geometry::geometry::{Pose, pose_to_xyz_quat, rotation_distance, translation_distance};
+use kfmap_geometry::gravity::ImuWindow;
+use kfmap_geometry::imu::ImuSample;
+use kfmap_geometry::io::{Trajectory, format_tum, write_atomic};
+use kfmap_geometry::motion::{Gyro, GyroParams};
+use kfmap_geometry::options::ConfigFile;
+use kfmap_geometry::percentile::percentile;
+use kfmap_geometry::tracking::TrackingStatus;
+use kfmap_geometry::trajectory_error::{absolute_trajectory_error, relative_pose_error};
 use kfmap_protocol::Cov2CovMode;
 use kfmap_service::config::ServerConfig;
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::geometry::{Pose, pose_to_xyz_quat, rotation_distance, translation_distance};
-use kfmap_shared::gravity::ImuWindow;
-use kfmap_shared::imu::ImuSample;
-use kfmap_shared::io::{Trajectory, format_tum, write_atomic};
-use kfmap_shared::motion::{Gyro, GyroParams};
-use kfmap_shared::options::ConfigFile;
-use kfmap_shared::percentile::percentile;
-use kfmap_shared::tracking::TrackingStatus;
-use kfmap_shared::trajectory_error::{absolute_trajectory_error, relative_pose_error};
 use serde_json::json;
 
 use super::connect_arg::ConnectArgs;

@@ -4,8 +4,8 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context;
-use kfmap_shared::pose_graph::{GraphParams, read_g2o, write_g2o};
-use kfmap_shared::registration::Optimizer;
+use kfmap_geometry::registration::Optimizer;
+use kfmap_graph::pose_graph::{GraphParams, read_g2o, write_g2o};
 use serde_json::json;
 
 /// Optimize an SE(3) pose graph in g2o format (VERTEX_SE3:QUAT, EDGE_SE3:QUAT, FIX) and

@@ -1,7 +1,7 @@
 //! The pose argument of `register`, `localize` and `query`.
 
 use anyhow::Context;
-use kfmap_shared::geometry::Pose;
+use kfmap_geometry::geometry::Pose;
 use nalgebra::{Matrix4, Rotation3, UnitQuaternion, Vector3};
 
 /// A pose argument (`--initial`) from "x y z roll pitch yaw" or a 4x4 matrix file.

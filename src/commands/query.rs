@@ -5,9 +5,9 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context;
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::io::{ReadOptions, read_cloud};
 use kfmap_protocol::{Cov2CovMode, ScanPayload, WirePairing};
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::io::{ReadOptions, read_cloud};
 use serde_json::json;
 
 use super::connect_arg::ConnectArgs;

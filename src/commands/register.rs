@@ -4,9 +4,9 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context;
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::io::{ReadOptions, read_cloud};
-use kfmap_shared::registration::{
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::io::{ReadOptions, read_cloud};
+use kfmap_geometry::registration::{
     Metric, Optimizer, RegistrationParams, RegistrationResult, RobustKernel, register,
 };
 use serde_json::json;

@@ -5,8 +5,8 @@ use std::time::Instant;
 
 use kfmap_bake::config::BakeConfig;
 use kfmap_client::RelocalizeOptions;
+use kfmap_geometry::geometry::pose_to_xyz_quat;
 use kfmap_protocol::ScanPayload;
-use kfmap_shared::geometry::pose_to_xyz_quat;
 use nalgebra::UnitQuaternion;
 use serde_json::json;
 

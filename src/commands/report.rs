@@ -40,7 +40,7 @@ pub fn json_number(value: &serde_json::Value) -> f64 {
 /// there are too few (under 100) for the nearest-rank 99th percentile to be anything
 /// but their maximum.
 pub fn p99_label(samples: usize) -> String {
-    if kfmap_shared::percentile::is_maximum(samples, 0.99) {
+    if kfmap_geometry::percentile::is_maximum(samples, 0.99) {
         format!("p99 (= max of {samples})")
     } else {
         "p99".to_string()

@@ -5,12 +5,12 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 use anyhow::Context;
+use kfmap_geometry::options::ConfigFile;
+use kfmap_map::tiles::{SearchShare, TileIndex};
 use kfmap_protocol::RequestKind;
 use kfmap_protocol::remote::tile_map_name;
 use kfmap_service::config::ServerConfig;
 use kfmap_service::server::{LATENCY_WINDOW, ServeOptions, serve};
-use kfmap_shared::options::ConfigFile;
-use kfmap_shared::tiles::{SearchShare, TileIndex};
 
 use super::report::p99_label;
 

@@ -11,8 +11,8 @@ use std::process::Command;
 use std::sync::OnceLock;
 
 use common::{json, kfmap, stderr, temp_dir};
-use kfmap_shared::geometry::{Pose, translation_distance};
-use kfmap_shared::io::read_trajectory;
+use kfmap_geometry::geometry::{Pose, translation_distance};
+use kfmap_geometry::io::read_trajectory;
 use kfmap_testdata::{require_capability, require_test_data};
 
 /// The interpreter with `rosbags` (tests/support/bag_venv.sh), or `None` after a skip
@@ -574,7 +574,7 @@ fn demo_runs_on_a_bag() {
     // mapped scans' true poses onto their built ones.
     let truth = read_trajectory(&gt).unwrap().poses;
     let built = read_trajectory(&out.join("map_poses.tum")).unwrap().poses;
-    let map_from_truth = kfmap_shared::trajectory_error::rigid_alignment(&truth, &built);
+    let map_from_truth = kfmap_geometry::trajectory_error::rigid_alignment(&truth, &built);
     let localized = read_trajectory(&out.join("localized.tum")).unwrap().poses;
     assert_eq!(localized.len(), truth.len() - 10);
     let worst = localized

@@ -6,9 +6,9 @@ use std::path::PathBuf;
 use std::process::Command;
 
 use common::{TestDir, json, kfmap, stderr, temp_dir};
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::io::{CloudFormat, PcdData, write_cloud};
+use kfmap_geometry::cloud::PointCloud;
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::io::{CloudFormat, PcdData, write_cloud};
 use kfmap_testdata::require_test_data;
 
 #[test]
@@ -280,9 +280,9 @@ fn every_subcommand_help_has_an_example() {
 /// voxelization of its keyframes' raw scans merged in the map frame (brute force).
 #[test]
 fn a_fused_bake_serves_the_voxelization_of_the_merged_scans() {
-    use kfmap_shared::archive::{OpenOptions, open_map};
-    use kfmap_shared::geometry::transform_point;
-    use kfmap_shared::io::{ReadOptions, read_cloud};
+    use kfmap_geometry::geometry::transform_point;
+    use kfmap_geometry::io::{ReadOptions, read_cloud};
+    use kfmap_map::archive::{OpenOptions, open_map};
     use std::collections::BTreeMap;
     let (_tmp, sim) = simulated("fused");
     let config = sim.parent().unwrap().join("bake.toml");
@@ -349,7 +349,7 @@ fn a_fused_bake_serves_the_voxelization_of_the_merged_scans() {
 /// The scan behind each keyframe `kfmap bake` makes of a dataset: the keyframe decider on
 /// its poses, as bake runs it.
 fn keyframe_scans(dataset: &std::path::Path) -> Vec<usize> {
-    use kfmap_shared::io::read_trajectory;
+    use kfmap_geometry::io::read_trajectory;
     let poses = read_trajectory(&dataset.join("poses_gt.txt"))
         .unwrap()
         .poses;
@@ -358,7 +358,7 @@ fn keyframe_scans(dataset: &std::path::Path) -> Vec<usize> {
 
 /// The keyframe decider (shipped defaults) over `poses`, as bake runs it.
 fn choose_keyframes(poses: &[Pose]) -> Vec<usize> {
-    use kfmap_shared::map::KeyframeDecider;
+    use kfmap_map::map::KeyframeDecider;
     let decider = KeyframeDecider::default();
     let mut chosen: Vec<usize> = Vec::new();
     for (i, p) in poses.iter().enumerate() {
@@ -397,7 +397,7 @@ fn simulated(test: &str) -> (TestDir, PathBuf) {
 
 #[test]
 fn bake_then_inspect_a_simulated_dataset() {
-    use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
+    use kfmap_geometry::io::{ReadOptions, read_cloud, read_trajectory};
     let (_tmp, sim) = simulated("bake");
     let map = sim.parent().unwrap().join("court.kfmap");
     let baked = json(&kfmap(&[
@@ -558,8 +558,8 @@ fn bad_maps_and_datasets_exit_2_naming_the_problem() {
 
 #[test]
 fn gravity_and_bake_recover_a_tilted_world() {
-    use kfmap_shared::archive::{OpenOptions, open_map};
-    use kfmap_shared::io::read_trajectory;
+    use kfmap_geometry::io::read_trajectory;
+    use kfmap_map::archive::{OpenOptions, open_map};
     use nalgebra::Rotation3;
     let tmp = temp_dir("gravity");
     let dir = tmp.join("sim");
@@ -667,9 +667,9 @@ fn gravity_and_bake_recover_a_tilted_world() {
 /// graph without built poses are refused by name before anything is written.
 #[test]
 fn bake_a_scan_range_and_write_the_poses_it_used() {
-    use kfmap_shared::archive::{OpenOptions, open_map};
-    use kfmap_shared::geometry::pose_from_xyz_quat;
-    use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
+    use kfmap_geometry::geometry::pose_from_xyz_quat;
+    use kfmap_geometry::io::{ReadOptions, read_cloud, read_trajectory};
+    use kfmap_map::archive::{OpenOptions, open_map};
     let (_tmp, sim) = simulated("scanrange");
     let dir = sim.parent().unwrap();
     let path = |name: &str| dir.join(name).to_str().unwrap().to_owned();
@@ -793,9 +793,9 @@ fn bake_a_scan_range_and_write_the_poses_it_used() {
 /// which holds every scan's built pose as the map has it, with the dataset's stamps.
 #[test]
 fn bake_with_built_poses_writes_its_pose_graph_and_trajectory() {
-    use kfmap_shared::archive::{OpenOptions, open_map};
-    use kfmap_shared::io::read_trajectory;
-    use kfmap_shared::pose_graph::read_g2o;
+    use kfmap_geometry::io::read_trajectory;
+    use kfmap_graph::pose_graph::read_g2o;
+    use kfmap_map::archive::{OpenOptions, open_map};
     let tmp = temp_dir("bakegraph");
     let sim = tmp.join("sim");
     let out = kfmap(&[
@@ -857,7 +857,7 @@ fn bake_with_built_poses_writes_its_pose_graph_and_trajectory() {
     let final_error = mapping["graph_error_final"].as_f64().unwrap();
     let mut reoptimized = graph.clone();
     let report = reoptimized
-        .optimize(&kfmap_shared::pose_graph::GraphParams::default())
+        .optimize(&kfmap_graph::pose_graph::GraphParams::default())
         .unwrap();
     assert!(
         (report.final_error - final_error).abs() <= 1e-2 * final_error + 1e-9,

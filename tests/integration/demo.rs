@@ -8,9 +8,9 @@ use std::process::{Command, Output, Stdio};
 
 use common::picture::Picture;
 use common::temp_dir;
-use kfmap_shared::geometry::{Pose, translation_distance};
-use kfmap_shared::io::read_trajectory;
-use kfmap_shared::trajectory_error::rigid_alignment;
+use kfmap_geometry::geometry::{Pose, translation_distance};
+use kfmap_geometry::io::read_trajectory;
+use kfmap_geometry::trajectory_error::rigid_alignment;
 use kfmap_testdata::require_test_data;
 
 /// The files a demo writes besides its report and pictures.

@@ -18,10 +18,10 @@ use common::{Prefix, Server, bake_dataset, kfmap, linked_dataset, simulate, temp
 use kfmap_bake::config::BakeConfig;
 use kfmap_bake::dataset::{find_scans, load_raw_scan};
 use kfmap_client::{Client, ClientOptions, LocalizeOptions};
+use kfmap_geometry::geometry::{Pose, pose_from_xyz_quat, rotation_distance, translation_distance};
+use kfmap_geometry::io::read_trajectory;
+use kfmap_geometry::tracking::TrackingStatus;
 use kfmap_protocol::ScanPayload;
-use kfmap_shared::geometry::{Pose, pose_from_xyz_quat, rotation_distance, translation_distance};
-use kfmap_shared::io::read_trajectory;
-use kfmap_shared::tracking::TrackingStatus;
 use kfmap_testdata::require_test_data;
 
 /// A pose farther than this from its reference is wrong (the bound), metres.

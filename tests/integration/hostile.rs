@@ -10,10 +10,10 @@ use std::time::Duration;
 
 use common::{Prefix, Server, TestDir, bake_dataset, simulate, temp_dir};
 use kfmap_client::{Client, ClientOptions};
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::imu::ImuSample;
 use kfmap_protocol::transport::{MAX_CLIENTS_PER_PROCESS, create_node, iceoryx_config, open_rpc};
 use kfmap_protocol::{RequestHeader, RequestKind, ScanPayload, StatusCode, pose_to_wire};
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::imu::ImuSample;
 use kfmap_testdata::{require_capability, skip_or_fail};
 
 fn options(prefix: &Prefix) -> ClientOptions {

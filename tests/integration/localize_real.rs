@@ -8,14 +8,14 @@ use std::time::Duration;
 
 use common::{Prefix, Server, bake_map_with, temp_dir};
 use kfmap_client::{Client, ClientOptions, LocalizeOptions, Localized};
+use kfmap_geometry::cloud::PointCloud;
+use kfmap_geometry::cov::CovOptions;
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::io::read_keyframe_graph;
+use kfmap_geometry::io::{BinLayout, ReadOptions, read_cloud, read_trajectory};
+use kfmap_map::map::KeyframeMapOptions;
+use kfmap_map::select::SelectionOptions;
 use kfmap_protocol::{Cov2CovMode, ScanPayload};
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::cov::CovOptions;
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::io::read_keyframe_graph;
-use kfmap_shared::io::{BinLayout, ReadOptions, read_cloud, read_trajectory};
-use kfmap_shared::map::KeyframeMapOptions;
-use kfmap_shared::select::SelectionOptions;
 use kfmap_testdata::require_test_data;
 use nalgebra::{UnitQuaternion, Vector3};
 

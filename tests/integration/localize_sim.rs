@@ -13,9 +13,9 @@ use common::{
 use kfmap_bake::dataset::{dataset_poses, find_scans};
 use kfmap_bake::gravity::read_imu;
 use kfmap_client::{Client, ClientOptions};
-use kfmap_shared::geometry::{Pose, pose_from_xyz_quat};
-use kfmap_shared::gravity::{GravityParams, ImuWindow, LiveGravity};
-use kfmap_shared::io::read_trajectory;
+use kfmap_geometry::geometry::{Pose, pose_from_xyz_quat};
+use kfmap_geometry::gravity::{GravityParams, ImuWindow, LiveGravity};
+use kfmap_geometry::io::read_trajectory;
 use kfmap_sim::gravity_in_map;
 
 /// `kfmap localize --json` against a running server from the dataset's reference start;
@@ -150,7 +150,7 @@ fn campus_run_localizes_against_the_map_of_another_run() {
             let t0 = window[0].t;
             let sent = window
                 .iter()
-                .map(|s| kfmap_shared::imu::ImuSample {
+                .map(|s| kfmap_geometry::imu::ImuSample {
                     t: t0 + (s.t - t0) as f32 as f64,
                     acc: s.acc.map(|x| x as f32 as f64),
                     gyro: s.gyro.map(|x| x as f32 as f64),

@@ -9,8 +9,8 @@ use std::process::Output;
 
 use common::picture::Picture;
 use common::{kfmap, run_ok, stderr, stdout, temp_dir};
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::geometry::Pose;
+use kfmap_geometry::cloud::PointCloud;
+use kfmap_geometry::geometry::Pose;
 
 /// Colour of lost/failed marks and of degraded marks (as `kfmap plot` draws them).
 const LOST_RED: [u8; 3] = [228, 26, 28];

@@ -25,17 +25,17 @@ use common::{
 };
 use kfmap_bake::dataset::find_scans;
 use kfmap_client::{Client, ClientOptions, Connection, RelocalizeOptions};
+use kfmap_geometry::cloud::PointCloud;
+use kfmap_geometry::geometry::{Pose, pose_from_xyz_quat, rotation_distance, translation_distance};
+use kfmap_geometry::io::{
+    CloudFormat, PcdData, ReadOptions, read_cloud, read_trajectory, write_cloud,
+};
+use kfmap_geometry::percentile::{is_maximum, percentile};
+use kfmap_map::place::RelocalizeStatus;
 use kfmap_protocol::{
     FLAG_FINISH_CHOSEN, FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN, RequestHeader, RequestKind,
     ResponseHeader, ScanPayload, StatusCode, WirePlace, place_from_wire,
 };
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::geometry::{Pose, pose_from_xyz_quat, rotation_distance, translation_distance};
-use kfmap_shared::io::{
-    CloudFormat, PcdData, ReadOptions, read_cloud, read_trajectory, write_cloud,
-};
-use kfmap_shared::percentile::{is_maximum, percentile};
-use kfmap_shared::place::RelocalizeStatus;
 use kfmap_sim::gravity_in_map;
 use kfmap_testdata::require_test_data;
 use nalgebra::{UnitQuaternion, Vector3};

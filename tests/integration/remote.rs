@@ -15,13 +15,13 @@ use kfmap_bake::config::BakeConfig;
 use kfmap_bake::dataset::{dataset_poses, find_scans, load_raw_scan};
 use kfmap_client::remote::RemoteOptions;
 use kfmap_client::{Client, ClientError, ClientOptions, LocalizeOptions, RelocalizeOptions};
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::io::{ReadOptions, read_cloud};
+use kfmap_map::archive::{OpenOptions, open_map};
+use kfmap_map::place::RelocalizeStatus;
+use kfmap_map::tiles::{PlaceRanking, TileIndex};
 use kfmap_protocol::remote::{decode_answer, rpc_key};
 use kfmap_protocol::{ScanPayload, StatusCode};
-use kfmap_shared::archive::{OpenOptions, open_map};
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::io::{ReadOptions, read_cloud};
-use kfmap_shared::place::RelocalizeStatus;
-use kfmap_shared::tiles::{PlaceRanking, TileIndex};
 use kfmap_testdata::require_capability;
 
 /// Set in the namespace's child: the scenario runs only there.

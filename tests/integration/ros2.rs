@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 use common::{Prefix, Server, bake_dataset, kfmap, map_from_input, simulate, temp_dir};
 use kfmap_bake::config::BakeConfig;
 use kfmap_bake::dataset::{dataset_poses, find_scans, load_raw_scan};
-use kfmap_shared::geometry::{Pose, pose_to_xyz_quat, rotation_distance, translation_distance};
+use kfmap_geometry::geometry::{Pose, pose_to_xyz_quat, rotation_distance, translation_distance};
 use kfmap_testdata::{require_capability, require_test_data};
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 use serde_json::{Value, json};
@@ -718,7 +718,7 @@ mod in_namespace {
         // `odom -> base_link` on /tf: the node publishes the base's pose and `map ->
         // odom`.
         let with_imu = localized("court", &prefix.0, &data, &["--initial-from-ground-truth"]);
-        let imu = kfmap_shared::imu::read_imu_csv(&data.join("imu.csv")).unwrap();
+        let imu = kfmap_geometry::imu::read_imu_csv(&data.join("imu.csv")).unwrap();
         let shift = last + 200.0 - poses.stamps[0];
         let ahead = 0.05;
         let mut sent = 0;

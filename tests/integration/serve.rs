@@ -15,6 +15,9 @@ use common::{
 use kfmap_bake::config::BakeConfig;
 use kfmap_bake::dataset::{dataset_poses, find_scans, load_raw_scan};
 use kfmap_client::{Client, ClientError, ClientOptions, LocalizeOptions};
+use kfmap_geometry::cloud::PointCloud;
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::io::read_trajectory;
 use kfmap_protocol::{
     Cov2CovMode, PROTOCOL_VERSION, RequestHeader, RequestKind, ScanPayload, StatusCode,
     WirePairing, pose_to_wire,
@@ -22,9 +25,6 @@ use kfmap_protocol::{
 use kfmap_service::server::ServedMap;
 use kfmap_service::server::session::Session;
 use kfmap_service::server::{Limits, answer};
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::io::read_trajectory;
 
 fn options(prefix: &Prefix) -> ClientOptions {
     ClientOptions {
@@ -379,7 +379,7 @@ fn heavy_cloud(data: &Path, i: usize, copies: usize) -> PointCloud {
 
 #[test]
 fn a_client_killed_mid_request_is_reclaimed_and_others_keep_being_served() {
-    use kfmap_shared::io::{CloudFormat, PcdData, write_cloud};
+    use kfmap_geometry::io::{CloudFormat, PcdData, write_cloud};
     let (site, _server) = served("killc", "");
     let (data, prefix) = (&site.data, &site.prefix);
     let dir = site.map.parent().unwrap().to_path_buf();
@@ -554,7 +554,7 @@ fn status_and_reload_report_the_map_and_the_counters() {
 
 #[test]
 fn query_prints_and_writes_every_answer() {
-    use kfmap_shared::io::{CloudFormat, PcdData, write_cloud};
+    use kfmap_geometry::io::{CloudFormat, PcdData, write_cloud};
     let (site, _server) = served("query", "");
     let (data, map_path, prefix) = (&site.data, &site.map, &site.prefix);
     let (cloud, truth) = scan(data, 9);
@@ -564,7 +564,9 @@ fn query_prints_and_writes_every_answer() {
         .iter()
         .take(2000)
         .map(|p| {
-            kfmap_shared::geometry::to_point(&kfmap_shared::geometry::transform_point(&truth, p))
+            kfmap_geometry::geometry::to_point(&kfmap_geometry::geometry::transform_point(
+                &truth, p,
+            ))
         })
         .collect();
     let file = map_path.with_file_name("query.pcd");

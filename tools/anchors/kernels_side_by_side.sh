@@ -14,7 +14,7 @@ anchor() {
 
 anchor before
 echo "== kfmap (criterion: median of the middle column)"
-cargo bench -p kfmap-shared --bench kdtree -- 'leaf16_(scan|morton)_order|build_leaf16|floor' 2>&1 |
+cargo bench -p kfmap-geometry --bench kdtree -- 'leaf16_(scan|morton)_order|build_leaf16|floor' 2>&1 |
     grep -E '^nn |^kitti|time:'
-cargo bench -p kfmap-shared --bench geometry -- 'voxel' 2>&1 | grep -E '^target|time:'
+cargo bench -p kfmap-geometry --bench geometry -- 'voxel' 2>&1 | grep -E '^target|time:'
 anchor after

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Anchor figures from small_gicp (PyPI `small-gicp`), for side-by-side comparison with
-`cargo bench -p kfmap-shared`. Not a dependency of kfmap: install it in a venv outside
+`cargo bench -p kfmap-geometry --bench geometry`. Not a dependency of kfmap: install it in a venv outside
 the repository, e.g. `python3 -m venv /tmp/anchors && /tmp/anchors/bin/pip install
 small-gicp numpy`, then run `/tmp/anchors/bin/python tools/anchors/small_gicp_cov.py`.
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""small_gicp KD-tree anchor for `cargo bench -p kfmap-shared --bench kdtree` (install
+"""small_gicp KD-tree anchor for `cargo bench -p kfmap-geometry --bench kdtree` (install
 `small-gicp numpy` in a venv outside the repository, as for small_gicp_cov.py).
 
 KITTI 00: tree over frame 0, queries = frame 1 moved into frame 0 by the ground-truth

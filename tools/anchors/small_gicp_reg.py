@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """small_gicp registration anchor for `tests/integration/registration_real.rs` and `cargo bench -p
-kfmap-shared --bench registration` (install `small-gicp numpy` in a venv outside the
+kfmap-geometry --bench registration` (install `small-gicp numpy` in a venv outside the
 repository, as for small_gicp_cov.py).
 
 1. KITTI 00 pairs 0-1 ... 4-5, 0.25 m voxels, identity guess: distance of the result

@@ -1,7 +1,7 @@
 //! `sensor_msgs/Imu`: a header, the orientation quaternion, angular velocity and linear
 //! acceleration, each with its 3x3 covariance (row-major).
 
-use kfmap_shared::imu::ImuSample;
+use kfmap_geometry::imu::ImuSample;
 
 use super::reader::Reader;
 use super::{DecodeError, Stamp};

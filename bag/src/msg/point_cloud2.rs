@@ -14,7 +14,7 @@
 //! kept: the caller filters a bag's scans as it filters clouds read from files
 //! (`PointCloud::remove_invalid`), so both paths drop the same points.
 
-use kfmap_shared::cloud::PointCloud;
+use kfmap_geometry::cloud::PointCloud;
 
 use super::reader::Reader;
 use super::{DecodeError, Stamp};

@@ -4,14 +4,14 @@
 use nalgebra::{Matrix6, Vector6};
 use serde::{Deserialize, Serialize};
 
-use kfmap_shared::covis::{CovisOptions, CovisibilityGraph};
-use kfmap_shared::geometry::{Pose, to_point, transform_point};
-use kfmap_shared::options::{InvalidOption, ensure_distance, ensure_ratio};
-use kfmap_shared::pose_graph::{GraphError, GraphParams, GraphReport, PoseEdge, PoseGraph};
-use kfmap_shared::registration::{
+use kfmap_geometry::geometry::{Pose, to_point, transform_point};
+use kfmap_geometry::options::{InvalidOption, ensure_distance, ensure_ratio};
+use kfmap_geometry::registration::{
     Fitness, PreparedCloud, RegistrationError, RegistrationParams, RegistrationResult,
     RobustKernel, align,
 };
+use kfmap_graph::pose_graph::{GraphError, GraphParams, GraphReport, PoseEdge, PoseGraph};
+use kfmap_map::covis::{CovisOptions, CovisibilityGraph};
 
 /// Clouds this close in sequence to an accepted loop's newer end share its loop.
 const LOOP_NEIGHBOURHOOD: usize = 5;

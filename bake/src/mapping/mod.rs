@@ -18,14 +18,14 @@ pub use framework::{
     LoopCheck, LoopDetection, LoopVerdict, PairwiseGlobalRegistration, PairwiseRegistration,
     accepted_loops,
 };
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::imu::ImuSample;
-use kfmap_shared::map::KeyframeDecider;
-use kfmap_shared::options::InvalidOption;
-use kfmap_shared::pose_graph::{GraphParams, GraphReport, PoseEdge};
-use kfmap_shared::refine::{RefineParams, RefineReport};
-use kfmap_shared::registration::RegistrationError;
+use kfmap_geometry::cloud::PointCloud;
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::imu::ImuSample;
+use kfmap_geometry::options::InvalidOption;
+use kfmap_geometry::registration::RegistrationError;
+use kfmap_graph::pose_graph::{GraphParams, GraphReport, PoseEdge};
+use kfmap_graph::refine::{RefineParams, RefineReport};
+use kfmap_map::map::KeyframeDecider;
 pub use odometry::{Odometry, OdometryOutcome, OdometryParams, OdometryStep};
 pub use refine::{RefineClouds, refine_trajectory};
 pub use scan_check::{ScanCheck, ScanCheckParams, ScanVerdict};

@@ -8,19 +8,19 @@ use std::collections::{HashMap, VecDeque};
 
 use serde::{Deserialize, Serialize};
 
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::geometry::{Pose, to_point, transform_point};
-use kfmap_shared::imu::ImuSample;
-use kfmap_shared::map::KeyframeDecider;
-use kfmap_shared::motion::{
+use kfmap_geometry::cloud::PointCloud;
+use kfmap_geometry::geometry::{Pose, to_point, transform_point};
+use kfmap_geometry::imu::ImuSample;
+use kfmap_geometry::motion::{
     AdaptiveThreshold, AdaptiveThresholdParams, DeskewMode, Gyro, GyroParams, PosePredictor,
     SweepParams, yaw_hypotheses,
 };
-use kfmap_shared::options::{InvalidOption, ensure, ensure_distance, ensure_ratio};
-use kfmap_shared::registration::{
+use kfmap_geometry::options::{InvalidOption, ensure, ensure_distance, ensure_ratio};
+use kfmap_geometry::registration::{
     Fitness, PreparedCloud, RegistrationError, RegistrationParams, RegistrationResult,
     RobustKernel, align, overlap,
 };
+use kfmap_map::map::KeyframeDecider;
 
 /// Odometry settings.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

@@ -1,9 +1,9 @@
 //! The joint refinement of every built scan pose (docs/DESIGN.md#joint-refinement): the
-//! scans' finer samples and poses handed to `kfmap_shared::refine` in their cloud frames
+//! scans' finer samples and poses handed to `kfmap_graph::refine` in their cloud frames
 //! (mid-scan when deskewed), and the result carried back to the scans' stamps.
 
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::refine::{
+use kfmap_geometry::geometry::Pose;
+use kfmap_graph::refine::{
     Consistency, RefineParams, RefineReport, RefineScan, consistency, refine_poses,
 };
 

@@ -6,14 +6,16 @@
 
 use serde::{Deserialize, Serialize};
 
-use kfmap_shared::geometry::{PackedSym3, Pose, pack_sym3, to_point, transform_point, unpack_sym3};
-use kfmap_shared::motion::point_displacement;
-use kfmap_shared::options::{InvalidOption, ensure, ensure_distance, ensure_ratio};
-use kfmap_shared::registration::{
+use kfmap_geometry::geometry::{
+    PackedSym3, Pose, pack_sym3, to_point, transform_point, unpack_sym3,
+};
+use kfmap_geometry::motion::point_displacement;
+use kfmap_geometry::options::{InvalidOption, ensure, ensure_distance, ensure_ratio};
+use kfmap_geometry::registration::{
     Fitness, PreparedCloud, RegistrationError, RegistrationParams, RegistrationResult, align,
     overlap,
 };
-use kfmap_shared::tracking::CORRECTION_RANGE_M;
+use kfmap_geometry::tracking::CORRECTION_RANGE_M;
 use rayon::prelude::*;
 
 /// The scan check's settings (`bake.toml`'s `[build.check]`).

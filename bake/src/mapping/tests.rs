@@ -1,6 +1,6 @@
 use super::*;
-use kfmap_shared::motion::DeskewMode;
-use kfmap_shared::trajectory_error::absolute_trajectory_error;
+use kfmap_geometry::motion::DeskewMode;
+use kfmap_geometry::trajectory_error::absolute_trajectory_error;
 use kfmap_sim::{LidarParams, Preset, SimConfig, Simulation};
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex, OnceLock};

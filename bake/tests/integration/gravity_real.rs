@@ -4,9 +4,9 @@
 //! keyframes (accelerometer magnitude spread below 0.2 m/s^2).
 
 use kfmap_bake::gravity::{GravityInput, estimate_dataset_gravity};
-use kfmap_shared::gravity::GravityParams;
-use kfmap_shared::imu::read_imu_csv;
-use kfmap_shared::io::read_trajectory;
+use kfmap_geometry::gravity::GravityParams;
+use kfmap_geometry::imu::read_imu_csv;
+use kfmap_geometry::io::read_trajectory;
 use kfmap_testdata::require_test_data;
 use nalgebra::Vector3;
 

@@ -12,8 +12,8 @@ use std::path::{Path, PathBuf};
 use kfmap_bake::config::BakeConfig;
 use kfmap_bake::gravity::{GravityInput, estimate_dataset_gravity, read_imu};
 use kfmap_bake::pipeline::{BakeInput, BakeOutput, bake};
-use kfmap_shared::gravity::{GravityParams, ImuWindow, LiveGravity};
-use kfmap_shared::io::read_trajectory;
+use kfmap_geometry::gravity::{GravityParams, ImuWindow, LiveGravity};
+use kfmap_geometry::io::read_trajectory;
 use kfmap_sim::{LidarParams, Preset, SimConfig, SimMeta, write_dataset};
 use nalgebra::Vector3;
 

@@ -4,11 +4,11 @@
 //! reference poses (odometry-quality, consistent to a few cm locally).
 
 use kfmap_bake::mapping::{BuildParams, BuiltTrajectory, GlobalError, build_trajectory};
-use kfmap_shared::cloud::FilterOptions;
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::io::{ReadOptions, read_cloud, read_trajectory};
-use kfmap_shared::registration::RegistrationError;
-use kfmap_shared::trajectory_error::absolute_trajectory_error;
+use kfmap_geometry::cloud::FilterOptions;
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::io::{ReadOptions, read_cloud, read_trajectory};
+use kfmap_geometry::registration::RegistrationError;
+use kfmap_geometry::trajectory_error::absolute_trajectory_error;
 use kfmap_testdata::require_test_data;
 
 #[derive(Debug, thiserror::Error)]
@@ -18,7 +18,7 @@ enum TestError {
     #[error(transparent)]
     Global(#[from] GlobalError),
     #[error(transparent)]
-    Io(#[from] kfmap_shared::io::IoError),
+    Io(#[from] kfmap_geometry::io::IoError),
 }
 
 struct Sequence {
@@ -216,7 +216,7 @@ fn kitti00_frames_built_from_raw_scans() {
 fn hku2_scans_off_their_neighbours_are_reregistered_or_listed_poor() {
     use kfmap_bake::config::BakeConfig;
     use kfmap_bake::pipeline::{BakeInput, BakeOutput, bake, scan_check_sidecar};
-    use kfmap_shared::trajectory_error::rigid_alignment;
+    use kfmap_geometry::trajectory_error::rigid_alignment;
 
     let Some(dir) = require_test_data("hku2_avia", "mapping_real") else {
         return;

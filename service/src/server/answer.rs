@@ -3,8 +3,8 @@
 
 use std::mem::MaybeUninit;
 
+use kfmap_map::map::{MapError, Pairing};
 use kfmap_protocol::{Cov2CovMode, Rejection, ResponseHeader, StatusCode, WirePairing};
-use kfmap_shared::map::{MapError, Pairing};
 use rayon::prelude::*;
 
 use super::limits::Limits;

@@ -1,9 +1,9 @@
 //! `ImuWindow`: an IMU window joins the session's gravity pool; the answer carries the
 //! pool's current correction.
 
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::gravity::ImuWindow;
 use kfmap_protocol::{Rejection, RequestHeader, decode_imu, decode_stamp};
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::gravity::ImuWindow;
 
 use super::answer::{Answer, AnswerPairings, with_active};
 use super::session::Session;

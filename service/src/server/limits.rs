@@ -1,10 +1,10 @@
 //! The limits every request is checked against: fixed protocol bounds and the
 //! per-server limits of `server.toml`.
 
+use kfmap_geometry::cov::CovOptions;
+use kfmap_geometry::tracking::TrackingParams;
+use kfmap_map::place::RelocalizeParams;
 use kfmap_protocol::{Cov2CovMode, WirePairing};
-use kfmap_shared::cov::CovOptions;
-use kfmap_shared::place::RelocalizeParams;
-use kfmap_shared::tracking::TrackingParams;
 
 use crate::config::ServerConfig;
 

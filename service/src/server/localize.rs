@@ -1,12 +1,12 @@
 //! `Localize`: server-side localization of one scan from a pose guess, with the same
 //! checks and retry ladder a client runs over cov2cov answers.
 
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::tracking::{
+    Expectation, Stage, TrackingStatus, covariance_to_wire, localize_scan,
+};
 use kfmap_protocol::{
     DecodedScan, Rejection, RequestHeader, decode_stamp, localize_stage, pose_to_wire,
-};
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::tracking::{
-    Expectation, Stage, TrackingStatus, covariance_to_wire, localize_scan,
 };
 
 use super::answer::{Answer, AnswerPairings, bad, exact_mode, with_active};

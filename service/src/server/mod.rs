@@ -33,13 +33,13 @@ use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::prelude::{CallbackProgression, NodeState, PortFactory, WaitSetBuilder};
 use iceoryx2::waitset::{WaitSet, WaitSetGuard, WaitSetRunResult};
+use kfmap_map::archive::ArchiveError;
+use kfmap_map::tiles::SearchShare;
 use kfmap_protocol::Cov2CovMode;
 use kfmap_protocol::transport::{
     ALLOCATION, INITIAL_SLICE_LEN, Rpc, Transport, TransportError, create_node, iceoryx_config,
     iox, open_request_event, open_response_event, open_rpc,
 };
-use kfmap_shared::archive::ArchiveError;
-use kfmap_shared::tiles::SearchShare;
 use tracing::{info, warn};
 
 use crate::config::ServerConfig;

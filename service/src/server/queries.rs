@@ -4,13 +4,13 @@
 
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
+use kfmap_geometry::cloud::PointCloud;
+use kfmap_geometry::geometry::{Pose, to_point, transform_point};
+use kfmap_map::map::{ActiveSet, MapHit, Pairing};
+use kfmap_map::select::SelectionOptions;
 use kfmap_protocol::{
     DecodedScan, Rejection, RequestHeader, ResponseHeader, StatusCode, WirePairing,
 };
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::geometry::{Pose, to_point, transform_point};
-use kfmap_shared::map::{ActiveSet, MapHit, Pairing};
-use kfmap_shared::select::SelectionOptions;
 use rayon::prelude::*;
 
 use super::answer::{Answer, AnswerPairings, bad, map_error, with_active};
@@ -44,7 +44,7 @@ pub(super) fn echo(
 #[derive(Debug, Clone, Copy)]
 pub(super) struct Activation {
     /// Keyframe selection at the query's pose: the map's own, or relocalization's
-    /// ([`kfmap_shared::place::verification_selection`]).
+    /// ([`kfmap_map::place::verification_selection`]).
     pub(super) selection: SelectionOptions,
     /// Exact cov2cov: a merged submap of the active keyframes, cached in the session.
     pub(super) exact: bool,

@@ -1,13 +1,13 @@
 //! Registrations of a scan against the served map: the shared GICP loop iterated over
 //! the map's cov2cov pairings, in a client's session or outside any (in parallel).
 
+use kfmap_geometry::cloud::{CloudError, PointCloud};
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::registration::{RegistrationError, RegistrationResult, solve_pose};
+use kfmap_geometry::tracking::{PreparedScan, Stage};
+use kfmap_map::map::Pairing;
+use kfmap_map::select::SelectionOptions;
 use kfmap_protocol::{DecodedScan, Rejection, correspondences_from_pairings};
-use kfmap_shared::cloud::{CloudError, PointCloud};
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::map::Pairing;
-use kfmap_shared::registration::{RegistrationError, RegistrationResult, solve_pose};
-use kfmap_shared::select::SelectionOptions;
-use kfmap_shared::tracking::{PreparedScan, Stage};
 
 use super::answer::{bad, map_error};
 use super::limits::Limits;

@@ -6,17 +6,17 @@
 
 use std::sync::{Arc, Mutex, PoisonError};
 
-use kfmap_protocol::{
-    DecodedScan, FLAG_FINISH_CHOSEN, FLAG_LEVELLED, FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN,
-    PLACES_FROM_RELIEF, Rejection, RequestHeader, StatusCode, place_to_wire, pose_to_wire,
-};
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::place::{
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::tracking::{covariance_to_wire, pose_covariance};
+use kfmap_map::place::{
     Columns, GridView, PeerBest, PlaceStep, Proposal, Relocalization, RelocalizeParams,
     RelocalizeStatus, ScanUp, Scored, ScoredPlace, decide, own_up, propose, score_places,
     thinned_scan, verification_selection,
 };
-use kfmap_shared::tracking::{covariance_to_wire, pose_covariance};
+use kfmap_protocol::{
+    DecodedScan, FLAG_FINISH_CHOSEN, FLAG_LEVELLED, FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN,
+    PLACES_FROM_RELIEF, Rejection, RequestHeader, StatusCode, place_to_wire, pose_to_wire,
+};
 use nalgebra::Vector3;
 
 use super::answer::{Answer, AnswerPairings, bad, exact_mode, with_active};

@@ -4,9 +4,9 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
-use kfmap_shared::gravity::{GravityParams, LiveAnswer, LiveGravity};
-use kfmap_shared::map::MergedSubmap;
-use kfmap_shared::place::{Proposal, Scored};
+use kfmap_geometry::gravity::{GravityParams, LiveAnswer, LiveGravity};
+use kfmap_map::map::MergedSubmap;
+use kfmap_map::place::{Proposal, Scored};
 use nalgebra::Vector3;
 
 /// One client's state.

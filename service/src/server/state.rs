@@ -4,10 +4,10 @@
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock, RwLock};
 
-use kfmap_shared::archive::{ArchiveError, BakedPlaceGrid, OpenOptions, open_map};
-use kfmap_shared::map::KeyframeMap;
-use kfmap_shared::place::{GridView, OwnedColumns};
-use kfmap_shared::tiles::SearchShare;
+use kfmap_map::archive::{ArchiveError, BakedPlaceGrid, OpenOptions, open_map};
+use kfmap_map::map::KeyframeMap;
+use kfmap_map::place::{GridView, OwnedColumns};
+use kfmap_map::tiles::SearchShare;
 
 /// A loaded map.
 pub struct ServedMap {

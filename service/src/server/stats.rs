@@ -5,7 +5,7 @@ use std::sync::atomic::{AtomicU32, Ordering};
 
 use kfmap_protocol::KIND_SLOTS;
 
-use kfmap_shared::percentile::percentile;
+use kfmap_geometry::percentile::percentile;
 
 /// Latencies kept per kind for the percentiles (the most recent ones).
 pub const WINDOW: usize = 4096;
@@ -84,7 +84,7 @@ impl Stats {
 mod tests {
     use super::*;
 
-    /// The definition itself is tested in `kfmap_shared::percentile`; here, that the
+    /// The definition itself is tested in `kfmap_geometry::percentile`; here, that the
     /// figures use it: 10 samples, so the p99 is their maximum.
     #[test]
     fn percentiles_by_nearest_rank() {

@@ -8,15 +8,15 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
 use iceoryx2::port::notifier::Notifier;
+use kfmap_geometry::gravity::LiveAnswer;
+use kfmap_map::archive::ArchiveError;
+use kfmap_map::tiles::PlaceRanking;
 use kfmap_protocol::log_limit::warn_limited;
 use kfmap_protocol::transport::Transport;
 use kfmap_protocol::{
     Rejection, RequestHeader, RequestKind, ResponseHeader, StatusCode, WireCovOptions, WireRanking,
     WireSessionGravity, check_version, write_text,
 };
-use kfmap_shared::archive::ArchiveError;
-use kfmap_shared::gravity::LiveAnswer;
-use kfmap_shared::tiles::PlaceRanking;
 use tracing::{debug, info, warn};
 
 use super::answer::{Answer, AnswerPairings};

@@ -15,8 +15,8 @@ use kfmap_bake::dataset::find_scans;
 use kfmap_bake::pipeline::{BakeInput, BakeOutput, bake};
 use kfmap_bake::scan_range::ScanRange;
 use kfmap_bake::source::{BagSource, Source};
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::io::{ReadOptions, read_cloud};
+use kfmap_geometry::cloud::PointCloud;
+use kfmap_geometry::io::{ReadOptions, read_cloud};
 
 use super::anchors::{ROSBAGS_MCAP_READ, ROSBAGS_MCAP_READ_SCRIPT};
 use super::table::{Table, anchor};

@@ -10,10 +10,10 @@ use std::time::Instant;
 use anyhow::bail;
 use indicatif::{ProgressBar, ProgressStyle};
 use kfmap_bake::tiling::TileSetWriter;
-use kfmap_shared::covis::CovisSnapshot;
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::map::KeyframeMapOptions;
-use kfmap_shared::tiles::TileGeometry;
+use kfmap_geometry::geometry::Pose;
+use kfmap_map::covis::CovisSnapshot;
+use kfmap_map::map::KeyframeMapOptions;
+use kfmap_map::tiles::TileGeometry;
 use nalgebra::Vector3;
 use serde_json::json;
 

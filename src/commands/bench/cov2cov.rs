@@ -5,11 +5,11 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::Context;
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::cov::{CovOptions, estimate_covariances};
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::io::read_trajectory;
-use kfmap_shared::map::{KeyframeMap, KeyframeMapOptions};
+use kfmap_geometry::cloud::PointCloud;
+use kfmap_geometry::cov::{CovOptions, estimate_covariances};
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::io::read_trajectory;
+use kfmap_map::map::{KeyframeMap, KeyframeMapOptions};
 
 use super::fixtures::{data_file, keyframe_pose, read, synthetic_cloud};
 use super::table::Table;

@@ -5,12 +5,12 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use indicatif::ProgressBar;
-use kfmap_shared::archive::MapWriter;
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::covis::CovisSnapshot;
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::io::{ReadOptions, read_cloud};
-use kfmap_shared::map::{Keyframe, KeyframeMapOptions};
+use kfmap_geometry::cloud::PointCloud;
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::io::{ReadOptions, read_cloud};
+use kfmap_map::archive::MapWriter;
+use kfmap_map::covis::CovisSnapshot;
+use kfmap_map::map::{Keyframe, KeyframeMapOptions};
 use nalgebra::Vector3;
 use rand::rngs::SmallRng;
 use rand::{Rng, SeedableRng};

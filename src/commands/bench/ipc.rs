@@ -10,13 +10,13 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, bail};
 use indicatif::ProgressBar;
 use kfmap_client::{Client, ClientOptions};
+use kfmap_geometry::cov::CovOptions;
+use kfmap_geometry::percentile::percentile;
 use kfmap_protocol::transport::{create_node, iceoryx_config, open_rpc};
 use kfmap_protocol::{Cov2CovMode, RequestHeader, RequestKind, ScanPayload, pose_to_wire};
 use kfmap_service::server::ServedMap;
 use kfmap_service::server::session::Session;
 use kfmap_service::server::{Limits, answer};
-use kfmap_shared::cov::CovOptions;
-use kfmap_shared::percentile::percentile;
 use serde_json::json;
 
 use super::child::child_bench;
@@ -69,7 +69,7 @@ impl Cov2CovRequest {
     fn new(client_covariances: bool) -> Self {
         let points = synthetic_cloud(1234, 10_000).points;
         let covariances = client_covariances.then(|| {
-            kfmap_shared::cov::estimate_covariances(&points, &CovOptions::default()).values
+            kfmap_geometry::cov::estimate_covariances(&points, &CovOptions::default()).values
         });
         let header = RequestHeader {
             kind: RequestKind::Cov2Cov as u32,

@@ -4,9 +4,9 @@
 use std::num::NonZeroUsize;
 use std::path::Path;
 
-use kfmap_shared::geometry::{to_point, transform_point};
-use kfmap_shared::io::read_trajectory;
-use kfmap_shared::spatial::{build_tree, morton_order};
+use kfmap_geometry::geometry::{to_point, transform_point};
+use kfmap_geometry::io::read_trajectory;
+use kfmap_geometry::spatial::{build_tree, morton_order};
 
 use super::anchors::SMALL_GICP_KNN;
 use super::fixtures::{data_file, read, synthetic_cloud};

@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use kfmap_shared::cov::{CovOptions, estimate_covariances};
+use kfmap_geometry::cov::{CovOptions, estimate_covariances};
 
 use super::anchors::{SMALL_GICP_COV, SMALL_GICP_COV_SCRIPT, SMALL_GICP_VOXEL};
 use super::fixtures::{data_file, read, synthetic_cloud};

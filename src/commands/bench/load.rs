@@ -8,11 +8,11 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 use indicatif::{ProgressBar, ProgressStyle};
-use kfmap_shared::archive::{OpenOptions, open_map};
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::cov::{CovOptions, estimate_covariances};
-use kfmap_shared::map::{Keyframe, KeyframeMap, KeyframeMapOptions};
-use kfmap_shared::percentile::percentile;
+use kfmap_geometry::cloud::PointCloud;
+use kfmap_geometry::cov::{CovOptions, estimate_covariances};
+use kfmap_geometry::percentile::percentile;
+use kfmap_map::archive::{OpenOptions, open_map};
+use kfmap_map::map::{Keyframe, KeyframeMap, KeyframeMapOptions};
 use rand::rngs::SmallRng;
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;

@@ -14,7 +14,7 @@ use kfmap_bake::dataset::find_scans;
 use kfmap_bake::pipeline::{BakeInput, BakeOutput, bake};
 use kfmap_bake::scan_range::ScanRange;
 use kfmap_bake::source::Source;
-use kfmap_shared::percentile::percentile;
+use kfmap_geometry::percentile::percentile;
 
 use super::anchors::SMALL_GICP_LOCALIZE;
 use super::fixtures::data_file;

@@ -262,7 +262,7 @@ pub fn run(args: Args, process_start: Instant) -> anyhow::Result<()> {
                 extent_m: if args.quick { 2_000.0 } else { city.extent_m },
                 keyframes: if args.quick { 800 } else { city.keyframes },
                 points: city.points,
-                tiles: kfmap_shared::tiles::TileGeometry {
+                tiles: kfmap_map::tiles::TileGeometry {
                     tile_size: city.tile_size,
                     halo: city.halo,
                 },

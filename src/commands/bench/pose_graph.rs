@@ -2,7 +2,7 @@
 
 use std::path::Path;
 
-use kfmap_shared::pose_graph::{GraphParams, read_g2o};
+use kfmap_graph::pose_graph::{GraphParams, read_g2o};
 
 use super::anchors::GTSAM_PARKING_GARAGE_MS;
 use super::fixtures::data_file;

@@ -3,8 +3,8 @@
 
 use std::path::Path;
 
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::registration::{PreparedCloud, RegistrationParams, align, register};
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::registration::{PreparedCloud, RegistrationParams, align, register};
 
 use super::anchors::{SMALL_GICP_ALIGN, SMALL_GICP_REGISTER};
 use super::fixtures::{data_file, read, synthetic_cloud};

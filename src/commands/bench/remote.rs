@@ -11,9 +11,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use kfmap_client::{Client, ClientOptions, LocalizeOptions};
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::percentile::percentile;
 use kfmap_protocol::ScanPayload;
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::percentile::percentile;
 use serde_json::json;
 
 use super::child::run_json;

@@ -11,8 +11,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::bail;
 use indicatif::{ProgressBar, ProgressStyle};
+use kfmap_geometry::percentile::percentile;
 use kfmap_protocol::transport::{iceoryx_config, prefix_files};
-use kfmap_shared::percentile::percentile;
 use serde_json::json;
 
 use super::fixtures::bake_served_map;
@@ -189,7 +189,7 @@ fn p99(v: Vec<f64>) -> f64 {
 /// The nearest-rank `q`-percentile of samples.
 fn percentile_ms(mut v: Vec<f64>, q: f64) -> f64 {
     v.sort_by(f64::total_cmp);
-    kfmap_shared::percentile::percentile(&v, q)
+    kfmap_geometry::percentile::percentile(&v, q)
 }
 
 /// Runs the soak on `map`: `clients` processes at `rate` Hz for `seconds`, then, with

@@ -9,9 +9,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use kfmap_client::{Client, ClientError, ClientOptions, LocalizeOptions};
+use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::imu::ImuSample;
 use kfmap_protocol::{Cov2CovMode, ScanPayload, StatusCode};
-use kfmap_shared::geometry::Pose;
-use kfmap_shared::imu::ImuSample;
 use nalgebra::Vector3;
 use rand::rngs::SmallRng;
 use rand::{Rng, SeedableRng};

@@ -5,7 +5,7 @@
 use std::time::Instant;
 
 use indicatif::{ProgressBar, ProgressStyle};
-use kfmap_shared::percentile::percentile;
+use kfmap_geometry::percentile::percentile;
 use serde_json::json;
 
 /// An anchor's figure for the same measurement on the same data and machine.

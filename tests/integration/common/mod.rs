@@ -20,11 +20,11 @@ use std::process::{Child, Command, Output, Stdio};
 use std::sync::mpsc;
 use std::time::Duration;
 
+use kfmap_geometry::cloud::PointCloud;
+use kfmap_geometry::geometry::{Pose, rotation_distance, translation_distance};
+use kfmap_map::archive::save_map;
+use kfmap_map::map::{Keyframe, KeyframeMap, KeyframeMapOptions};
 use kfmap_protocol::transport::{iceoryx_config, remove_prefix_files};
-use kfmap_shared::archive::save_map;
-use kfmap_shared::cloud::PointCloud;
-use kfmap_shared::geometry::{Pose, rotation_distance, translation_distance};
-use kfmap_shared::map::{Keyframe, KeyframeMap, KeyframeMapOptions};
 
 /// A finished command's standard error as text.
 pub fn stderr(out: &Output) -> String {

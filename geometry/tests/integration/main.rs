@@ -1,0 +1,8 @@
+//! The integration tests of this crate, as one binary (one link instead of one per
+//! file: each release test binary is a thin-LTO link of every dependency).
+
+mod deskew_sim;
+mod gravity_sim;
+mod gyro_real;
+mod real_data;
+mod registration_real;

@@ -1,0 +1,442 @@
+//! The active set of a query: nearest-neighbour and cov2cov lookups, either in the
+//! merged submap (exact mode) or keyframe by keyframe (approximate mode).
+
+use std::num::NonZeroUsize;
+use std::sync::Arc;
+
+use nalgebra::{Matrix3, Point3, Vector3};
+use rayon::prelude::*;
+
+use super::{Keyframe, KeyframeMapOptions, KeyframeView, MapError};
+use crate::archive::ArchiveError;
+use kfmap_geometry::KeyframeId;
+use kfmap_geometry::cloud::{
+    Aabb, CloudError, PointCloud, grid_position, unit_or_zero, voxel_groups,
+};
+use kfmap_geometry::cov::estimate_covariances;
+use kfmap_geometry::geometry::{
+    PackedSym3, Pose, pack_sym3, to_point, to_vec3, transform_point, unpack_sym3,
+};
+use kfmap_geometry::spatial::{PointTree, TreeRef, build_tree};
+
+/// The active keyframes' points concatenated in ascending id order, in the map frame,
+/// with a tree and covariances of their own (neighbours may come from any keyframe).
+/// With `fuse_voxel_size` set, points of several keyframes in one map-frame voxel are
+/// first fused into one (see [`MergedSubmap::build`]).
+#[derive(Debug)]
+pub struct MergedSubmap {
+    /// Keyframes merged, ascending.
+    pub ids: Vec<KeyframeId>,
+    /// Map-frame points.
+    pub points: Vec<[f32; 3]>,
+    /// Index into `ids` of each point's keyframe.
+    pub origin_keyframe: Vec<u32>,
+    /// Local index of each point in its keyframe.
+    pub origin_index: Vec<u32>,
+    /// Map-frame view directions (zero where a keyframe has none).
+    pub view_dirs: Vec<[f32; 3]>,
+    /// Covariances computed on the merged cloud, map frame.
+    pub covariances: Vec<PackedSym3>,
+    /// KD-tree over `points`.
+    pub tree: PointTree,
+}
+
+/// The concatenated points before their tree and covariances: one entry per point.
+#[derive(Default)]
+struct Concatenated {
+    points: Vec<[f32; 3]>,
+    origin_keyframe: Vec<u32>,
+    origin_index: Vec<u32>,
+    view_dirs: Vec<[f32; 3]>,
+    weights: Vec<u32>,
+}
+
+impl Concatenated {
+    fn of(frames: &[ActiveFrame<'_>]) -> Self {
+        let mut all = Self::default();
+        for (slot, f) in frames.iter().enumerate() {
+            for (i, p) in f.view.points.iter().enumerate() {
+                // The same arithmetic as `grid_position`, which fusion keys by.
+                all.points.push(to_point(&transform_point(&f.pose, p)));
+                all.origin_keyframe.push(slot as u32);
+                all.origin_index.push(i as u32);
+                let v = f
+                    .view
+                    .view_dirs
+                    .map_or([0.0; 3], |v| to_point(&(f.pose.rotation * to_vec3(&v[i]))));
+                all.view_dirs.push(v);
+                all.weights.push(f.view.weights.map_or(1, |w| w[i]));
+            }
+        }
+        all
+    }
+
+    /// One point per occupied map-frame voxel: the weighted centroid of its points (so
+    /// keyframes voxelized on the same grid, with their voxel counts as weights, fuse
+    /// into exactly the voxelization of their merged raw scans). The fused point keeps
+    /// the origin of its heaviest member (ties: the first) and the weighted mean view
+    /// direction.
+    fn fused(self, frames: &[ActiveFrame<'_>], voxel_size: f64) -> Result<Self, CloudError> {
+        // Keyed from the local points exactly as bake keyed them, not from the f32 map
+        // points, so a point on a voxel boundary cannot change voxel.
+        let groups = voxel_groups(self.points.len(), voxel_size, |i| {
+            let f = &frames[self.origin_keyframe[i] as usize];
+            grid_position(&f.view.points[self.origin_index[i] as usize], Some(&f.pose))
+        })?;
+        let mut out = Self::default();
+        for group in groups.chunk_by(|a, b| a.0 == b.0) {
+            let members = || group.iter().map(|&(_, i)| i as usize);
+            let weight = |i: usize| f64::from(self.weights[i]);
+            let total: f64 = members().map(weight).sum();
+            let weighted_mean = |values: &[[f32; 3]]| {
+                members().fold([0.0f64; 3], |acc, i| {
+                    std::array::from_fn(|a| acc[a] + weight(i) * f64::from(values[i][a]))
+                })
+            };
+            let heaviest = members()
+                .max_by(|&a, &b| self.weights[a].cmp(&self.weights[b]).then(b.cmp(&a)))
+                .expect("a voxel group is never empty");
+            out.points
+                .push(weighted_mean(&self.points).map(|c| (c / total) as f32));
+            out.origin_keyframe.push(self.origin_keyframe[heaviest]);
+            out.origin_index.push(self.origin_index[heaviest]);
+            out.view_dirs
+                .push(unit_or_zero(weighted_mean(&self.view_dirs)));
+            out.weights.push(total.min(f64::from(u32::MAX)) as u32);
+        }
+        Ok(out)
+    }
+}
+
+impl MergedSubmap {
+    /// Merges the active keyframes (ascending id); fuses overlapping points when the
+    /// map's `fuse_voxel_size` is set.
+    pub fn build(
+        frames: &[ActiveFrame<'_>],
+        options: &KeyframeMapOptions,
+    ) -> Result<Self, MapError> {
+        let mut all = Concatenated::of(frames);
+        if options.fuse_voxel_size > 0.0 {
+            all = all.fused(frames, options.fuse_voxel_size)?;
+        }
+        Ok(Self {
+            ids: frames.iter().map(|f| f.id).collect(),
+            tree: build_tree(&all.points)?,
+            covariances: estimate_covariances(&all.points, &options.covariance).values,
+            points: all.points,
+            origin_keyframe: all.origin_keyframe,
+            origin_index: all.origin_index,
+            view_dirs: all.view_dirs,
+        })
+    }
+}
+
+/// An active keyframe: its pose (and inverse) and its verified local data.
+#[derive(Clone, Copy)]
+pub struct ActiveFrame<'a> {
+    /// Keyframe id.
+    pub id: KeyframeId,
+    /// `T_map_keyframe`.
+    pub pose: Pose,
+    /// `T_keyframe_map`, to move queries into the keyframe.
+    local_from_map: Pose,
+    /// Rotation of `pose` as a matrix, for rotating covariances and view directions.
+    rotation: Matrix3<f64>,
+    /// Local bounding box.
+    bbox: Aabb,
+    /// Local points, view directions, covariances and tree.
+    pub view: KeyframeView<'a>,
+}
+
+impl<'a> ActiveFrame<'a> {
+    /// Verifies a baked keyframe on its first use.
+    pub(super) fn new(k: &'a Keyframe) -> Result<Self, ArchiveError> {
+        Ok(Self {
+            id: k.id,
+            pose: k.pose,
+            local_from_map: k.pose.inverse(),
+            rotation: k.pose.rotation.to_rotation_matrix().into_inner(),
+            bbox: k.bbox,
+            view: k.view()?,
+        })
+    }
+}
+
+/// A map point found for a query: map frame, squared distance (m^2), origin.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MapHit {
+    /// The map point, map frame.
+    pub point: [f32; 3],
+    /// Squared distance to the query, m^2.
+    pub dist_sq: f32,
+    /// Keyframe holding the point.
+    pub keyframe: KeyframeId,
+    /// Index of the point in that keyframe.
+    pub local_index: u32,
+}
+
+/// One GICP correspondence: query point `query_index` paired with a map point.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Pairing {
+    /// Index of the scan point.
+    pub query_index: u32,
+    /// Keyframe of the map point.
+    pub keyframe: KeyframeId,
+    /// Index of the map point in its keyframe.
+    pub local_index: u32,
+    /// The map point, map frame.
+    pub map_point: [f32; 3],
+    /// Squared distance between the transformed scan point and the map point, m^2.
+    pub dist_sq: f32,
+    /// `(C_map + R C_query R^T)^-1`, packed, 1/m^2, map frame.
+    pub information: PackedSym3,
+}
+
+/// Orders hits by distance, then keyframe id, then local index (deterministic ties).
+fn hit_order(a: &MapHit, b: &MapHit) -> std::cmp::Ordering {
+    a.dist_sq
+        .total_cmp(&b.dist_sq)
+        .then(a.keyframe.cmp(&b.keyframe))
+        .then(a.local_index.cmp(&b.local_index))
+}
+
+/// The keyframes answering one query, with the merged submap in exact mode.
+pub struct ActiveSet<'a> {
+    options: &'a KeyframeMapOptions,
+    frames: Vec<ActiveFrame<'a>>,
+    ids: Vec<KeyframeId>,
+    merged: Option<Arc<MergedSubmap>>,
+}
+
+impl<'a> ActiveSet<'a> {
+    pub(super) fn new(
+        options: &'a KeyframeMapOptions,
+        frames: Vec<ActiveFrame<'a>>,
+        merged: Option<Arc<MergedSubmap>>,
+    ) -> Self {
+        let ids = frames.iter().map(|f| f.id).collect();
+        Self {
+            options,
+            frames,
+            ids,
+            merged,
+        }
+    }
+
+    /// Active keyframe ids, ascending.
+    pub fn ids(&self) -> &[KeyframeId] {
+        &self.ids
+    }
+
+    /// The merged submap (exact mode).
+    pub fn merged(&self) -> Option<&MergedSubmap> {
+        self.merged.as_deref()
+    }
+
+    /// Nearest point of the merged submap within `max_dist_sq` (inclusive): its merged
+    /// index and the hit.
+    fn merged_nearest(m: &MergedSubmap, p: &[f32; 3], max_dist_sq: f32) -> Option<(usize, MapHit)> {
+        let (item, dist_sq) = m.tree.view().nearest_one_within(p, max_dist_sq)?;
+        Some((item as usize, Self::merged_hit(m, item, dist_sq)))
+    }
+
+    fn merged_hit(m: &MergedSubmap, item: u32, dist_sq: f32) -> MapHit {
+        let i = item as usize;
+        MapHit {
+            point: m.points[i],
+            dist_sq,
+            keyframe: m.ids[m.origin_keyframe[i] as usize],
+            local_index: m.origin_index[i],
+        }
+    }
+
+    /// The query (map frame) in a keyframe's local frame.
+    fn local_query(f: &ActiveFrame, p: &[f32; 3]) -> [f32; 3] {
+        to_point(&(f.local_from_map * Point3::from(to_vec3(p))).coords)
+    }
+
+    fn local_hit(f: &ActiveFrame, item: u32, dist_sq: f32) -> MapHit {
+        let local = f.view.points[item as usize];
+        MapHit {
+            point: to_point(&(f.pose * Point3::from(to_vec3(&local))).coords),
+            dist_sq,
+            keyframe: f.id,
+            local_index: item,
+        }
+    }
+
+    /// The nearest map point to `p` (map frame).
+    pub fn nearest_one(&self, p: &[f32; 3]) -> Option<MapHit> {
+        match &self.merged {
+            Some(m) => Self::merged_nearest(m, p, f32::INFINITY).map(|(_, hit)| hit),
+            None => self.nearest_in_frames(p, f32::INFINITY).map(|(_, hit)| hit),
+        }
+    }
+
+    /// Approximate mode: the nearest point over the active keyframes within
+    /// `max_dist_sq`, with its frame. The keyframe taken nearest to `p` is searched
+    /// first; each later search is bounded by the best hit so far and skipped when the
+    /// keyframe's box is farther than that (ties still resolve by [`hit_order`]).
+    fn nearest_in_frames(
+        &self,
+        p: &[f32; 3],
+        max_dist_sq: f32,
+    ) -> Option<(&ActiveFrame<'a>, MapHit)> {
+        // Scans are densest near the sensor: the keyframe taken nearest to `p` likely
+        // holds its nearest point.
+        let origin_dist_sq =
+            |f: &ActiveFrame| (f.pose.translation.vector - to_vec3(p)).norm_squared();
+        let first = (0..self.frames.len()).min_by(|&a, &b| {
+            origin_dist_sq(&self.frames[a]).total_cmp(&origin_dist_sq(&self.frames[b]))
+        })?;
+        let order = std::iter::once(first).chain((0..self.frames.len()).filter(|&i| i != first));
+        let mut best: Option<(&ActiveFrame<'a>, MapHit)> = None;
+        let mut bound = max_dist_sq;
+        for f in order.map(|i| &self.frames[i]) {
+            let query = Self::local_query(f, p);
+            if f.bbox.dist_sq(&query) > bound {
+                continue;
+            }
+            let Some((item, dist_sq)) = f.view.tree.nearest_one_within(&query, bound) else {
+                continue;
+            };
+            let hit = Self::local_hit(f, item, dist_sq);
+            if best
+                .as_ref()
+                .is_none_or(|(_, b)| hit_order(&hit, b).is_lt())
+            {
+                bound = dist_sq;
+                best = Some((f, hit));
+            }
+        }
+        best
+    }
+
+    /// Runs `search` (returning `(item, squared distance)`) on the merged tree, or on
+    /// every active keyframe's tree with `p` moved into its frame; hits nearest first.
+    fn gather(
+        &self,
+        p: &[f32; 3],
+        search: impl Fn(TreeRef<'_>, &[f32; 3]) -> Vec<(u32, f32)>,
+    ) -> Vec<MapHit> {
+        let mut hits: Vec<MapHit> = match &self.merged {
+            Some(m) => search(m.tree.view(), p)
+                .into_iter()
+                .map(|(i, d)| Self::merged_hit(m, i, d))
+                .collect(),
+            None => self
+                .frames
+                .iter()
+                .flat_map(|f| {
+                    search(f.view.tree, &Self::local_query(f, p))
+                        .into_iter()
+                        .map(move |(i, d)| Self::local_hit(f, i, d))
+                })
+                .collect(),
+        };
+        hits.sort_by(hit_order);
+        hits
+    }
+
+    /// The `k` nearest map points to `p`, nearest first.
+    pub fn nearest_k(&self, p: &[f32; 3], k: usize) -> Vec<MapHit> {
+        let Some(n) = NonZeroUsize::new(k) else {
+            return Vec::new();
+        };
+        let mut hits = self.gather(p, |tree, q| tree.nearest_n(q, n));
+        hits.truncate(k);
+        hits
+    }
+
+    /// Every map point within `radius` metres of `p` (inclusive), nearest first.
+    pub fn within_radius(&self, p: &[f32; 3], radius: f64) -> Vec<MapHit> {
+        let r2 = (radius * radius) as f32;
+        self.gather(p, |tree, q| tree.within(q, r2))
+    }
+
+    /// GICP correspondences for `scan` (sensor frame) at `pose` (`T_map_sensor`): for
+    /// each scan point its nearest map point within `max_pair_dist` metres, passing the
+    /// view-direction filter, with the information matrix `(C_map + R C_q R^T)^-1`.
+    /// Query covariances are estimated from the scan unless given. Sorted by query
+    /// index; the same for any thread count.
+    pub fn cov2cov(
+        &self,
+        scan: &PointCloud,
+        pose: &Pose,
+        max_pair_dist: f64,
+        query_covariances: Option<&[PackedSym3]>,
+    ) -> Result<Vec<Pairing>, MapError> {
+        scan.validate()?;
+        let estimated;
+        let covs: &[PackedSym3] = match query_covariances {
+            Some(c) if c.len() != scan.len() => {
+                return Err(MapError::CovarianceCount {
+                    given: c.len(),
+                    points: scan.len(),
+                });
+            }
+            Some(c) => c,
+            None => {
+                estimated = estimate_covariances(&scan.points, &self.options.covariance).values;
+                &estimated
+            }
+        };
+        let options = self.options;
+        let max_sq = (max_pair_dist * max_pair_dist) as f32;
+        let cos_limit = options.max_view_angle_deg.to_radians().cos();
+        let filter = options.view_filter_active() && scan.view_dirs.is_some();
+        let rotation = pose.rotation.to_rotation_matrix().into_inner();
+        let pairings = (0..scan.len())
+            .into_par_iter()
+            .filter_map(|i| {
+                let p = to_point(&(pose * Point3::from(to_vec3(&scan.points[i]))).coords);
+                let (hit, map_cov, map_view) = self.nearest_with_attributes(&p, max_sq)?;
+                if filter {
+                    let vq = pose.rotation * to_vec3(&scan.view_dirs.as_ref()?[i]);
+                    // A missing vector (norm^2 < 0.25) never rejects.
+                    if vq.norm_squared() >= 0.25
+                        && map_view.norm_squared() >= 0.25
+                        && vq.dot(&map_view) < cos_limit
+                    {
+                        return None;
+                    }
+                }
+                let combined: Matrix3<f64> =
+                    map_cov + rotation * unpack_sym3(&covs[i]) * rotation.transpose();
+                let information = combined.try_inverse()?;
+                Some(Pairing {
+                    query_index: i as u32,
+                    keyframe: hit.keyframe,
+                    local_index: hit.local_index,
+                    map_point: hit.point,
+                    dist_sq: hit.dist_sq,
+                    information: pack_sym3(&information),
+                })
+            })
+            .collect();
+        Ok(pairings)
+    }
+
+    /// Nearest map point within `max_dist_sq` (inclusive) with its covariance and view
+    /// direction, both in the map frame.
+    fn nearest_with_attributes(
+        &self,
+        p: &[f32; 3],
+        max_dist_sq: f32,
+    ) -> Option<(MapHit, Matrix3<f64>, Vector3<f64>)> {
+        if let Some(m) = &self.merged {
+            let (i, hit) = Self::merged_nearest(m, p, max_dist_sq)?;
+            return Some((
+                hit,
+                unpack_sym3(&m.covariances[i]),
+                to_vec3(&m.view_dirs[i]),
+            ));
+        }
+        let (f, hit) = self.nearest_in_frames(p, max_dist_sq)?;
+        let local_cov = unpack_sym3(&f.view.covariances[hit.local_index as usize]);
+        let view = f.view.view_dirs.map_or(Vector3::zeros(), |v| {
+            f.rotation * to_vec3(&v[hit.local_index as usize])
+        });
+        Some((hit, f.rotation * local_cov * f.rotation.transpose(), view))
+    }
+}
