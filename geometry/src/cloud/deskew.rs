@@ -9,7 +9,7 @@
 //! deskew of LiDAR odometry pipelines (KISS-ICP's `DeSkewScan`, on the SE(3) group).
 //!
 //! ```
-//! use crate::cloud::{PointCloud, Twist, DeskewOutcome, deskew};
+//! use kfmap_geometry::cloud::{PointCloud, Twist, DeskewOutcome, deskew};
 //! use nalgebra::Vector3;
 //!
 //! // Driving at 10 m/s along x: a wall point 20 m ahead, seen 0.1 s into the scan, was

@@ -3,8 +3,8 @@
 //! known from the pose trajectory, is removed from each mean before pooling.
 //!
 //! ```
-//! use crate::gravity::{GravityAligner, GravityParams, KfAccSample};
-//! use crate::geometry::Pose;
+//! use kfmap_geometry::gravity::{GravityAligner, GravityParams, KfAccSample};
+//! use kfmap_geometry::geometry::Pose;
 //! use nalgebra::Vector3;
 //! use std::collections::BTreeMap;
 //!

@@ -1,9 +1,9 @@
 //! Registration (docs/DESIGN.md#registration): pairwise GICP / ICP on a shared pose solver.
 //!
 //! ```
-//! use crate::cloud::PointCloud;
-//! use crate::geometry::Pose;
-//! use crate::registration::{RegistrationParams, register};
+//! use kfmap_geometry::cloud::PointCloud;
+//! use kfmap_geometry::geometry::Pose;
+//! use kfmap_geometry::registration::{RegistrationParams, register};
 //!
 //! // Three walls and a floor, and the same scene moved by 10 cm along x.
 //! let mut points = Vec::new();

@@ -11,7 +11,7 @@
 //! than small_gicp (`cargo bench -p kfmap-geometry --bench kdtree`, docs/BENCHMARKS.md).
 //!
 //! ```
-//! use crate::spatial::build_tree;
+//! use kfmap_geometry::spatial::build_tree;
 //!
 //! let points = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 2.0, 0.0]];
 //! let tree = build_tree(&points).unwrap();

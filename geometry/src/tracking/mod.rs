@@ -5,10 +5,10 @@
 //! both run [`localize_scan`], so they decide alike.
 //!
 //! ```
-//! use crate::cloud::PointCloud;
-//! use crate::geometry::Pose;
-//! use crate::registration::{PreparedCloud, align};
-//! use crate::tracking::{
+//! use kfmap_geometry::cloud::PointCloud;
+//! use kfmap_geometry::geometry::Pose;
+//! use kfmap_geometry::registration::{PreparedCloud, align};
+//! use kfmap_geometry::tracking::{
 //!     Expectation, Stage, TrackingParams, TrackingStatus, localize_scan,
 //! };
 //! use nalgebra::Vector3;

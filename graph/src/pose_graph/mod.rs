@@ -6,7 +6,7 @@
 //!
 //! ```
 //! use kfmap_geometry::geometry::Pose;
-//! use crate::pose_graph::{GraphParams, PoseEdge, PoseGraph};
+//! use kfmap_graph::pose_graph::{GraphParams, PoseEdge, PoseGraph};
 //! use nalgebra::{Matrix6, Vector3};
 //!
 //! let mut graph = PoseGraph::default();
