@@ -16,16 +16,15 @@
 //! since every index field is checked against the file before it is followed.
 
 use std::collections::{BTreeMap, HashMap};
-use std::fs::File;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
 use mcap::records::op;
 use memmap2::Mmap;
 
-use crate::chunked::{self, ChunkBytes, Chunked, NOT_IN_CHUNK};
+use crate::chunked::{self, ChunkBytes, Chunked, NOT_IN_CHUNK, Tally};
 use crate::raw::{Cursor, RawError, decompress_exact};
-use crate::{BagError, Container, Encoding, Message, MessageRef, Topic};
+use crate::{BagError, Encoding, Message, MessageRef, Topic};
 
 /// Footer record: prefix + summary start + summary offset start + summary CRC.
 const FOOTER_RECORD_LEN: usize = 9 + 8 + 8 + 4;
@@ -71,31 +70,10 @@ struct Summary {
     message_count: Option<u64>,
 }
 
-/// Per-channel tallies: count, first and last log time.
-#[derive(Default, Clone, Copy)]
-struct Tally {
-    count: u64,
-    first: Option<u64>,
-    last: Option<u64>,
-}
-
-impl Tally {
-    fn add(&mut self, log_time: u64) {
-        self.count += 1;
-        self.first = Some(self.first.map_or(log_time, |f| f.min(log_time)));
-        self.last = Some(self.last.map_or(log_time, |l| l.max(log_time)));
-    }
-}
-
 impl McapBag {
     /// Opens `path`: maps it, reads its summary (or scans it once without one).
     pub(crate) fn open(path: &Path) -> Result<Self, BagError> {
-        let file = File::open(path).map_err(|e| BagError::os(path, e))?;
-        // SAFETY: the file is opened read-only and mapped privately; it is never written
-        // through the map. Another process truncating or rewriting it while it is open
-        // is the accepted risk (as for kfmap's own maps): recorders write new files and
-        // do not modify finished ones.
-        let map = unsafe { Mmap::map(&file) }.map_err(|e| BagError::os(path, e))?;
+        let map = chunked::map_file(path)?;
         let mut bag = McapBag {
             path: path.to_path_buf(),
             map,
@@ -466,22 +444,17 @@ impl McapBag {
         })
     }
 
-    /// Groups channels into topics (a topic recorded on several channels is one topic,
-    /// typed by its lowest channel id) and sorts them by name.
+    /// The topics of the bag's channels ([`chunked::topics_of`]), typed by their
+    /// schemas and message encodings.
     fn build_topics(
         &mut self,
         schemas: &Schemas,
         channels: &Channels,
         tallies: &HashMap<u16, Tally>,
     ) {
-        let mut ids: Vec<u16> = channels.keys().copied().collect();
-        ids.sort_unstable();
-        let mut topics: BTreeMap<String, Topic> = BTreeMap::new();
-        for id in ids {
-            let (name, schema_id, encoding) = &channels[&id];
-            let tally = tallies.get(&id).copied().unwrap_or_default();
-            self.channels_of.entry(name.clone()).or_default().push(id);
-            let topic = topics.entry(name.clone()).or_insert_with(|| {
+        let described = channels
+            .iter()
+            .map(|(&id, (name, schema_id, encoding))| {
                 let schema = schemas.get(schema_id).cloned().unwrap_or_default();
                 let (msg_type, encoding) = match encoding.as_str() {
                     "cdr" => (schema, Encoding::Cdr),
@@ -490,20 +463,18 @@ impl McapBag {
                     // kfmap decodes CDR and ROS 1 messages only.
                     other => (format!("{schema} [{other} encoded]"), Encoding::Cdr),
                 };
-                Topic {
+                let topic = Topic {
                     name: name.clone(),
                     msg_type,
                     encoding,
                     count: 0,
                     first_ns: None,
                     last_ns: None,
-                }
-            });
-            topic.count += tally.count;
-            topic.first_ns = min_opt(topic.first_ns, tally.first);
-            topic.last_ns = max_opt(topic.last_ns, tally.last);
-        }
-        self.topics = topics.into_values().collect();
+                };
+                (id, topic)
+            })
+            .collect();
+        (self.topics, self.channels_of) = chunked::topics_of(described, tallies);
     }
 }
 
@@ -600,47 +571,12 @@ fn parse_chunk_index(body: &mut Cursor<'_>) -> Result<ChunkIndex, RawError> {
     })
 }
 
-fn min_opt(a: Option<u64>, b: Option<u64>) -> Option<u64> {
-    match (a, b) {
-        (Some(a), Some(b)) => Some(a.min(b)),
-        (a, b) => a.or(b),
-    }
-}
-
-fn max_opt(a: Option<u64>, b: Option<u64>) -> Option<u64> {
-    match (a, b) {
-        (Some(a), Some(b)) => Some(a.max(b)),
-        (a, b) => a.or(b),
-    }
-}
-
 impl Chunked for McapBag {
-    fn chunk_bytes(&self, locator: u64) -> Result<ChunkBytes, BagError> {
-        McapBag::chunk_bytes(self, locator)
-    }
-
-    fn message(&self, at: &MessageRef, chunk: Option<&ChunkBytes>) -> Result<Message, BagError> {
-        McapBag::message(self, at, chunk)
-    }
-
-    fn last_chunk(&self) -> &Mutex<Option<(u64, ChunkBytes)>> {
-        &self.last_chunk
-    }
-}
-
-impl Container for McapBag {
-    fn topics(&self) -> &[Topic] {
+    fn chunked_topics(&self) -> &[Topic] {
         &self.topics
     }
 
-    fn messages<'a>(
-        &'a self,
-        topic: &Topic,
-    ) -> Result<Box<dyn Iterator<Item = Result<Message, BagError>> + Send + 'a>, BagError> {
-        Ok(chunked::stream(self, self.index(topic)?))
-    }
-
-    fn index(&self, topic: &Topic) -> Result<Vec<MessageRef>, BagError> {
+    fn message_refs(&self, topic: &Topic) -> Result<Vec<MessageRef>, BagError> {
         let Some(ids) = self.channels_of.get(&topic.name) else {
             return Ok(Vec::new());
         };
@@ -679,12 +615,18 @@ impl Container for McapBag {
                 }
             })?,
         }
-        // Log-time order; ties in file order.
-        refs.sort_unstable_by_key(|r| (r.log_time_ns, r.locator, r.offset));
         Ok(refs)
     }
 
-    fn read(&self, at: &MessageRef) -> Result<Message, BagError> {
-        chunked::read(self, at)
+    fn chunk_bytes(&self, locator: u64) -> Result<ChunkBytes, BagError> {
+        McapBag::chunk_bytes(self, locator)
+    }
+
+    fn message(&self, at: &MessageRef, chunk: Option<&ChunkBytes>) -> Result<Message, BagError> {
+        McapBag::message(self, at, chunk)
+    }
+
+    fn last_chunk(&self) -> &Mutex<Option<(u64, ChunkBytes)>> {
+        &self.last_chunk
     }
 }

@@ -23,15 +23,14 @@
 //! is checked against the file before anything is allocated from it.
 
 use std::collections::{BTreeMap, HashMap};
-use std::fs::File;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
 use memmap2::Mmap;
 
-use crate::chunked::{self, ChunkBytes, Chunked, NOT_IN_CHUNK};
+use crate::chunked::{self, ChunkBytes, Chunked, NOT_IN_CHUNK, Tally};
 use crate::raw::{Cursor, RawError, decompress_exact};
-use crate::{BagError, Container, Encoding, Message, MessageRef, ROS1_MAGIC, Topic};
+use crate::{BagError, Encoding, Message, MessageRef, ROS1_MAGIC, Topic};
 
 const OP_MESSAGE: u8 = 0x02;
 const OP_BAG_HEADER: u8 = 0x03;
@@ -162,22 +161,6 @@ type Connections = HashMap<u32, Connection>;
 /// Tallies by connection id.
 type Tallies = HashMap<u32, Tally>;
 
-/// Per-connection tallies.
-#[derive(Default, Clone, Copy)]
-struct Tally {
-    count: u64,
-    first: Option<u64>,
-    last: Option<u64>,
-}
-
-impl Tally {
-    fn add(&mut self, t: u64) {
-        self.count += 1;
-        self.first = Some(self.first.map_or(t, |f| f.min(t)));
-        self.last = Some(self.last.map_or(t, |l| l.max(t)));
-    }
-}
-
 /// What a scan meets.
 enum Scanned {
     Connection(u32, Connection),
@@ -192,12 +175,7 @@ enum Scanned {
 impl Ros1Bag {
     /// Opens `path`: maps it and reads its index (or scans it without one).
     pub(crate) fn open(path: &Path) -> Result<Self, BagError> {
-        let file = File::open(path).map_err(|e| BagError::os(path, e))?;
-        // SAFETY: the file is opened read-only and mapped privately; it is never written
-        // through the map. Another process truncating or rewriting it while it is open
-        // is the accepted risk (as for kfmap's own maps): recorders write new files and
-        // do not modify finished ones.
-        let map = unsafe { Mmap::map(&file) }.map_err(|e| BagError::os(path, e))?;
+        let map = chunked::map_file(path)?;
         let mut bag = Ros1Bag {
             path: path.to_path_buf(),
             map,
@@ -511,42 +489,23 @@ impl Ros1Bag {
         })
     }
 
-    fn build_topics(
-        &mut self,
-        connections: &HashMap<u32, Connection>,
-        tallies: &HashMap<u32, Tally>,
-    ) {
-        let mut ids: Vec<u32> = connections.keys().copied().collect();
-        ids.sort_unstable();
-        let mut topics: BTreeMap<String, Topic> = BTreeMap::new();
-        for id in ids {
-            let connection = &connections[&id];
-            let tally = tallies.get(&id).copied().unwrap_or_default();
-            self.connections_of
-                .entry(connection.topic.clone())
-                .or_default()
-                .push(id);
-            let topic = topics
-                .entry(connection.topic.clone())
-                .or_insert_with(|| Topic {
+    /// The topics of the bag's connections ([`chunked::topics_of`]).
+    fn build_topics(&mut self, connections: &Connections, tallies: &Tallies) {
+        let described = connections
+            .iter()
+            .map(|(&id, connection)| {
+                let topic = Topic {
                     name: connection.topic.clone(),
                     msg_type: connection.msg_type.clone(),
                     encoding: Encoding::Ros1,
                     count: 0,
                     first_ns: None,
                     last_ns: None,
-                });
-            topic.count += tally.count;
-            topic.first_ns = match (topic.first_ns, tally.first) {
-                (Some(a), Some(b)) => Some(a.min(b)),
-                (a, b) => a.or(b),
-            };
-            topic.last_ns = match (topic.last_ns, tally.last) {
-                (Some(a), Some(b)) => Some(a.max(b)),
-                (a, b) => a.or(b),
-            };
-        }
-        self.topics = topics.into_values().collect();
+                };
+                (id, topic)
+            })
+            .collect();
+        (self.topics, self.connections_of) = chunked::topics_of(described, tallies);
     }
 }
 
@@ -633,32 +592,11 @@ fn scan_record(
 }
 
 impl Chunked for Ros1Bag {
-    fn chunk_bytes(&self, locator: u64) -> Result<ChunkBytes, BagError> {
-        Ros1Bag::chunk_bytes(self, locator)
-    }
-
-    fn message(&self, at: &MessageRef, chunk: Option<&ChunkBytes>) -> Result<Message, BagError> {
-        Ros1Bag::message(self, at, chunk)
-    }
-
-    fn last_chunk(&self) -> &Mutex<Option<(u64, ChunkBytes)>> {
-        &self.last_chunk
-    }
-}
-
-impl Container for Ros1Bag {
-    fn topics(&self) -> &[Topic] {
+    fn chunked_topics(&self) -> &[Topic] {
         &self.topics
     }
 
-    fn messages<'a>(
-        &'a self,
-        topic: &Topic,
-    ) -> Result<Box<dyn Iterator<Item = Result<Message, BagError>> + Send + 'a>, BagError> {
-        Ok(chunked::stream(self, self.index(topic)?))
-    }
-
-    fn index(&self, topic: &Topic) -> Result<Vec<MessageRef>, BagError> {
+    fn message_refs(&self, topic: &Topic) -> Result<Vec<MessageRef>, BagError> {
         let Some(ids) = self.connections_of.get(&topic.name) else {
             return Ok(Vec::new());
         };
@@ -701,12 +639,18 @@ impl Container for Ros1Bag {
                 }
             })?,
         }
-        // Log-time order; ties in file order.
-        refs.sort_unstable_by_key(|r| (r.log_time_ns, r.locator, r.offset));
         Ok(refs)
     }
 
-    fn read(&self, at: &MessageRef) -> Result<Message, BagError> {
-        chunked::read(self, at)
+    fn chunk_bytes(&self, locator: u64) -> Result<ChunkBytes, BagError> {
+        Ros1Bag::chunk_bytes(self, locator)
+    }
+
+    fn message(&self, at: &MessageRef, chunk: Option<&ChunkBytes>) -> Result<Message, BagError> {
+        Ros1Bag::message(self, at, chunk)
+    }
+
+    fn last_chunk(&self) -> &Mutex<Option<(u64, ChunkBytes)>> {
+        &self.last_chunk
     }
 }
