@@ -312,138 +312,6 @@ impl McapBag {
         chunk.bytes(&self.map)
     }
 
-    /// The records of the chunk whose record starts at file offset `at`.
-    fn chunk_bytes(&self, at: u64) -> Result<ChunkBytes, BagError> {
-        let bad = |e: RawError| self.bad(e);
-        let mut c = self.cursor_at(at).map_err(bad)?;
-        let (opcode, mut body) = next_record(&mut c).map_err(bad)?;
-        if opcode != op::CHUNK {
-            return Err(BagError::malformed(
-                &self.path,
-                at,
-                "an index points at no Chunk record",
-            ));
-        }
-        let _start_time = body.u64("chunk start time").map_err(bad)?;
-        let _end_time = body.u64("chunk end time").map_err(bad)?;
-        let uncompressed_size = body.u64("chunk uncompressed size").map_err(bad)?;
-        let crc = body.u32("chunk CRC").map_err(bad)?;
-        let compression = body.string("chunk compression").map_err(bad)?;
-        let compressed_size = body.u64("chunk compressed size").map_err(bad)?;
-        let data_at = body.offset();
-        let data = body.bytes(compressed_size, "chunk records").map_err(bad)?;
-        if uncompressed_size > MAX_CHUNK_BYTES {
-            return Err(BagError::malformed(
-                &self.path,
-                at,
-                format!(
-                    "a chunk of {uncompressed_size} bytes uncompressed; kfmap reads chunks up to {MAX_CHUNK_BYTES}"
-                ),
-            ));
-        }
-        let chunk = match compression.as_str() {
-            "" => {
-                if uncompressed_size != compressed_size {
-                    return Err(BagError::malformed(
-                        &self.path,
-                        at,
-                        "an uncompressed chunk whose two sizes differ",
-                    ));
-                }
-                // `data` lies inside the map at `data_at`.
-                let start = data_at as usize;
-                ChunkBytes::Mapped(start..start + data.len())
-            }
-            "zstd" | "lz4" => {
-                let decoded = if compression == "zstd" {
-                    zstd::stream::read::Decoder::with_buffer(data)
-                        .map_err(|e| e.to_string())
-                        .and_then(|d| decompress_exact(d, uncompressed_size, 64 << 20))
-                } else {
-                    lz4::Decoder::new(data)
-                        .map_err(|e| e.to_string())
-                        .and_then(|d| decompress_exact(d, uncompressed_size, 64 << 20))
-                };
-                let decoded = decoded.map_err(|reason| {
-                    BagError::malformed(&self.path, at, format!("{compression} chunk: {reason}"))
-                })?;
-                ChunkBytes::Owned(decoded.into())
-            }
-            _ => {
-                return Err(BagError::Codec {
-                    path: self.path.clone(),
-                    offset: at,
-                    codec: compression,
-                    supported: SUPPORTED,
-                });
-            }
-        };
-        if crc != 0 {
-            let computed = crc32fast::hash(self.chunk_slice(&chunk));
-            if computed != crc {
-                return Err(BagError::malformed(
-                    &self.path,
-                    at,
-                    format!(
-                        "chunk CRC mismatch (stored {crc:08x}, computed {computed:08x}): corrupt"
-                    ),
-                ));
-            }
-        }
-        Ok(chunk)
-    }
-
-    /// The message at `at`, from `chunk` (the records of the chunk `at.locator`) or,
-    /// outside chunks, from the map.
-    fn message(&self, at: &MessageRef, chunk: Option<&ChunkBytes>) -> Result<Message, BagError> {
-        let mut c = match chunk {
-            None => self.cursor_at(at.locator).map_err(|e| self.bad(e))?,
-            Some(chunk) => {
-                let bytes = self.chunk_slice(chunk);
-                if at.offset >= bytes.len() as u64 {
-                    return Err(BagError::malformed(
-                        &self.path,
-                        at.locator,
-                        format!(
-                            "a message index offset {} past the chunk's {} bytes",
-                            at.offset,
-                            bytes.len()
-                        ),
-                    ));
-                }
-                // Checked just above; offsets in errors count from the chunk's records.
-                Cursor::new(&bytes[at.offset as usize..], at.offset)
-            }
-        };
-        let parsed = (|| {
-            let (opcode, mut body) = next_record(&mut c)?;
-            if opcode != op::MESSAGE {
-                return Err(RawError::new(
-                    at.offset,
-                    "an index that points at no Message record",
-                ));
-            }
-            let _channel = body.u16("message channel")?;
-            let _sequence = body.u32("message sequence")?;
-            let log_time_ns = body.u64("message log time")?;
-            let _publish_time = body.u64("message publish time")?;
-            let rest = body.remaining() as u64;
-            let data = body.bytes(rest, "message data")?.to_vec();
-            Ok(Message { log_time_ns, data })
-        })();
-        parsed.map_err(|e| match chunk {
-            None => self.bad(e),
-            Some(_) => BagError::malformed(
-                &self.path,
-                at.locator,
-                format!(
-                    "in the chunk at this byte, offset {} of its records: {}",
-                    e.offset, e.reason
-                ),
-            ),
-        })
-    }
-
     /// The topics of the bag's channels ([`chunked::topics_of`]), typed by their
     /// schemas and message encodings.
     fn build_topics(
@@ -618,12 +486,136 @@ impl Chunked for McapBag {
         Ok(refs)
     }
 
-    fn chunk_bytes(&self, locator: u64) -> Result<ChunkBytes, BagError> {
-        McapBag::chunk_bytes(self, locator)
+    /// The records of the chunk whose record starts at file offset `at`.
+    fn chunk_bytes(&self, at: u64) -> Result<ChunkBytes, BagError> {
+        let bad = |e: RawError| self.bad(e);
+        let mut c = self.cursor_at(at).map_err(bad)?;
+        let (opcode, mut body) = next_record(&mut c).map_err(bad)?;
+        if opcode != op::CHUNK {
+            return Err(BagError::malformed(
+                &self.path,
+                at,
+                "an index points at no Chunk record",
+            ));
+        }
+        let _start_time = body.u64("chunk start time").map_err(bad)?;
+        let _end_time = body.u64("chunk end time").map_err(bad)?;
+        let uncompressed_size = body.u64("chunk uncompressed size").map_err(bad)?;
+        let crc = body.u32("chunk CRC").map_err(bad)?;
+        let compression = body.string("chunk compression").map_err(bad)?;
+        let compressed_size = body.u64("chunk compressed size").map_err(bad)?;
+        let data_at = body.offset();
+        let data = body.bytes(compressed_size, "chunk records").map_err(bad)?;
+        if uncompressed_size > MAX_CHUNK_BYTES {
+            return Err(BagError::malformed(
+                &self.path,
+                at,
+                format!(
+                    "a chunk of {uncompressed_size} bytes uncompressed; kfmap reads chunks up to {MAX_CHUNK_BYTES}"
+                ),
+            ));
+        }
+        let chunk = match compression.as_str() {
+            "" => {
+                if uncompressed_size != compressed_size {
+                    return Err(BagError::malformed(
+                        &self.path,
+                        at,
+                        "an uncompressed chunk whose two sizes differ",
+                    ));
+                }
+                // `data` lies inside the map at `data_at`.
+                let start = data_at as usize;
+                ChunkBytes::Mapped(start..start + data.len())
+            }
+            "zstd" | "lz4" => {
+                let decoded = if compression == "zstd" {
+                    zstd::stream::read::Decoder::with_buffer(data)
+                        .map_err(|e| e.to_string())
+                        .and_then(|d| decompress_exact(d, uncompressed_size, 64 << 20))
+                } else {
+                    lz4::Decoder::new(data)
+                        .map_err(|e| e.to_string())
+                        .and_then(|d| decompress_exact(d, uncompressed_size, 64 << 20))
+                };
+                let decoded = decoded.map_err(|reason| {
+                    BagError::malformed(&self.path, at, format!("{compression} chunk: {reason}"))
+                })?;
+                ChunkBytes::Owned(decoded.into())
+            }
+            _ => {
+                return Err(BagError::Codec {
+                    path: self.path.clone(),
+                    offset: at,
+                    codec: compression,
+                    supported: SUPPORTED,
+                });
+            }
+        };
+        if crc != 0 {
+            let computed = crc32fast::hash(self.chunk_slice(&chunk));
+            if computed != crc {
+                return Err(BagError::malformed(
+                    &self.path,
+                    at,
+                    format!(
+                        "chunk CRC mismatch (stored {crc:08x}, computed {computed:08x}): corrupt"
+                    ),
+                ));
+            }
+        }
+        Ok(chunk)
     }
 
+    /// The message at `at`, from `chunk` (the records of the chunk `at.locator`) or,
+    /// outside chunks, from the map.
     fn message(&self, at: &MessageRef, chunk: Option<&ChunkBytes>) -> Result<Message, BagError> {
-        McapBag::message(self, at, chunk)
+        let mut c = match chunk {
+            None => self.cursor_at(at.locator).map_err(|e| self.bad(e))?,
+            Some(chunk) => {
+                let bytes = self.chunk_slice(chunk);
+                if at.offset >= bytes.len() as u64 {
+                    return Err(BagError::malformed(
+                        &self.path,
+                        at.locator,
+                        format!(
+                            "a message index offset {} past the chunk's {} bytes",
+                            at.offset,
+                            bytes.len()
+                        ),
+                    ));
+                }
+                // Checked just above; offsets in errors count from the chunk's records.
+                Cursor::new(&bytes[at.offset as usize..], at.offset)
+            }
+        };
+        let parsed = (|| {
+            let (opcode, mut body) = next_record(&mut c)?;
+            if opcode != op::MESSAGE {
+                return Err(RawError::new(
+                    at.offset,
+                    "an index that points at no Message record",
+                ));
+            }
+            let _channel = body.u16("message channel")?;
+            let _sequence = body.u32("message sequence")?;
+            let log_time_ns = body.u64("message log time")?;
+            let _publish_time = body.u64("message publish time")?;
+            let rest = body.remaining() as u64;
+            let data = body.bytes(rest, "message data")?.to_vec();
+            Ok(Message { log_time_ns, data })
+        })();
+        parsed.map_err(|e| match chunk {
+            None => self.bad(e),
+            Some(_) => BagError::malformed(
+                &self.path,
+                at.locator,
+                format!(
+                    "in the chunk at this byte, offset {} of its records: {}",
+                    e.offset, e.reason
+                ),
+            ),
+        })
     }
 
     fn last_chunk(&self) -> &Mutex<Option<(u64, ChunkBytes)>> {

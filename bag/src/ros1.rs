@@ -385,110 +385,6 @@ impl Ros1Bag {
         chunk.bytes(&self.map)
     }
 
-    /// The records of the chunk whose record starts at file offset `at`.
-    fn chunk_bytes(&self, at: u64) -> Result<ChunkBytes, BagError> {
-        let bad = |e: RawError| self.bad(e);
-        let mut c = self.cursor_at(at).map_err(bad)?;
-        let record = next_record(&mut c).map_err(bad)?;
-        if record.op().map_err(bad)? != OP_CHUNK {
-            return Err(BagError::malformed(
-                &self.path,
-                at,
-                "an index points at no chunk record",
-            ));
-        }
-        let compression = record.string("compression").map_err(bad)?;
-        let size = u64::from(record.u32("size").map_err(bad)?);
-        let data = record.data;
-        if size > MAX_CHUNK_BYTES {
-            return Err(BagError::malformed(
-                &self.path,
-                at,
-                format!("a chunk of {size} bytes uncompressed"),
-            ));
-        }
-        let decoded = match compression.as_str() {
-            "none" => {
-                if size != data.len() as u64 {
-                    return Err(BagError::malformed(
-                        &self.path,
-                        at,
-                        format!(
-                            "an uncompressed chunk of {} bytes whose header says {size}",
-                            data.len()
-                        ),
-                    ));
-                }
-                // `data` lies in the map at `data_at`.
-                let start = record.data_at as usize;
-                return Ok(ChunkBytes::Mapped(start..start + data.len()));
-            }
-            "bz2" => decompress_exact(bzip2::read::BzDecoder::new(data), size, 64 << 20),
-            "lz4" => lz4::Decoder::new(data)
-                .map_err(|e| e.to_string())
-                .and_then(|d| decompress_exact(d, size, 64 << 20)),
-            _ => {
-                return Err(BagError::Codec {
-                    path: self.path.clone(),
-                    offset: at,
-                    codec: compression,
-                    supported: SUPPORTED,
-                });
-            }
-        };
-        let decoded = decoded.map_err(|reason| {
-            BagError::malformed(&self.path, at, format!("{compression} chunk: {reason}"))
-        })?;
-        Ok(ChunkBytes::Owned(decoded.into()))
-    }
-
-    /// The message at `at`, from `chunk` (the records of chunk `at.locator`) or, outside
-    /// chunks, from the map.
-    fn message(&self, at: &MessageRef, chunk: Option<&ChunkBytes>) -> Result<Message, BagError> {
-        let mut c = match chunk {
-            None => self.cursor_at(at.locator).map_err(|e| self.bad(e))?,
-            Some(chunk) => {
-                let bytes = self.chunk_slice(chunk);
-                if at.offset >= bytes.len() as u64 {
-                    return Err(BagError::malformed(
-                        &self.path,
-                        at.locator,
-                        format!(
-                            "an index offset {} past the chunk's {} bytes",
-                            at.offset,
-                            bytes.len()
-                        ),
-                    ));
-                }
-                // Checked just above.
-                Cursor::new(&bytes[at.offset as usize..], at.offset)
-            }
-        };
-        let parsed = next_record(&mut c).and_then(|record| {
-            if record.op()? != OP_MESSAGE {
-                return Err(RawError::new(
-                    at.offset,
-                    "an index offset that points at no message record",
-                ));
-            }
-            Ok(Message {
-                log_time_ns: record.time("time")?,
-                data: record.data.to_vec(),
-            })
-        });
-        parsed.map_err(|e| match chunk {
-            None => self.bad(e),
-            Some(_) => BagError::malformed(
-                &self.path,
-                at.locator,
-                format!(
-                    "in the chunk at this byte, offset {} of its records: {}",
-                    e.offset, e.reason
-                ),
-            ),
-        })
-    }
-
     /// The topics of the bag's connections ([`chunked::topics_of`]).
     fn build_topics(&mut self, connections: &Connections, tallies: &Tallies) {
         let described = connections
@@ -642,12 +538,108 @@ impl Chunked for Ros1Bag {
         Ok(refs)
     }
 
-    fn chunk_bytes(&self, locator: u64) -> Result<ChunkBytes, BagError> {
-        Ros1Bag::chunk_bytes(self, locator)
+    /// The records of the chunk whose record starts at file offset `at`.
+    fn chunk_bytes(&self, at: u64) -> Result<ChunkBytes, BagError> {
+        let bad = |e: RawError| self.bad(e);
+        let mut c = self.cursor_at(at).map_err(bad)?;
+        let record = next_record(&mut c).map_err(bad)?;
+        if record.op().map_err(bad)? != OP_CHUNK {
+            return Err(BagError::malformed(
+                &self.path,
+                at,
+                "an index points at no chunk record",
+            ));
+        }
+        let compression = record.string("compression").map_err(bad)?;
+        let size = u64::from(record.u32("size").map_err(bad)?);
+        let data = record.data;
+        if size > MAX_CHUNK_BYTES {
+            return Err(BagError::malformed(
+                &self.path,
+                at,
+                format!("a chunk of {size} bytes uncompressed"),
+            ));
+        }
+        let decoded = match compression.as_str() {
+            "none" => {
+                if size != data.len() as u64 {
+                    return Err(BagError::malformed(
+                        &self.path,
+                        at,
+                        format!(
+                            "an uncompressed chunk of {} bytes whose header says {size}",
+                            data.len()
+                        ),
+                    ));
+                }
+                // `data` lies in the map at `data_at`.
+                let start = record.data_at as usize;
+                return Ok(ChunkBytes::Mapped(start..start + data.len()));
+            }
+            "bz2" => decompress_exact(bzip2::read::BzDecoder::new(data), size, 64 << 20),
+            "lz4" => lz4::Decoder::new(data)
+                .map_err(|e| e.to_string())
+                .and_then(|d| decompress_exact(d, size, 64 << 20)),
+            _ => {
+                return Err(BagError::Codec {
+                    path: self.path.clone(),
+                    offset: at,
+                    codec: compression,
+                    supported: SUPPORTED,
+                });
+            }
+        };
+        let decoded = decoded.map_err(|reason| {
+            BagError::malformed(&self.path, at, format!("{compression} chunk: {reason}"))
+        })?;
+        Ok(ChunkBytes::Owned(decoded.into()))
     }
 
+    /// The message at `at`, from `chunk` (the records of chunk `at.locator`) or, outside
+    /// chunks, from the map.
     fn message(&self, at: &MessageRef, chunk: Option<&ChunkBytes>) -> Result<Message, BagError> {
-        Ros1Bag::message(self, at, chunk)
+        let mut c = match chunk {
+            None => self.cursor_at(at.locator).map_err(|e| self.bad(e))?,
+            Some(chunk) => {
+                let bytes = self.chunk_slice(chunk);
+                if at.offset >= bytes.len() as u64 {
+                    return Err(BagError::malformed(
+                        &self.path,
+                        at.locator,
+                        format!(
+                            "an index offset {} past the chunk's {} bytes",
+                            at.offset,
+                            bytes.len()
+                        ),
+                    ));
+                }
+                // Checked just above.
+                Cursor::new(&bytes[at.offset as usize..], at.offset)
+            }
+        };
+        let parsed = next_record(&mut c).and_then(|record| {
+            if record.op()? != OP_MESSAGE {
+                return Err(RawError::new(
+                    at.offset,
+                    "an index offset that points at no message record",
+                ));
+            }
+            Ok(Message {
+                log_time_ns: record.time("time")?,
+                data: record.data.to_vec(),
+            })
+        });
+        parsed.map_err(|e| match chunk {
+            None => self.bad(e),
+            Some(_) => BagError::malformed(
+                &self.path,
+                at.locator,
+                format!(
+                    "in the chunk at this byte, offset {} of its records: {}",
+                    e.offset, e.reason
+                ),
+            ),
+        })
     }
 
     fn last_chunk(&self) -> &Mutex<Option<(u64, ChunkBytes)>> {
