@@ -215,6 +215,11 @@ impl<'a> TreeRef<'a> {
 
     /// Arrays that passed [`TreeRef::from_parts`] before, with the point count it found
     /// (a memory-mapped map checks each keyframe once, then reads it many times).
+    ///
+    /// Nothing is checked here. Arrays that never passed `from_parts` give wrong
+    /// neighbours, a panic (an index out of bounds) or a query that never ends (a node
+    /// pointing back up the tree), but never undefined behaviour: every access is bounds
+    /// checked and the one `unsafe` read in the search only reads slots it wrote.
     pub fn from_checked_parts(
         nodes: &'a [NodeWords],
         blocks: &'a [PointBlock],
