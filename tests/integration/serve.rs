@@ -869,3 +869,27 @@ fn the_default_cov2cov_mode_comes_from_the_server_then_the_map() {
         assert_ne!(default, ask(other), "case {i}");
     }
 }
+
+/// A test run killed before its drops leaves its iceoryx2 files; the next run removes
+/// those of processes that are gone and leaves a live run's alone. The dead run's pid
+/// is one past `pid_max` (no process can have it), the live one this process's.
+#[test]
+fn a_killed_test_runs_shared_memory_is_swept_by_the_next_run() {
+    let pid_max: u64 = std::fs::read_to_string("/proc/sys/kernel/pid_max")
+        .unwrap()
+        .trim()
+        .parse()
+        .unwrap();
+    let dead = PathBuf::from(format!("/dev/shm/kfmt_swept_{}_abc.data", pid_max + 1));
+    let live = PathBuf::from(format!(
+        "/dev/shm/kfmt_kept_{}_abc.data",
+        std::process::id()
+    ));
+    std::fs::write(&dead, b"left by a killed run").unwrap();
+    std::fs::write(&live, b"a live run's").unwrap();
+    common::remove_dead_runs_shared_memory();
+    let (dead_left, live_left) = (dead.exists(), live.exists());
+    let _ = std::fs::remove_file(&live);
+    assert!(!dead_left, "{} was not swept", dead.display());
+    assert!(live_left, "{} of a live run was removed", live.display());
+}

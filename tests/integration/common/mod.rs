@@ -121,12 +121,45 @@ pub fn remove_shared_memory(prefix: &str) {
 pub struct Prefix(pub String);
 
 impl Prefix {
-    /// A new prefix for `test`, clean of leftovers.
+    /// A new prefix for `test`, clean of leftovers (and, once per run, of every test
+    /// prefix of an earlier test process that was killed before its drops ran).
     pub fn new(test: &str) -> Self {
+        static SWEPT: std::sync::Once = std::sync::Once::new();
+        SWEPT.call_once(remove_dead_runs_shared_memory);
         let p = unique_prefix(test);
         remove_shared_memory(&p);
         Self(p)
     }
+}
+
+/// Removes the iceoryx2 files of every `kfmt_<test>_<pid>_` prefix in /dev/shm whose
+/// test process is gone: a killed `cargo test` never runs its `Prefix` drops.
+pub fn remove_dead_runs_shared_memory() {
+    let Ok(entries) = std::fs::read_dir("/dev/shm") else {
+        return;
+    };
+    let mut dead = std::collections::BTreeSet::new();
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        if let Some(prefix) = dead_test_prefix(&name) {
+            dead.insert(prefix);
+        }
+    }
+    for prefix in dead {
+        remove_shared_memory(&prefix);
+    }
+}
+
+/// `kfmt_<test>_<pid>_` of a file named by [`unique_prefix`] when process `pid` no
+/// longer runs (test names hold no all-digit `_` segment).
+fn dead_test_prefix(file: &str) -> Option<String> {
+    let rest = file.strip_prefix("kfmt_")?;
+    let segments: Vec<&str> = rest.split('_').collect();
+    let at = (1..segments.len())
+        .find(|&k| !segments[k].is_empty() && segments[k].bytes().all(|b| b.is_ascii_digit()))?;
+    let pid = segments[at];
+    let alive = Path::new("/proc").join(pid).exists();
+    (!alive).then(|| format!("kfmt_{}_{pid}_", segments[..at].join("_")))
 }
 
 impl Drop for Prefix {
