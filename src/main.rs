@@ -3,7 +3,6 @@
 //! `kfmap-client` crates.
 
 mod commands;
-mod data_dir;
 
 use std::process::ExitCode;
 
@@ -21,7 +20,7 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     Bake(commands::bake::Args),
-    Bench(commands::bench::Args),
+    Bench(kfmap_bench::Args),
     Inspect(commands::inspect::Args),
     InspectBag(commands::inspect_bag::Args),
     InspectCloud(commands::inspect_cloud::Args),
@@ -87,7 +86,7 @@ fn main() -> ExitCode {
     }
     let result = match cli.command {
         Command::Bake(args) => commands::bake::run(args),
-        Command::Bench(args) => commands::bench::run(args, started),
+        Command::Bench(args) => kfmap_bench::run(args, started),
         Command::Inspect(args) => commands::inspect::run(args),
         Command::InspectBag(args) => commands::inspect_bag::run(args),
         Command::InspectCloud(args) => commands::inspect_cloud::run(args),

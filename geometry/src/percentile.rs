@@ -39,6 +39,17 @@ pub fn is_maximum(n: usize, q: f64) -> bool {
     n > 0 && rank(n, q) == n
 }
 
+/// How to name a printed p99 of `samples` values: "p99", or "p99 (= max of N)" when
+/// there are too few (under 100) for the nearest-rank 99th percentile to be anything
+/// but their maximum.
+pub fn p99_label(samples: usize) -> String {
+    if is_maximum(samples, 0.99) {
+        format!("p99 (= max of {samples})")
+    } else {
+        "p99".to_string()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -96,5 +107,9 @@ mod tests {
         // Out-of-range q is clamped.
         assert_eq!(percentile(&v, 1.5), 100.0);
         assert_eq!(percentile(&v, -1.0), 1.0);
+        // The printed label says so.
+        assert_eq!(p99_label(61), "p99 (= max of 61)");
+        assert_eq!(p99_label(99), "p99 (= max of 99)");
+        assert_eq!(p99_label(100), "p99");
     }
 }

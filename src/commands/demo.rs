@@ -9,13 +9,13 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use crate::commands::cloud_summary::summarize;
-use crate::data_dir::shared_data_dir;
 use anyhow::{Context, bail};
 use kfmap_bake::config::BakeConfig;
 use kfmap_bake::dataset::scan_poses;
 use kfmap_bake::pipeline::{BakeInput, BakeOutput, bake};
 use kfmap_bake::scan_range::ScanRange;
 use kfmap_bake::source::{BagSource, Source};
+use kfmap_bench::data_dir::shared_data_dir;
 use kfmap_geometry::geometry::Pose;
 use kfmap_geometry::gravity::{GravityCorrection, roll_pitch_from_gravity};
 use kfmap_geometry::io::{
@@ -25,8 +25,9 @@ use kfmap_map::archive::{OpenOptions, open_map};
 use kfmap_sim::{LidarParams, Preset, SimConfig, gravity_in_map, write_dataset};
 
 use super::localize::LocalizeLog;
-use super::report::{json_number, p99_label};
-use super::server_child::{ServerChild, run_localize};
+use kfmap_bench::json_number;
+use kfmap_bench::server_child::{ServerChild, run_localize};
+use kfmap_geometry::percentile::p99_label;
 use kfmap_plot::{MapPlotOptions, TrajectoryPlotInputs, render_map, render_trajectory};
 
 /// Run the kfmap pipeline end to end on built-in defaults and draw the result.

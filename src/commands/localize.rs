@@ -30,8 +30,8 @@ use kfmap_service::config::ServerConfig;
 use serde_json::json;
 
 use super::connect_arg::ConnectArgs;
-use super::report::p99_label;
 use super::source_arg::SourceArgs;
+use kfmap_geometry::percentile::p99_label;
 
 /// Replay a dataset's scans (and IMU) against a running `kfmap serve` and localize
 /// every scan, tracking it: each scan is localized from the pose a constant-velocity

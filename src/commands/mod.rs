@@ -1,7 +1,6 @@
 //! One module per subcommand: its clap arguments and its `run`.
 
 pub mod bake;
-pub mod bench;
 mod cloud_summary;
 mod connect_arg;
 pub mod demo;
@@ -19,7 +18,6 @@ pub mod register;
 pub mod relocalize;
 mod report;
 pub mod serve;
-mod server_child;
 pub mod simulate;
 mod source_arg;
 pub mod status;

@@ -30,19 +30,3 @@ pub fn print_summary(s: &CloudSummary) {
         s.points as f64 / s.covariances_ms / 1e3
     );
 }
-
-/// A number of a JSON report (NaN when absent), for printing.
-pub fn json_number(value: &serde_json::Value) -> f64 {
-    value.as_f64().unwrap_or(f64::NAN)
-}
-
-/// How to name a printed p99 of `samples` values: "p99", or "p99 (= max of N)" when
-/// there are too few (under 100) for the nearest-rank 99th percentile to be anything
-/// but their maximum.
-pub fn p99_label(samples: usize) -> String {
-    if kfmap_geometry::percentile::is_maximum(samples, 0.99) {
-        format!("p99 (= max of {samples})")
-    } else {
-        "p99".to_string()
-    }
-}

@@ -12,7 +12,7 @@ use kfmap_protocol::remote::tile_map_name;
 use kfmap_service::config::ServerConfig;
 use kfmap_service::server::{LATENCY_WINDOW, ServeOptions, serve};
 
-use super::report::p99_label;
+use kfmap_geometry::percentile::p99_label;
 
 /// Serve a baked map (`kfmap bake`) to client processes on this host over iceoryx2
 /// zero-copy shared memory, until SIGINT or SIGTERM.

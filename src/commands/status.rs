@@ -5,7 +5,7 @@ use serde_json::json;
 use kfmap_service::server::LATENCY_WINDOW;
 
 use super::connect_arg::ConnectArgs;
-use super::report::p99_label;
+use kfmap_geometry::percentile::p99_label;
 
 /// Show a running server's map, uptime, sessions and per-kind request counts with
 /// median and 99th percentile latency, and each session's gravity pool (windows pooled,

@@ -21,7 +21,7 @@ use serde_json::json;
 use super::child::child_bench;
 use super::fixtures::{bake_synthetic, keyframe_pose};
 use super::table::Table;
-use crate::commands::report::json_number;
+use crate::json_number;
 
 /// The generated map's size.
 #[derive(Debug, Clone, Copy)]

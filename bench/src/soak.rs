@@ -17,8 +17,8 @@ use serde_json::json;
 
 use super::fixtures::bake_served_map;
 use super::soak_client::{self, ClientPlan, ClientReport};
-use crate::commands::report::p99_label;
-use crate::commands::server_child::{ServerChild, start_bench_server};
+use crate::server_child::{ServerChild, start_bench_server};
+use kfmap_geometry::percentile::p99_label;
 
 /// What `kfmap bench soak` runs.
 #[derive(Debug, Clone, Copy)]

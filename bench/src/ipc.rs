@@ -22,8 +22,9 @@ use serde_json::json;
 use super::child::child_bench;
 use super::fixtures::{bake_served_map, keyframe_pose, synthetic_cloud};
 use super::table::Table;
-use crate::commands::report::{json_number, p99_label};
-use crate::commands::server_child::{BENCH_MAP_NAME, start_bench_server};
+use crate::json_number;
+use crate::server_child::{BENCH_MAP_NAME, start_bench_server};
+use kfmap_geometry::percentile::p99_label;
 
 /// Median and 99th percentile of samples, and how many there were.
 #[derive(Debug, Clone, Copy)]

@@ -19,8 +19,9 @@ use kfmap_geometry::percentile::percentile;
 use super::anchors::SMALL_GICP_LOCALIZE;
 use super::fixtures::data_file;
 use super::table::{Table, anchor};
-use crate::commands::report::{json_number, p99_label};
-use crate::commands::server_child::{ServerChild, run_client, run_localize};
+use crate::json_number;
+use crate::server_child::{ServerChild, run_client, run_localize};
+use kfmap_geometry::percentile::p99_label;
 
 /// Bakes the map in `dir`, serves it from a child process and measures the rows
 /// (skipped without balm_os0).

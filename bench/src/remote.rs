@@ -19,8 +19,8 @@ use serde_json::json;
 use super::child::run_json;
 use super::fixtures::{bake_served_map, keyframe_pose, synthetic_cloud};
 use super::table::Table;
-use crate::commands::report::json_number;
-use crate::commands::server_child::start_bench_server;
+use crate::json_number;
+use crate::server_child::start_bench_server;
 
 /// The gateway's endpoint inside the namespace.
 const ENDPOINT: &str = "tcp/127.0.0.1:17450";

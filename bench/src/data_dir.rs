@@ -13,7 +13,8 @@ pub fn shared_data_dir() -> Option<PathBuf> {
     if let Some(dir) = std::env::var_os(DATA_DIR_ENV) {
         return Some(PathBuf::from(dir)).filter(|d| d.is_dir());
     }
-    let beside_checkout = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data");
+    // This crate sits one folder below the checkout.
+    let beside_checkout = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data");
     let beside_cwd = PathBuf::from("../shared/data");
     [beside_checkout, beside_cwd]
         .into_iter()

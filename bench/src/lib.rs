@@ -1,6 +1,8 @@
 //! `kfmap bench`: measurements that need whole processes or files too big for criterion.
 //! This file is the command line and its dispatch; each benchmark is a module of its
-//! own, the table's rows are measured by the modules `suite` lists.
+//! own, the table's rows are measured by the modules `suite` lists. `server_child` runs
+//! `kfmap serve` and its clients as child processes (for the benchmarks and `kfmap
+//! demo`); `data_dir` finds the real data beside the checkout.
 
 mod anchors;
 mod bags;
@@ -20,6 +22,9 @@ mod soak;
 mod soak_client;
 mod suite;
 mod table;
+
+pub mod data_dir;
+pub mod server_child;
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -301,4 +306,9 @@ pub fn run(args: Args, process_start: Instant) -> anyhow::Result<()> {
             soak_client::run(prefix, plan)
         }
     }
+}
+
+/// A number of a JSON report (NaN when absent), for printing.
+pub fn json_number(value: &serde_json::Value) -> f64 {
+    value.as_f64().unwrap_or(f64::NAN)
 }

@@ -11,7 +11,7 @@ use kfmap_bake::source::Source;
 use kfmap_protocol::transport::{iceoryx_config, remove_prefix_files};
 
 /// The server child: stopped, and every iceoryx2 file of its prefix removed, on drop.
-pub(super) struct ServerChild {
+pub struct ServerChild {
     child: Child,
     /// Its iceoryx2 prefix, this process's own.
     pub prefix: String,
@@ -58,15 +58,11 @@ impl ServerChild {
 }
 
 /// The map name the server benchmarks serve their map under.
-pub(super) const BENCH_MAP_NAME: &str = "bench";
+pub const BENCH_MAP_NAME: &str = "bench";
 
 /// Starts `kfmap serve` on `map` for the server benchmarks (ipc, soak): the map name
 /// [`BENCH_MAP_NAME`] under `prefix`; `spin`: server polls instead of waiting on events.
-pub(super) fn start_bench_server(
-    map: &Path,
-    prefix: &str,
-    spin: bool,
-) -> anyhow::Result<ServerChild> {
+pub fn start_bench_server(map: &Path, prefix: &str, spin: bool) -> anyhow::Result<ServerChild> {
     ServerChild::start(
         map,
         BENCH_MAP_NAME,
@@ -90,7 +86,7 @@ impl Drop for ServerChild {
 
 /// Runs `kfmap localize` against `server` on `dataset` with `args` (stderr shown) and
 /// returns what it printed.
-pub(super) fn run_localize(
+pub fn run_localize(
     server: &ServerChild,
     source: &Source,
     args: &[&OsStr],
@@ -103,7 +99,7 @@ pub(super) fn run_localize(
 
 /// Runs `kfmap COMMAND --map-name .. --iceoryx-prefix .. ARGS` against `server`; its
 /// stdout, or an error naming the command when it fails (its stderr passes through).
-pub(super) fn run_client(
+pub fn run_client(
     server: &ServerChild,
     command: &str,
     args: &[std::ffi::OsString],
@@ -128,7 +124,7 @@ pub(super) fn run_client(
 
 /// The flags that name `source` to `kfmap localize` (`--dataset DIR`, or `--bag PATH
 /// --points-topic T [--imu-topic T]`).
-pub(super) fn source_args(source: &Source) -> Vec<std::ffi::OsString> {
+pub fn source_args(source: &Source) -> Vec<std::ffi::OsString> {
     match source {
         Source::Folder(dir) => vec!["--dataset".into(), dir.into()],
         Source::Bag(b) => {
