@@ -13,6 +13,7 @@ use std::sync::{Arc, Mutex};
 
 use memmap2::Mmap;
 
+use crate::raw::{Cursor, RawError};
 use crate::{BagError, Container, Message, MessageRef, Topic};
 
 /// Maps the bag file at `path` read-only.
@@ -23,6 +24,50 @@ pub(crate) fn map_file(path: &Path) -> Result<Mmap, BagError> {
     // is the accepted risk (as for kfmap's own maps): recorders write new files and
     // do not modify finished ones.
     unsafe { Mmap::map(&file) }.map_err(|e| BagError::os(path, e))
+}
+
+/// A cursor from file offset `at` of `map` to the end of the file.
+pub(crate) fn cursor_at(map: &[u8], at: u64) -> Result<Cursor<'_>, RawError> {
+    if at >= map.len() as u64 {
+        return Err(RawError::new(
+            at,
+            format!(
+                "an index points past the end of the file ({} bytes): truncated",
+                map.len()
+            ),
+        ));
+    }
+    // Checked just above.
+    Ok(Cursor::new(&map[at as usize..], at))
+}
+
+/// A cursor at the message `at`: in `chunk` (the records of the chunk at `at.locator`)
+/// at `at.offset`, offsets then counting from the chunk's records, or, outside chunks,
+/// in `map` at `at.locator`. `path` names the bag in errors.
+pub(crate) fn message_cursor<'a>(
+    map: &'a [u8],
+    path: &Path,
+    at: &MessageRef,
+    chunk: Option<&'a ChunkBytes>,
+) -> Result<Cursor<'a>, BagError> {
+    let Some(chunk) = chunk else {
+        return cursor_at(map, at.locator)
+            .map_err(|e| BagError::malformed(path, e.offset, e.reason));
+    };
+    let bytes = chunk.bytes(map);
+    if at.offset >= bytes.len() as u64 {
+        return Err(BagError::malformed(
+            path,
+            at.locator,
+            format!(
+                "a message index offset {} past the chunk's {} bytes",
+                at.offset,
+                bytes.len()
+            ),
+        ));
+    }
+    // Checked just above.
+    Ok(Cursor::new(&bytes[at.offset as usize..], at.offset))
 }
 
 /// The messages of one channel (MCAP) or connection (ROS 1): how many, and the first

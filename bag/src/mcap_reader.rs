@@ -190,7 +190,7 @@ impl McapBag {
         at: u64,
         mut visit: impl FnMut(u64, u64),
     ) -> Result<(), RawError> {
-        let mut c = self.cursor_at(at)?;
+        let mut c = chunked::cursor_at(&self.map, at)?;
         let (opcode, mut body) = next_record(&mut c)?;
         if opcode != op::MESSAGE_INDEX {
             return Err(RawError::new(
@@ -215,21 +215,6 @@ impl McapBag {
             visit(log_time, offset);
         }
         Ok(())
-    }
-
-    /// A cursor from file offset `at` to the end of the file.
-    fn cursor_at(&self, at: u64) -> Result<Cursor<'_>, RawError> {
-        if at >= self.map.len() as u64 {
-            return Err(RawError::new(
-                at,
-                format!(
-                    "an index points past the end of the file ({} bytes)",
-                    self.map.len()
-                ),
-            ));
-        }
-        // Checked just above.
-        Ok(Cursor::new(&self.map[at as usize..], at))
     }
 
     /// Without a usable summary: one pass over the data section for the schemas,
@@ -272,7 +257,7 @@ impl McapBag {
                 op::DATA_END | op::FOOTER => break,
                 op::CHUNK => {
                     let chunk = self.chunk_bytes(record_at)?;
-                    let bytes = self.chunk_slice(&chunk);
+                    let bytes = chunk.bytes(&self.map);
                     let mut inner = Cursor::new(bytes, record_at);
                     while !inner.is_empty() {
                         let offset = inner.pos() as u64;
@@ -305,11 +290,6 @@ impl McapBag {
             }
         }
         Ok(())
-    }
-
-    /// A chunk's records (its range of the map, or its decompressed bytes).
-    fn chunk_slice<'a>(&'a self, chunk: &'a ChunkBytes) -> &'a [u8] {
-        chunk.bytes(&self.map)
     }
 
     /// The topics of the bag's channels ([`chunked::topics_of`]), typed by their
@@ -489,7 +469,7 @@ impl Chunked for McapBag {
     /// The records of the chunk whose record starts at file offset `at`.
     fn chunk_bytes(&self, at: u64) -> Result<ChunkBytes, BagError> {
         let bad = |e: RawError| self.bad(e);
-        let mut c = self.cursor_at(at).map_err(bad)?;
+        let mut c = chunked::cursor_at(&self.map, at).map_err(bad)?;
         let (opcode, mut body) = next_record(&mut c).map_err(bad)?;
         if opcode != op::CHUNK {
             return Err(BagError::malformed(
@@ -553,7 +533,7 @@ impl Chunked for McapBag {
             }
         };
         if crc != 0 {
-            let computed = crc32fast::hash(self.chunk_slice(&chunk));
+            let computed = crc32fast::hash(chunk.bytes(&self.map));
             if computed != crc {
                 return Err(BagError::malformed(
                     &self.path,
@@ -570,25 +550,7 @@ impl Chunked for McapBag {
     /// The message at `at`, from `chunk` (the records of the chunk `at.locator`) or,
     /// outside chunks, from the map.
     fn message(&self, at: &MessageRef, chunk: Option<&ChunkBytes>) -> Result<Message, BagError> {
-        let mut c = match chunk {
-            None => self.cursor_at(at.locator).map_err(|e| self.bad(e))?,
-            Some(chunk) => {
-                let bytes = self.chunk_slice(chunk);
-                if at.offset >= bytes.len() as u64 {
-                    return Err(BagError::malformed(
-                        &self.path,
-                        at.locator,
-                        format!(
-                            "a message index offset {} past the chunk's {} bytes",
-                            at.offset,
-                            bytes.len()
-                        ),
-                    ));
-                }
-                // Checked just above; offsets in errors count from the chunk's records.
-                Cursor::new(&bytes[at.offset as usize..], at.offset)
-            }
-        };
+        let mut c = chunked::message_cursor(&self.map, &self.path, at, chunk)?;
         let parsed = (|| {
             let (opcode, mut body) = next_record(&mut c)?;
             if opcode != op::MESSAGE {

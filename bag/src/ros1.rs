@@ -219,23 +219,8 @@ impl Ros1Bag {
         BagError::malformed(&self.path, e.offset, e.reason)
     }
 
-    /// A cursor from file offset `at` to the end of the file.
-    fn cursor_at(&self, at: u64) -> Result<Cursor<'_>, RawError> {
-        if at >= self.map.len() as u64 {
-            return Err(RawError::new(
-                at,
-                format!(
-                    "an index points past the end of the file ({} bytes): truncated",
-                    self.map.len()
-                ),
-            ));
-        }
-        // Checked just above.
-        Ok(Cursor::new(&self.map[at as usize..], at))
-    }
-
     fn bag_header(&self) -> Result<BagHeader, RawError> {
-        let mut c = self.cursor_at(ROS1_MAGIC.len() as u64)?;
+        let mut c = chunked::cursor_at(&self.map, ROS1_MAGIC.len() as u64)?;
         let record = next_record(&mut c)?;
         if record.op()? != OP_BAG_HEADER {
             return Err(RawError::new(
@@ -256,7 +241,7 @@ impl Ros1Bag {
         &self,
         header: &BagHeader,
     ) -> Result<(Connections, Vec<Chunk>, Tallies), RawError> {
-        let mut c = self.cursor_at(header.index_pos)?;
+        let mut c = chunked::cursor_at(&self.map, header.index_pos)?;
         let mut connections = HashMap::new();
         for _ in 0..header.conn_count {
             let record = next_record(&mut c)?;
@@ -287,7 +272,7 @@ impl Ros1Bag {
                 ));
             }
             // The chunk record, then its index data records.
-            let mut after = self.cursor_at(pos)?;
+            let mut after = chunked::cursor_at(&self.map, pos)?;
             let chunk = next_record(&mut after)?;
             if chunk.op()? != OP_CHUNK {
                 return Err(RawError::new(pos, "a chunk info points at no chunk"));
@@ -340,7 +325,7 @@ impl Ros1Bag {
     /// at a time.
     fn scan(&self, mut visit: impl FnMut(Scanned)) -> Result<(), BagError> {
         let header = self.bag_header().map_err(|e| self.bad(e))?;
-        let mut c = self.cursor_at(header.end).map_err(|e| self.bad(e))?;
+        let mut c = chunked::cursor_at(&self.map, header.end).map_err(|e| self.bad(e))?;
         while !c.is_empty() {
             let record = match next_record(&mut c) {
                 Ok(record) => record,
@@ -355,7 +340,7 @@ impl Ros1Bag {
                     Err(BagError::Malformed { .. }) if self.lenient_tail && c.is_empty() => break,
                     Err(e) => return Err(e),
                 };
-                let bytes = self.chunk_slice(&chunk);
+                let bytes = chunk.bytes(&self.map);
                 let mut inner = Cursor::new(bytes, 0);
                 while !inner.is_empty() {
                     let offset = inner.pos() as u64;
@@ -378,11 +363,6 @@ impl Ros1Bag {
             }
         }
         Ok(())
-    }
-
-    /// A chunk's records (its range of the map, or its decompressed bytes).
-    fn chunk_slice<'a>(&'a self, chunk: &'a ChunkBytes) -> &'a [u8] {
-        chunk.bytes(&self.map)
     }
 
     /// The topics of the bag's connections ([`chunked::topics_of`]).
@@ -504,7 +484,7 @@ impl Chunked for Ros1Bag {
                         let Some(&at) = chunk.indexes.get(id) else {
                             continue;
                         };
-                        let read = self.cursor_at(at).and_then(|mut c| {
+                        let read = chunked::cursor_at(&self.map, at).and_then(|mut c| {
                             let record = next_record(&mut c)?;
                             index_entries(&record, |log_time_ns, offset| {
                                 refs.push(MessageRef {
@@ -541,7 +521,7 @@ impl Chunked for Ros1Bag {
     /// The records of the chunk whose record starts at file offset `at`.
     fn chunk_bytes(&self, at: u64) -> Result<ChunkBytes, BagError> {
         let bad = |e: RawError| self.bad(e);
-        let mut c = self.cursor_at(at).map_err(bad)?;
+        let mut c = chunked::cursor_at(&self.map, at).map_err(bad)?;
         let record = next_record(&mut c).map_err(bad)?;
         if record.op().map_err(bad)? != OP_CHUNK {
             return Err(BagError::malformed(
@@ -598,25 +578,7 @@ impl Chunked for Ros1Bag {
     /// The message at `at`, from `chunk` (the records of chunk `at.locator`) or, outside
     /// chunks, from the map.
     fn message(&self, at: &MessageRef, chunk: Option<&ChunkBytes>) -> Result<Message, BagError> {
-        let mut c = match chunk {
-            None => self.cursor_at(at.locator).map_err(|e| self.bad(e))?,
-            Some(chunk) => {
-                let bytes = self.chunk_slice(chunk);
-                if at.offset >= bytes.len() as u64 {
-                    return Err(BagError::malformed(
-                        &self.path,
-                        at.locator,
-                        format!(
-                            "an index offset {} past the chunk's {} bytes",
-                            at.offset,
-                            bytes.len()
-                        ),
-                    ));
-                }
-                // Checked just above.
-                Cursor::new(&bytes[at.offset as usize..], at.offset)
-            }
-        };
+        let mut c = chunked::message_cursor(&self.map, &self.path, at, chunk)?;
         let parsed = next_record(&mut c).and_then(|record| {
             if record.op()? != OP_MESSAGE {
                 return Err(RawError::new(
