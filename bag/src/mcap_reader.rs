@@ -23,7 +23,7 @@ use mcap::records::op;
 use memmap2::Mmap;
 
 use crate::chunked::{self, ChunkBytes, Chunked, NOT_IN_CHUNK, Tally};
-use crate::raw::{Cursor, RawError, decompress_exact};
+use crate::raw::{Cursor, RawError, lz4_exact, zstd_exact};
 use crate::{BagError, Encoding, Message, MessageRef, Topic};
 
 /// Footer record: prefix + summary start + summary offset start + summary CRC.
@@ -510,13 +510,9 @@ impl Chunked for McapBag {
             }
             "zstd" | "lz4" => {
                 let decoded = if compression == "zstd" {
-                    zstd::stream::read::Decoder::with_buffer(data)
-                        .map_err(|e| e.to_string())
-                        .and_then(|d| decompress_exact(d, uncompressed_size, 64 << 20))
+                    zstd_exact(data, uncompressed_size, 64 << 20)
                 } else {
-                    lz4::Decoder::new(data)
-                        .map_err(|e| e.to_string())
-                        .and_then(|d| decompress_exact(d, uncompressed_size, 64 << 20))
+                    lz4_exact(data, uncompressed_size, 64 << 20)
                 };
                 let decoded = decoded.map_err(|reason| {
                     BagError::malformed(&self.path, at, format!("{compression} chunk: {reason}"))

@@ -129,6 +129,41 @@ pub(crate) fn decompress_exact(
     limited
         .read_to_end(&mut out)
         .map_err(|e| format!("decompression failed: {e}"))?;
+    exactly(out, expected)
+}
+
+/// A zstd chunk (MCAP) decoded to exactly `expected` bytes, as [`decompress_exact`]. The
+/// format allows several frames back to back; each is decoded in turn (pure Rust
+/// `ruzstd`: no C library to build, see docs/DESIGN.md#build-profiles).
+pub(crate) fn zstd_exact(data: &[u8], expected: u64, reserve_cap: u64) -> Result<Vec<u8>, String> {
+    let mut out = Vec::with_capacity(expected.min(reserve_cap) as usize);
+    let mut rest = data;
+    // `rest` advances past each frame as it is read; one byte past `expected` is enough
+    // to tell "too long".
+    while !rest.is_empty() && out.len() as u64 <= expected {
+        let frame = ruzstd::decoding::StreamingDecoder::new(&mut rest)
+            .map_err(|e| format!("not a zstd frame: {e}"))?;
+        let budget = expected + 1 - out.len() as u64;
+        frame
+            .take(budget)
+            .read_to_end(&mut out)
+            .map_err(|e| format!("decompression failed: {e}"))?;
+    }
+    exactly(out, expected)
+}
+
+/// An lz4 frame stream (MCAP and ROS 1 chunks) decoded to exactly `expected` bytes, as
+/// [`decompress_exact`] (pure Rust `lz4_flex`, its safe and checked decoder).
+pub(crate) fn lz4_exact(data: &[u8], expected: u64, reserve_cap: u64) -> Result<Vec<u8>, String> {
+    decompress_exact(
+        lz4_flex::frame::FrameDecoder::new(data),
+        expected,
+        reserve_cap,
+    )
+}
+
+/// `out` when it holds exactly `expected` bytes, else what is wrong.
+fn exactly(out: Vec<u8>, expected: u64) -> Result<Vec<u8>, String> {
     if out.len() as u64 != expected {
         return Err(format!(
             "decompressed to {}{} bytes, the header says {expected}",
@@ -162,5 +197,33 @@ mod tests {
         assert!(decompress_exact(&data[..], 101, 10).is_err());
         // A size field of 2^60 allocates nothing up front beyond the cap.
         assert!(decompress_exact(&data[..], 1 << 60, 10).is_err());
+    }
+
+    /// The pure-Rust decoders against the C libraries' encoders (the codecs other
+    /// writers use): every frame of a multi-frame zstd chunk, lz4 frames, and
+    /// truncated or mis-sized input refused.
+    #[test]
+    fn zstd_and_lz4_chunks_decode_as_the_c_libraries_wrote_them() {
+        let first: Vec<u8> = (0..70_000u32).map(|i| (i * 7 % 251) as u8).collect();
+        let second: Vec<u8> = (0..5_000u32).map(|i| (i % 13) as u8).collect();
+        let whole = [first.clone(), second.clone()].concat();
+        let n = whole.len() as u64;
+
+        let mut frames = zstd::encode_all(&first[..], 3).unwrap();
+        frames.extend(zstd::encode_all(&second[..], 19).unwrap());
+        assert_eq!(zstd_exact(&frames, n, 1 << 20).unwrap(), whole);
+        assert!(zstd_exact(&frames, n - 1, 1 << 20).is_err());
+        assert!(zstd_exact(&frames, n + 1, 1 << 20).is_err());
+        assert!(zstd_exact(&frames[..frames.len() - 3], n, 1 << 20).is_err());
+        assert!(zstd_exact(&whole[..100], 100, 1 << 20).is_err());
+
+        let mut encoder = lz4::EncoderBuilder::new().build(Vec::new()).unwrap();
+        std::io::Write::write_all(&mut encoder, &whole).unwrap();
+        let (lz4_frame, done) = encoder.finish();
+        done.unwrap();
+        assert_eq!(lz4_exact(&lz4_frame, n, 1 << 20).unwrap(), whole);
+        assert!(lz4_exact(&lz4_frame, n - 1, 1 << 20).is_err());
+        assert!(lz4_exact(&lz4_frame[..lz4_frame.len() / 2], n, 1 << 20).is_err());
+        assert!(lz4_exact(&whole[..100], 100, 1 << 20).is_err());
     }
 }

@@ -29,7 +29,7 @@ use std::sync::Mutex;
 use memmap2::Mmap;
 
 use crate::chunked::{self, ChunkBytes, Chunked, NOT_IN_CHUNK, Tally};
-use crate::raw::{Cursor, RawError, decompress_exact};
+use crate::raw::{Cursor, RawError, decompress_exact, lz4_exact};
 use crate::{BagError, Encoding, Message, MessageRef, ROS1_MAGIC, Topic};
 
 const OP_MESSAGE: u8 = 0x02;
@@ -557,9 +557,7 @@ impl Chunked for Ros1Bag {
                 return Ok(ChunkBytes::Mapped(start..start + data.len()));
             }
             "bz2" => decompress_exact(bzip2::read::BzDecoder::new(data), size, 64 << 20),
-            "lz4" => lz4::Decoder::new(data)
-                .map_err(|e| e.to_string())
-                .and_then(|d| decompress_exact(d, size, 64 << 20)),
+            "lz4" => lz4_exact(data, size, 64 << 20),
             _ => {
                 return Err(BagError::Codec {
                     path: self.path.clone(),
