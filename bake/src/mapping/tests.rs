@@ -108,15 +108,16 @@ fn lap(preset: Preset, seconds: f64, cruise: f64, beams: u32) -> LapFigures {
 #[test]
 fn campus_lap_from_raw_scans() {
     let f = lap(Preset::Campus, 45.0, 19.0, 32);
-    assert!(f.loops > 0);
+    // Bounds about 3x the measured figures (the build is deterministic).
+    assert!(f.loops >= 5, "{} loops accepted", f.loops);
     assert!(
-        f.ate < 0.01 && f.ate * 3.0 < f.ate_odometry,
+        f.ate < 0.005 && f.ate * 8.0 < f.ate_odometry,
         "ATE {} (odometry {})",
         f.ate,
         f.ate_odometry
     );
     assert!(
-        f.drift * 5.0 <= f.drift_odometry && f.drift < 0.01,
+        f.drift * 15.0 <= f.drift_odometry && f.drift < 0.006,
         "{} vs {}",
         f.drift,
         f.drift_odometry
