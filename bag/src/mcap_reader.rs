@@ -509,12 +509,12 @@ impl Chunked for McapBag {
                 ChunkBytes::Mapped(start..start + data.len())
             }
             "zstd" | "lz4" => {
-                let decoded = if compression == "zstd" {
-                    zstd_exact(data, uncompressed_size, 64 << 20)
+                let decode = if compression == "zstd" {
+                    zstd_exact
                 } else {
-                    lz4_exact(data, uncompressed_size, 64 << 20)
+                    lz4_exact
                 };
-                let decoded = decoded.map_err(|reason| {
+                let decoded = decode(data, uncompressed_size, 64 << 20).map_err(|reason| {
                     BagError::malformed(&self.path, at, format!("{compression} chunk: {reason}"))
                 })?;
                 ChunkBytes::Owned(decoded.into())

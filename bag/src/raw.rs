@@ -143,7 +143,8 @@ pub(crate) fn zstd_exact(data: &[u8], expected: u64, reserve_cap: u64) -> Result
     while !rest.is_empty() && out.len() as u64 <= expected {
         let frame = ruzstd::decoding::StreamingDecoder::new(&mut rest)
             .map_err(|e| format!("not a zstd frame: {e}"))?;
-        let budget = expected + 1 - out.len() as u64;
+        // A hostile size field may be u64::MAX: saturate, never overflow.
+        let budget = expected.saturating_add(1) - out.len() as u64;
         frame
             .take(budget)
             .read_to_end(&mut out)
@@ -216,6 +217,7 @@ mod tests {
         assert!(zstd_exact(&frames, n + 1, 1 << 20).is_err());
         assert!(zstd_exact(&frames[..frames.len() - 3], n, 1 << 20).is_err());
         assert!(zstd_exact(&whole[..100], 100, 1 << 20).is_err());
+        assert!(zstd_exact(&frames, u64::MAX, 1 << 20).is_err());
 
         let mut encoder = lz4::EncoderBuilder::new().build(Vec::new()).unwrap();
         std::io::Write::write_all(&mut encoder, &whole).unwrap();
@@ -225,5 +227,6 @@ mod tests {
         assert!(lz4_exact(&lz4_frame, n - 1, 1 << 20).is_err());
         assert!(lz4_exact(&lz4_frame[..lz4_frame.len() / 2], n, 1 << 20).is_err());
         assert!(lz4_exact(&whole[..100], 100, 1 << 20).is_err());
+        assert!(lz4_exact(&lz4_frame, u64::MAX, 1 << 20).is_err());
     }
 }

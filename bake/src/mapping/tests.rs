@@ -102,9 +102,9 @@ fn lap(preset: Preset, seconds: f64, cruise: f64, beams: u32) -> LapFigures {
 /// main road; 1.9 m between scans, nearly every scan a keyframe), built from the raw
 /// scans alone. Loop closure must cut the keyframe ATE and the end-to-start drift:
 /// measured ATE 0.15 cm (odometry alone 3.7 cm), drift 0.25 cm (odometry alone 14.1 cm),
-/// 14 loops accepted of 66 found. The same lap at 9.5 m/s (90 s) showed 0.2 / 2.8 cm and
-/// 0.1 / 11.4 cm at twice the cost, at the preset's walking pace (165 s) 0.3 / 0.8 cm and
-/// 1.2 / 3.4 cm at four times.
+/// 14 loops accepted of 66 found; 50 s alone on 2 cores. The same lap at 9.5 m/s (90 s)
+/// showed 0.2 / 2.8 cm and 0.1 / 11.4 cm and took 99 s beside another test, at the
+/// preset's walking pace (165 s) 0.3 / 0.8 cm and 1.2 / 3.4 cm.
 #[test]
 fn campus_lap_from_raw_scans() {
     let f = lap(Preset::Campus, 45.0, 19.0, 32);
@@ -152,11 +152,15 @@ fn raw_drive_ate(drive: Drive) -> f64 {
     *once.get_or_init(|| build_raw_drive(drive))
 }
 
-/// [`raw_drive_ate`] of each of `drives`, built side by side: the two drive tests would
-/// otherwise build theirs one after another on one core once the campus lap is done.
-fn raw_drive_ates(drives: &[Drive]) -> Vec<f64> {
+/// [`raw_drive_ate`] of each pair of drives, the pairs built side by side: the two drive
+/// tests would otherwise build theirs one after another on one core once the campus lap
+/// is done.
+fn raw_drive_ates(pairs: &[[Drive; 2]]) -> Vec<[f64; 2]> {
     use rayon::prelude::*;
-    drives.par_iter().map(|&d| raw_drive_ate(d)).collect()
+    pairs
+        .par_iter()
+        .map(|pair| pair.map(raw_drive_ate))
+        .collect()
 }
 
 /// [`raw_drive_ate`], built.
@@ -213,13 +217,8 @@ fn deskewing_raw_scans_lowers_the_odometry_error() {
         stride: 1,
     };
     let speeds = [1.0, 2.0, 4.0];
-    let drives: Vec<Drive> = speeds
-        .iter()
-        .flat_map(|&v| [drive(v, false), drive(v, true)])
-        .collect();
-    let ates = raw_drive_ates(&drives);
-    for (speed, pair) in speeds.into_iter().zip(ates.chunks(2)) {
-        let (raw, deskewed) = (pair[0], pair[1]);
+    let pairs = speeds.map(|v| [drive(v, false), drive(v, true)]);
+    for (speed, [raw, deskewed]) in speeds.into_iter().zip(raw_drive_ates(&pairs)) {
         println!(
             "raw courtyard at {speed} m/s: ATE {raw:.4} m without deskew, {deskewed:.4} m with"
         );
@@ -245,13 +244,8 @@ fn the_gyro_keeps_fast_turns_on_track() {
         gyro,
         stride,
     };
-    let drives: Vec<Drive> = runs
-        .iter()
-        .flat_map(|&run| [drive(run, false), drive(run, true)])
-        .collect();
-    let ates = raw_drive_ates(&drives);
-    for ((speed, stride), pair) in runs.into_iter().zip(ates.chunks(2)) {
-        let (without, with) = (pair[0], pair[1]);
+    let pairs = runs.map(|run| [drive(run, false), drive(run, true)]);
+    for ((speed, stride), [without, with]) in runs.into_iter().zip(raw_drive_ates(&pairs)) {
         println!(
             "raw courtyard at {speed} m/s, every {stride} scans: ATE {without:.4} m constant velocity, {with:.4} m with the gyro"
         );
