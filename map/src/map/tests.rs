@@ -532,3 +532,57 @@ fn fused_exact_submap_is_the_voxelization_of_the_merged_raw_clouds() {
         assert!(origin.coords.map(|c| (c / voxel).floor()) == want.map(|c| (c / voxel).floor()));
     }
 }
+
+/// Pairings searched from the last iteration's pairs are the pairings searched afresh,
+/// in both modes, whether the hints are the pairs at a nearby pose or any points at all
+/// (a hint only bounds the search; one that bounds out the nearest point falls back).
+#[test]
+fn pairings_searched_from_earlier_pairs_are_the_fresh_ones() {
+    let mut rng = StdRng::seed_from_u64(9);
+    for approximate in [true, false] {
+        let mut map = random_map(5, approximate);
+        let scan = random_cloud(&mut rng, 400);
+        let before = pose(0.3, -0.2, 0.2);
+        let at = pose(0.36, -0.17, 0.22);
+        let earlier = map
+            .activate(&before)
+            .unwrap()
+            .cov2cov(&scan, &before, 1.0, None)
+            .unwrap();
+        let active = map.activate(&at).unwrap();
+        let fresh = active.cov2cov(&scan, &at, 1.0, None).unwrap();
+        assert!(fresh.len() > 200, "{}", fresh.len());
+        // Hints anywhere: random points tagged with active and inactive keyframes.
+        let anywhere: Vec<Pairing> = (0..scan.len() as u32)
+            .map(|i| Pairing {
+                query_index: i,
+                keyframe: i as u64 % 4,
+                map_point: [0, 1, 2].map(|_| rng.random_range(-5.0..5.0)),
+                ..earlier[0]
+            })
+            .collect();
+        for hints in [&earlier, &anywhere] {
+            let near = active.cov2cov_near(&scan, &at, 1.0, None, hints).unwrap();
+            assert_eq!(near.len(), fresh.len());
+            for (n, f) in near.iter().zip(&fresh) {
+                assert_eq!(
+                    (
+                        n.query_index,
+                        n.keyframe,
+                        n.local_index,
+                        n.map_point,
+                        n.dist_sq
+                    ),
+                    (
+                        f.query_index,
+                        f.keyframe,
+                        f.local_index,
+                        f.map_point,
+                        f.dist_sq
+                    )
+                );
+                assert_eq!(n.information, f.information);
+            }
+        }
+    }
+}

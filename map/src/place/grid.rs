@@ -532,6 +532,18 @@ impl PlaceGrid {
     }
 }
 
+/// The mask of `count` voxels, all set, for [`GridView::count_marked_among`]: bit
+/// `i % 64` of word `i / 64` stands for voxel `i`.
+pub fn every_voxel(count: usize) -> Vec<u64> {
+    let mut mask = vec![u64::MAX; count.div_ceil(64)];
+    if let Some(last) = mask.last_mut()
+        && !count.is_multiple_of(64)
+    {
+        *last = (1 << (count % 64)) - 1;
+    }
+    mask
+}
+
 /// A grid read in place (from a [`PlaceGrid`] or a baked map).
 #[derive(Debug, Clone, Copy)]
 pub struct GridView<'a> {
@@ -775,27 +787,81 @@ impl<'a> GridView<'a> {
     }
 
     /// How many of `voxels`, each moved by `shift`, are marked at `level` (as
-    /// [`Self::marked`]): a search's bound, its hot loop.
+    /// [`Self::marked`]).
     pub fn count_marked(&self, level: usize, voxels: &[[i64; 3]], shift: [i64; 3]) -> u32 {
-        let moved = voxels.iter().filter_map(|v| {
-            self.clamped(level, [v[0] + shift[0], v[1] + shift[1], v[2] + shift[2]])
-        });
-        let mut count = 0;
+        let among = every_voxel(voxels.len());
+        let mut hits = vec![0; among.len()];
+        self.count_marked_among(level, voxels, shift, &among, 0, &mut hits)
+    }
+
+    /// As [`Self::count_marked`] over the voxels whose bit is set in `among` (bit `i % 64`
+    /// of word `i / 64`: voxel `i`), setting the bits of those marked in `hits` (cleared
+    /// first): a search's bound, its hot loop. A child node of the search needs only its
+    /// parent's hits, since a marked level-`l` cube holds the marked level-`(l-1)` ones.
+    /// Stops as soon as fewer than `need` can be marked, and then returns less than
+    /// `need` (`hits` partial); otherwise the exact count.
+    pub fn count_marked_among(
+        &self,
+        level: usize,
+        voxels: &[[i64; 3]],
+        shift: [i64; 3],
+        among: &[u64],
+        need: u32,
+        hits: &mut [u64],
+    ) -> u32 {
+        hits.fill(0);
         if self.directory.is_empty() {
             // Neighbouring voxels (a scan's, in scan order) often share a block, whose
             // entry is then looked up once.
             let mut last = (EMPTY_KEY, ABSENT);
-            for v in moved {
-                let k = key(v.map(|c| c >> 3));
+            let entry = |b: [i64; 3]| {
+                let k = key(b);
                 if k != last.0 {
                     last = (k, self.entry_of(k));
                 }
-                count += u32::from(self.bit(last.1, level, v));
-            }
+                last.1
+            };
+            self.count_among(level, voxels, shift, among, need, hits, entry)
         } else {
-            for v in moved {
-                let value = self.directory[directory_index(v.map(|c| c >> 3), self.block_dims)];
-                count += u32::from(self.bit(value, level, v));
+            let entry = |b: [i64; 3]| self.directory[directory_index(b, self.block_dims)];
+            self.count_among(level, voxels, shift, among, need, hits, entry)
+        }
+    }
+
+    /// [`Self::count_marked_among`] with `entry` finding a block's entry.
+    #[allow(clippy::too_many_arguments)] // The hot loop's inputs, passed through once.
+    #[inline(always)]
+    fn count_among(
+        &self,
+        level: usize,
+        voxels: &[[i64; 3]],
+        shift: [i64; 3],
+        among: &[u64],
+        need: u32,
+        hits: &mut [u64],
+        mut entry: impl FnMut([i64; 3]) -> u32,
+    ) -> u32 {
+        let mut left: u32 = among.iter().map(|w| w.count_ones()).sum();
+        let mut count = 0;
+        for (w, &word) in among.iter().enumerate() {
+            let mut bits = word;
+            while bits != 0 {
+                if count + left < need {
+                    return count;
+                }
+                let bit = bits.trailing_zeros() as usize;
+                bits &= bits - 1;
+                left -= 1;
+                let Some(u) = voxels.get(w * 64 + bit) else {
+                    break;
+                };
+                let moved = [u[0] + shift[0], u[1] + shift[1], u[2] + shift[2]];
+                // Counted without a branch on the bit: half the points hit, at random.
+                let marked = self
+                    .clamped(level, moved)
+                    .is_some_and(|v| self.bit(entry(v.map(|c| c >> 3)), level, v));
+                count += u32::from(marked);
+                hits[w] |= u64::from(marked) << bit;
             }
         }
         count

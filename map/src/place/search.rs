@@ -15,7 +15,7 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::grid::{GridView, SearchRegion};
+use super::grid::{GridView, SearchRegion, every_voxel};
 use kfmap_geometry::geometry::Pose;
 use kfmap_geometry::options::{InvalidOption, ensure, ensure_ratio};
 
@@ -127,13 +127,24 @@ pub struct SearchOutcome {
     pub exhausted: bool,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy)]
 struct Node {
     bound: u32,
     level: u8,
     yaw: u16,
     k: [i32; 3],
+    /// Where the node's hits (the points it counted as marked) start in the search's
+    /// [`HitMasks`]: its children look up only those.
+    hits: usize,
 }
+
+impl PartialEq for Node {
+    fn eq(&self, other: &Self) -> bool {
+        self.cmp(other) == Ordering::Equal
+    }
+}
+
+impl Eq for Node {}
 
 impl Ord for Node {
     /// Higher bound first; on a tie the deeper node, which reaches a leaf sooner; then
@@ -321,10 +332,24 @@ impl<'g, 'c> Lattice<'g, 'c> {
         self.owned.is_none_or(|o| o.any(k, side))
     }
 
-    /// Points of yaw `yaw` landing on marked level-`level` voxels at translation `k`.
-    fn bound(&self, level: usize, yaw: usize, k: [i32; 3]) -> u32 {
-        self.grid
-            .count_marked(level, &self.voxels[yaw], k.map(i64::from))
+    /// Points of yaw `yaw` landing on marked level-`level` voxels at translation `k`,
+    /// of those set in `among` (its parent's hits), written to `hits`; less than `need`
+    /// when it cannot reach it (`GridView::count_marked_among`).
+    fn bound(
+        &self,
+        (level, yaw, k): Cube,
+        among: &[u64],
+        need: u32,
+        hits: &mut [u64],
+    ) -> u32 {
+        self.grid.count_marked_among(
+            level,
+            &self.voxels[yaw as usize],
+            k.map(i64::from),
+            among,
+            need,
+            hits,
+        )
     }
 
     /// Best-first branch and bound over every yaw. Nodes are expanded in batches of
@@ -336,13 +361,14 @@ impl<'g, 'c> Lattice<'g, 'c> {
         let mut outcome = SearchOutcome::default();
         let floor_hits = (params.min_hit_ratio * n as f64).ceil() as u32;
         let side = 1_usize << self.top;
+        let mut masks = HitMasks::new(n);
         let mut tops = Vec::new();
         for yaw in 0..self.yaws {
             for kz in (0..self.spans[2]).step_by(side) {
                 for ky in (0..self.spans[1]).step_by(side) {
                     for kx in (0..self.spans[0]).step_by(side) {
                         if self.searched([kx, ky, kz], side as i32) {
-                            tops.push((self.top, yaw as u16, [kx, ky, kz]));
+                            tops.push(((self.top, yaw as u16, [kx, ky, kz]), HitMasks::ALL));
                         }
                     }
                 }
@@ -350,7 +376,7 @@ impl<'g, 'c> Lattice<'g, 'c> {
         }
         let mut heap = BinaryHeap::new();
         let mut lookups: u64 = 0;
-        self.bound_all(&tops, floor_hits, &mut heap);
+        self.bound_all(&tops, floor_hits, &mut heap, &mut masks);
         outcome.nodes += tops.len() as u64;
         lookups += (tops.len() * n) as u64;
         let mut batch = Vec::with_capacity(EXPAND_BATCH);
@@ -417,40 +443,85 @@ impl<'g, 'c> Lattice<'g, 'c> {
                         for dx in [0, half] {
                             let k = [node.k[0] + dx, node.k[1] + dy, node.k[2] + dz];
                             if (0..3).all(|a| k[a] < self.spans[a]) && self.searched(k, half) {
-                                children.push((level, node.yaw, k));
+                                children.push(((level, node.yaw, k), node.hits));
                             }
                         }
                     }
                 }
             }
-            self.bound_all(&children, threshold, &mut heap);
+            self.bound_all(&children, threshold, &mut heap, &mut masks);
             outcome.nodes += children.len() as u64;
             lookups += (children.len() * n) as u64;
         }
         outcome
     }
 
-    /// Bounds `nodes` in parallel and keeps those reaching `threshold`.
+    /// Bounds `nodes` (each with where its parent's hits are) in parallel and keeps
+    /// those reaching `threshold`, their hits added to `masks`.
     fn bound_all(
         &self,
-        nodes: &[(usize, u16, [i32; 3])],
+        nodes: &[(Cube, usize)],
         threshold: u32,
         heap: &mut BinaryHeap<Node>,
+        masks: &mut HitMasks,
     ) {
-        let bounded: Vec<Node> = nodes
+        let words = masks.words;
+        let mut hits = vec![0_u64; nodes.len() * words];
+        let bounds: Vec<u32> = nodes
             .par_iter()
+            .zip(hits.par_chunks_mut(words))
             .with_min_len(16)
-            .filter_map(|&(level, yaw, k)| {
-                let bound = self.bound(level, yaw as usize, k);
-                (bound >= threshold).then_some(Node {
+            .map(|(&(node, parent), hits)| self.bound(node, masks.of(parent), threshold, hits))
+            .collect();
+        for ((&((level, yaw, k), _), bound), hits) in
+            nodes.iter().zip(bounds).zip(hits.chunks(words))
+        {
+            if bound >= threshold {
+                heap.push(Node {
                     bound,
                     level: level as u8,
                     yaw,
                     k,
-                })
-            })
-            .collect();
-        heap.extend(bounded);
+                    hits: masks.push(hits),
+                });
+            }
+        }
+    }
+}
+
+/// A node's level, yaw and lattice translation.
+type Cube = (usize, u16, [i32; 3]);
+
+/// The hits of every node a search keeps, one bit per point, back to back: a node's
+/// children look up only the points their parent found marked (the rest cannot be).
+struct HitMasks {
+    /// Words per node.
+    words: usize,
+    /// [`Self::ALL`]'s mask (every point), then each kept node's.
+    bits: Vec<u64>,
+}
+
+impl HitMasks {
+    /// Where the mask of every point is: the top nodes' parent.
+    const ALL: usize = 0;
+
+    fn new(points: usize) -> Self {
+        let bits = every_voxel(points);
+        Self {
+            words: bits.len(),
+            bits,
+        }
+    }
+
+    fn of(&self, at: usize) -> &[u64] {
+        &self.bits[at..at + self.words]
+    }
+
+    /// Adds a node's hits; returns where they are.
+    fn push(&mut self, hits: &[u64]) -> usize {
+        let at = self.bits.len();
+        self.bits.extend_from_slice(hits);
+        at
     }
 }
 

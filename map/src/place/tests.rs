@@ -787,6 +787,30 @@ fn sparse_levels_equal_the_brute_force_definition() {
                 one_by_one,
                 "trial {trial}, level {level}"
             );
+            // Over a random subset: the marked ones of it exactly, or, when fewer than
+            // `need` are, any count below `need`.
+            let among: Vec<u64> = (0..cloud.len().div_ceil(64))
+                .map(|w| rng.random::<u64>() & super::grid::every_voxel(cloud.len())[w])
+                .collect();
+            let chosen = |i: usize| among[i / 64] >> (i % 64) & 1 == 1;
+            let want: Vec<usize> = (0..cloud.len())
+                .filter(|&i| {
+                    chosen(i) && view.marked(level, [0, 1, 2].map(|a| cloud[i][a] + shift[a]))
+                })
+                .collect();
+            for need in [0, want.len() as u32, want.len() as u32 + 1] {
+                let mut hits = vec![u64::MAX; among.len()];
+                let count = view.count_marked_among(level, &cloud, shift, &among, need, &mut hits);
+                if need as usize > want.len() {
+                    assert!(count < need, "trial {trial}, level {level}");
+                } else {
+                    assert_eq!(count as usize, want.len(), "trial {trial}, level {level}");
+                    let got: Vec<usize> = (0..cloud.len())
+                        .filter(|&i| hits[i / 64] >> (i % 64) & 1 == 1)
+                        .collect();
+                    assert_eq!(got, want, "trial {trial}, level {level}");
+                }
+            }
         }
         // Both answers were asked often.
         assert!(
