@@ -1,11 +1,12 @@
-//! Point clouds between ROS 2 and kfmap: a received `PointCloud2` read by the bag
-//! decoder's layout rules (every layout `kfmap localize --bag` reads, per-point times
-//! included), and the served map written as a positions-only `PointCloud2`.
+//! Point clouds between ROS 2 and kfmap: a received `PointCloud2`, decoded by
+//! `kfmap_bag`'s decoder, read by its layout rules (every layout `kfmap localize --bag`
+//! reads, per-point times included), and the served map written as a positions-only
+//! `PointCloud2` with the encoder beside it.
 
-use kfmap_bag::msg::{PointCloud2 as Layout, PointField as LayoutField};
+use kfmap_bag::msg::{EncodeError, PointCloud2, PointField, Stamp, encode_point_cloud2};
 use kfmap_geometry::cloud::{FilterOptions, PointCloud};
 
-use crate::msgs::{Header, PointCloud2, PointField};
+use crate::raw::CdrSample;
 
 /// `sensor_msgs/PointField` FLOAT32.
 const FLOAT32: u8 = 7;
@@ -28,32 +29,8 @@ pub enum BadCloud {
 /// The points of `msg` as `kfmap localize` reads a bag's cloud: x y z, intensity and
 /// per-point time (seconds after the header stamp) when fields give them, invalid
 /// returns dropped, then thinned to `voxel` metres (0: every point).
-pub fn scan_of(msg: &PointCloud2, voxel: f64) -> Result<PointCloud, BadCloud> {
-    let layout = Layout {
-        stamp: kfmap_bag::msg::Stamp {
-            sec: i64::from(msg.header.stamp.sec),
-            nanosec: msg.header.stamp.nanosec,
-        },
-        frame_id: msg.header.frame_id.clone(),
-        height: msg.height,
-        width: msg.width,
-        fields: msg
-            .fields
-            .iter()
-            .map(|f| LayoutField {
-                name: f.name.clone(),
-                offset: f.offset,
-                datatype: f.datatype,
-                count: f.count,
-            })
-            .collect(),
-        is_bigendian: msg.is_bigendian,
-        point_step: msg.point_step,
-        row_step: msg.row_step,
-        data: &msg.data,
-        is_dense: msg.is_dense,
-    };
-    let mut cloud = layout
+pub fn scan_of(msg: &PointCloud2<'_>, voxel: f64) -> Result<PointCloud, BadCloud> {
+    let mut cloud = msg
         .to_cloud()
         .map_err(|e| BadCloud::Layout(e.to_string()))?;
     let received = cloud.len();
@@ -69,44 +46,57 @@ pub fn scan_of(msg: &PointCloud2, voxel: f64) -> Result<PointCloud, BadCloud> {
     Ok(cloud)
 }
 
-/// A positions-only `PointCloud2` (x y z FLOAT32, little-endian, one row) of `points`.
-pub fn xyz_message(header: Header, points: &[[f32; 3]]) -> PointCloud2 {
+/// The x y z bytes of `points` (FLOAT32, little-endian), 12 per point.
+fn xyz_bytes(points: &[[f32; 3]]) -> Vec<u8> {
+    points
+        .iter()
+        .flatten()
+        .flat_map(|v| v.to_le_bytes())
+        .collect()
+}
+
+/// A positions-only `PointCloud2` (x y z FLOAT32, little-endian, one row) over `data`
+/// ([`xyz_bytes`]).
+fn xyz_layout<'a>(stamp: Stamp, frame_id: &str, data: &'a [u8]) -> PointCloud2<'a> {
     let field = |name: &str, offset: u32| PointField {
         name: name.into(),
         offset,
         datatype: FLOAT32,
         count: 1,
     };
-    let mut data = Vec::with_capacity(points.len() * 12);
-    for p in points {
-        for v in p {
-            data.extend_from_slice(&v.to_le_bytes());
-        }
-    }
+    let width = (data.len() / 12) as u32;
     PointCloud2 {
-        header,
+        stamp,
+        frame_id: frame_id.into(),
         height: 1,
-        width: points.len() as u32,
+        width,
         fields: vec![field("x", 0), field("y", 4), field("z", 8)],
         is_bigendian: false,
         point_step: 12,
-        row_step: 12 * points.len() as u32,
+        row_step: 12 * width,
         data,
         is_dense: true,
     }
 }
 
+/// `points` as a positions-only `PointCloud2` sample, encoded for the DDS writer.
+pub fn xyz_sample(
+    stamp: Stamp,
+    frame_id: &str,
+    points: &[[f32; 3]],
+) -> Result<CdrSample, EncodeError> {
+    let data = xyz_bytes(points);
+    encode_point_cloud2(&xyz_layout(stamp, frame_id, &data)).map(CdrSample)
+}
+
 #[cfg(test)]
 mod tests {
-    use super::*;
-    use crate::msgs::Time;
+    use kfmap_bag::Encoding;
+    use kfmap_bag::msg::decode_point_cloud2;
 
-    fn header() -> Header {
-        Header {
-            stamp: Time { sec: 5, nanosec: 0 },
-            frame_id: "lidar".into(),
-        }
-    }
+    use super::*;
+
+    const STAMP: Stamp = Stamp { sec: 5, nanosec: 7 };
 
     #[test]
     fn a_written_cloud_reads_back_point_for_point() {
@@ -119,7 +109,9 @@ mod tests {
                 ]
             })
             .collect();
-        let msg = xyz_message(header(), &points);
+        let sample = xyz_sample(STAMP, "map", &points).unwrap();
+        let msg = decode_point_cloud2(&sample.0, Encoding::Cdr).unwrap();
+        assert_eq!((msg.stamp, msg.frame_id.as_str()), (STAMP, "map"));
         let back = scan_of(&msg, 0.0).unwrap();
         assert_eq!(back.points, points);
         assert!(back.time.is_none());
@@ -127,20 +119,35 @@ mod tests {
 
     #[test]
     fn bad_clouds_are_refused_by_name() {
-        let good = xyz_message(header(), &[[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]);
+        let data = xyz_bytes(&[[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]);
+        let good = xyz_layout(STAMP, "lidar", &data);
         let mut no_x = good.clone();
         no_x.fields.retain(|f| f.name != "x");
         assert!(matches!(scan_of(&no_x, 0.0), Err(BadCloud::Layout(m)) if m.contains('x')));
         let mut short = good.clone();
-        short.data.truncate(13);
+        short.data = &data[..13];
         assert!(matches!(scan_of(&short, 0.0), Err(BadCloud::Layout(_))));
-        let empty = xyz_message(header(), &[]);
-        assert_eq!(scan_of(&empty, 0.0), Err(BadCloud::NoValidPoint(0)));
-        let nan = xyz_message(header(), &[[f32::NAN, 0.0, 1.0], [0.0, 0.0, 0.0]]);
-        assert_eq!(scan_of(&nan, 0.0), Err(BadCloud::NoValidPoint(2)));
+        assert_eq!(
+            scan_of(&xyz_layout(STAMP, "lidar", &[]), 0.0),
+            Err(BadCloud::NoValidPoint(0))
+        );
+        let nan = xyz_bytes(&[[f32::NAN, 0.0, 1.0], [0.0, 0.0, 0.0]]);
+        assert_eq!(
+            scan_of(&xyz_layout(STAMP, "lidar", &nan), 0.0),
+            Err(BadCloud::NoValidPoint(2))
+        );
         let mut huge = good;
         huge.width = u32::MAX;
         huge.height = u32::MAX;
         assert!(matches!(scan_of(&huge, 0.0), Err(BadCloud::Layout(_))));
+        // A stamp past ROS 2's int32 seconds is not written.
+        let late = Stamp {
+            sec: i64::from(i32::MAX) + 1,
+            nanosec: 0,
+        };
+        assert_eq!(
+            xyz_sample(late, "map", &[[1.0, 2.0, 3.0]]),
+            Err(EncodeError::Stamp(late.sec))
+        );
     }
 }

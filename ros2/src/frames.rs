@@ -138,12 +138,12 @@ fn trim(frame: &str) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::msgs::{Header, Time, Transform};
+    use crate::msgs::{Header, Stamp, Transform};
 
     fn link(parent: &str, child: &str, stamp: f64, pose: &Pose) -> TransformStamped {
         TransformStamped {
             header: Header {
-                stamp: Time::from_seconds(stamp),
+                stamp: Stamp::from_seconds(stamp),
                 frame_id: parent.into(),
             },
             child_frame_id: child.into(),

@@ -13,3 +13,4 @@ mod keep_last;
 pub mod msgs;
 pub mod node;
 pub mod outputs;
+pub mod raw;

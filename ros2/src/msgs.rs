@@ -1,67 +1,20 @@
-//! The ROS 2 messages the node reads and writes, as serde structs in the `.msg` files'
-//! field order: DDS carries them as CDR, which is positional (docs/ROS2-INTEROP.md).
-//! Only the node's own messages live here; `kfmap_bag` decodes the point layouts.
+//! The ROS 2 messages the node reads and writes through ros2-client, as serde structs in
+//! the `.msg` files' field order: DDS carries them as CDR, which is positional
+//! (docs/ROS2-INTEROP.md). The sensors' messages (`PointCloud2`, `Imu`) and the stamp
+//! are `kfmap_bag`'s, read by its decoders (`crate::raw`).
 
 use kfmap_geometry::geometry::Pose;
 use nalgebra::{Isometry3, Quaternion as NaQuaternion, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 use serde_big_array::BigArray;
 
-/// `builtin_interfaces/Time`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-pub struct Time {
-    pub sec: i32,
-    pub nanosec: u32,
-}
-
-impl Time {
-    /// Seconds since the epoch.
-    pub fn seconds(&self) -> f64 {
-        f64::from(self.sec) + f64::from(self.nanosec) * 1e-9
-    }
-
-    /// The time `seconds` after the epoch (rounded to the nanosecond).
-    pub fn from_seconds(seconds: f64) -> Self {
-        let whole = seconds.floor();
-        let mut nanosec = ((seconds - whole) * 1e9).round() as u32;
-        let mut sec = whole as i32;
-        if nanosec >= 1_000_000_000 {
-            sec += 1;
-            nanosec -= 1_000_000_000;
-        }
-        Self { sec, nanosec }
-    }
-}
+pub use kfmap_bag::msg::Stamp;
 
 /// `std_msgs/Header`.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 pub struct Header {
-    pub stamp: Time,
+    pub stamp: Stamp,
     pub frame_id: String,
-}
-
-/// `sensor_msgs/PointField`.
-#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
-pub struct PointField {
-    pub name: String,
-    pub offset: u32,
-    pub datatype: u8,
-    pub count: u32,
-}
-
-/// `sensor_msgs/PointCloud2`.
-#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
-pub struct PointCloud2 {
-    pub header: Header,
-    pub height: u32,
-    pub width: u32,
-    pub fields: Vec<PointField>,
-    pub is_bigendian: bool,
-    pub point_step: u32,
-    pub row_step: u32,
-    #[serde(with = "serde_bytes")]
-    pub data: Vec<u8>,
-    pub is_dense: bool,
 }
 
 /// `geometry_msgs/Vector3` (also `Point`, whose fields are the same).
@@ -256,33 +209,6 @@ pub struct TfMessage {
     pub transforms: Vec<TransformStamped>,
 }
 
-/// `sensor_msgs/Imu`.
-#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
-pub struct Imu {
-    pub header: Header,
-    pub orientation: QuaternionMsg,
-    pub orientation_covariance: [f64; 9],
-    pub angular_velocity: Vector3Msg,
-    pub angular_velocity_covariance: [f64; 9],
-    pub linear_acceleration: Vector3Msg,
-    pub linear_acceleration_covariance: [f64; 9],
-}
-
-impl Imu {
-    /// The sample at the header stamp (as `kfmap_bag`'s `ImuMessage::sample` reads a
-    /// bag's), `None` when a value is not finite.
-    pub fn sample(&self) -> Option<kfmap_geometry::imu::ImuSample> {
-        let v = |m: &Vector3Msg| [m.x, m.y, m.z];
-        let sample = kfmap_geometry::imu::ImuSample {
-            t: self.header.stamp.seconds(),
-            acc: v(&self.linear_acceleration),
-            gyro: v(&self.angular_velocity),
-        };
-        let finite = sample.acc.iter().chain(&sample.gyro).all(|x| x.is_finite());
-        (finite && sample.t.is_finite()).then_some(sample)
-    }
-}
-
 /// `geometry_msgs/Vector3Stamped`: the pooled gravity estimate (m/s^2, map frame, as an
 /// accelerometer at rest reads it).
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
@@ -325,53 +251,6 @@ pub struct DiagnosticArray {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn times_round_trip_to_the_nanosecond() {
-        for seconds in [0.0, 1.5, 1_700_000_000.123_456_7, 12.999_999_999_7] {
-            let t = Time::from_seconds(seconds);
-            assert!(t.nanosec < 1_000_000_000, "{t:?}");
-            assert!(
-                (t.seconds() - seconds).abs() < 2e-9 * seconds.max(1.0),
-                "{t:?}"
-            );
-        }
-        assert_eq!(
-            Time::from_seconds(3.25),
-            Time {
-                sec: 3,
-                nanosec: 250_000_000
-            }
-        );
-    }
-
-    #[test]
-    fn an_imu_message_is_a_sample_unless_a_value_is_not_finite() {
-        let mut imu = Imu {
-            header: Header {
-                stamp: Time::from_seconds(2.5),
-                frame_id: "imu".into(),
-            },
-            linear_acceleration: Vector3Msg {
-                x: 0.1,
-                y: 0.2,
-                z: 9.8,
-            },
-            angular_velocity: Vector3Msg {
-                x: 0.01,
-                y: 0.0,
-                z: -0.3,
-            },
-            ..Imu::default()
-        };
-        let sample = imu.sample().unwrap();
-        assert_eq!(
-            (sample.t, sample.acc, sample.gyro),
-            (2.5, [0.1, 0.2, 9.8], [0.01, 0.0, -0.3])
-        );
-        imu.angular_velocity.y = f64::NAN;
-        assert!(imu.sample().is_none());
-    }
 
     #[test]
     fn poses_and_transforms_read_back_and_refuse_what_is_not_a_rotation() {

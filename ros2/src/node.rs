@@ -9,6 +9,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context as _;
 use futures::StreamExt;
+use kfmap_bag::Encoding;
+use kfmap_bag::msg::{ImuMessage, PointCloud2, decode_header, decode_imu, decode_point_cloud2};
 use kfmap_client::{Client, ClientOptions, LocalizeOptions, TrackedScan, Tracker, TrackerOptions};
 use kfmap_geometry::cloud::PointCloud;
 use kfmap_geometry::geometry::Pose;
@@ -16,22 +18,22 @@ use kfmap_geometry::imu::ImuSample;
 use kfmap_geometry::motion::GyroParams;
 use kfmap_map::archive::{OpenOptions, open_map};
 use kfmap_protocol::Cov2CovMode;
-use ros2_client::dds::rustdds::Topic;
+use ros2_client::dds::rustdds::{Topic, no_key};
 use ros2_client::qos::{Durability, History, WhenFull};
 use ros2_client::{
     Context, ContextOptions, MessageTypeName, Name, Node, NodeName, NodeOptions, Publisher,
     QosProfile, Subscription,
 };
 
-use crate::cloud::{BadCloud, scan_of, xyz_message};
+use crate::cloud::{BadCloud, scan_of, xyz_sample};
 use crate::config::{ModeName, Ros2Config};
 use crate::frames::{Frames, parse_mounting};
 use crate::keep_last::KeepLast;
 use crate::msgs::{
-    DiagnosticArray, Header, Imu, Odometry, PointCloud2, PoseWithCovarianceStamped, TfMessage,
-    Time, Vector3Stamped,
+    DiagnosticArray, Header, Odometry, PoseWithCovarianceStamped, Stamp, TfMessage, Vector3Stamped,
 };
 use crate::outputs::{Condition, FrameNames, base_velocity, diagnostics, scan_outputs};
+use crate::raw::{self, CdrSample, RawCdr};
 
 /// How long the loop waits for a cloud before it looks at the stop flag again.
 const IDLE: Duration = Duration::from_millis(100);
@@ -64,8 +66,9 @@ type Queue<M> = Arc<KeepLast<Arrived<M>>>;
 
 /// Messages from the readers.
 struct Inbox {
-    clouds: Queue<PointCloud2>,
-    imu: Queue<Imu>,
+    /// `PointCloud2` samples, decoded by the loop (their points stay in the sample).
+    clouds: Queue<CdrSample>,
+    imu: Queue<ImuMessage>,
     initial: Queue<PoseWithCovarianceStamped>,
     tf: Queue<TfMessage>,
     tf_static: Queue<TfMessage>,
@@ -77,7 +80,7 @@ struct Outbox {
     odometry: Publisher<Odometry>,
     tf: Publisher<TfMessage>,
     diagnostics: Publisher<DiagnosticArray>,
-    map_cloud: Option<Publisher<PointCloud2>>,
+    map_cloud: Option<no_key::DataWriter<CdrSample, RawCdr>>,
     gravity: Option<Publisher<Vector3Stamped>>,
 }
 
@@ -239,7 +242,7 @@ impl Localizer<'_> {
             .unwrap_or_else(Pose::identity)
     }
 
-    fn publish_diagnostics(&mut self, out: &Outbox, stamp: Time, condition: &Condition<'_>) {
+    fn publish_diagnostics(&mut self, out: &Outbox, stamp: Stamp, condition: &Condition<'_>) {
         let counters = [
             ("clouds", self.summary.received.to_string()),
             ("localized", self.summary.localized.to_string()),
@@ -260,10 +263,27 @@ impl Localizer<'_> {
         self.last_diagnostics = Instant::now();
     }
 
+    /// Decodes one `PointCloud2` sample, which its reader took at `arrived`, and
+    /// localizes it ([`Self::on_cloud`]); one that does not decode is counted as bad.
+    fn on_sample(&mut self, sample: &CdrSample, arrived: Instant, out: &Outbox) {
+        match decode_point_cloud2(&sample.0, Encoding::Cdr) {
+            Ok(msg) => self.on_cloud(&msg, arrived, out),
+            Err(e) => {
+                self.summary.bad += 1;
+                let why = format!("cannot read the cloud: {e}");
+                // Said at the cloud's stamp when its header reads, as for any bad cloud.
+                let stamp = decode_header(&sample.0, Encoding::Cdr)
+                    .map_or_else(|_| Stamp::from_seconds(now_seconds()), |(stamp, _)| stamp);
+                tracing::warn!("cloud at {:.3}: {why}", stamp.seconds());
+                self.publish_diagnostics(out, stamp, &Condition::BadCloud(&why));
+            }
+        }
+    }
+
     /// Localizes one cloud, which its reader took at `arrived`, and publishes what
     /// follows from it.
-    fn on_cloud(&mut self, msg: &PointCloud2, arrived: Instant, out: &Outbox) {
-        let stamp = msg.header.stamp;
+    fn on_cloud(&mut self, msg: &PointCloud2<'_>, arrived: Instant, out: &Outbox) {
+        let stamp = msg.stamp;
         let t = stamp.seconds();
         let queued = arrived.elapsed();
         let scan = match scan_of(msg, self.config.scans.voxel) {
@@ -278,7 +298,7 @@ impl Localizer<'_> {
                 return;
             }
         };
-        let base_sensor = self.mounting(&msg.header.frame_id);
+        let base_sensor = self.mounting(&msg.frame_id);
         if let Some(map_base) = self.initial.take() {
             let options = tracker_options(self.config);
             // The gyro's log and bias carry over to the new track.
@@ -398,12 +418,11 @@ impl Localizer<'_> {
             }
         }
         for (message, _) in inbox.imu.drain() {
-            if self.imu_frame.as_deref() != Some(message.header.frame_id.as_str()) {
-                self.imu_frame = Some(message.header.frame_id.clone());
+            if self.imu_frame.as_deref() != Some(message.frame_id.as_str()) {
+                self.imu_frame = Some(message.frame_id.clone());
             }
-            if let Some(sample) = message.sample() {
-                self.imu.push(sample);
-            }
+            // Samples not finite are refused (counted) where the tracker takes them.
+            self.imu.push(message.sample());
         }
         // More than imu-depth since the last cloud (none arrives): the oldest go.
         let excess = self.imu.len().saturating_sub(self.config.qos.imu_depth);
@@ -462,7 +481,7 @@ impl Localizer<'_> {
 
     /// Sends the IMU samples since the last cloud to the server's gravity pool, and
     /// publishes the gravity direction once it is pooled.
-    fn push_imu_window(&mut self, out: &Outbox, stamp: Time, map_sensor: &Pose) {
+    fn push_imu_window(&mut self, out: &Outbox, stamp: Stamp, map_sensor: &Pose) {
         if self.imu.len() < 2 {
             return;
         }
@@ -543,24 +562,36 @@ pub fn run(
         tf_static: Arc::new(KeepLast::new(64)),
     };
     let executor = Arc::new(smol::Executor::new());
-    let points = subscribe::<PointCloud2>(
-        &mut node,
-        &topics.points,
-        ("sensor_msgs", "PointCloud2"),
-        sensor_data(config.qos.points_depth),
+    // The sensors' messages come as bytes, for kfmap_bag's decoders (crate::raw).
+    let participant = context.domain_participant();
+    let qos = sensor_data(config.qos.points_depth);
+    let points = raw::reader(
+        &participant,
+        &topic(&node, &topics.points, ("sensor_msgs", "PointCloud2"), &qos)?,
+        &qos,
     )?;
+    let clouds = inbox.clouds.clone();
     executor
-        .spawn(forward(points, inbox.clouds.clone(), "PointCloud2"))
+        .spawn(raw::forward(points, move |sample| {
+            clouds.push((sample, Instant::now()));
+        }))
         .detach();
     if !topics.imu.is_empty() {
-        let sub = subscribe::<Imu>(
-            &mut node,
-            &topics.imu,
-            ("sensor_msgs", "Imu"),
-            sensor_data(config.qos.imu_depth),
+        let qos = sensor_data(config.qos.imu_depth);
+        let imu = raw::reader(
+            &participant,
+            &topic(&node, &topics.imu, ("sensor_msgs", "Imu"), &qos)?,
+            &qos,
         )?;
+        let queue = inbox.imu.clone();
         executor
-            .spawn(forward(sub, inbox.imu.clone(), "Imu"))
+            .spawn(raw::forward(imu, move |sample| {
+                match decode_imu(&sample.0, Encoding::Cdr) {
+                    Ok(message) => queue.push((message, Instant::now())),
+                    // A message that does not decode as its type: named, never fatal.
+                    Err(e) => tracing::warn!("an Imu message could not be read: {e}"),
+                }
+            }))
             .detach();
     }
     if !topics.initial_pose.is_empty() {
@@ -623,12 +654,13 @@ pub fn run(
         )?,
         map_cloud: (!topics.map_cloud.is_empty() && config.map_cloud.voxel > 0.0)
             .then(|| {
-                publish_on(
-                    &mut node,
+                let topic = topic(
+                    &node,
                     &topics.map_cloud,
                     ("sensor_msgs", "PointCloud2"),
-                    latched(),
-                )
+                    &latched(),
+                )?;
+                raw::writer(&participant, &topic, &latched())
             })
             .transpose()?,
         gravity: (!topics.gravity.is_empty())
@@ -702,19 +734,17 @@ fn run_loop(config: &Ros2Config, inbox: &Inbox, out: &Outbox, stop: &AtomicBool)
                 let _ = tx.send(map_points(Path::new(&status.map_path), voxel));
             });
         }
-        if let (Ok(points), Some(publisher)) = (map_rx.try_recv(), &out.map_cloud) {
-            match points {
-                Ok(points) => {
-                    let header = Header {
-                        stamp: Time::from_seconds(now_seconds()),
-                        frame_id: config.frames.map.clone(),
-                    };
-                    let n = points.len();
-                    match publisher.publish(xyz_message(header, &points)) {
-                        Ok(()) => tracing::info!(points = n, "map cloud published"),
-                        Err(e) => tracing::warn!("map cloud not published: {e:?}"),
-                    }
-                }
+        if let (Ok(points), Some(writer)) = (map_rx.try_recv(), &out.map_cloud) {
+            let stamp = Stamp::from_seconds(now_seconds());
+            let sample = points.and_then(|points| {
+                let n = points.len();
+                Ok((xyz_sample(stamp, &config.frames.map, &points)?, n))
+            });
+            match sample {
+                Ok((sample, n)) => match writer.write(sample, None) {
+                    Ok(()) => tracing::info!(points = n, "map cloud published"),
+                    Err(e) => tracing::warn!("map cloud not published: {e:?}"),
+                },
                 Err(e) => tracing::warn!("no map cloud: {e:#}"),
             }
         }
@@ -724,12 +754,12 @@ fn run_loop(config: &Ros2Config, inbox: &Inbox, out: &Outbox, stop: &AtomicBool)
                 // What came in while the loop waited (the IMU up to this cloud).
                 state.read_inputs(inbox);
                 state.count(inbox);
-                state.on_cloud(&cloud, arrived, out);
+                state.on_sample(&cloud, arrived, out);
             }
             None => {
                 if state.last_diagnostics.elapsed() >= DIAGNOSTICS_PERIOD {
                     state.count(inbox);
-                    let stamp = Time::from_seconds(now_seconds());
+                    let stamp = Stamp::from_seconds(now_seconds());
                     let condition = match state.client() {
                         Ok(_) => Condition::Waiting,
                         Err(why) => {

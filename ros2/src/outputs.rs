@@ -8,7 +8,7 @@ use nalgebra::{Matrix3, Matrix6, Vector3};
 
 use crate::msgs::{
     DIAGNOSTIC_ERROR, DIAGNOSTIC_OK, DIAGNOSTIC_WARN, DiagnosticArray, DiagnosticStatus, Header,
-    KeyValue, Odometry, PoseMsg, PoseWithCovariance, PoseWithCovarianceStamped, Time, Transform,
+    KeyValue, Odometry, PoseMsg, PoseWithCovariance, PoseWithCovarianceStamped, Stamp, Transform,
     TransformStamped, Twist, TwistWithCovariance,
 };
 
@@ -80,7 +80,7 @@ pub struct FrameNames {
 /// frame since the last scan.
 pub fn scan_outputs(
     frames: &FrameNames,
-    stamp: Time,
+    stamp: Stamp,
     map_sensor: &Pose,
     health: &ScanHealth,
     sensor_base: &Pose,
@@ -169,7 +169,7 @@ pub enum Condition<'a> {
 
 /// The diagnostics for `condition`, with counters as key-values.
 pub fn diagnostics(
-    stamp: Time,
+    stamp: Stamp,
     condition: &Condition<'_>,
     map_name: &str,
     counters: &[(&str, String)],
@@ -307,7 +307,7 @@ mod tests {
         let sensor_base = pose([0.0, 0.0, -1.0], [0.0, 0.0, 0.0]);
         let odom_base = pose([2.0, 1.0, 0.0], [0.0, 0.0, 0.2]);
         let health = ScanHealth::no_fit(0, 0);
-        let stamp = Time { sec: 7, nanosec: 5 };
+        let stamp = Stamp { sec: 7, nanosec: 5 };
         let with = scan_outputs(
             &frames,
             stamp,

@@ -58,7 +58,7 @@ pub fn decode_imu(bytes: &[u8], encoding: Encoding) -> Result<ImuMessage, Decode
 
 #[cfg(test)]
 mod tests {
-    use super::super::reader::writer::Writer;
+    use super::super::writer::Writer;
     use super::*;
 
     fn imu_bytes(encoding: Encoding, big_endian: bool, frame: &str) -> Vec<u8> {

@@ -110,7 +110,7 @@ pub fn decode_diagnostic_array(
 
 #[cfg(test)]
 mod tests {
-    use super::super::reader::writer::Writer;
+    use super::super::writer::Writer;
     use super::*;
 
     fn pose_bytes(encoding: Encoding, big_endian: bool, frame: &str) -> Vec<u8> {

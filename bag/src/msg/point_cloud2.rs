@@ -17,7 +17,8 @@
 use kfmap_geometry::cloud::PointCloud;
 
 use super::reader::Reader;
-use super::{DecodeError, Stamp};
+use super::writer::Writer;
+use super::{DecodeError, EncodeError, Stamp};
 use crate::Encoding;
 
 /// One `sensor_msgs/PointField`.
@@ -374,6 +375,45 @@ pub fn decode_point_cloud2(
     };
     cloud.check_layout()?;
     Ok(cloud)
+}
+
+/// Encodes `cloud` as ROS 2 CDR, little-endian, its 4-byte encapsulation header first:
+/// what [`decode_point_cloud2`] reads back (a DDS writer sends the bytes after the
+/// header). A stamp or a length past its wire type is refused, naming it.
+pub fn encode_point_cloud2(cloud: &PointCloud2<'_>) -> Result<Vec<u8>, EncodeError> {
+    let sec = i32::try_from(cloud.stamp.sec).map_err(|_| EncodeError::Stamp(cloud.stamp.sec))?;
+    let counted = |what, len: usize| {
+        // A string's prefix counts its NUL too.
+        if len < u32::MAX as usize {
+            Ok(())
+        } else {
+            Err(EncodeError::TooLong { what, len })
+        }
+    };
+    counted("data", cloud.data.len())?;
+    counted("fields", cloud.fields.len())?;
+    counted("frame_id", cloud.frame_id.len())?;
+    for field in &cloud.fields {
+        counted("a field's name", field.name.len())?;
+    }
+    let mut w = Writer::new(Encoding::Cdr, false);
+    w.out.reserve(cloud.data.len() + 256);
+    w.header(sec, cloud.stamp.nanosec, &cloud.frame_id);
+    w.u32(cloud.height);
+    w.u32(cloud.width);
+    w.u32(cloud.fields.len() as u32);
+    for field in &cloud.fields {
+        w.string(&field.name);
+        w.u32(field.offset);
+        w.u8(field.datatype);
+        w.u32(field.count);
+    }
+    w.bool(cloud.is_bigendian);
+    w.u32(cloud.point_step);
+    w.u32(cloud.row_step);
+    w.bytes(cloud.data);
+    w.bool(cloud.is_dense);
+    Ok(w.out)
 }
 
 /// A resolved field: where it is in a point and what it holds.

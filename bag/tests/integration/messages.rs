@@ -16,6 +16,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use kfmap_bag::Encoding;
 use kfmap_bag::msg::{
     PointCloud2, Stamp, TimeUnit, datatype_name, decode_imu, decode_point_cloud2,
+    encode_point_cloud2,
 };
 use proptest::prelude::*;
 use serde_json::Value;
@@ -289,7 +290,7 @@ fn clouds_match_the_independent_serializer() {
     let Some(generated) = generated("clouds_match_the_independent_serializer") else {
         return;
     };
-    let mut checked = 0;
+    let (mut checked, mut encoded_le) = (0, 0);
     for entry in generated.entries("PointCloud2", "expect") {
         let file = entry["file"].as_str().unwrap();
         let bytes = generated.bytes(file);
@@ -297,8 +298,24 @@ fn clouds_match_the_independent_serializer() {
             decode_point_cloud2(bytes, encoding(entry)).unwrap_or_else(|e| panic!("{file}: {e}"));
         check_cloud(file, &msg, &entry["expect"]);
         checked += 1;
+        // The encoder writes what the independent serializer wrote (little-endian CDR,
+        // the one the ROS 2 node publishes), up to the end padding it may add.
+        if encoding(entry) == Encoding::Cdr && bytes.get(..2) == Some(&[0, 1]) {
+            let encoded = encode_point_cloud2(&msg).unwrap();
+            let (body, padding) = bytes.split_at(encoded.len().min(bytes.len()));
+            assert_eq!(encoded, body, "{file}: encoded");
+            assert!(
+                padding.len() < 4 && padding.iter().all(|&b| b == 0),
+                "{file}"
+            );
+            encoded_le += 1;
+        }
     }
     assert!(checked >= 30, "only {checked} clouds generated");
+    assert!(
+        encoded_le >= 10,
+        "only {encoded_le} little-endian CDR clouds"
+    );
 }
 
 #[test]

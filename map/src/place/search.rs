@@ -335,13 +335,7 @@ impl<'g, 'c> Lattice<'g, 'c> {
     /// Points of yaw `yaw` landing on marked level-`level` voxels at translation `k`,
     /// of those set in `among` (its parent's hits), written to `hits`; less than `need`
     /// when it cannot reach it (`GridView::count_marked_among`).
-    fn bound(
-        &self,
-        (level, yaw, k): Cube,
-        among: &[u64],
-        need: u32,
-        hits: &mut [u64],
-    ) -> u32 {
+    fn bound(&self, (level, yaw, k): Cube, among: &[u64], need: u32, hits: &mut [u64]) -> u32 {
         self.grid.count_marked_among(
             level,
             &self.voxels[yaw as usize],

@@ -3,7 +3,7 @@
 
 use proptest::prelude::*;
 
-use super::super::reader::writer::Writer;
+use super::super::writer::Writer;
 use super::*;
 
 /// A field of a hand-built cloud: name, offset, datatype code.
