@@ -32,7 +32,7 @@ use kfmap_plot::{MapPlotOptions, TrajectoryPlotInputs, render_map, render_trajec
 
 /// Run the kfmap pipeline end to end on built-in defaults and draw the result.
 ///
-/// Simulated (default; about 35 s on 2 cores):
+/// Simulated (default; about a minute on 2 cores):
 ///   1. simulates 52 s (a lap) of a 32-beam LiDAR and an IMU driving around a courtyard
 ///      whose world is tilted roll 2 deg / pitch -3 deg against the map frame, and the
 ///      covariances of one scan;
