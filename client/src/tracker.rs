@@ -8,6 +8,8 @@
 //! adopted scans in a row that do not fit the map it says `lost` (and relocalizes, with
 //! the IMU's tilt when it has one) instead of following its own prediction.
 
+use std::sync::Arc;
+
 use kfmap_geometry::cloud::PointCloud;
 use kfmap_geometry::geometry::Pose;
 use kfmap_geometry::imu::ImuSample;
@@ -16,7 +18,7 @@ use kfmap_geometry::motion::{
     point_displacement,
 };
 use kfmap_geometry::options::{InvalidOption, ensure, ensure_ratio};
-use kfmap_geometry::registration::{RegistrationParams, register};
+use kfmap_geometry::registration::{PreparedCloud, RegistrationParams, align};
 use kfmap_geometry::tracking::{CORRECTION_RANGE_M, Reasons, ScanHealth, TrackingStatus};
 use kfmap_protocol::ScanPayload;
 use serde::{Deserialize, Serialize};
@@ -223,9 +225,31 @@ pub struct Tracker {
     unpinned_run: usize,
     /// Adopted scans since the last relocalization check.
     since_check: usize,
-    /// The scan before (sensor frame, as sent) while places are in doubt: the motion
-    /// between scans that carries every hypothesis forward is registered from it.
-    previous_scan: Option<PointCloud>,
+    /// The scan before (sensor frame) while places are in doubt: the motion between
+    /// scans that carries every hypothesis forward is registered from it.
+    previous_scan: Option<PreviousScan>,
+    /// This scan prepared for scan-to-scan registration (`Prepared`), when a
+    /// registration did so.
+    prepared_now: Option<PreviousScan>,
+}
+
+/// The scan before, as sent or already prepared for registration (downsampled, with
+/// covariances and a tree): a scan registered from the one before becomes the next
+/// scan's target as it was prepared, instead of being prepared again (the covariances
+/// are most of a scan-to-scan registration's cost).
+#[derive(Clone)]
+enum PreviousScan {
+    Sent(PointCloud),
+    Prepared(Arc<PreparedCloud>),
+}
+
+impl std::fmt::Debug for PreviousScan {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Sent(cloud) => write!(f, "Sent({} points)", cloud.len()),
+            Self::Prepared(prepared) => write!(f, "Prepared({} points)", prepared.points.len()),
+        }
+    }
 }
 
 /// Seconds of accelerometer before a scan that give its tilt for relocalization.
@@ -377,6 +401,7 @@ impl Tracker {
             unpinned_run: 0,
             since_check: 0,
             previous_scan: None,
+            prepared_now: None,
         }
     }
 
@@ -450,14 +475,19 @@ impl Tracker {
         scan: &ScanPayload,
         t: f64,
     ) -> Result<TrackedScan, ClientError> {
+        self.prepared_now = None;
         let tracked = self.track_scan(client, scan, t);
         // The motion registered from the scan before carries hypotheses, and the scan
         // after one adopted with no velocity known (see `Self::predict_scan`).
         let adopted_at_rest = tracked.as_ref().is_ok_and(|t| {
             t.localized.health.status != TrackingStatus::Lost && !self.motion.has_velocity()
         });
-        self.previous_scan = (!self.hypotheses.is_empty() || adopted_at_rest)
-            .then(|| PointCloud::from_points(scan.points.to_vec()));
+        let prepared = self.prepared_now.take();
+        self.previous_scan = (!self.hypotheses.is_empty() || adopted_at_rest).then(|| {
+            prepared.unwrap_or_else(|| {
+                PreviousScan::Sent(PointCloud::from_points(scan.points.to_vec()))
+            })
+        });
         tracked
     }
 
@@ -520,9 +550,9 @@ impl Tracker {
     /// registered from the scan before. Starting from rest, a handheld sensor at 2 Hz is
     /// metres (at the gate's range) from the model's prediction, beyond its bound.
     /// The flag: whether the pose is the model's (only its errors size the gate).
-    fn predict_scan(&self, scan: &ScanPayload, t: f64) -> (Pose, bool) {
+    fn predict_scan(&mut self, scan: &ScanPayload, t: f64) -> (Pose, bool) {
         let predicted = self.predict(t);
-        match self.motion.last() {
+        match self.motion.last().copied() {
             Some(last) if !self.motion.has_velocity() && self.hypotheses.is_empty() => {
                 match self.registered_motion(scan, &(last.inverse() * predicted)) {
                     Some(moved) => (renormalized(&(last * moved)), false),
@@ -1008,15 +1038,27 @@ impl Tracker {
     /// the motion model's `guess`, so that every place moves alike and none slides along
     /// a street by following its own (possibly wrong) velocity; the guess itself when
     /// the registration fails or pairs less than half of the scan.
-    fn motion_since_previous(&self, scan: &ScanPayload, guess: &Pose) -> Pose {
+    fn motion_since_previous(&mut self, scan: &ScanPayload, guess: &Pose) -> Pose {
         self.registered_motion(scan, guess).unwrap_or(*guess)
     }
 
     /// [`Self::motion_since_previous`], `None` where it falls back to the guess.
-    fn registered_motion(&self, scan: &ScanPayload, guess: &Pose) -> Option<Pose> {
+    fn registered_motion(&mut self, scan: &ScanPayload, guess: &Pose) -> Option<Pose> {
         let previous = self.previous_scan.as_ref()?;
+        let params = RegistrationParams::default();
         let current = PointCloud::from_points(scan.points.to_vec());
-        match register(previous, &current, guess, &RegistrationParams::default()) {
+        let (target, source) = rayon::join(
+            || match previous {
+                PreviousScan::Prepared(prepared) => Ok(Arc::clone(prepared)),
+                PreviousScan::Sent(cloud) => {
+                    PreparedCloud::new(cloud, &params, "target").map(Arc::new)
+                }
+            },
+            || PreparedCloud::new(&current, &params, "source").map(Arc::new),
+        );
+        let source = source.ok()?;
+        self.prepared_now = Some(PreviousScan::Prepared(Arc::clone(&source)));
+        match align(&*target.ok()?, &source, guess, &params) {
             Ok(r) if r.converged && r.fitness.inlier_ratio >= 0.5 => Some(renormalized(&r.pose)),
             _ => None,
         }
