@@ -544,6 +544,36 @@ pub fn every_voxel(count: usize) -> Vec<u64> {
     mask
 }
 
+/// How many of the items set in `among` pass `marked` (item `i`: bit `i % 64` of word
+/// `i / 64`), their bits set in `hits`; stops as soon as fewer than `need` can pass and
+/// then returns less than `need` ([`GridView::count_marked_among`]'s loop).
+#[inline(always)]
+fn count_set(
+    among: &[u64],
+    need: u32,
+    hits: &mut [u64],
+    mut marked: impl FnMut(usize) -> bool,
+) -> u32 {
+    let mut left: u32 = among.iter().map(|w| w.count_ones()).sum();
+    let mut count = 0;
+    for (w, &word) in among.iter().enumerate() {
+        let mut bits = word;
+        while bits != 0 {
+            if count + left < need {
+                return count;
+            }
+            let bit = bits.trailing_zeros() as usize;
+            bits &= bits - 1;
+            left -= 1;
+            // Counted without a branch on the result: half the points hit, at random.
+            let hit = marked(w * 64 + bit);
+            count += u32::from(hit);
+            hits[w] |= u64::from(hit) << bit;
+        }
+    }
+    count
+}
+
 /// A grid read in place (from a [`PlaceGrid`] or a baked map).
 #[derive(Debug, Clone, Copy)]
 pub struct GridView<'a> {
@@ -814,57 +844,37 @@ impl<'a> GridView<'a> {
             // Neighbouring voxels (a scan's, in scan order) often share a block, whose
             // entry is then looked up once.
             let mut last = (EMPTY_KEY, ABSENT);
-            let entry = |b: [i64; 3]| {
-                let k = key(b);
-                if k != last.0 {
-                    last = (k, self.entry_of(k));
-                }
-                last.1
-            };
-            self.count_among(level, voxels, shift, among, need, hits, entry)
+            count_set(among, need, hits, |i| {
+                self.moved_marked(level, voxels.get(i), shift, |b| {
+                    let k = key(b);
+                    if k != last.0 {
+                        last = (k, self.entry_of(k));
+                    }
+                    last.1
+                })
+            })
         } else {
-            let entry = |b: [i64; 3]| self.directory[directory_index(b, self.block_dims)];
-            self.count_among(level, voxels, shift, among, need, hits, entry)
+            count_set(among, need, hits, |i| {
+                self.moved_marked(level, voxels.get(i), shift, |b| {
+                    self.directory[directory_index(b, self.block_dims)]
+                })
+            })
         }
     }
 
-    /// [`Self::count_marked_among`] with `entry` finding a block's entry.
-    #[allow(clippy::too_many_arguments)] // The hot loop's inputs, passed through once.
+    /// Whether `voxel` moved by `shift` is marked at `level` (false for none), with
+    /// `entry` finding a block's entry.
     #[inline(always)]
-    fn count_among(
+    fn moved_marked(
         &self,
         level: usize,
-        voxels: &[[i64; 3]],
+        voxel: Option<&[i64; 3]>,
         shift: [i64; 3],
-        among: &[u64],
-        need: u32,
-        hits: &mut [u64],
-        mut entry: impl FnMut([i64; 3]) -> u32,
-    ) -> u32 {
-        let mut left: u32 = among.iter().map(|w| w.count_ones()).sum();
-        let mut count = 0;
-        for (w, &word) in among.iter().enumerate() {
-            let mut bits = word;
-            while bits != 0 {
-                if count + left < need {
-                    return count;
-                }
-                let bit = bits.trailing_zeros() as usize;
-                bits &= bits - 1;
-                left -= 1;
-                let Some(u) = voxels.get(w * 64 + bit) else {
-                    break;
-                };
-                let moved = [u[0] + shift[0], u[1] + shift[1], u[2] + shift[2]];
-                // Counted without a branch on the bit: half the points hit, at random.
-                let marked = self
-                    .clamped(level, moved)
-                    .is_some_and(|v| self.bit(entry(v.map(|c| c >> 3)), level, v));
-                count += u32::from(marked);
-                hits[w] |= u64::from(marked) << bit;
-            }
-        }
-        count
+        entry: impl FnOnce([i64; 3]) -> u32,
+    ) -> bool {
+        voxel
+            .and_then(|u| self.clamped(level, [u[0] + shift[0], u[1] + shift[1], u[2] + shift[2]]))
+            .is_some_and(|v| self.bit(entry(v.map(|c| c >> 3)), level, v))
     }
 
     /// `v` clamped to the grid's first voxel per axis, or `None` when the cube
