@@ -355,7 +355,17 @@ fn read_imu_topic(path: &Path, topic: &str) -> Result<Vec<ImuSample>, GravityErr
         let imu = decode_imu(&message.data, topic.encoding).map_err(|e| {
             BagError::message(bag.path(), &topic.name, index, message.log_time_ns, e)
         })?;
-        let sample = imu.sample();
+        let Some(sample) = imu.sample() else {
+            let reason = "linear acceleration or angular velocity is not finite (NaN or infinite)";
+            return Err(BagError::message(
+                bag.path(),
+                &topic.name,
+                index,
+                message.log_time_ns,
+                reason,
+            )
+            .into());
+        };
         if let Some(last) = samples.last().filter(|last| sample.t < last.t) {
             let reason = format!(
                 "header stamp {:.6} s is before the previous message's {:.6} s",

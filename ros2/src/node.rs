@@ -421,8 +421,10 @@ impl Localizer<'_> {
             if self.imu_frame.as_deref() != Some(message.frame_id.as_str()) {
                 self.imu_frame = Some(message.frame_id.clone());
             }
-            // Samples not finite are refused (counted) where the tracker takes them.
-            self.imu.push(message.sample());
+            // A sample not finite is dropped: the server would refuse its whole window.
+            if let Some(sample) = message.sample() {
+                self.imu.push(sample);
+            }
         }
         // More than imu-depth since the last cloud (none arrives): the oldest go.
         let excess = self.imu.len().saturating_sub(self.config.qos.imu_depth);

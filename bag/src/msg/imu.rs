@@ -30,13 +30,17 @@ pub struct ImuMessage {
 }
 
 impl ImuMessage {
-    /// The sample at the header stamp.
-    pub fn sample(&self) -> ImuSample {
-        ImuSample {
+    /// The sample at the header stamp; `None` when the acceleration or the angular
+    /// velocity is not finite (a driver's NaN says nothing, and one such sample would
+    /// make the server refuse the whole IMU window it is sent in).
+    pub fn sample(&self) -> Option<ImuSample> {
+        let sample = ImuSample {
             t: self.stamp.seconds(),
             acc: self.linear_acceleration,
             gyro: self.angular_velocity,
-        }
+        };
+        let finite = sample.acc.iter().chain(&sample.gyro).all(|x| x.is_finite());
+        finite.then_some(sample)
     }
 }
 
@@ -90,10 +94,32 @@ mod tests {
                 assert_eq!(m.angular_velocity_covariance[0], 16.5);
                 assert_eq!(m.linear_acceleration, [25.5, 26.5, 27.5]);
                 assert_eq!(m.linear_acceleration_covariance[8], 36.5);
-                let s = m.sample();
+                let s = m.sample().unwrap();
                 assert_eq!(s.acc, m.linear_acceleration);
                 assert_eq!(s.gyro, m.angular_velocity);
                 assert!((s.t - 1_700_000_000.25).abs() < 1e-6);
+            }
+        }
+    }
+
+    /// A NaN or infinite acceleration or angular velocity is no sample; an orientation
+    /// the driver does not know (NaN there, as some drivers write it) does not matter.
+    #[test]
+    fn a_message_is_a_sample_unless_acceleration_or_rate_is_not_finite() {
+        let m = decode_imu(&imu_bytes(Encoding::Cdr, false, "imu"), Encoding::Cdr).unwrap();
+        let unknown_orientation = ImuMessage {
+            orientation: [f64::NAN; 4],
+            ..m.clone()
+        };
+        assert_eq!(unknown_orientation.sample(), m.sample());
+        for bad in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+            for axis in 0..3 {
+                let mut acc = m.clone();
+                acc.linear_acceleration[axis] = bad;
+                assert_eq!(acc.sample(), None, "acc {axis} {bad}");
+                let mut rate = m.clone();
+                rate.angular_velocity[axis] = bad;
+                assert_eq!(rate.sample(), None, "gyro {axis} {bad}");
             }
         }
     }

@@ -366,22 +366,6 @@ impl<'a> ActiveSet<'a> {
         max_pair_dist: f64,
         query_covariances: Option<&[PackedSym3]>,
     ) -> Result<Vec<Pairing>, MapError> {
-        self.cov2cov_near(scan, pose, max_pair_dist, query_covariances, &[])
-    }
-
-    /// As [`Self::cov2cov`], the same pairings found sooner from `previous`: the pairings
-    /// of the same scan at a nearby pose (a registration's last iteration), sorted by
-    /// query index. A point's pair there, when its keyframe is active, is no farther
-    /// than the nearest point is, so the search starts bounded by its distance instead
-    /// of `max_pair_dist` and skips most of the tree (the other keyframes' boxes too).
-    pub fn cov2cov_near(
-        &self,
-        scan: &PointCloud,
-        pose: &Pose,
-        max_pair_dist: f64,
-        query_covariances: Option<&[PackedSym3]>,
-        previous: &[Pairing],
-    ) -> Result<Vec<Pairing>, MapError> {
         scan.validate()?;
         let estimated;
         let covs: &[PackedSym3] = match query_covariances {
@@ -402,32 +386,11 @@ impl<'a> ActiveSet<'a> {
         let cos_limit = options.max_view_angle_deg.to_radians().cos();
         let filter = options.view_filter_active() && scan.view_dirs.is_some();
         let rotation = pose.rotation.to_rotation_matrix().into_inner();
-        // Each point's last pair, where its keyframe is active (the merged submap holds
-        // every active keyframe's points, so any pair of one is in it).
-        let mut last: Vec<Option<[f32; 3]>> = Vec::new();
-        if !previous.is_empty() {
-            last.resize(scan.len(), None);
-            for pair in previous {
-                if let Some(slot) = last.get_mut(pair.query_index as usize)
-                    && self.ids().contains(&pair.keyframe)
-                {
-                    *slot = Some(pair.map_point);
-                }
-            }
-        }
         let pairings = (0..scan.len())
             .into_par_iter()
             .filter_map(|i| {
                 let p = to_point(&(pose * Point3::from(to_vec3(&scan.points[i]))).coords);
-                let near = last.get(i).copied().flatten().and_then(|q| {
-                    // A millimetre over its distance: the tree measures in the keyframe's
-                    // frame, rounded differently.
-                    let d = (to_vec3(&p) - to_vec3(&q)).norm() as f32 + 1e-3;
-                    let bound = d * d;
-                    (bound < max_sq).then(|| self.nearest_with_attributes(&p, bound))?
-                });
-                let (hit, map_cov, map_view) =
-                    near.or_else(|| self.nearest_with_attributes(&p, max_sq))?;
+                let (hit, map_cov, map_view) = self.nearest_with_attributes(&p, max_sq)?;
                 if filter {
                     let vq = pose.rotation * to_vec3(&scan.view_dirs.as_ref()?[i]);
                     // A missing vector (norm^2 < 0.25) never rejects.

@@ -789,8 +789,9 @@ fn sparse_levels_equal_the_brute_force_definition() {
             );
             // Over a random subset: the marked ones of it exactly, or, when fewer than
             // `need` are, any count below `need`.
-            let among: Vec<u64> = (0..cloud.len().div_ceil(64))
-                .map(|w| rng.random::<u64>() & super::grid::every_voxel(cloud.len())[w])
+            let among: Vec<u64> = super::grid::every_voxel(cloud.len())
+                .into_iter()
+                .map(|word| rng.random::<u64>() & word)
                 .collect();
             let chosen = |i: usize| among[i / 64] >> (i % 64) & 1 == 1;
             let want: Vec<usize> = (0..cloud.len())

@@ -73,11 +73,11 @@ fn compute(
                     let (pairings, active) = cov2cov(
                         map,
                         session,
-                        (cloud, covs),
+                        cloud,
+                        covs,
                         &pose,
                         request.max_pair_dist,
                         Activation::of_map(map, exact),
-                        &[],
                     )?;
                     Ok(with_active(AnswerPairings::Cov2Cov(pairings), &active))
                 }

@@ -213,17 +213,15 @@ pub(super) fn radius(
     })
 }
 
-/// Cov2cov pairings of `cloud` (with its covariances) at `pose` and the active
-/// keyframes used; `previous`: pairings of the same cloud at a nearby pose, which
-/// speed the search up (`ActiveSet::cov2cov_near`), or none.
+/// Cov2cov pairings at `pose` and the active keyframes used.
 pub(super) fn cov2cov(
     map: &ServedMap,
     session: &mut Session,
-    (cloud, covariances): (&PointCloud, &[[f32; 6]]),
+    cloud: &PointCloud,
+    covariances: &[[f32; 6]],
     pose: &Pose,
     max_pair_dist: f32,
     activation: Activation,
-    previous: &[Pairing],
 ) -> Result<(Vec<Pairing>, Vec<u64>), Rejection> {
     if !(max_pair_dist.is_finite() && max_pair_dist > 0.0 && max_pair_dist <= MAX_PAIR_DIST) {
         return Err(bad(format!(
@@ -232,13 +230,7 @@ pub(super) fn cov2cov(
     }
     let active = activate(map, session, pose, activation)?;
     let pairings = active
-        .cov2cov_near(
-            cloud,
-            pose,
-            max_pair_dist as f64,
-            Some(covariances),
-            previous,
-        )
+        .cov2cov(cloud, pose, max_pair_dist as f64, Some(covariances))
         .map_err(map_error)?;
     Ok((pairings, active.ids().to_vec()))
 }

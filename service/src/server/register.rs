@@ -52,15 +52,15 @@ impl MapRegistration<'_> {
         start: &Pose,
         stage: &Stage,
     ) -> Result<Option<RegistrationResult>, Rejection> {
-        register_over(cloud, start, stage, |at, previous| {
+        register_over(cloud, start, stage, |at| {
             let (pairings, ids) = cov2cov(
                 self.map,
                 self.session,
-                (cloud, covs),
+                cloud,
+                covs,
                 at,
                 stage.max_pair_dist as f32,
                 self.activation,
-                previous,
             )?;
             self.active = ids;
             Ok(pairings)
@@ -79,30 +79,28 @@ pub(super) fn register_approximate(
     start: &Pose,
     stage: &Stage,
 ) -> Result<Option<RegistrationResult>, Rejection> {
-    register_over(cloud, start, stage, |at, previous| {
+    register_over(cloud, start, stage, |at| {
         let ids = map.map.select_with(at, selection);
         let active = map
             .map
             .activate_cached(ids, &mut None, false)
             .map_err(map_error)?;
         active
-            .cov2cov_near(cloud, at, stage.max_pair_dist, Some(covs), previous)
+            .cov2cov(cloud, at, stage.max_pair_dist, Some(covs))
             .map_err(map_error)
     })
 }
 
-/// The registration loop over `pairings_at(pose, the last iteration's pairings)`;
-/// `None` when no scan point has a pair.
+/// The registration loop over `pairings_at(pose)`; `None` when no scan point has a pair.
 fn register_over(
     cloud: &PointCloud,
     start: &Pose,
     stage: &Stage,
-    mut pairings_at: impl FnMut(&Pose, &[Pairing]) -> Result<Vec<Pairing>, Rejection>,
+    mut pairings_at: impl FnMut(&Pose) -> Result<Vec<Pairing>, Rejection>,
 ) -> Result<Option<RegistrationResult>, Rejection> {
-    let mut last = Vec::new();
     let result = solve_pose(start, &stage.params(), cloud.len(), |at| {
-        last = pairings_at(at, &last).map_err(LocalizeError::Rejected)?;
-        Ok::<_, LocalizeError>(correspondences_from_pairings(&last, &cloud.points))
+        let pairings = pairings_at(at).map_err(LocalizeError::Rejected)?;
+        Ok::<_, LocalizeError>(correspondences_from_pairings(&pairings, &cloud.points))
     });
     match result {
         Ok(r) => Ok(Some(r)),
