@@ -31,3 +31,11 @@ pub(super) const SMALL_GICP_LOCALIZE: [f64; 3] = [24.0, 73.0, 0.183];
 pub(super) const ROSBAGS_MCAP_READ: [f64; 2] = [1.59, 0.83];
 /// The script that measured [`ROSBAGS_MCAP_READ`].
 pub(super) const ROSBAGS_MCAP_READ_SCRIPT: &str = "tools/anchors/rosbags_read.py";
+
+/// KISS-ICP 1.3.0 odometry on kitti00_drive's 256 extracted scans (max range 100 m, voxel
+/// 1.0 m, no deskew, 2 threads; 2026-12-03): the odometry loop's wall time (s), aligned
+/// ATE (m), KITTI-style drift (%, deg/100 m) against the drive's reference.
+pub(super) const KISS_ICP_KITTI00_DRIVE: [f64; 4] = [9.3, 0.545, 1.21, 0.504];
+/// The scripts behind [`KISS_ICP_KITTI00_DRIVE`] (the errors by `kitti_drift.py`).
+pub(super) const KISS_ICP_KITTI00_DRIVE_SCRIPT: &str =
+    "tools/anchors/kiss_icp_drive.py + tools/anchors/kitti_drift.py";

@@ -5,6 +5,7 @@
 //! demo`); `data_dir` finds the real data beside the checkout.
 
 mod anchors;
+mod automotive;
 mod bags;
 mod child;
 mod city;
@@ -42,7 +43,10 @@ use anyhow::{Context, bail};
 /// rebuild and bake throughput (`load`), IPC round trips of 1k/10k/100k points and
 /// cov2cov throughput (`ipc`), remote against local localize (`remote`), and localization per scan with its error on the real
 /// sequence balm_os0, with the same scans relocalized with no guess beside it (median,
-/// p99, and its ratio to the tracking step's median). Real data comes from ../shared/data (or $KFMAP_DATA_DIR); without
+/// p99, and its ratio to the tracking step's median), and the automotive drive
+/// kitti00_drive built by `bake --build-poses --deskew azimuth` (wall time, aligned ATE,
+/// KITTI-style drift) beside KISS-ICP on the same scans, once its extract.sh has written
+/// them (about 45 s more). Real data comes from ../shared/data (or $KFMAP_DATA_DIR); without
 /// it, synthetic scans stand in and rows that need it are listed as skipped. About 75 s
 /// on 2 cores; --quick (fewer repetitions, a 40-keyframe generated map) under a
 /// minute, with noisier figures. --json: {"rows": [{name, data, threads, value, unit,

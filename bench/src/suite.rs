@@ -4,6 +4,7 @@
 
 use std::path::Path;
 
+use super::automotive;
 use super::bags;
 use super::cov2cov;
 use super::ipc;
@@ -31,6 +32,7 @@ pub(super) fn run(quick: bool, json_out: bool, dir: &Path) -> anyhow::Result<()>
     remote::table_rows(&mut table, dir)?;
     localization::measure(&mut table, data.as_deref(), dir)?;
     bags::measure(&mut table, data.as_deref(), dir)?;
+    automotive::measure(&mut table, data.as_deref(), dir)?;
     table.finish();
     if json_out {
         println!("{}", serde_json::to_string_pretty(&table.json())?);

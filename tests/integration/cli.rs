@@ -984,7 +984,13 @@ fn bench_table_json_rows_without_data() {
             "{names:?}"
         );
     }
-    // Localization on balm_os0, the parking-garage pose graph, and the bake from a bag
-    // against balm_os0's files.
-    assert_eq!(skipped.len(), 3 + no_namespace as usize, "{skipped:?}");
+    // Localization on balm_os0, the parking-garage pose graph, the bake from a bag
+    // against balm_os0's files, and the automotive drive (its scans extracted).
+    assert_eq!(skipped.len(), 4 + no_namespace as usize, "{skipped:?}");
+    assert!(
+        skipped
+            .iter()
+            .any(|s| s.as_str().unwrap().starts_with("automotive drive: needs")),
+        "{skipped:?}"
+    );
 }

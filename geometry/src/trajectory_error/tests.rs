@@ -35,3 +35,39 @@ fn rigid_alignment_recovers_a_known_transform_of_a_trajectory() {
     assert!(absolute_trajectory_error(&estimate, &truth) < 1e-9);
     assert_eq!(rigid_alignment(&[], &truth), Pose::identity());
 }
+
+#[test]
+fn kitti_drift_of_a_stretched_line_and_a_steady_turn_error() {
+    // Closed forms on a straight 600 m line, a pose every metre.
+    let truth: Vec<Pose> = (0..=600)
+        .map(|i| Pose::translation(i as f64, 0.0, 0.0))
+        .collect();
+    // Every metre estimated as 1.01 m: each segment of L m is 0.01 L off, 1 %.
+    let stretched: Vec<Pose> = (0..=600)
+        .map(|i| Pose::translation(1.01 * i as f64, 0.0, 0.0))
+        .collect();
+    let drift = kitti_drift(&stretched, &truth).unwrap();
+    assert!((drift.translation_percent - 1.0).abs() < 1e-9, "{drift:?}");
+    assert!(drift.rotation_deg_per_100m.abs() < 1e-9);
+    // Segments from every pose with 50-400 m ahead: 551 + 501 + ... + 201.
+    assert_eq!(drift.segments, (1..=8).map(|k| 601 - 50 * k).sum::<usize>());
+    // The heading estimated 0.01 deg too far per metre (positions true): each segment's
+    // rotation error is 0.01 deg per metre, 1 deg/100 m.
+    let turned: Vec<Pose> = (0..=600)
+        .map(|i| {
+            let yaw = (0.01 * i as f64).to_radians();
+            Pose::new(
+                Vector3::new(i as f64, 0.0, 0.0),
+                Vector3::new(0.0, 0.0, yaw),
+            )
+        })
+        .collect();
+    let drift = kitti_drift(&turned, &truth).unwrap();
+    assert!(
+        (drift.rotation_deg_per_100m - 1.0).abs() < 1e-9,
+        "{drift:?}"
+    );
+    // Shorter than the shortest segment: no figure.
+    assert_eq!(kitti_drift(&truth[..50], &truth[..50]), None);
+    assert_eq!(kitti_drift(&truth[..51], &truth[..51]).unwrap().segments, 1);
+}
