@@ -22,13 +22,29 @@ pub const DEFAULT_BAKE_TOML: &str = include_str!("../../config/bake.toml");
 pub struct InputSection {
     /// Layout of headerless `.bin` scans.
     pub bin_layout: BinLayout,
+    /// Every return's elevation raised by this on load, degrees (a spinning sensor's
+    /// vertical-angle calibration error; 0 leaves the scans as they are).
+    pub vertical_angle_offset_deg: f64,
 }
 
 impl Default for InputSection {
     fn default() -> Self {
         Self {
             bin_layout: BinLayout::Xyzi,
+            vertical_angle_offset_deg: 0.0,
         }
+    }
+}
+
+impl InputSection {
+    fn validate(&self) -> Result<(), InvalidOption> {
+        let offset = self.vertical_angle_offset_deg;
+        ensure(
+            offset.is_finite() && offset.abs() <= 5.0,
+            "vertical-angle-offset-deg",
+            offset,
+            "-5 to 5 degrees",
+        )
     }
 }
 
@@ -185,6 +201,7 @@ impl ConfigFile for BakeConfig {
     fn validate(&self) -> Result<(), (&'static str, InvalidOption)> {
         self.filter.validate().map_err(|e| ("filter", e))?;
         self.covariance.validate().map_err(|e| ("covariance", e))?;
+        self.input.validate().map_err(|e| ("input", e))?;
         self.keyframes.validate().map_err(|e| ("keyframes", e))?;
         self.selection.validate().map_err(|e| ("selection", e))?;
         self.covisibility

@@ -45,5 +45,7 @@ pub fn load_raw_scan(path: &Path, config: &BakeConfig) -> Result<PointCloud, Bak
         bin_layout: (!sidecar).then_some(config.input.bin_layout),
         filter: config.filter,
     };
-    Ok(read_cloud(path, &options)?.cloud)
+    let mut cloud = read_cloud(path, &options)?.cloud;
+    cloud.raise_elevation(config.input.vertical_angle_offset_deg);
+    Ok(cloud)
 }

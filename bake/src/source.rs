@@ -283,6 +283,7 @@ impl ScanList {
                 if config.filter.enabled {
                     cloud.remove_invalid(config.filter.min_range);
                 }
+                cloud.raise_elevation(config.input.vertical_angle_offset_deg);
                 Ok(cloud)
             }
         }

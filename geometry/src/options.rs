@@ -65,12 +65,14 @@ pub fn ensure_ratio(option: &'static str, value: f64) -> Result<(), InvalidOptio
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
     /// The file could not be read.
-    #[error("{}: {source}", path.display())]
+    // The OS's words are in the message, not a `source`: printed as a chain, they
+    // would appear twice.
+    #[error("{}: {reason}", path.display())]
     Read {
         /// The file.
         path: PathBuf,
         /// What the OS said.
-        source: std::io::Error,
+        reason: std::io::Error,
     },
     /// Not valid TOML, an unknown key, or a value of the wrong type.
     #[error("{}: {message}", path.display())]
@@ -81,14 +83,14 @@ pub enum ConfigError {
         message: String,
     },
     /// A value outside its allowed range.
-    #[error("{}: [{section}] {source}", path.display())]
+    #[error("{}: [{section}] {reason}", path.display())]
     Invalid {
         /// The file.
         path: PathBuf,
         /// The section holding the key.
         section: &'static str,
         /// Which key, what value, what is allowed.
-        source: InvalidOption,
+        reason: InvalidOption,
     },
 }
 
@@ -108,10 +110,10 @@ pub trait ConfigFile: DeserializeOwned + Default {
         })?;
         config
             .validate()
-            .map_err(|(section, source)| ConfigError::Invalid {
+            .map_err(|(section, reason)| ConfigError::Invalid {
                 path: path.to_path_buf(),
                 section,
-                source,
+                reason,
             })?;
         Ok(config)
     }
@@ -121,9 +123,9 @@ pub trait ConfigFile: DeserializeOwned + Default {
         match path {
             None => Ok(Self::default()),
             Some(path) => {
-                let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+                let text = std::fs::read_to_string(path).map_err(|reason| ConfigError::Read {
                     path: path.to_path_buf(),
-                    source,
+                    reason,
                 })?;
                 Self::from_toml(&text, path)
             }

@@ -55,7 +55,10 @@ use super::source_arg::SourceArgs;
 /// deskews. Without timestamps (a KITTI pose file) a sweep is taken to last one scan
 /// interval. Measured: the simulated street driven raw at 5 Hz, times stripped, ATE
 /// 0.316 m without deskew, 0.149 m with azimuth times (as with the recorded ones); on
-/// KITTI 00 frames 0-5 no change (0.247 m; see docs/DESIGN.md#deskew).
+/// KITTI 00 frames 0-5 no change (0.247 m; see docs/DESIGN.md#deskew). A spinning
+/// sensor whose beams sit off their nominal elevations makes odometry drift in pitch:
+/// bake.toml's [input] vertical-angle-offset-deg raises every return by that angle on
+/// load (KITTI's HDL-64E: 0.205; docs/DESIGN.md#vertical-angle).
 ///
 /// Built poses are then checked scan by scan ([build.check] in bake.toml): each scan is
 /// registered onto the clouds of the 5 scans either side at their built poses; it fits

@@ -1,6 +1,7 @@
 //! The point cloud type: points in one frame plus optional per-point attributes.
 
 mod deskew;
+mod elevation;
 mod filter;
 mod voxel;
 
