@@ -37,7 +37,8 @@ impl Default for InputSection {
 }
 
 impl InputSection {
-    fn validate(&self) -> Result<(), InvalidOption> {
+    /// Checks `vertical-angle-offset-deg`; the error names it.
+    pub fn validate(&self) -> Result<(), InvalidOption> {
         let offset = self.vertical_angle_offset_deg;
         ensure(
             offset.is_finite() && offset.abs() <= 5.0,

@@ -352,32 +352,19 @@ fn read_imu_topic(path: &Path, topic: &str) -> Result<Vec<ImuSample>, GravityErr
     let mut samples: Vec<ImuSample> = Vec::with_capacity(topic.count.min(1 << 24) as usize);
     for (index, message) in bag.messages(&topic)?.enumerate() {
         let message = message?;
-        let imu = decode_imu(&message.data, topic.encoding).map_err(|e| {
-            BagError::message(bag.path(), &topic.name, index, message.log_time_ns, e)
-        })?;
+        let refused = |reason: String| {
+            BagError::message(bag.path(), &topic.name, index, message.log_time_ns, reason)
+        };
+        let imu = decode_imu(&message.data, topic.encoding).map_err(|e| refused(e.to_string()))?;
         let Some(sample) = imu.sample() else {
             let reason = "linear acceleration or angular velocity is not finite (NaN or infinite)";
-            return Err(BagError::message(
-                bag.path(),
-                &topic.name,
-                index,
-                message.log_time_ns,
-                reason,
-            )
-            .into());
+            return Err(refused(reason.into()).into());
         };
         if let Some(last) = samples.last().filter(|last| sample.t < last.t) {
-            let reason = format!(
+            return Err(refused(format!(
                 "header stamp {:.6} s is before the previous message's {:.6} s",
                 sample.t, last.t
-            );
-            return Err(BagError::message(
-                bag.path(),
-                &topic.name,
-                index,
-                message.log_time_ns,
-                reason,
-            )
+            ))
             .into());
         }
         samples.push(sample);

@@ -119,11 +119,8 @@ pub struct Args {
     /// Voxel size applied to each scan before sending, metres (0 sends every point).
     #[arg(long, default_value_t = 0.25)]
     voxel: f64,
-    /// The sensor's vertical-angle offset, degrees (-5 to 5): every return's elevation
-    /// raised by it on load, as bake.toml's [input] vertical-angle-offset-deg did for the
-    /// map (KITTI's HDL-64E: 0.205).
-    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
-    vertical_angle_offset_deg: f64,
+    #[command(flatten)]
+    sensor: super::sensor_arg::SensorArgs,
     /// Largest pairing distance, metres.
     #[arg(long, default_value_t = 1.0)]
     max_pair_dist: f32,
@@ -278,18 +275,6 @@ fn gyro_from(path: &Path, samples: &[ImuSample], rpy: &str) -> anyhow::Result<Gy
         .with_context(|| format!("{}: cannot drive the gyro", path.display()))
 }
 
-/// How this command reads scans: the bake's defaults with the sensor's
-/// vertical-angle offset (`--vertical-angle-offset-deg`), checked as bake.toml checks it.
-pub(super) fn scan_config(vertical_angle_offset_deg: f64) -> anyhow::Result<BakeConfig> {
-    let offset = vertical_angle_offset_deg;
-    if !(offset.is_finite() && offset.abs() <= 5.0) {
-        anyhow::bail!("--vertical-angle-offset-deg must be -5 to 5 degrees, got {offset}");
-    }
-    let mut config = BakeConfig::default();
-    config.input.vertical_angle_offset_deg = offset;
-    Ok(config)
-}
-
 /// A scan file as clients send it: invalid returns dropped, downsampled at `voxel`
 /// metres (0 keeps every point).
 pub(super) fn load_scan(
@@ -368,7 +353,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     hypotheses(&args)
         .validate()
         .map_err(|e| anyhow::anyhow!("--hypothesis-{}: {e}", e.option))?;
-    scan_config(args.vertical_angle_offset_deg)?;
+    let scan_config = args.sensor.scan_config()?;
     let mut dataset = ReplayDataset::read(&args)?;
     let mut client = args.server.connect()?;
     let truth = dataset.truth_in_map_frame(&mut client)?;
@@ -377,6 +362,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let bar = progress_bar(quiet, dataset.scans.len());
     let replayed = replay_scans(
         &args,
+        &scan_config,
         &dataset,
         &mut client,
         &mut tracker,
@@ -582,6 +568,7 @@ struct Replayed {
 /// `--json-lines` and pushing its IMU window to the server's gravity pool.
 fn replay_scans(
     args: &Args,
+    scan_config: &BakeConfig,
     dataset: &ReplayDataset,
     client: &mut Client,
     tracker: &mut Tracker,
@@ -597,13 +584,12 @@ fn replay_scans(
         iterations: 0,
         gravity: None,
     };
-    let config = scan_config(args.vertical_angle_offset_deg)?;
     let period = (args.rate > 0.0).then(|| Duration::from_secs_f64(1.0 / args.rate));
     for k in 0..n {
         let index = dataset.range.start + k;
         let tick = Instant::now();
         let path = dataset.scans.name(k);
-        let cloud = downsample(dataset.scans.load_raw(k, &config)?, &path, args.voxel)?;
+        let cloud = downsample(dataset.scans.load_raw(k, scan_config)?, &path, args.voxel)?;
         let t = dataset.stamps[k];
         let sent = Instant::now();
         let result = tracker.track_cloud(client, &cloud, t);

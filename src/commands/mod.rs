@@ -17,6 +17,7 @@ pub mod query;
 pub mod register;
 pub mod relocalize;
 mod report;
+mod sensor_arg;
 pub mod serve;
 pub mod simulate;
 mod source_arg;

@@ -37,11 +37,8 @@ pub struct Args {
     /// Voxel size applied to each scan before sending, metres (0 sends every point).
     #[arg(long, default_value_t = 0.25)]
     voxel: f64,
-    /// The sensor's vertical-angle offset, degrees (-5 to 5): every return's elevation
-    /// raised by it on load, as bake.toml's [input] vertical-angle-offset-deg did for the
-    /// map (KITTI's HDL-64E: 0.205).
-    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
-    vertical_angle_offset_deg: f64,
+    #[command(flatten)]
+    sensor: super::sensor_arg::SensorArgs,
     /// Largest pairing distance of the verifying registrations, metres.
     #[arg(long, default_value_t = 1.0)]
     max_pair_dist: f32,
@@ -76,7 +73,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             args.voxel
         );
     }
-    let config = super::localize::scan_config(args.vertical_angle_offset_deg)?;
+    let config = args.sensor.scan_config()?;
     let mut client = args.server.connect()?;
     for path in &args.scans {
         let cloud = super::localize::load_scan(path, &config, args.voxel)?;

@@ -147,7 +147,7 @@ fn bad_input_exits_2_with_a_message_naming_the_problem() {
         (localize_with(&["--ok-pinned", "3"]), "--ok-pinned"),
         (
             localize_with(&["--vertical-angle-offset-deg", "-9"]),
-            "--vertical-angle-offset-deg must be -5 to 5",
+            "--vertical-angle-offset-deg: option `vertical-angle-offset-deg` = -9 is invalid",
         ),
         (
             localize_with(&["--confirm-after-unpinned", "5000"]),
