@@ -9,7 +9,9 @@ use std::collections::{HashMap, VecDeque};
 use serde::{Deserialize, Serialize};
 
 use kfmap_geometry::cloud::PointCloud;
-use kfmap_geometry::geometry::{Pose, to_point, transform_point};
+use kfmap_geometry::geometry::{
+    PackedSym3, Pose, pack_sym3, to_point, transform_point, unpack_sym3,
+};
 use kfmap_geometry::imu::ImuSample;
 use kfmap_geometry::motion::{
     AdaptiveThreshold, AdaptiveThresholdParams, DeskewMode, Gyro, GyroParams, PosePredictor,
@@ -174,8 +176,9 @@ pub struct Odometry {
     params: OdometryParams,
     motion: PosePredictor,
     threshold: AdaptiveThreshold,
-    /// Local-map keyframes: pose and downsampled points (odometry frame).
-    keyframes: VecDeque<(Pose, Vec<[f32; 3]>)>,
+    /// Local-map keyframes: pose, downsampled points and their covariances (odometry
+    /// frame).
+    keyframes: VecDeque<LocalKeyframe>,
     local_map: Option<PreparedCloud>,
     /// Voxel edge of the finer sample each step also returns (`None`: none).
     fine_voxel: Option<f64>,
@@ -367,15 +370,11 @@ impl Odometry {
         prepared: &PreparedCloud,
     ) -> Result<(), RegistrationError> {
         let decider = &self.params.local_map_decider;
-        if !decider.should_create(self.keyframes.iter().map(|(p, _)| p), pose) {
+        if !decider.should_create(self.keyframes.iter().map(|k| &k.pose), pose) {
             return Ok(());
         }
-        let moved: Vec<[f32; 3]> = prepared
-            .points
-            .iter()
-            .map(|p| to_point(&transform_point(pose, p)))
-            .collect();
-        self.keyframes.push_back((*pose, moved));
+        self.keyframes
+            .push_back(LocalKeyframe::moved(pose, prepared));
         while self.keyframes.len() > self.params.local_map_keyframes {
             self.keyframes.pop_front();
         }
@@ -385,22 +384,49 @@ impl Odometry {
         let cap = self.params.local_map_voxel_points;
         let mut counts: HashMap<[i32; 3], usize> = HashMap::new();
         let mut merged = Vec::new();
-        for (_, points) in self.keyframes.iter().rev() {
-            for p in points {
+        let mut covariances = Vec::new();
+        for keyframe in self.keyframes.iter().rev() {
+            for (p, c) in keyframe.points.iter().zip(&keyframe.covariances) {
                 let key = p.map(|c| (c as f64 / cell).floor() as i32);
                 let count = counts.entry(key).or_insert(0);
                 if *count < cap {
                     *count += 1;
                     merged.push(*p);
+                    covariances.push(*c);
                 }
             }
         }
-        self.local_map = Some(PreparedCloud::from_points(
-            merged,
-            &self.params.registration,
-            "local map",
-        )?);
+        self.local_map = Some(PreparedCloud::from_parts(merged, covariances, "local map")?);
         Ok(())
+    }
+}
+
+/// A local-map keyframe in the odometry frame.
+struct LocalKeyframe {
+    pose: Pose,
+    points: Vec<[f32; 3]>,
+    /// Each point's covariance as estimated in its scan, rotated with it: estimated
+    /// once per scan instead of again over the merged map at every rebuild.
+    covariances: Vec<PackedSym3>,
+}
+
+impl LocalKeyframe {
+    /// `prepared` (a scan registered at `pose`) moved into the odometry frame.
+    fn moved(pose: &Pose, prepared: &PreparedCloud) -> Self {
+        let r = pose.rotation.to_rotation_matrix().into_inner();
+        Self {
+            pose: *pose,
+            points: prepared
+                .points
+                .iter()
+                .map(|p| to_point(&transform_point(pose, p)))
+                .collect(),
+            covariances: prepared
+                .covariances
+                .iter()
+                .map(|c| pack_sym3(&(r * unpack_sym3(c) * r.transpose())))
+                .collect(),
+        }
     }
 }
 

@@ -72,9 +72,14 @@ pub struct RefineParams {
     pub prior_sigma: f64,
     /// A scan with fewer planes than this is reported weak.
     pub min_planes_per_scan: usize,
-    /// If any scan would move further than this, metres, the refinement is refused and
-    /// the poses are kept (a wrong association, not a correction).
+    /// If any scan would move further than this, metres, plus `max_move_per_100m` per
+    /// 100 m of path from scan 0, the refinement is refused and the poses are kept (a
+    /// wrong association, not a correction).
     pub max_move: f64,
+    /// The move allowed grows by this many metres per 100 m of path from scan 0 (the
+    /// gauge): odometry drift accumulates along an open drive, so correcting it moves far
+    /// scans further than near ones.
+    pub max_move_per_100m: f64,
 }
 
 impl Default for RefineParams {
@@ -101,6 +106,7 @@ impl Default for RefineParams {
             prior_sigma: 0.05,
             min_planes_per_scan: 20,
             max_move: 0.5,
+            max_move_per_100m: 0.5,
         }
     }
 }
@@ -183,7 +189,18 @@ impl RefineParams {
             self.prior_sigma,
             "a finite distance >= 0 m (0: no priors)",
         )?;
-        ensure_distance("max-move", self.max_move)
+        ensure_distance("max-move", self.max_move)?;
+        ensure(
+            self.max_move_per_100m.is_finite() && self.max_move_per_100m >= 0.0,
+            "max-move-per-100m",
+            self.max_move_per_100m,
+            "a finite distance >= 0 m (0: max-move everywhere)",
+        )
+    }
+
+    /// The move allowed to a scan `path` metres along the input poses from scan 0.
+    fn allowed_move(&self, path: f64) -> f64 {
+        self.max_move + self.max_move_per_100m * path / 100.0
     }
 
     /// The information of an odometry prior (`None`: priors are off).
@@ -225,6 +242,9 @@ pub struct RefineReport {
     pub cost_last: (f64, f64),
     /// Largest distance a scan moved, metres.
     pub largest_move: f64,
+    /// The scan that used the largest share of its allowed move (`max-move` plus
+    /// `max-move-per-100m` of its path from scan 0), its move and its allowance, metres.
+    pub tightest_move: Option<TightestMove>,
     /// Scans moved more than 0.1 m.
     pub moved_scans: Vec<usize>,
     /// Scans in fewer than `min-planes-per-scan` planes (held by their priors).
@@ -237,24 +257,57 @@ pub struct RefineReport {
     pub seconds: f64,
 }
 
+/// The scan whose move came nearest its allowance.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct TightestMove {
+    /// The scan's index.
+    pub scan: usize,
+    /// How far it moved, metres.
+    pub moved: f64,
+    /// How far it could move: `max-move` plus `max-move-per-100m` of its path from scan 0.
+    pub allowed: f64,
+}
+
+/// The scan nearest its move allowance, for `moves` of scans along `input` poses.
+fn tightest_move(input: &[Pose], moves: &[f64], params: &RefineParams) -> Option<TightestMove> {
+    let mut path = 0.0;
+    let mut tightest: Option<TightestMove> = None;
+    for (scan, &moved) in moves.iter().enumerate() {
+        if scan > 0 {
+            path += (input[scan].translation.vector - input[scan - 1].translation.vector).norm();
+        }
+        let candidate = TightestMove {
+            scan,
+            moved,
+            allowed: params.allowed_move(path),
+        };
+        if tightest.is_none_or(|t| moved / candidate.allowed > t.moved / t.allowed) {
+            tightest = Some(candidate);
+        }
+    }
+    tightest
+}
+
 /// Why a refinement that ran as `report` says is refused, if it is: the solve could not
 /// run, nothing to refine, a scan moved too far, or the map got less consistent.
 fn verdict(
     report: &RefineReport,
     scans: usize,
     unsolvable: Option<&crate::sparse_blocks::BlockError>,
-    max_move: f64,
+    params: &RefineParams,
 ) -> Option<String> {
+    let too_far = report.tightest_move.filter(|t| t.moved > t.allowed);
     if let Some(e) = unsolvable {
         Some(format!("the plane system could not be solved: {e}"))
     } else if scans < 2 {
         Some("fewer than two scans: nothing to refine".into())
     } else if report.outer_iterations == 0 {
         Some("no planes seen from two scans".into())
-    } else if report.largest_move > max_move {
+    } else if let Some(t) = too_far {
         Some(format!(
-            "a scan would move {:.2} m (max-move {max_move} m)",
-            report.largest_move
+            "scan {} would move {:.2} m, more than its {:.2} m (max-move {} m plus {} m per \
+             100 m of path from scan 0)",
+            t.scan, t.moved, t.allowed, params.max_move, params.max_move_per_100m
         ))
     } else if report.consistency_after.mean_spread > report.consistency_before.mean_spread {
         Some("the map got less consistent".into())
@@ -354,9 +407,10 @@ pub fn refine_poses(
         .map(|(a, b)| (a.translation.vector - b.translation.vector).norm())
         .collect();
     report.largest_move = moves.iter().copied().fold(0.0, f64::max);
+    report.tightest_move = tightest_move(&input, &moves, params);
     report.moved_scans = (0..moves.len()).filter(|&i| moves[i] > 0.1).collect();
     report.consistency_after = consistency(&clouds, &poses, measured);
-    report.refused = verdict(&report, scans.len(), unsolvable.as_ref(), params.max_move);
+    report.refused = verdict(&report, scans.len(), unsolvable.as_ref(), params);
     if !report.accepted() {
         poses = input;
         report.consistency_after = report.consistency_before;

@@ -328,15 +328,75 @@ fn an_unsolvable_system_is_refused_not_accepted() {
         outer_iterations: 1,
         ..RefineReport::default()
     };
-    assert_eq!(verdict(&ran, 12, None, 0.5), None);
+    let params = RefineParams::default();
+    assert_eq!(verdict(&ran, 12, None, &params), None);
     let setup = BlockError::Setup("ordering: OutOfMemory".into());
-    let refused = verdict(&ran, 12, Some(&setup), 0.5).expect("refused");
+    let refused = verdict(&ran, 12, Some(&setup), &params).expect("refused");
     assert!(refused.contains("could not be solved") && refused.contains("OutOfMemory"));
     let report = RefineReport {
         refused: Some(refused),
         ..ran
     };
     assert!(!report.accepted());
+}
+
+/// The move allowed grows with the path from scan 0: on poses 10 m apart along a line,
+/// scan i may move 0.5 m + 0.5 m * 10 i / 100 (closed form), and the scan over its
+/// allowance is the one named, not the one that moved furthest.
+#[test]
+fn the_move_allowed_grows_with_the_path_from_scan_0() {
+    let params = RefineParams::default();
+    let input: Vec<Pose> = (0..21)
+        .map(|i| {
+            Pose::from_parts(
+                Vector3::new(10.0 * i as f64, 0.0, 0.0).into(),
+                Default::default(),
+            )
+        })
+        .collect();
+    let allowed = |i: usize| 0.5 + 0.5 * 10.0 * i as f64 / 100.0;
+    // Far scans moving 1.4 m (allowed 1.5 m at 200 m) and one near scan 0.6 m (allowed 0.55).
+    let mut moves = vec![0.0; 21];
+    moves[20] = 1.4;
+    moves[1] = 0.6;
+    let t = tightest_move(&input, &moves, &params).expect("scans");
+    assert_eq!((t.scan, t.moved), (1, 0.6));
+    assert!((t.allowed - allowed(1)).abs() < 1e-12, "{t:?}");
+    let ran = RefineReport {
+        outer_iterations: 1,
+        tightest_move: Some(t),
+        ..RefineReport::default()
+    };
+    let refused = verdict(&ran, 21, None, &params).expect("over its allowance");
+    assert!(refused.contains("scan 1 would move 0.60 m"), "{refused}");
+    // Within every allowance: accepted, and the tightest is the far scan (1.4 / 1.5).
+    moves[1] = 0.2;
+    let t = tightest_move(&input, &moves, &params).expect("scans");
+    assert_eq!(t.scan, 20);
+    assert!((t.allowed - allowed(20)).abs() < 1e-12, "{t:?}");
+    let ran = RefineReport {
+        tightest_move: Some(t),
+        ..ran
+    };
+    assert_eq!(verdict(&ran, 21, None, &params), None);
+    // 0 per 100 m is the old flat limit: 1.4 m is refused.
+    let flat = RefineParams {
+        max_move_per_100m: 0.0,
+        ..params
+    };
+    let t = tightest_move(&input, &moves, &flat).expect("scans");
+    assert!(
+        verdict(
+            &RefineReport {
+                tightest_move: Some(t),
+                ..ran
+            },
+            21,
+            None,
+            &flat
+        )
+        .is_some()
+    );
 }
 
 /// One scan: nothing to refine, said so, and its pose kept.
