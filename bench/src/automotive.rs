@@ -10,7 +10,7 @@ use std::time::Instant;
 
 use kfmap_bake::config::BakeConfig;
 use kfmap_bake::dataset::find_scans;
-use kfmap_bake::pipeline::{BakeInput, BakeOutput, bake};
+use kfmap_bake::pipeline::{BakeInput, BakeOutput, bake, scan_check_sidecar};
 use kfmap_geometry::io::read_trajectory;
 use kfmap_geometry::motion::DeskewMode;
 use kfmap_geometry::trajectory_error::{absolute_trajectory_error, kitti_drift};
@@ -59,6 +59,7 @@ pub(super) fn measure(table: &mut Table, data: Option<&Path>, dir: &Path) -> any
     let _ = std::fs::remove_file(&map);
     let estimate = read_trajectory(&built).map(|t| t.poses);
     let _ = std::fs::remove_file(&built);
+    let _ = std::fs::remove_file(scan_check_sidecar(&built));
     baked?;
     let estimate = estimate?;
     let reference = read_trajectory(&drive.join("poses.txt"))?.poses;
