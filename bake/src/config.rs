@@ -2,6 +2,7 @@
 //! holds, validated section by section.
 
 use kfmap_geometry::cloud::FilterOptions;
+use kfmap_geometry::cloud::ensure_vertical_angle_offset;
 use kfmap_geometry::cov::CovOptions;
 use kfmap_geometry::gravity::GravityParams;
 use kfmap_geometry::io::BinLayout;
@@ -39,13 +40,7 @@ impl Default for InputSection {
 impl InputSection {
     /// Checks `vertical-angle-offset-deg`; the error names it.
     pub fn validate(&self) -> Result<(), InvalidOption> {
-        let offset = self.vertical_angle_offset_deg;
-        ensure(
-            offset.is_finite() && offset.abs() <= 5.0,
-            "vertical-angle-offset-deg",
-            offset,
-            "-5 to 5 degrees",
-        )
+        ensure_vertical_angle_offset(self.vertical_angle_offset_deg)
     }
 }
 

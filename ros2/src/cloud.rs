@@ -6,6 +6,7 @@
 use kfmap_bag::msg::{EncodeError, PointCloud2, PointField, Stamp, encode_point_cloud2};
 use kfmap_geometry::cloud::{FilterOptions, PointCloud};
 
+use crate::config::ScansSection;
 use crate::raw::CdrSample;
 
 /// `sensor_msgs/PointField` FLOAT32.
@@ -28,8 +29,9 @@ pub enum BadCloud {
 
 /// The points of `msg` as `kfmap localize` reads a bag's cloud: x y z, intensity and
 /// per-point time (seconds after the header stamp) when fields give them, invalid
-/// returns dropped, then thinned to `voxel` metres (0: every point).
-pub fn scan_of(msg: &PointCloud2<'_>, voxel: f64) -> Result<PointCloud, BadCloud> {
+/// returns dropped, every return raised by `[scans] vertical-angle-offset-deg`, then
+/// thinned to `[scans] voxel` metres (0: every point).
+pub fn scan_of(msg: &PointCloud2<'_>, scans: &ScansSection) -> Result<PointCloud, BadCloud> {
     let mut cloud = msg
         .to_cloud()
         .map_err(|e| BadCloud::Layout(e.to_string()))?;
@@ -38,6 +40,8 @@ pub fn scan_of(msg: &PointCloud2<'_>, voxel: f64) -> Result<PointCloud, BadCloud
     if cloud.is_empty() {
         return Err(BadCloud::NoValidPoint(received));
     }
+    cloud.raise_elevation(scans.vertical_angle_offset_deg);
+    let voxel = scans.voxel;
     if voxel > 0.0 {
         cloud = cloud
             .voxel_downsample(voxel)
@@ -98,6 +102,53 @@ mod tests {
 
     const STAMP: Stamp = Stamp { sec: 5, nanosec: 7 };
 
+    /// `[scans]` that keeps every point as received.
+    fn every_point() -> ScansSection {
+        ScansSection {
+            voxel: 0.0,
+            ..ScansSection::default()
+        }
+    }
+
+    /// `[scans] vertical-angle-offset-deg` raises every return as bake.toml's does: the
+    /// oracle is each point rebuilt from its range, azimuth and the raised elevation.
+    #[test]
+    fn the_vertical_angle_offset_raises_every_return() {
+        let spherical = |range: f64, azimuth: f64, elevation: f64| {
+            let (a, e) = (azimuth.to_radians(), elevation.to_radians());
+            [
+                range * e.cos() * a.cos(),
+                range * e.cos() * a.sin(),
+                range * e.sin(),
+            ]
+        };
+        let rays = [
+            (12.0, 30.0, -10.0),
+            (40.0, -120.0, 1.5),
+            (7.0, 175.0, -24.0),
+        ];
+        let points: Vec<[f32; 3]> = rays
+            .iter()
+            .map(|&(r, a, e)| spherical(r, a, e).map(|v| v as f32))
+            .collect();
+        let sample = xyz_sample(STAMP, "lidar", &points).unwrap();
+        let msg = decode_point_cloud2(&sample.0, Encoding::Cdr).unwrap();
+        let scans = ScansSection {
+            vertical_angle_offset_deg: 0.205,
+            ..every_point()
+        };
+        let raised = scan_of(&msg, &scans).unwrap();
+        for (p, &(r, a, e)) in raised.points.iter().zip(&rays) {
+            let want = spherical(r, a, e + 0.205);
+            for k in 0..3 {
+                assert!(
+                    (f64::from(p[k]) - want[k]).abs() < 1e-5 * r,
+                    "{p:?} vs {want:?}"
+                );
+            }
+        }
+    }
+
     #[test]
     fn a_written_cloud_reads_back_point_for_point() {
         let points: Vec<[f32; 3]> = (0..50)
@@ -112,7 +163,7 @@ mod tests {
         let sample = xyz_sample(STAMP, "map", &points).unwrap();
         let msg = decode_point_cloud2(&sample.0, Encoding::Cdr).unwrap();
         assert_eq!((msg.stamp, msg.frame_id.as_str()), (STAMP, "map"));
-        let back = scan_of(&msg, 0.0).unwrap();
+        let back = scan_of(&msg, &every_point()).unwrap();
         assert_eq!(back.points, points);
         assert!(back.time.is_none());
     }
@@ -123,23 +174,31 @@ mod tests {
         let good = xyz_layout(STAMP, "lidar", &data);
         let mut no_x = good.clone();
         no_x.fields.retain(|f| f.name != "x");
-        assert!(matches!(scan_of(&no_x, 0.0), Err(BadCloud::Layout(m)) if m.contains('x')));
+        assert!(
+            matches!(scan_of(&no_x, &every_point()), Err(BadCloud::Layout(m)) if m.contains('x'))
+        );
         let mut short = good.clone();
         short.data = &data[..13];
-        assert!(matches!(scan_of(&short, 0.0), Err(BadCloud::Layout(_))));
+        assert!(matches!(
+            scan_of(&short, &every_point()),
+            Err(BadCloud::Layout(_))
+        ));
         assert_eq!(
-            scan_of(&xyz_layout(STAMP, "lidar", &[]), 0.0),
+            scan_of(&xyz_layout(STAMP, "lidar", &[]), &every_point()),
             Err(BadCloud::NoValidPoint(0))
         );
         let nan = xyz_bytes(&[[f32::NAN, 0.0, 1.0], [0.0, 0.0, 0.0]]);
         assert_eq!(
-            scan_of(&xyz_layout(STAMP, "lidar", &nan), 0.0),
+            scan_of(&xyz_layout(STAMP, "lidar", &nan), &every_point()),
             Err(BadCloud::NoValidPoint(2))
         );
         let mut huge = good;
         huge.width = u32::MAX;
         huge.height = u32::MAX;
-        assert!(matches!(scan_of(&huge, 0.0), Err(BadCloud::Layout(_))));
+        assert!(matches!(
+            scan_of(&huge, &every_point()),
+            Err(BadCloud::Layout(_))
+        ));
         // A stamp past ROS 2's int32 seconds is not written.
         let late = Stamp {
             sec: i64::from(i32::MAX) + 1,

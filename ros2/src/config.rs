@@ -2,6 +2,7 @@
 //! shipped file, `config/ros2.toml`).
 
 use kfmap_client::{HypothesisParams, TrustParams};
+use kfmap_geometry::cloud::ensure_vertical_angle_offset;
 use kfmap_geometry::options::{ConfigFile, InvalidOption, ensure};
 use serde::{Deserialize, Serialize};
 
@@ -157,6 +158,7 @@ impl Default for QosSection {
 pub struct ScansSection {
     pub voxel: f64,
     pub deskew: bool,
+    pub vertical_angle_offset_deg: f64,
 }
 
 impl Default for ScansSection {
@@ -164,6 +166,7 @@ impl Default for ScansSection {
         Self {
             voxel: 0.25,
             deskew: true,
+            vertical_angle_offset_deg: 0.0,
         }
     }
 }
@@ -330,6 +333,7 @@ impl ConfigFile for Ros2Config {
             self.scans.voxel,
             "0 (every point) to 10 m",
         )
+        .and_then(|()| ensure_vertical_angle_offset(self.scans.vertical_angle_offset_deg))
         .map_err(|e| ("scans", e))?;
         let i = &self.imu;
         ensure(
@@ -386,6 +390,10 @@ mod tests {
             ("[frames]\nsensor-mounting = \"1 2 3\"", "sensor-mounting"),
             ("[qos]\npoints-depth = 0", "points-depth"),
             ("[scans]\nvoxel = -1.0", "voxel"),
+            (
+                "[scans]\nvertical-angle-offset-deg = 9.0",
+                "vertical-angle-offset-deg",
+            ),
             ("[map-cloud]\nvoxel = 0.01", "voxel"),
             ("[server]\nmode = \"fast\"", "mode"),
             ("[topics]\nlidar = \"/x\"", "lidar"),

@@ -286,7 +286,7 @@ impl Localizer<'_> {
         let stamp = msg.stamp;
         let t = stamp.seconds();
         let queued = arrived.elapsed();
-        let scan = match scan_of(msg, self.config.scans.voxel) {
+        let scan = match scan_of(msg, &self.config.scans) {
             Ok(scan) => scan,
             Err(e) => {
                 self.summary.bad += 1;

@@ -25,7 +25,7 @@ use std::path::{Path, PathBuf};
 
 use kfmap_bake::config::BakeConfig;
 use kfmap_bake::mapping::{BuildParams, GlobalError, build_trajectory};
-use kfmap_bake::pipeline::{BakeInput, BakeOutput, bake};
+use kfmap_bake::pipeline::{BakeInput, BakeOutput, MappingSummary, bake};
 use kfmap_geometry::geometry::Pose;
 use kfmap_geometry::io::{Trajectory, format_tum, read_trajectory};
 use kfmap_geometry::motion::{DeskewMode, SpinDirection, SweepParams};
@@ -101,6 +101,17 @@ fn kitti_subset(data: &Path, frames: &[usize], name: &str) -> (PathBuf, Vec<Pose
     (dir, picked)
 }
 
+/// `kfmap bake --dataset DATASET --build-poses --out MAP` with `config` (the function the
+/// CLI calls): the built poses and what the mapping reported.
+fn build_poses(dataset: &Path, config: &BakeConfig, map: &Path) -> MappingSummary {
+    let input = BakeInput {
+        build_poses: true,
+        ..BakeInput::dataset(dataset)
+    };
+    let report = bake(&input, config, &BakeOutput::map(map), |_| {}).unwrap();
+    report.mapping.expect("poses built")
+}
+
 /// `kfmap bake --dataset DIR --build-poses` with the default configuration (deskew
 /// `auto`, or `deskew`): the built poses' aligned ATE against the frames' truth.
 fn bake_kitti(frames: &[usize], name: &str, deskew: DeskewMode) -> Option<f64> {
@@ -108,18 +119,7 @@ fn bake_kitti(frames: &[usize], name: &str, deskew: DeskewMode) -> Option<f64> {
     let (dir, truth) = kitti_subset(&data, frames, name);
     let mut config = BakeConfig::default();
     config.build.odometry.deskew = deskew;
-    let input = BakeInput {
-        build_poses: true,
-        ..BakeInput::dataset(&dir)
-    };
-    let report = bake(
-        &input,
-        &config,
-        &BakeOutput::map(dir.join("map.kfmap")),
-        |_| {},
-    )
-    .unwrap();
-    let mapping = report.mapping.expect("poses built");
+    let mapping = build_poses(&dir, &config, &dir.join("map.kfmap"));
     let ate = aligned_ate(&mapping.poses, &truth);
     println!(
         "KITTI 00 frames {frames:?}, deskew {deskew} ({}): aligned ATE {ate:.4} m",
@@ -247,19 +247,9 @@ fn street_at_15_mps_built_from_raw_sweeps() {
         ..SimConfig::default()
     };
     write_dataset(config, &dir, false, &|_, _| {}).unwrap();
-    let input = BakeInput {
-        build_poses: true,
-        ..BakeInput::dataset(&dir)
-    };
-    let report = bake(
-        &input,
-        &BakeConfig::default(),
-        &BakeOutput::map(dir.join("map.kfmap")),
-        |_| {},
-    );
+    let mapping = build_poses(&dir, &BakeConfig::default(), &dir.join("map.kfmap"));
     let truth = read_trajectory(&dir.join("poses_gt.txt")).unwrap().poses;
     let _ = std::fs::remove_dir_all(&dir);
-    let mapping = report.unwrap().mapping.expect("poses built");
     let ate = aligned_ate(&mapping.poses, &truth);
     let worst = worst_aligned_error(&mapping.poses, &truth);
     let drift = kfmap_geometry::trajectory_error::kitti_drift(&mapping.poses, &truth).unwrap();
@@ -307,18 +297,9 @@ fn kitti00_drive_built_from_raw_scans_beats_kiss_icp() {
         config.build.refine.enabled = refine;
         let dir = std::env::temp_dir().join(format!("kfmap-drive-{}-{refine}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
-        let input = BakeInput {
-            build_poses: true,
-            ..BakeInput::dataset(&drive)
-        };
-        let report = bake(
-            &input,
-            &config,
-            &BakeOutput::map(dir.join("map.kfmap")),
-            |_| {},
-        );
+        let mapping = build_poses(&drive, &config, &dir.join("map.kfmap"));
         let _ = std::fs::remove_dir_all(&dir);
-        report.unwrap().mapping.expect("poses built")
+        mapping
     };
     let refined = build(true);
     let graph = build(false);

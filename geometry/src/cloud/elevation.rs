@@ -5,6 +5,18 @@
 //! 0.205 deg, the correction KISS-ICP applies to KITTI scans).
 
 use super::PointCloud;
+use crate::options::{InvalidOption, ensure};
+
+/// Checks a vertical-angle offset (degrees) as every configuration that takes one does:
+/// finite and within 5 degrees either way; the error names `vertical-angle-offset-deg`.
+pub fn ensure_vertical_angle_offset(offset_deg: f64) -> Result<(), InvalidOption> {
+    ensure(
+        offset_deg.is_finite() && offset_deg.abs() <= 5.0,
+        "vertical-angle-offset-deg",
+        offset_deg,
+        "-5 to 5 degrees",
+    )
+}
 
 impl PointCloud {
     /// Raises every point's elevation (sensor frame, z up) by `offset_deg` about the

@@ -6,6 +6,7 @@ mod filter;
 mod voxel;
 
 pub use deskew::{DeskewError, DeskewOutcome, Twist, deskew};
+pub use elevation::ensure_vertical_angle_offset;
 pub use filter::{FilterOptions, FilterReport};
 pub use voxel::Voxelized;
 pub use voxel::{grid_position, unit_or_zero, voxel_groups};
