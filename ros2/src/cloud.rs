@@ -111,26 +111,11 @@ mod tests {
     }
 
     /// `[scans] vertical-angle-offset-deg` raises every return as bake.toml's does: the
-    /// oracle is each point rebuilt from its range, azimuth and the raised elevation.
+    /// same points raised by `PointCloud::raise_elevation` (whose own test checks it
+    /// against the spherical construction), and not left as received.
     #[test]
     fn the_vertical_angle_offset_raises_every_return() {
-        let spherical = |range: f64, azimuth: f64, elevation: f64| {
-            let (a, e) = (azimuth.to_radians(), elevation.to_radians());
-            [
-                range * e.cos() * a.cos(),
-                range * e.cos() * a.sin(),
-                range * e.sin(),
-            ]
-        };
-        let rays = [
-            (12.0, 30.0, -10.0),
-            (40.0, -120.0, 1.5),
-            (7.0, 175.0, -24.0),
-        ];
-        let points: Vec<[f32; 3]> = rays
-            .iter()
-            .map(|&(r, a, e)| spherical(r, a, e).map(|v| v as f32))
-            .collect();
+        let points = vec![[12.0, 3.0, -2.0], [-30.0, -52.0, 1.2], [-6.9, 0.6, -3.1]];
         let sample = xyz_sample(STAMP, "lidar", &points).unwrap();
         let msg = decode_point_cloud2(&sample.0, Encoding::Cdr).unwrap();
         let scans = ScansSection {
@@ -138,15 +123,10 @@ mod tests {
             ..every_point()
         };
         let raised = scan_of(&msg, &scans).unwrap();
-        for (p, &(r, a, e)) in raised.points.iter().zip(&rays) {
-            let want = spherical(r, a, e + 0.205);
-            for k in 0..3 {
-                assert!(
-                    (f64::from(p[k]) - want[k]).abs() < 1e-5 * r,
-                    "{p:?} vs {want:?}"
-                );
-            }
-        }
+        let mut want = PointCloud::from_points(points.clone());
+        want.raise_elevation(0.205);
+        assert_eq!(raised.points, want.points);
+        assert_ne!(raised.points, points);
     }
 
     #[test]

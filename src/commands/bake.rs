@@ -719,6 +719,13 @@ fn print_refine(r: &RefineReport, m: &MappingSummary) {
         ),
         Some(why) => println!("  refinement refused, poses kept: {why}"),
     }
+    if let Some(t) = &r.tightest_move {
+        println!(
+            "  nearest its move allowance: scan {}, {:.3} of {:.3} m (max-move plus \
+             max-move-per-100m of its path from scan 0)",
+            t.scan, t.moved, t.allowed
+        );
+    }
     if let (Some(before), Some(after)) = (m.ate_scans_before_refine, m.ate_scans) {
         println!("  ATE of every scan before / after the refinement: {before:.3} / {after:.3} m");
     }

@@ -102,14 +102,18 @@ fn kitti_subset(data: &Path, frames: &[usize], name: &str) -> (PathBuf, Vec<Pose
 }
 
 /// `kfmap bake --dataset DATASET --build-poses --out MAP` with `config` (the function the
-/// CLI calls): the built poses and what the mapping reported.
-fn build_poses(dataset: &Path, config: &BakeConfig, map: &Path) -> MappingSummary {
+/// CLI calls): the built poses and what the mapping reported. `scratch` is removed
+/// before a failed bake fails the test.
+fn build_poses(dataset: &Path, config: &BakeConfig, map: &Path, scratch: &Path) -> MappingSummary {
     let input = BakeInput {
         build_poses: true,
         ..BakeInput::dataset(dataset)
     };
-    let report = bake(&input, config, &BakeOutput::map(map), |_| {}).unwrap();
-    report.mapping.expect("poses built")
+    let report = bake(&input, config, &BakeOutput::map(map), |_| {});
+    if report.is_err() {
+        let _ = std::fs::remove_dir_all(scratch);
+    }
+    report.unwrap().mapping.expect("poses built")
 }
 
 /// `kfmap bake --dataset DIR --build-poses` with the default configuration (deskew
@@ -119,7 +123,7 @@ fn bake_kitti(frames: &[usize], name: &str, deskew: DeskewMode) -> Option<f64> {
     let (dir, truth) = kitti_subset(&data, frames, name);
     let mut config = BakeConfig::default();
     config.build.odometry.deskew = deskew;
-    let mapping = build_poses(&dir, &config, &dir.join("map.kfmap"));
+    let mapping = build_poses(&dir, &config, &dir.join("map.kfmap"), &dir);
     let ate = aligned_ate(&mapping.poses, &truth);
     println!(
         "KITTI 00 frames {frames:?}, deskew {deskew} ({}): aligned ATE {ate:.4} m",
@@ -247,7 +251,7 @@ fn street_at_15_mps_built_from_raw_sweeps() {
         ..SimConfig::default()
     };
     write_dataset(config, &dir, false, &|_, _| {}).unwrap();
-    let mapping = build_poses(&dir, &BakeConfig::default(), &dir.join("map.kfmap"));
+    let mapping = build_poses(&dir, &BakeConfig::default(), &dir.join("map.kfmap"), &dir);
     let truth = read_trajectory(&dir.join("poses_gt.txt")).unwrap().poses;
     let _ = std::fs::remove_dir_all(&dir);
     let ate = aligned_ate(&mapping.poses, &truth);
@@ -297,7 +301,7 @@ fn kitti00_drive_built_from_raw_scans_beats_kiss_icp() {
         config.build.refine.enabled = refine;
         let dir = std::env::temp_dir().join(format!("kfmap-drive-{}-{refine}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
-        let mapping = build_poses(&drive, &config, &dir.join("map.kfmap"));
+        let mapping = build_poses(&drive, &config, &dir.join("map.kfmap"), &dir);
         let _ = std::fs::remove_dir_all(&dir);
         mapping
     };
