@@ -439,6 +439,22 @@ pub fn settle_deskew(config: &BakeConfig, scans: &ScanList) -> BakeConfig {
     settled
 }
 
+/// Reads and filters scan `i` of `scans`; a scan without per-point times gets them from
+/// its azimuths ([build.odometry] sweep) when `[build.odometry] deskew` is `azimuth`
+/// (after [`settle_deskew`], also `auto` on raw sweeps).
+pub fn load_timed(
+    scans: &ScanList,
+    i: usize,
+    config: &BakeConfig,
+) -> Result<PointCloud, BakeError> {
+    let mut raw = scans.load_raw(i, config)?;
+    let odometry = &config.build.odometry;
+    if odometry.deskew == DeskewMode::Azimuth {
+        odometry.sweep.time_scan(&mut raw);
+    }
+    Ok(raw)
+}
+
 /// Reads and filters scan `i` of `scans` and deskews it by `twist` as `[build.odometry]
 /// deskew` says (azimuth times first for raw sweeps without them).
 fn timed_and_deskewed(
@@ -447,11 +463,8 @@ fn timed_and_deskewed(
     config: &BakeConfig,
     twist: Option<Twist>,
 ) -> Result<PointCloud, BakeError> {
-    let mut raw = scans.load_raw(i, config)?;
+    let mut raw = load_timed(scans, i, config)?;
     let odometry = &config.build.odometry;
-    if odometry.deskew == DeskewMode::Azimuth {
-        odometry.sweep.time_scan(&mut raw);
-    }
     if let Some(twist) = twist.filter(|_| odometry.deskew.uses_point_times()) {
         deskew(&mut raw, &twist, 0.0).map_err(|e| BakeError::Scan {
             path: scans.name(i).to_path_buf(),

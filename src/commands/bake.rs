@@ -189,7 +189,7 @@ pub struct Args {
 }
 
 /// A `--deskew` value.
-fn parse_deskew(name: &str) -> Result<DeskewMode, String> {
+pub(super) fn parse_deskew(name: &str) -> Result<DeskewMode, String> {
     DeskewMode::parse(name).ok_or_else(|| format!("expected one of {}", DeskewMode::NAMES))
 }
 

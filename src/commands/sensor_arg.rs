@@ -1,24 +1,36 @@
-//! `--vertical-angle-offset-deg`: how a command that sends scans reads them, the same
-//! correction bake.toml's `[input]` applied to the map's scans; shared by `localize`
-//! and `relocalize`.
+//! How a command that sends scans reads them, as the map's bake read its scans:
+//! `--bake-config` (the bake.toml the map was baked with: its `[input]` and its
+//! `[build.odometry]` deskew and sweep) and `--vertical-angle-offset-deg`; shared by
+//! `localize` and `relocalize`.
+
+use std::path::PathBuf;
 
 use kfmap_bake::config::BakeConfig;
+use kfmap_geometry::options::ConfigFile;
 
-/// The sensor's correction applied to every scan read.
-#[derive(clap::Args, Debug, Clone, Copy)]
+/// The sensor's corrections applied to every scan read.
+#[derive(clap::Args, Debug, Clone)]
 pub struct SensorArgs {
+    /// The bake.toml the map was baked with: its [input] (vertical-angle-offset-deg,
+    /// bin-layout) applies to every scan read, and its [build.odometry] deskew and sweep
+    /// to `localize`'s deskewing (default: bake.toml's defaults).
+    #[arg(long, value_name = "BAKE_TOML")]
+    pub bake_config: Option<PathBuf>,
     /// The sensor's vertical-angle offset, degrees (-5 to 5): every return's elevation
     /// raised by it on load, as bake.toml's [input] vertical-angle-offset-deg did for the
-    /// map (KITTI's HDL-64E: 0.205).
-    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
-    pub vertical_angle_offset_deg: f64,
+    /// map (KITTI's HDL-64E: 0.205; default: --bake-config's, else 0).
+    #[arg(long, allow_negative_numbers = true)]
+    pub vertical_angle_offset_deg: Option<f64>,
 }
 
 impl SensorArgs {
-    /// The bake's defaults with this correction, checked as bake.toml's `[input]` is.
+    /// `--bake-config` (or the defaults) with the flags' overrides, checked as bake.toml's
+    /// `[input]` is.
     pub fn scan_config(&self) -> anyhow::Result<BakeConfig> {
-        let mut config = BakeConfig::default();
-        config.input.vertical_angle_offset_deg = self.vertical_angle_offset_deg;
+        let mut config = BakeConfig::load(self.bake_config.as_deref())?;
+        if let Some(offset) = self.vertical_angle_offset_deg {
+            config.input.vertical_angle_offset_deg = offset;
+        }
         config
             .input
             .validate()
