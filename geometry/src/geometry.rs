@@ -111,9 +111,56 @@ pub fn transform_point(pose: &Pose, p: &[f32; 3]) -> Vector3<f64> {
     pose.rotation * to_vec3(p) + pose.translation.vector
 }
 
+/// Appends `points` moved by `pose` to `moved_points`, and their covariances rotated with
+/// them (`R C R^T`) to `moved_covariances`: a cloud's estimates carried into another
+/// frame instead of estimated again there.
+pub fn extend_moved(
+    pose: &Pose,
+    points: &[[f32; 3]],
+    covariances: &[PackedSym3],
+    moved_points: &mut Vec<[f32; 3]>,
+    moved_covariances: &mut Vec<PackedSym3>,
+) {
+    let r = pose.rotation.to_rotation_matrix().into_inner();
+    moved_points.extend(points.iter().map(|p| to_point(&transform_point(pose, p))));
+    moved_covariances.extend(
+        covariances
+            .iter()
+            .map(|c| pack_sym3(&(r * unpack_sym3(c) * r.transpose()))),
+    );
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Turned 90 degrees about z and shifted: x becomes y, so a covariance of variances
+    /// (1, 2, 3) along x, y, z becomes (2, 1, 3) (closed form).
+    #[test]
+    fn moved_points_carry_their_covariances_rotated() {
+        let pose = Pose::new(
+            Vector3::new(1.0, 2.0, 3.0),
+            Vector3::new(0.0, 0.0, std::f64::consts::FRAC_PI_2),
+        );
+        let c = pack_sym3(&Matrix3::from_diagonal(&Vector3::new(1.0, 2.0, 3.0)));
+        let (mut points, mut covariances) = (Vec::new(), Vec::new());
+        extend_moved(
+            &pose,
+            &[[1.0, 0.0, 0.0]],
+            &[c],
+            &mut points,
+            &mut covariances,
+        );
+        let p = points[0];
+        assert!(
+            (p[0] - 1.0).abs() < 1e-6 && (p[1] - 3.0).abs() < 1e-6 && (p[2] - 3.0).abs() < 1e-6
+        );
+        let want = Matrix3::from_diagonal(&Vector3::new(2.0, 1.0, 3.0));
+        assert!(
+            (unpack_sym3(&covariances[0]) - want).abs().max() < 1e-6,
+            "{covariances:?}"
+        );
+    }
     use proptest::prelude::*;
 
     /// Fuzzing (`fuzz/regressions/tum_quaternion_norm_overflow.txt`): a quaternion with

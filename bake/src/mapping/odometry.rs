@@ -9,9 +9,7 @@ use std::collections::{HashMap, VecDeque};
 use serde::{Deserialize, Serialize};
 
 use kfmap_geometry::cloud::PointCloud;
-use kfmap_geometry::geometry::{
-    PackedSym3, Pose, pack_sym3, to_point, transform_point, unpack_sym3,
-};
+use kfmap_geometry::geometry::{PackedSym3, Pose, extend_moved};
 use kfmap_geometry::imu::ImuSample;
 use kfmap_geometry::motion::{
     AdaptiveThreshold, AdaptiveThresholdParams, DeskewMode, Gyro, GyroParams, PosePredictor,
@@ -413,19 +411,18 @@ struct LocalKeyframe {
 impl LocalKeyframe {
     /// `prepared` (a scan registered at `pose`) moved into the odometry frame.
     fn moved(pose: &Pose, prepared: &PreparedCloud) -> Self {
-        let r = pose.rotation.to_rotation_matrix().into_inner();
+        let (mut points, mut covariances) = (Vec::new(), Vec::new());
+        extend_moved(
+            pose,
+            &prepared.points,
+            &prepared.covariances,
+            &mut points,
+            &mut covariances,
+        );
         Self {
             pose: *pose,
-            points: prepared
-                .points
-                .iter()
-                .map(|p| to_point(&transform_point(pose, p)))
-                .collect(),
-            covariances: prepared
-                .covariances
-                .iter()
-                .map(|c| pack_sym3(&(r * unpack_sym3(c) * r.transpose())))
-                .collect(),
+            points,
+            covariances,
         }
     }
 }

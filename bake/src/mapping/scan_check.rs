@@ -6,9 +6,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use kfmap_geometry::geometry::{
-    PackedSym3, Pose, pack_sym3, to_point, transform_point, unpack_sym3,
-};
+use kfmap_geometry::geometry::{PackedSym3, Pose, extend_moved};
 use kfmap_geometry::motion::point_displacement;
 use kfmap_geometry::options::{InvalidOption, ensure, ensure_distance, ensure_ratio};
 use kfmap_geometry::registration::{
@@ -226,17 +224,13 @@ impl Checker<'_> {
         let window = i.saturating_sub(w)..(i + w + 1).min(self.clouds.len());
         for j in window.filter(|&j| j != i && usable[j]) {
             let pose = to_i * self.cloud_pose(poses, j);
-            let r = pose.rotation.to_rotation_matrix().into_inner();
             let c = &self.clouds[j];
-            points.extend(
-                c.points
-                    .iter()
-                    .map(|p| to_point(&transform_point(&pose, p))),
-            );
-            covariances.extend(
-                c.covariances
-                    .iter()
-                    .map(|s| pack_sym3(&(r * unpack_sym3(s) * r.transpose()))),
+            extend_moved(
+                &pose,
+                &c.points,
+                &c.covariances,
+                &mut points,
+                &mut covariances,
             );
         }
         if points.is_empty() {
