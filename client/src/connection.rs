@@ -77,6 +77,18 @@ struct Ports {
     responses: Listener<Transport>,
 }
 
+/// Answers requests inside the server's own process: what a server gives the client
+/// it hosts (its session's tracker), so the hosted client runs the same code as one
+/// over iceoryx2 without a round trip.
+pub trait Dispatch: Send {
+    /// The answer to one request (any status; the connection checks it).
+    fn answer(
+        &mut self,
+        header: &RequestHeader,
+        payload: &[f32],
+    ) -> (ResponseHeader, Vec<WirePairing>);
+}
+
 /// A connection to the server of one map.
 pub struct Connection {
     link: Link,
@@ -99,6 +111,7 @@ enum Link {
     },
     #[cfg(feature = "remote")]
     Remote(crate::remote::RemoteLink),
+    InProcess(Box<dyn Dispatch>),
 }
 
 impl Connection {
@@ -120,6 +133,19 @@ impl Connection {
             return Err(ClientError::NoServer(map_name.to_string()));
         }
         Ok(connection)
+    }
+
+    /// A connection whose requests `dispatch` answers in this process (a server hosting
+    /// a client); `client_node` is written into every request.
+    pub fn in_process(map_name: &str, client_node: [u64; 2], dispatch: Box<dyn Dispatch>) -> Self {
+        Self {
+            link: Link::InProcess(dispatch),
+            map_name: map_name.to_string(),
+            options: ClientOptions::default(),
+            client_node,
+            next_request_id: 1,
+            served_covariance: None,
+        }
     }
 
     /// Connects to the server of `map_name` on another host, through the `kfmap gateway`
@@ -148,7 +174,7 @@ impl Connection {
     pub fn tile_index(&self) -> Option<&kfmap_map::tiles::TileIndex> {
         match &self.link {
             Link::Remote(link) => link.tile_index(),
-            Link::Local { .. } => None,
+            Link::Local { .. } | Link::InProcess(_) => None,
         }
     }
 
@@ -157,13 +183,16 @@ impl Connection {
     pub fn current_tile(&self) -> Option<&str> {
         match &self.link {
             Link::Remote(link) => link.current_tile(),
-            Link::Local { .. } => None,
+            Link::Local { .. } | Link::InProcess(_) => None,
         }
     }
 
     /// True when requests travel to another host (through a gateway).
     pub fn is_remote(&self) -> bool {
-        !matches!(self.link, Link::Local { .. })
+        #[cfg(feature = "remote")]
+        return matches!(self.link, Link::Remote(_));
+        #[cfg(not(feature = "remote"))]
+        false
     }
 
     /// This client's node id, as it writes it into every request's `client_node`.
@@ -236,6 +265,7 @@ impl Connection {
             }
             #[cfg(feature = "remote")]
             Link::Remote(link) => Ok(link.alive()),
+            Link::InProcess(_) => Ok(true),
         }
     }
 
@@ -353,9 +383,8 @@ impl Connection {
         init: impl FnOnce(&mut RequestHeader, &mut [MaybeUninit<f32>]) -> usize,
         read: impl FnOnce(&ResponseHeader, &[WirePairing]) -> R,
     ) -> Result<R, ClientError> {
-        #[cfg(feature = "remote")]
-        if let Link::Remote(_) = self.link {
-            return self.send_and_wait_remote(header, len, init, read);
+        if !matches!(self.link, Link::Local { .. }) {
+            return self.send_and_wait_copied(header, len, init, read);
         }
         self.wait_answer(header, len, init, read, true)
     }
@@ -417,10 +446,10 @@ impl Connection {
         })
     }
 
-    /// As [`Self::send_and_wait`] over the remote link: the request is written into a
-    /// frame, sent as a Zenoh query, and the answer frame read back.
-    #[cfg(feature = "remote")]
-    fn send_and_wait_remote<R>(
+    /// As [`Self::send_and_wait`] over a link that takes a copy of the request: the
+    /// remote link writes it into a frame, sends it as a Zenoh query and reads the
+    /// answer frame back; the in-process link answers it on this thread.
+    fn send_and_wait_copied<R>(
         &mut self,
         mut header: RequestHeader,
         len: usize,
@@ -433,19 +462,25 @@ impl Connection {
         let mut payload = vec![MaybeUninit::new(0.0f32); len];
         let written = init(&mut header, &mut payload);
         assert_eq!(written, len, "a request's payload is written whole");
-        // SAFETY: every element was initialized (zero-filled above, then written), and
-        // `MaybeUninit<f32>` has the layout of `f32`.
-        let floats = unsafe { &*(payload.as_slice() as *const [MaybeUninit<f32>] as *const [f32]) };
-        let frame = kfmap_protocol::remote::encode_request(&header, floats);
-        let Link::Remote(link) = &mut self.link else {
-            unreachable!("called for remote links only")
+        let floats: Vec<f32> = payload
+            .into_iter()
+            // SAFETY: every element was initialized (zero-filled above, then written).
+            .map(|v| unsafe { v.assume_init() })
+            .collect();
+        let (answer, pairings) = match &mut self.link {
+            #[cfg(feature = "remote")]
+            Link::Remote(link) => {
+                let frame = kfmap_protocol::remote::encode_request(&header, &floats);
+                let answer = link.call(&header, frame, self.options.timeout)?;
+                kfmap_protocol::remote::decode_answer(&answer).map_err(|e| {
+                    crate::error::RemoteError::BadAnswer(format!("the gateway's answer: {e}"))
+                })?
+            }
+            Link::InProcess(dispatch) => dispatch.answer(&header, &floats),
+            Link::Local { .. } => unreachable!("iceoryx2 links send in place"),
         };
-        let answer = link.call(&header, frame, self.options.timeout)?;
-        let (header, pairings) = kfmap_protocol::remote::decode_answer(&answer).map_err(|e| {
-            crate::error::RemoteError::BadAnswer(format!("the gateway's answer: {e}"))
-        })?;
-        check_status(&header)?;
-        Ok(read(&header, &pairings))
+        check_status(&answer)?;
+        Ok(read(&answer, &pairings))
     }
 
     /// Sends a request exactly as given (its version and fields; `client_node` and

@@ -20,6 +20,7 @@
 
 mod connection;
 mod error;
+pub mod hosted;
 pub mod hypotheses;
 mod localize;
 mod relocalize;
@@ -29,8 +30,9 @@ pub mod remote;
 mod tiled;
 mod tracker;
 
-pub use connection::{ClientOptions, Connection, Response};
+pub use connection::{ClientOptions, Connection, Dispatch, Response};
 pub use error::{ClientError, RemoteError};
+pub use hosted::HostedStart;
 pub use hypotheses::HypothesisParams;
 pub use localize::{LocalizeOptions, Localized};
 pub use relocalize::{RelocalizeOptions, Relocalized, ScoredPlace};
@@ -171,6 +173,14 @@ impl Client {
         Ok(Self {
             connection: Connection::connect(map_name, options)?,
         })
+    }
+
+    /// A client whose requests `dispatch` answers in this process: what a server
+    /// gives the tracker it hosts for a session (`client_node`).
+    pub fn in_process(map_name: &str, client_node: [u64; 2], dispatch: Box<dyn Dispatch>) -> Self {
+        Self {
+            connection: Connection::in_process(map_name, client_node, dispatch),
+        }
     }
 
     /// Connects to the server of `map_name` on another host through the `kfmap gateway`

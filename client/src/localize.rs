@@ -5,14 +5,13 @@
 //! same pose with the same health.
 
 use kfmap_geometry::geometry::Pose;
-use kfmap_geometry::registration::{Constraint, RegistrationError, solve_pose};
+use kfmap_geometry::registration::{RegistrationError, solve_pose};
 use kfmap_geometry::tracking::{
-    Expectation, PreparedScan, Reasons, ScanHealth, TrackingParams, TrackingStatus,
-    covariance_from_wire, localize_scan,
+    Expectation, PreparedScan, ScanHealth, TrackingParams, localize_scan,
 };
 use kfmap_protocol::{
     Cov2CovMode, FLAG_STAMPED, RequestHeader, RequestKind, ScanPayload, correspondences_from_wire,
-    localize_stage, pose_from_wire, pose_to_wire,
+    localize_stage, pose_to_wire, read_localized,
 };
 
 use crate::{Client, ClientError};
@@ -100,30 +99,9 @@ impl Client {
         };
         let header = stamped(header, options.stamp);
         let r = self.connection().call_scan(header, scan)?;
-        let h = r.header;
-        let invalid = |what: &str| ClientError::Invalid(format!("the server sent {what}"));
-        let pose = pose_from_wire(&h.pose).ok_or_else(|| invalid("an invalid pose"))?;
-        let status = TrackingStatus::from_code(h.tracking)
-            .ok_or_else(|| invalid(&format!("an unknown tracking status {}", h.tracking)))?;
-        Ok(Localized {
-            pose,
-            health: ScanHealth {
-                status,
-                reasons: Reasons(h.reasons),
-                inlier_ratio: h.fitness[0],
-                rmse: h.fitness[1],
-                constraint: Constraint {
-                    rotation_ratio: h.constraint[0],
-                    translation_ratio: h.constraint[1],
-                },
-                degenerate: h.degenerate == 1,
-                covariance: covariance_from_wire(&h.covariance),
-                correction: h.pose_correction,
-                registrations: h.registrations,
-                iterations: h.iterations,
-                converged: h.converged == 1,
-            },
-        })
+        let (pose, health) = read_localized(&r.header)
+            .map_err(|what| ClientError::Invalid(format!("the server sent {what}")))?;
+        Ok(Localized { pose, health })
     }
 
     /// Client-side localization: the checks and retry ladder run here, each

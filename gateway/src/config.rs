@@ -94,7 +94,7 @@ impl ConfigFile for GatewayConfig {
                 g.max_answer_bytes >= 4096,
                 "max-answer-bytes",
                 g.max_answer_bytes,
-                "at least 4096 (an answer header is 3280 bytes)",
+                "at least 4096 (an answer header is 3416 bytes)",
             )?;
             ensure(
                 (1..=1024).contains(&g.max_sessions),

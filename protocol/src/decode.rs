@@ -5,7 +5,8 @@ use std::mem::MaybeUninit;
 
 use super::wire::{
     FLAG_COVARIANCES, FLAG_FINISH_CHOSEN, FLAG_LEVELLED, FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN,
-    FLAG_STAMPED, FLAG_VIEW_DIRS, RequestHeader, WirePairing,
+    FLAG_STAMPED, FLAG_TRACK_FROM_POSE, FLAG_TRACK_RESET, FLAG_VIEW_DIRS, RequestHeader,
+    WirePairing,
 };
 use super::{IMU_SAMPLE_FLOATS, PROTOCOL_VERSION, StatusCode};
 use kfmap_geometry::geometry::{PackedSym3, to_vec3, unpack_sym3};
@@ -170,7 +171,9 @@ pub fn decode_scan<'a>(
         | FLAG_LEVELLED
         | FLAG_PLACES_ONLY
         | FLAG_SCORE_CHOSEN
-        | FLAG_FINISH_CHOSEN;
+        | FLAG_FINISH_CHOSEN
+        | FLAG_TRACK_RESET
+        | FLAG_TRACK_FROM_POSE;
     if header.flags & !known != 0 {
         return Err(Rejection::new(
             StatusCode::BadRequest,

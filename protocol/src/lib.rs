@@ -14,6 +14,7 @@
 //! ```
 
 mod decode;
+mod localized;
 pub mod log_limit;
 pub mod remote;
 pub mod transport;
@@ -23,11 +24,13 @@ pub use decode::{
     DecodedScan, Rejection, ScanPayload, check_version, correspondences_from_pairings,
     correspondences_from_wire, decode_imu, decode_scan, decode_stamp, imu_payload,
 };
+pub use localized::{read_localized, write_localized};
 pub use wire::{
     FLAG_COVARIANCES, FLAG_FINISH_CHOSEN, FLAG_LEVELLED, FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN,
-    FLAG_STAMPED, FLAG_VIEW_DIRS, KIND_SLOTS, MESSAGE_LEN, NAME_LEN, PLACES_FROM_RELIEF,
-    RequestHeader, ResponseHeader, STATUS_SESSIONS, WireCovOptions, WirePairing, WirePlace,
-    WireRanking, WireSessionGravity, read_text, write_text,
+    FLAG_STAMPED, FLAG_TRACK_FROM_POSE, FLAG_TRACK_RESET, FLAG_VIEW_DIRS, KIND_SLOTS, MESSAGE_LEN,
+    NAME_LEN, PLACES_FROM_RELIEF, RequestHeader, ResponseHeader, STATUS_SESSIONS, TRACK_EXPLAINED,
+    TRACK_MAX_CORRECTION, TRACK_SLIDE_LOSS, WireCovOptions, WirePairing, WirePlace, WireRanking,
+    WireSessionGravity, WireTrack, read_text, write_text,
 };
 
 use kfmap_geometry::geometry::{Pose, pose_from_xyz_quat, pose_to_xyz_quat};
@@ -35,7 +38,7 @@ use kfmap_geometry::tracking::Stage;
 pub use kfmap_map::map::Cov2CovMode;
 
 /// Version of this protocol; a peer of another version gets `VersionMismatch`.
-pub const PROTOCOL_VERSION: u32 = 9;
+pub const PROTOCOL_VERSION: u32 = 10;
 /// Default limit on points per request.
 pub const DEFAULT_MAX_POINTS: usize = 1 << 20;
 /// Floats per IMU sample in an `ImuWindow` payload.
@@ -78,11 +81,17 @@ pub enum RequestKind {
     Reload = 8,
     /// Where a scan was taken, with no pose guess: global relocalization.
     Relocalize = 9,
+    /// One scan of the session's server-hosted tracker (new in protocol 10): the
+    /// tracker's pose, health, hypotheses and trust figures
+    /// (docs/DESIGN.md#hosted-tracking).
+    Track = 10,
+    /// IMU samples for the session's hosted tracker's gyro (new in protocol 10).
+    TrackImu = 11,
 }
 
 impl RequestKind {
     /// Every kind, by code order.
-    pub const ALL: [RequestKind; 9] = [
+    pub const ALL: [RequestKind; 11] = [
         RequestKind::Nearest,
         RequestKind::Radius,
         RequestKind::Cov2Cov,
@@ -92,6 +101,8 @@ impl RequestKind {
         RequestKind::Echo,
         RequestKind::Reload,
         RequestKind::Relocalize,
+        RequestKind::Track,
+        RequestKind::TrackImu,
     ];
 
     /// The kind of a wire code.
@@ -111,6 +122,8 @@ impl RequestKind {
             RequestKind::Echo => "echo",
             RequestKind::Reload => "reload",
             RequestKind::Relocalize => "relocalize",
+            RequestKind::Track => "track",
+            RequestKind::TrackImu => "track-imu",
         }
     }
 
@@ -123,6 +136,7 @@ impl RequestKind {
                 | RequestKind::Cov2Cov
                 | RequestKind::Localize
                 | RequestKind::Relocalize
+                | RequestKind::Track
         )
     }
 }

@@ -70,7 +70,7 @@ fn bad_scans_are_refused_by_name() {
     assert_eq!(e.status, StatusCode::VersionMismatch);
     assert!(e.message.contains("protocol"));
     let flags = RequestHeader {
-        flags: 128,
+        flags: 512,
         ..header
     };
     assert_eq!(
@@ -205,7 +205,7 @@ fn header_layouts_are_the_documented_ones() {
     assert_eq!(align_of::<WirePlace>(), align_of::<WirePairing>());
     layout!(
         ResponseHeader,
-        3280,
+        3416,
         version = 0,
         status = 4,
         request_id = 8,
@@ -247,17 +247,31 @@ fn header_layouts_are_the_documented_ones() {
         map_points = 776,
         uptime_s = 784,
         counts = 792,
-        p50_us = 872,
-        p99_us = 912,
-        sessions = 952,
-        in_flight = 956,
-        map_name_len = 960,
-        map_name = 964,
-        message = 1028,
-        message_reserved = 1268,
-        session_gravity = 1272,
-        scan_covariance = 3192,
-        relocalize_ranking = 3232
+        p50_us = 888,
+        p99_us = 936,
+        sessions = 984,
+        in_flight = 988,
+        map_name_len = 992,
+        map_name = 996,
+        message = 1060,
+        message_reserved = 1300,
+        session_gravity = 1304,
+        scan_covariance = 3224,
+        relocalize_ranking = 3264,
+        track = 3312
+    );
+    layout!(
+        WireTrack,
+        104,
+        predicted = 0,
+        t = 56,
+        explained = 64,
+        slide_loss = 72,
+        max_correction = 80,
+        hypotheses = 88,
+        known = 92,
+        imu_refused = 96,
+        reserved = 100
     );
     layout!(
         WireRanking,
@@ -391,7 +405,7 @@ mod remote_frames {
         }; 3];
         let frame = encode_answer(&header, &pairings);
         assert_eq!(frame.len(), answer_frame_len(3));
-        assert_eq!(frame.len(), 3280 + 3 * 56);
+        assert_eq!(frame.len(), 3416 + 3 * 56);
         let (h, p) = decode_answer(&frame).unwrap();
         assert_eq!(h, header);
         assert_eq!(h.message(), "slots");

@@ -12,7 +12,7 @@ use kfmap_map::tiles::PlaceRanking;
 /// Bytes of a response's status message (UTF-8, zero padded).
 pub const MESSAGE_LEN: usize = 240;
 /// Request kinds counted in a status report (index = kind code).
-pub const KIND_SLOTS: usize = 10;
+pub const KIND_SLOTS: usize = 12;
 /// Bytes of the map name in a status report.
 pub const NAME_LEN: usize = 64;
 /// Sessions whose gravity pool a status report lists, at most.
@@ -103,6 +103,13 @@ pub const FLAG_SCORE_CHOSEN: u32 = 32;
 /// (found when it fits, no runner-up): the third phase over a tile set, on the tile of
 /// the best score of them all.
 pub const FLAG_FINISH_CHOSEN: u32 = 64;
+/// `Track`: start the session's tracker anew with this scan, from `pose` when
+/// `FLAG_TRACK_FROM_POSE` is set, else relocalizing (the gyro's log is kept). The
+/// first `Track` of a session starts one either way; its `max_pair_dist`,
+/// `max_iterations` and `mode` hold until the next start.
+pub const FLAG_TRACK_RESET: u32 = 128;
+/// `Track` with `FLAG_TRACK_RESET`: the tracker starts at `pose` (a known start).
+pub const FLAG_TRACK_FROM_POSE: u32 = 256;
 /// `ResponseHeader::reasons` of a `FLAG_PLACES_ONLY` answer: the places come from the
 /// relief search (uphill ground kept), which a server runs when its structure search
 /// proposes nothing. Over a tile set they stand only when no tile proposed from
@@ -193,7 +200,7 @@ impl WirePlace {
 
 /// Header of every response; the payload is `[WirePairing]`.
 ///
-/// Layout (protocol 9, 3280 bytes, byte offsets): version 0, status 4, request_id 8,
+/// Layout (protocol 10, 3416 bytes, byte offsets): version 0, status 4, request_id 8,
 /// detail 16, message_len 24, active_len 28, active 32, server_us 160, pose 168,
 /// covariance 224, fitness 512, iterations 528, converged 532, tracking 536 (new in
 /// protocol 3, as the next five), reasons 540, registrations 544, degenerate 548,
@@ -203,10 +210,12 @@ impl WirePlace {
 /// 688 (new in protocol 4, as the next eight), gravity_compensated 692,
 /// gravity_pending 696, gravity_skipped 700, bias_observable 704, gravity_reserved
 /// 708, gravity_spread_deg 712, accel_bias 720, accel_bias_sigma 744, map_keyframes
-/// 768, map_points 776, uptime_s 784, counts 792, p50_us 872, p99_us 912, sessions
-/// 952, in_flight 956, map_name_len 960, map_name 964, message 1028, message_reserved 1268, session_gravity
-/// 1272 (new in protocol 4), scan_covariance 3192 (new in protocol 7),
-/// relocalize_ranking 3232 (new in protocol 9).
+/// 768, map_points 776, uptime_s 784, counts 792, p50_us 888, p99_us 936, sessions
+/// 984, in_flight 988, map_name_len 992, map_name 996, message 1060, message_reserved 1300, session_gravity
+/// 1304 (new in protocol 4), scan_covariance 3224 (new in protocol 7),
+/// relocalize_ranking 3264 (new in protocol 9), track 3312 (new in protocol 10; from
+/// protocol 10 `counts`, `p50_us` and `p99_us` hold 12 kinds, so everything after
+/// `counts` moved by 32 bytes).
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend, Pod, Zeroable)]
 #[repr(C)]
 #[type_name("kfmap::ResponseHeader")]
@@ -336,7 +345,50 @@ pub struct ResponseHeader {
     /// `[relocalize]`); a gateway publishes them with a tile set's index, so clients
     /// merging tiles rank as the servers do.
     pub relocalize_ranking: WireRanking,
+    /// `Track` and `TrackImu`: what the session's hosted tracker adds to a
+    /// localization.
+    pub track: WireTrack,
 }
+
+/// What a hosted tracker says of one scan beside the localization fields of the
+/// header (`Track`); the places still in doubt follow as [`WirePlace`]s in the
+/// pairings' slots (score: the mean share of the scans' structure explained there,
+/// rank: scans compared), best first.
+///
+/// Layout (104 bytes): predicted 0, t 56, explained 64, slide_loss 72,
+/// max_correction 80, hypotheses 88, known 92, imu_refused 96, reserved 100.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Pod, Zeroable)]
+#[repr(C)]
+#[type_name("kfmap::WireTrack")]
+pub struct WireTrack {
+    /// The motion model's prediction the scan was localized from, `T_map_sensor`
+    /// (x y z qx qy qz qw).
+    pub predicted: [f64; 7],
+    /// The scan's time, seconds (the request's stamp).
+    pub t: f64,
+    /// Share of the scan's structure the map explains at the pose (`TRACK_EXPLAINED`).
+    pub explained: f64,
+    /// What a 0.5 m slide along the least constrained direction loses of it
+    /// (`TRACK_SLIDE_LOSS`).
+    pub slide_loss: f64,
+    /// The correction bound used, metres (`TRACK_MAX_CORRECTION`).
+    pub max_correction: f64,
+    /// Places in doubt (as many [`WirePlace`]s follow); 0 while one place is tracked.
+    pub hypotheses: u32,
+    /// `TRACK_*` bits: which of the optional figures above are known.
+    pub known: u32,
+    /// `TrackImu`: samples refused (not after the last, or not finite).
+    pub imu_refused: u32,
+    /// Reserved, zero.
+    pub reserved: u32,
+}
+
+/// [`WireTrack::explained`] holds a figure.
+pub const TRACK_EXPLAINED: u32 = 1;
+/// [`WireTrack::slide_loss`] holds a figure.
+pub const TRACK_SLIDE_LOSS: u32 = 2;
+/// [`WireTrack::max_correction`] holds a figure.
+pub const TRACK_MAX_CORRECTION: u32 = 4;
 
 /// A server's place-ranking settings as a status report carries them
 /// ([`kfmap_map::tiles::PlaceRanking`]).
@@ -543,6 +595,7 @@ impl Default for ResponseHeader {
             session_gravity: [WireSessionGravity::default(); STATUS_SESSIONS],
             scan_covariance: WireCovOptions::default(),
             relocalize_ranking: WireRanking::default(),
+            track: WireTrack::default(),
         }
     }
 }

@@ -14,10 +14,11 @@ use kfmap_map::place::RelocalizeStatus;
 use kfmap_protocol::transport::{INITIAL_SLICE_LEN, MAX_CLIENTS, MAX_CLIENTS_PER_PROCESS};
 use kfmap_protocol::{
     Cov2CovMode, DEFAULT_MAX_POINTS, FLAG_COVARIANCES, FLAG_FINISH_CHOSEN, FLAG_LEVELLED,
-    FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN, FLAG_STAMPED, FLAG_VIEW_DIRS, IMU_SAMPLE_FLOATS,
-    KIND_SLOTS, MESSAGE_LEN, NAME_LEN, PROTOCOL_VERSION, RequestHeader, RequestKind,
-    ResponseHeader, STATUS_SESSIONS, ScanPayload, StatusCode, WireCovOptions, WirePairing,
-    WirePlace, WireRanking, WireSessionGravity, decode_scan, imu_payload,
+    FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN, FLAG_STAMPED, FLAG_TRACK_FROM_POSE, FLAG_TRACK_RESET,
+    FLAG_VIEW_DIRS, IMU_SAMPLE_FLOATS, KIND_SLOTS, MESSAGE_LEN, NAME_LEN, PROTOCOL_VERSION,
+    RequestHeader, RequestKind, ResponseHeader, STATUS_SESSIONS, ScanPayload, StatusCode,
+    WireCovOptions, WirePairing, WirePlace, WireRanking, WireSessionGravity, WireTrack,
+    decode_scan, imu_payload,
 };
 
 /// A file of the repository, by its path from the workspace root.
@@ -396,6 +397,18 @@ fn wire_layouts() -> Vec<Layout> {
             session_gravity,
             scan_covariance,
             relocalize_ranking,
+            track,
+        }),
+        layout!(WireTrack {
+            predicted,
+            t,
+            explained,
+            slide_loss,
+            max_correction,
+            hypotheses,
+            known,
+            imu_refused,
+            reserved,
         }),
         layout!(WireRanking {
             keep_ratio,
@@ -665,6 +678,8 @@ fn flags_match_the_doc_and_the_decoder() {
         ("FLAG_PLACES_ONLY", FLAG_PLACES_ONLY),
         ("FLAG_SCORE_CHOSEN", FLAG_SCORE_CHOSEN),
         ("FLAG_FINISH_CHOSEN", FLAG_FINISH_CHOSEN),
+        ("FLAG_TRACK_RESET", FLAG_TRACK_RESET),
+        ("FLAG_TRACK_FROM_POSE", FLAG_TRACK_FROM_POSE),
     ];
     let documented_bits = documented.iter().fold(0u32, |a, (_, v)| a | *v as u32);
     same_entries(

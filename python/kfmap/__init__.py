@@ -23,13 +23,16 @@ from .errors import (
 from .geometry import pose_from_wire, pose_to_wire
 from .results import (
     GravityAnswer,
+    Hypothesis,
     KindStats,
     Localized,
     Pairings,
     Relocalized,
     SessionGravity,
     StatusReport,
+    Tracked,
 )
+from .tracker import Tracker
 from .wire import (
     PROTOCOL_VERSION,
     Cov2CovMode,
@@ -49,6 +52,7 @@ __all__ = [
     "Cov2CovMode",
     "DisconnectedError",
     "GravityAnswer",
+    "Hypothesis",
     "InvalidArgument",
     "KfmapError",
     "KindStats",
@@ -64,6 +68,8 @@ __all__ = [
     "SessionGravity",
     "StatusCode",
     "StatusReport",
+    "Tracked",
+    "Tracker",
     "TooManyClientsError",
     "TrackingStatus",
     "TransportError",

@@ -11,7 +11,7 @@ import numpy.typing as npt
 from . import wire
 from .errors import InvalidArgument
 from .geometry import pose_to_wire
-from .results import GravityAnswer, Localized, Pairings, Relocalized, StatusReport
+from .results import GravityAnswer, Localized, Pairings, Relocalized, StatusReport, Tracked
 from .transport import Connection, Reply
 
 
@@ -58,6 +58,38 @@ def _mode(mode: Any) -> int:
         return int(wire.Cov2CovMode.parse(mode))
     except ValueError as e:
         raise InvalidArgument(str(e)) from None
+
+
+def _imu_rows(samples: npt.ArrayLike) -> tuple[np.ndarray, float]:
+    """IMU rows ``t ax ay az gx gy gz`` as float64 ``(N, 7)`` and the first time."""
+    if isinstance(samples, np.ndarray) and samples.dtype not in (np.float32, np.float64):
+        raise InvalidArgument(f"samples: dtype {samples.dtype} is not float32 or float64")
+    s = np.asarray(samples, dtype=np.float64)
+    if s.ndim != 2 or s.shape[1] != wire.IMU_SAMPLE_FLOATS:
+        raise InvalidArgument(f"samples: expected shape (N, 7), got {s.shape}")
+    t0 = float(s[0, 0]) if len(s) else 0.0
+    if not math.isfinite(t0):
+        raise InvalidArgument("samples: the first time must be finite")
+    return s, t0
+
+
+def _imu_payload(s: np.ndarray, t0: float) -> np.ndarray:
+    """The IMU payload: times after ``t0``, then the six readings, as float32."""
+    payload = s.astype(np.float32)
+    payload[:, 0] = (s[:, 0] - t0).astype(np.float32)
+    return payload.ravel()
+
+
+def _rotation_pose(rotation: npt.ArrayLike) -> np.ndarray:
+    """A pose with no translation and ``rotation`` (3x3 or ``qx qy qz qw``)."""
+    r = np.asarray(rotation, dtype=np.float64)
+    if r.shape == (3, 3):
+        pose = np.eye(4)
+        pose[:3, :3] = r
+        return pose
+    if r.shape != (4,):
+        raise InvalidArgument(f"rotation: expected a 3x3 matrix or qx qy qz qw, got {r.shape}")
+    return np.concatenate([np.zeros(3), r])
 
 
 class Client:
@@ -271,14 +303,7 @@ class Client:
         matrix or quaternion ``qx qy qz qw`` whose yaw is ignored; None: the server
         finds up in the scan.
         """
-        pose: Any = None
-        if tilt is not None:
-            t = np.asarray(tilt, dtype=np.float64)
-            if t.shape == (3, 3):
-                pose = np.eye(4)
-                pose[:3, :3] = t
-            else:
-                pose = np.concatenate([np.zeros(3), t.ravel()])
+        pose = None if tilt is None else _rotation_pose(tilt)
         flags = 0 if tilt is None else wire.FLAG_LEVELLED
         reply = self._scan(
             wire.RequestKind.RELOCALIZE, points, pose, view_dirs, covariances,
@@ -305,16 +330,7 @@ class Client:
         arrives (``pending`` until then), without one the window is pooled as its raw
         mean (right only for a platform at rest).
         """
-        if isinstance(samples, np.ndarray) and samples.dtype not in (np.float32, np.float64):
-            raise InvalidArgument(f"samples: dtype {samples.dtype} is not float32 or float64")
-        s = np.asarray(samples, dtype=np.float64)
-        if s.ndim != 2 or s.shape[1] != wire.IMU_SAMPLE_FLOATS:
-            raise InvalidArgument(f"samples: expected shape (N, 7), got {s.shape}")
-        t0 = float(s[0, 0]) if len(s) else 0.0
-        if not math.isfinite(t0):
-            raise InvalidArgument("samples: the first time must be finite")
-        payload = s.astype(np.float32)
-        payload[:, 0] = (s[:, 0] - t0).astype(np.float32)
+        s, t0 = _imu_rows(samples)
         header = wire.new_request(
             wire.RequestKind.IMU_WINDOW, point_count=len(s), imu_t0=t0,
             keyframe_or_scan_id=_uint("keyframe_id", keyframe_id, 64),
@@ -322,8 +338,58 @@ class Client:
         if stamp is not None:
             header.flags, header.stamp = wire.FLAG_STAMPED, _f32("stamp", stamp)
         header.pose[:] = pose_to_wire(pose)
-        reply = self._conn.call(header, payload.ravel())
+        reply = self._conn.call(header, _imu_payload(s, t0))
         return GravityAnswer.from_header(reply.header)
+
+    def track(
+        self,
+        points: npt.ArrayLike,
+        t: float,
+        *,
+        start: str = "continue",
+        pose: npt.ArrayLike | None = None,
+        max_iterations: int = 30,
+        max_pair_dist: float = 1.0,
+        mode: wire.Cov2CovMode | str = "map-default",
+        view_dirs: npt.ArrayLike | None = None,
+        covariances: npt.ArrayLike | None = None,
+    ) -> Tracked:
+        """One scan through this session's server-hosted tracker (``kfmap.Tracker``
+        wraps it). ``t``: the scan's time, seconds on the IMU's clock. ``start``:
+        ``"continue"`` (a new session's first scan is relocalized), ``"relocalize"``
+        (start anew, no idea where) or ``"pose"`` (start anew at ``pose``). The solver
+        options take effect when the tracker starts."""
+        t = _f32("t", t)
+        if not math.isfinite(t):
+            raise InvalidArgument(f"t = {t} is not finite")
+        flags = {"continue": 0, "relocalize": wire.FLAG_TRACK_RESET,
+                 "pose": wire.FLAG_TRACK_RESET | wire.FLAG_TRACK_FROM_POSE}.get(start)
+        if flags is None:
+            raise InvalidArgument(f"start = {start!r}: use 'continue', 'relocalize' or 'pose'")
+        if (start == "pose") != (pose is not None):
+            raise InvalidArgument("give a pose exactly when start = 'pose'")
+        reply = self._scan(
+            wire.RequestKind.TRACK, points, pose, view_dirs, covariances,
+            max_iterations=_uint("max_iterations", max_iterations),
+            max_pair_dist=_f32("max_pair_dist", max_pair_dist), mode=_mode(mode),
+            flags=flags | wire.FLAG_STAMPED, stamp=t,
+        )
+        return Tracked.from_reply(reply.header, reply.pairings)
+
+    def push_track_imu(
+        self, samples: npt.ArrayLike, *, lidar_from_imu: npt.ArrayLike | None = None
+    ) -> int:
+        """Gives this session's hosted tracker IMU samples: ``(N, 7)`` rows ``t ax ay az
+        gx gy gz`` (seconds on the scans' clock, after those sent before; m/s^2, rad/s).
+        ``lidar_from_imu``: the IMU's mounting ``R_lidar_imu`` (3x3 or ``qx qy qz qw``;
+        None: aligned). The gyro predicts rotation between scans, the accelerometer
+        levels relocalizations. Returns the samples refused (out of order, not finite)."""
+        s, t0 = _imu_rows(samples)
+        header = wire.new_request(wire.RequestKind.TRACK_IMU, point_count=len(s), imu_t0=t0)
+        if lidar_from_imu is not None:
+            header.pose[:] = pose_to_wire(_rotation_pose(lidar_from_imu))
+        reply = self._conn.call(header, _imu_payload(s, t0))
+        return int(reply.header.track.imu_refused)
 
     def status(self) -> StatusReport:
         """The server's counters: map, sessions, requests per kind, gravity pools."""

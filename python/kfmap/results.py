@@ -125,6 +125,75 @@ class Localized:
 
 
 @dataclass(frozen=True)
+class Hypothesis:
+    """A place the sensor may be at while a hosted tracker is in doubt."""
+
+    pose: np.ndarray  # (4, 4) T_map_sensor at the last scan
+    explained: float  # mean share of the scans' structure the map explains there
+    scans: int  # scans it was compared on
+
+
+@dataclass(frozen=True)
+class Tracked:
+    """One scan through the server-hosted tracker (``kfmap.Tracker``): the pose and
+    health as ``Localized``, the motion model's ``predicted`` pose, the correction
+    bound used, the places in doubt (``hypotheses``, best first; empty while one place
+    is tracked) and the trust figures: ``explained`` (share of the scan's structure the
+    map explains at the pose; the rest moved since the map) and ``slide_loss`` (what a
+    0.5 m slide along the least constrained direction loses of it). ``None``: not
+    measured (e.g. when ``LOST``)."""
+
+    t: float
+    localized: Localized
+    predicted: np.ndarray  # (4, 4)
+    max_correction: float | None
+    hypotheses: list[Hypothesis]
+    explained: float | None
+    slide_loss: float | None
+
+    @property
+    def pose(self) -> np.ndarray:
+        """``T_map_sensor`` (the prediction when ``LOST``)."""
+        return self.localized.pose
+
+    @property
+    def status(self) -> wire.TrackingStatus:
+        """OK, DEGRADED or LOST."""
+        return self.localized.status
+
+    @property
+    def reason_names(self) -> list[str]:
+        """Why the status is not OK, e.g. ``["ambiguous"]``."""
+        return self.localized.reason_names
+
+    @classmethod
+    def from_reply(cls, h: wire.ResponseHeader, places: np.ndarray) -> "Tracked":
+        tr = h.track
+        if len(places) != tr.hypotheses:
+            raise KfmapError(f"the server sent {len(places)} places for {tr.hypotheses} hypotheses")
+        records = places.view(wire.PLACE_DTYPE) if len(places) else places
+        hypotheses = []
+        for rec in records:
+            q = np.asarray(rec["rotation"], dtype=np.float64)
+            values = [*rec["translation"], *(q / np.linalg.norm(q))]
+            hypotheses.append(Hypothesis(_checked_pose(values), float(rec["score"]),
+                                         int(rec["rank"])))
+
+        def figure(value: float, bit: int) -> float | None:
+            return float(value) if tr.known & bit else None
+
+        return cls(
+            t=tr.t,
+            localized=Localized.from_header(h),
+            predicted=_checked_pose(tr.predicted),
+            max_correction=figure(tr.max_correction, wire.TRACK_MAX_CORRECTION),
+            hypotheses=hypotheses,
+            explained=figure(tr.explained, wire.TRACK_EXPLAINED),
+            slide_loss=figure(tr.slide_loss, wire.TRACK_SLIDE_LOSS),
+        )
+
+
+@dataclass(frozen=True)
 class Relocalized:
     """Where the server placed a scan with no guess; ``pose`` is None when NOT_FOUND."""
 

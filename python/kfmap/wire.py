@@ -1,4 +1,4 @@
-"""The kfmap wire protocol (protocol 9): the ``#[repr(C)]`` headers as ctypes
+"""The kfmap wire protocol (protocol 10): the ``#[repr(C)]`` headers as ctypes
 structures, request kinds, flags and status codes.
 
 Mirrors ``protocol/src/wire.rs`` and ``lib.rs``. iceoryx2 refuses to open a
@@ -15,11 +15,11 @@ import enum
 import numpy as np
 
 #: Version of the protocol; a server of another version answers VERSION_MISMATCH.
-PROTOCOL_VERSION = 9
+PROTOCOL_VERSION = 10
 #: Bytes of a response's status message.
 MESSAGE_LEN = 240
 #: Request kinds counted in a status report (index = kind code).
-KIND_SLOTS = 10
+KIND_SLOTS = 12
 #: Bytes of the map name in a status report.
 NAME_LEN = 64
 #: Sessions whose gravity pool a status report lists, at most.
@@ -44,6 +44,15 @@ FLAG_SCORE_CHOSEN = 32
 #: Relocalize: the final registration of the scored place whose rank is the one bit set
 #: in ``keyframe_or_scan_id`` (found when it fits, no runner-up); the third phase.
 FLAG_FINISH_CHOSEN = 64
+#: Track: start the session's hosted tracker anew with this scan (relocalizing, or from
+#: ``pose`` with ``FLAG_TRACK_FROM_POSE``); the gyro's log is kept.
+FLAG_TRACK_RESET = 128
+#: Track with ``FLAG_TRACK_RESET``: the tracker starts at ``pose``.
+FLAG_TRACK_FROM_POSE = 256
+#: ``WireTrack.known`` bits: which optional figures a Track answer holds.
+TRACK_EXPLAINED = 1
+TRACK_SLIDE_LOSS = 2
+TRACK_MAX_CORRECTION = 4
 #: ``ResponseHeader.reasons`` of a ``FLAG_PLACES_ONLY`` answer: the places come from the
 #: relief search (uphill ground kept), run when the structure search proposed nothing;
 #: over a tile set they stand only when no tile proposed from structure.
@@ -77,6 +86,8 @@ class RequestKind(enum.IntEnum):
     ECHO = 7
     RELOAD = 8
     RELOCALIZE = 9
+    TRACK = 10
+    TRACK_IMU = 11
 
     @property
     def label(self) -> str:
@@ -257,8 +268,23 @@ class WireRanking(C.Structure):
         return "kfmap::WireRanking"
 
 
+class WireTrack(C.Structure):
+    """What a hosted tracker says of a scan beside the localization (104 bytes)."""
+
+    _fields_ = [
+        ("predicted", f64 * 7), ("t", f64), ("explained", f64), ("slide_loss", f64),
+        ("max_correction", f64), ("hypotheses", u32), ("known", u32), ("imu_refused", u32),
+        ("reserved", u32),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        """The type name in the Rust sources (iceoryx2 checks only the outer header)."""
+        return "kfmap::WireTrack"
+
+
 class ResponseHeader(C.Structure):
-    """Header of every response (3280 bytes); the payload is ``[WirePairing]``."""
+    """Header of every response (3416 bytes); the payload is ``[WirePairing]``."""
 
     _fields_ = [
         ("version", u32), ("status", u32), ("request_id", u64), ("detail", u64),
@@ -280,6 +306,7 @@ class ResponseHeader(C.Structure):
         ("session_gravity", WireSessionGravity * STATUS_SESSIONS),
         ("scan_covariance", WireCovOptions),
         ("relocalize_ranking", WireRanking),
+        ("track", WireTrack),
     ]
 
     @staticmethod
@@ -336,13 +363,17 @@ def _check_layouts() -> None:
         (C.sizeof(WireSessionGravity), 120),
         (C.sizeof(WireCovOptions), 40),
         (C.sizeof(WireRanking), 48),
-        (C.sizeof(ResponseHeader), 3280),
-        (ResponseHeader.relocalize_ranking.offset, 3232),
-        (ResponseHeader.scan_covariance.offset, 3192),
+        (C.sizeof(WireTrack), 104),
+        (WireTrack.hypotheses.offset, 88),
+        (C.sizeof(ResponseHeader), 3416),
+        (ResponseHeader.track.offset, 3312),
+        (ResponseHeader.relocalize_ranking.offset, 3264),
+        (ResponseHeader.scan_covariance.offset, 3224),
+        (ResponseHeader.p50_us.offset, 888),
         (ResponseHeader.relocalization.offset, 576),
         (ResponseHeader.map_keyframes.offset, 768),
-        (ResponseHeader.message.offset, 1028),
-        (ResponseHeader.session_gravity.offset, 1272),
+        (ResponseHeader.message.offset, 1060),
+        (ResponseHeader.session_gravity.offset, 1304),
         (PAIRING_DTYPE.itemsize, C.sizeof(WirePairing)),
         (PLACE_DTYPE.itemsize, C.sizeof(WirePairing)),
     ]

@@ -57,10 +57,12 @@ fn compute(
     match kind {
         RequestKind::Echo => echo(request, payload, limits),
         RequestKind::ImuWindow => imu_window(session, request, payload, &pose),
-        RequestKind::Status | RequestKind::Reload => Err(Rejection::new(
-            StatusCode::Internal,
-            "status and reload requests are answered by the server loop",
-        )),
+        RequestKind::Status | RequestKind::Reload | RequestKind::Track | RequestKind::TrackImu => {
+            Err(Rejection::new(
+                StatusCode::Internal,
+                "status, reload and track requests are answered by the server loop",
+            ))
+        }
         _ => {
             let scan = decode_scan(request, payload, limits.max_points)?;
             match kind {

@@ -2,11 +2,9 @@
 //! checks and retry ladder a client runs over cov2cov answers.
 
 use kfmap_geometry::geometry::Pose;
-use kfmap_geometry::tracking::{
-    Expectation, Stage, TrackingStatus, covariance_to_wire, localize_scan,
-};
+use kfmap_geometry::tracking::{Expectation, Stage, TrackingStatus, localize_scan};
 use kfmap_protocol::{
-    DecodedScan, Rejection, RequestHeader, decode_stamp, localize_stage, pose_to_wire,
+    DecodedScan, Rejection, RequestHeader, decode_stamp, localize_stage, write_localized,
 };
 
 use super::answer::{Answer, AnswerPairings, bad, exact_mode, with_active};
@@ -84,20 +82,6 @@ pub(super) fn localize(
         session.gravity.add_pose(stamp, found.pose);
     }
     let mut answer = with_active(AnswerPairings::default(), &active);
-    let (h, health) = (&mut answer.header, &found.health);
-    h.pose = pose_to_wire(&found.pose);
-    h.covariance = covariance_to_wire(health.covariance.as_ref());
-    h.fitness = [health.inlier_ratio, health.rmse];
-    h.iterations = health.iterations;
-    h.converged = health.converged as u32;
-    h.tracking = health.status as u32;
-    h.reasons = health.reasons.0;
-    h.registrations = health.registrations;
-    h.degenerate = health.degenerate as u32;
-    h.constraint = [
-        health.constraint.rotation_ratio,
-        health.constraint.translation_ratio,
-    ];
-    h.pose_correction = health.correction;
+    write_localized(&mut answer.header, &found.pose, &found.health);
     Ok(answer)
 }

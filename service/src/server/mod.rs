@@ -19,6 +19,7 @@ mod relocalize;
 pub mod session;
 pub mod state;
 mod stats;
+mod track;
 mod unread;
 mod workers;
 

@@ -9,6 +9,8 @@ use kfmap_map::map::MergedSubmap;
 use kfmap_map::place::{Proposal, Scored};
 use nalgebra::Vector3;
 
+use super::track::HostedTracker;
+
 /// One client's state.
 pub struct Session {
     /// Exact mode: the merged submap of this client's last active set.
@@ -19,6 +21,9 @@ pub struct Session {
     /// The places (and scores) of the last scan relocalized in phases over a tile set,
     /// for the phase that follows.
     pub last_places: Option<ProposedFor>,
+    /// The tracker hosted for this client (`Track`), locked for a whole request while
+    /// the session itself is locked per request of the tracker's.
+    pub hosted: Arc<Mutex<HostedTracker>>,
     /// Map generation the cache belongs to.
     generation: u64,
 }
@@ -29,6 +34,7 @@ impl Session {
         Self {
             merged: None,
             last_places: None,
+            hosted: Arc::default(),
             gravity: LiveGravity::new(GravityParams::default())
                 .expect("default gravity parameters are valid"),
             generation,

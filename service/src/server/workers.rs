@@ -126,6 +126,13 @@ impl WorkerContext<'_> {
         match RequestKind::from_code(header.kind) {
             Some(RequestKind::Status) => self.status(header),
             Some(RequestKind::Reload) => self.reload_answer(header),
+            Some(RequestKind::Track | RequestKind::TrackImu) => {
+                let map = self.slot.current();
+                let session = self
+                    .sessions
+                    .get(client_of(header.client_node), map.generation);
+                super::track::answer(map, session, header, payload, &self.limits)
+            }
             _ => {
                 let map = self.slot.current();
                 let session = self
