@@ -4,12 +4,11 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
+use kfmap_client::Tracker;
 use kfmap_geometry::gravity::{GravityParams, LiveAnswer, LiveGravity};
 use kfmap_map::map::MergedSubmap;
 use kfmap_map::place::{Proposal, Scored};
 use nalgebra::Vector3;
-
-use super::track::HostedTracker;
 
 /// One client's state.
 pub struct Session {
@@ -49,6 +48,16 @@ impl Session {
             self.generation = generation;
         }
     }
+}
+
+/// A session's hosted tracker (`Track`, answered by `super::track`).
+#[derive(Default)]
+pub struct HostedTracker {
+    /// The tracker, once a `Track` or `TrackImu` request made it.
+    pub tracker: Option<Tracker>,
+    /// True once a `Track` request started the tracker (one made for IMU samples that
+    /// came first is replaced by the first scan's, keeping its gyro).
+    pub started_by_scan: bool,
 }
 
 /// A search's places, their scores once asked, and the scan (and the map's up, when

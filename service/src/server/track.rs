@@ -18,7 +18,7 @@ use super::answer::{Answer, AnswerPairings, bad};
 use super::dispatch;
 use super::limits::Limits;
 use super::localize::localize_params;
-use super::session::Session;
+use super::session::{HostedTracker, Session};
 use super::state::ServedMap;
 
 /// IMU samples one `TrackImu` request carries at most (as an `ImuWindow`).
@@ -26,15 +26,6 @@ const MAX_IMU_SAMPLES: usize = 1 << 16;
 /// Seconds of IMU log a hosted tracker keeps before its newest sample (as the ROS 2
 /// node's `[imu] keep-s`): a lost stretch longer than this is predicted without it.
 const IMU_KEEP_S: f64 = 20.0;
-
-/// A session's hosted tracker.
-#[derive(Default)]
-pub struct HostedTracker {
-    tracker: Option<Tracker>,
-    /// True once a `Track` request started the tracker (one made for IMU samples that
-    /// came first is replaced by the first scan's, keeping its gyro).
-    started_by_scan: bool,
-}
 
 /// Answers a hosted tracker's own requests in this process, within its client's
 /// session, as the IPC loop would.
