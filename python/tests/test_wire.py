@@ -42,7 +42,8 @@ def test_layouts_match_the_rust_layout_test() -> None:
     layouts = rust_layouts()
     types = {"RequestHeader": wire.RequestHeader, "ResponseHeader": wire.ResponseHeader,
              "WirePairing": wire.WirePairing, "WireSessionGravity": wire.WireSessionGravity,
-             "WireCovOptions": wire.WireCovOptions, "WireRanking": wire.WireRanking}
+             "WireCovOptions": wire.WireCovOptions, "WireRanking": wire.WireRanking,
+             "WireTrack": wire.WireTrack}
     # A place travels in a pairing's slot: a numpy record, not a ctypes structure.
     place_size, place_offsets = layouts.pop("WirePlace")
     assert wire.PLACE_DTYPE.itemsize == place_size
