@@ -548,12 +548,10 @@ pub fn run(
 ) -> anyhow::Result<Summary> {
     let context = Context::with_options(ContextOptions::new().domain_id(domain_id))
         .context("start DDS (domain participant)")?;
+    let node_name = NodeName::new(&config.node.namespace, &config.node.name)
+        .map_err(|e| anyhow::anyhow!("node name: {e:?}"))?;
     let mut node = context
-        .new_node(
-            NodeName::new(&config.node.namespace, &config.node.name)
-                .map_err(|e| anyhow::anyhow!("node name: {e:?}"))?,
-            NodeOptions::new().enable_rosout(false),
-        )
+        .new_node(node_name.clone(), NodeOptions::new().enable_rosout(false))
         .context("create the ROS 2 node")?;
     let topics = &config.topics;
     let inbox = Inbox {
@@ -567,11 +565,14 @@ pub fn run(
     // The sensors' messages come as bytes, for kfmap_bag's decoders (crate::raw).
     let participant = context.domain_participant();
     let qos = sensor_data(config.qos.points_depth);
-    let points = raw::reader(
+    let points_topic = raw::bounded_topic(
         &participant,
-        &topic(&node, &topics.points, ("sensor_msgs", "PointCloud2"), &qos)?,
+        &node_name,
+        &topic_name(&topics.points)?,
+        &MessageTypeName::new("sensor_msgs", "PointCloud2"),
         &qos,
     )?;
+    let points = raw::reader(&participant, &points_topic, &qos)?;
     let clouds = inbox.clouds.clone();
     executor
         .spawn(raw::forward(points, move |sample| {

@@ -11,14 +11,16 @@
 use std::convert::Infallible;
 
 use futures::StreamExt;
-use ros2_client::QosProfile;
 use ros2_client::dds::rustdds::bytes::Bytes;
 use ros2_client::dds::rustdds::no_key::{
     Decode, DefaultDecoder, DeserializerAdapter, SerializerAdapter, SimpleDataReader,
 };
 use ros2_client::dds::rustdds::{
-    DomainParticipant, QosPolicies, RepresentationIdentifier, Topic, TopicDescription, no_key,
+    DomainParticipant, QosPolicies, QosPolicyBuilder, RepresentationIdentifier, Topic,
+    TopicDescription, TopicKind, no_key, policy,
 };
+use ros2_client::qos::History;
+use ros2_client::{MessageTypeName, Name, NodeName, QosProfile};
 
 /// One sample's bytes: plain CDR, its 4-byte encapsulation header first, as
 /// `kfmap_bag::msg`'s decoders read a bag's ROS 2 messages.
@@ -84,13 +86,56 @@ impl SerializerAdapter<CdrSample> for RawCdr {
     }
 }
 
+/// `qos` with RustDDS's per-topic sample cache bounded to its keep-last depth.
+/// RustDDS keeps every topic's received samples in a cache of its own beside the
+/// reader's history, up to `ResourceLimits::max_samples` (64 when unset) whatever the
+/// history depth: 64 clouds of 2.7 MB were 170 MB of the node's 290 MB
+/// (docs/DESIGN.md#notes-ros2-memory).
+fn bounded(qos: &QosProfile) -> QosPolicies {
+    let depth = match qos.history {
+        History::KeepLast { depth } => depth.clamp(1, i32::MAX as usize) as i32,
+        History::KeepAll => return QosPolicies::from(qos),
+    };
+    QosPolicies::from(qos).modify_by(
+        &QosPolicyBuilder::new()
+            .resource_limits(policy::ResourceLimits {
+                max_samples: depth,
+                max_instances: 1,
+                max_samples_per_instance: depth,
+            })
+            .build(),
+    )
+}
+
+/// The DDS topic of ROS topic `name` (`rt/...`, as ros2-client names it) whose sample
+/// cache holds no more than `qos`'s keep-last depth: created here, since the cache
+/// takes its bound from the topic's QoS when the topic is made, and ros2-client's
+/// topics carry no resource limits.
+pub fn bounded_topic(
+    participant: &DomainParticipant,
+    node: &NodeName,
+    name: &Name,
+    type_name: &MessageTypeName,
+    qos: &QosProfile,
+) -> anyhow::Result<Topic> {
+    let dds_name = name.to_dds_name("rt", node, "");
+    participant
+        .create_topic(
+            dds_name.clone(),
+            type_name.dds_msg_type(),
+            &bounded(qos),
+            TopicKind::NoKey,
+        )
+        .map_err(|e| anyhow::anyhow!("DDS topic {dds_name}: {e:?}"))
+}
+
 /// A reader of `topic`'s samples as bytes.
 pub fn reader(
     participant: &DomainParticipant,
     topic: &Topic,
     qos: &QosProfile,
 ) -> anyhow::Result<SimpleDataReader<CdrSample, RawCdr>> {
-    let qos = QosPolicies::from(qos);
+    let qos = bounded(qos);
     let subscriber = participant
         .create_subscriber(&qos)
         .map_err(|e| anyhow::anyhow!("DDS subscriber: {e:?}"))?;
