@@ -164,23 +164,36 @@ impl RemoteLink {
             })
             .wait()
             .map_err(|e| zenoh_failed(format!("watch {pattern}"), e))?;
-        // The tokens alive now (the subscriber above keeps the set current after).
-        let present: Vec<String> = session
-            .liveliness()
-            .get(&pattern)
-            .timeout(CONNECT_WAIT)
-            .wait()
-            .map_err(|e| zenoh_failed(format!("look up {pattern}"), e))?
-            .iter()
-            .filter_map(|reply| {
-                let sample = reply.into_result().ok()?;
-                tile_of_alive_key(map_name, sample.key_expr().as_str()).map(str::to_string)
-            })
-            .collect();
-        alive
-            .lock()
-            .expect("the token set")
-            .extend(present.iter().cloned());
+        // The tokens alive now (the subscriber above keeps the set current after), asked
+        // again until one shows or CONNECT_WAIT is spent: the session may not have
+        // reached a gateway yet when the first ask goes out (a loaded host).
+        let deadline = Instant::now() + CONNECT_WAIT;
+        let present: Vec<String> = loop {
+            let left = deadline
+                .saturating_duration_since(Instant::now())
+                .max(Duration::from_millis(50));
+            let asked: Vec<String> = session
+                .liveliness()
+                .get(&pattern)
+                .timeout(left)
+                .wait()
+                .map_err(|e| zenoh_failed(format!("look up {pattern}"), e))?
+                .iter()
+                .filter_map(|reply| {
+                    let sample = reply.into_result().ok()?;
+                    tile_of_alive_key(map_name, sample.key_expr().as_str()).map(str::to_string)
+                })
+                .collect();
+            let mut known = alive.lock().expect("the token set");
+            known.extend(asked);
+            if !known.is_empty() || Instant::now() >= deadline {
+                let mut present: Vec<String> = known.iter().cloned().collect();
+                present.sort();
+                break present;
+            }
+            drop(known);
+            std::thread::sleep(Duration::from_millis(50));
+        };
         let no_server = || {
             ClientError::NoServer(format!(
                 "{map_name} (remote, at {})",

@@ -622,13 +622,24 @@ class RemoteConnection:
             self._watch = self._session.liveliness().declare_subscriber(
                 pattern, on_token, history=True
             )
-            # The tokens alive now; the subscriber keeps the set current after.
-            present = []
-            for reply in self._session.liveliness().get(pattern, timeout=CONNECT_WAIT_S):
-                if reply.ok is not None:
-                    t = _tile_of_alive_key(map_name, str(reply.ok.key_expr))
-                    if t is not None:
-                        present.append(t)
+            # The tokens alive now; the subscriber keeps the set current after. Asked
+            # again until one shows or CONNECT_WAIT_S is spent: the session may not have
+            # reached a gateway yet when the first ask goes out (a loaded host).
+            present: list[str] = []
+            deadline = time.monotonic() + CONNECT_WAIT_S
+            while True:
+                left = max(0.05, deadline - time.monotonic())
+                for reply in self._session.liveliness().get(pattern, timeout=left):
+                    if reply.ok is not None:
+                        t = _tile_of_alive_key(map_name, str(reply.ok.key_expr))
+                        if t is not None:
+                            present.append(t)
+                with self._alive_lock:
+                    present.extend(self._alive)
+                if present or time.monotonic() >= deadline:
+                    break
+                time.sleep(0.05)
+            present = sorted(set(present))
             with self._alive_lock:
                 self._alive.update(present)
             where = ", ".join(endpoints)
