@@ -474,9 +474,7 @@ def best_scored(order: Sequence[tuple[str, int]],
         registrations += header.registrations
         scored_us = _fmax(scored_us, header.server_us)
         for slot in np.frombuffer(rest, dtype=wire.PLACE_DTYPE):
-            q = [float(v) for v in slot["rotation"]]
-            norm = math.sqrt(sum(v * v for v in q))
-            pose = [float(v) for v in slot["translation"]] + [v / norm if norm else v for v in q]
+            pose = wire.place_pose(slot)
             if not wire_pose_is_valid(pose):
                 raise TransportError(f"tile {tile} scored an invalid pose")
             places.append((tile, int(slot["rank"]), pose, float(slot["score"])))

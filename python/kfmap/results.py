@@ -174,9 +174,7 @@ class Tracked:
         records = places.view(wire.PLACE_DTYPE) if len(places) else places
         hypotheses = []
         for rec in records:
-            q = np.asarray(rec["rotation"], dtype=np.float64)
-            values = [*rec["translation"], *(q / np.linalg.norm(q))]
-            hypotheses.append(Hypothesis(_checked_pose(values), float(rec["score"]),
+            hypotheses.append(Hypothesis(_checked_pose(wire.place_pose(rec)), float(rec["score"]),
                                          int(rec["rank"])))
 
         def figure(value: float, bit: int) -> float | None:

@@ -10,6 +10,7 @@ alignment, so every type here carries the type name the Rust side declares with
 from __future__ import annotations
 
 import ctypes as C
+import math
 import enum
 
 import numpy as np
@@ -350,6 +351,15 @@ PLACE_DTYPE = np.dtype(
         "itemsize": 56,
     }
 )
+
+
+def place_pose(slot: np.void) -> list[float]:
+    """The wire pose (x y z qx qy qz qw) of a ``PLACE_DTYPE`` record, its f32 rotation
+    renormalized in f64 (as ``kfmap_protocol::place_from_wire``); check it with
+    ``geometry.wire_pose_is_valid``."""
+    q = [float(v) for v in slot["rotation"]]
+    norm = math.sqrt(sum(v * v for v in q))
+    return [float(v) for v in slot["translation"]] + [v / norm if norm else v for v in q]
 
 
 def _check_layouts() -> None:

@@ -94,6 +94,7 @@ def test_the_hosted_tracker_is_the_cli_tracker_and_never_confidently_wrong(
             wrong += e_m > WRONG_M or e_deg > WRONG_DEG
     print(f"hosted tracker, no start, no IMU: {ok} of {len(stamps)} scans ok, {wrong} wrong")
     assert wrong == 0
+    assert ok >= len(stamps) - 3  # measured 29 of 30
 
 
 def test_the_hosted_tracker_follows_a_later_recording_from_its_start_with_the_imu(
@@ -123,8 +124,9 @@ def test_the_hosted_tracker_follows_a_later_recording_from_its_start_with_the_im
     rms = math.sqrt(float(np.mean(np.square(ok_errors)))) if ok_errors else math.inf
     print(f"hosted tracker from the true start, IMU: {len(ok_errors)} of {len(stamps)} ok, "
           f"RMS {rms:.4f} m")
-    assert len(ok_errors) >= 0.9 * len(stamps)
-    assert rms < 0.05
+    # Measured 30 of 30 at 1.4 mm RMS: bounds near it.
+    assert len(ok_errors) >= len(stamps) - 1
+    assert rms < 0.004
 
 
 def test_the_hosted_tracker_refuses_bad_input_by_name(client) -> None:

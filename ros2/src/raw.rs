@@ -171,3 +171,22 @@ pub async fn forward(reader: SimpleDataReader<CdrSample, RawCdr>, mut take: impl
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The sample cache is bounded by the keep-last depth the profile asks for (the
+    /// depth is the oracle), and a keep-all profile is left without a bound.
+    #[test]
+    fn the_topic_cache_is_bounded_by_the_keep_last_depth() {
+        let profile = QosProfile::subscription_default().history(History::KeepLast { depth: 5 });
+        let limits = bounded(&profile).resource_limits().unwrap();
+        assert_eq!(
+            (limits.max_samples, limits.max_samples_per_instance),
+            (5, 5)
+        );
+        let all = QosProfile::subscription_default().history(History::KeepAll);
+        assert_eq!(bounded(&all).resource_limits(), None);
+    }
+}

@@ -78,18 +78,20 @@ pub fn answer(
         .clone();
     // Held for the whole request: one client's scans are tracked one at a time.
     let mut hosted = hosted.lock().unwrap_or_else(|e| e.into_inner());
-    let mut client = Client::in_process(
-        &map.path.display().to_string(),
-        request.client_node,
-        Box::new(Loopback {
-            map: map.clone(),
-            session,
-            limits: *limits,
-        }),
-    );
     let computed = match RequestKind::from_code(request.kind) {
         Some(RequestKind::TrackImu) => push_imu(&mut hosted, request, payload),
-        _ => track(&mut hosted, &mut client, request, payload, limits),
+        _ => {
+            let mut client = Client::in_process(
+                &map.path.display().to_string(),
+                request.client_node,
+                Box::new(Loopback {
+                    map: map.clone(),
+                    session,
+                    limits: *limits,
+                }),
+            );
+            track(&mut hosted, &mut client, request, payload, limits)
+        }
     };
     let mut answer = computed.unwrap_or_else(|rejection| Answer::rejected(0, &rejection));
     answer.header.request_id = request.request_id;
@@ -110,16 +112,13 @@ fn track(
         .ok_or_else(|| bad("a Track request needs the scan's time in `stamp` (FLAG_STAMPED)"))?;
     let reset = request.flags & FLAG_TRACK_RESET != 0;
     if reset || !hosted.started_by_scan {
-        let (fine, _) = localize_params(&RequestHeader {
-            max_correction: 0.0,
-            expected_inlier_ratio: 0.0,
-            ..*request
-        })?;
+        // The same bounds as `Localize` (its correction fields are checked, not used).
+        localize_params(request)?;
         let mode = Cov2CovMode::from_code(request.mode)
             .ok_or_else(|| bad(format!("cov2cov mode {} is unknown", request.mode)))?;
         let options = TrackerOptions {
             localize: LocalizeOptions {
-                max_iterations: fine.max_iterations as u32,
+                max_iterations: request.max_iterations,
                 max_pair_dist: request.max_pair_dist,
                 mode,
                 tracking: limits.tracking,
@@ -128,9 +127,13 @@ fn track(
             server_side: true,
             ..TrackerOptions::default()
         };
-        let start = (reset && request.flags & FLAG_TRACK_FROM_POSE != 0)
-            .then(|| pose_from_wire(&request.pose))
-            .flatten();
+        let start = if reset && request.flags & FLAG_TRACK_FROM_POSE != 0 {
+            Some(pose_from_wire(&request.pose).ok_or_else(|| {
+                bad("the start pose is not finite or its quaternion is not of unit length")
+            })?)
+        } else {
+            None
+        };
         let mut tracker = match start {
             Some(pose) => Tracker::new(pose, options),
             None => Tracker::relocalizing(options),
