@@ -273,6 +273,16 @@ const MIN_STRUCTURE_POINTS: usize = 50;
 const MAX_STRUCTURE_POINTS: usize = 2000;
 /// How far [`Tracker::slide_loss`] slides a pose: the distance `ok` promises, metres.
 const SLIDE_PROBE_M: f64 = 0.5;
+/// A slide of [`SLIDE_PROBE_M`] that loses at least this share of the explained
+/// structure holds the pose there as well as its registration says; less widens the
+/// covariance along the slide ([`widened_along_slide`]). Measured on a street whose
+/// buildings changed: ok scans losing 0.13-0.24 were 0-17 mm off along the road, those
+/// losing 0.05-0.09 were 60-170 mm off with the registration's sigma at 5-20 mm.
+const SLIDE_PINNED_WELL: f64 = 0.15;
+/// Sigma along the slide of a `degenerate` scan, metres: the scene says nothing there
+/// (a tunnel's axis, where the registration's weak pull may hold a repeat metres off),
+/// so an EKF fusing the pose must not trust that direction at all.
+const UNCONSTRAINED_SIGMA_M: f64 = 10.0;
 /// How much more of a scan's structure a place's registration explains than the place
 /// as the search settled it, at most, for the periodic check's rivals: measured over
 /// 105 places of the changed courtyard, street and campus runs, p50 0.001, p99 and max
@@ -343,6 +353,31 @@ fn structure(scan: &ScanPayload, pose: &Pose) -> Vec<[f32; 3]> {
     }
     let stride = structure.len().div_ceil(MAX_STRUCTURE_POINTS).max(1);
     structure.into_iter().step_by(stride).collect()
+}
+
+/// `localized`'s covariance widened along its least constrained horizontal direction
+/// (where [`Tracker::slide_loss`] slid it) by what the slide showed: nothing when the
+/// slide lost at least [`SLIDE_PINNED_WELL`] of the explained structure, a variance
+/// growing to [`SLIDE_PROBE_M`] squared as the loss falls to zero, and
+/// [`UNCONSTRAINED_SIGMA_M`] squared when the registration found the scene degenerate.
+/// The registration's covariance cannot see a pull along a street that the changed
+/// world (a building's end that moved) or a repeat (a tunnel's ribs) puts on the pose.
+fn widened_along_slide(localized: &mut Localized, slide_loss: Option<f64>) {
+    let (Some(loss), Some(covariance)) = (slide_loss, localized.health.covariance.as_mut()) else {
+        return;
+    };
+    let Some(direction) = widest_horizontal(covariance, &localized.pose) else {
+        return;
+    };
+    let sigma = if localized.health.reasons.contains(Reasons::DEGENERATE) {
+        UNCONSTRAINED_SIGMA_M
+    } else {
+        SLIDE_PROBE_M * (1.0 - loss / SLIDE_PINNED_WELL).clamp(0.0, 1.0)
+    };
+    // The direction in the sensor frame, where the covariance is.
+    let along = localized.pose.rotation.inverse() * direction;
+    let mut block = covariance.fixed_view_mut::<3, 3>(3, 3);
+    block += along * along.transpose() * (sigma * sigma);
 }
 
 /// The horizontal direction (map frame, unit) along which `covariance` (sensor frame,
@@ -524,6 +559,7 @@ impl Tracker {
             }
         };
         self.demote_doubtful(&mut localized, explained, slide_loss);
+        widened_along_slide(&mut localized, slide_loss);
         self.confirm_after_unpinned_run(client, scan, t, &mut localized)?;
         self.give_up_when_unfit(&predicted, &mut localized);
         if localized.health.status == TrackingStatus::Lost && self.options.relocalize_when_lost {
@@ -963,6 +999,7 @@ impl Tracker {
             None => None,
         };
         self.demote_doubtful(&mut found, explained, slide_loss);
+        widened_along_slide(&mut found, slide_loss);
         let mut tracked = self.observe(t, prediction, None, found);
         tracked.explained = explained;
         tracked.slide_loss = slide_loss;
@@ -1204,6 +1241,41 @@ mod tests {
                 ..ScanHealth::no_fit(1, 3)
             },
         }
+    }
+
+    /// The slide widens the covariance along the map's horizontal direction it probed,
+    /// by the closed form of [`widened_along_slide`], and nowhere else.
+    #[test]
+    fn a_weakly_pinned_slide_widens_the_covariance_along_it_only() {
+        // Sensor yawed 90 deg: its y axis is the map's -x. The registration's sigma is
+        // 1 cm everywhere but 3 cm along the sensor's y (so the map's x is the widest).
+        let mut covariance = nalgebra::Matrix6::<f64>::identity() * 1e-4;
+        covariance[(4, 4)] = 9e-4;
+        let pose = Pose::from_parts(
+            nalgebra::Translation3::new(1.0, 2.0, 0.0),
+            nalgebra::UnitQuaternion::from_euler_angles(0.0, 0.0, 90f64.to_radians()),
+        );
+        let with = |loss: Option<f64>, reasons: Reasons| {
+            let mut localized = scan(pose, TrackingStatus::Ok, 0.9);
+            localized.health.reasons = reasons;
+            localized.health.covariance = Some(covariance);
+            widened_along_slide(&mut localized, loss);
+            localized.health.covariance.unwrap()
+        };
+        let added = |c: nalgebra::Matrix6<f64>| c - covariance;
+        // Pinned well, or not probed: unchanged.
+        assert_eq!(added(with(Some(0.2), Reasons::NONE)).abs().max(), 0.0);
+        assert_eq!(added(with(None, Reasons::DEGENERATE)).abs().max(), 0.0);
+        // Loss 0.05 of 0.15: sigma 0.5 m * (1 - 1/3) along the sensor's y only.
+        let sigma: f64 = 0.5 * (1.0 - 0.05 / 0.15);
+        let grown = added(with(Some(0.05), Reasons::NONE));
+        assert!((grown[(4, 4)] - sigma * sigma).abs() < 1e-12, "{grown}");
+        assert!(grown[(4, 4)] - grown.abs().max() == 0.0);
+        let others: f64 = grown.iter().map(|v| v.abs()).sum::<f64>() - grown[(4, 4)];
+        assert!(others < 1e-12, "{grown}");
+        // No loss at all: the probe's distance; a degenerate scene: unconstrained.
+        assert!((added(with(Some(-0.1), Reasons::NONE))[(4, 4)] - 0.25).abs() < 1e-12);
+        assert!((added(with(Some(0.05), Reasons::DEGENERATE))[(4, 4)] - 100.0).abs() < 1e-9);
     }
 
     #[test]

@@ -239,10 +239,12 @@ pub struct ResponseHeader {
     /// `Localize`: solved `T_map_sensor` (x y z qx qy qz qw). `Status`: `T_map_input`,
     /// how bake moved the input poses into the map frame (gravity levelling).
     pub pose: [f64; 7],
-    /// `Localize`: 6x6 pose covariance, row-major, all zero when unknown: the inverse
-    /// Hessian scaled by the residual variance, of the perturbation `T exp(d)` with `d`
-    /// = (rotation rad, translation m) in the sensor frame, rotation first
-    /// ([`kfmap_geometry::tracking::pose_covariance`]).
+    /// `Localize`: 6x6 pose covariance, row-major, all zero when unknown: calibrated
+    /// (the residual-scaled inverse Hessian plus the cluster-robust sandwich, inflated,
+    /// with a rotation floor), of the perturbation `T exp(d)` with `d` = (rotation
+    /// rad, translation m) in the sensor frame, rotation first
+    /// ([`kfmap_geometry::tracking::pose_covariance`]; `Track` adds the slide's
+    /// widening).
     pub covariance: [f64; 36],
     /// `Localize`: inlier ratio and RMSE (metres).
     pub fitness: [f64; 2],

@@ -11,7 +11,8 @@ use serde::{Deserialize, Serialize};
 
 use super::RobustKernel;
 use super::solver::{
-    Constraint, Correspondence, Linearized, Optimizer, cost, linearize, retract, solve_step,
+    Constraint, Correspondence, GradientScatter, Linearized, Optimizer, cost, linearize, retract,
+    solve_step,
 };
 use crate::cloud::PointCloud;
 use crate::cov::{CovOptions, estimate_covariances};
@@ -58,6 +59,11 @@ pub struct RegistrationParams {
     pub optimizer: Optimizer,
     /// A Hessian block whose min/max eigenvalue ratio is below this is degenerate.
     pub degeneracy_ratio: f64,
+    /// When set, the result carries the gradient's scatter over cubes of this side,
+    /// metres ([`RegistrationResult::gradient_scatter`], for the sandwich covariance).
+    /// Asked by the localizer for the registration it reports; not a config setting.
+    #[serde(skip)]
+    pub gradient_cluster_m: Option<f64>,
 }
 
 impl Default for RegistrationParams {
@@ -74,6 +80,7 @@ impl Default for RegistrationParams {
             kernel: RobustKernel::None,
             optimizer: Optimizer::GaussNewton,
             degeneracy_ratio: 1e-2,
+            gradient_cluster_m: None,
         }
     }
 }
@@ -315,6 +322,9 @@ pub struct RegistrationResult {
     pub cost: f64,
     /// Correspondences of the last linearization.
     pub pairs: usize,
+    /// The last pairs' gradient scatter over spatial clusters at the solution, when
+    /// [`RegistrationParams::gradient_cluster_m`] asked for it.
+    pub gradient_scatter: Option<GradientScatter>,
 }
 
 /// The correspondences of `source` moved by `pose` (source order).
@@ -442,6 +452,9 @@ pub fn solve_pose<E: From<RegistrationError>>(
         .sum::<f64>()
         / pairs.len() as f64;
     let constraint = Constraint::of(&lin.hessian);
+    let gradient_scatter = params
+        .gradient_cluster_m
+        .map(|side| GradientScatter::of(&pairs, &pose, &params.kernel, side));
     Ok(RegistrationResult {
         pose,
         hessian: lin.hessian,
@@ -458,6 +471,7 @@ pub fn solve_pose<E: From<RegistrationError>>(
             || unobservable > 0,
         cost: lin.cost,
         pairs: pairs.len(),
+        gradient_scatter,
     })
 }
 

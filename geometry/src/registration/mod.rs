@@ -34,6 +34,6 @@ pub use gicp::{
 pub use kernel::RobustKernel;
 pub use overlap::overlap;
 pub use solver::{
-    Constraint, Correspondence, Linearized, Optimizer, Step, UNOBSERVABLE_RATIO, cost, linearize,
-    retract, solve_step,
+    Constraint, Correspondence, GradientScatter, Linearized, Optimizer, Step, UNOBSERVABLE_RATIO,
+    cost, linearize, retract, solve_step,
 };

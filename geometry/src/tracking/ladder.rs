@@ -5,7 +5,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::health::{Reasons, ScanHealth, TrackingStatus, pose_covariance};
+use super::health::{Reasons, SANDWICH_CLUSTER_M, ScanHealth, TrackingStatus, pose_covariance};
 use crate::cloud::{CloudError, PointCloud};
 use crate::geometry::{Pose, rotation_distance, translation_distance};
 use crate::motion::{point_displacement, yaw_hypotheses};
@@ -193,6 +193,8 @@ impl Stage {
             max_iterations: self.max_iterations,
             rotation_eps: defaults.rotation_eps * loosen,
             translation_eps: defaults.translation_eps * loosen,
+            // The fine stage's pose is the one reported, with its covariance.
+            gradient_cluster_m: (!self.coarse).then_some(SANDWICH_CLUSTER_M),
             ..defaults
         }
     }

@@ -48,7 +48,9 @@ mod prepared;
 mod tests;
 
 pub use health::{
-    Reasons, ScanHealth, TrackingStatus, covariance_from_wire, covariance_to_wire, pose_covariance,
+    COVARIANCE_INFLATION, ROTATION_FLOOR_RAD2, Reasons, SANDWICH_CLUSTER_M, ScanHealth,
+    TrackingStatus, covariance_from_wire, covariance_to_wire, pose_covariance,
+    registration_covariance,
 };
 pub use ladder::{
     CORRECTION_RANGE_M, Expectation, Localization, Stage, TrackingParams, localize_scan,

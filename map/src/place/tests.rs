@@ -1248,6 +1248,7 @@ fn settled_at(
         degenerate: false,
         cost: 1.0,
         pairs: 100,
+        gradient_scatter: None,
     }
 }
 

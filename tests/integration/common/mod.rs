@@ -365,6 +365,36 @@ pub fn map_from_input(name: &str, prefix: &str) -> Pose {
         .map_from_input
 }
 
+/// Normalized estimation error squared of the `ok` scans' published covariances
+/// against the truth: the mean of `d^T C^-1 d` per group, rotation and position
+/// (3 each for a calibrated covariance), with `d` the right perturbation from the
+/// reported pose to the truth (`T^-1 G`: rotation vector, then translation, sensor
+/// frame), as the covariance is defined; `scans` are `--json-lines` objects, one per
+/// pose of `truth`. Returns (rotation, position, scans counted).
+pub fn mean_nees(scans: &[serde_json::Value], truth: &[Pose]) -> (f64, f64, usize) {
+    assert_eq!(scans.len(), truth.len(), "one reference per scan");
+    let (mut rotation, mut position, mut n) = (0.0, 0.0, 0);
+    for (scan, truth) in scans.iter().zip(truth) {
+        if scan["status"] != "ok" {
+            continue;
+        }
+        let values: Vec<f64> = serde_json::from_value(scan["covariance"].clone()).unwrap();
+        let covariance = nalgebra::Matrix6::from_row_slice(&values);
+        let reported: Vec<f64> = serde_json::from_value(scan["pose"].clone()).unwrap();
+        let reported =
+            kfmap_geometry::geometry::pose_from_xyz_quat(reported.try_into().unwrap()).unwrap();
+        let d = reported.inverse() * truth;
+        let nees = |e: nalgebra::Vector3<f64>, at: usize| {
+            let block = covariance.fixed_view::<3, 3>(at, at).into_owned();
+            e.dot(&(block.try_inverse().expect("a full-rank covariance") * e))
+        };
+        rotation += nees(d.rotation.scaled_axis(), 0);
+        position += nees(d.translation.vector, 3);
+        n += 1;
+    }
+    (rotation / n as f64, position / n as f64, n)
+}
+
 /// Position (m) and rotation (deg) error of each pose against its reference, computed
 /// here: the oracle of the localization tests, never the figures `kfmap localize`
 /// prints about itself.
