@@ -202,11 +202,5 @@ fn demo_real_maps_and_tracks_balm_against_its_reference_poses() {
         .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
         .filter(|v| v.get("index").is_some())
         .collect();
-    let (rotation, position, n) = common::mean_nees(&scans, &truth);
-    println!(
-        "demo --real: mean NEES rotation {rotation:.2}, position {position:.2} (3 each when calibrated) over {n} ok scans"
-    );
-    assert!(n >= 55, "{n} ok scans");
-    assert!((1.0..6.5).contains(&position), "position NEES {position}");
-    assert!((0.8..6.5).contains(&rotation), "rotation NEES {rotation}");
+    common::assert_nees("demo --real", &scans, &truth, 55, 0.8..6.5, 1.0..6.5);
 }

@@ -63,6 +63,27 @@ fn result_at_identity(pairs: &[Correspondence]) -> RegistrationResult {
     }
 }
 
+/// The registration of fixed `pairs` (the same at every pose) from the identity.
+fn solved_from_identity(
+    pairs: &[Correspondence],
+    params: &RegistrationParams,
+) -> RegistrationResult {
+    solve_pose(&Pose::identity(), params, pairs.len(), |_| {
+        Ok::<_, crate::registration::RegistrationError>(pairs.to_vec())
+    })
+    .unwrap()
+}
+
+/// The unbiased sample covariance of `draws`.
+fn sample_covariance(draws: &[nalgebra::Vector6<f64>]) -> Matrix6<f64> {
+    let mean = draws.iter().sum::<nalgebra::Vector6<f64>>() / draws.len() as f64;
+    draws
+        .iter()
+        .map(|x| (x - mean) * (x - mean).transpose())
+        .sum::<Matrix6<f64>>()
+        / (draws.len() - 1) as f64
+}
+
 /// Point-to-point with unit information on a centred cloud: `H = diag(sum |s|^2 I - s
 /// s^T, n I)` and `sigma^2 = sum |r|^2 / (3n - 6)`, so the covariance is `sigma^2 (sum
 /// |s|^2 I - s s^T)^-1` for rotation, `sigma^2 / n I` for translation, zero between.
@@ -110,19 +131,11 @@ fn covariance_predicts_the_scatter_of_the_solution() {
             max_iterations: 10,
             ..RegistrationParams::default()
         };
-        let result = solve_pose(&Pose::identity(), &params, pairs.len(), |_| {
-            Ok::<_, crate::registration::RegistrationError>(pairs.clone())
-        })
-        .unwrap();
+        let result = solved_from_identity(&pairs, &params);
         predicted += registration_covariance(&result).unwrap() / draws as f64;
         solutions.push(crate::se3::log(&result.pose));
     }
-    let mean = solutions.iter().sum::<nalgebra::Vector6<f64>>() / draws as f64;
-    let empirical = solutions
-        .iter()
-        .map(|x| (x - mean) * (x - mean).transpose())
-        .sum::<Matrix6<f64>>()
-        / (draws - 1) as f64;
+    let empirical = sample_covariance(&solutions);
     for i in 0..6 {
         let ratio = empirical[(i, i)] / predicted[(i, i)];
         // 300 draws: the variance estimate is within about +-16 % (2 sigma).
@@ -181,10 +194,7 @@ fn the_sandwich_predicts_the_scatter_when_surfaces_err_together() {
     let (mut sandwich, mut independent) = (Matrix6::zeros(), Matrix6::zeros());
     for _ in 0..draws {
         let pairs = panel_problem(&mut rng, 0.01, 0.002);
-        let result = solve_pose(&Pose::identity(), &params, pairs.len(), |_| {
-            Ok::<_, crate::registration::RegistrationError>(pairs.clone())
-        })
-        .unwrap();
+        let result = solved_from_identity(&pairs, &params);
         let both = registration_covariance(&result).unwrap();
         let alone = registration_covariance(&RegistrationResult {
             gradient_scatter: None,
@@ -195,12 +205,7 @@ fn the_sandwich_predicts_the_scatter_when_surfaces_err_together() {
         independent += alone / draws as f64;
         solutions.push(crate::se3::log(&result.pose));
     }
-    let mean = solutions.iter().sum::<nalgebra::Vector6<f64>>() / draws as f64;
-    let empirical = solutions
-        .iter()
-        .map(|x| (x - mean) * (x - mean).transpose())
-        .sum::<Matrix6<f64>>()
-        / (draws - 1) as f64;
+    let empirical = sample_covariance(&solutions);
     for i in 0..6 {
         let ratio = empirical[(i, i)] / sandwich[(i, i)];
         let under = empirical[(i, i)] / independent[(i, i)];

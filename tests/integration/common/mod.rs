@@ -395,6 +395,31 @@ pub fn mean_nees(scans: &[serde_json::Value], truth: &[Pose]) -> (f64, f64, usiz
     (rotation / n as f64, position / n as f64, n)
 }
 
+/// Asserts [`mean_nees`] of `scans` against `truth` within the bounds, per group, over
+/// at least `min_ok` scans `ok`, and prints the figures under `label`.
+pub fn assert_nees(
+    label: &str,
+    scans: &[serde_json::Value],
+    truth: &[Pose],
+    min_ok: usize,
+    rotation_within: std::ops::Range<f64>,
+    position_within: std::ops::Range<f64>,
+) {
+    let (rotation, position, n) = mean_nees(scans, truth);
+    println!(
+        "{label}: mean NEES rotation {rotation:.2}, position {position:.2} (3 each when calibrated) over {n} ok scans"
+    );
+    assert!(n >= min_ok, "{label}: {n} ok scans");
+    assert!(
+        rotation_within.contains(&rotation),
+        "{label}: rotation NEES {rotation}"
+    );
+    assert!(
+        position_within.contains(&position),
+        "{label}: position NEES {position}"
+    );
+}
+
 /// Position (m) and rotation (deg) error of each pose against its reference, computed
 /// here: the oracle of the localization tests, never the figures `kfmap localize`
 /// prints about itself.

@@ -1,0 +1,711 @@
+// fdpeer: a minimal Fast DDS 2.x peer for kfmap-ros2 interop tests.
+//
+// Publishes sensor_msgs/PointCloud2 (synthetic plane points or PCD scans) and subscribes
+// to PoseWithCovarianceStamped, latched PointCloud2 and DiagnosticArray topics, with the
+// ROS 2 DDS names (topic "rt/<name>", type "<pkg>::msg::dds_::<Name>_"). Every event is
+// one JSON line on stdout. Fast DDS's own defaults are kept (shared-memory + UDPv4
+// transports, XML profiles from FASTRTPS_DEFAULT_PROFILES_FILE or
+// DEFAULT_FASTRTPS_PROFILES.xml) unless a flag says otherwise.
+//
+// Usage: fdpeer [options]   (see usage() below). Built by tools/fastdds/build.sh; run
+// beside the node by tools/fastdds/run.sh (README there).
+
+#include "ros2_msgsPubSubTypes.h"
+
+#include <fastdds/dds/domain/DomainParticipant.hpp>
+#include <fastdds/dds/domain/DomainParticipantFactory.hpp>
+#include <fastdds/dds/domain/DomainParticipantListener.hpp>
+#include <fastdds/dds/publisher/DataWriter.hpp>
+#include <fastdds/dds/publisher/DataWriterListener.hpp>
+#include <fastdds/dds/publisher/Publisher.hpp>
+#include <fastdds/dds/subscriber/DataReader.hpp>
+#include <fastdds/dds/subscriber/DataReaderListener.hpp>
+#include <fastdds/dds/subscriber/SampleInfo.hpp>
+#include <fastdds/dds/subscriber/Subscriber.hpp>
+#include <fastdds/dds/topic/Topic.hpp>
+#include <fastdds/rtps/transport/UDPv4TransportDescriptor.h>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <fstream>
+#include <mutex>
+#include <sstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+using namespace eprosima::fastdds::dds;
+namespace rtps = eprosima::fastrtps::rtps;
+
+namespace sm = sensor_msgs::msg::dds_;
+namespace gm = geometry_msgs::msg::dds_;
+namespace dm = diagnostic_msgs::msg::dds_;
+
+static std::mutex out_mutex;
+static const auto t0 = std::chrono::steady_clock::now();
+
+static double now_s()
+{
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+static double wall_s()
+{
+    return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
+}
+
+static std::string esc(const std::string& s)
+{
+    std::string o;
+    for (char c : s)
+    {
+        if (c == '"' || c == '\\')
+        {
+            o += '\\';
+            o += c;
+        }
+        else if (static_cast<unsigned char>(c) < 0x20)
+        {
+            char b[8];
+            std::snprintf(b, sizeof b, "\\u%04x", c);
+            o += b;
+        }
+        else
+        {
+            o += c;
+        }
+    }
+    return o;
+}
+
+// One JSON object per line: `body` is the object's members without braces.
+static void emit(const std::string& body)
+{
+    std::lock_guard<std::mutex> lock(out_mutex);
+    std::printf("{\"t\":%.6f,%s}\n", now_s(), body.c_str());
+    std::fflush(stdout);
+}
+
+static std::string ros_topic(const std::string& name)
+{
+    // ROS 2 topic "/a/b" is DDS topic "rt/a/b".
+    return "rt" + (name.empty() || name[0] != '/' ? "/" + name : name);
+}
+
+struct Options
+{
+    int domain = -1;
+    // Publisher of clouds.
+    std::string pub_points;
+    int points = 1000;
+    std::string pcd_dir;
+    int pcd_count = 0;
+    double rate = 10.0;
+    int count = 20;
+    bool reliable = false;
+    int depth = 5;
+    bool async = false;
+    double wait_match = 15.0;
+    double stamp0 = 0.0;  // first cloud's stamp, seconds (0: wall clock)
+    std::string frame = "lidar";
+    int point_step = 16;  // bytes per point: x, y, z then zero padding
+    // Subscribers.
+    std::string sub_pose;
+    std::string sub_cloud;
+    bool cloud_transient_local = true;
+    std::string sub_diag;
+    bool best_effort_sub = false;
+    // Run length after publishing (or in total with no publisher).
+    double linger = 5.0;
+    double duration = 0.0;
+    int expect_poses = -1;  // stop once this many poses came (with nothing left to send)
+    int expect_clouds = -1;
+    // Transports / QoS.
+    bool qos_from_xml = false;
+    bool no_shm = false;
+    int socket_buffer = 0;
+    bool discovery_log = true;
+};
+
+static void usage()
+{
+    std::fprintf(stderr,
+        "fdpeer [options]\n"
+        "  --domain N              DDS domain (default ROS_DOMAIN_ID or 0)\n"
+        "  --pub-points TOPIC      publish sensor_msgs/PointCloud2 on TOPIC (ROS name, e.g. /points)\n"
+        "  --points N              synthetic cloud: N points on a plane (x,y,z float32, point_step 16)\n"
+        "  --pcd-dir DIR           publish DIR/000000.pcd ... (binary PCD, x y z first) instead\n"
+        "  --pcd-count K           how many PCD files to cycle through (default: until one is missing)\n"
+        "  --rate HZ               publication rate (10)\n"
+        "  --count K               clouds to publish (20)\n"
+        "  --reliable              reliable writer (default best effort, as ROS 2 sensor data QoS)\n"
+        "  --depth D               writer keep-last depth (5)\n"
+        "  --async                 asynchronous publish mode (rmw_fastrtps Humble's default)\n"
+        "  --wait-match S          wait up to S s for a matched reader before publishing (15)\n"
+        "  --stamp0 S              first stamp, seconds; then +1/rate each (default: wall clock)\n"
+        "  --frame ID              header.frame_id of the clouds (lidar)\n"
+        "  --point-step S          bytes per point, >= 12 (16; 24 makes a 112k-point scan 2.7 MB)\n"
+        "  --sub-pose TOPIC        subscribe geometry_msgs/PoseWithCovarianceStamped (reliable, keep-last 10)\n"
+        "  --sub-cloud TOPIC       subscribe sensor_msgs/PointCloud2 (reliable, transient local, keep-last 1)\n"
+        "  --volatile-cloud        ... with volatile durability instead\n"
+        "  --sub-diag TOPIC        subscribe diagnostic_msgs/DiagnosticArray (reliable, keep-last 10)\n"
+        "  --best-effort-sub       subscribers best effort instead of reliable\n"
+        "  --linger S              keep running S s after the last cloud (5)\n"
+        "  --duration S            total run time with no publisher (default: linger)\n"
+        "  --expect-poses N        stop early after N poses (once publishing is done)\n"
+        "  --expect-clouds N       stop early after N subscribed clouds (once publishing is done)\n"
+        "  --qos-from-xml          keep the XML profile's QoS for the endpoints (no overrides in code)\n"
+        "  --no-shm                UDPv4 transport only (builtin transports off)\n"
+        "  --socket-buffer BYTES   UDP send and receive buffer sizes (with --no-shm)\n"
+        "  --quiet-discovery       do not print remote participants and endpoints\n");
+}
+
+static bool parse(int argc, char** argv, Options& o)
+{
+    for (int i = 1; i < argc; ++i)
+    {
+        std::string a = argv[i];
+        auto val = [&](void) -> std::string {
+            if (i + 1 >= argc)
+            {
+                std::fprintf(stderr, "%s needs a value\n", a.c_str());
+                std::exit(2);
+            }
+            return argv[++i];
+        };
+        if (a == "--domain") o.domain = std::stoi(val());
+        else if (a == "--pub-points") o.pub_points = val();
+        else if (a == "--points") o.points = std::stoi(val());
+        else if (a == "--pcd-dir") o.pcd_dir = val();
+        else if (a == "--pcd-count") o.pcd_count = std::stoi(val());
+        else if (a == "--rate") o.rate = std::stod(val());
+        else if (a == "--count") o.count = std::stoi(val());
+        else if (a == "--reliable") o.reliable = true;
+        else if (a == "--depth") o.depth = std::stoi(val());
+        else if (a == "--async") o.async = true;
+        else if (a == "--wait-match") o.wait_match = std::stod(val());
+        else if (a == "--stamp0") o.stamp0 = std::stod(val());
+        else if (a == "--frame") o.frame = val();
+        else if (a == "--point-step") o.point_step = std::max(12, std::stoi(val()));
+        else if (a == "--sub-pose") o.sub_pose = val();
+        else if (a == "--sub-cloud") o.sub_cloud = val();
+        else if (a == "--volatile-cloud") o.cloud_transient_local = false;
+        else if (a == "--sub-diag") o.sub_diag = val();
+        else if (a == "--best-effort-sub") o.best_effort_sub = true;
+        else if (a == "--linger") o.linger = std::stod(val());
+        else if (a == "--duration") o.duration = std::stod(val());
+        else if (a == "--expect-poses") o.expect_poses = std::stoi(val());
+        else if (a == "--expect-clouds") o.expect_clouds = std::stoi(val());
+        else if (a == "--qos-from-xml") o.qos_from_xml = true;
+        else if (a == "--no-shm") o.no_shm = true;
+        else if (a == "--socket-buffer") o.socket_buffer = std::stoi(val());
+        else if (a == "--quiet-discovery") o.discovery_log = false;
+        else if (a == "-h" || a == "--help")
+        {
+            usage();
+            std::exit(0);
+        }
+        else
+        {
+            std::fprintf(stderr, "unknown option %s\n", a.c_str());
+            usage();
+            return false;
+        }
+    }
+    return true;
+}
+
+// ---------------------------------------------------------------------------------------
+// Discovery: what the remote side announces (names, types, topic kind, QoS, locators).
+
+static std::string locators_json(const rtps::RemoteLocatorList& l)
+{
+    std::ostringstream s;
+    s << "[";
+    bool first = true;
+    for (const auto& loc : l.unicast)
+    {
+        s << (first ? "" : ",") << "\"" << loc << "\"";
+        first = false;
+    }
+    for (const auto& loc : l.multicast)
+    {
+        s << (first ? "" : ",") << "\"mc:" << loc << "\"";
+        first = false;
+    }
+    s << "]";
+    return s.str();
+}
+
+static std::string guid_str(const rtps::GUID_t& g)
+{
+    std::ostringstream s;
+    s << g;
+    return s.str();
+}
+
+struct ParticipantListener : public DomainParticipantListener
+{
+    bool log = true;
+
+    void on_participant_discovery(DomainParticipant*, rtps::ParticipantDiscoveryInfo&& info) override
+    {
+        if (!log) return;
+        const char* st[] = {"discovered", "changed_qos", "removed", "dropped", "ignored"};
+        std::ostringstream vid;
+        vid << int(info.info.m_VendorId[0]) << "." << int(info.info.m_VendorId[1]);
+        emit("\"event\":\"participant\",\"status\":\"" + std::string(st[info.status % 5]) +
+             "\",\"name\":\"" + esc(info.info.m_participantName.to_string()) +
+             "\",\"vendor\":\"" + vid.str() + "\",\"guid\":\"" + guid_str(info.info.m_guid) +
+             "\",\"metatraffic\":" + locators_json(info.info.metatraffic_locators) +
+             ",\"default\":" + locators_json(info.info.default_locators));
+    }
+
+    void on_subscriber_discovery(DomainParticipant*, rtps::ReaderDiscoveryInfo&& info) override
+    {
+        if (!log) return;
+        const auto& d = info.info;
+        emit("\"event\":\"remote_reader\",\"status\":" + std::to_string(int(info.status)) +
+             ",\"topic\":\"" + esc(d.topicName().to_string()) + "\",\"type\":\"" +
+             esc(d.typeName().to_string()) + "\",\"keyed\":" +
+             (d.topicKind() == rtps::WITH_KEY ? "true" : "false") + ",\"reliable\":" +
+             (d.m_qos.m_reliability.kind == RELIABLE_RELIABILITY_QOS ? "true" : "false") +
+             ",\"durability\":" + std::to_string(int(d.m_qos.m_durability.kind)) +
+             ",\"locators\":" + locators_json(d.remote_locators()));
+    }
+
+    void on_publisher_discovery(DomainParticipant*, rtps::WriterDiscoveryInfo&& info) override
+    {
+        if (!log) return;
+        const auto& d = info.info;
+        emit("\"event\":\"remote_writer\",\"status\":" + std::to_string(int(info.status)) +
+             ",\"topic\":\"" + esc(d.topicName().to_string()) + "\",\"type\":\"" +
+             esc(d.typeName().to_string()) + "\",\"keyed\":" +
+             (d.topicKind() == rtps::WITH_KEY ? "true" : "false") + ",\"reliable\":" +
+             (d.m_qos.m_reliability.kind == RELIABLE_RELIABILITY_QOS ? "true" : "false") +
+             ",\"durability\":" + std::to_string(int(d.m_qos.m_durability.kind)) +
+             ",\"locators\":" + locators_json(d.remote_locators()));
+    }
+};
+
+// ---------------------------------------------------------------------------------------
+// Readers.
+
+static std::atomic<int> poses_received{0};
+static std::atomic<int> clouds_received{0};
+static std::atomic<int> diags_received{0};
+
+struct ReaderEvents : public DataReaderListener
+{
+    std::string topic;
+
+    void on_subscription_matched(DataReader*, const SubscriptionMatchedStatus& s) override
+    {
+        emit("\"event\":\"reader_matched\",\"topic\":\"" + topic + "\",\"current\":" +
+             std::to_string(s.current_count) + ",\"change\":" + std::to_string(s.current_count_change));
+    }
+
+    void on_requested_incompatible_qos(DataReader*, const RequestedIncompatibleQosStatus& s) override
+    {
+        emit("\"event\":\"reader_incompatible_qos\",\"topic\":\"" + topic + "\",\"policy\":" +
+             std::to_string(s.last_policy_id) + ",\"total\":" + std::to_string(s.total_count));
+    }
+
+    void on_sample_lost(DataReader*, const SampleLostStatus& s) override
+    {
+        emit("\"event\":\"sample_lost\",\"topic\":\"" + topic + "\",\"total\":" +
+             std::to_string(s.total_count));
+    }
+
+    void on_sample_rejected(DataReader*, const SampleRejectedStatus& s) override
+    {
+        emit("\"event\":\"sample_rejected\",\"topic\":\"" + topic + "\",\"total\":" +
+             std::to_string(s.total_count) + ",\"reason\":" + std::to_string(int(s.last_reason)));
+    }
+};
+
+static double stamp_of(const builtin_interfaces::msg::dds_::Time_& t)
+{
+    return t.sec() + t.nanosec() * 1e-9;
+}
+
+struct PoseReader : public ReaderEvents
+{
+    void on_data_available(DataReader* reader) override
+    {
+        gm::PoseWithCovarianceStamped_ m;
+        SampleInfo info;
+        while (reader->take_next_sample(&m, &info) == ReturnCode_t::RETCODE_OK)
+        {
+            if (!info.valid_data) continue;
+            int n = ++poses_received;
+            const auto& p = m.pose().pose().position();
+            const auto& q = m.pose().pose().orientation();
+            char b[512];
+            std::snprintf(b, sizeof b,
+                "\"event\":\"pose\",\"topic\":\"%s\",\"n\":%d,\"stamp\":%.9f,\"frame\":\"%s\","
+                "\"position\":[%.6f,%.6f,%.6f],\"orientation\":[%.6f,%.6f,%.6f,%.6f],"
+                "\"cov_xx\":%.3g,\"wall\":%.6f",
+                topic.c_str(), n, stamp_of(m.header().stamp()), esc(m.header().frame_id()).c_str(),
+                p.x(), p.y(), p.z(), q.x(), q.y(), q.z(), q.w(), m.pose().covariance()[0], wall_s());
+            emit(b);
+        }
+    }
+};
+
+struct CloudReader : public ReaderEvents
+{
+    void on_data_available(DataReader* reader) override
+    {
+        sm::PointCloud2_ m;
+        SampleInfo info;
+        while (reader->take_next_sample(&m, &info) == ReturnCode_t::RETCODE_OK)
+        {
+            if (!info.valid_data) continue;
+            int n = ++clouds_received;
+            std::string fields;
+            for (const auto& f : m.fields())
+            {
+                fields += (fields.empty() ? "\"" : ",\"") + esc(f.name()) + "\"";
+            }
+            char b[512];
+            std::snprintf(b, sizeof b,
+                "\"event\":\"cloud\",\"topic\":\"%s\",\"n\":%d,\"stamp\":%.9f,\"frame\":\"%s\","
+                "\"width\":%u,\"height\":%u,\"point_step\":%u,\"data_bytes\":%zu,\"fields\":[%s]",
+                topic.c_str(), n, stamp_of(m.header().stamp()), esc(m.header().frame_id()).c_str(),
+                m.width(), m.height(), m.point_step(), m.data().size(), fields.c_str());
+            emit(b);
+        }
+    }
+};
+
+struct DiagReader : public ReaderEvents
+{
+    void on_data_available(DataReader* reader) override
+    {
+        dm::DiagnosticArray_ m;
+        SampleInfo info;
+        while (reader->take_next_sample(&m, &info) == ReturnCode_t::RETCODE_OK)
+        {
+            if (!info.valid_data) continue;
+            ++diags_received;
+            for (const auto& s : m.status())
+            {
+                emit("\"event\":\"diag\",\"stamp\":" + std::to_string(stamp_of(m.header().stamp())) +
+                     ",\"level\":" + std::to_string(int(s.level())) + ",\"name\":\"" + esc(s.name()) +
+                     "\",\"message\":\"" + esc(s.message()) + "\"");
+            }
+        }
+    }
+};
+
+// ---------------------------------------------------------------------------------------
+// Writer.
+
+static std::atomic<int> writer_matches{0};
+
+struct WriterEvents : public DataWriterListener
+{
+    std::string topic;
+
+    void on_publication_matched(DataWriter*, const PublicationMatchedStatus& s) override
+    {
+        writer_matches = s.current_count;
+        emit("\"event\":\"writer_matched\",\"topic\":\"" + topic + "\",\"current\":" +
+             std::to_string(s.current_count) + ",\"change\":" + std::to_string(s.current_count_change));
+    }
+
+    void on_offered_incompatible_qos(DataWriter*, const OfferedIncompatibleQosStatus& s) override
+    {
+        emit("\"event\":\"writer_incompatible_qos\",\"topic\":\"" + topic + "\",\"policy\":" +
+             std::to_string(s.last_policy_id) + ",\"total\":" + std::to_string(s.total_count));
+    }
+};
+
+// x, y, z of a binary PCD file (the first three FLOAT32 fields), as 16-byte points.
+static bool load_pcd(const std::string& path, std::vector<uint8_t>& out, uint32_t& n)
+{
+    std::ifstream f(path, std::ios::binary);
+    if (!f) return false;
+    std::string line;
+    size_t point_size = 0;
+    n = 0;
+    while (std::getline(f, line))
+    {
+        std::istringstream ls(line);
+        std::string key;
+        ls >> key;
+        if (key == "SIZE")
+        {
+            int s;
+            while (ls >> s) point_size += s;
+        }
+        else if (key == "POINTS")
+        {
+            ls >> n;
+        }
+        else if (key == "DATA")
+        {
+            std::string kind;
+            ls >> kind;
+            if (kind != "binary") return false;
+            break;
+        }
+    }
+    std::vector<char> raw(static_cast<size_t>(n) * point_size);
+    f.read(raw.data(), raw.size());
+    if (static_cast<size_t>(f.gcount()) != raw.size() || point_size < 12) return false;
+    out.assign(static_cast<size_t>(n) * 16, 0);
+    for (uint32_t i = 0; i < n; ++i)
+    {
+        std::memcpy(&out[i * 16], &raw[i * point_size], 12);
+    }
+    return true;
+}
+
+static void synthetic_plane(std::vector<uint8_t>& out, uint32_t n, int k)
+{
+    // A tilted plane 1.5 m below the sensor, a square grid of n points, shifted by k cm.
+    out.assign(static_cast<size_t>(n) * 16, 0);
+    uint32_t side = static_cast<uint32_t>(std::ceil(std::sqrt(double(n))));
+    for (uint32_t i = 0; i < n; ++i)
+    {
+        float xyz[3];
+        xyz[0] = -10.0f + 20.0f * float(i % side) / float(side) + 0.01f * float(k);
+        xyz[1] = -10.0f + 20.0f * float(i / side) / float(side);
+        xyz[2] = -1.5f + 0.02f * xyz[0];
+        std::memcpy(&out[i * 16], xyz, 12);
+    }
+}
+
+static sm::PointField_ field(const char* name, uint32_t offset)
+{
+    sm::PointField_ f;
+    f.name(name);
+    f.offset(offset);
+    f.datatype(7);  // FLOAT32
+    f.count(1);
+    return f;
+}
+
+// ---------------------------------------------------------------------------------------
+
+int main(int argc, char** argv)
+{
+    Options o;
+    if (!parse(argc, argv, o)) return 2;
+    if (o.domain < 0)
+    {
+        const char* d = std::getenv("ROS_DOMAIN_ID");
+        o.domain = d ? std::atoi(d) : 0;
+    }
+
+    auto* factory = DomainParticipantFactory::get_instance();
+    // Fast DDS reads FASTRTPS_DEFAULT_PROFILES_FILE / DEFAULT_FASTRTPS_PROFILES.xml here:
+    // a profile marked is_default_profile="true" becomes the default participant QoS.
+    factory->load_profiles();
+    DomainParticipantQos pqos = factory->get_default_participant_qos();
+    pqos.name("fdpeer");
+    if (o.no_shm)
+    {
+        pqos.transport().use_builtin_transports = false;
+        auto udp = std::make_shared<eprosima::fastdds::rtps::UDPv4TransportDescriptor>();
+        if (o.socket_buffer > 0)
+        {
+            udp->sendBufferSize = o.socket_buffer;
+            udp->receiveBufferSize = o.socket_buffer;
+        }
+        pqos.transport().user_transports.push_back(udp);
+    }
+    if (o.socket_buffer > 0)
+    {
+        pqos.transport().send_socket_buffer_size = o.socket_buffer;
+        pqos.transport().listen_socket_buffer_size = o.socket_buffer;
+    }
+    ParticipantListener plistener;
+    plistener.log = o.discovery_log;
+    DomainParticipant* participant =
+        factory->create_participant(o.domain, pqos, &plistener, StatusMask::none());
+    if (!participant)
+    {
+        std::fprintf(stderr, "could not create the participant\n");
+        return 1;
+    }
+    emit("\"event\":\"start\",\"domain\":" + std::to_string(o.domain) + ",\"no_shm_flag\":" +
+         (o.no_shm ? "true" : "false") + ",\"builtin_transports\":" +
+         (participant->get_qos().transport().use_builtin_transports ? "true" : "false") +
+         ",\"user_transports\":" + std::to_string(participant->get_qos().transport().user_transports.size()));
+
+    TypeSupport cloud_type(new sm::PointCloud2_PubSubType());
+    TypeSupport pose_type(new gm::PoseWithCovarianceStamped_PubSubType());
+    TypeSupport diag_type(new dm::DiagnosticArray_PubSubType());
+    cloud_type.register_type(participant);
+    pose_type.register_type(participant);
+    diag_type.register_type(participant);
+
+    Publisher* publisher = participant->create_publisher(PUBLISHER_QOS_DEFAULT);
+    Subscriber* subscriber = participant->create_subscriber(SUBSCRIBER_QOS_DEFAULT);
+
+    auto reader_qos = [&](bool transient_local, int depth) {
+        DataReaderQos q = subscriber->get_default_datareader_qos();
+        if (o.qos_from_xml) return q;
+        q.reliability().kind = o.best_effort_sub ? BEST_EFFORT_RELIABILITY_QOS : RELIABLE_RELIABILITY_QOS;
+        q.durability().kind = transient_local ? TRANSIENT_LOCAL_DURABILITY_QOS : VOLATILE_DURABILITY_QOS;
+        q.history().kind = KEEP_LAST_HISTORY_QOS;
+        q.history().depth = depth;
+        return q;
+    };
+
+    PoseReader pose_listener;
+    CloudReader cloud_listener;
+    DiagReader diag_listener;
+    if (!o.sub_pose.empty())
+    {
+        pose_listener.topic = ros_topic(o.sub_pose);
+        Topic* t = participant->create_topic(pose_listener.topic, pose_type.get_type_name(), TOPIC_QOS_DEFAULT);
+        if (!subscriber->create_datareader(t, reader_qos(false, 10), &pose_listener)) return 1;
+    }
+    if (!o.sub_cloud.empty())
+    {
+        cloud_listener.topic = ros_topic(o.sub_cloud);
+        Topic* t = participant->create_topic(cloud_listener.topic, cloud_type.get_type_name(), TOPIC_QOS_DEFAULT);
+        if (!subscriber->create_datareader(t, reader_qos(o.cloud_transient_local, 1), &cloud_listener)) return 1;
+    }
+    if (!o.sub_diag.empty())
+    {
+        diag_listener.topic = ros_topic(o.sub_diag);
+        Topic* t = participant->create_topic(diag_listener.topic, diag_type.get_type_name(), TOPIC_QOS_DEFAULT);
+        if (!subscriber->create_datareader(t, reader_qos(false, 10), &diag_listener)) return 1;
+    }
+
+    int sent = 0, send_failed = 0;
+    auto done_expecting = [&]() {
+        bool poses_done = o.expect_poses >= 0 && poses_received >= o.expect_poses;
+        bool clouds_done = o.expect_clouds >= 0 && clouds_received >= o.expect_clouds;
+        return poses_done || clouds_done;
+    };
+
+    if (!o.pub_points.empty())
+    {
+        WriterEvents wlistener;
+        wlistener.topic = ros_topic(o.pub_points);
+        Topic* t = participant->create_topic(wlistener.topic, cloud_type.get_type_name(), TOPIC_QOS_DEFAULT);
+        DataWriterQos wq = publisher->get_default_datawriter_qos();
+        if (!o.qos_from_xml)
+        {
+            wq.reliability().kind = o.reliable ? RELIABLE_RELIABILITY_QOS : BEST_EFFORT_RELIABILITY_QOS;
+            wq.durability().kind = VOLATILE_DURABILITY_QOS;
+            wq.history().kind = KEEP_LAST_HISTORY_QOS;
+            wq.history().depth = o.depth;
+            if (o.async) wq.publish_mode().kind = ASYNCHRONOUS_PUBLISH_MODE;
+        }
+        DataWriter* writer = publisher->create_datawriter(t, wq, &wlistener);
+        if (!writer) return 1;
+        auto q = writer->get_qos();
+        emit("\"event\":\"writer\",\"topic\":\"" + wlistener.topic + "\",\"type\":\"" +
+             cloud_type.get_type_name() + "\",\"reliable\":" +
+             (q.reliability().kind == RELIABLE_RELIABILITY_QOS ? "true" : "false") + ",\"depth\":" +
+             std::to_string(q.history().depth) + ",\"async\":" +
+             (q.publish_mode().kind == ASYNCHRONOUS_PUBLISH_MODE ? "true" : "false") +
+             ",\"memory_policy\":" + std::to_string(int(q.endpoint().history_memory_policy)));
+
+        auto deadline = now_s() + o.wait_match;
+        while (writer_matches == 0 && now_s() < deadline)
+        {
+            std::this_thread::sleep_for(std::chrono::milliseconds(20));
+        }
+        if (writer_matches == 0) emit("\"event\":\"no_match\",\"topic\":\"" + wlistener.topic + "\"");
+        // Give the remote reader a moment past the match (its side of discovery).
+        std::this_thread::sleep_for(std::chrono::milliseconds(500));
+
+        sm::PointCloud2_ cloud;
+        cloud.header().frame_id(o.frame);
+        cloud.height(1);
+        cloud.fields({field("x", 0), field("y", 4), field("z", 8)});
+        cloud.is_bigendian(false);
+        cloud.point_step(o.point_step);
+        cloud.is_dense(true);
+        std::vector<std::vector<uint8_t>> scans;
+        if (!o.pcd_dir.empty())
+        {
+            for (int k = 0; o.pcd_count == 0 || k < o.pcd_count; ++k)
+            {
+                char p[64];
+                std::snprintf(p, sizeof p, "/%06d.pcd", k);
+                std::vector<uint8_t> d;
+                uint32_t n;
+                if (!load_pcd(o.pcd_dir + p, d, n)) break;
+                scans.push_back(std::move(d));
+            }
+            if (scans.empty())
+            {
+                std::fprintf(stderr, "no PCD scans in %s\n", o.pcd_dir.c_str());
+                return 1;
+            }
+        }
+        double stamp0 = o.stamp0 > 0 ? o.stamp0 : std::floor(wall_s());
+        auto period = std::chrono::duration<double>(1.0 / o.rate);
+        auto next = std::chrono::steady_clock::now();
+        for (int k = 0; k < o.count; ++k)
+        {
+            std::vector<uint8_t> data;
+            if (scans.empty()) synthetic_plane(data, o.points, k);
+            else data = scans[k % scans.size()];
+            uint32_t n = static_cast<uint32_t>(data.size() / 16);
+            if (o.point_step != 16)
+            {
+                std::vector<uint8_t> wide(static_cast<size_t>(n) * o.point_step, 0);
+                for (uint32_t i = 0; i < n; ++i) std::memcpy(&wide[size_t(i) * o.point_step], &data[size_t(i) * 16], 12);
+                data.swap(wide);
+            }
+            double stamp = stamp0 + k / o.rate;
+            cloud.header().stamp().sec(static_cast<int32_t>(std::floor(stamp)));
+            cloud.header().stamp().nanosec(static_cast<uint32_t>(std::llround((stamp - std::floor(stamp)) * 1e9) % 1000000000));
+            cloud.width(n);
+            cloud.row_step(n * o.point_step);
+            cloud.data(std::move(data));
+            double before = now_s();
+            bool ok = writer->write(&cloud);
+            double took = now_s() - before;
+            if (ok) ++sent;
+            else ++send_failed;
+            char b[256];
+            std::snprintf(b, sizeof b,
+                "\"event\":\"sent\",\"topic\":\"%s\",\"k\":%d,\"ok\":%s,\"stamp\":%.9f,\"points\":%u,"
+                "\"data_bytes\":%u,\"write_ms\":%.3f,\"wall\":%.6f",
+                wlistener.topic.c_str(), k, ok ? "true" : "false", stamp, n, n * o.point_step, took * 1e3, wall_s());
+            emit(b);
+            next += std::chrono::duration_cast<std::chrono::steady_clock::duration>(period);
+            std::this_thread::sleep_until(next);
+        }
+        auto end = now_s() + o.linger;
+        while (now_s() < end && !done_expecting())
+        {
+            std::this_thread::sleep_for(std::chrono::milliseconds(20));
+        }
+        emit("\"event\":\"summary\",\"sent\":" + std::to_string(sent) + ",\"send_failed\":" +
+             std::to_string(send_failed) + ",\"poses\":" + std::to_string(poses_received.load()) +
+             ",\"clouds\":" + std::to_string(clouds_received.load()) + ",\"diags\":" +
+             std::to_string(diags_received.load()));
+        publisher->delete_datawriter(writer);
+    }
+    else
+    {
+        auto end = now_s() + (o.duration > 0 ? o.duration : o.linger);
+        while (now_s() < end && !done_expecting())
+        {
+            std::this_thread::sleep_for(std::chrono::milliseconds(20));
+        }
+        emit("\"event\":\"summary\",\"sent\":0,\"poses\":" + std::to_string(poses_received.load()) +
+             ",\"clouds\":" + std::to_string(clouds_received.load()) + ",\"diags\":" +
+             std::to_string(diags_received.load()));
+    }
+    participant->delete_contained_entities();
+    factory->delete_participant(participant);
+    return 0;
+}
