@@ -1,7 +1,8 @@
-//! `kfmap-ros2` against an independent DDS: Eclipse Cyclone DDS (the DDS of
-//! rmw_cyclonedds_cpp) through its PyPI binding publishes a simulated drive's clouds
-//! with the ROS 2 type names and records what the node publishes, inside a private
-//! network namespace this test creates (`unshare -rn`: only `lo`). Oracles: `kfmap
+//! `kfmap-ros2` against independent DDS implementations: Eclipse Cyclone DDS (the DDS of
+//! rmw_cyclonedds_cpp) through its PyPI binding, and eProsima Fast DDS (ROS 2's default,
+//! Debian's packages, a C++ peer from `tools/fastdds`), publish a simulated drive's
+//! clouds with the ROS 2 type names and record what the node publishes, inside a
+//! private network namespace this test creates (`unshare -rn`: only `lo`). Oracles: `kfmap
 //! localize` on the same scans (the same statuses, poses within 1 mm), the simulator's
 //! ground truth (within 5 cm), and the clouds' own construction for the bad ones.
 
@@ -46,6 +47,68 @@ fn the_ros2_node_relocalizes_and_tracks_balm_as_kfmap_localize() {
         "the_ros2_node_relocalizes_and_tracks_balm_as_kfmap_localize",
         "in_namespace::balm",
     );
+}
+
+/// The same node against eProsima Fast DDS 2.9 as Debian ships it (ROS 2's default
+/// middleware), its defaults left as a ROS 2 user gets them (shared memory on, default
+/// QoS): a peer built from the ROS 2 message IDL (`tools/fastdds`) publishes the
+/// simulated drive and 112k-point clouds free-running at 10 Hz, and subscribes to the
+/// poses and, late, to the latched map cloud.
+#[test]
+fn the_ros2_node_tracks_like_kfmap_localize_through_fast_dds() {
+    let test = "the_ros2_node_tracks_like_kfmap_localize_through_fast_dds";
+    let built = Command::new("sh")
+        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/fastdds/build.sh"))
+        .env("FASTDDS_BUILD", fast_dds_build())
+        .output()
+        .is_ok_and(|o| o.status.success());
+    let what = "Fast DDS and its code generator (apt-get install -y libfastrtps-dev fastddsgen g++; tools/fastdds/build.sh)";
+    if require_capability(built, what, test).is_none() {
+        return;
+    }
+    crate::remote::in_private_network_namespace(module_path!(), test, "in_namespace::fast_dds");
+}
+
+/// Where `tools/fastdds/build.sh` puts the Fast DDS peer for these tests.
+fn fast_dds_build() -> PathBuf {
+    Path::new(env!("CARGO_TARGET_TMPDIR")).join("fastdds")
+}
+
+/// Runs the Fast DDS peer with `args` (bounded: `timeout` ends it after 120 s); its
+/// events, one JSON object each.
+fn run_fast_dds_peer(dir: &Path, name: &str, args: &[String]) -> Vec<Value> {
+    let out = Command::new("timeout")
+        .arg("120")
+        .arg(fast_dds_build().join("bin/fdpeer"))
+        .args(args)
+        .env_remove("ROS_DOMAIN_ID")
+        .output()
+        .unwrap();
+    std::fs::write(dir.join(format!("{name}.jsonl")), &out.stdout).unwrap();
+    assert!(
+        out.status.success(),
+        "the Fast DDS peer failed: {}",
+        common::stderr(&out)
+    );
+    common::stdout(&out)
+        .lines()
+        .filter(|l| l.starts_with('{'))
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect()
+}
+
+/// The counts a stopped node printed: (received, localized, skipped for newer ones).
+fn node_counts(log: &Path) -> (u64, u64, u64) {
+    let log = std::fs::read_to_string(log).unwrap();
+    let line = log
+        .lines()
+        .find(|l| l.starts_with("stopped: "))
+        .unwrap_or_else(|| panic!("no summary in the node's log:\n{log}"));
+    let numbers: Vec<u64> = line
+        .split(|c: char| !c.is_ascii_digit())
+        .filter_map(|w| w.parse().ok())
+        .collect();
+    (numbers[0], numbers[1], numbers[2])
 }
 
 /// Runs `inner` in a private network namespace once the Cyclone DDS venv exists: it is
@@ -923,5 +986,195 @@ mod in_namespace {
         // figure at 0.08 m from the reference pose; here the start is relocalized).
         assert!(rms < 0.08, "RMS {rms} m from balm's reference poses");
         plot_of_the_recorded_run(&dir, &bag, &records);
+    }
+
+    #[test]
+    #[ignore = "runs inside the network namespace of the_ros2_node_tracks_like_kfmap_localize_through_fast_dds"]
+    fn fast_dds() {
+        if std::env::var_os(IN_NAMESPACE).is_none() {
+            eprintln!("skipped: runs only inside the namespace the outer test creates");
+            return;
+        }
+        loopback_for_dds();
+        let prefix = Prefix::new("fastdds");
+        let dir = temp_dir("fastdds");
+        let data = dir.join("sim");
+        simulate(&data, "courtyard", "6", "16", &[]);
+        let map = dir.join("court.kfmap");
+        bake_dataset(&data, &map);
+        let _server = Server::start(&map, "court", &prefix.0, &[]);
+        let oracle = localized("court", &prefix.0, &data, &["--no-imu"]);
+        let scans = find_scans(&data).unwrap();
+        let poses = dataset_poses(&data, &scans).unwrap().unwrap();
+        let to_map = map_from_input("court", &prefix.0);
+        let arg = |v: f64| format!("{v}");
+
+        // The drive at its recorded stamps, published at half its rate so the node
+        // takes every cloud: the same statuses and poses as `kfmap localize`.
+        let drive = dir.join("drive");
+        std::fs::create_dir_all(&drive).unwrap();
+        let node = Node::start(&drive, "court", &prefix.0);
+        let sent = scans.len();
+        let records = run_fast_dds_peer(
+            &drive,
+            "peer",
+            &[
+                "--pub-points".into(),
+                "/points".into(),
+                "--pcd-dir".into(),
+                data.join("scans").display().to_string(),
+                "--count".into(),
+                sent.to_string(),
+                "--rate".into(),
+                "5".into(),
+                "--stamp0".into(),
+                arg(poses.stamps[0]),
+                "--stamp-step".into(),
+                arg(poses.stamps[1] - poses.stamps[0]),
+                "--sub-pose".into(),
+                "/kfmap/pose".into(),
+                "--sub-cloud".into(),
+                "/kfmap/map_cloud".into(),
+                "--linger".into(),
+                "3".into(),
+                "--quiet-discovery".into(),
+            ],
+        );
+        drop(node);
+        let (received, localized_by_node, skipped) = node_counts(&drive.join("node.log"));
+        assert_eq!(
+            (received, skipped),
+            (sent as u64, 0),
+            "every cloud arrived and was taken"
+        );
+        assert_eq!(localized_by_node, sent as u64);
+        let published: std::collections::BTreeMap<i64, &Value> = records
+            .iter()
+            .filter(|r| r["event"] == "pose")
+            .map(|r| (key(r["stamp"].as_f64().unwrap()), r))
+            .collect();
+        let mut worst: f64 = 0.0;
+        for (k, expected) in oracle.iter().enumerate() {
+            let stamp = key(poses.stamps[k]);
+            if expected["status"] == "lost" {
+                assert!(
+                    !published.contains_key(&stamp),
+                    "scan {k}: a lost pose was published"
+                );
+                continue;
+            }
+            let pose = published
+                .get(&stamp)
+                .unwrap_or_else(|| panic!("scan {k}: no pose through Fast DDS"));
+            let at: Vec<f64> = serde_json::from_value(pose["position"].clone()).unwrap();
+            let want: Vec<f64> = serde_json::from_value(expected["pose"].clone()).unwrap();
+            let gap = (0..3)
+                .map(|i| (at[i] - want[i]).powi(2))
+                .sum::<f64>()
+                .sqrt();
+            worst = worst.max(gap);
+            assert!(
+                gap <= SAME_POSE_M,
+                "scan {k}: {gap} m from kfmap localize's pose"
+            );
+            assert_eq!(pose["frame"], "map");
+        }
+        println!(
+            "Fast DDS: {sent} clouds, {} poses, worst {worst:.2e} m from kfmap localize",
+            published.len()
+        );
+        let map_cloud = records.iter().find(|r| r["event"] == "cloud");
+        assert!(
+            map_cloud.is_some_and(|m| m["width"].as_u64().unwrap() > 100 && m["frame"] == "map"),
+            "no map cloud: {map_cloud:?}"
+        );
+
+        // Clouds of 112k points (64 beams, 2.7 MB with the view directions' bytes)
+        // free-running at 10 Hz: every cloud arrives and gets a pose or is counted as
+        // skipped for a newer one; the poses lie on the simulator's truth.
+        let dense = dir.join("dense");
+        simulate(&dense, "courtyard", "3", "64", &[]);
+        let dense_poses = dataset_poses(&dense, &find_scans(&dense).unwrap())
+            .unwrap()
+            .unwrap();
+        let truth: Vec<Pose> = dense_poses.poses.iter().map(|p| to_map * p).collect();
+        let free = dir.join("free");
+        std::fs::create_dir_all(&free).unwrap();
+        let node = Node::start(&free, "court", &prefix.0);
+        let sent = truth.len();
+        let records = run_fast_dds_peer(
+            &free,
+            "peer",
+            &[
+                "--pub-points".into(),
+                "/points".into(),
+                "--pcd-dir".into(),
+                dense.join("scans").display().to_string(),
+                "--point-step".into(),
+                "24".into(),
+                "--count".into(),
+                sent.to_string(),
+                "--rate".into(),
+                "10".into(),
+                "--stamp0".into(),
+                arg(dense_poses.stamps[0]),
+                "--sub-pose".into(),
+                "/kfmap/pose".into(),
+                "--linger".into(),
+                "3".into(),
+                "--quiet-discovery".into(),
+            ],
+        );
+        // The late joiner: the latched map cloud reaches a subscriber that starts now.
+        let late = run_fast_dds_peer(
+            &free,
+            "late",
+            &[
+                "--sub-cloud".into(),
+                "/kfmap/map_cloud".into(),
+                "--duration".into(),
+                "20".into(),
+                "--expect-clouds".into(),
+                "1".into(),
+                "--quiet-discovery".into(),
+            ],
+        );
+        drop(node);
+        let (received, localized_by_node, skipped) = node_counts(&free.join("node.log"));
+        let points = records.iter().find(|r| r["event"] == "sent").unwrap()["points"]
+            .as_u64()
+            .unwrap();
+        let poses_out: Vec<&Value> = records.iter().filter(|r| r["event"] == "pose").collect();
+        let mut worst: f64 = 0.0;
+        for pose in &poses_out {
+            let k =
+                ((pose["stamp"].as_f64().unwrap() - dense_poses.stamps[0]) * 10.0).round() as usize;
+            let at: Vec<f64> = serde_json::from_value(pose["position"].clone()).unwrap();
+            let p = truth[k].translation.vector;
+            let gap =
+                ((at[0] - p.x).powi(2) + (at[1] - p.y).powi(2) + (at[2] - p.z).powi(2)).sqrt();
+            worst = worst.max(gap);
+        }
+        println!(
+            "Fast DDS, {points}-point clouds at 10 Hz: {sent} sent, {received} received, {localized_by_node} localized, {skipped} skipped, {} poses, worst {worst:.3} m from the truth; late map cloud: {:?}",
+            poses_out.len(),
+            late.iter().find(|r| r["event"] == "cloud")
+        );
+        assert!(points > 100_000, "{points} points");
+        assert_eq!(received, sent as u64, "every cloud arrived");
+        assert_eq!(localized_by_node + skipped, received);
+        // Measured: 30 of 30 received and localized, 0 skipped, 30 poses, worst 9 mm
+        // (the first scan relocalized with no pose given).
+        assert!(
+            poses_out.len() as u64 + 1 >= localized_by_node,
+            "a pose for each localized cloud"
+        );
+        assert!(poses_out.len() + 2 >= sent, "{} poses", poses_out.len());
+        assert!(worst < TRUTH_FROM_INITIAL_M, "{worst} m from the truth");
+        let late_cloud = late.iter().find(|r| r["event"] == "cloud");
+        assert!(
+            late_cloud.is_some_and(|m| m["width"].as_u64().unwrap() > 100 && m["frame"] == "map"),
+            "the late subscriber got no map cloud: {late:?}"
+        );
     }
 }

@@ -111,7 +111,8 @@ struct Options
     int depth = 5;
     bool async = false;
     double wait_match = 15.0;
-    double stamp0 = 0.0;  // first cloud's stamp, seconds (0: wall clock)
+    double stamp0 = -1.0;  // first cloud's stamp, seconds (negative: wall clock)
+    double stamp_step = 0.0;  // stamp increment per cloud, seconds (0: 1 / rate)
     std::string frame = "lidar";
     int point_step = 16;  // bytes per point: x, y, z then zero padding
     // Subscribers.
@@ -148,6 +149,8 @@ static void usage()
         "  --async                 asynchronous publish mode (rmw_fastrtps Humble's default)\n"
         "  --wait-match S          wait up to S s for a matched reader before publishing (15)\n"
         "  --stamp0 S              first stamp, seconds; then +1/rate each (default: wall clock)\n"
+        "  --stamp-step S          stamp increment per cloud instead of 1/rate (a dataset's\n"
+        "                          spacing, published slower or faster than recorded)\n"
         "  --frame ID              header.frame_id of the clouds (lidar)\n"
         "  --point-step S          bytes per point, >= 12 (16; 24 makes a 112k-point scan 2.7 MB)\n"
         "  --sub-pose TOPIC        subscribe geometry_msgs/PoseWithCovarianceStamped (reliable, keep-last 10)\n"
@@ -190,6 +193,7 @@ static bool parse(int argc, char** argv, Options& o)
         else if (a == "--async") o.async = true;
         else if (a == "--wait-match") o.wait_match = std::stod(val());
         else if (a == "--stamp0") o.stamp0 = std::stod(val());
+        else if (a == "--stamp-step") o.stamp_step = std::stod(val());
         else if (a == "--frame") o.frame = val();
         else if (a == "--point-step") o.point_step = std::max(12, std::stoi(val()));
         else if (a == "--sub-pose") o.sub_pose = val();
@@ -648,7 +652,7 @@ int main(int argc, char** argv)
                 return 1;
             }
         }
-        double stamp0 = o.stamp0 > 0 ? o.stamp0 : std::floor(wall_s());
+        double stamp0 = o.stamp0 >= 0 ? o.stamp0 : std::floor(wall_s());
         auto period = std::chrono::duration<double>(1.0 / o.rate);
         auto next = std::chrono::steady_clock::now();
         for (int k = 0; k < o.count; ++k)
@@ -663,7 +667,7 @@ int main(int argc, char** argv)
                 for (uint32_t i = 0; i < n; ++i) std::memcpy(&wide[size_t(i) * o.point_step], &data[size_t(i) * 16], 12);
                 data.swap(wide);
             }
-            double stamp = stamp0 + k / o.rate;
+            double stamp = stamp0 + k * (o.stamp_step > 0 ? o.stamp_step : 1.0 / o.rate);
             cloud.header().stamp().sec(static_cast<int32_t>(std::floor(stamp)));
             cloud.header().stamp().nanosec(static_cast<uint32_t>(std::llround((stamp - std::floor(stamp)) * 1e9) % 1000000000));
             cloud.width(n);
