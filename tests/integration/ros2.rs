@@ -97,6 +97,15 @@ fn run_fast_dds_peer(dir: &Path, name: &str, args: &[String]) -> Vec<Value> {
         .collect()
 }
 
+/// The Fast DDS peer's received poses by their stamp's [`key`].
+fn poses_by_stamp(records: &[Value]) -> std::collections::BTreeMap<i64, &Value> {
+    records
+        .iter()
+        .filter(|r| r["event"] == "pose")
+        .map(|r| (key(r["stamp"].as_f64().unwrap()), r))
+        .collect()
+}
+
 /// The counts a stopped node printed: (received, localized, skipped for newer ones).
 fn node_counts(log: &Path) -> (u64, u64, u64) {
     let log = std::fs::read_to_string(log).unwrap();
@@ -1011,48 +1020,48 @@ mod in_namespace {
 
         // The drive at its recorded stamps, published at half its rate so the node
         // takes every cloud: the same statuses and poses as `kfmap localize`.
-        let drive = dir.join("drive");
-        std::fs::create_dir_all(&drive).unwrap();
-        let node = Node::start(&drive, "court", &prefix.0);
         let sent = scans.len();
-        let records = run_fast_dds_peer(
-            &drive,
-            "peer",
-            &[
-                "--pub-points".into(),
-                "/points".into(),
-                "--pcd-dir".into(),
-                data.join("scans").display().to_string(),
-                "--count".into(),
-                sent.to_string(),
-                "--rate".into(),
-                "5".into(),
-                "--stamp0".into(),
-                arg(poses.stamps[0]),
-                "--stamp-step".into(),
-                arg(poses.stamps[1] - poses.stamps[0]),
-                "--sub-pose".into(),
-                "/kfmap/pose".into(),
-                "--sub-cloud".into(),
-                "/kfmap/map_cloud".into(),
-                "--linger".into(),
-                "3".into(),
-                "--quiet-discovery".into(),
-            ],
-        );
-        drop(node);
-        let (received, localized_by_node, skipped) = node_counts(&drive.join("node.log"));
+        // A fresh node in `name`, given the drive's clouds by the peer at `rate` with
+        // `extra` arguments; the peer's events (the node stopped, its log in `name`).
+        let publish_drive = |name: &str, rate: &str, extra: &[&str]| {
+            let at = dir.join(name);
+            std::fs::create_dir_all(&at).unwrap();
+            let node = Node::start(&at, "court", &prefix.0);
+            let mut args: Vec<String> = [
+                "--pub-points",
+                "/points",
+                "--count",
+                &sent.to_string(),
+                "--rate",
+                rate,
+                "--stamp0",
+                &arg(poses.stamps[0]),
+                "--stamp-step",
+                &arg(poses.stamps[1] - poses.stamps[0]),
+                "--sub-pose",
+                "/kfmap/pose",
+                "--linger",
+                "2",
+                "--quiet-discovery",
+            ]
+            .iter()
+            .chain(extra)
+            .map(|a| a.to_string())
+            .collect();
+            args.extend(["--pcd-dir".into(), data.join("scans").display().to_string()]);
+            let records = run_fast_dds_peer(&at, "peer", &args);
+            drop(node);
+            records
+        };
+        let records = publish_drive("drive", "5", &["--sub-cloud", "/kfmap/map_cloud"]);
+        let (received, localized_by_node, skipped) = node_counts(&dir.join("drive/node.log"));
         assert_eq!(
             (received, skipped),
             (sent as u64, 0),
             "every cloud arrived and was taken"
         );
         assert_eq!(localized_by_node, sent as u64);
-        let published: std::collections::BTreeMap<i64, &Value> = records
-            .iter()
-            .filter(|r| r["event"] == "pose")
-            .map(|r| (key(r["stamp"].as_f64().unwrap()), r))
-            .collect();
+        let published = poses_by_stamp(&records);
         let mut worst: f64 = 0.0;
         for (k, expected) in oracle.iter().enumerate() {
             let stamp = key(poses.stamps[k]);
@@ -1089,6 +1098,53 @@ mod in_namespace {
             "no map cloud: {map_cloud:?}"
         );
 
+        // `/initialpose` from Fast DDS (as RViz's 2D Pose Estimate): the first scan's
+        // truth, then the same drive at its rate (no relocalization to wait for). The
+        // poses equal `kfmap localize --initial-from-ground-truth`'s on the same scans
+        // and lie on the truth.
+        let from_truth = localized(
+            "court",
+            &prefix.0,
+            &data,
+            &["--no-imu", "--initial-from-ground-truth"],
+        );
+        let truth: Vec<Pose> = poses.poses.iter().map(|p| to_map * p).collect();
+        let initial = pose_to_xyz_quat(&truth[0]).map(arg).join(",");
+        let records = publish_drive("reset", "10", &["--initial-pose", &initial]);
+        let published = poses_by_stamp(&records);
+        let (mut worst_same, mut worst_truth) = (0.0_f64, 0.0_f64);
+        for (k, expected) in from_truth.iter().enumerate() {
+            assert_ne!(
+                expected["status"], "lost",
+                "scan {k}: kfmap localize lost it"
+            );
+            let pose = published
+                .get(&key(poses.stamps[k]))
+                .unwrap_or_else(|| panic!("after /initialpose, scan {k}: no pose"));
+            let at: Vec<f64> = serde_json::from_value(pose["position"].clone()).unwrap();
+            let want: Vec<f64> = serde_json::from_value(expected["pose"].clone()).unwrap();
+            let p = truth[k].translation.vector;
+            let same = (0..3)
+                .map(|i| (at[i] - want[i]).powi(2))
+                .sum::<f64>()
+                .sqrt();
+            let off =
+                ((at[0] - p.x).powi(2) + (at[1] - p.y).powi(2) + (at[2] - p.z).powi(2)).sqrt();
+            (worst_same, worst_truth) = (worst_same.max(same), worst_truth.max(off));
+            assert!(
+                same <= SAME_POSE_M,
+                "after /initialpose, scan {k}: {same} m from kfmap localize"
+            );
+            assert!(
+                off <= TRUTH_FROM_INITIAL_M,
+                "after /initialpose, scan {k}: {off} m from the truth"
+            );
+        }
+        println!(
+            "Fast DDS, from /initialpose: {} scans, worst {worst_same:.2e} m from kfmap localize, {worst_truth:.4} m from the truth",
+            from_truth.len()
+        );
+
         // Clouds of 112k points (64 beams, 2.7 MB with the view directions' bytes)
         // free-running at 10 Hz: every cloud arrives and gets a pose or is counted as
         // skipped for a newer one; the poses lie on the simulator's truth.
@@ -1097,11 +1153,11 @@ mod in_namespace {
         let dense_poses = dataset_poses(&dense, &find_scans(&dense).unwrap())
             .unwrap()
             .unwrap();
-        let truth: Vec<Pose> = dense_poses.poses.iter().map(|p| to_map * p).collect();
+        let dense_truth: Vec<Pose> = dense_poses.poses.iter().map(|p| to_map * p).collect();
         let free = dir.join("free");
         std::fs::create_dir_all(&free).unwrap();
         let node = Node::start(&free, "court", &prefix.0);
-        let sent = truth.len();
+        let sent = dense_truth.len();
         let records = run_fast_dds_peer(
             &free,
             "peer",
@@ -1121,7 +1177,7 @@ mod in_namespace {
                 "--sub-pose".into(),
                 "/kfmap/pose".into(),
                 "--linger".into(),
-                "3".into(),
+                "2".into(),
                 "--quiet-discovery".into(),
             ],
         );

@@ -113,6 +113,7 @@ struct Options
     double wait_match = 15.0;
     double stamp0 = -1.0;  // first cloud's stamp, seconds (negative: wall clock)
     double stamp_step = 0.0;  // stamp increment per cloud, seconds (0: 1 / rate)
+    std::string initial_pose;  // "x,y,z,qx,qy,qz,qw" for /initialpose before the clouds
     std::string frame = "lidar";
     int point_step = 16;  // bytes per point: x, y, z then zero padding
     // Subscribers.
@@ -149,6 +150,9 @@ static void usage()
         "  --async                 asynchronous publish mode (rmw_fastrtps Humble's default)\n"
         "  --wait-match S          wait up to S s for a matched reader before publishing (15)\n"
         "  --stamp0 S              first stamp, seconds; then +1/rate each (default: wall clock)\n"
+        "  --initial-pose X,Y,Z,QX,QY,QZ,QW\n"
+        "                          publish it once on /initialpose (frame map, reliable)\n"
+        "                          before the first cloud, as RViz's 2D Pose Estimate does\n"
         "  --stamp-step S          stamp increment per cloud instead of 1/rate (a dataset's\n"
         "                          spacing, published slower or faster than recorded)\n"
         "  --frame ID              header.frame_id of the clouds (lidar)\n"
@@ -194,6 +198,7 @@ static bool parse(int argc, char** argv, Options& o)
         else if (a == "--wait-match") o.wait_match = std::stod(val());
         else if (a == "--stamp0") o.stamp0 = std::stod(val());
         else if (a == "--stamp-step") o.stamp_step = std::stod(val());
+        else if (a == "--initial-pose") o.initial_pose = val();
         else if (a == "--frame") o.frame = val();
         else if (a == "--point-step") o.point_step = std::max(12, std::stoi(val()));
         else if (a == "--sub-pose") o.sub_pose = val();
@@ -499,6 +504,55 @@ static sm::PointField_ field(const char* name, uint32_t offset)
 
 // ---------------------------------------------------------------------------------------
 
+// Publishes `o.initial_pose` once on /initialpose (reliable, volatile, frame "map",
+// stamped o.stamp0) once the node's reader matched; false when the value is malformed.
+static bool publish_initial_pose(DomainParticipant* participant, Publisher* publisher,
+    TypeSupport& pose_type, const Options& o)
+{
+    double v[7];
+    std::stringstream in(o.initial_pose);
+    for (double& x : v)
+    {
+        std::string item;
+        if (!std::getline(in, item, ',')) return false;
+        x = std::stod(item);
+    }
+    Topic* t = participant->create_topic(ros_topic("/initialpose"), pose_type.get_type_name(), TOPIC_QOS_DEFAULT);
+    DataWriterQos q = publisher->get_default_datawriter_qos();
+    q.reliability().kind = RELIABLE_RELIABILITY_QOS;
+    q.durability().kind = VOLATILE_DURABILITY_QOS;
+    q.history().kind = KEEP_LAST_HISTORY_QOS;
+    q.history().depth = 1;
+    DataWriter* writer = publisher->create_datawriter(t, q);
+    if (!writer) return false;
+    auto deadline = now_s() + o.wait_match;
+    std::vector<InstanceHandle_t> matched;
+    while (matched.empty() && now_s() < deadline)
+    {
+        writer->get_matched_subscriptions(matched);
+        if (matched.empty()) std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    }
+    gm::PoseWithCovarianceStamped_ m;
+    m.header().frame_id("map");
+    double stamp = o.stamp0 >= 0 ? o.stamp0 : std::floor(wall_s());
+    m.header().stamp().sec(static_cast<int32_t>(std::floor(stamp)));
+    m.header().stamp().nanosec(static_cast<uint32_t>(std::llround((stamp - std::floor(stamp)) * 1e9) % 1000000000));
+    auto& pose = m.pose().pose();
+    pose.position().x(v[0]);
+    pose.position().y(v[1]);
+    pose.position().z(v[2]);
+    pose.orientation().x(v[3]);
+    pose.orientation().y(v[4]);
+    pose.orientation().z(v[5]);
+    pose.orientation().w(v[6]);
+    bool ok = writer->write(&m);
+    emit(std::string("\"event\":\"initial_pose\",\"matched\":") + (matched.empty() ? "false" : "true") +
+         ",\"ok\":" + (ok ? "true" : "false"));
+    // The node applies it to the next cloud: let it arrive first.
+    std::this_thread::sleep_for(std::chrono::milliseconds(300));
+    return ok;
+}
+
 int main(int argc, char** argv)
 {
     Options o;
@@ -626,6 +680,10 @@ int main(int argc, char** argv)
         if (writer_matches == 0) emit("\"event\":\"no_match\",\"topic\":\"" + wlistener.topic + "\"");
         // Give the remote reader a moment past the match (its side of discovery).
         std::this_thread::sleep_for(std::chrono::milliseconds(500));
+        if (!o.initial_pose.empty() && !publish_initial_pose(participant, publisher, pose_type, o))
+        {
+            return 1;
+        }
 
         sm::PointCloud2_ cloud;
         cloud.header().frame_id(o.frame);
