@@ -114,6 +114,7 @@ struct Options
     double stamp0 = -1.0;  // first cloud's stamp, seconds (negative: wall clock)
     double stamp_step = 0.0;  // stamp increment per cloud, seconds (0: 1 / rate)
     std::string initial_pose;  // "x,y,z,qx,qy,qz,qw" for /initialpose before the clouds
+    std::string tf_static;  // "parent,child,x,y,z,qx,qy,qz,qw" latched on /tf_static
     std::string frame = "lidar";
     int point_step = 16;  // bytes per point: x, y, z then zero padding
     // Subscribers.
@@ -153,6 +154,9 @@ static void usage()
         "  --initial-pose X,Y,Z,QX,QY,QZ,QW\n"
         "                          publish it once on /initialpose (frame map, reliable)\n"
         "                          before the first cloud, as RViz's 2D Pose Estimate does\n"
+        "  --tf-static PARENT,CHILD,X,Y,Z,QX,QY,QZ,QW\n"
+        "                          latch one transform on /tf_static (reliable, transient\n"
+        "                          local) at start-up: the sensor's mounting\n"
         "  --stamp-step S          stamp increment per cloud instead of 1/rate (a dataset's\n"
         "                          spacing, published slower or faster than recorded)\n"
         "  --frame ID              header.frame_id of the clouds (lidar)\n"
@@ -199,6 +203,7 @@ static bool parse(int argc, char** argv, Options& o)
         else if (a == "--stamp0") o.stamp0 = std::stod(val());
         else if (a == "--stamp-step") o.stamp_step = std::stod(val());
         else if (a == "--initial-pose") o.initial_pose = val();
+        else if (a == "--tf-static") o.tf_static = val();
         else if (a == "--frame") o.frame = val();
         else if (a == "--point-step") o.point_step = std::max(12, std::stoi(val()));
         else if (a == "--sub-pose") o.sub_pose = val();
@@ -504,39 +509,116 @@ static sm::PointField_ field(const char* name, uint32_t offset)
 
 // ---------------------------------------------------------------------------------------
 
+// A reliable keep-last-1 writer on the ROS topic `name` (transient local: latched).
+static DataWriter* reliable_writer(DomainParticipant* participant, Publisher* publisher,
+    const std::string& name, TypeSupport& type, bool transient_local)
+{
+    Topic* t = participant->create_topic(ros_topic(name), type.get_type_name(), TOPIC_QOS_DEFAULT);
+    if (!t) return nullptr;
+    DataWriterQos q = publisher->get_default_datawriter_qos();
+    q.reliability().kind = RELIABLE_RELIABILITY_QOS;
+    q.durability().kind = transient_local ? TRANSIENT_LOCAL_DURABILITY_QOS : VOLATILE_DURABILITY_QOS;
+    q.history().kind = KEEP_LAST_HISTORY_QOS;
+    q.history().depth = 1;
+    return publisher->create_datawriter(t, q);
+}
+
+// `stamp` seconds as a ROS time.
+static void set_stamp(builtin_interfaces::msg::dds_::Time_& time, double stamp)
+{
+    time.sec(static_cast<int32_t>(std::floor(stamp)));
+    time.nanosec(static_cast<uint32_t>(std::llround((stamp - std::floor(stamp)) * 1e9) % 1000000000));
+}
+
+// Waits up to `seconds` for `writer` to match a reader; whether it did.
+static bool wait_for_reader(DataWriter* writer, double seconds)
+{
+    auto deadline = now_s() + seconds;
+    PublicationMatchedStatus status;
+    while (now_s() < deadline)
+    {
+        if (writer->get_publication_matched_status(status) == ReturnCode_t::RETCODE_OK && status.current_count > 0)
+        {
+            return true;
+        }
+        std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    }
+    return false;
+}
+
+// The comma-separated numbers of `text` (exactly `n` of them), or an empty vector.
+static std::vector<double> numbers(const std::string& text, size_t n)
+{
+    std::vector<double> v;
+    std::stringstream in(text);
+    std::string item;
+    while (std::getline(in, item, ','))
+    {
+        try
+        {
+            v.push_back(std::stod(item));
+        }
+        catch (const std::exception&)
+        {
+            return {};
+        }
+    }
+    if (v.size() != n) v.clear();
+    return v;
+}
+
+// Latches `o.tf_static` ("parent,child,x,y,z,qx,qy,qz,qw") on /tf_static with ROS 2's
+// static-transform QoS (reliable, transient local, keep-last 1), at once, without
+// waiting for a reader; the writer stays up for the run. False when the value is
+// malformed. Measured: a node that is already up when this is written during discovery
+// may never see it (tools/fastdds/README.md); one that joins later does.
+static bool publish_tf_static(DomainParticipant* participant, Publisher* publisher, const Options& o)
+{
+    auto first = o.tf_static.find(',');
+    auto second = first == std::string::npos ? first : o.tf_static.find(',', first + 1);
+    if (second == std::string::npos) return false;
+    std::vector<double> v = numbers(o.tf_static.substr(second + 1), 7);
+    if (v.empty()) return false;
+    static TypeSupport tf_type(new tf2_msgs::msg::dds_::TFMessage_PubSubType());
+    tf_type.register_type(participant);
+    DataWriter* writer = reliable_writer(participant, publisher, "/tf_static", tf_type, true);
+    if (!writer) return false;
+    geometry_msgs::msg::dds_::TransformStamped_ link;
+    link.header().frame_id(o.tf_static.substr(0, first));
+    link.child_frame_id(o.tf_static.substr(first + 1, second - first - 1));
+    auto& tr = link.transform();
+    tr.translation().x(v[0]);
+    tr.translation().y(v[1]);
+    tr.translation().z(v[2]);
+    tr.rotation().x(v[3]);
+    tr.rotation().y(v[4]);
+    tr.rotation().z(v[5]);
+    tr.rotation().w(v[6]);
+    tf2_msgs::msg::dds_::TFMessage_ m;
+    m.transforms({link});
+    bool ok = writer->write(&m);
+    emit(std::string("\"event\":\"tf_static\",\"ok\":") + (ok ? "true" : "false"));
+    return ok;
+}
+
 // Publishes `o.initial_pose` once on /initialpose (reliable, volatile, frame "map",
 // stamped o.stamp0) once the node's reader matched; false when the value is malformed.
 static bool publish_initial_pose(DomainParticipant* participant, Publisher* publisher,
     TypeSupport& pose_type, const Options& o)
 {
-    double v[7];
-    std::stringstream in(o.initial_pose);
-    for (double& x : v)
-    {
-        std::string item;
-        if (!std::getline(in, item, ',')) return false;
-        x = std::stod(item);
-    }
-    Topic* t = participant->create_topic(ros_topic("/initialpose"), pose_type.get_type_name(), TOPIC_QOS_DEFAULT);
-    DataWriterQos q = publisher->get_default_datawriter_qos();
-    q.reliability().kind = RELIABLE_RELIABILITY_QOS;
-    q.durability().kind = VOLATILE_DURABILITY_QOS;
-    q.history().kind = KEEP_LAST_HISTORY_QOS;
-    q.history().depth = 1;
-    DataWriter* writer = publisher->create_datawriter(t, q);
+    std::vector<double> v = numbers(o.initial_pose, 7);
+    if (v.empty()) return false;
+    DataWriter* writer = reliable_writer(participant, publisher, "/initialpose", pose_type, false);
     if (!writer) return false;
-    auto deadline = now_s() + o.wait_match;
-    std::vector<InstanceHandle_t> matched;
-    while (matched.empty() && now_s() < deadline)
-    {
-        writer->get_matched_subscriptions(matched);
-        if (matched.empty()) std::this_thread::sleep_for(std::chrono::milliseconds(20));
-    }
+    bool matched = wait_for_reader(writer, o.wait_match);
+    // Matched on this side only: the node's reader learns of this writer a moment
+    // later, and a volatile sample written before that is not delivered (as DDS
+    // allows); RViz's 2D Pose Estimate comes long after discovery.
+    std::this_thread::sleep_for(std::chrono::milliseconds(1000));
     gm::PoseWithCovarianceStamped_ m;
     m.header().frame_id("map");
     double stamp = o.stamp0 >= 0 ? o.stamp0 : std::floor(wall_s());
-    m.header().stamp().sec(static_cast<int32_t>(std::floor(stamp)));
-    m.header().stamp().nanosec(static_cast<uint32_t>(std::llround((stamp - std::floor(stamp)) * 1e9) % 1000000000));
+    set_stamp(m.header().stamp(), stamp);
     auto& pose = m.pose().pose();
     pose.position().x(v[0]);
     pose.position().y(v[1]);
@@ -546,7 +628,7 @@ static bool publish_initial_pose(DomainParticipant* participant, Publisher* publ
     pose.orientation().z(v[5]);
     pose.orientation().w(v[6]);
     bool ok = writer->write(&m);
-    emit(std::string("\"event\":\"initial_pose\",\"matched\":") + (matched.empty() ? "false" : "true") +
+    emit(std::string("\"event\":\"initial_pose\",\"matched\":") + (matched ? "true" : "false") +
          ",\"ok\":" + (ok ? "true" : "false"));
     // The node applies it to the next cloud: let it arrive first.
     std::this_thread::sleep_for(std::chrono::milliseconds(300));
@@ -619,6 +701,13 @@ int main(int argc, char** argv)
         return q;
     };
 
+    // Latched first, as robot_state_publisher does at start-up: a reader that joins
+    // later gets it from the writer's history (transient local).
+    if (!o.tf_static.empty() && !publish_tf_static(participant, publisher, o))
+    {
+        std::fprintf(stderr, "--tf-static: expected PARENT,CHILD,X,Y,Z,QX,QY,QZ,QW\n");
+        return 1;
+    }
     PoseReader pose_listener;
     CloudReader cloud_listener;
     DiagReader diag_listener;
@@ -682,6 +771,7 @@ int main(int argc, char** argv)
         std::this_thread::sleep_for(std::chrono::milliseconds(500));
         if (!o.initial_pose.empty() && !publish_initial_pose(participant, publisher, pose_type, o))
         {
+            std::fprintf(stderr, "--initial-pose: expected X,Y,Z,QX,QY,QZ,QW\n");
             return 1;
         }
 
@@ -726,8 +816,7 @@ int main(int argc, char** argv)
                 data.swap(wide);
             }
             double stamp = stamp0 + k * (o.stamp_step > 0 ? o.stamp_step : 1.0 / o.rate);
-            cloud.header().stamp().sec(static_cast<int32_t>(std::floor(stamp)));
-            cloud.header().stamp().nanosec(static_cast<uint32_t>(std::llround((stamp - std::floor(stamp)) * 1e9) % 1000000000));
+            set_stamp(cloud.header().stamp(), stamp);
             cloud.width(n);
             cloud.row_step(n * o.point_step);
             cloud.data(std::move(data));
