@@ -1074,7 +1074,8 @@ mod in_namespace {
             "base_link,lidar,{}",
             pose_to_xyz_quat(&base_sensor).map(arg).join(",")
         );
-        // Bounded by its own --duration; killed once the drive is done.
+        // Bounded by its own --duration; stopped (SIGTERM: it deletes its participant
+        // and Fast DDS its shared memory) once the drive is done.
         let mut latched = Command::new(fast_dds_build().join("bin/fdpeer"))
             .args(["--tf-static", &mounting, "--duration", "100"])
             .env_remove("ROS_DOMAIN_ID")
@@ -1082,6 +1083,11 @@ mod in_namespace {
             .spawn()
             .unwrap();
         let records = publish_drive("drive", "5", &["--sub-cloud", "/kfmap/map_cloud"]);
+        common::signal(&latched, libc::SIGTERM);
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while latched.try_wait().ok().flatten().is_none() && Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(50));
+        }
         let _ = latched.kill();
         let _ = latched.wait();
         let (received, localized_by_node, skipped) = node_counts(&dir.join("drive/node.log"));

@@ -29,6 +29,7 @@
 #include <atomic>
 #include <chrono>
 #include <cmath>
+#include <csignal>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
@@ -635,8 +636,19 @@ static bool publish_initial_pose(DomainParticipant* participant, Publisher* publ
     return ok;
 }
 
+// Set by SIGTERM / SIGINT: the waits end and the participant is deleted, so Fast DDS
+// removes its shared-memory segments (a killed peer leaves them in /dev/shm).
+static std::atomic<bool> stop_requested{false};
+
+static void request_stop(int)
+{
+    stop_requested = true;
+}
+
 int main(int argc, char** argv)
 {
+    std::signal(SIGTERM, request_stop);
+    std::signal(SIGINT, request_stop);
     Options o;
     if (!parse(argc, argv, o)) return 2;
     if (o.domain < 0)
@@ -835,7 +847,7 @@ int main(int argc, char** argv)
             std::this_thread::sleep_until(next);
         }
         auto end = now_s() + o.linger;
-        while (now_s() < end && !done_expecting())
+        while (now_s() < end && !done_expecting() && !stop_requested)
         {
             std::this_thread::sleep_for(std::chrono::milliseconds(20));
         }
@@ -848,7 +860,7 @@ int main(int argc, char** argv)
     else
     {
         auto end = now_s() + (o.duration > 0 ? o.duration : o.linger);
-        while (now_s() < end && !done_expecting())
+        while (now_s() < end && !done_expecting() && !stop_requested)
         {
             std::this_thread::sleep_for(std::chrono::milliseconds(20));
         }
