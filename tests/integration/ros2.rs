@@ -97,6 +97,39 @@ fn run_fast_dds_peer(dir: &Path, name: &str, args: &[String]) -> Vec<Value> {
         .collect()
 }
 
+/// The Fast DDS peer's arguments to publish `count` scans of `dataset` (its PCD files)
+/// on `/points` at `rate` Hz, stamped from `stamp0` every `stamp_step` seconds, and to
+/// record the node's poses.
+fn cloud_args(
+    dataset: &Path,
+    count: usize,
+    rate: u32,
+    stamp0: f64,
+    stamp_step: f64,
+) -> Vec<String> {
+    [
+        "--pub-points",
+        "/points",
+        "--pcd-dir",
+        &dataset.join("scans").display().to_string(),
+        "--count",
+        &count.to_string(),
+        "--rate",
+        &rate.to_string(),
+        "--stamp0",
+        &stamp0.to_string(),
+        "--stamp-step",
+        &stamp_step.to_string(),
+        "--sub-pose",
+        "/kfmap/pose",
+        "--linger",
+        "2",
+        "--quiet-discovery",
+    ]
+    .map(String::from)
+    .to_vec()
+}
+
 /// The Fast DDS peer's received poses by their stamp's [`key`].
 fn poses_by_stamp(records: &[Value]) -> std::collections::BTreeMap<i64, &Value> {
     records
@@ -1026,39 +1059,19 @@ mod in_namespace {
         let scans = find_scans(&data).unwrap();
         let poses = dataset_poses(&data, &scans).unwrap().unwrap();
         let to_map = map_from_input("court", &prefix.0);
-        let arg = |v: f64| format!("{v}");
 
         // The drive at its recorded stamps, published at half its rate so the node
         // takes every cloud: the same statuses and poses as `kfmap localize`.
         let sent = scans.len();
         // A fresh node in `name`, given the drive's clouds by the peer at `rate` with
         // `extra` arguments; the peer's events (the node stopped, its log in `name`).
-        let publish_drive = |name: &str, rate: &str, extra: &[&str]| {
+        let publish_drive = |name: &str, rate: u32, extra: &[&str]| {
             let at = dir.join(name);
             std::fs::create_dir_all(&at).unwrap();
             let node = Node::start(&at, "court", &prefix.0);
-            let mut args: Vec<String> = [
-                "--pub-points",
-                "/points",
-                "--count",
-                &sent.to_string(),
-                "--rate",
-                rate,
-                "--stamp0",
-                &arg(poses.stamps[0]),
-                "--stamp-step",
-                &arg(poses.stamps[1] - poses.stamps[0]),
-                "--sub-pose",
-                "/kfmap/pose",
-                "--linger",
-                "2",
-                "--quiet-discovery",
-            ]
-            .iter()
-            .chain(extra)
-            .map(|a| a.to_string())
-            .collect();
-            args.extend(["--pcd-dir".into(), data.join("scans").display().to_string()]);
+            let step = poses.stamps[1] - poses.stamps[0];
+            let mut args = cloud_args(&data, sent, rate, poses.stamps[0], step);
+            args.extend(extra.iter().map(|a| a.to_string()));
             let records = run_fast_dds_peer(&at, "peer", &args);
             drop(node);
             records
@@ -1072,7 +1085,9 @@ mod in_namespace {
         );
         let mounting = format!(
             "base_link,lidar,{}",
-            pose_to_xyz_quat(&base_sensor).map(arg).join(",")
+            pose_to_xyz_quat(&base_sensor)
+                .map(|v| v.to_string())
+                .join(",")
         );
         // Bounded by its own --duration; stopped (SIGTERM: it deletes its participant
         // and Fast DDS its shared memory) once the drive is done.
@@ -1082,7 +1097,7 @@ mod in_namespace {
             .stdout(Stdio::null())
             .spawn()
             .unwrap();
-        let records = publish_drive("drive", "5", &["--sub-cloud", "/kfmap/map_cloud"]);
+        let records = publish_drive("drive", 5, &["--sub-cloud", "/kfmap/map_cloud"]);
         common::signal(&latched, libc::SIGTERM);
         let deadline = Instant::now() + Duration::from_secs(10);
         while latched.try_wait().ok().flatten().is_none() && Instant::now() < deadline {
@@ -1142,8 +1157,8 @@ mod in_namespace {
             &["--no-imu", "--initial-from-ground-truth"],
         );
         let truth: Vec<Pose> = poses.poses.iter().map(|p| to_map * p).collect();
-        let initial = pose_to_xyz_quat(&truth[0]).map(arg).join(",");
-        let records = publish_drive("reset", "5", &["--initial-pose", &initial]);
+        let initial = pose_to_xyz_quat(&truth[0]).map(|v| v.to_string()).join(",");
+        let records = publish_drive("reset", 5, &["--initial-pose", &initial]);
         let (_, _, skipped) = node_counts(&dir.join("reset/node.log"));
         assert_eq!(skipped, 0, "every cloud taken");
         let published = poses_by_stamp(&records);
@@ -1161,15 +1176,9 @@ mod in_namespace {
                     .collect();
                 panic!("after /initialpose, scan {k}: no pose; the peer saw {said:?}")
             });
-            let at: Vec<f64> = serde_json::from_value(pose["position"].clone()).unwrap();
-            let want: Vec<f64> = serde_json::from_value(expected["pose"].clone()).unwrap();
-            let p = truth[k].translation.vector;
-            let same = (0..3)
-                .map(|i| (at[i] - want[i]).powi(2))
-                .sum::<f64>()
-                .sqrt();
-            let off =
-                ((at[0] - p.x).powi(2) + (at[1] - p.y).powi(2) + (at[2] - p.z).powi(2)).sqrt();
+            let at = fast_dds_pose(pose);
+            let same = translation_distance(&at, &pose_of(&expected["pose"]));
+            let off = translation_distance(&at, &truth[k]);
             (worst_same, worst_truth) = (worst_same.max(same), worst_truth.max(off));
             assert!(
                 same <= SAME_POSE_M,
@@ -1198,29 +1207,10 @@ mod in_namespace {
         std::fs::create_dir_all(&free).unwrap();
         let node = Node::start(&free, "court", &prefix.0);
         let sent = dense_truth.len();
-        let records = run_fast_dds_peer(
-            &free,
-            "peer",
-            &[
-                "--pub-points".into(),
-                "/points".into(),
-                "--pcd-dir".into(),
-                dense.join("scans").display().to_string(),
-                "--point-step".into(),
-                "24".into(),
-                "--count".into(),
-                sent.to_string(),
-                "--rate".into(),
-                "10".into(),
-                "--stamp0".into(),
-                arg(dense_poses.stamps[0]),
-                "--sub-pose".into(),
-                "/kfmap/pose".into(),
-                "--linger".into(),
-                "2".into(),
-                "--quiet-discovery".into(),
-            ],
-        );
+        // 2.7 MB with the view directions' bytes kept (point step 24).
+        let mut args = cloud_args(&dense, sent, 10, dense_poses.stamps[0], 0.1);
+        args.extend(["--point-step".into(), "24".into()]);
+        let records = run_fast_dds_peer(&free, "peer", &args);
         // The late joiner: the latched map cloud reaches a subscriber that starts now.
         let late = run_fast_dds_peer(
             &free,
@@ -1245,10 +1235,7 @@ mod in_namespace {
         for pose in &poses_out {
             let k =
                 ((pose["stamp"].as_f64().unwrap() - dense_poses.stamps[0]) * 10.0).round() as usize;
-            let at: Vec<f64> = serde_json::from_value(pose["position"].clone()).unwrap();
-            let p = truth[k].translation.vector;
-            let gap =
-                ((at[0] - p.x).powi(2) + (at[1] - p.y).powi(2) + (at[2] - p.z).powi(2)).sqrt();
+            let gap = translation_distance(&fast_dds_pose(pose), &dense_truth[k]);
             worst = worst.max(gap);
         }
         println!(

@@ -48,8 +48,7 @@ mod prepared;
 mod tests;
 
 pub use health::{
-    COVARIANCE_INFLATION, ROTATION_FLOOR_RAD2, Reasons, SANDWICH_CLUSTER_M, ScanHealth,
-    TrackingStatus, covariance_from_wire, covariance_to_wire, pose_covariance,
+    Reasons, ScanHealth, TrackingStatus, covariance_from_wire, covariance_to_wire, pose_covariance,
     registration_covariance,
 };
 pub use ladder::{

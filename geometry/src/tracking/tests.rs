@@ -220,29 +220,6 @@ fn the_sandwich_predicts_the_scatter_when_surfaces_err_together() {
     }
 }
 
-/// The published covariance is the registration's, inflated, with the rotation floor.
-#[test]
-fn the_published_covariance_is_the_registrations_inflated_with_a_rotation_floor() {
-    let mut rng = StdRng::seed_from_u64(5);
-    let (_, pairs) = problem(&mut rng, 400, 0.05);
-    let result = result_at_identity(&pairs);
-    let own = registration_covariance(&result).unwrap();
-    let published = pose_covariance(&result).unwrap();
-    for i in 0..6 {
-        for j in 0..6 {
-            let floor = if i == j && i < 3 {
-                ROTATION_FLOOR_RAD2
-            } else {
-                0.0
-            };
-            let expected = own[(i, j)] * COVARIANCE_INFLATION + floor;
-            assert!((published[(i, j)] - expected).abs() <= 1e-12 * expected.abs().max(1e-20));
-        }
-    }
-    // (0.01 deg)^2 in rad^2.
-    assert!((ROTATION_FLOOR_RAD2.sqrt().to_degrees() - 0.01).abs() < 1e-12);
-}
-
 #[test]
 fn a_singular_hessian_has_no_covariance() {
     let pairs = vec![Correspondence {
