@@ -34,6 +34,7 @@
 #include <cstdlib>
 #include <cstring>
 #include <fstream>
+#include <functional>
 #include <mutex>
 #include <sstream>
 #include <string>
@@ -105,7 +106,13 @@ struct Options
     std::string pub_points;
     int points = 1000;
     std::string pcd_dir;
+    int pcd_first = 0;  // index of the first PCD file
     int pcd_count = 0;
+    std::string stamps_file;  // one stamp per cloud, seconds (instead of stamp0 + k step)
+    // Publisher of IMU samples, interleaved with the clouds.
+    std::string pub_imu;
+    std::string imu_file;  // "t ax ay az gx gy gz" per line, t on the clouds' clock
+    double imu_ahead = 0.05;  // samples up to this past a cloud's stamp go out before it
     double rate = 10.0;
     int count = 20;
     bool reliable = false;
@@ -123,6 +130,7 @@ struct Options
     std::string sub_cloud;
     bool cloud_transient_local = true;
     std::string sub_diag;
+    std::string sub_vector;
     bool best_effort_sub = false;
     // Run length after publishing (or in total with no publisher).
     double linger = 5.0;
@@ -145,6 +153,12 @@ static void usage()
         "  --points N              synthetic cloud: N points on a plane (x,y,z float32, point_step 16)\n"
         "  --pcd-dir DIR           publish DIR/000000.pcd ... (binary PCD, x y z first) instead\n"
         "  --pcd-count K           how many PCD files to cycle through (default: until one is missing)\n"
+        "  --pcd-first K           the first PCD file's index (0)\n"
+        "  --stamps-file FILE      cloud k's stamp from line k of FILE (seconds; a dataset's own)\n"
+        "  --pub-imu TOPIC         publish sensor_msgs/Imu from --imu-file, interleaved: before each\n"
+        "                          cloud the samples up to --imu-ahead S past its stamp (0.05), as a\n"
+        "                          driver's IMU runs ahead of a cloud sent when its sweep ends\n"
+        "  --imu-file FILE         \"t ax ay az gx gy gz\" per line (s, m/s^2, rad/s; the clouds' clock)\n"
         "  --rate HZ               publication rate (10)\n"
         "  --count K               clouds to publish (20)\n"
         "  --reliable              reliable writer (default best effort, as ROS 2 sensor data QoS)\n"
@@ -166,6 +180,8 @@ static void usage()
         "  --sub-cloud TOPIC       subscribe sensor_msgs/PointCloud2 (reliable, transient local, keep-last 1)\n"
         "  --volatile-cloud        ... with volatile durability instead\n"
         "  --sub-diag TOPIC        subscribe diagnostic_msgs/DiagnosticArray (reliable, keep-last 10)\n"
+        "  --sub-vector TOPIC      subscribe geometry_msgs/Vector3Stamped (reliable, transient local,\n"
+        "                          keep-last 1: the node's gravity)\n"
         "  --best-effort-sub       subscribers best effort instead of reliable\n"
         "  --linger S              keep running S s after the last cloud (5)\n"
         "  --duration S            total run time with no publisher (default: linger)\n"
@@ -195,6 +211,11 @@ static bool parse(int argc, char** argv, Options& o)
         else if (a == "--points") o.points = std::stoi(val());
         else if (a == "--pcd-dir") o.pcd_dir = val();
         else if (a == "--pcd-count") o.pcd_count = std::stoi(val());
+        else if (a == "--pcd-first") o.pcd_first = std::stoi(val());
+        else if (a == "--stamps-file") o.stamps_file = val();
+        else if (a == "--pub-imu") o.pub_imu = val();
+        else if (a == "--imu-file") o.imu_file = val();
+        else if (a == "--imu-ahead") o.imu_ahead = std::stod(val());
         else if (a == "--rate") o.rate = std::stod(val());
         else if (a == "--count") o.count = std::stoi(val());
         else if (a == "--reliable") o.reliable = true;
@@ -211,6 +232,7 @@ static bool parse(int argc, char** argv, Options& o)
         else if (a == "--sub-cloud") o.sub_cloud = val();
         else if (a == "--volatile-cloud") o.cloud_transient_local = false;
         else if (a == "--sub-diag") o.sub_diag = val();
+        else if (a == "--sub-vector") o.sub_vector = val();
         else if (a == "--best-effort-sub") o.best_effort_sub = true;
         else if (a == "--linger") o.linger = std::stod(val());
         else if (a == "--duration") o.duration = std::stod(val());
@@ -314,6 +336,7 @@ struct ParticipantListener : public DomainParticipantListener
 static std::atomic<int> poses_received{0};
 static std::atomic<int> clouds_received{0};
 static std::atomic<int> diags_received{0};
+static std::atomic<int> vectors_received{0};
 
 struct ReaderEvents : public DataReaderListener
 {
@@ -349,75 +372,75 @@ static double stamp_of(const builtin_interfaces::msg::dds_::Time_& t)
     return t.sec() + t.nanosec() * 1e-9;
 }
 
-struct PoseReader : public ReaderEvents
+// A reader of messages `M`: counts each valid sample in `received` and prints it with
+// `describe(message, count)` (one event or more).
+template <class M>
+struct Reader : public ReaderEvents
 {
+    std::atomic<int>* received = nullptr;
+    std::function<void(const M&, int)> describe;
+
     void on_data_available(DataReader* reader) override
     {
-        gm::PoseWithCovarianceStamped_ m;
+        M m;
         SampleInfo info;
         while (reader->take_next_sample(&m, &info) == ReturnCode_t::RETCODE_OK)
         {
-            if (!info.valid_data) continue;
-            int n = ++poses_received;
-            const auto& p = m.pose().pose().position();
-            const auto& q = m.pose().pose().orientation();
-            char b[512];
-            std::snprintf(b, sizeof b,
-                "\"event\":\"pose\",\"topic\":\"%s\",\"n\":%d,\"stamp\":%.9f,\"frame\":\"%s\","
-                "\"position\":[%.6f,%.6f,%.6f],\"orientation\":[%.6f,%.6f,%.6f,%.6f],"
-                "\"cov_xx\":%.3g,\"wall\":%.6f",
-                topic.c_str(), n, stamp_of(m.header().stamp()), esc(m.header().frame_id()).c_str(),
-                p.x(), p.y(), p.z(), q.x(), q.y(), q.z(), q.w(), m.pose().covariance()[0], wall_s());
-            emit(b);
+            if (info.valid_data) describe(m, ++*received);
         }
     }
 };
 
-struct CloudReader : public ReaderEvents
+static void describe_pose(const std::string& topic, const gm::PoseWithCovarianceStamped_& m, int n)
 {
-    void on_data_available(DataReader* reader) override
-    {
-        sm::PointCloud2_ m;
-        SampleInfo info;
-        while (reader->take_next_sample(&m, &info) == ReturnCode_t::RETCODE_OK)
-        {
-            if (!info.valid_data) continue;
-            int n = ++clouds_received;
-            std::string fields;
-            for (const auto& f : m.fields())
-            {
-                fields += (fields.empty() ? "\"" : ",\"") + esc(f.name()) + "\"";
-            }
-            char b[512];
-            std::snprintf(b, sizeof b,
-                "\"event\":\"cloud\",\"topic\":\"%s\",\"n\":%d,\"stamp\":%.9f,\"frame\":\"%s\","
-                "\"width\":%u,\"height\":%u,\"point_step\":%u,\"data_bytes\":%zu,\"fields\":[%s]",
-                topic.c_str(), n, stamp_of(m.header().stamp()), esc(m.header().frame_id()).c_str(),
-                m.width(), m.height(), m.point_step(), m.data().size(), fields.c_str());
-            emit(b);
-        }
-    }
-};
+    const auto& p = m.pose().pose().position();
+    const auto& q = m.pose().pose().orientation();
+    char b[512];
+    std::snprintf(b, sizeof b,
+        "\"event\":\"pose\",\"topic\":\"%s\",\"n\":%d,\"stamp\":%.9f,\"frame\":\"%s\","
+        "\"position\":[%.6f,%.6f,%.6f],\"orientation\":[%.6f,%.6f,%.6f,%.6f],"
+        "\"cov_xx\":%.3g,\"wall\":%.6f",
+        topic.c_str(), n, stamp_of(m.header().stamp()), esc(m.header().frame_id()).c_str(),
+        p.x(), p.y(), p.z(), q.x(), q.y(), q.z(), q.w(), m.pose().covariance()[0], wall_s());
+    emit(b);
+}
 
-struct DiagReader : public ReaderEvents
+static void describe_cloud(const std::string& topic, const sm::PointCloud2_& m, int n)
 {
-    void on_data_available(DataReader* reader) override
+    std::string fields;
+    for (const auto& f : m.fields())
     {
-        dm::DiagnosticArray_ m;
-        SampleInfo info;
-        while (reader->take_next_sample(&m, &info) == ReturnCode_t::RETCODE_OK)
-        {
-            if (!info.valid_data) continue;
-            ++diags_received;
-            for (const auto& s : m.status())
-            {
-                emit("\"event\":\"diag\",\"stamp\":" + std::to_string(stamp_of(m.header().stamp())) +
-                     ",\"level\":" + std::to_string(int(s.level())) + ",\"name\":\"" + esc(s.name()) +
-                     "\",\"message\":\"" + esc(s.message()) + "\"");
-            }
-        }
+        fields += (fields.empty() ? "\"" : ",\"") + esc(f.name()) + "\"";
     }
-};
+    char b[512];
+    std::snprintf(b, sizeof b,
+        "\"event\":\"cloud\",\"topic\":\"%s\",\"n\":%d,\"stamp\":%.9f,\"frame\":\"%s\","
+        "\"width\":%u,\"height\":%u,\"point_step\":%u,\"data_bytes\":%zu,\"fields\":[%s]",
+        topic.c_str(), n, stamp_of(m.header().stamp()), esc(m.header().frame_id()).c_str(),
+        m.width(), m.height(), m.point_step(), m.data().size(), fields.c_str());
+    emit(b);
+}
+
+static void describe_diag(const dm::DiagnosticArray_& m)
+{
+    for (const auto& s : m.status())
+    {
+        emit("\"event\":\"diag\",\"stamp\":" + std::to_string(stamp_of(m.header().stamp())) +
+             ",\"level\":" + std::to_string(int(s.level())) + ",\"name\":\"" + esc(s.name()) +
+             "\",\"message\":\"" + esc(s.message()) + "\"");
+    }
+}
+
+static void describe_vector(const std::string& topic, const gm::Vector3Stamped_& m, int n)
+{
+    char b[512];
+    std::snprintf(b, sizeof b,
+        "\"event\":\"vector\",\"topic\":\"%s\",\"n\":%d,\"stamp\":%.9f,\"frame\":\"%s\","
+        "\"vector\":[%.9g,%.9g,%.9g]",
+        topic.c_str(), n, stamp_of(m.header().stamp()), esc(m.header().frame_id()).c_str(),
+        m.vector().x(), m.vector().y(), m.vector().z());
+    emit(b);
+}
 
 // ---------------------------------------------------------------------------------------
 // Writer.
@@ -527,8 +550,17 @@ static DataWriter* reliable_writer(DomainParticipant* participant, Publisher* pu
 // `stamp` seconds as a ROS time.
 static void set_stamp(builtin_interfaces::msg::dds_::Time_& time, double stamp)
 {
-    time.sec(static_cast<int32_t>(std::floor(stamp)));
-    time.nanosec(static_cast<uint32_t>(std::llround((stamp - std::floor(stamp)) * 1e9) % 1000000000));
+    // The fraction rounded to nanoseconds, carried into the seconds when it rounds up
+    // to a whole one (2.9999999999999996 is 3 s, not 2).
+    double sec = std::floor(stamp);
+    long long nanosec = std::llround((stamp - sec) * 1e9);
+    if (nanosec >= 1000000000)
+    {
+        sec += 1.0;
+        nanosec -= 1000000000;
+    }
+    time.sec(static_cast<int32_t>(sec));
+    time.nanosec(static_cast<uint32_t>(nanosec));
 }
 
 // Waits up to `seconds` for `writer` to match a reader; whether it did.
@@ -545,6 +577,34 @@ static bool wait_for_reader(DataWriter* writer, double seconds)
         std::this_thread::sleep_for(std::chrono::milliseconds(20));
     }
     return false;
+}
+
+// The rows of whitespace-separated numbers in `path`, each of exactly `n`; false
+// (naming the line on stderr) when the file is missing or a row is not.
+static bool read_rows(const std::string& path, size_t n, std::vector<std::vector<double>>& rows)
+{
+    std::ifstream f(path);
+    if (!f)
+    {
+        std::fprintf(stderr, "cannot read %s\n", path.c_str());
+        return false;
+    }
+    std::string line;
+    for (int number = 1; std::getline(f, line); ++number)
+    {
+        std::istringstream in(line);
+        std::vector<double> row;
+        double v;
+        while (in >> v) row.push_back(v);
+        if (row.empty()) continue;
+        if (row.size() != n || !in.eof())
+        {
+            std::fprintf(stderr, "%s line %d: expected %zu numbers\n", path.c_str(), number, n);
+            return false;
+        }
+        rows.push_back(std::move(row));
+    }
+    return true;
 }
 
 // The comma-separated numbers of `text` (exactly `n` of them), or an empty vector.
@@ -696,9 +756,11 @@ int main(int argc, char** argv)
     TypeSupport cloud_type(new sm::PointCloud2_PubSubType());
     TypeSupport pose_type(new gm::PoseWithCovarianceStamped_PubSubType());
     TypeSupport diag_type(new dm::DiagnosticArray_PubSubType());
+    TypeSupport vector_type(new gm::Vector3Stamped_PubSubType());
     cloud_type.register_type(participant);
     pose_type.register_type(participant);
     diag_type.register_type(participant);
+    vector_type.register_type(participant);
 
     Publisher* publisher = participant->create_publisher(PUBLISHER_QOS_DEFAULT);
     Subscriber* subscriber = participant->create_subscriber(SUBSCRIBER_QOS_DEFAULT);
@@ -720,27 +782,32 @@ int main(int argc, char** argv)
         std::fprintf(stderr, "--tf-static: expected PARENT,CHILD,X,Y,Z,QX,QY,QZ,QW\n");
         return 1;
     }
-    PoseReader pose_listener;
-    CloudReader cloud_listener;
-    DiagReader diag_listener;
-    if (!o.sub_pose.empty())
-    {
-        pose_listener.topic = ros_topic(o.sub_pose);
-        Topic* t = participant->create_topic(pose_listener.topic, pose_type.get_type_name(), TOPIC_QOS_DEFAULT);
-        if (!subscriber->create_datareader(t, reader_qos(false, 10), &pose_listener)) return 1;
-    }
-    if (!o.sub_cloud.empty())
-    {
-        cloud_listener.topic = ros_topic(o.sub_cloud);
-        Topic* t = participant->create_topic(cloud_listener.topic, cloud_type.get_type_name(), TOPIC_QOS_DEFAULT);
-        if (!subscriber->create_datareader(t, reader_qos(o.cloud_transient_local, 1), &cloud_listener)) return 1;
-    }
-    if (!o.sub_diag.empty())
-    {
-        diag_listener.topic = ros_topic(o.sub_diag);
-        Topic* t = participant->create_topic(diag_listener.topic, diag_type.get_type_name(), TOPIC_QOS_DEFAULT);
-        if (!subscriber->create_datareader(t, reader_qos(false, 10), &diag_listener)) return 1;
-    }
+    // Each subscription: its listener, on the ROS topic `name`, reliable unless
+    // --best-effort-sub.
+    auto subscribe = [&](ReaderEvents& listener, const std::string& name, TypeSupport& type,
+                         bool transient_local, int depth) {
+        listener.topic = ros_topic(name);
+        Topic* t = participant->create_topic(listener.topic, type.get_type_name(), TOPIC_QOS_DEFAULT);
+        return t && subscriber->create_datareader(t, reader_qos(transient_local, depth), &listener);
+    };
+    Reader<gm::PoseWithCovarianceStamped_> pose_listener;
+    pose_listener.received = &poses_received;
+    pose_listener.describe = [&](const auto& m, int n) { describe_pose(pose_listener.topic, m, n); };
+    Reader<sm::PointCloud2_> cloud_listener;
+    cloud_listener.received = &clouds_received;
+    cloud_listener.describe = [&](const auto& m, int n) { describe_cloud(cloud_listener.topic, m, n); };
+    Reader<dm::DiagnosticArray_> diag_listener;
+    diag_listener.received = &diags_received;
+    diag_listener.describe = [](const auto& m, int) { describe_diag(m); };
+    Reader<gm::Vector3Stamped_> vector_listener;
+    vector_listener.received = &vectors_received;
+    vector_listener.describe = [&](const auto& m, int n) { describe_vector(vector_listener.topic, m, n); };
+    if (!o.sub_pose.empty() && !subscribe(pose_listener, o.sub_pose, pose_type, false, 10)) return 1;
+    if (!o.sub_cloud.empty() && !subscribe(cloud_listener, o.sub_cloud, cloud_type, o.cloud_transient_local, 1))
+        return 1;
+    if (!o.sub_diag.empty() && !subscribe(diag_listener, o.sub_diag, diag_type, false, 10)) return 1;
+    // Latched, as the node publishes the map frame's gravity.
+    if (!o.sub_vector.empty() && !subscribe(vector_listener, o.sub_vector, vector_type, true, 1)) return 1;
 
     int sent = 0, send_failed = 0;
     auto done_expecting = [&]() {
@@ -773,12 +840,34 @@ int main(int argc, char** argv)
              (q.publish_mode().kind == ASYNCHRONOUS_PUBLISH_MODE ? "true" : "false") +
              ",\"memory_policy\":" + std::to_string(int(q.endpoint().history_memory_policy)));
 
+        // The IMU, best effort as a driver's sensor data (reliable with --reliable); its
+        // history holds a cloud's worth of samples written back to back.
+        std::vector<std::vector<double>> imu;
+        DataWriter* imu_writer = nullptr;
+        TypeSupport imu_type(new sm::Imu_PubSubType());
+        if (!o.pub_imu.empty())
+        {
+            if (o.imu_file.empty() || !read_rows(o.imu_file, 7, imu)) return 1;
+            imu_type.register_type(participant);
+            Topic* it = participant->create_topic(ros_topic(o.pub_imu), imu_type.get_type_name(), TOPIC_QOS_DEFAULT);
+            DataWriterQos iq = publisher->get_default_datawriter_qos();
+            iq.reliability().kind = o.reliable ? RELIABLE_RELIABILITY_QOS : BEST_EFFORT_RELIABILITY_QOS;
+            iq.durability().kind = VOLATILE_DURABILITY_QOS;
+            iq.history().kind = KEEP_LAST_HISTORY_QOS;
+            iq.history().depth = 1000;
+            imu_writer = it ? publisher->create_datawriter(it, iq) : nullptr;
+            if (!imu_writer) return 1;
+        }
         auto deadline = now_s() + o.wait_match;
         while (writer_matches == 0 && now_s() < deadline)
         {
             std::this_thread::sleep_for(std::chrono::milliseconds(20));
         }
         if (writer_matches == 0) emit("\"event\":\"no_match\",\"topic\":\"" + wlistener.topic + "\"");
+        if (imu_writer && !wait_for_reader(imu_writer, std::max(0.0, deadline - now_s())))
+        {
+            emit("\"event\":\"no_match\",\"topic\":\"" + ros_topic(o.pub_imu) + "\"");
+        }
         // Give the remote reader a moment past the match (its side of discovery).
         std::this_thread::sleep_for(std::chrono::milliseconds(500));
         if (!o.initial_pose.empty() && !publish_initial_pose(participant, publisher, pose_type, o))
@@ -800,7 +889,7 @@ int main(int argc, char** argv)
             for (int k = 0; o.pcd_count == 0 || k < o.pcd_count; ++k)
             {
                 char p[64];
-                std::snprintf(p, sizeof p, "/%06d.pcd", k);
+                std::snprintf(p, sizeof p, "/%06d.pcd", o.pcd_first + k);
                 std::vector<uint8_t> d;
                 uint32_t n;
                 if (!load_pcd(o.pcd_dir + p, d, n)) break;
@@ -812,6 +901,19 @@ int main(int argc, char** argv)
                 return 1;
             }
         }
+        std::vector<std::vector<double>> stamps;
+        if (!o.stamps_file.empty() && !read_rows(o.stamps_file, 1, stamps)) return 1;
+        if (!o.stamps_file.empty() && stamps.size() < size_t(o.count))
+        {
+            std::fprintf(stderr, "--stamps-file has %zu stamps for %d clouds\n", stamps.size(), o.count);
+            return 1;
+        }
+        size_t imu_next = 0;
+        int imu_sent = 0;
+        sm::Imu_ sample;
+        sample.header().frame_id("imu");
+        sample.orientation().w(1.0);
+        sample.orientation_covariance()[0] = -1.0;  // no orientation (REP 145)
         double stamp0 = o.stamp0 >= 0 ? o.stamp0 : std::floor(wall_s());
         auto period = std::chrono::duration<double>(1.0 / o.rate);
         auto next = std::chrono::steady_clock::now();
@@ -827,7 +929,26 @@ int main(int argc, char** argv)
                 for (uint32_t i = 0; i < n; ++i) std::memcpy(&wide[size_t(i) * o.point_step], &data[size_t(i) * 16], 12);
                 data.swap(wide);
             }
-            double stamp = stamp0 + k * (o.stamp_step > 0 ? o.stamp_step : 1.0 / o.rate);
+            double stamp = !stamps.empty() ? stamps[k][0]
+                                           : stamp0 + k * (o.stamp_step > 0 ? o.stamp_step : 1.0 / o.rate);
+            bool wrote_imu = false;
+            for (; imu_writer && imu_next < imu.size() && imu[imu_next][0] <= stamp + o.imu_ahead; ++imu_next)
+            {
+                const auto& r = imu[imu_next];
+                set_stamp(sample.header().stamp(), r[0]);
+                sample.linear_acceleration().x(r[1]);
+                sample.linear_acceleration().y(r[2]);
+                sample.linear_acceleration().z(r[3]);
+                sample.angular_velocity().x(r[4]);
+                sample.angular_velocity().y(r[5]);
+                sample.angular_velocity().z(r[6]);
+                imu_sent += imu_writer->write(&sample) ? 1 : 0;
+                wrote_imu = true;
+            }
+            // A driver's samples up to the stamp went out while the sweep lasted: a
+            // moment for them to arrive before the cloud (readers of two topics are
+            // not ordered with each other).
+            if (wrote_imu) std::this_thread::sleep_for(std::chrono::milliseconds(20));
             set_stamp(cloud.header().stamp(), stamp);
             cloud.width(n);
             cloud.row_step(n * o.point_step);
@@ -854,8 +975,9 @@ int main(int argc, char** argv)
         emit("\"event\":\"summary\",\"sent\":" + std::to_string(sent) + ",\"send_failed\":" +
              std::to_string(send_failed) + ",\"poses\":" + std::to_string(poses_received.load()) +
              ",\"clouds\":" + std::to_string(clouds_received.load()) + ",\"diags\":" +
-             std::to_string(diags_received.load()));
+             std::to_string(diags_received.load()) + ",\"imu_sent\":" + std::to_string(imu_sent));
         publisher->delete_datawriter(writer);
+        if (imu_writer) publisher->delete_datawriter(imu_writer);
     }
     else
     {
