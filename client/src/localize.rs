@@ -7,7 +7,7 @@
 use kfmap_geometry::geometry::Pose;
 use kfmap_geometry::registration::{RegistrationError, solve_pose};
 use kfmap_geometry::tracking::{
-    Expectation, PreparedScan, ScanHealth, TrackingParams, localize_scan,
+    Expectation, PreparedParts, PreparedScan, ScanHealth, TrackingParams, localize_scan,
 };
 use kfmap_protocol::{
     Cov2CovMode, FLAG_STAMPED, RequestHeader, RequestKind, ScanPayload, correspondences_from_wire,
@@ -112,6 +112,20 @@ impl Client {
         guess: &Pose,
         options: &LocalizeOptions,
     ) -> Result<Localized, ClientError> {
+        self.localize_client_side_reusing(scan, guess, options, &mut PreparedParts::default())
+    }
+
+    /// [`Self::localize_client_side`] that takes the scan's covariances and coarse copy
+    /// from `parts` when an earlier call on the same scan built them there, and leaves
+    /// what it built in `parts`: a tracker registering one scan at several places
+    /// estimates its covariances once. The pose is the same either way.
+    pub fn localize_client_side_reusing(
+        &mut self,
+        scan: &ScanPayload,
+        guess: &Pose,
+        options: &LocalizeOptions,
+        parts: &mut PreparedParts,
+    ) -> Result<Localized, ClientError> {
         let tracking = &options.tracking;
         tracking
             .validate()
@@ -119,12 +133,13 @@ impl Client {
         // Covariances estimated once here rather than by the server at every iterate,
         // with the server's own [covariance], as server-side localization prepares it.
         let served = self.served_covariance_options()?;
-        let mut prepared = PreparedScan::new(
+        let mut prepared = PreparedScan::resume(
             scan.points,
             scan.view_dirs,
             scan.covariances,
             served,
             *tracking,
+            std::mem::take(parts),
         );
         let found = localize_scan(
             guess,
@@ -158,6 +173,7 @@ impl Client {
                 }
             },
         )?;
+        *parts = prepared.into_parts();
         Ok(Localized {
             pose: found.pose,
             health: found.health,

@@ -8,6 +8,7 @@
 //! adopted scans in a row that do not fit the map it says `lost` (and relocalizes, with
 //! the IMU's tilt when it has one) instead of following its own prediction.
 
+use std::cell::RefCell;
 use std::sync::Arc;
 
 use kfmap_geometry::cloud::PointCloud;
@@ -19,7 +20,9 @@ use kfmap_geometry::motion::{
 };
 use kfmap_geometry::options::{InvalidOption, ensure, ensure_ratio};
 use kfmap_geometry::registration::{PreparedCloud, RegistrationParams, align};
-use kfmap_geometry::tracking::{CORRECTION_RANGE_M, Reasons, ScanHealth, TrackingStatus};
+use kfmap_geometry::tracking::{
+    CORRECTION_RANGE_M, PreparedParts, Reasons, ScanHealth, TrackingStatus,
+};
 use kfmap_protocol::ScanPayload;
 use serde::{Deserialize, Serialize};
 
@@ -231,6 +234,9 @@ pub struct Tracker {
     /// This scan prepared for scan-to-scan registration (`Prepared`), when a
     /// registration did so.
     prepared_now: Option<PreviousScan>,
+    /// The last scan's covariances and coarse copy as client-side localization built
+    /// them: while places are in doubt one scan is localized at each of them.
+    localized_scan: RefCell<PreparedParts>,
 }
 
 /// The scan before, as sent or already prepared for registration (downsampled, with
@@ -437,6 +443,7 @@ impl Tracker {
             since_check: 0,
             previous_scan: None,
             prepared_now: None,
+            localized_scan: RefCell::default(),
         }
     }
 
@@ -629,7 +636,8 @@ impl Tracker {
         if self.options.server_side {
             client.localize(scan, predicted, options)
         } else {
-            client.localize_client_side(scan, predicted, options)
+            let parts = &mut self.localized_scan.borrow_mut();
+            client.localize_client_side_reusing(scan, predicted, options, parts)
         }
     }
 

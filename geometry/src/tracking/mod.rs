@@ -54,4 +54,4 @@ pub use health::{
 pub use ladder::{
     CORRECTION_RANGE_M, Expectation, Localization, Stage, TrackingParams, localize_scan,
 };
-pub use prepared::PreparedScan;
+pub use prepared::{PreparedParts, PreparedScan};

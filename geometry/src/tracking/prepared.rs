@@ -75,6 +75,43 @@ impl<'s> PreparedScan<'s> {
         Ok((cloud, covs.as_slice()))
     }
 
+    /// As [`Self::new`], with what an earlier preparation built (`parts`, from
+    /// [`Self::into_parts`]) when it prepared the same points with the same options:
+    /// a tracker registers one scan at several places, and the covariances are most of
+    /// a client-side localization's own work. Parts of another scan or other options
+    /// are dropped, so the result is always what [`Self::new`] would give.
+    pub fn resume(
+        points: &'s [[f32; 3]],
+        view_dirs: Option<&'s [[f32; 3]]>,
+        covariances: Option<&'s [PackedSym3]>,
+        options: CovOptions,
+        tracking: TrackingParams,
+        parts: PreparedParts,
+    ) -> Self {
+        let mut scan = Self::new(points, view_dirs, covariances, options, tracking);
+        let same = parts.built_with == Some((options, tracking.coarse_voxel))
+            && parts.given_covariances == covariances.is_some()
+            && parts.points == points
+            && parts.view_dirs.as_deref() == view_dirs;
+        if same {
+            scan.fine = parts.fine;
+            scan.coarse = parts.coarse;
+        }
+        scan
+    }
+
+    /// What this preparation built, for [`Self::resume`] on the same scan.
+    pub fn into_parts(self) -> PreparedParts {
+        PreparedParts {
+            built_with: Some((self.options, self.tracking.coarse_voxel)),
+            given_covariances: self.covariances.is_some(),
+            points: self.points.to_vec(),
+            view_dirs: self.view_dirs.map(<[_]>::to_vec),
+            fine: self.fine,
+            coarse: self.coarse,
+        }
+    }
+
     /// The cloud and covariances `stage` registers.
     pub fn for_stage(&mut self, stage: &Stage) -> Result<(&PointCloud, &[PackedSym3]), CloudError> {
         if stage.coarse {
@@ -83,4 +120,15 @@ impl<'s> PreparedScan<'s> {
             Ok(self.fine())
         }
     }
+}
+
+/// What a [`PreparedScan`] built, with the scan and options it was built for.
+#[derive(Debug, Default, Clone)]
+pub struct PreparedParts {
+    built_with: Option<(CovOptions, f64)>,
+    given_covariances: bool,
+    points: Vec<[f32; 3]>,
+    view_dirs: Option<Vec<[f32; 3]>>,
+    fine: Option<(PointCloud, Vec<PackedSym3>)>,
+    coarse: Option<(PointCloud, Vec<PackedSym3>)>,
 }

@@ -452,3 +452,47 @@ fn shipped_tracking_parameters_are_valid_and_checked() {
     let e = bad.validate().unwrap_err();
     assert_eq!(e.option, "lost-inlier-ratio");
 }
+
+/// A preparation resumed from another one's parts equals a fresh one on the same scan
+/// and options, and drops parts built for other points or another coarse voxel.
+#[test]
+fn a_resumed_preparation_equals_a_fresh_one_and_drops_a_foreign_scans_parts() {
+    let mut rng = StdRng::seed_from_u64(5);
+    let scan: Vec<[f32; 3]> = (0..3000)
+        .map(|_| {
+            [
+                rng.random_range(-20.0..20.0),
+                rng.random_range(-20.0..20.0),
+                rng.random_range(-2.0..2.0),
+            ]
+        })
+        .collect();
+    let other: Vec<[f32; 3]> = scan.iter().map(|p| [p[0] + 0.5, p[1], p[2]]).collect();
+    let options = crate::cov::CovOptions::default();
+    let tracking = TrackingParams::default();
+    let built = |points: &[[f32; 3]], tracking: TrackingParams| {
+        let mut fresh = PreparedScan::new(points, None, None, options, tracking);
+        let fine = fresh.fine().1.to_vec();
+        let (cloud, covs) = fresh.coarse().unwrap();
+        let coarse = (cloud.points.clone(), covs.to_vec());
+        (fine, coarse, fresh.into_parts())
+    };
+    let (fine, coarse, parts) = built(&scan, tracking);
+    let mut resumed = PreparedScan::resume(&scan, None, None, options, tracking, parts.clone());
+    assert_eq!(resumed.fine().1, fine.as_slice());
+    let (cloud, covs) = resumed.coarse().unwrap();
+    assert_eq!((&cloud.points, covs), (&coarse.0, coarse.1.as_slice()));
+    // The parts of this scan offered for another scan, or with another coarse voxel,
+    // are dropped: each gives what a fresh preparation gives.
+    let (other_fine, _, _) = built(&other, tracking);
+    let mut foreign = PreparedScan::resume(&other, None, None, options, tracking, parts.clone());
+    assert_eq!(foreign.fine().1, other_fine.as_slice());
+    let wider = TrackingParams {
+        coarse_voxel: 2.0,
+        ..tracking
+    };
+    let (_, wider_coarse, _) = built(&scan, wider);
+    let mut revoxelled = PreparedScan::resume(&scan, None, None, options, wider, parts);
+    assert_eq!(revoxelled.coarse().unwrap().0.points, wider_coarse.0);
+    assert_ne!(wider_coarse.0.len(), coarse.0.len());
+}
