@@ -34,6 +34,9 @@ const TRUTH_M: f64 = 0.05;
 /// README's figure; the run is deterministic), so a regression fails well before 5 cm.
 const TRUTH_FROM_INITIAL_M: f64 = 0.025;
 
+/// Meanwhile, on another DDS domain: balm_os0's revisit (scans 116-176, handheld,
+/// 2 Hz) published at its rate with no pose given, against a map of the first pass
+/// (scans 0-115 at their reference poses).
 #[test]
 fn the_ros2_node_tracks_like_kfmap_localize_through_cyclone_dds() {
     in_namespace_with_dds(
@@ -42,21 +45,12 @@ fn the_ros2_node_tracks_like_kfmap_localize_through_cyclone_dds() {
     );
 }
 
-/// balm_os0's revisit (scans 116-176, handheld, 2 Hz) published at its rate with no
-/// pose given, against a map of the first pass (scans 0-115 at their reference poses).
-#[test]
-fn the_ros2_node_relocalizes_and_tracks_balm_as_kfmap_localize() {
-    in_namespace_with_dds(
-        "the_ros2_node_relocalizes_and_tracks_balm_as_kfmap_localize",
-        "in_namespace::balm",
-    );
-}
-
 /// The same node against eProsima Fast DDS 2.9 as Debian ships it (ROS 2's default
 /// middleware), its defaults left as a ROS 2 user gets them (shared memory on, default
 /// QoS): a peer built from the ROS 2 message IDL (`tools/fastdds`) publishes the
-/// simulated drive and 112k-point clouds free-running at 10 Hz, and subscribes to the
-/// poses and, late, to the latched map cloud.
+/// simulated drive (with `/tf_static`, `/initialpose`, the IMU) and 112k-point clouds
+/// free-running at 10 Hz, and subscribes to the poses and, late, to the latched map
+/// cloud; meanwhile, on another domain, balm_os0's revisit at its 2 Hz.
 #[test]
 fn the_ros2_node_tracks_like_kfmap_localize_through_fast_dds() {
     in_namespace_with_fast_dds(
@@ -65,19 +59,10 @@ fn the_ros2_node_tracks_like_kfmap_localize_through_fast_dds() {
     );
 }
 
-/// balm_os0's revisit at its 2 Hz from the Fast DDS peer, as from Cyclone DDS above.
-#[test]
-fn the_ros2_node_relocalizes_and_tracks_balm_through_fast_dds() {
-    in_namespace_with_fast_dds(
-        "the_ros2_node_relocalizes_and_tracks_balm_through_fast_dds",
-        "in_namespace::fast_dds_balm",
-    );
-}
-
 /// Runs `inner` in a private network namespace once the Fast DDS peer is built (out
 /// here: it needs Debian's packages, which `.ci/run` installs).
 fn in_namespace_with_fast_dds(test: &str, inner: &str) {
-    // Built once for both tests, which run in parallel in this process.
+    // Built once per process (tests run in parallel).
     static BUILT: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
     let built = *BUILT.get_or_init(|| {
         Command::new("sh")
@@ -455,6 +440,12 @@ struct Node(Child, PathBuf);
 
 impl Node {
     fn start(dir: &Path, map_name: &str, prefix: &str) -> Self {
+        Self::start_in_domain(dir, map_name, prefix, 0)
+    }
+
+    /// A node on DDS domain `domain`: scenarios on different domains share a namespace
+    /// and run at once without hearing each other.
+    fn start_in_domain(dir: &Path, map_name: &str, prefix: &str, domain: u16) -> Self {
         let config = dir.join("ros2.toml");
         std::fs::write(
             &config,
@@ -468,6 +459,7 @@ impl Node {
         let log = dir.join("node.log");
         let child = Command::new(node_bin())
             .args(["--config", config.to_str().unwrap()])
+            .args(["--domain-id", &domain.to_string()])
             .env("ROS_DISTRO", "jazzy")
             .env_remove("ROS_DOMAIN_ID")
             .stdout(Stdio::from(
@@ -681,11 +673,23 @@ mod in_namespace {
             return;
         }
         loopback_for_dds();
-        let Some(python) =
-            dds_python("the_ros2_node_tracks_like_kfmap_localize_through_cyclone_dds")
-        else {
+        const TEST: &str = "the_ros2_node_tracks_like_kfmap_localize_through_cyclone_dds";
+        let Some(python) = dds_python(TEST) else {
             return;
         };
+        // balm_os0's revisit at 2 Hz on domain 1 meanwhile: both scenarios mostly wait
+        // on their rates.
+        let balm = require_test_data("balm_os0", TEST);
+        std::thread::scope(|scope| {
+            if let Some(balm) = &balm {
+                scope.spawn(|| cyclone_balm(&python, balm, 1));
+            }
+            cyclone_drive(&python);
+        });
+    }
+
+    /// The simulated drive's scenarios through Cyclone DDS, on domain 0.
+    fn cyclone_drive(python: &Path) {
         let prefix = Prefix::new("ros2");
         let dir = temp_dir("ros2");
         let data = dir.join("sim");
@@ -721,7 +725,7 @@ mod in_namespace {
         ));
         let node = Node::start(&dir, "court", &prefix.0);
         let records = run_peer(
-            &python,
+            python,
             &dir,
             &json!({"domain": 0, "clouds": clouds}),
             "drive",
@@ -830,7 +834,7 @@ mod in_namespace {
             "clouds": again,
             "initial_pose": {"before": 0, "pose": pose_to_xyz_quat(&truth[0])},
         });
-        let records = run_peer(&python, &dir, &manifest, "reset");
+        let records = run_peer(python, &dir, &manifest, "reset");
         let pose_records = by_stamp(&records, "pose");
         let (mut worst_same, mut worst_truth) = (0.0_f64, 0.0_f64);
         for (k, expected) in from_truth.iter().enumerate() {
@@ -884,7 +888,7 @@ mod in_namespace {
             "clouds": drive,
             "initial_pose": {"before": 0, "pose": pose_to_xyz_quat(&truth[0])},
         });
-        let peer = start_peer(&python, &dir, &manifest, "restart");
+        let peer = start_peer(python, &dir, &manifest, "restart");
         wait_for_file(&dir.join("reached1"));
         server.kill();
         std::fs::write(dir.join("go1"), "").unwrap();
@@ -952,7 +956,7 @@ mod in_namespace {
             "linger_s": 3.0,
             "initial_pose": {"before": 0, "pose": pose_to_xyz_quat(&truth[0])},
         });
-        let records = run_peer(&python, &dir, &manifest, "burst");
+        let records = run_peer(python, &dir, &manifest, "burst");
         let diagnostics = by_stamp(&records, "diagnostics");
         let newest = *poses.stamps.last().unwrap() + shift;
         let values = &diagnostics
@@ -1029,7 +1033,7 @@ mod in_namespace {
             "tf_static": [mounted("lidar"), mounted("imu")],
             "initial_pose": {"before": 0, "pose": pose_to_xyz_quat(&(truth[0] * sensor_from_base))},
         });
-        let records = run_peer(&python, &dir, &manifest, "imu");
+        let records = run_peer(python, &dir, &manifest, "imu");
         let pose_records = by_stamp(&records, "pose");
         let odometry_records = by_stamp(&records, "odometry");
         let map_odom: std::collections::BTreeMap<i64, Value> = records
@@ -1091,33 +1095,21 @@ mod in_namespace {
         drop(server);
     }
 
-    #[test]
-    #[ignore = "runs inside the network namespace of the_ros2_node_relocalizes_and_tracks_balm_as_kfmap_localize"]
-    fn balm() {
-        const TEST: &str = "the_ros2_node_relocalizes_and_tracks_balm_as_kfmap_localize";
-        if std::env::var_os(IN_NAMESPACE).is_none() {
-            eprintln!("skipped: runs only inside the namespace the outer test creates");
-            return;
-        }
-        let Some(balm) = require_test_data("balm_os0", TEST) else {
-            return;
-        };
-        loopback_for_dds();
-        let Some(python) = dds_python(TEST) else {
-            return;
-        };
+    /// balm_os0's revisit published by the Cyclone DDS peer on domain `domain`.
+    fn cyclone_balm(python: &Path, balm: &Path, domain: u16) {
         let dir = temp_dir("ros2-balm");
-        let revisit = BalmRevisit::served(&balm, &dir, "ros2-balm");
+        let revisit = BalmRevisit::served(balm, &dir, "ros2-balm");
         let clouds = scan_clouds(
             &dir.join("clouds"),
             &revisit.scans,
             &revisit.poses.stamps,
             BALM_REVISIT,
         );
-        let node = Node::start(&dir, "balm", &revisit.prefix.0);
+        let node = Node::start_in_domain(&dir, "balm", &revisit.prefix.0, domain);
         let bag = dir.join("balm-run.mcap");
-        let manifest = json!({"domain": 0, "clouds": clouds, "period_s": 0.5, "record_bag": bag});
-        let records = run_peer(&python, &dir, &manifest, "balm");
+        let manifest =
+            json!({"domain": domain, "clouds": clouds, "period_s": 0.5, "record_bag": bag});
+        let records = run_peer(python, &dir, &manifest, "balm");
         drop(node);
 
         let pose_records = by_stamp(&records, "pose");
@@ -1137,6 +1129,8 @@ mod in_namespace {
         plot_of_the_recorded_run(&dir, &bag, &records);
     }
 
+    const FAST_DDS_TEST: &str = "the_ros2_node_tracks_like_kfmap_localize_through_fast_dds";
+
     #[test]
     #[ignore = "runs inside the network namespace of the_ros2_node_tracks_like_kfmap_localize_through_fast_dds"]
     fn fast_dds() {
@@ -1145,6 +1139,19 @@ mod in_namespace {
             return;
         }
         loopback_for_dds();
+        // balm_os0's revisit at 2 Hz on domain 1 meanwhile: both scenarios mostly wait
+        // on their rates.
+        let balm = require_test_data("balm_os0", FAST_DDS_TEST);
+        std::thread::scope(|scope| {
+            if let Some(balm) = &balm {
+                scope.spawn(|| fast_dds_balm(balm, 1));
+            }
+            fast_dds_drive();
+        });
+    }
+
+    /// The simulated drive's scenarios through Fast DDS, on domain 0.
+    fn fast_dds_drive() {
         let prefix = Prefix::new("fastdds");
         let dir = temp_dir("fastdds");
         let data = dir.join("sim");
@@ -1433,20 +1440,12 @@ mod in_namespace {
         );
     }
 
-    #[test]
-    #[ignore = "runs inside the network namespace of the_ros2_node_relocalizes_and_tracks_balm_through_fast_dds"]
-    fn fast_dds_balm() {
-        const TEST: &str = "the_ros2_node_relocalizes_and_tracks_balm_through_fast_dds";
-        if std::env::var_os(IN_NAMESPACE).is_none() {
-            eprintln!("skipped: runs only inside the namespace the outer test creates");
-            return;
-        }
-        let Some(balm) = require_test_data("balm_os0", TEST) else {
-            return;
-        };
-        loopback_for_dds();
+    /// balm_os0's revisit at its own stamps (2 Hz) from the Fast DDS peer with no pose
+    /// given, on DDS domain `domain` (beside the simulated drive's scenarios), as
+    /// through Cyclone DDS in [`cyclone_balm`].
+    fn fast_dds_balm(balm: &Path, domain: u16) {
         let dir = temp_dir("fastdds-balm");
-        let revisit = BalmRevisit::served(&balm, &dir, "fastdds-balm");
+        let revisit = BalmRevisit::served(balm, &dir, "fastdds-balm");
         // The revisit's own stamps (0.495-0.498 s apart), one per line for the peer.
         let stamps: Vec<String> = revisit.poses.stamps[BALM_REVISIT]
             .iter()
@@ -1454,10 +1453,12 @@ mod in_namespace {
             .collect();
         let stamps_file = dir.join("stamps.txt");
         std::fs::write(&stamps_file, stamps.join("\n")).unwrap();
-        let node = Node::start(&dir, "balm", &revisit.prefix.0);
-        let mut args = cloud_args(&balm, BALM_REVISIT.len(), 2, 0.0, 0.0);
+        let node = Node::start_in_domain(&dir, "balm", &revisit.prefix.0, domain);
+        let mut args = cloud_args(balm, BALM_REVISIT.len(), 2, 0.0, 0.0);
         args.extend(
             [
+                "--domain",
+                &domain.to_string(),
                 "--pcd-first",
                 &BALM_REVISIT.start.to_string(),
                 "--stamps-file",
