@@ -34,7 +34,6 @@
 #include <cstdlib>
 #include <cstring>
 #include <fstream>
-#include <functional>
 #include <mutex>
 #include <sstream>
 #include <string>
@@ -373,12 +372,16 @@ static double stamp_of(const builtin_interfaces::msg::dds_::Time_& t)
 }
 
 // A reader of messages `M`: counts each valid sample in `received` and prints it with
-// `describe(message, count)` (one event or more).
+// `describe(topic, message, count)` (one event or more).
 template <class M>
 struct Reader : public ReaderEvents
 {
-    std::atomic<int>* received = nullptr;
-    std::function<void(const M&, int)> describe;
+    using Describe = void (*)(const std::string& topic, const M&, int n);
+
+    Reader(std::atomic<int>& received, Describe describe) : received(received), describe(describe) {}
+
+    std::atomic<int>& received;
+    Describe describe;
 
     void on_data_available(DataReader* reader) override
     {
@@ -386,7 +389,7 @@ struct Reader : public ReaderEvents
         SampleInfo info;
         while (reader->take_next_sample(&m, &info) == ReturnCode_t::RETCODE_OK)
         {
-            if (info.valid_data) describe(m, ++*received);
+            if (info.valid_data) describe(topic, m, ++received);
         }
     }
 };
@@ -421,7 +424,7 @@ static void describe_cloud(const std::string& topic, const sm::PointCloud2_& m, 
     emit(b);
 }
 
-static void describe_diag(const dm::DiagnosticArray_& m)
+static void describe_diag(const std::string&, const dm::DiagnosticArray_& m, int)
 {
     for (const auto& s : m.status())
     {
@@ -790,18 +793,10 @@ int main(int argc, char** argv)
         Topic* t = participant->create_topic(listener.topic, type.get_type_name(), TOPIC_QOS_DEFAULT);
         return t && subscriber->create_datareader(t, reader_qos(transient_local, depth), &listener);
     };
-    Reader<gm::PoseWithCovarianceStamped_> pose_listener;
-    pose_listener.received = &poses_received;
-    pose_listener.describe = [&](const auto& m, int n) { describe_pose(pose_listener.topic, m, n); };
-    Reader<sm::PointCloud2_> cloud_listener;
-    cloud_listener.received = &clouds_received;
-    cloud_listener.describe = [&](const auto& m, int n) { describe_cloud(cloud_listener.topic, m, n); };
-    Reader<dm::DiagnosticArray_> diag_listener;
-    diag_listener.received = &diags_received;
-    diag_listener.describe = [](const auto& m, int) { describe_diag(m); };
-    Reader<gm::Vector3Stamped_> vector_listener;
-    vector_listener.received = &vectors_received;
-    vector_listener.describe = [&](const auto& m, int n) { describe_vector(vector_listener.topic, m, n); };
+    Reader<gm::PoseWithCovarianceStamped_> pose_listener(poses_received, describe_pose);
+    Reader<sm::PointCloud2_> cloud_listener(clouds_received, describe_cloud);
+    Reader<dm::DiagnosticArray_> diag_listener(diags_received, describe_diag);
+    Reader<gm::Vector3Stamped_> vector_listener(vectors_received, describe_vector);
     if (!o.sub_pose.empty() && !subscribe(pose_listener, o.sub_pose, pose_type, false, 10)) return 1;
     if (!o.sub_cloud.empty() && !subscribe(cloud_listener, o.sub_cloud, cloud_type, o.cloud_transient_local, 1))
         return 1;
@@ -821,16 +816,19 @@ int main(int argc, char** argv)
         WriterEvents wlistener;
         wlistener.topic = ros_topic(o.pub_points);
         Topic* t = participant->create_topic(wlistener.topic, cloud_type.get_type_name(), TOPIC_QOS_DEFAULT);
-        DataWriterQos wq = publisher->get_default_datawriter_qos();
-        if (!o.qos_from_xml)
-        {
-            wq.reliability().kind = o.reliable ? RELIABLE_RELIABILITY_QOS : BEST_EFFORT_RELIABILITY_QOS;
-            wq.durability().kind = VOLATILE_DURABILITY_QOS;
-            wq.history().kind = KEEP_LAST_HISTORY_QOS;
-            wq.history().depth = o.depth;
-            if (o.async) wq.publish_mode().kind = ASYNCHRONOUS_PUBLISH_MODE;
-        }
-        DataWriter* writer = publisher->create_datawriter(t, wq, &wlistener);
+        // Sensor data as a driver publishes it: best effort (reliable with --reliable),
+        // volatile, keep-last `depth`; the XML profile's QoS with --qos-from-xml.
+        auto sensor_qos = [&](int depth) {
+            DataWriterQos q = publisher->get_default_datawriter_qos();
+            if (o.qos_from_xml) return q;
+            q.reliability().kind = o.reliable ? RELIABLE_RELIABILITY_QOS : BEST_EFFORT_RELIABILITY_QOS;
+            q.durability().kind = VOLATILE_DURABILITY_QOS;
+            q.history().kind = KEEP_LAST_HISTORY_QOS;
+            q.history().depth = depth;
+            if (o.async) q.publish_mode().kind = ASYNCHRONOUS_PUBLISH_MODE;
+            return q;
+        };
+        DataWriter* writer = publisher->create_datawriter(t, sensor_qos(o.depth), &wlistener);
         if (!writer) return 1;
         auto q = writer->get_qos();
         emit("\"event\":\"writer\",\"topic\":\"" + wlistener.topic + "\",\"type\":\"" +
@@ -840,8 +838,7 @@ int main(int argc, char** argv)
              (q.publish_mode().kind == ASYNCHRONOUS_PUBLISH_MODE ? "true" : "false") +
              ",\"memory_policy\":" + std::to_string(int(q.endpoint().history_memory_policy)));
 
-        // The IMU, best effort as a driver's sensor data (reliable with --reliable); its
-        // history holds a cloud's worth of samples written back to back.
+        // The IMU: its history holds a cloud's worth of samples written back to back.
         std::vector<std::vector<double>> imu;
         DataWriter* imu_writer = nullptr;
         TypeSupport imu_type(new sm::Imu_PubSubType());
@@ -850,12 +847,7 @@ int main(int argc, char** argv)
             if (o.imu_file.empty() || !read_rows(o.imu_file, 7, imu)) return 1;
             imu_type.register_type(participant);
             Topic* it = participant->create_topic(ros_topic(o.pub_imu), imu_type.get_type_name(), TOPIC_QOS_DEFAULT);
-            DataWriterQos iq = publisher->get_default_datawriter_qos();
-            iq.reliability().kind = o.reliable ? RELIABLE_RELIABILITY_QOS : BEST_EFFORT_RELIABILITY_QOS;
-            iq.durability().kind = VOLATILE_DURABILITY_QOS;
-            iq.history().kind = KEEP_LAST_HISTORY_QOS;
-            iq.history().depth = 1000;
-            imu_writer = it ? publisher->create_datawriter(it, iq) : nullptr;
+            imu_writer = it ? publisher->create_datawriter(it, sensor_qos(1000)) : nullptr;
             if (!imu_writer) return 1;
         }
         auto deadline = now_s() + o.wait_match;

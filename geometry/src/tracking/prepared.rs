@@ -48,12 +48,7 @@ impl<'s> PreparedScan<'s> {
         let (points, view_dirs, given, options) =
             (self.points, self.view_dirs, self.covariances, &self.options);
         let (cloud, covs) = self.fine.get_or_insert_with(|| {
-            let cloud = PointCloud {
-                points: points.to_vec(),
-                view_dirs: view_dirs.map(<[_]>::to_vec),
-                intensity: None,
-                time: None,
-            };
+            let cloud = as_sent(points, view_dirs);
             let covs = match given {
                 Some(c) => c.to_vec(),
                 None => estimate_covariances(points, options).values,
@@ -91,23 +86,27 @@ impl<'s> PreparedScan<'s> {
         let mut scan = Self::new(points, view_dirs, covariances, options, tracking);
         let same = parts.built_with == Some((options, tracking.coarse_voxel))
             && parts.given_covariances == covariances.is_some()
-            && parts.points == points
-            && parts.view_dirs.as_deref() == view_dirs;
+            && parts.scan.points == points
+            && parts.scan.view_dirs.as_deref() == view_dirs;
         if same {
-            scan.fine = parts.fine;
+            scan.fine = parts.fine_covariances.map(|covs| (parts.scan, covs));
             scan.coarse = parts.coarse;
         }
         scan
     }
 
-    /// What this preparation built, for [`Self::resume`] on the same scan.
+    /// What this preparation built, for [`Self::resume`] on the same scan (the scan as
+    /// sent moves along when it was built, else it is copied once).
     pub fn into_parts(self) -> PreparedParts {
+        let (scan, fine_covariances) = match self.fine {
+            Some((cloud, covs)) => (cloud, Some(covs)),
+            None => (as_sent(self.points, self.view_dirs), None),
+        };
         PreparedParts {
             built_with: Some((self.options, self.tracking.coarse_voxel)),
             given_covariances: self.covariances.is_some(),
-            points: self.points.to_vec(),
-            view_dirs: self.view_dirs.map(<[_]>::to_vec),
-            fine: self.fine,
+            scan,
+            fine_covariances,
             coarse: self.coarse,
         }
     }
@@ -122,13 +121,23 @@ impl<'s> PreparedScan<'s> {
     }
 }
 
+/// The scan as sent, as a cloud.
+fn as_sent(points: &[[f32; 3]], view_dirs: Option<&[[f32; 3]]>) -> PointCloud {
+    PointCloud {
+        points: points.to_vec(),
+        view_dirs: view_dirs.map(<[_]>::to_vec),
+        intensity: None,
+        time: None,
+    }
+}
+
 /// What a [`PreparedScan`] built, with the scan and options it was built for.
 #[derive(Debug, Default, Clone)]
 pub struct PreparedParts {
     built_with: Option<(CovOptions, f64)>,
     given_covariances: bool,
-    points: Vec<[f32; 3]>,
-    view_dirs: Option<Vec<[f32; 3]>>,
-    fine: Option<(PointCloud, Vec<PackedSym3>)>,
+    /// The scan as sent: the fine stage's cloud, and what a resumed scan is compared with.
+    scan: PointCloud,
+    fine_covariances: Option<Vec<PackedSym3>>,
     coarse: Option<(PointCloud, Vec<PackedSym3>)>,
 }

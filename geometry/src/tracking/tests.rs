@@ -482,6 +482,20 @@ fn a_resumed_preparation_equals_a_fresh_one_and_drops_a_foreign_scans_parts() {
     assert_eq!(resumed.fine().1, fine.as_slice());
     let (cloud, covs) = resumed.coarse().unwrap();
     assert_eq!((&cloud.points, covs), (&coarse.0, coarse.1.as_slice()));
+    // Parts of a preparation that built only the coarse copy: the fine covariances are
+    // estimated on first use, as fresh.
+    let mut coarse_only = PreparedScan::new(&scan, None, None, options, tracking);
+    coarse_only.coarse().unwrap();
+    let mut resumed = PreparedScan::resume(
+        &scan,
+        None,
+        None,
+        options,
+        tracking,
+        coarse_only.into_parts(),
+    );
+    assert_eq!(resumed.coarse().unwrap().1, coarse.1.as_slice());
+    assert_eq!(resumed.fine().1, fine.as_slice());
     // The parts of this scan offered for another scan, or with another coarse voxel,
     // are dropped: each gives what a fresh preparation gives.
     let (other_fine, _, _) = built(&other, tracking);
