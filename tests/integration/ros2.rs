@@ -34,30 +34,32 @@ const TRUTH_M: f64 = 0.05;
 /// README's figure; the run is deterministic), so a regression fails well before 5 cm.
 const TRUTH_FROM_INITIAL_M: f64 = 0.025;
 
-/// Meanwhile, on another DDS domain: balm_os0's revisit (scans 116-176, handheld,
-/// 2 Hz) published at its rate with no pose given, against a map of the first pass
-/// (scans 0-115 at their reference poses).
+/// The node against both independent middlewares at once, each in a private network
+/// namespace of its own (the two scenarios share nothing but the CPU: iceoryx prefixes,
+/// directories and namespaces are their own):
+/// - Eclipse Cyclone DDS through its PyPI binding: the simulated drive and its scenarios;
+/// - eProsima Fast DDS 2.9 as Debian ships it (ROS 2's default middleware), its
+///   defaults left as a ROS 2 user gets them (shared memory on, default QoS): a peer
+///   built from the ROS 2 message IDL (`tools/fastdds`) publishes the simulated drive
+///   (with `/tf_static`, `/initialpose`, the IMU) and 112k-point clouds free-running at
+///   10 Hz, and subscribes to the poses and, late, to the latched map cloud.
+///
+/// Meanwhile in each, on another DDS domain: balm_os0's revisit (scans 116-176,
+/// handheld, 2 Hz) published at its rate with no pose given, against a map of the first
+/// pass (scans 0-115 at their reference poses).
+///
+/// Most of the test's time is waiting on sensor rates, so it is one test (the two
+/// namespaces side by side) whose module sorts first (tests/integration/main.rs).
 #[test]
-fn the_ros2_node_tracks_like_kfmap_localize_through_cyclone_dds() {
-    in_namespace_with_dds(
-        "the_ros2_node_tracks_like_kfmap_localize_through_cyclone_dds",
-        "in_namespace::drive",
-    );
+fn the_ros2_node_tracks_like_kfmap_localize_through_cyclone_and_fast_dds() {
+    std::thread::scope(|scope| {
+        scope.spawn(|| in_namespace_with_dds(ROS2_TEST, "in_namespace::drive"));
+        in_namespace_with_fast_dds(ROS2_TEST, "in_namespace::fast_dds");
+    });
 }
 
-/// The same node against eProsima Fast DDS 2.9 as Debian ships it (ROS 2's default
-/// middleware), its defaults left as a ROS 2 user gets them (shared memory on, default
-/// QoS): a peer built from the ROS 2 message IDL (`tools/fastdds`) publishes the
-/// simulated drive (with `/tf_static`, `/initialpose`, the IMU) and 112k-point clouds
-/// free-running at 10 Hz, and subscribes to the poses and, late, to the latched map
-/// cloud; meanwhile, on another domain, balm_os0's revisit at its 2 Hz.
-#[test]
-fn the_ros2_node_tracks_like_kfmap_localize_through_fast_dds() {
-    in_namespace_with_fast_dds(
-        "the_ros2_node_tracks_like_kfmap_localize_through_fast_dds",
-        "in_namespace::fast_dds",
-    );
-}
+/// The outer test's name, for skip and failure messages.
+const ROS2_TEST: &str = "the_ros2_node_tracks_like_kfmap_localize_through_cyclone_and_fast_dds";
 
 /// Runs `inner` in a private network namespace once the Fast DDS peer is built (out
 /// here: it needs Debian's packages, which `.ci/run` installs).
@@ -666,20 +668,19 @@ mod in_namespace {
     use super::*;
 
     #[test]
-    #[ignore = "runs inside the network namespace of the_ros2_node_tracks_like_kfmap_localize_through_cyclone_dds"]
+    #[ignore = "runs inside a network namespace of the_ros2_node_tracks_like_kfmap_localize_through_cyclone_and_fast_dds"]
     fn drive() {
         if std::env::var_os(IN_NAMESPACE).is_none() {
             eprintln!("skipped: runs only inside the namespace the outer test creates");
             return;
         }
         loopback_for_dds();
-        const TEST: &str = "the_ros2_node_tracks_like_kfmap_localize_through_cyclone_dds";
-        let Some(python) = dds_python(TEST) else {
+        let Some(python) = dds_python(ROS2_TEST) else {
             return;
         };
         // balm_os0's revisit at 2 Hz on domain 1 meanwhile: both scenarios mostly wait
         // on their rates.
-        let balm = require_test_data("balm_os0", TEST);
+        let balm = require_test_data("balm_os0", ROS2_TEST);
         std::thread::scope(|scope| {
             if let Some(balm) = &balm {
                 scope.spawn(|| cyclone_balm(&python, balm, 1));
@@ -1129,10 +1130,8 @@ mod in_namespace {
         plot_of_the_recorded_run(&dir, &bag, &records);
     }
 
-    const FAST_DDS_TEST: &str = "the_ros2_node_tracks_like_kfmap_localize_through_fast_dds";
-
     #[test]
-    #[ignore = "runs inside the network namespace of the_ros2_node_tracks_like_kfmap_localize_through_fast_dds"]
+    #[ignore = "runs inside a network namespace of the_ros2_node_tracks_like_kfmap_localize_through_cyclone_and_fast_dds"]
     fn fast_dds() {
         if std::env::var_os(IN_NAMESPACE).is_none() {
             eprintln!("skipped: runs only inside the namespace the outer test creates");
@@ -1141,7 +1140,7 @@ mod in_namespace {
         loopback_for_dds();
         // balm_os0's revisit at 2 Hz on domain 1 meanwhile: both scenarios mostly wait
         // on their rates.
-        let balm = require_test_data("balm_os0", FAST_DDS_TEST);
+        let balm = require_test_data("balm_os0", ROS2_TEST);
         std::thread::scope(|scope| {
             if let Some(balm) = &balm {
                 scope.spawn(|| fast_dds_balm(balm, 1));
