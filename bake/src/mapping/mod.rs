@@ -7,8 +7,6 @@ mod framework;
 mod odometry;
 mod refine;
 mod scan_check;
-#[cfg(test)]
-mod tests;
 
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};

@@ -23,13 +23,13 @@
 
 use std::path::{Path, PathBuf};
 
+use crate::TestError;
 use kfmap_bake::config::BakeConfig;
-use kfmap_bake::mapping::{BuildParams, GlobalError, build_trajectory};
+use kfmap_bake::mapping::{BuildParams, build_trajectory};
 use kfmap_bake::pipeline::{BakeInput, BakeOutput, MappingSummary, bake};
 use kfmap_geometry::geometry::Pose;
 use kfmap_geometry::io::{Trajectory, format_tum, read_trajectory};
 use kfmap_geometry::motion::{DeskewMode, SpinDirection, SweepParams};
-use kfmap_geometry::registration::RegistrationError;
 use kfmap_sim::{LidarParams, Preset, SimConfig, Simulation, write_dataset};
 use kfmap_testdata::require_test_data;
 use nalgebra::{Matrix3, Vector3};
@@ -150,14 +150,6 @@ fn kitti00_raw_frames_through_bake() {
         every_second <= 0.2519 * 1.03,
         "frames 0,2,4: ATE {every_second} m"
     );
-}
-
-#[derive(Debug, thiserror::Error)]
-enum TestError {
-    #[error(transparent)]
-    Registration(#[from] RegistrationError),
-    #[error(transparent)]
-    Global(#[from] GlobalError),
 }
 
 /// Odometry ATE on the simulated street (10 m/s cruise, 12 m corners) driven with a

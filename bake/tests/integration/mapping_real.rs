@@ -3,23 +3,13 @@
 //! with fast turns, built from the raw scans alone and compared with the dataset's
 //! reference poses (odometry-quality, consistent to a few cm locally).
 
-use kfmap_bake::mapping::{BuildParams, BuiltTrajectory, GlobalError, build_trajectory};
+use crate::TestError;
+use kfmap_bake::mapping::{BuildParams, BuiltTrajectory, build_trajectory};
 use kfmap_geometry::cloud::FilterOptions;
 use kfmap_geometry::geometry::Pose;
 use kfmap_geometry::io::{ReadOptions, read_cloud, read_trajectory};
-use kfmap_geometry::registration::RegistrationError;
 use kfmap_geometry::trajectory_error::absolute_trajectory_error;
 use kfmap_testdata::require_test_data;
-
-#[derive(Debug, thiserror::Error)]
-enum TestError {
-    #[error(transparent)]
-    Registration(#[from] RegistrationError),
-    #[error(transparent)]
-    Global(#[from] GlobalError),
-    #[error(transparent)]
-    Io(#[from] kfmap_geometry::io::IoError),
-}
 
 struct Sequence {
     scans: Vec<std::path::PathBuf>,

@@ -1,4 +1,14 @@
-use super::*;
+//! Maps built from simulated drives' raw scans (`build_trajectory`), against the
+//! simulator's ground truth: a car's lap of the campus closed by loops, and courtyard
+//! drives deskewed and turned by the gyro.
+//!
+//! Integration tests rather than the crate's unit tests: in one binary with the other
+//! integration tests, the lap (one core for most of its half minute) overlaps them
+//! instead of finishing alone; the module sorts first so that it starts first.
+
+use crate::TestError;
+use kfmap_bake::mapping::{BuildParams, build_trajectory};
+use kfmap_geometry::geometry::Pose;
 use kfmap_geometry::motion::DeskewMode;
 use kfmap_geometry::trajectory_error::absolute_trajectory_error;
 use kfmap_sim::{LidarParams, Preset, SimConfig, Simulation};
@@ -22,14 +32,6 @@ fn end_to_start_drift(estimate: &[Pose], truth: &[Pose], end: usize) -> f64 {
     let e = estimate[0].inverse() * estimate[end];
     let t = truth[0].inverse() * truth[end];
     (e.inverse() * t).translation.vector.norm()
-}
-
-#[derive(Debug, thiserror::Error)]
-enum TestError {
-    #[error(transparent)]
-    Registration(#[from] RegistrationError),
-    #[error(transparent)]
-    Global(#[from] GlobalError),
 }
 
 struct LapFigures {
@@ -101,10 +103,10 @@ fn lap(preset: Preset, seconds: f64, cruise: f64, beams: u32) -> LapFigures {
 /// A full lap of the simulated campus (778 m, 32 beams) driven at 19 m/s (a car on a
 /// main road; 1.9 m between scans, nearly every scan a keyframe), built from the raw
 /// scans alone. Loop closure must cut the keyframe ATE and the end-to-start drift:
-/// measured ATE 0.15 cm (odometry alone 3.7 cm), drift 0.25 cm (odometry alone 14.1 cm),
-/// 14 loops accepted of 66 found; 50 s alone on 2 cores. The same lap at 9.5 m/s (90 s)
-/// showed 0.2 / 2.8 cm and 0.1 / 11.4 cm and took 99 s beside another test, at the
-/// preset's walking pace (165 s) 0.3 / 0.8 cm and 1.2 / 3.4 cm.
+/// measured ATE 0.2 cm (odometry alone 13.1 cm), drift 0.2 cm (odometry alone 49.7 cm),
+/// 14 loops accepted of 66 found; 27 s alone on 2 cores (2026-12-04). The same lap at
+/// 9.5 m/s (90 s) showed 0.2 / 2.8 cm and 0.1 / 11.4 cm and took 99 s beside another
+/// test, at the preset's walking pace (165 s) 0.3 / 0.8 cm and 1.2 / 3.4 cm.
 #[test]
 fn campus_lap_from_raw_scans() {
     let f = lap(Preset::Campus, 45.0, 19.0, 32);
