@@ -145,5 +145,9 @@ impl ArchiveError {
     }
 }
 
+// A unit test rather than an integration test: its 20 s of writing and page faults,
+// mostly on one core, overlap the other unit tests instead of running alone.
+#[cfg(test)]
+mod large_map_tests;
 #[cfg(test)]
 mod tests;

@@ -1,12 +1,12 @@
 //! A map file larger than 2 GiB (the reach of rkyv's 32-bit relative pointers): written
 //! keyframe by keyframe, reopened by mmap, its last keyframe (past 2 GiB) verified and
-//! queried. About 2.5 GB of disk under the target directory, removed afterwards.
+//! queried. About 2.5 GB of disk under $TMPDIR, removed afterwards.
 
+use crate::archive::{HEADER_LEN, MapWriter, OpenOptions, open_map};
+use crate::covis::CovisSnapshot;
+use crate::map::{Keyframe, KeyframeMapOptions};
 use kfmap_geometry::cloud::PointCloud;
 use kfmap_geometry::geometry::Pose;
-use kfmap_map::archive::{HEADER_LEN, MapWriter, OpenOptions, open_map};
-use kfmap_map::covis::CovisSnapshot;
-use kfmap_map::map::{Keyframe, KeyframeMapOptions};
 use nalgebra::Vector3;
 
 const POINTS: usize = 8 << 20;
@@ -30,17 +30,8 @@ fn points() -> Vec<[f32; 3]> {
 
 #[test]
 fn maps_beyond_2_gib_are_written_and_read_in_place() {
-    let dir = std::path::Path::new(env!("CARGO_TARGET_TMPDIR"))
-        .join(format!("large-map-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    struct Cleanup(std::path::PathBuf);
-    impl Drop for Cleanup {
-        fn drop(&mut self) {
-            let _ = std::fs::remove_dir_all(&self.0);
-        }
-    }
-    let _cleanup = Cleanup(dir.clone());
-    let path = dir.join("large.kfmap");
+    let scratch = kfmap_testdata::Scratch::new("large-map");
+    let path = scratch.file("large.kfmap");
 
     let cloud = PointCloud::from_points(points());
     let template = Keyframe::from_parts(
