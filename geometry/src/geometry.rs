@@ -78,7 +78,12 @@ pub fn pose_from_matrix(r: Matrix3<f64>, t: Vector3<f64>) -> Option<Pose> {
 /// A symmetric 3x3 matrix packed as six `f32`, order `[xx, xy, xz, yy, yz, zz]`.
 pub type PackedSym3 = [f32; 6];
 
+// The small conversions below are `#[inline]`: they run once per point in the map
+// server's queries in other crates, where without the hint (no cross-crate LTO in the
+// release profile) each is a call of its own.
+
 /// Packs the upper triangle of a (symmetric) matrix.
+#[inline]
 pub fn pack_sym3(m: &Matrix3<f64>) -> PackedSym3 {
     [
         m[(0, 0)] as f32,
@@ -91,22 +96,26 @@ pub fn pack_sym3(m: &Matrix3<f64>) -> PackedSym3 {
 }
 
 /// Unpacks six floats into a full symmetric matrix.
+#[inline]
 pub fn unpack_sym3(p: &PackedSym3) -> Matrix3<f64> {
     let [xx, xy, xz, yy, yz, zz] = p.map(f64::from);
     Matrix3::new(xx, xy, xz, xy, yy, yz, xz, yz, zz)
 }
 
 /// Converts a stored `f32` point to an f64 vector for math.
+#[inline]
 pub fn to_vec3(p: &[f32; 3]) -> Vector3<f64> {
     Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64)
 }
 
 /// Converts an f64 vector back to a stored `f32` point.
+#[inline]
 pub fn to_point(v: &Vector3<f64>) -> [f32; 3] {
     [v.x as f32, v.y as f32, v.z as f32]
 }
 
 /// A stored `f32` point moved by `pose`, in f64.
+#[inline]
 pub fn transform_point(pose: &Pose, p: &[f32; 3]) -> Vector3<f64> {
     pose.rotation * to_vec3(p) + pose.translation.vector
 }

@@ -369,6 +369,19 @@ impl<'a> TreeRef<'a> {
         best.found()
     }
 
+    /// [`TreeRef::nearest_one_within`] with the point's coordinates as the tree stores
+    /// them: `(item, squared distance, point)`.
+    #[inline]
+    pub fn nearest_one_within_at(
+        &self,
+        query: &[f32; 3],
+        max_dist_sq: f32,
+    ) -> Option<(u32, f32, [f32; 3])> {
+        let mut best = Nearest::within(max_dist_sq);
+        self.search(query, &mut best);
+        best.found().map(|(item, d)| (item, d, best.point))
+    }
+
     /// What finding the nearest point costs: the nodes read and the blocks of
     /// [`LANES`] points whose distances are computed (the physical-limit estimate of
     /// `cargo bench --bench kdtree` counts them).

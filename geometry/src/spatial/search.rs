@@ -5,7 +5,9 @@
 
 use std::mem::MaybeUninit;
 
-use super::{LANES, LEAF_TAG, MAX_DEPTH, PAD_ITEM, TreeRef, rank, rank_dist_sq, rank_item};
+use super::{
+    LANES, LEAF_TAG, MAX_DEPTH, PAD_ITEM, PointBlock, TreeRef, rank, rank_dist_sq, rank_item,
+};
 
 /// What a search keeps of the points the leaves offer.
 pub(super) trait Collector {
@@ -13,10 +15,10 @@ pub(super) trait Collector {
     fn bound(&self) -> f32;
     /// A point within the bound.
     fn offer(&mut self, dist_sq: f32, item: u32);
-    /// The points of one block, at least one of them within the bound (NaN lanes are
-    /// padding).
+    /// The points of one block (`block`, their coordinates), at least one of them
+    /// within the bound (NaN lanes are padding).
     #[inline(always)]
-    fn offer_block(&mut self, dist_sq: &[f32; LANES], items: &[u32]) {
+    fn offer_block(&mut self, dist_sq: &[f32; LANES], items: &[u32], _block: &PointBlock) {
         for (&d, &item) in dist_sq.iter().zip(items) {
             if d <= self.bound() {
                 self.offer(d, item);
@@ -47,8 +49,8 @@ impl<C: Collector> Collector for Counted<C> {
         self.inner.offer(dist_sq, item);
     }
 
-    fn offer_block(&mut self, dist_sq: &[f32; LANES], items: &[u32]) {
-        self.inner.offer_block(dist_sq, items);
+    fn offer_block(&mut self, dist_sq: &[f32; LANES], items: &[u32], block: &PointBlock) {
+        self.inner.offer_block(dist_sq, items, block);
     }
 
     fn visit_node(&mut self) {
@@ -60,10 +62,13 @@ impl<C: Collector> Collector for Counted<C> {
     }
 }
 
-/// The single nearest point within an inclusive bound; ties by smaller item.
+/// The single nearest point within an inclusive bound; ties by smaller item. It keeps
+/// the point's coordinates as the tree stores them: a caller that needs them reads no
+/// other array (a cache miss per query in the map server).
 pub(super) struct Nearest {
     pub dist_sq: f32,
     pub item: u32,
+    pub point: [f32; 3],
 }
 
 impl Nearest {
@@ -71,6 +76,7 @@ impl Nearest {
         Self {
             dist_sq: bound_sq,
             item: PAD_ITEM,
+            point: [f32::NAN; 3],
         }
     }
 
@@ -94,9 +100,9 @@ impl Collector for Nearest {
     }
 
     /// Without a branch per lane: the block's smallest distance, then the smallest
-    /// item at that distance.
+    /// item at that distance (and its coordinates when it is taken).
     #[inline(always)]
-    fn offer_block(&mut self, dist_sq: &[f32; LANES], items: &[u32]) {
+    fn offer_block(&mut self, dist_sq: &[f32; LANES], items: &[u32], block: &PointBlock) {
         let nearest = dist_sq
             .iter()
             .fold(f32::INFINITY, |m, &d| if d < m { d } else { m });
@@ -106,6 +112,12 @@ impl Collector for Nearest {
                 |m, (&d, &i)| if d == nearest { m.min(i) } else { m },
             );
         self.offer(nearest, item);
+        if self.item == item {
+            // Taken (items are unique in a tree): the coordinates of its lane.
+            if let Some(lane) = items.iter().position(|&i| i == item) {
+                self.point = [block[0][lane], block[1][lane], block[2][lane]];
+            }
+        }
     }
 }
 
@@ -274,6 +286,10 @@ impl TreeRef<'_> {
         if !dist_sq.iter().fold(false, |any, &d| any | (d <= bound)) {
             return;
         }
-        collector.offer_block(&dist_sq, &self.items[block * LANES..][..LANES]);
+        collector.offer_block(
+            &dist_sq,
+            &self.items[block * LANES..][..LANES],
+            &self.blocks[block],
+        );
     }
 }

@@ -93,6 +93,9 @@ fn bounded_nearest_is_inclusive_and_can_find_nothing() {
         for bound in [want.1 * 0.5, want.1, want.1 * 2.0] {
             let expected = (want.1 <= bound).then_some(want);
             assert_eq!(big.view().nearest_one_within(&q, bound), expected);
+            // With coordinates: the found point's own, as given to the tree.
+            let at = expected.map(|(i, d)| (i, d, many[i as usize]));
+            assert_eq!(big.view().nearest_one_within_at(&q, bound), at);
         }
     }
 }

@@ -256,9 +256,13 @@ impl<'a> ActiveSet<'a> {
     }
 
     fn local_hit(f: &ActiveFrame, item: u32, dist_sq: f32) -> MapHit {
-        let local = f.view.points[item as usize];
+        Self::hit_at(f, item, dist_sq, &f.view.points[item as usize])
+    }
+
+    /// The hit of keyframe `f`'s point `item`, at `local` (its local coordinates).
+    fn hit_at(f: &ActiveFrame, item: u32, dist_sq: f32, local: &[f32; 3]) -> MapHit {
         MapHit {
-            point: to_point(&(f.pose * Point3::from(to_vec3(&local))).coords),
+            point: to_point(&(f.pose * Point3::from(to_vec3(local))).coords),
             dist_sq,
             keyframe: f.id,
             local_index: item,
@@ -290,26 +294,33 @@ impl<'a> ActiveSet<'a> {
             origin_dist_sq(&self.frames[a]).total_cmp(&origin_dist_sq(&self.frames[b]))
         })?;
         let order = std::iter::once(first).chain((0..self.frames.len()).filter(|&i| i != first));
-        let mut best: Option<(&ActiveFrame<'a>, MapHit)> = None;
+        // The best so far as (frame, item, squared distance, local point): its map-frame
+        // hit is built once, at the end.
+        let mut best: Option<(&ActiveFrame<'a>, u32, f32, [f32; 3])> = None;
         let mut bound = max_dist_sq;
         for f in order.map(|i| &self.frames[i]) {
             let query = Self::local_query(f, p);
             if f.bbox.dist_sq(&query) > bound {
                 continue;
             }
-            let Some((item, dist_sq)) = f.view.tree.nearest_one_within(&query, bound) else {
+            let Some((item, dist_sq, local)) = f.view.tree.nearest_one_within_at(&query, bound)
+            else {
                 continue;
             };
-            let hit = Self::local_hit(f, item, dist_sq);
-            if best
-                .as_ref()
-                .is_none_or(|(_, b)| hit_order(&hit, b).is_lt())
-            {
+            // As `hit_order`: distance, then keyframe id, then local index.
+            let better = best.is_none_or(|(b, b_item, b_dist, _)| {
+                dist_sq
+                    .total_cmp(&b_dist)
+                    .then(f.id.cmp(&b.id))
+                    .then(item.cmp(&b_item))
+                    .is_lt()
+            });
+            if better {
                 bound = dist_sq;
-                best = Some((f, hit));
+                best = Some((f, item, dist_sq, local));
             }
         }
-        best
+        best.map(|(f, item, dist_sq, local)| (f, Self::hit_at(f, item, dist_sq, &local)))
     }
 
     /// Runs `search` (returning `(item, squared distance)`) on the merged tree, or on
