@@ -678,14 +678,21 @@ mod in_namespace {
         let Some(python) = dds_python(ROS2_TEST) else {
             return;
         };
-        // balm_os0's revisit at 2 Hz on domain 1 meanwhile: both scenarios mostly wait
-        // on their rates.
-        let balm = require_test_data("balm_os0", ROS2_TEST);
+        with_balm_beside(
+            || cyclone_drive(&python),
+            |balm, domain| cyclone_balm(&python, balm, domain),
+        );
+    }
+
+    /// Runs `drive` (on DDS domain 0) and, where balm_os0 is present, `balm` with its
+    /// data on domain 1 at the same time: both mostly wait on their rates.
+    fn with_balm_beside(drive: impl FnOnce(), balm: impl FnOnce(&Path, u16) + Send) {
+        let data = require_test_data("balm_os0", ROS2_TEST);
         std::thread::scope(|scope| {
-            if let Some(balm) = &balm {
-                scope.spawn(|| cyclone_balm(&python, balm, 1));
+            if let Some(data) = &data {
+                scope.spawn(|| balm(data, 1));
             }
-            cyclone_drive(&python);
+            drive();
         });
     }
 
@@ -1138,15 +1145,7 @@ mod in_namespace {
             return;
         }
         loopback_for_dds();
-        // balm_os0's revisit at 2 Hz on domain 1 meanwhile: both scenarios mostly wait
-        // on their rates.
-        let balm = require_test_data("balm_os0", ROS2_TEST);
-        std::thread::scope(|scope| {
-            if let Some(balm) = &balm {
-                scope.spawn(|| fast_dds_balm(balm, 1));
-            }
-            fast_dds_drive();
-        });
+        with_balm_beside(fast_dds_drive, fast_dds_balm);
     }
 
     /// The simulated drive's scenarios through Fast DDS, on domain 0.

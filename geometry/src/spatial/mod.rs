@@ -28,7 +28,7 @@ use std::num::NonZeroUsize;
 
 use build::BoxTree;
 pub use morton::morton_order;
-use search::{Counted, KNearest, Nearest, Within};
+use search::{Counted, KNearest, Nearest, NearestAt, Within};
 
 /// Points per leaf. On KITTI 00 (frame 1 against frame 0, one thread) leaves of 16
 /// (two blocks) answered 1-NN faster than 8 or 32 (`cargo bench --bench kdtree`).
@@ -377,9 +377,12 @@ impl<'a> TreeRef<'a> {
         query: &[f32; 3],
         max_dist_sq: f32,
     ) -> Option<(u32, f32, [f32; 3])> {
-        let mut best = Nearest::within(max_dist_sq);
+        let mut best = NearestAt {
+            nearest: Nearest::within(max_dist_sq),
+            point: [f32::NAN; 3],
+        };
         self.search(query, &mut best);
-        best.found().map(|(item, d)| (item, d, best.point))
+        best.nearest.found().map(|(item, d)| (item, d, best.point))
     }
 
     /// What finding the nearest point costs: the nodes read and the blocks of

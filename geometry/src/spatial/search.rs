@@ -62,13 +62,10 @@ impl<C: Collector> Collector for Counted<C> {
     }
 }
 
-/// The single nearest point within an inclusive bound; ties by smaller item. It keeps
-/// the point's coordinates as the tree stores them: a caller that needs them reads no
-/// other array (a cache miss per query in the map server).
+/// The single nearest point within an inclusive bound; ties by smaller item.
 pub(super) struct Nearest {
     pub dist_sq: f32,
     pub item: u32,
-    pub point: [f32; 3],
 }
 
 impl Nearest {
@@ -76,7 +73,6 @@ impl Nearest {
         Self {
             dist_sq: bound_sq,
             item: PAD_ITEM,
-            point: [f32::NAN; 3],
         }
     }
 
@@ -100,9 +96,9 @@ impl Collector for Nearest {
     }
 
     /// Without a branch per lane: the block's smallest distance, then the smallest
-    /// item at that distance (and its coordinates when it is taken).
+    /// item at that distance.
     #[inline(always)]
-    fn offer_block(&mut self, dist_sq: &[f32; LANES], items: &[u32], block: &PointBlock) {
+    fn offer_block(&mut self, dist_sq: &[f32; LANES], items: &[u32], _block: &PointBlock) {
         let nearest = dist_sq
             .iter()
             .fold(f32::INFINITY, |m, &d| if d < m { d } else { m });
@@ -112,11 +108,40 @@ impl Collector for Nearest {
                 |m, (&d, &i)| if d == nearest { m.min(i) } else { m },
             );
         self.offer(nearest, item);
-        if self.item == item {
-            // Taken (items are unique in a tree): the coordinates of its lane.
-            if let Some(lane) = items.iter().position(|&i| i == item) {
-                self.point = [block[0][lane], block[1][lane], block[2][lane]];
-            }
+    }
+}
+
+/// [`Nearest`] that also keeps the point's coordinates as the tree stores them: a
+/// caller that needs them reads no other array (a cache miss per query in the map
+/// server). Only this collector pays for finding the lane.
+pub(super) struct NearestAt {
+    pub nearest: Nearest,
+    pub point: [f32; 3],
+}
+
+impl Collector for NearestAt {
+    #[inline(always)]
+    fn bound(&self) -> f32 {
+        self.nearest.bound()
+    }
+
+    /// Never called by a search, which offers whole blocks (below); a point offered
+    /// alone has no coordinates here (NaN).
+    fn offer(&mut self, dist_sq: f32, item: u32) {
+        self.nearest.offer(dist_sq, item);
+        self.point = [f32::NAN; 3];
+    }
+
+    #[inline(always)]
+    fn offer_block(&mut self, dist_sq: &[f32; LANES], items: &[u32], block: &PointBlock) {
+        let before = self.nearest.item;
+        self.nearest.offer_block(dist_sq, items, block);
+        let taken = self.nearest.item;
+        // Items are unique in a tree: a new best is in this block, at one lane.
+        if taken != before
+            && let Some(lane) = items.iter().position(|&i| i == taken)
+        {
+            self.point = [block[0][lane], block[1][lane], block[2][lane]];
         }
     }
 }

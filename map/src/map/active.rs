@@ -194,10 +194,16 @@ pub struct Pairing {
 
 /// Orders hits by distance, then keyframe id, then local index (deterministic ties).
 fn hit_order(a: &MapHit, b: &MapHit) -> std::cmp::Ordering {
-    a.dist_sq
-        .total_cmp(&b.dist_sq)
-        .then(a.keyframe.cmp(&b.keyframe))
-        .then(a.local_index.cmp(&b.local_index))
+    rank_order(
+        (a.dist_sq, a.keyframe, a.local_index),
+        (b.dist_sq, b.keyframe, b.local_index),
+    )
+}
+
+/// [`hit_order`] on (squared distance, keyframe id, local index), for a candidate whose
+/// hit is not built yet.
+fn rank_order(a: (f32, KeyframeId, u32), b: (f32, KeyframeId, u32)) -> std::cmp::Ordering {
+    a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2))
 }
 
 /// The keyframes answering one query, with the merged submap in exact mode.
@@ -307,13 +313,8 @@ impl<'a> ActiveSet<'a> {
             else {
                 continue;
             };
-            // As `hit_order`: distance, then keyframe id, then local index.
             let better = best.is_none_or(|(b, b_item, b_dist, _)| {
-                dist_sq
-                    .total_cmp(&b_dist)
-                    .then(f.id.cmp(&b.id))
-                    .then(item.cmp(&b_item))
-                    .is_lt()
+                rank_order((dist_sq, f.id, item), (b_dist, b.id, b_item)).is_lt()
             });
             if better {
                 bound = dist_sq;
