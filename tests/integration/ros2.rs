@@ -961,7 +961,6 @@ mod in_namespace {
             "domain": 0,
             "clouds": burst,
             "lockstep": false,
-            "linger_s": 3.0,
             "initial_pose": {"before": 0, "pose": pose_to_xyz_quat(&truth[0])},
         });
         let records = run_peer(python, &dir, &manifest, "burst");
@@ -1386,7 +1385,12 @@ mod in_namespace {
         let sent = dense_truth.len();
         // 2.7 MB with the view directions' bytes kept (point step 24).
         let mut args = cloud_args(&dense, sent, 10, dense_poses.stamps[0], 0.1);
-        args.extend(["--point-step".into(), "24".into()]);
+        // The node keeps the newest cloud, so the last one is always localized: the peer
+        // waits for its pose (at most 30 s) rather than a fixed time a loaded host
+        // may not meet.
+        args.extend(
+            ["--point-step", "24", "--linger", "30", "--until-last-pose"].map(String::from),
+        );
         let records = run_fast_dds_peer(&free, "peer", &args);
         // The late joiner: the latched map cloud reaches a subscriber that starts now.
         let late = run_fast_dds_peer(
@@ -1429,7 +1433,15 @@ mod in_namespace {
             poses_out.len() as u64 + 1 >= localized_by_node,
             "a pose for each localized cloud"
         );
-        assert!(poses_out.len() + 2 >= sent, "{} poses", poses_out.len());
+        // How many clouds the node skips depends on the host's speed, never asserted;
+        // the newest is always taken.
+        let last_stamp = dense_poses.stamps[0] + 0.1 * (sent - 1) as f64;
+        assert!(
+            poses_out
+                .iter()
+                .any(|p| (p["stamp"].as_f64().unwrap() - last_stamp).abs() < 1e-6),
+            "no pose for the last cloud"
+        );
         assert!(worst < TRUTH_FROM_INITIAL_M, "{worst} m from the truth");
         let late_cloud = late.iter().find(|r| r["event"] == "cloud");
         assert!(

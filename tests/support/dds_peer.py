@@ -17,7 +17,8 @@ only after the node's diagnostics for this one's stamp arrived (at most timeout_
 every cloud is localized and none is dropped; with "period_s": p, cloud k also waits
 until k periods after the first went out (a sensor's rate). With "lockstep": false the
 clouds go out at the period whatever the node answers (a sensor that does not wait), and
-the peer listens "linger_s" (default 1) after the last.
+the peer waits (at most timeout_s) for the diagnostics of the last cloud, then listens
+"linger_s" (default 1) more: a fixed wait alone lost the last answer on a loaded CI host.
 
 OUT: JSON lines, one per message received: {"topic": "pose", "stamp": s, "pose": [...],
 "covariance": [...36]}, {"topic": "diagnostics", "stamp": s, "level": l, "message": m},
@@ -493,6 +494,16 @@ def main():
                           f"within {timeout} s", file=sys.stderr)
                     sys.exit(1)
                 wait_for_output(min(0.05, deadline - time.monotonic()))
+    if not lockstep and first_sent is not None:
+        # The node keeps the newest cloud, so the last one sent is always answered.
+        deadline = time.monotonic() + timeout
+        answered = False
+        while not answered and time.monotonic() < deadline:
+            for line in drain():
+                if line["topic"] == "diagnostics" and abs(line["stamp"] - stamp) < 1e-6:
+                    answered = True
+            if not answered:
+                wait_for_output(min(0.05, max(0.0, deadline - time.monotonic())))
     # What else is in flight (the last transforms, the latched map cloud; without
     # lockstep, the answers to the last clouds).
     end = time.monotonic() + manifest.get("linger_s", 1.0)

@@ -136,6 +136,7 @@ struct Options
     double duration = 0.0;
     int expect_poses = -1;  // stop once this many poses came (with nothing left to send)
     int expect_clouds = -1;
+    bool until_last_pose = false;  // stop early once the last cloud's pose came
     // Transports / QoS.
     bool qos_from_xml = false;
     bool no_shm = false;
@@ -186,6 +187,7 @@ static void usage()
         "  --duration S            total run time with no publisher (default: linger)\n"
         "  --expect-poses N        stop early after N poses (once publishing is done)\n"
         "  --expect-clouds N       stop early after N subscribed clouds (once publishing is done)\n"
+        "  --until-last-pose       stop early once the pose stamped as the last cloud came\n"
         "  --qos-from-xml          keep the XML profile's QoS for the endpoints (no overrides in code)\n"
         "  --no-shm                UDPv4 transport only (builtin transports off)\n"
         "  --socket-buffer BYTES   UDP send and receive buffer sizes (with --no-shm)\n"
@@ -237,6 +239,7 @@ static bool parse(int argc, char** argv, Options& o)
         else if (a == "--duration") o.duration = std::stod(val());
         else if (a == "--expect-poses") o.expect_poses = std::stoi(val());
         else if (a == "--expect-clouds") o.expect_clouds = std::stoi(val());
+        else if (a == "--until-last-pose") o.until_last_pose = true;
         else if (a == "--qos-from-xml") o.qos_from_xml = true;
         else if (a == "--no-shm") o.no_shm = true;
         else if (a == "--socket-buffer") o.socket_buffer = std::stoi(val());
@@ -336,6 +339,8 @@ static std::atomic<int> poses_received{0};
 static std::atomic<int> clouds_received{0};
 static std::atomic<int> diags_received{0};
 static std::atomic<int> vectors_received{0};
+// The stamp of the newest pose received (for --until-last-pose).
+static std::atomic<double> last_pose_stamp{-1.0};
 
 struct ReaderEvents : public DataReaderListener
 {
@@ -398,6 +403,7 @@ static void describe_pose(const std::string& topic, const gm::PoseWithCovariance
 {
     const auto& p = m.pose().pose().position();
     const auto& q = m.pose().pose().orientation();
+    last_pose_stamp = stamp_of(m.header().stamp());
     char b[512];
     std::snprintf(b, sizeof b,
         "\"event\":\"pose\",\"topic\":\"%s\",\"n\":%d,\"stamp\":%.9f,\"frame\":\"%s\","
@@ -805,10 +811,12 @@ int main(int argc, char** argv)
     if (!o.sub_vector.empty() && !subscribe(vector_listener, o.sub_vector, vector_type, true, 1)) return 1;
 
     int sent = 0, send_failed = 0;
+    double last_sent_stamp = -1.0;
     auto done_expecting = [&]() {
         bool poses_done = o.expect_poses >= 0 && poses_received >= o.expect_poses;
         bool clouds_done = o.expect_clouds >= 0 && clouds_received >= o.expect_clouds;
-        return poses_done || clouds_done;
+        bool last_done = o.until_last_pose && sent > 0 && std::abs(last_pose_stamp - last_sent_stamp) < 1e-6;
+        return poses_done || clouds_done || last_done;
     };
 
     if (!o.pub_points.empty())
@@ -948,7 +956,11 @@ int main(int argc, char** argv)
             double before = now_s();
             bool ok = writer->write(&cloud);
             double took = now_s() - before;
-            if (ok) ++sent;
+            if (ok)
+            {
+                ++sent;
+                last_sent_stamp = stamp;
+            }
             else ++send_failed;
             char b[256];
             std::snprintf(b, sizeof b,
