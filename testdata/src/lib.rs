@@ -4,7 +4,7 @@
 //! under `CI=true`), and scratch directories.
 
 use std::io::Write;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// Environment variable that overrides where the shared data folder is.
 pub const DATA_DIR_ENV: &str = "KFMAP_DATA_DIR";
@@ -95,6 +95,21 @@ impl Scratch {
         Self(dir)
     }
 
+    /// As [`Self::new`], but under /dev/shm (memory) when it has `bytes` free: a test
+    /// of a file's size or layout, not of the disk, then neither waits on writeback nor
+    /// on the writer's fsync. Elsewhere (a small /dev/shm, as in containers) $TMPDIR.
+    pub fn in_memory(name: &str, bytes: u64) -> Self {
+        let shm = Path::new("/dev/shm");
+        if free_bytes(shm).is_some_and(|free| free >= bytes) {
+            let dir = shm.join(format!("kfmap-{name}-{}", std::process::id()));
+            let _ = std::fs::remove_dir_all(&dir);
+            if std::fs::create_dir_all(&dir).is_ok() {
+                return Self(dir);
+            }
+        }
+        Self::new(name)
+    }
+
     /// A path inside the directory.
     pub fn file(&self, name: &str) -> PathBuf {
         self.0.join(name)
@@ -105,4 +120,18 @@ impl Drop for Scratch {
     fn drop(&mut self) {
         let _ = std::fs::remove_dir_all(&self.0);
     }
+}
+
+/// Bytes an unprivileged process may still write on the file system holding `path`.
+fn free_bytes(path: &Path) -> Option<u64> {
+    use std::os::unix::ffi::OsStrExt;
+    let c_path = std::ffi::CString::new(path.as_os_str().as_bytes()).ok()?;
+    let mut stats = std::mem::MaybeUninit::<libc::statvfs>::uninit();
+    // SAFETY: `c_path` is a NUL-terminated path and `stats` a writable statvfs the call
+    // fills on success (0), which is the only case read.
+    let filled = unsafe { libc::statvfs(c_path.as_ptr(), stats.as_mut_ptr()) } == 0;
+    // SAFETY: initialized by the successful call above.
+    filled
+        .then(|| unsafe { stats.assume_init() })
+        .map(|s| s.f_bavail as u64 * s.f_frsize as u64)
 }
