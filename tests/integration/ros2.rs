@@ -1161,8 +1161,10 @@ mod in_namespace {
         let poses = dataset_poses(&data, &scans).unwrap().unwrap();
         let to_map = map_from_input("court", &prefix.0);
 
-        // The drive at its recorded stamps, published at half its rate so the node
-        // takes every cloud: the same statuses and poses as `kfmap localize`.
+        // The drive at its recorded stamps, published at half its rate and each cloud
+        // only once the node's diagnostics for the one before came (`--lockstep`: a
+        // loaded CI host slows the drive instead of making the node skip clouds), so the
+        // node takes every cloud: the same statuses and poses as `kfmap localize`.
         let sent = scans.len();
         // A fresh node in `name`, given the drive's clouds by the peer at `rate` with
         // `extra` arguments; the peer's events (the node stopped, its log in `name`).
@@ -1172,6 +1174,7 @@ mod in_namespace {
             let node = Node::start(&at, "court", &prefix.0);
             let step = poses.stamps[1] - poses.stamps[0];
             let mut args = cloud_args(&data, sent, rate, poses.stamps[0], step);
+            args.extend(["--sub-diag", "/diagnostics", "--lockstep", "20"].map(String::from));
             args.extend(extra.iter().map(|a| a.to_string()));
             let records = run_fast_dds_peer(&at, "peer", &args);
             drop(node);
@@ -1475,6 +1478,10 @@ mod in_namespace {
                 &stamps_file.display().to_string(),
                 "--sub-diag",
                 "/diagnostics",
+                // Each scan once the one before was answered (a relocalization on a
+                // loaded host may take longer than the 0.5 s between scans).
+                "--lockstep",
+                "20",
             ]
             .map(String::from),
         );

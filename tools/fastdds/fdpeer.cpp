@@ -137,6 +137,7 @@ struct Options
     int expect_poses = -1;  // stop once this many poses came (with nothing left to send)
     int expect_clouds = -1;
     bool until_last_pose = false;  // stop early once the last cloud's pose came
+    double lockstep = 0.0;  // > 0: wait up to this long for each cloud's diagnostics
     // Transports / QoS.
     bool qos_from_xml = false;
     bool no_shm = false;
@@ -188,6 +189,9 @@ static void usage()
         "  --expect-poses N        stop early after N poses (once publishing is done)\n"
         "  --expect-clouds N       stop early after N subscribed clouds (once publishing is done)\n"
         "  --until-last-pose       stop early once the pose stamped as the last cloud came\n"
+        "  --lockstep S            after each cloud wait (at most S s) for the node's diagnostics\n"
+        "                          stamped as it before the next (needs --sub-diag): a loaded\n"
+        "                          host slows the drive instead of making the node skip clouds\n"
         "  --qos-from-xml          keep the XML profile's QoS for the endpoints (no overrides in code)\n"
         "  --no-shm                UDPv4 transport only (builtin transports off)\n"
         "  --socket-buffer BYTES   UDP send and receive buffer sizes (with --no-shm)\n"
@@ -240,6 +244,7 @@ static bool parse(int argc, char** argv, Options& o)
         else if (a == "--expect-poses") o.expect_poses = std::stoi(val());
         else if (a == "--expect-clouds") o.expect_clouds = std::stoi(val());
         else if (a == "--until-last-pose") o.until_last_pose = true;
+        else if (a == "--lockstep") o.lockstep = std::stod(val());
         else if (a == "--qos-from-xml") o.qos_from_xml = true;
         else if (a == "--no-shm") o.no_shm = true;
         else if (a == "--socket-buffer") o.socket_buffer = std::stoi(val());
@@ -341,6 +346,8 @@ static std::atomic<int> diags_received{0};
 static std::atomic<int> vectors_received{0};
 // The stamp of the newest pose received (for --until-last-pose).
 static std::atomic<double> last_pose_stamp{-1.0};
+// The stamp of the newest diagnostics received (for --lockstep).
+static std::atomic<double> last_diag_stamp{-1.0};
 
 struct ReaderEvents : public DataReaderListener
 {
@@ -432,6 +439,7 @@ static void describe_cloud(const std::string& topic, const sm::PointCloud2_& m, 
 
 static void describe_diag(const std::string&, const dm::DiagnosticArray_& m, int)
 {
+    last_diag_stamp = stamp_of(m.header().stamp());
     for (const auto& s : m.status())
     {
         emit("\"event\":\"diag\",\"stamp\":" + std::to_string(stamp_of(m.header().stamp())) +
@@ -806,6 +814,11 @@ int main(int argc, char** argv)
     if (!o.sub_pose.empty() && !subscribe(pose_listener, o.sub_pose, pose_type, false, 10)) return 1;
     if (!o.sub_cloud.empty() && !subscribe(cloud_listener, o.sub_cloud, cloud_type, o.cloud_transient_local, 1))
         return 1;
+    if (o.lockstep > 0 && o.sub_diag.empty())
+    {
+        std::fprintf(stderr, "--lockstep needs --sub-diag (the node's diagnostics say a cloud was taken)\n");
+        return 1;
+    }
     if (!o.sub_diag.empty() && !subscribe(diag_listener, o.sub_diag, diag_type, false, 10)) return 1;
     // Latched, as the node publishes the map frame's gravity.
     if (!o.sub_vector.empty() && !subscribe(vector_listener, o.sub_vector, vector_type, true, 1)) return 1;
@@ -968,6 +981,14 @@ int main(int argc, char** argv)
                 "\"data_bytes\":%u,\"write_ms\":%.3f,\"wall\":%.6f",
                 wlistener.topic.c_str(), k, ok ? "true" : "false", stamp, n, n * o.point_step, took * 1e3, wall_s());
             emit(b);
+            if (ok && o.lockstep > 0)
+            {
+                auto give_up = now_s() + o.lockstep;
+                while (std::abs(last_diag_stamp - stamp) >= 1e-6 && now_s() < give_up && !stop_requested)
+                    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+                if (std::abs(last_diag_stamp - stamp) >= 1e-6)
+                    emit("\"event\":\"lockstep_timeout\",\"k\":" + std::to_string(k));
+            }
             next += std::chrono::duration_cast<std::chrono::steady_clock::duration>(period);
             std::this_thread::sleep_until(next);
         }
