@@ -402,6 +402,18 @@ def main():
         out.flush()
         return got
 
+    def answered_within(stamp, seconds):
+        """Records what arrives until the node's diagnostics for `stamp` did (True) or
+        `seconds` passed (False)."""
+        deadline = time.monotonic() + seconds
+        while True:
+            if any(line["topic"] == "diagnostics" and abs(line["stamp"] - stamp) < 1e-6
+                   for line in drain()):
+                return True
+            if time.monotonic() > deadline:
+                return False
+            wait_for_output(min(0.05, deadline - time.monotonic()))
+
     # Bounded wait for the node's cloud reader.
     deadline = time.monotonic() + manifest.get("wait_s", 30)
     while cloud_writer.get_matched_subscriptions() == []:
@@ -482,28 +494,14 @@ def main():
         if not lockstep:
             drain()
             continue
-        deadline = time.monotonic() + timeout
-        answered = False
-        while not answered:
-            for line in drain():
-                if line["topic"] == "diagnostics" and abs(line["stamp"] - stamp) < 1e-6:
-                    answered = True
-            if not answered:
-                if time.monotonic() > deadline:
-                    print(f"dds_peer: no diagnostics for cloud {k} (stamp {stamp}) "
-                          f"within {timeout} s", file=sys.stderr)
-                    sys.exit(1)
-                wait_for_output(min(0.05, deadline - time.monotonic()))
+        if not answered_within(stamp, timeout):
+            print(f"dds_peer: no diagnostics for cloud {k} (stamp {stamp}) "
+                  f"within {timeout} s", file=sys.stderr)
+            sys.exit(1)
     if not lockstep and first_sent is not None:
-        # The node keeps the newest cloud, so the last one sent is always answered.
-        deadline = time.monotonic() + timeout
-        answered = False
-        while not answered and time.monotonic() < deadline:
-            for line in drain():
-                if line["topic"] == "diagnostics" and abs(line["stamp"] - stamp) < 1e-6:
-                    answered = True
-            if not answered:
-                wait_for_output(min(0.05, max(0.0, deadline - time.monotonic())))
+        # The node keeps the newest cloud, so the last one sent is always answered (the
+        # test asserts it from what is recorded).
+        answered_within(stamp, timeout)
     # What else is in flight (the last transforms, the latched map cloud; without
     # lockstep, the answers to the last clouds).
     end = time.monotonic() + manifest.get("linger_s", 1.0)
