@@ -133,5 +133,5 @@ fn free_bytes(path: &Path) -> Option<u64> {
     // SAFETY: initialized by the successful call above.
     filled
         .then(|| unsafe { stats.assume_init() })
-        .map(|s| s.f_bavail as u64 * s.f_frsize as u64)
+        .map(|s| s.f_bavail.saturating_mul(s.f_frsize))
 }
