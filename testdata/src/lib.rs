@@ -89,25 +89,17 @@ pub struct Scratch(pub PathBuf);
 impl Scratch {
     /// Creates (or empties) the directory.
     pub fn new(name: &str) -> Self {
-        let dir = std::env::temp_dir().join(format!("kfmap-{name}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).expect("scratch directory under $TMPDIR");
-        Self(dir)
+        Self::under(&std::env::temp_dir(), name)
     }
 
-    /// As [`Self::new`], but under /dev/shm (memory) when it has `bytes` free: a test
-    /// of a file's size or layout, not of the disk, then neither waits on writeback nor
-    /// on the writer's fsync. Elsewhere (a small /dev/shm, as in containers) $TMPDIR.
-    pub fn in_memory(name: &str, bytes: u64) -> Self {
-        let shm = Path::new("/dev/shm");
-        if free_bytes(shm).is_some_and(|free| free >= bytes) {
-            let dir = shm.join(format!("kfmap-{name}-{}", std::process::id()));
-            let _ = std::fs::remove_dir_all(&dir);
-            if std::fs::create_dir_all(&dir).is_ok() {
-                return Self(dir);
-            }
-        }
-        Self::new(name)
+    /// As [`Self::new`], under `parent` instead of $TMPDIR (e.g. /dev/shm, when a test
+    /// is about a file's size or layout and not about the disk).
+    pub fn under(parent: &Path, name: &str) -> Self {
+        let dir = parent.join(format!("kfmap-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir)
+            .unwrap_or_else(|e| panic!("scratch directory {}: {e}", dir.display()));
+        Self(dir)
     }
 
     /// A path inside the directory.
@@ -120,18 +112,4 @@ impl Drop for Scratch {
     fn drop(&mut self) {
         let _ = std::fs::remove_dir_all(&self.0);
     }
-}
-
-/// Bytes an unprivileged process may still write on the file system holding `path`.
-fn free_bytes(path: &Path) -> Option<u64> {
-    use std::os::unix::ffi::OsStrExt;
-    let c_path = std::ffi::CString::new(path.as_os_str().as_bytes()).ok()?;
-    let mut stats = std::mem::MaybeUninit::<libc::statvfs>::uninit();
-    // SAFETY: `c_path` is a NUL-terminated path and `stats` a writable statvfs the call
-    // fills on success (0), which is the only case read.
-    let filled = unsafe { libc::statvfs(c_path.as_ptr(), stats.as_mut_ptr()) } == 0;
-    // SAFETY: initialized by the successful call above.
-    filled
-        .then(|| unsafe { stats.assume_init() })
-        .map(|s| s.f_bavail.saturating_mul(s.f_frsize))
 }

@@ -101,11 +101,22 @@ fn run_fast_dds_peer(dir: &Path, name: &str, args: &[String]) -> Vec<Value> {
         "the Fast DDS peer failed: {}",
         common::stderr(&out)
     );
-    common::stdout(&out)
+    let events: Vec<Value> = common::stdout(&out)
         .lines()
         .filter(|l| l.starts_with('{'))
         .map(|l| serde_json::from_str(l).unwrap())
-        .collect()
+        .collect();
+    // With `--lockstep`, a cloud the node never answered is named here, not later as a
+    // missing pose.
+    let unanswered: Vec<&Value> = events
+        .iter()
+        .filter(|e| e["event"] == "lockstep_timeout")
+        .collect();
+    assert!(
+        unanswered.is_empty(),
+        "{name}: no diagnostics for {unanswered:?}"
+    );
+    events
 }
 
 /// The Fast DDS peer's arguments to publish `count` scans of `dataset` (its PCD files)

@@ -349,6 +349,12 @@ static std::atomic<double> last_pose_stamp{-1.0};
 // The stamp of the newest diagnostics received (for --lockstep).
 static std::atomic<double> last_diag_stamp{-1.0};
 
+// Stamps travel as (sec, nanosec): equal to a microsecond is the same message's.
+static bool same_stamp(double a, double b)
+{
+    return std::abs(a - b) < 1e-6;
+}
+
 struct ReaderEvents : public DataReaderListener
 {
     std::string topic;
@@ -828,7 +834,7 @@ int main(int argc, char** argv)
     auto done_expecting = [&]() {
         bool poses_done = o.expect_poses >= 0 && poses_received >= o.expect_poses;
         bool clouds_done = o.expect_clouds >= 0 && clouds_received >= o.expect_clouds;
-        bool last_done = o.until_last_pose && sent > 0 && std::abs(last_pose_stamp - last_sent_stamp) < 1e-6;
+        bool last_done = o.until_last_pose && sent > 0 && same_stamp(last_pose_stamp, last_sent_stamp);
         return poses_done || clouds_done || last_done;
     };
 
@@ -984,9 +990,9 @@ int main(int argc, char** argv)
             if (ok && o.lockstep > 0)
             {
                 auto give_up = now_s() + o.lockstep;
-                while (std::abs(last_diag_stamp - stamp) >= 1e-6 && now_s() < give_up && !stop_requested)
+                while (!same_stamp(last_diag_stamp, stamp) && now_s() < give_up && !stop_requested)
                     std::this_thread::sleep_for(std::chrono::milliseconds(2));
-                if (std::abs(last_diag_stamp - stamp) >= 1e-6)
+                if (!same_stamp(last_diag_stamp, stamp))
                     emit("\"event\":\"lockstep_timeout\",\"k\":" + std::to_string(k));
             }
             next += std::chrono::duration_cast<std::chrono::steady_clock::duration>(period);

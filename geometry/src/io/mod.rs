@@ -197,6 +197,20 @@ pub fn sync_file_system(dir: &Path) -> Result<(), IoError> {
     Ok(())
 }
 
+/// Bytes an unprivileged process may still write on the file system holding `dir`
+/// (`statvfs`), `None` where it cannot be read.
+pub fn free_bytes(dir: &Path) -> Option<u64> {
+    use std::os::unix::ffi::OsStrExt;
+    let path = std::ffi::CString::new(dir.as_os_str().as_bytes()).ok()?;
+    // SAFETY: `statvfs` is a plain C struct of integers, for which all-zero bytes are
+    // a valid value.
+    let mut stat: libc::statvfs = unsafe { std::mem::zeroed() };
+    // SAFETY: `path` is a NUL-terminated C string that outlives the call, and `stat` a
+    // writable `statvfs` the call fills.
+    let rc = unsafe { libc::statvfs(path.as_ptr(), &mut stat) };
+    (rc == 0).then(|| stat.f_bavail.saturating_mul(stat.f_frsize))
+}
+
 /// A hidden temporary name in `path`'s directory (same file system, so a rename onto
 /// `path` is atomic): `.NAME.tmpPID`.
 pub fn temp_path_beside(path: &Path) -> Result<std::path::PathBuf, IoError> {

@@ -171,19 +171,7 @@ pub fn check_shared_memory() -> Result<(), ServeError> {
 
 /// Free bytes of `/dev/shm` (`None` where it cannot be read).
 pub(crate) fn shared_memory_free() -> Option<u64> {
-    free_bytes(Path::new("/dev/shm"))
-}
-
-fn free_bytes(dir: &Path) -> Option<u64> {
-    use std::os::unix::ffi::OsStrExt;
-    let path = std::ffi::CString::new(dir.as_os_str().as_bytes()).ok()?;
-    // SAFETY: `statvfs` is a plain C struct of integers, for which all-zero bytes are
-    // a valid value.
-    let mut stat: libc::statvfs = unsafe { std::mem::zeroed() };
-    // SAFETY: `path` is a NUL-terminated C string that outlives the call, and `stat` a
-    // writable `statvfs` the call fills.
-    let rc = unsafe { libc::statvfs(path.as_ptr(), &mut stat) };
-    (rc == 0).then(|| stat.f_bavail as u64 * stat.f_frsize as u64)
+    kfmap_geometry::io::free_bytes(Path::new("/dev/shm"))
 }
 
 /// Ids of the live iceoryx2 nodes under `config`; dead nodes' resources are removed.
