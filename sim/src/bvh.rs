@@ -63,16 +63,21 @@ impl Bvh {
         let inv_dir = ray.dir.map(|d| 1.0 / d);
         let mut best: Option<(f64, usize)> = None;
         let mut limit = t_max;
+        if self.nodes[0].bounds.hit(ray, &inv_dir, limit).is_none() {
+            return None;
+        }
+        // Each node is pushed with its box's entry distance, tested once at its parent:
+        // a box entered before the limit still is unless the limit fell below the entry.
         // Fixed stack: the median split keeps depth near log2(n), far below 64 levels.
-        let mut stack = [0usize; 128];
+        let mut stack = [(0usize, 0.0f64); 128];
         let mut top = 1;
         while top > 0 {
             top -= 1;
-            let index = stack[top];
-            let node = &self.nodes[index];
-            if node.bounds.hit(ray, &inv_dir, limit).is_none() {
+            let (index, entry) = stack[top];
+            if entry > limit {
                 continue;
             }
+            let node = &self.nodes[index];
             if node.count > 0 {
                 let first = node.first_or_right as usize;
                 for i in first..first + node.count as usize {
@@ -87,21 +92,21 @@ impl Bvh {
             let near_left = self.nodes[left].bounds.hit(ray, &inv_dir, limit);
             let near_right = self.nodes[right].bounds.hit(ray, &inv_dir, limit);
             // Push the farther child first so the nearer one is searched first.
-            let mut push = |node: usize| {
-                stack[top] = node;
+            let mut push = |node: usize, entry: f64| {
+                stack[top] = (node, entry);
                 top += 1;
             };
             match (near_left, near_right) {
                 (Some(l), Some(r)) if l <= r => {
-                    push(right);
-                    push(left);
+                    push(right, r);
+                    push(left, l);
                 }
-                (Some(_), Some(_)) => {
-                    push(left);
-                    push(right);
+                (Some(l), Some(r)) => {
+                    push(left, l);
+                    push(right, r);
                 }
-                (Some(_), None) => push(left),
-                (None, Some(_)) => push(right),
+                (Some(l), None) => push(left, l),
+                (None, Some(r)) => push(right, r),
                 (None, None) => {}
             }
         }
