@@ -63,13 +63,11 @@ impl Bvh {
         let inv_dir = ray.dir.map(|d| 1.0 / d);
         let mut best: Option<(f64, usize)> = None;
         let mut limit = t_max;
-        if self.nodes[0].bounds.hit(ray, &inv_dir, limit).is_none() {
-            return None;
-        }
+        let root_entry = self.nodes[0].bounds.hit(ray, &inv_dir, limit)?;
         // Each node is pushed with its box's entry distance, tested once at its parent:
         // a box entered before the limit still is unless the limit fell below the entry.
         // Fixed stack: the median split keeps depth near log2(n), far below 64 levels.
-        let mut stack = [(0usize, 0.0f64); 128];
+        let mut stack = [(0usize, root_entry); 128];
         let mut top = 1;
         while top > 0 {
             top -= 1;
