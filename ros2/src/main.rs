@@ -140,13 +140,14 @@ fn run(args: Args) -> anyhow::Result<()> {
         );
     })?;
     eprintln!(
-        "stopped: {} clouds received, {} localized, {} skipped for newer ones, {} bad, {} without a server; {} IMU samples dropped",
+        "stopped: {} clouds received, {} localized, {} skipped for newer ones, {} bad, {} without a server; {} IMU samples dropped; {} poses held back without a mounting",
         summary.received,
         summary.localized,
         summary.skipped,
         summary.bad,
         summary.unanswered,
-        summary.imu_dropped
+        summary.imu_dropped,
+        summary.unmounted
     );
     Ok(())
 }

@@ -27,7 +27,7 @@ use ros2_client::{
 
 use crate::cloud::{BadCloud, scan_of, xyz_sample};
 use crate::config::{ModeName, Ros2Config};
-use crate::frames::{Frames, parse_mounting};
+use crate::frames::{Frames, sensor_mounting};
 use crate::keep_last::KeepLast;
 use crate::msgs::{
     DiagnosticArray, Header, Odometry, PoseWithCovarianceStamped, Stamp, TfMessage, Vector3Stamped,
@@ -45,8 +45,11 @@ const DIAGNOSTICS_PERIOD: Duration = Duration::from_secs(1);
 pub struct Summary {
     /// Clouds received.
     pub received: u64,
-    /// Clouds localized (a pose published).
+    /// Clouds localized (a pose published unless lost or held back, `unmounted`).
     pub localized: u64,
+    /// Clouds localized whose pose was held back: their frame's mounting on the base was
+    /// not known yet (no `/tf_static` chain, no `[frames] sensor-mounting`).
+    pub unmounted: u64,
     /// Clouds skipped for newer ones while the loop was behind (`[qos] points-depth`
     /// kept: the newest).
     pub skipped: u64,
@@ -233,13 +236,15 @@ impl Localizer<'_> {
         connected(&mut self.client, self.config)
     }
 
-    /// `T_base_sensor` for a cloud in `frame`: `/tf_static`, else the config, else the
-    /// sensor is the base.
-    fn mounting(&self, frame: &str) -> Pose {
-        self.frames
-            .mounting(&self.names.base, frame)
-            .or_else(|| parse_mounting(&self.config.frames.sensor_mounting))
-            .unwrap_or_else(Pose::identity)
+    /// `T_base_sensor` for a cloud in `frame` ([`sensor_mounting`]); `None` while a
+    /// latched `/tf_static` may still be on its way.
+    fn mounting(&self, frame: &str) -> Option<Pose> {
+        sensor_mounting(
+            &self.frames,
+            &self.names.base,
+            frame,
+            &self.config.frames.sensor_mounting,
+        )
     }
 
     fn publish_diagnostics(&mut self, out: &Outbox, stamp: Stamp, condition: &Condition<'_>) {
@@ -250,6 +255,7 @@ impl Localizer<'_> {
             ("imu_dropped", self.summary.imu_dropped.to_string()),
             ("bad", self.summary.bad.to_string()),
             ("unanswered", self.summary.unanswered.to_string()),
+            ("unmounted", self.summary.unmounted.to_string()),
         ];
         let latency = self
             .latency_ms
@@ -298,18 +304,22 @@ impl Localizer<'_> {
                 return;
             }
         };
-        let base_sensor = self.mounting(&msg.frame_id);
-        if let Some(map_base) = self.initial.take() {
-            let options = tracker_options(self.config);
-            // The gyro's log and bias carry over to the new track.
-            let mut tracker = Tracker::new(map_base * base_sensor, options);
-            if let Some(gyro) = self.tracker.gyro().cloned() {
-                tracker = tracker.with_gyro(gyro);
+        let mounting = self.mounting(&msg.frame_id);
+        // Without the mounting an /initialpose (of the base) waits, and the gyro (whose
+        // IMU is mounted relative to the base) is not fed; tracking goes on.
+        if let Some(base_sensor) = mounting {
+            if let Some(map_base) = self.initial.take() {
+                let options = tracker_options(self.config);
+                // The gyro's log and bias carry over to the new track.
+                let mut tracker = Tracker::new(map_base * base_sensor, options);
+                if let Some(gyro) = self.tracker.gyro().cloned() {
+                    tracker = tracker.with_gyro(gyro);
+                }
+                self.tracker = tracker;
+                tracing::info!("tracking restarted from /initialpose");
             }
-            self.tracker = tracker;
-            tracing::info!("tracking restarted from /initialpose");
+            self.feed_gyro(&base_sensor);
         }
-        self.feed_gyro(&base_sensor);
         let prepared = arrived.elapsed();
         let tracked: Result<TrackedScan, String> = match connected(&mut self.client, self.config) {
             Ok(client) => self
@@ -334,6 +344,19 @@ impl Localizer<'_> {
         self.scans += 1;
         let health = tracked.localized.health;
         let map_sensor = tracked.localized.pose;
+        let Some(base_sensor) = mounting else {
+            self.summary.unmounted += 1;
+            let why = format!(
+                "no mounting of {:?} on {:?} yet: waiting for /tf_static (or set [frames] sensor-mounting)",
+                msg.frame_id, self.names.base
+            );
+            if self.summary.unmounted == 1 {
+                tracing::warn!("cloud at {t:.3}: pose held back, {why}");
+            }
+            self.publish_diagnostics(out, stamp, &Condition::Unmounted(&why));
+            self.push_imu_window(out, stamp, &map_sensor);
+            return;
+        };
         let sensor_base = base_sensor.inverse();
         let map_base = map_sensor * sensor_base;
         let velocity = self

@@ -163,6 +163,8 @@ pub enum Condition<'a> {
     BadCloud(&'a str),
     /// The server did not answer: why.
     NoServer(&'a str),
+    /// A cloud was localized but its pose held back: why (no mounting on the base).
+    Unmounted(&'a str),
     /// No cloud yet.
     Waiting,
 }
@@ -191,6 +193,7 @@ pub fn diagnostics(
         }
         Condition::BadCloud(why) => (DIAGNOSTIC_WARN, format!("bad cloud: {why}")),
         Condition::NoServer(why) => (DIAGNOSTIC_ERROR, format!("no server: {why}")),
+        Condition::Unmounted(why) => (DIAGNOSTIC_WARN, format!("pose held back: {why}")),
         Condition::Waiting => (DIAGNOSTIC_WARN, "waiting for a cloud".to_string()),
     };
     let mut values = Vec::new();

@@ -189,7 +189,7 @@ fn node_summary(log: &Path) -> Vec<u64> {
         .split(|c: char| !c.is_ascii_digit())
         .filter_map(|w| w.parse().ok())
         .collect();
-    assert_eq!(numbers.len(), 6, "the node's summary: {line}");
+    assert_eq!(numbers.len(), 7, "the node's summary: {line}");
     numbers
 }
 
@@ -457,14 +457,31 @@ impl Node {
     }
 
     /// A node on DDS domain `domain`: scenarios on different domains share a namespace
-    /// and run at once without hearing each other.
+    /// and run at once without hearing each other. The clouds' frame (`lidar`) is the
+    /// base's (`[frames] sensor-mounting` says so) unless `/tf_static` mounts it.
     fn start_in_domain(dir: &Path, map_name: &str, prefix: &str, domain: u16) -> Self {
+        Self::start_with(
+            dir,
+            map_name,
+            prefix,
+            domain,
+            "sensor-mounting = \"0 0 0 0 0 0\"\n",
+        )
+    }
+
+    /// A node that knows the clouds' mounting only from `/tf_static`.
+    fn start_mounted_by_tf(dir: &Path, map_name: &str, prefix: &str) -> Self {
+        Self::start_with(dir, map_name, prefix, 0, "")
+    }
+
+    fn start_with(dir: &Path, map_name: &str, prefix: &str, domain: u16, frames: &str) -> Self {
         let config = dir.join("ros2.toml");
         std::fs::write(
             &config,
             format!(
                 "[server]\nmap-name = \"{map_name}\"\niceoryx-prefix = \"{prefix}\"\ntimeout-s = 2.0\n\
                  [topics]\nimu = \"/imu\"\n\
+                 [frames]\n{frames}\
                  [map-cloud]\nvoxel = 0.5\n"
             ),
         )
@@ -1182,7 +1199,12 @@ mod in_namespace {
         let publish_drive = |name: &str, rate: u32, extra: &[&str]| {
             let at = dir.join(name);
             std::fs::create_dir_all(&at).unwrap();
-            let node = Node::start(&at, "court", &prefix.0);
+            // The drive mounted by /tf_static alone; the others say the sensor is the base.
+            let node = if name == "drive" {
+                Node::start_mounted_by_tf(&at, "court", &prefix.0)
+            } else {
+                Node::start(&at, "court", &prefix.0)
+            };
             let step = poses.stamps[1] - poses.stamps[0];
             let mut args = cloud_args(&data, sent, rate, poses.stamps[0], step);
             args.extend(["--sub-diag", "/diagnostics", "--lockstep", "20"].map(String::from));
@@ -1228,16 +1250,35 @@ mod in_namespace {
         );
         assert_eq!(localized_by_node, sent as u64);
         let published = poses_by_stamp(&records);
+        // Clouds that came before the latched /tf_static (discovery may take a moment):
+        // localized, their poses held back and said so, never published unmounted.
+        let held_back: std::collections::BTreeSet<i64> = records
+            .iter()
+            .filter(|r| {
+                r["event"] == "diag"
+                    && r["message"]
+                        .as_str()
+                        .is_some_and(|m| m.starts_with("pose held back: no mounting"))
+            })
+            .map(|r| key(r["stamp"].as_f64().unwrap()))
+            .collect();
+        let unmounted = node_summary(&dir.join("drive/node.log"))[6];
+        assert_eq!(held_back.len() as u64, unmounted, "{held_back:?}");
         let mut worst: f64 = 0.0;
         for (k, expected) in oracle.iter().enumerate() {
             let stamp = key(poses.stamps[k]);
-            if expected["status"] == "lost" {
+            if expected["status"] == "lost" || held_back.contains(&stamp) {
                 assert!(
                     !published.contains_key(&stamp),
-                    "scan {k}: a lost pose was published"
+                    "scan {k}: a lost or unmounted pose was published"
                 );
                 continue;
             }
+            // Once mounted, always mounted: the held-back clouds are the first ones.
+            assert!(
+                held_back.iter().all(|&h| h < stamp),
+                "scan {k} published before a held-back one"
+            );
             let pose = published
                 .get(&stamp)
                 .unwrap_or_else(|| panic!("scan {k}: no pose through Fast DDS"));
@@ -1253,14 +1294,46 @@ mod in_namespace {
             assert_eq!(pose["frame"], "map");
         }
         println!(
-            "Fast DDS, mounted by /tf_static: {sent} clouds, {} poses, worst {worst:.2e} m from kfmap localize's moved to the base",
-            published.len()
+            "Fast DDS, mounted by /tf_static: {sent} clouds, {} poses, {} held back before the mounting came, worst {worst:.2e} m from kfmap localize's moved to the base",
+            published.len(),
+            held_back.len()
+        );
+        // The mounting came (discovery takes a moment, not the drive): most of the drive
+        // is published on the base.
+        assert!(
+            held_back.len() * 2 < sent,
+            "{} of {sent} held back",
+            held_back.len()
         );
         let map_cloud = records.iter().find(|r| r["event"] == "cloud");
         assert!(
             map_cloud.is_some_and(|m| m["width"].as_u64().unwrap() > 100 && m["frame"] == "map"),
             "no map cloud: {map_cloud:?}"
         );
+
+        // The same node with nobody mounting the clouds' frame: each cloud is localized
+        // and its pose held back, said in the diagnostics; none goes out as the base's.
+        let at = dir.join("unmounted");
+        std::fs::create_dir_all(&at).unwrap();
+        let node = Node::start_mounted_by_tf(&at, "court", &prefix.0);
+        let step = poses.stamps[1] - poses.stamps[0];
+        let mut args = cloud_args(&data, 3, 5, poses.stamps[0], step);
+        args.extend(["--sub-diag", "/diagnostics", "--lockstep", "20"].map(String::from));
+        let records = run_fast_dds_peer(&at, "peer", &args);
+        drop(node);
+        let said: Vec<&str> = records
+            .iter()
+            .filter(|r| r["event"] == "diag")
+            .filter_map(|r| r["message"].as_str())
+            .filter(|m| m.starts_with("pose held back: no mounting of \"lidar\" on \"base_link\""))
+            .collect();
+        assert_eq!(said.len(), 3, "{records:?}");
+        assert!(
+            !records.iter().any(|r| r["event"] == "pose"),
+            "an unmounted pose went out"
+        );
+        let summary = node_summary(&at.join("node.log"));
+        assert_eq!((summary[1], summary[6]), (3, 3), "localized, held back");
 
         // `/initialpose` from Fast DDS (as RViz's 2D Pose Estimate): the first scan's
         // truth, then the same drive. The poses equal `kfmap localize --initial-from-ground-truth`'s on the same scans
