@@ -422,10 +422,19 @@ def main():
             sys.exit(1)
         time.sleep(0.05)
     if manifest.get("tf_static"):
+        # The mounting reaches the node before the first cloud: its reader matched, the
+        # sample acknowledged (both bounded), never a fixed wait.
+        while tf_static_writer.get_matched_subscriptions() == []:
+            if time.monotonic() > deadline:
+                print("dds_peer: the node's /tf_static reader never matched", file=sys.stderr)
+                sys.exit(1)
+            time.sleep(0.05)
         tf_static_writer.write(TFMessage(transforms=[
             transform(parent, child, 0.0, *values)
             for parent, child, *values in manifest["tf_static"]]))
-        time.sleep(0.2)
+        if not tf_static_writer.wait_for_acks(duration(seconds=manifest.get("wait_s", 30))):
+            print("dds_peer: /tf_static was never acknowledged", file=sys.stderr)
+            sys.exit(1)
     timeout = manifest.get("timeout_s", 20)
     initial = manifest.get("initial_pose")
     # Publishing rate: cloud k goes out at k periods after the first (a sensor's rate),
