@@ -30,13 +30,16 @@ pub fn parse_mounting(text: &str) -> Option<Pose> {
 }
 
 /// `T_base_sensor` for a cloud in `frame`: identity when it is the base frame, else the
-/// `/tf_static` chain, else `configured` (`[frames] sensor-mounting`); `None` while
-/// neither knows it. Never guessed: a LiDAR 0.9 m up taken for the base would put
-/// every published pose 0.9 m off.
-pub fn sensor_mounting(frames: &Frames, base: &str, frame: &str, configured: &str) -> Option<Pose> {
-    frames
-        .mounting(base, frame)
-        .or_else(|| parse_mounting(configured))
+/// `/tf_static` chain, else `configured` (`[frames] sensor-mounting`, parsed once);
+/// `None` while neither knows it. Never guessed: a LiDAR 0.9 m up taken for the base
+/// would put every published pose 0.9 m off.
+pub fn sensor_mounting(
+    frames: &Frames,
+    base: &str,
+    frame: &str,
+    configured: Option<Pose>,
+) -> Option<Pose> {
+    frames.mounting(base, frame).or(configured)
 }
 
 /// What the node knows of the frames.
@@ -194,18 +197,19 @@ mod tests {
     fn a_cloud_outside_the_base_frame_has_no_mounting_until_one_is_given() {
         let mut frames = Frames::default();
         // No /tf_static, nothing configured: unknown, not the identity.
-        assert_eq!(sensor_mounting(&frames, "base_link", "lidar", ""), None);
+        assert_eq!(sensor_mounting(&frames, "base_link", "lidar", None), None);
         // A cloud in the base frame needs none.
         assert_eq!(
-            sensor_mounting(&frames, "base_link", "base_link", ""),
+            sensor_mounting(&frames, "base_link", "base_link", None),
             Some(Pose::identity())
         );
         // The configured mounting, until /tf_static gives one.
-        let configured = sensor_mounting(&frames, "base_link", "lidar", "0 0 0.9 0 0 90").unwrap();
-        assert!((configured.translation.z - 0.9).abs() < 1e-12);
+        let configured = parse_mounting("0 0 0.9 0 0 90");
+        let used = sensor_mounting(&frames, "base_link", "lidar", configured).unwrap();
+        assert!((used.translation.z - 0.9).abs() < 1e-12);
         let latched = pose(0.2, -0.1, 45.0);
         frames.add_static(&[link("base_link", "lidar", 0.0, &latched)]);
-        let found = sensor_mounting(&frames, "base_link", "lidar", "0 0 0.9 0 0 90").unwrap();
+        let found = sensor_mounting(&frames, "base_link", "lidar", configured).unwrap();
         assert!((found.translation.vector - latched.translation.vector).norm() < 1e-12);
     }
 

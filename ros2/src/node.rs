@@ -27,7 +27,7 @@ use ros2_client::{
 
 use crate::cloud::{BadCloud, scan_of, xyz_sample};
 use crate::config::{ModeName, Ros2Config};
-use crate::frames::{Frames, sensor_mounting};
+use crate::frames::{Frames, parse_mounting, sensor_mounting};
 use crate::keep_last::KeepLast;
 use crate::msgs::{
     DiagnosticArray, Header, Odometry, PoseWithCovarianceStamped, Stamp, TfMessage, Vector3Stamped,
@@ -210,6 +210,8 @@ struct Localizer<'a> {
     config: &'a Ros2Config,
     frames: Frames,
     names: FrameNames,
+    /// `[frames] sensor-mounting`, parsed once (`None` when empty).
+    configured_mounting: Option<Pose>,
     client: Option<Client>,
     tracker: Tracker,
     /// `/initialpose` received, applied to the next cloud (its frame gives the mounting).
@@ -243,7 +245,7 @@ impl Localizer<'_> {
             &self.frames,
             &self.names.base,
             frame,
-            &self.config.frames.sensor_mounting,
+            self.configured_mounting,
         )
     }
 
@@ -732,6 +734,7 @@ fn run_loop(config: &Ros2Config, inbox: &Inbox, out: &Outbox, stop: &AtomicBool)
             odom: config.frames.odom.clone(),
             base: config.frames.base.clone(),
         },
+        configured_mounting: parse_mounting(&config.frames.sensor_mounting),
         client: None,
         tracker: Tracker::relocalizing(tracker_options(config)),
         initial: None,

@@ -451,6 +451,9 @@ fn localized(map_name: &str, prefix: &str, data: &Path, extra: &[&str]) -> Vec<V
 /// The node, stopped (SIGTERM) and its output shown when dropped.
 struct Node(Child, PathBuf);
 
+/// How a scenario starts its node: `(dir, map name, iceoryx prefix)`.
+type StartNode = fn(&Path, &str, &str) -> Node;
+
 impl Node {
     fn start(dir: &Path, map_name: &str, prefix: &str) -> Self {
         Self::start_in_domain(dir, map_name, prefix, 0)
@@ -1194,25 +1197,24 @@ mod in_namespace {
         // loaded CI host slows the drive instead of making the node skip clouds), so the
         // node takes every cloud: the same statuses and poses as `kfmap localize`.
         let sent = scans.len();
-        // A fresh node in `name`, given the drive's clouds by the peer at `rate` with
-        // `extra` arguments; the peer's events (the node stopped, its log in `name`).
-        let publish_drive = |name: &str, rate: u32, extra: &[&str]| {
+        // A fresh node in `name` (`start`: its configuration), given the drive's first
+        // `count` clouds by the peer at `rate` with `extra` arguments; the peer's events
+        // (the node stopped, its log in `name`).
+        let publish = |name: &str, start: StartNode, count: usize, rate: u32, extra: &[&str]| {
             let at = dir.join(name);
             std::fs::create_dir_all(&at).unwrap();
-            // The drive mounted by /tf_static alone; the others say the sensor is the base.
-            let node = if name == "drive" {
-                Node::start_mounted_by_tf(&at, "court", &prefix.0)
-            } else {
-                Node::start(&at, "court", &prefix.0)
-            };
+            let node = start(&at, "court", &prefix.0);
             let step = poses.stamps[1] - poses.stamps[0];
-            let mut args = cloud_args(&data, sent, rate, poses.stamps[0], step);
+            let mut args = cloud_args(&data, count, rate, poses.stamps[0], step);
             args.extend(["--sub-diag", "/diagnostics", "--lockstep", "20"].map(String::from));
             args.extend(extra.iter().map(|a| a.to_string()));
             let records = run_fast_dds_peer(&at, "peer", &args);
             drop(node);
             records
         };
+        // The whole drive, its clouds' frame the base's.
+        let publish_drive =
+            |name: &str, rate: u32, extra: &[&str]| publish(name, Node::start, sent, rate, extra);
         // The LiDAR mounted 0.9 m up on the base and turned 90 deg, latched on
         // `/tf_static` by a Fast DDS process that starts before the node (as
         // robot_state_publisher does): the node publishes the base's pose.
@@ -1234,7 +1236,13 @@ mod in_namespace {
             .stdout(Stdio::null())
             .spawn()
             .unwrap();
-        let records = publish_drive("drive", 5, &["--sub-cloud", "/kfmap/map_cloud"]);
+        let records = publish(
+            "drive",
+            Node::start_mounted_by_tf,
+            sent,
+            5,
+            &["--sub-cloud", "/kfmap/map_cloud"],
+        );
         common::signal(&latched, libc::SIGTERM);
         let deadline = Instant::now() + Duration::from_secs(10);
         while latched.try_wait().ok().flatten().is_none() && Instant::now() < deadline {
@@ -1313,14 +1321,7 @@ mod in_namespace {
 
         // The same node with nobody mounting the clouds' frame: each cloud is localized
         // and its pose held back, said in the diagnostics; none goes out as the base's.
-        let at = dir.join("unmounted");
-        std::fs::create_dir_all(&at).unwrap();
-        let node = Node::start_mounted_by_tf(&at, "court", &prefix.0);
-        let step = poses.stamps[1] - poses.stamps[0];
-        let mut args = cloud_args(&data, 3, 5, poses.stamps[0], step);
-        args.extend(["--sub-diag", "/diagnostics", "--lockstep", "20"].map(String::from));
-        let records = run_fast_dds_peer(&at, "peer", &args);
-        drop(node);
+        let records = publish("unmounted", Node::start_mounted_by_tf, 3, 5, &[]);
         let said: Vec<&str> = records
             .iter()
             .filter(|r| r["event"] == "diag")
@@ -1332,7 +1333,7 @@ mod in_namespace {
             !records.iter().any(|r| r["event"] == "pose"),
             "an unmounted pose went out"
         );
-        let summary = node_summary(&at.join("node.log"));
+        let summary = node_summary(&dir.join("unmounted/node.log"));
         assert_eq!((summary[1], summary[6]), (3, 3), "localized, held back");
 
         // `/initialpose` from Fast DDS (as RViz's 2D Pose Estimate): the first scan's
