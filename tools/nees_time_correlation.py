@@ -1,0 +1,143 @@
+#!/usr/bin/env python3
+"""Mean NEES of `kfmap localize --json-lines` poses against a reference, and how far
+the scans' errors are correlated in time.
+
+    tools/nees_time_correlation.py RUN.lines REFERENCE.tum [LABEL]
+
+RUN.lines is `kfmap localize --json-lines` output (one object per scan, in order, plus
+a summary without "index"), REFERENCE.tum one TUM pose per scan in the map frame
+(a simulated dataset's poses_gt.txt when its map was baked without an IMU log, so no
+levelling moved the map frame). Only `ok` scans count.
+
+Per group (rotation, position) it prints: the mean NEES (3 for a calibrated 3-dof
+covariance), the effective number of independent scans N_eff = N / (1 + 2 sum_k
+rho_k^2) from the lag-k correlation rho_k of the whitened error components (for
+Gaussian errors, Var(mean NEES) = 6/N (1 + 2 sum rho_k^2)), the chi-square 95 %
+band of a calibrated covariance's mean NEES for N independent scans and for N_eff,
+and the chance that a calibrated covariance lands inside the independent-scan band.
+Needs numpy only (Wilson-Hilferty for the chi-square quantiles).
+"""
+import json
+import math
+import sys
+
+import numpy as np
+
+
+def normal_quantile(p):
+    lo, hi = -10.0, 10.0
+    for _ in range(100):
+        mid = (lo + hi) / 2
+        if 0.5 * (1 + math.erf(mid / math.sqrt(2))) < p:
+            lo = mid
+        else:
+            hi = mid
+    return (lo + hi) / 2
+
+
+def chi2_quantile(p, k):
+    a = 2 / (9 * k)
+    return k * (1 - a + normal_quantile(p) * math.sqrt(a)) ** 3
+
+
+def chi2_cdf(x, k):
+    a = 2 / (9 * k)
+    z = ((x / k) ** (1 / 3) - (1 - a)) / math.sqrt(a)
+    return 0.5 * (1 + math.erf(z / math.sqrt(2)))
+
+
+def quat_matrix(q):
+    x, y, z, w = np.asarray(q, dtype=float) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def pose(xyz_quat):
+    T = np.eye(4)
+    T[:3, :3] = quat_matrix(xyz_quat[3:7])
+    T[:3, 3] = xyz_quat[:3]
+    return T
+
+
+def rotation_vector(M):
+    angle = math.acos(max(-1.0, min(1.0, (np.trace(M) - 1) / 2)))
+    axis = np.array([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
+    return axis * (0.5 if angle < 1e-9 else angle / (2 * math.sin(angle)))
+
+
+def read_tum(path):
+    poses = []
+    for line in open(path):
+        fields = line.split()
+        if fields and not fields[0].startswith("#"):
+            poses.append(pose([float(f) for f in fields[1:8]]))
+    return poses
+
+
+def whitened_errors(scans, reference):
+    """Per ok scan: (rotation, position) errors whitened by the published covariance's
+    blocks, d the right perturbation from the reported pose to the reference, as
+    kfmap defines the covariance; |w|^2 is the scan's NEES."""
+    rows = []
+    for scan, truth in zip(scans, reference):
+        if scan["status"] != "ok":
+            continue
+        covariance = np.array(scan["covariance"]).reshape(6, 6)
+        d = np.linalg.inv(pose(scan["pose"])) @ truth
+        row = []
+        for error, block in ((rotation_vector(d[:3, :3]), covariance[:3, :3]),
+                             (d[:3, 3], covariance[3:, 3:])):
+            root = np.linalg.cholesky(np.linalg.inv(block))
+            row.append(root.T @ error)
+        rows.append(row)
+    return rows
+
+
+def group_figures(w):
+    n = len(w)
+    nees = (w ** 2).sum(axis=1)
+    mean = nees.mean()
+    # Components scaled to unit variance, so rho_k is a correlation whatever the scale.
+    x = w / math.sqrt(max(mean / 3, 1e-300))
+    spread = 0.0
+    for k in range(1, n // 4):
+        rho = float(np.mean([np.mean(x[:-k, c] * x[k:, c]) for c in range(3)]))
+        if rho <= 0.05:
+            break
+        spread += (1 - k / n) * rho ** 2
+    n_eff = n / (1 + 2 * spread)
+    band = lambda m: (chi2_quantile(0.025, 3 * m) / m, chi2_quantile(0.975, 3 * m) / m)
+    independent, effective = band(n), band(n_eff)
+    inside = chi2_cdf(independent[1] * n_eff, 3 * n_eff) - chi2_cdf(independent[0] * n_eff, 3 * n_eff)
+    return {
+        "mean_nees": round(mean, 2),
+        "n_eff": round(n_eff, 1),
+        "band_independent": [round(b, 2) for b in independent],
+        "band_n_eff": [round(b, 2) for b in effective],
+        "calibrated_inside_independent_band": round(inside, 2),
+    }
+
+
+def main():
+    if len(sys.argv) not in (3, 4):
+        sys.exit(__doc__)
+    scans = [json.loads(line) for line in open(sys.argv[1]) if line.strip()]
+    scans = [s for s in scans if "index" in s]
+    reference = read_tum(sys.argv[2])
+    if len(scans) != len(reference):
+        sys.exit(f"{len(scans)} scans but {len(reference)} reference poses: one per scan expected")
+    rows = whitened_errors(scans, reference)
+    if len(rows) < 8:
+        sys.exit(f"{len(rows)} ok scans: too few for a mean NEES")
+    figures = {"label": sys.argv[3] if len(sys.argv) == 4 else sys.argv[1],
+               "ok": len(rows), "scans": len(scans)}
+    for g, name in ((0, "rotation"), (1, "position")):
+        figures[name] = group_figures(np.array([r[g] for r in rows]))
+    print(json.dumps(figures))
+
+
+if __name__ == "__main__":
+    main()
