@@ -889,10 +889,10 @@ int main(int argc, char** argv)
         }
         // Give the remote reader a moment past the match (its side of discovery). A
         // best-effort reader drops a sample from a writer it has not yet discovered, and
-        // Fast DDS repairs a lost discovery message on its 3 s heartbeat: with --lockstep,
-        // where every cloud must arrive, past one heartbeat (a loaded clean-clone CI run
-        // lost the first cloud after 0.5 s).
-        std::this_thread::sleep_for(std::chrono::milliseconds(o.lockstep > 0 ? 3500 : 500));
+        // Fast DDS repairs a lost discovery message on its 3 s heartbeat: the tests want
+        // every cloud to arrive, so past one heartbeat (a loaded clean-clone CI run lost
+        // the first cloud after 0.5 s).
+        std::this_thread::sleep_for(std::chrono::milliseconds(3500));
         if (!o.initial_pose.empty() && !publish_initial_pose(participant, publisher, pose_type, o))
         {
             std::fprintf(stderr, "--initial-pose: expected X,Y,Z,QX,QY,QZ,QW\n");
