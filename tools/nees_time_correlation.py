@@ -2,12 +2,14 @@
 """Mean NEES of `kfmap localize --json-lines` poses against a reference, and how far
 the scans' errors are correlated in time.
 
-    tools/nees_time_correlation.py RUN.lines REFERENCE.tum [LABEL]
+    tools/nees_time_correlation.py RUN.lines REFERENCE.tum [LABEL] [--map-from-input X,Y,Z,QX,QY,QZ,QW]
 
 RUN.lines is `kfmap localize --json-lines` output (one object per scan, in order, plus
-a summary without "index"), REFERENCE.tum one TUM pose per scan in the map frame
-(a simulated dataset's poses_gt.txt when its map was baked without an IMU log, so no
-levelling moved the map frame). Only `ok` scans count.
+a summary without "index"), REFERENCE.tum one TUM pose per scan in the frame of the
+dataset the map was baked from (a simulated dataset's poses_gt.txt), moved into the
+map frame by --map-from-input: the map's `T_map_input` as `kfmap status --json` or
+`kfmap inspect --json` print it (bake's gravity levelling; identity when not given).
+Only `ok` scans count.
 
 Per group (rotation, position) it prints: the mean NEES (3 for a calibrated 3-dof
 covariance), the effective number of independent scans N_eff = N / (1 + 2 sum_k
@@ -122,11 +124,24 @@ def group_figures(w):
 
 
 def main():
-    if len(sys.argv) not in (3, 4):
+    args = sys.argv[1:]
+    map_from_input = np.eye(4)
+    if "--map-from-input" in args:
+        at = args.index("--map-from-input")
+        try:
+            values = [float(v) for v in args[at + 1].split(",")]
+        except (IndexError, ValueError):
+            values = []
+        if len(values) != 7:
+            sys.exit("--map-from-input: expected X,Y,Z,QX,QY,QZ,QW")
+        map_from_input = pose(values)
+        del args[at:at + 2]
+    if len(args) not in (2, 3):
         sys.exit(__doc__)
+    sys.argv[1:] = args
     scans = [json.loads(line) for line in open(sys.argv[1]) if line.strip()]
     scans = [s for s in scans if "index" in s]
-    reference = read_tum(sys.argv[2])
+    reference = [map_from_input @ p for p in read_tum(sys.argv[2])]
     if len(scans) != len(reference):
         sys.exit(f"{len(scans)} scans but {len(reference)} reference poses: one per scan expected")
     rows = whitened_errors(scans, reference)

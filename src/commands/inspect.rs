@@ -9,8 +9,8 @@ use kfmap_map::place::GridView;
 use serde_json::json;
 
 /// Describe a baked map: header, options, keyframes, points, size breakdown, bounding
-/// box, covisibility statistics, gravity pool and the place grid relocalization
-/// searches.
+/// box, covisibility statistics, gravity pool, `T_map_input` (the levelling bake
+/// applied to the dataset's poses) and the place grid relocalization searches.
 ///
 /// Opening reads only the header and the index. --verify also checks the whole-file
 /// checksum, every keyframe (its checksum, archive layout and KD-tree: each point
@@ -213,6 +213,7 @@ fn facts_json(
         "essential_graph_edges": f.essential_edges,
         "gravity_pool": f.gravity_pool,
         "gravity_pool_mean_std": f.pool_spread,
+        "map_from_input": opened.index.map_from_input,
         "options": toml::from_str::<toml::Value>(&h.options_toml).ok(),
         "open_ms": timing.open_ms,
         "verified": args.verify,
@@ -281,6 +282,10 @@ fn print_facts(args: &Args, opened: &OpenedMap, f: &MapFacts<'_>, timing: &Timin
         ),
         None => println!("  gravity pool: empty"),
     }
+    println!(
+        "  {}",
+        super::report::map_from_input_line(&opened.index.map_from_input)
+    );
     println!("  options:");
     for line in h.options_toml.lines().filter(|l| !l.is_empty()) {
         println!("    {line}");

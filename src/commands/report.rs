@@ -30,3 +30,26 @@ pub fn print_summary(s: &CloudSummary) {
         s.points as f64 / s.covariances_ms / 1e3
     );
 }
+
+/// One line on `T_map_input`, the transform a map applies to its dataset's pose file
+/// (bake's gravity levelling, or the fit onto built poses): `kfmap localize` moves a
+/// dataset's ground truth by it, and so must anyone comparing poses with that file.
+pub fn map_from_input_line(pose: &[f64; 7]) -> String {
+    let Some(p) = kfmap_geometry::geometry::pose_from_xyz_quat(*pose) else {
+        return format!("dataset poses -> map frame (T_map_input): not a pose {pose:?}");
+    };
+    if p.rotation.angle() == 0.0 && p.translation.vector.norm() == 0.0 {
+        return "dataset poses -> map frame (T_map_input): identity".to_string();
+    }
+    let (roll, pitch, yaw) = p.rotation.euler_angles();
+    let t = p.translation.vector;
+    format!(
+        "dataset poses -> map frame (T_map_input): roll {:.4} deg, pitch {:.4} deg, yaw {:.4} deg, translation [{:.3}, {:.3}, {:.3}] m",
+        roll.to_degrees(),
+        pitch.to_degrees(),
+        yaw.to_degrees(),
+        t.x,
+        t.y,
+        t.z
+    )
+}

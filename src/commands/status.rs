@@ -2,6 +2,7 @@
 
 use serde_json::json;
 
+use kfmap_geometry::geometry::pose_to_xyz_quat;
 use kfmap_service::server::LATENCY_WINDOW;
 
 use super::connect_arg::ConnectArgs;
@@ -10,7 +11,9 @@ use kfmap_geometry::percentile::p99_label;
 /// Show a running server's map, uptime, sessions and per-kind request counts with
 /// median and 99th percentile latency, and each session's gravity pool (windows pooled,
 /// motion-compensated, pending and left out; the correction, its spread and the
-/// accelerometer bias); `--reload` asks it to reopen its map file.
+/// accelerometer bias), and `T_map_input` (what moves the map's dataset poses into
+/// the map frame: compare a reference with the served poses through it); `--reload`
+/// asks it to reopen its map file.
 ///
 /// Examples:
 ///   kfmap status --map-name site
@@ -60,6 +63,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "map_name": s.map_name, "map_path": s.map_path, "keyframes": s.keyframes,
             "points": s.points, "uptime_s": s.uptime_s, "sessions": s.sessions, "in_flight": s.in_flight,
             "requests": kinds, "session_gravity": sessions,
+            "map_from_input": pose_to_xyz_quat(&s.map_from_input),
         });
         println!("{}", serde_json::to_string_pretty(&out)?);
         return Ok(());
@@ -67,6 +71,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     println!(
         "map {} ({}): {} keyframes, {} points",
         s.map_name, s.map_path, s.keyframes, s.points
+    );
+    println!(
+        "{}",
+        super::report::map_from_input_line(&pose_to_xyz_quat(&s.map_from_input))
     );
     println!(
         "uptime {:.1} s, {} client sessions, {} requests being answered",

@@ -128,6 +128,35 @@ fn campus_run_localizes_against_the_map_of_another_run() {
     let b = read_trajectory(&server_tum).unwrap().poses;
     assert_eq!(a.len(), 70);
     let truth = truth_in_map(&replayed, "campus", &prefix);
+    // The levelling a user reads (`kfmap status --json`, `kfmap inspect --json`) is the
+    // one the truth was moved by, and it undoes the simulator's 2 / -3 deg tilt.
+    let levelling = map_from_input("campus", &prefix.0);
+    for printed in [
+        common::json(&common::kfmap(&[
+            "status",
+            "--map-name",
+            "campus",
+            "--json",
+            "--iceoryx-prefix",
+            &prefix.0,
+        ])),
+        common::json(&common::kfmap(&[
+            "inspect",
+            map.to_str().unwrap(),
+            "--json",
+        ])),
+    ] {
+        let v: Vec<f64> = serde_json::from_value(printed["map_from_input"].clone()).unwrap();
+        let printed = pose_from_xyz_quat(v.try_into().unwrap()).unwrap();
+        assert!((printed.inverse() * levelling).rotation.angle() < 1e-12);
+    }
+    let (roll, pitch, yaw) = levelling.rotation.euler_angles();
+    assert!(
+        (roll.to_degrees() - 2.0).abs() < 0.1
+            && (pitch.to_degrees() + 3.0).abs() < 0.1
+            && yaw.abs() < 1e-9,
+        "levelling roll {roll}, pitch {pitch}, yaw {yaw} rad"
+    );
     for (side, s, poses) in [("client", &client_side, &a), ("server", &server_side, &b)] {
         assert_eq!(s["failed"], 0);
         let (rms, max) = rms_and_max_m(&pose_errors(poses, &truth));
