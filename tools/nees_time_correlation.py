@@ -17,13 +17,19 @@ rho_k^2) from the lag-k correlation rho_k of the whitened error components (for
 Gaussian errors, Var(mean NEES) = 6/N (1 + 2 sum rho_k^2)), the chi-square 95 %
 band of a calibrated covariance's mean NEES for N independent scans and for N_eff,
 and the chance that a calibrated covariance lands inside the independent-scan band.
-Needs numpy only (Wilson-Hilferty for the chi-square quantiles).
+Needs numpy only (Wilson-Hilferty for the chi-square quantiles); TUM files and
+quaternions are read by tools/anchors/ate.py.
 """
+import argparse
 import json
 import math
 import sys
+from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent / "anchors"))
+from ate import quat_to_rot, read_tum  # noqa: E402  (the anchors' TUM reader and quaternions)
 
 
 def normal_quantile(p):
@@ -48,18 +54,10 @@ def chi2_cdf(x, k):
     return 0.5 * (1 + math.erf(z / math.sqrt(2)))
 
 
-def quat_matrix(q):
-    x, y, z, w = np.asarray(q, dtype=float) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
-
-
 def pose(xyz_quat):
+    """The 4x4 matrix of ``[x, y, z, qx, qy, qz, qw]`` (a `--json-lines` pose)."""
     T = np.eye(4)
-    T[:3, :3] = quat_matrix(xyz_quat[3:7])
+    T[:3, :3] = quat_to_rot(np.asarray(xyz_quat[3:7], dtype=float))
     T[:3, 3] = xyz_quat[:3]
     return T
 
@@ -68,15 +66,6 @@ def rotation_vector(M):
     angle = math.acos(max(-1.0, min(1.0, (np.trace(M) - 1) / 2)))
     axis = np.array([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
     return axis * (0.5 if angle < 1e-9 else angle / (2 * math.sin(angle)))
-
-
-def read_tum(path):
-    poses = []
-    for line in open(path):
-        fields = line.split()
-        if fields and not fields[0].startswith("#"):
-            poses.append(pose([float(f) for f in fields[1:8]]))
-    return poses
 
 
 def whitened_errors(scans, reference):
@@ -124,31 +113,31 @@ def group_figures(w):
 
 
 def main():
-    args = sys.argv[1:]
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("lines", help="kfmap localize --json-lines output")
+    parser.add_argument("reference", help="TUM poses, one per scan, in the dataset's frame")
+    parser.add_argument("label", nargs="?", help="printed with the figures (default: LINES)")
+    parser.add_argument("--map-from-input", metavar="X,Y,Z,QX,QY,QZ,QW",
+                        help="the map's T_map_input (kfmap status --json or kfmap inspect --json)")
+    args = parser.parse_args()
     map_from_input = np.eye(4)
-    if "--map-from-input" in args:
-        at = args.index("--map-from-input")
+    if args.map_from_input is not None:
         try:
-            values = [float(v) for v in args[at + 1].split(",")]
-        except (IndexError, ValueError):
+            values = [float(v) for v in args.map_from_input.split(",")]
+        except ValueError:
             values = []
         if len(values) != 7:
-            sys.exit("--map-from-input: expected X,Y,Z,QX,QY,QZ,QW")
+            parser.error("--map-from-input: expected X,Y,Z,QX,QY,QZ,QW")
         map_from_input = pose(values)
-        del args[at:at + 2]
-    if len(args) not in (2, 3):
-        sys.exit(__doc__)
-    sys.argv[1:] = args
-    scans = [json.loads(line) for line in open(sys.argv[1]) if line.strip()]
+    scans = [json.loads(line) for line in open(args.lines) if line.strip()]
     scans = [s for s in scans if "index" in s]
-    reference = [map_from_input @ p for p in read_tum(sys.argv[2])]
+    reference = [map_from_input @ p for p in read_tum(args.reference)[1]]
     if len(scans) != len(reference):
         sys.exit(f"{len(scans)} scans but {len(reference)} reference poses: one per scan expected")
     rows = whitened_errors(scans, reference)
     if len(rows) < 8:
         sys.exit(f"{len(rows)} ok scans: too few for a mean NEES")
-    figures = {"label": sys.argv[3] if len(sys.argv) == 4 else sys.argv[1],
-               "ok": len(rows), "scans": len(scans)}
+    figures = {"label": args.label or args.lines, "ok": len(rows), "scans": len(scans)}
     for g, name in ((0, "rotation"), (1, "position")):
         figures[name] = group_figures(np.array([r[g] for r in rows]))
     print(json.dumps(figures))

@@ -284,7 +284,9 @@ fn print_facts(args: &Args, opened: &OpenedMap, f: &MapFacts<'_>, timing: &Timin
     }
     println!(
         "  {}",
-        super::report::map_from_input_line(&opened.index.map_from_input)
+        super::report::map_from_input_line(
+            kfmap_geometry::geometry::pose_from_xyz_quat(opened.index.map_from_input).as_ref()
+        )
     );
     println!("  options:");
     for line in h.options_toml.lines().filter(|l| !l.is_empty()) {

@@ -1,5 +1,7 @@
 //! Human-readable printing shared by subcommands.
 
+use kfmap_geometry::geometry::Pose;
+
 use crate::commands::cloud_summary::CloudSummary;
 
 fn opt(value: Option<f64>, unit: &str, digits: usize) -> String {
@@ -34,9 +36,11 @@ pub fn print_summary(s: &CloudSummary) {
 /// One line on `T_map_input`, the transform a map applies to its dataset's pose file
 /// (bake's gravity levelling, or the fit onto built poses): `kfmap localize` moves a
 /// dataset's ground truth by it, and so must anyone comparing poses with that file.
-pub fn map_from_input_line(pose: &[f64; 7]) -> String {
-    let Some(p) = kfmap_geometry::geometry::pose_from_xyz_quat(*pose) else {
-        return format!("dataset poses -> map frame (T_map_input): not a pose {pose:?}");
+/// `None`: the stored values are no pose.
+pub fn map_from_input_line(pose: Option<&Pose>) -> String {
+    let Some(p) = pose else {
+        return "dataset poses -> map frame (T_map_input): not a pose (bake the map again)"
+            .to_string();
     };
     if p.rotation.angle() == 0.0 && p.translation.vector.norm() == 0.0 {
         return "dataset poses -> map frame (T_map_input): identity".to_string();

@@ -74,7 +74,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     );
     println!(
         "{}",
-        super::report::map_from_input_line(&pose_to_xyz_quat(&s.map_from_input))
+        super::report::map_from_input_line(Some(&s.map_from_input))
     );
     println!(
         "uptime {:.1} s, {} client sessions, {} requests being answered",

@@ -414,21 +414,21 @@ def main():
                 return False
             wait_for_output(min(0.05, deadline - time.monotonic()))
 
-    # Bounded wait for the node's cloud reader.
+    # Bounded waits for the node's readers, under one deadline.
     deadline = time.monotonic() + manifest.get("wait_s", 30)
-    while cloud_writer.get_matched_subscriptions() == []:
-        if time.monotonic() > deadline:
-            print("dds_peer: the node's /points reader never matched", file=sys.stderr)
-            sys.exit(1)
-        time.sleep(0.05)
+
+    def wait_matched(writer, topic):
+        while writer.get_matched_subscriptions() == []:
+            if time.monotonic() > deadline:
+                print(f"dds_peer: the node's {topic} reader never matched", file=sys.stderr)
+                sys.exit(1)
+            time.sleep(0.05)
+
+    wait_matched(cloud_writer, "/points")
     if manifest.get("tf_static"):
         # The mounting reaches the node before the first cloud: its reader matched, the
         # sample acknowledged (both bounded), never a fixed wait.
-        while tf_static_writer.get_matched_subscriptions() == []:
-            if time.monotonic() > deadline:
-                print("dds_peer: the node's /tf_static reader never matched", file=sys.stderr)
-                sys.exit(1)
-            time.sleep(0.05)
+        wait_matched(tf_static_writer, "/tf_static")
         tf_static_writer.write(TFMessage(transforms=[
             transform(parent, child, 0.0, *values)
             for parent, child, *values in manifest["tf_static"]]))
