@@ -150,9 +150,12 @@ pub fn tracked_from_wire(
             let place = kfmap_protocol::WirePlace::from_slot(*slot);
             let pose = place_from_wire(&place).ok_or("a hypothesis with an invalid pose")?;
             let scans = (place.rank as usize).clamp(1, 10_000);
+            // The wire carries each place's mean share and scans, not each scan's
+            // pinning: what the client shows, not what it decides on.
             Ok(Hypothesis {
                 explained: vec![place.score; scans],
-                ..Hypothesis::new(pose, Some(place.score))
+                pinned: vec![false; scans],
+                ..Hypothesis::new(pose, Some(place.score), false)
             })
         })
         .collect::<Result<Vec<_>, String>>()?;
@@ -188,7 +191,7 @@ mod tests {
         health.status = TrackingStatus::Degraded;
         health.reasons = Reasons::AMBIGUOUS;
         health.inlier_ratio = 0.71;
-        let mut second = Hypothesis::new(at(22.6, 1.6), Some(0.4));
+        let mut second = Hypothesis::new(at(22.6, 1.6), Some(0.4), false);
         second.explained.push(0.5);
         let tracked = TrackedScan {
             t: 1.7e9 + 0.25,
@@ -198,7 +201,7 @@ mod tests {
                 pose: at(1.1, 0.12),
                 health,
             },
-            hypotheses: vec![Hypothesis::new(at(1.1, 0.12), Some(0.8)), second],
+            hypotheses: vec![Hypothesis::new(at(1.1, 0.12), Some(0.8), false), second],
             explained: Some(0.8),
             slide_loss: None,
         };

@@ -50,6 +50,13 @@ pub struct HypothesisParams {
     /// (the sensor comes to see what differs) is not diluted by the scans before, where
     /// the places looked alike.
     pub window: usize,
+    /// A place that does not pin the scans (a slide of 0.5 m along its weakest
+    /// direction loses less than `ok-pinned` of the explained structure: a stretch of
+    /// corridor or street it could slide along) is dropped beside a place that pins
+    /// them and explains more, once this many scans in a row (the proposing scan
+    /// included) showed both so; 0: never. A look-alike that is itself a place (a
+    /// courtyard's twin) pins as well and is not touched.
+    pub slide_scans: usize,
 }
 
 impl Default for HypothesisParams {
@@ -66,6 +73,7 @@ impl Default for HypothesisParams {
             hold_explained: 0.5,
             drop_after_lost: 2,
             window: 10,
+            slide_scans: 2,
         }
     }
 }
@@ -118,6 +126,12 @@ impl HypothesisParams {
             "window",
             self.window,
             "min-scans to 1000 scans",
+        )?;
+        ensure(
+            self.slide_scans <= self.window,
+            "slide-scans",
+            self.slide_scans,
+            "0 (never) to window scans",
         )
     }
 }
@@ -130,6 +144,8 @@ pub struct Hypothesis {
     /// The share of each scan's structure since it was proposed that the map explains
     /// there (0 when lost), oldest first, at most `window` scans.
     pub explained: Vec<f64>,
+    /// Whether each of those scans pinned it (see `slide-scans`; false when lost).
+    pub pinned: Vec<bool>,
     /// Scans in a row it was lost at.
     pub misses: usize,
     /// Scans seen since it was proposed, the proposing scan included.
@@ -139,11 +155,13 @@ pub struct Hypothesis {
 }
 
 impl Hypothesis {
-    /// A place first seen with `explained` of the scan explained (`None`: lost there).
-    pub fn new(pose: Pose, explained: Option<f64>) -> Self {
+    /// A place first seen with `explained` of the scan explained (`None`: lost there),
+    /// `pinned` there or not.
+    pub fn new(pose: Pose, explained: Option<f64>, pinned: bool) -> Self {
         Self {
             pose,
             explained: vec![explained.unwrap_or(0.0)],
+            pinned: vec![pinned && explained.is_some()],
             misses: usize::from(explained.is_none()),
             seen: 1,
             incumbent: false,
@@ -211,23 +229,61 @@ pub fn clearly_better(lead: &Hypothesis, other: &Hypothesis, params: &Hypothesis
         || (since_proposal >= 1 && stands(&differences(since_proposal), params.early_spread))
 }
 
-/// Records one scan's outcome at each hypothesis (`None`: lost there, the pose its
-/// prediction), then drops those lost `drop-after-lost` scans in a row and those the
-/// best explains clearly better, and puts the best first (most explained on average,
-/// of those not lost this scan when any). Returns the indices, in `live` as it was, of
+/// Whether `other` only slides where `lead` is a place: over the last `slide-scans`
+/// scans `lead` pinned every one and `other` none, and `lead` explained at least
+/// `min-effect` more of them on average. A slide's position along its stretch is not
+/// known, so it is no rival to a place the scans pin.
+pub fn slides_beside(lead: &Hypothesis, other: &Hypothesis, params: &HypothesisParams) -> bool {
+    let k = params.slide_scans;
+    if k == 0 || lead.pinned.len() < k || other.pinned.len() < k {
+        return false;
+    }
+    let last = |v: &[bool]| v[v.len() - k..].to_vec();
+    let lead_more = lead.explained[lead.explained.len() - k..]
+        .iter()
+        .zip(&other.explained[other.explained.len() - k..])
+        .map(|(a, b)| a - b)
+        .sum::<f64>()
+        / k as f64;
+    last(&lead.pinned).iter().all(|&p| p)
+        && !last(&other.pinned).iter().any(|&p| p)
+        && lead_more >= params.min_effect
+}
+
+/// One scan localized at one hypothesis.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Outcome {
+    /// Where it settled (its prediction when lost).
+    pub pose: Pose,
+    /// The share of the scan's structure explained there; `None`: lost there.
+    pub explained: Option<f64>,
+    /// Whether the scan pinned the place (see `slide-scans`).
+    pub pinned: bool,
+}
+
+/// Records one scan's outcome at each hypothesis, then drops those lost
+/// `drop-after-lost` scans in a row, those the best explains clearly better and those
+/// that only slide beside it, and puts the best first (most explained on average, of
+/// those not lost this scan when any). Returns the indices, in `live` as it was, of
 /// those kept, in their new order: empty when none is left.
 pub fn observe(
     live: &mut Vec<Hypothesis>,
-    outcomes: &[(Pose, Option<f64>)],
+    outcomes: &[Outcome],
     params: &HypothesisParams,
 ) -> Vec<usize> {
-    for (h, (pose, explained)) in live.iter_mut().zip(outcomes) {
-        h.pose = *pose;
-        h.explained.push(explained.unwrap_or(0.0));
+    for (h, outcome) in live.iter_mut().zip(outcomes) {
+        h.pose = outcome.pose;
+        h.explained.push(outcome.explained.unwrap_or(0.0));
+        h.pinned.push(outcome.pinned && outcome.explained.is_some());
         if h.explained.len() > params.window.max(2) {
             h.explained.remove(0);
+            h.pinned.remove(0);
         }
-        h.misses = if explained.is_some() { 0 } else { h.misses + 1 };
+        h.misses = if outcome.explained.is_some() {
+            0
+        } else {
+            h.misses + 1
+        };
         h.seen += 1;
     }
     let mut kept: Vec<usize> = (0..live.len())
@@ -239,7 +295,10 @@ pub fn observe(
     };
     let holds = |h: &Hypothesis| h.incumbent && h.mean_explained() >= params.hold_explained;
     kept.retain(|&i| {
-        i == lead || holds(&live[i]) || !clearly_better(&live[lead], &live[i], params)
+        i == lead
+            || holds(&live[i])
+            || !(clearly_better(&live[lead], &live[i], params)
+                || slides_beside(&live[lead], &live[i], params))
     });
     kept.sort_by(|&a, &b| leads(&live[b], &live[a]));
     *live = kept.iter().map(|&i| live[i].clone()).collect();
@@ -269,6 +328,15 @@ mod tests {
 
     fn at(x: f64) -> Pose {
         Pose::translation(x, 0.0, 0.0)
+    }
+
+    /// A scan's outcome at a place that it does not pin.
+    fn seen(pose: Pose, explained: Option<f64>) -> Outcome {
+        Outcome {
+            pose,
+            explained,
+            pinned: false,
+        }
     }
 
     fn place(x: f64, score: f64) -> ScoredPlace {
@@ -345,6 +413,13 @@ mod tests {
                 },
                 "window",
             ),
+            (
+                HypothesisParams {
+                    slide_scans: 11,
+                    ..params
+                },
+                "slide-scans",
+            ),
         ] {
             assert_eq!(bad.validate().unwrap_err().option, key);
         }
@@ -382,15 +457,15 @@ mod tests {
         let mut state = 7;
         // The right place explains 0.80 +- 0.05 of each scan, a worse one 0.05 less.
         let mut live = vec![
-            Hypothesis::new(at(0.0), Some(0.8)),
-            Hypothesis::new(at(20.0), Some(0.8)),
+            Hypothesis::new(at(0.0), Some(0.8), false),
+            Hypothesis::new(at(20.0), Some(0.8), false),
         ];
         let mut scans = 1;
         while live.len() == 2 {
             let common = 0.8 + 0.05 * noise(&mut state);
             let outcomes = [
-                (at(0.0), Some(common + 0.01 * noise(&mut state))),
-                (at(20.0), Some(common - 0.05 + 0.01 * noise(&mut state))),
+                seen(at(0.0), Some(common + 0.01 * noise(&mut state))),
+                seen(at(20.0), Some(common - 0.05 + 0.01 * noise(&mut state))),
             ];
             observe(&mut live, &outcomes, &params);
             scans += 1;
@@ -400,15 +475,15 @@ mod tests {
         assert!(scans >= params.min_scans);
         // The worse place led first: the order follows the evidence, not the start.
         let mut live = vec![
-            Hypothesis::new(at(20.0), Some(0.9)),
-            Hypothesis::new(at(0.0), Some(0.7)),
+            Hypothesis::new(at(20.0), Some(0.9), false),
+            Hypothesis::new(at(0.0), Some(0.7), false),
         ];
         for _ in 0..20 {
             // Outcomes in the order of `live`, which each scan may change.
             let before: Vec<Pose> = live.iter().map(|h| h.pose).collect();
-            let outcomes: Vec<(Pose, Option<f64>)> = before
+            let outcomes: Vec<Outcome> = before
                 .iter()
-                .map(|&p| (p, Some(if p == at(20.0) { 0.5 } else { 0.8 })))
+                .map(|&p| seen(p, Some(if p == at(20.0) { 0.5 } else { 0.8 })))
                 .collect();
             let kept = observe(&mut live, &outcomes, &params);
             if kept.len() == 1 {
@@ -421,14 +496,14 @@ mod tests {
 
         // A true look-alike (same shares up to noise) stays undecided over 1000 scans.
         let mut live = vec![
-            Hypothesis::new(at(0.0), Some(0.8)),
-            Hypothesis::new(at(20.0), Some(0.8)),
+            Hypothesis::new(at(0.0), Some(0.8), false),
+            Hypothesis::new(at(20.0), Some(0.8), false),
         ];
         for _ in 0..1000 {
             let common = 0.8 + 0.05 * noise(&mut state);
             let outcomes = [
-                (at(0.0), Some(common + 0.01 * noise(&mut state))),
-                (at(20.0), Some(common + 0.01 * noise(&mut state))),
+                seen(at(0.0), Some(common + 0.01 * noise(&mut state))),
+                seen(at(20.0), Some(common + 0.01 * noise(&mut state))),
             ];
             observe(&mut live, &outcomes, &params);
             assert_eq!(live.len(), 2);
@@ -444,8 +519,8 @@ mod tests {
     ) -> Option<(usize, Pose)> {
         let params = HypothesisParams::default();
         for k in 0..scans {
-            let outcomes: Vec<(Pose, Option<f64>)> =
-                live.iter().map(|h| (h.pose, Some(share(h)))).collect();
+            let outcomes: Vec<Outcome> =
+                live.iter().map(|h| seen(h.pose, Some(share(h)))).collect();
             if observe(live, &outcomes, &params).len() == 1 {
                 return Some((k, live[0].pose));
             }
@@ -457,8 +532,8 @@ mod tests {
     /// there), then `after` on every later scan: the scan the one at 0 won on.
     fn decided_at(first: [f64; 2], after: [f64; 2], scans: usize) -> Option<usize> {
         let mut live = vec![
-            Hypothesis::new(at(0.0), Some(first[0])),
-            Hypothesis::new(at(20.0), Some(first[1])),
+            Hypothesis::new(at(0.0), Some(first[0]), false),
+            Hypothesis::new(at(20.0), Some(first[1]), false),
         ];
         let share = |h: &Hypothesis| after[usize::from(h.pose != at(0.0))];
         decide(&mut live, share, scans).map(|(k, winner)| {
@@ -488,8 +563,8 @@ mod tests {
     fn the_tracked_place_holds_while_it_explains_the_scans_and_goes_when_it_does_not() {
         let tracked_then_other = || {
             vec![
-                Hypothesis::new(at(0.0), Some(0.73)),
-                Hypothesis::new(at(25.0), Some(0.84)),
+                Hypothesis::new(at(0.0), Some(0.73), false),
+                Hypothesis::new(at(25.0), Some(0.84), false),
             ]
         };
         let (tracked, other) = (0.73, 0.84);
@@ -510,15 +585,79 @@ mod tests {
     }
 
     #[test]
+    fn a_slide_beside_a_pinned_place_goes_and_a_pinned_look_alike_stays() {
+        let params = HypothesisParams::default();
+        let outcome = |x: f64, explained: f64, pinned: bool| Outcome {
+            pose: at(x),
+            explained: Some(explained),
+            pinned,
+        };
+        let proposed = |right_pinned: bool, other_pinned: bool| {
+            vec![
+                Hypothesis::new(at(0.0), Some(0.57), right_pinned),
+                Hypothesis::new(at(6.5), Some(0.55), other_pinned),
+            ]
+        };
+        // balm_os0's corridor-like stretch: the right place pins the scans (slide loss
+        // 0.10-0.13), a place 6.5 m along it explains nearly as much (0.01-0.06 less)
+        // but slides (loss 0.00-0.02). Two scans (the proposing one and the next)
+        // decide, far below the 0.2 the explained share alone would need there.
+        let mut live = proposed(true, false);
+        let kept = observe(
+            &mut live,
+            &[outcome(0.0, 0.56, true), outcome(6.5, 0.54, false)],
+            &params,
+        );
+        assert_eq!(kept, vec![0]);
+        assert_eq!(live[0].pose, at(0.0));
+        // One scan is not enough: the proposing scan pinned neither place.
+        let mut live = proposed(false, false);
+        let kept = observe(
+            &mut live,
+            &[outcome(0.0, 0.56, true), outcome(6.5, 0.54, false)],
+            &params,
+        );
+        assert_eq!(kept.len(), 2);
+        // A look-alike that pins the scans as well (a courtyard's twin) stays.
+        let mut live = proposed(true, true);
+        let kept = observe(
+            &mut live,
+            &[outcome(0.0, 0.56, true), outcome(6.5, 0.54, true)],
+            &params,
+        );
+        assert_eq!(kept.len(), 2);
+        // A slide that explains more is not dropped by the place that pins.
+        let mut live = proposed(true, false);
+        let kept = observe(
+            &mut live,
+            &[outcome(0.0, 0.54, true), outcome(6.5, 0.56, false)],
+            &params,
+        );
+        assert_eq!(kept.len(), 2);
+        // Off (0): the slide stays.
+        let off = HypothesisParams {
+            slide_scans: 0,
+            ..params
+        };
+        let mut live = proposed(true, false);
+        let kept = observe(
+            &mut live,
+            &[outcome(0.0, 0.56, true), outcome(6.5, 0.54, false)],
+            &off,
+        );
+        assert_eq!(kept.len(), 2);
+    }
+
+    #[test]
     fn a_place_lost_twice_in_a_row_is_dropped_and_none_left_is_none() {
         let params = HypothesisParams::default();
         let mut live = vec![
-            Hypothesis::new(at(0.0), Some(0.5)),
-            Hypothesis::new(at(20.0), Some(0.8)),
+            Hypothesis::new(at(0.0), Some(0.5), false),
+            Hypothesis::new(at(20.0), Some(0.8), false),
         ];
         let kept = observe(
             &mut live,
-            &[(at(0.0), Some(0.1)), (at(20.0), None)],
+            &[seen(at(0.0), Some(0.1)), seen(at(20.0), None)],
             &params,
         );
         // Found at the last scan leads a better average lost there; a difference of
@@ -527,13 +666,13 @@ mod tests {
         assert_eq!(live[0].pose, at(0.0));
         let kept = observe(
             &mut live,
-            &[(at(0.0), Some(0.1)), (at(20.0), None)],
+            &[seen(at(0.0), Some(0.1)), seen(at(20.0), None)],
             &params,
         );
         assert_eq!(kept, vec![0]);
         assert_eq!(live.len(), 1);
-        assert_eq!(observe(&mut live, &[(at(0.0), None)], &params), vec![0]);
-        assert!(observe(&mut live, &[(at(0.0), None)], &params).is_empty());
+        assert_eq!(observe(&mut live, &[seen(at(0.0), None)], &params), vec![0]);
+        assert!(observe(&mut live, &[seen(at(0.0), None)], &params).is_empty());
         assert!(live.is_empty());
     }
 }

@@ -28,7 +28,7 @@ use serde::{Deserialize, Serialize};
 
 use kfmap_map::place::{Ground, RelocalizeStatus, levelling, off_ground};
 
-use crate::hypotheses::{self, Hypothesis, HypothesisParams, distinct, near_best};
+use crate::hypotheses::{self, Hypothesis, HypothesisParams, Outcome, distinct, near_best};
 use crate::{Client, ClientError, LocalizeOptions, Localized, RelocalizeOptions, ScoredPlace};
 
 /// Tracker settings.
@@ -269,6 +269,9 @@ struct Evaluated {
     localized: Localized,
     /// The share of the scan's structure explained there; `None` when lost.
     explained: Option<f64>,
+    /// What a slide along its weakest direction loses of that share
+    /// ([`Tracker::slide_loss`]); `None` when lost or without a covariance.
+    slide_loss: Option<f64>,
 }
 
 /// Columns of [`Tracker::structure_explained`]'s ground, metres.
@@ -879,6 +882,7 @@ impl Tracker {
             pose: current,
             localized: tracked.localized,
             explained: Some(explained),
+            slide_loss: tracked.slide_loss,
         };
         rivals.insert(0, own);
         Ok(self.start_hypotheses(tracked.t, tracked.predicted, rivals, true))
@@ -905,18 +909,26 @@ impl Tracker {
         // foreign map, seconds per place and scan). Server-side, the server's own ladder.
         options.tracking.yaw_step_deg = 0.0;
         let localized = self.localize_with(client, scan, start, &options)?;
-        let (pose, explained) = match localized.health.status {
-            TrackingStatus::Lost => (*start, None),
-            _ => (
-                renormalized(&localized.pose),
-                Some(self.structure_explained(client, scan, &localized.pose)?),
-            ),
+        let (pose, explained, slide_loss) = match localized.health.status {
+            TrackingStatus::Lost => (*start, None, None),
+            _ => {
+                let structure = structure(scan, &localized.pose);
+                let here = self.explained_share(client, &structure, &localized.pose)?;
+                let slide = self.slide_loss(client, &structure, &localized, here)?;
+                (renormalized(&localized.pose), Some(here), slide)
+            }
         };
         Ok(Evaluated {
             pose,
             localized,
             explained,
+            slide_loss,
         })
+    }
+
+    /// Whether a slide loss pins the pose (`ok-pinned`).
+    fn pins(&self, slide_loss: Option<f64>) -> bool {
+        slide_loss.is_some_and(|l| l >= self.options.trust.ok_pinned)
     }
 
     /// Keeps the `evaluated` places as hypotheses and reports the scan `lost`
@@ -932,7 +944,7 @@ impl Tracker {
     ) -> TrackedScan {
         let mut live: Vec<Hypothesis> = evaluated
             .iter()
-            .map(|e| Hypothesis::new(e.pose, e.explained))
+            .map(|e| Hypothesis::new(e.pose, e.explained, self.pins(e.slide_loss)))
             .collect();
         // A check's first place is the one tracked so far: it keeps its continuity.
         live[0].incumbent = from_check;
@@ -972,10 +984,23 @@ impl Tracker {
         let previous: Vec<Pose> = self.hypotheses.iter().map(|h| h.pose).collect();
         let mut localized = Vec::with_capacity(previous.len());
         let mut outcomes = Vec::with_capacity(previous.len());
+        let mut slide_losses = Vec::with_capacity(previous.len());
         for from in &previous {
             let prediction = renormalized(&(from * moved));
             let e = self.evaluate(client, scan, &prediction)?;
-            outcomes.push((e.pose, e.explained));
+            tracing::debug!(
+                "tracker: t = {t:.2} s, place ({:.2}, {:.2}): explained {:?}, slide loss {:?}",
+                e.pose.translation.x,
+                e.pose.translation.y,
+                e.explained,
+                e.slide_loss
+            );
+            outcomes.push(Outcome {
+                pose: e.pose,
+                explained: e.explained,
+                pinned: self.pins(e.slide_loss),
+            });
+            slide_losses.push(e.slide_loss);
             localized.push((prediction, e.localized));
         }
         let kept = hypotheses::observe(&mut self.hypotheses, &outcomes, &self.options.hypotheses);
@@ -998,14 +1023,8 @@ impl Tracker {
         self.restart_streaks();
         self.lost_streak = 0;
         found.health.reasons.insert(Reasons::RELOCALIZED);
-        let explained = outcomes[lead].1;
-        let slide_loss = match explained {
-            Some(here) => {
-                let structure = structure(scan, &found.pose);
-                self.slide_loss(client, &structure, &found, here)?
-            }
-            None => None,
-        };
+        let explained = outcomes[lead].explained;
+        let slide_loss = slide_losses[lead];
         self.demote_doubtful(&mut found, explained, slide_loss);
         widened_along_slide(&mut found, slide_loss);
         let mut tracked = self.observe(t, prediction, None, found);

@@ -103,7 +103,12 @@ pub struct Args {
     #[arg(long, default_value_t = 10.0)]
     rate: f64,
     /// First pose guess "x y z roll pitch yaw" (metres, degrees) or a 4x4 matrix file.
-    #[arg(long, conflicts_with = "initial_from_ground_truth")]
+    /// A guess starting with a minus sign is a value, not a flag: --initial "-1 2 0 0 0 30".
+    #[arg(
+        long,
+        conflicts_with = "initial_from_ground_truth",
+        allow_hyphen_values = true
+    )]
     initial: Option<String>,
     /// Start at the dataset's reference pose of the first replayed scan (an error when
     /// the dataset has no pose file).
@@ -222,6 +227,12 @@ pub struct Args {
     /// Places are compared over their last this many scans (at least --hypothesis-min-scans).
     #[arg(long, default_value_t = HypothesisParams::default().window)]
     hypothesis_window: usize,
+    /// A place the scans do not pin (a 0.5 m slide along its weakest direction loses
+    /// less than --ok-pinned of its explained structure: a corridor or street it could
+    /// slide along) is dropped beside one they pin that explains more, once this many
+    /// scans in a row (the proposing one included) showed both so; 0: never.
+    #[arg(long, default_value_t = HypothesisParams::default().slide_scans)]
+    hypothesis_slide_scans: usize,
     /// Print a JSON summary (scans, ok, degraded, lost, failed, ate_m, p50_ms, ...).
     #[arg(long)]
     json: bool,
@@ -510,6 +521,7 @@ fn hypotheses(args: &Args) -> HypothesisParams {
         hold_explained: args.hypothesis_hold_explained,
         drop_after_lost: args.hypothesis_drop_after_lost,
         window: args.hypothesis_window,
+        slide_scans: args.hypothesis_slide_scans,
     }
 }
 

@@ -33,8 +33,8 @@ pub struct Args {
     /// The cloud to align to.
     target: PathBuf,
     /// Initial guess "x y z roll pitch yaw" (metres, degrees), or a file holding a 4x4
-    /// row-major matrix.
-    #[arg(long)]
+    /// row-major matrix. A guess starting with a minus sign is a value, not a flag.
+    #[arg(long, allow_hyphen_values = true)]
     initial: Option<String>,
     /// Residual metric.
     #[arg(long, value_enum, default_value = "gicp")]

@@ -165,6 +165,26 @@ fn bad_input_exits_2_with_a_message_naming_the_problem() {
             localize_with(&["--hypothesis-window", "3"]),
             "--hypothesis-window",
         ),
+        (
+            localize_with(&["--hypothesis-slide-scans", "11"]),
+            "--hypothesis-slide-scans",
+        ),
+        // A guess starting with a minus sign is read as the guess, not as a flag: the
+        // error is the next problem, the missing dataset.
+        (
+            localize_with(&["--initial", "-1 2 0 0 0 30"]),
+            "/nonexistent",
+        ),
+        (
+            vec![
+                "register",
+                "/nonexistent/a.pcd",
+                "/nonexistent/b.pcd",
+                "--initial",
+                "-1 2 0 0 0 30",
+            ],
+            "a.pcd",
+        ),
     ];
     for (args, expect) in cases {
         let out = kfmap(&args);
