@@ -26,7 +26,8 @@ use kfmap_geometry::tracking::{
 use kfmap_protocol::ScanPayload;
 use serde::{Deserialize, Serialize};
 
-use kfmap_map::place::{Ground, RelocalizeStatus, levelling, off_ground};
+use kfmap_map::place::pinning::{self, SLIDE_PROBE_M, structure, widest_horizontal};
+use kfmap_map::place::{RelocalizeStatus, levelling};
 
 use crate::hypotheses::{self, Hypothesis, HypothesisParams, Outcome, distinct, near_best};
 use crate::{Client, ClientError, LocalizeOptions, Localized, RelocalizeOptions, ScoredPlace};
@@ -274,14 +275,6 @@ struct Evaluated {
     slide_loss: Option<f64>,
 }
 
-/// Columns of [`Tracker::structure_explained`]'s ground, metres.
-const STRUCTURE_CELL_M: f64 = 1.0;
-/// Fewest structure points a scan is compared on (else it is measured whole)...
-const MIN_STRUCTURE_POINTS: usize = 50;
-/// ... and most (thinned evenly beyond).
-const MAX_STRUCTURE_POINTS: usize = 2000;
-/// How far [`Tracker::slide_loss`] slides a pose: the distance `ok` promises, metres.
-const SLIDE_PROBE_M: f64 = 0.5;
 /// A slide of [`SLIDE_PROBE_M`] that loses at least this share of the explained
 /// structure holds the pose there as well as its registration says; less widens the
 /// covariance along the slide ([`widened_along_slide`]). Measured on a street whose
@@ -335,35 +328,6 @@ fn unfit(health: &ScanHealth) -> bool {
         .any(|r| health.reasons.contains(*r))
 }
 
-/// `scan`'s structure: its points (sensor frame) at least 1 m above their column's
-/// floor in the map frame at `pose`, thinned evenly to at most
-/// [`MAX_STRUCTURE_POINTS`]. Places are compared on this: the ground is alike under
-/// every placement and would drown the difference (on a courtyard's rotated twin the
-/// whole scan's shares differed by 0.007). A scan with too little structure is taken
-/// whole.
-fn structure(scan: &ScanPayload, pose: &Pose) -> Vec<[f32; 3]> {
-    let in_map: Vec<[f64; 3]> = scan
-        .points
-        .iter()
-        .map(|p| {
-            let p = pose * nalgebra::Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
-            [p.x, p.y, p.z]
-        })
-        .collect();
-    let off = off_ground(&in_map, STRUCTURE_CELL_M, Ground::Every);
-    let mut structure: Vec<[f32; 3]> = scan
-        .points
-        .iter()
-        .zip(off)
-        .filter_map(|(p, off)| off.then_some(*p))
-        .collect();
-    if structure.len() < MIN_STRUCTURE_POINTS {
-        structure = scan.points.to_vec();
-    }
-    let stride = structure.len().div_ceil(MAX_STRUCTURE_POINTS).max(1);
-    structure.into_iter().step_by(stride).collect()
-}
-
 /// `localized`'s covariance widened along its least constrained horizontal direction
 /// (where [`Tracker::slide_loss`] slid it) by what the slide showed: nothing when the
 /// slide lost at least [`SLIDE_PINNED_WELL`] of the explained structure, a variance
@@ -387,25 +351,6 @@ fn widened_along_slide(localized: &mut Localized, slide_loss: Option<f64>) {
     let along = localized.pose.rotation.inverse() * direction;
     let mut block = covariance.fixed_view_mut::<3, 3>(3, 3);
     block += along * along.transpose() * (sigma * sigma);
-}
-
-/// The horizontal direction (map frame, unit) along which `covariance` (sensor frame,
-/// right perturbation, rotation first) is widest; `None` when it is not finite.
-fn widest_horizontal(
-    covariance: &nalgebra::Matrix6<f64>,
-    pose: &Pose,
-) -> Option<nalgebra::Vector3<f64>> {
-    let rotation = pose.rotation.to_rotation_matrix();
-    let in_map =
-        rotation.matrix() * covariance.fixed_view::<3, 3>(3, 3) * rotation.matrix().transpose();
-    let horizontal = in_map.fixed_view::<2, 2>(0, 0).into_owned();
-    if !horizontal.iter().all(|v| v.is_finite()) {
-        return None;
-    }
-    let eigen = nalgebra::SymmetricEigen::new(horizontal);
-    let widest = eigen.eigenvalues.imax();
-    let v = eigen.eigenvectors.column(widest);
-    Some(nalgebra::Vector3::new(v[0], v[1], 0.0))
 }
 
 impl Tracker {
@@ -562,7 +507,7 @@ impl Tracker {
         let (explained, slide_loss) = match localized.health.status {
             TrackingStatus::Lost => (None, None),
             _ => {
-                let structure = structure(scan, &localized.pose);
+                let structure = structure(scan.points, &localized.pose);
                 let here = self.explained_share(client, &structure, &localized.pose)?;
                 let slide = self.slide_loss(client, &structure, &localized, here)?;
                 (Some(here), slide)
@@ -912,7 +857,7 @@ impl Tracker {
         let (pose, explained, slide_loss) = match localized.health.status {
             TrackingStatus::Lost => (*start, None, None),
             _ => {
-                let structure = structure(scan, &localized.pose);
+                let structure = structure(scan.points, &localized.pose);
                 let here = self.explained_share(client, &structure, &localized.pose)?;
                 let slide = self.slide_loss(client, &structure, &localized, here)?;
                 (renormalized(&localized.pose), Some(here), slide)
@@ -1041,7 +986,7 @@ impl Tracker {
         scan: &ScanPayload,
         pose: &Pose,
     ) -> Result<f64, ClientError> {
-        let structure = structure(scan, pose);
+        let structure = structure(scan.points, pose);
         self.explained_share(client, &structure, pose)
     }
 
@@ -1082,20 +1027,9 @@ impl Tracker {
         let Some(covariance) = localized.health.covariance else {
             return Ok(None);
         };
-        let pose = localized.pose;
-        let Some(direction) = widest_horizontal(&covariance, &pose) else {
-            return Ok(None);
-        };
-        let mut worst = f64::INFINITY;
-        for side in [-1.0, 1.0] {
-            let shifted = Pose::from_parts(
-                (pose.translation.vector + direction * (side * SLIDE_PROBE_M)).into(),
-                pose.rotation,
-            );
-            let there = self.explained_share(client, structure, &shifted)?;
-            worst = worst.min(here - there);
-        }
-        Ok(Some(worst))
+        pinning::slide_loss(&localized.pose, &covariance, here, |at| {
+            self.explained_share(client, structure, at)
+        })
     }
 
     /// The sensor's motion from the previous scan to `scan`: registered scan to scan from

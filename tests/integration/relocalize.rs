@@ -42,7 +42,7 @@ use nalgebra::{UnitQuaternion, Vector3};
 
 /// The README's figure: revisit scans of balm_os0 relocalized within [`RIGHT_M`] and
 /// [`RIGHT_DEG`] with no guess, of 61.
-const CLAIMED_FOUND: usize = 58;
+const CLAIMED_FOUND: usize = 61;
 
 /// The bounds: a relocalization within these is a success...
 const RIGHT_M: f64 = 0.3;
@@ -285,7 +285,8 @@ fn balm_scans_are_relocalized_and_foreign_scans_are_not_found() {
         }
     );
     assert!(wrong.is_empty(), "confident wrong answers: {wrong:?}");
-    // README and DESIGN.md: 58 of 61 (the 3 others `ambiguous`, at the right place).
+    // README and DESIGN.md: 61 of 61 (58 before a place that only slides along a
+    // corridor-like stretch stopped being a rival, `pinned-share`); the target is 60.
     assert!(success >= CLAIMED_FOUND - 1, "{success} of 61");
 
     let mut foreign: Vec<PathBuf> = find_scans(&kitti00).unwrap();
@@ -450,8 +451,9 @@ fn turned_balm_scans_are_found_at_any_heading() {
             wrong.is_empty(),
             "{turn_deg} deg: confident wrong {wrong:?}"
         );
-        // README: 59 / 59 / 58 / 58 at 37 / 143 / 180 / 250 deg; one of slack below the least.
-        assert!(success >= 57, "{turn_deg} deg: {success} of 61");
+        // README: 60 / 61 / 61 / 60 at 37 / 143 / 180 / 250 deg (59 / 59 / 58 / 58 before
+        // `pinned-share`); the target, 60 of 61 at any heading.
+        assert!(success >= 60, "{turn_deg} deg: {success} of 61");
     }
 }
 

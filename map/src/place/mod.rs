@@ -5,7 +5,8 @@
 //! - [`grid`]: the map's coarse occupancy grid with dilated levels, baked into the map;
 //! - [`sparse`]: the grid's levels as blocks found through a hash table;
 //! - [`search`]: branch and bound over yaw and translation on that grid;
-//! - [`relocalize`]: levelling, search, verification by registration, the verdict.
+//! - [`relocalize`]: levelling, search, verification by registration, the verdict;
+//! - [`pinning`]: whether the scans pin a place or it slides (tracker and verdict).
 //!
 //! Chosen by measurement on `balm_os0` (map of scans 0-115, the 61 revisit scans
 //! 116-176): Scan Context descriptors (20 x 60, per scan or per virtual view of the
@@ -15,6 +16,7 @@
 
 pub mod grid;
 pub mod level;
+pub mod pinning;
 pub mod relocalize;
 pub mod search;
 pub mod sparse;
@@ -25,8 +27,8 @@ pub use grid::{
 };
 pub use level::{estimate_map_up, estimate_up, levelling};
 pub use relocalize::{
-    Ground, PlaceStep, Proposal, Relocalization, RelocalizeParams, RelocalizeStatus, ScanUp,
-    Scored, ScoredPlace, another_place, decide, off_ground, own_up, propose, score_places,
+    Ground, Pinning, PlaceStep, Proposal, Relocalization, RelocalizeParams, RelocalizeStatus,
+    ScanUp, Scored, ScoredPlace, another_place, decide, off_ground, own_up, propose, score_places,
     thinned_scan, verification_selection,
 };
 pub use search::{Columns, OwnedColumns, PeerBest, Placement, SearchOutcome, SearchParams, search};

@@ -55,6 +55,15 @@ pub struct RelocalizeParams {
     pub distinct_m: f64,
     /// ... or turned more than this, degrees.
     pub distinct_deg: f64,
+    /// An `ambiguous` verdict is `found` when the best place pins the scan (a 0.5 m
+    /// slide along its least constrained horizontal direction loses at least this
+    /// share of the structure it explains, [`super::pinning`]) and every other place
+    /// within the margin, registered as the best was, slides (loses less) and explains
+    /// at least `explained-lead` less: a place along a corridor-like stretch is no
+    /// rival to one the scan pins. 0: never.
+    pub pinned_share: f64,
+    /// See `pinned-share` (share of the scan's structure).
+    pub explained_lead: f64,
 }
 
 impl RelocalizeParams {
@@ -117,6 +126,8 @@ impl RelocalizeParams {
             self.distinct_deg,
             "> 0 degrees",
         )?;
+        ensure_ratio("pinned-share", self.pinned_share)?;
+        ensure_ratio("explained-lead", self.explained_lead)?;
         self.search.validate()
     }
 }
@@ -140,6 +151,8 @@ impl Default for RelocalizeParams {
             ambiguity_margin: 0.05,
             distinct_m: 1.0,
             distinct_deg: 5.0,
+            pinned_share: 0.05,
+            explained_lead: 0.015,
         }
     }
 }
@@ -689,18 +702,31 @@ pub fn another_place(a: &Pose, b: &Pose, params: &RelocalizeParams) -> bool {
         || rotation_distance(a, b).to_degrees() > params.distinct_deg
 }
 
+/// What a place's structure shows of the map ([`super::pinning`]): the share explained
+/// there and what a slide along its weakest direction loses of it (`None` without a
+/// covariance).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Pinning {
+    /// Share of the scan's structure with a map point within `tight-distance`.
+    pub explained: f64,
+    /// What a 0.5 m slide loses of it, at the worse side.
+    pub slide_loss: Option<f64>,
+}
+
 /// The best of `scored` (the first of equal scores) gets fine iterations; it fits when
 /// it pairs at least `found-inlier-ratio` of the scan at the fine distance and
 /// `found-tight-ratio` within `tight-distance` of it, with a covariance. A fitting
 /// place is `found` unless a place more than `distinct-m` / `distinct-deg` away scores
-/// within `ambiguity-margin` of it (`ambiguous`); else the answer is `not-found`.
-/// `candidates`: places the search proposed.
+/// within `ambiguity-margin` of it (`ambiguous`), or every such place only slides
+/// where the best is pinned (`pinned-share`; `pinning` measures a registered place);
+/// else the answer is `not-found`. `candidates`: places the search proposed.
 pub fn decide<E>(
     scored: &Scored,
     candidates: u32,
     fine: Stage,
     params: &RelocalizeParams,
     mut register: impl FnMut(&Pose, &Stage) -> Result<Option<RegistrationResult>, E>,
+    mut pinning: impl FnMut(&RegistrationResult) -> Result<Pinning, E>,
 ) -> Result<Relocalization, E> {
     let mut ranked: Vec<(Pose, f64)> = scored.places.iter().map(|p| (p.pose, p.score)).collect();
     ranked.sort_by(|a, b| b.1.total_cmp(&a.1));
@@ -722,12 +748,13 @@ pub fn decide<E>(
     let Some(result) = register(&start, &fine)? else {
         return Ok(answer);
     };
-    answer.runner_up = ranked
+    let rivals: Vec<(Pose, f64)> = ranked
         .iter()
         .skip(1)
         .filter(|(p, _)| another_place(p, &result.pose, params))
-        .map(|(_, s)| *s)
-        .fold(0.0, f64::max);
+        .copied()
+        .collect();
+    answer.runner_up = rivals.iter().map(|(_, s)| *s).fold(0.0, f64::max);
     answer.pose = result.pose;
     answer.score = score;
     answer.inlier_ratio = result.fitness.inlier_ratio;
@@ -746,10 +773,57 @@ pub fn decide<E>(
         && pose_covariance(&result).is_some();
     answer.status = if !fits {
         RelocalizeStatus::NotFound
-    } else if answer.runner_up + params.ambiguity_margin >= score {
-        RelocalizeStatus::Ambiguous
-    } else {
+    } else if answer.runner_up + params.ambiguity_margin < score {
         RelocalizeStatus::Found
+    } else {
+        let near: Vec<Pose> = rivals
+            .iter()
+            .filter(|(_, s)| s + params.ambiguity_margin >= score)
+            .map(|(p, _)| *p)
+            .collect();
+        let mut only_slides = |answer: &mut Relocalization| -> Result<bool, E> {
+            if params.pinned_share <= 0.0 {
+                return Ok(false);
+            }
+            let best = pinning(&result)?;
+            if best.slide_loss.is_none_or(|l| l < params.pinned_share) {
+                return Ok(false);
+            }
+            // Each rival is registered as it was scored (the coarse scan at the fine
+            // distance, from where scoring left it): a few iterations, where the whole
+            // scan's fine ones took 7-29 along a slide on balm_os0.
+            let as_scored = Stage {
+                coarse: true,
+                max_pair_dist: fine.max_pair_dist,
+                max_iterations: SCORE_ITERATIONS,
+            };
+            for place in &near {
+                answer.registrations += 1;
+                // A place that does not fit at the fine distance is no rival.
+                let Some(other) = register(place, &as_scored)? else {
+                    continue;
+                };
+                // Nor one that settles onto the best.
+                if !another_place(&other.pose, &result.pose, params) {
+                    continue;
+                }
+                tracing::debug!(
+                    "relocalize: a rival registered in {} iterations",
+                    other.iterations
+                );
+                let other = pinning(&other)?;
+                let slides = other.slide_loss.is_some_and(|l| l < params.pinned_share);
+                if !slides || other.explained + params.explained_lead > best.explained {
+                    return Ok(false);
+                }
+            }
+            Ok(true)
+        };
+        if only_slides(&mut answer)? {
+            RelocalizeStatus::Found
+        } else {
+            RelocalizeStatus::Ambiguous
+        }
     };
     Ok(answer)
 }

@@ -6,10 +6,12 @@
 
 use std::sync::{Arc, Mutex, PoisonError};
 
-use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::geometry::{Pose, to_point, transform_point};
+use kfmap_geometry::registration::RegistrationResult;
 use kfmap_geometry::tracking::{covariance_to_wire, pose_covariance};
+use kfmap_map::place::pinning::{slide_loss, structure};
 use kfmap_map::place::{
-    Columns, GridView, PeerBest, PlaceStep, Proposal, Relocalization, RelocalizeParams,
+    Columns, GridView, PeerBest, Pinning, PlaceStep, Proposal, Relocalization, RelocalizeParams,
     RelocalizeStatus, ScanUp, Scored, ScoredPlace, decide, own_up, propose, score_places,
     thinned_scan, verification_selection,
 };
@@ -18,8 +20,9 @@ use kfmap_protocol::{
     PLACES_FROM_RELIEF, Rejection, RequestHeader, StatusCode, place_to_wire, pose_to_wire,
 };
 use nalgebra::Vector3;
+use rayon::prelude::*;
 
-use super::answer::{Answer, AnswerPairings, bad, exact_mode, with_active};
+use super::answer::{Answer, AnswerPairings, bad, exact_mode, map_error, with_active};
 use super::limits::Limits;
 use super::localize::localize_params;
 use super::queries::Activation;
@@ -204,12 +207,21 @@ pub fn relocalize(
         let (cloud, covs) = stages.for_stage(stage).map_err(coarse_error)?;
         against.register(cloud, covs, start, stage)
     };
+    let tight = fine.max_pair_dist * params.tight_distance;
+    let pinned = |result: &RegistrationResult| pinning(map, scan.points, tight, result);
     let found = match phase {
         Phase::Places => unreachable!("answered above"),
         Phase::Whole => {
             let every = score_places(&proposal, fine, &limits.tracking, &params, settle)?;
             let scored_at = started.elapsed();
-            let found = decide(&every, proposal.poses.len() as u32, fine, &params, register)?;
+            let found = decide(
+                &every,
+                proposal.poses.len() as u32,
+                fine,
+                &params,
+                register,
+                pinned,
+            )?;
             tracing::debug!(
                 "relocalize: scoring {} places {:.1} ms, final registration {:.1} ms",
                 every.places.len(),
@@ -235,7 +247,7 @@ pub fn relocalize(
                 },
                 None => scored_ranks(1 << rank)?,
             };
-            let mut found = decide(&lone, 1, fine, &params, register)?;
+            let mut found = decide(&lone, 1, fine, &params, register, pinned)?;
             // Alone it has no runner-up: it is found when it fits; the client that
             // chose it judges ambiguity over every tile's scores.
             if found.status == RelocalizeStatus::Ambiguous {
@@ -247,6 +259,61 @@ pub fn relocalize(
     };
     log_verdict(searched, started, &found);
     Ok(verdict_answer(&found, &against.active, &[]))
+}
+
+/// [`Pinning`] of a registered place: the scan's structure there, and a slide along
+/// the registration's least constrained horizontal direction, each measured by
+/// nearest neighbours in the keyframes the map selects at the pose, as a tracker's
+/// `Nearest` requests are answered (`tight`: the distance a point is explained within).
+fn pinning(
+    map: &ServedMap,
+    points: &[[f32; 3]],
+    tight: f64,
+    result: &RegistrationResult,
+) -> Result<Pinning, Rejection> {
+    let started = std::time::Instant::now();
+    let structure = structure(points, &result.pose);
+    let explained_at = |at: &Pose| explained_share(map, &structure, at, tight);
+    let explained = explained_at(&result.pose)?;
+    let slide_loss = match pose_covariance(result) {
+        Some(covariance) => slide_loss(&result.pose, &covariance, explained, explained_at)?,
+        None => None,
+    };
+    tracing::debug!(
+        "relocalize: pinning of {} structure points {:.1} ms: explained {explained:.3}, slide loss {slide_loss:?}",
+        structure.len(),
+        started.elapsed().as_secs_f64() * 1e3
+    );
+    Ok(Pinning {
+        explained,
+        slide_loss,
+    })
+}
+
+/// The share of `structure` (sensor frame) with a map point within `tight` metres at
+/// `pose`.
+fn explained_share(
+    map: &ServedMap,
+    structure: &[[f32; 3]],
+    pose: &Pose,
+    tight: f64,
+) -> Result<f64, Rejection> {
+    let ids = map.map.select_with(pose, &map.map.options().selection);
+    let active = map
+        .map
+        .activate_cached(ids, &mut None, false)
+        .map_err(map_error)?;
+    let tight_sq = (tight * tight) as f32;
+    let explained = structure
+        .par_iter()
+        .filter(|p| {
+            let q = to_point(&transform_point(pose, p));
+            active
+                .nearest_one(&q)
+                .is_some_and(|hit| hit.dist_sq <= tight_sq)
+        })
+        .count();
+    Ok(explained as f64 / structure.len().max(1) as f64)
 }
 
 /// Logs a verdict's phases at debug: the search's time, the verification's, the verdict.
