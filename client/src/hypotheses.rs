@@ -587,65 +587,65 @@ mod tests {
     #[test]
     fn a_slide_beside_a_pinned_place_goes_and_a_pinned_look_alike_stays() {
         let params = HypothesisParams::default();
-        let outcome = |x: f64, explained: f64, pinned: bool| Outcome {
-            pose: at(x),
-            explained: Some(explained),
-            pinned,
-        };
-        let proposed = |right_pinned: bool, other_pinned: bool| {
-            vec![
-                Hypothesis::new(at(0.0), Some(0.57), right_pinned),
-                Hypothesis::new(at(6.5), Some(0.55), other_pinned),
-            ]
-        };
-        // balm_os0's corridor-like stretch: the right place pins the scans (slide loss
-        // 0.10-0.13), a place 6.5 m along it explains nearly as much (0.01-0.06 less)
-        // but slides (loss 0.00-0.02). Two scans (the proposing one and the next)
-        // decide, far below the 0.2 the explained share alone would need there.
-        let mut live = proposed(true, false);
-        let kept = observe(
-            &mut live,
-            &[outcome(0.0, 0.56, true), outcome(6.5, 0.54, false)],
-            &params,
-        );
-        assert_eq!(kept, vec![0]);
-        assert_eq!(live[0].pose, at(0.0));
-        // One scan is not enough: the proposing scan pinned neither place.
-        let mut live = proposed(false, false);
-        let kept = observe(
-            &mut live,
-            &[outcome(0.0, 0.56, true), outcome(6.5, 0.54, false)],
-            &params,
-        );
-        assert_eq!(kept.len(), 2);
-        // A look-alike that pins the scans as well (a courtyard's twin) stays.
-        let mut live = proposed(true, true);
-        let kept = observe(
-            &mut live,
-            &[outcome(0.0, 0.56, true), outcome(6.5, 0.54, true)],
-            &params,
-        );
-        assert_eq!(kept.len(), 2);
-        // A slide that explains more is not dropped by the place that pins.
-        let mut live = proposed(true, false);
-        let kept = observe(
-            &mut live,
-            &[outcome(0.0, 0.54, true), outcome(6.5, 0.56, false)],
-            &params,
-        );
-        assert_eq!(kept.len(), 2);
-        // Off (0): the slide stays.
         let off = HypothesisParams {
             slide_scans: 0,
             ..params
         };
-        let mut live = proposed(true, false);
-        let kept = observe(
-            &mut live,
-            &[outcome(0.0, 0.56, true), outcome(6.5, 0.54, false)],
-            &off,
-        );
-        assert_eq!(kept.len(), 2);
+        // balm_os0's corridor-like stretch: the right place (x = 0) pins the scans
+        // (slide loss 0.10-0.13), a place 6.5 m along it explains nearly as much
+        // (0.01-0.06 less) but slides (loss 0.00-0.02). Each case: whether each place
+        // pinned the proposing scan, what each explained of the next scan and whether
+        // it pinned it, the rules, and how many places are left. Two scans (the
+        // proposing one and the next) decide, far below the 0.2 the explained share
+        // alone would need there.
+        let cases = [
+            (
+                "a slide beside a place",
+                [true, false],
+                [(0.56, true), (0.54, false)],
+                params,
+                1,
+            ),
+            (
+                "one scan is not enough",
+                [false, false],
+                [(0.56, true), (0.54, false)],
+                params,
+                2,
+            ),
+            (
+                "a look-alike that pins too",
+                [true, true],
+                [(0.56, true), (0.54, true)],
+                params,
+                2,
+            ),
+            (
+                "a slide that explains more",
+                [true, false],
+                [(0.54, true), (0.56, false)],
+                params,
+                2,
+            ),
+            ("off", [true, false], [(0.56, true), (0.54, false)], off, 2),
+        ];
+        for (what, proposed, next, rules, left) in cases {
+            let mut live = vec![
+                Hypothesis::new(at(0.0), Some(0.57), proposed[0]),
+                Hypothesis::new(at(6.5), Some(0.55), proposed[1]),
+            ];
+            let outcomes =
+                [(0.0, next[0]), (6.5, next[1])].map(|(x, (explained, pinned))| Outcome {
+                    pose: at(x),
+                    explained: Some(explained),
+                    pinned,
+                });
+            let kept = observe(&mut live, &outcomes, &rules);
+            assert_eq!(kept.len(), left, "{what}");
+            if left == 1 {
+                assert_eq!(live[0].pose, at(0.0), "{what}");
+            }
+        }
     }
 
     #[test]
