@@ -490,6 +490,15 @@ pub fn thinned_scan(
 /// Iterations of the scoring registration (coarse scan, fine pairing distance).
 const SCORE_ITERATIONS: usize = 10;
 
+/// The stage a place is scored with: the coarse scan at the fine pairing distance.
+pub fn score_stage(fine: Stage) -> Stage {
+    Stage {
+        coarse: true,
+        max_pair_dist: fine.max_pair_dist,
+        max_iterations: SCORE_ITERATIONS,
+    }
+}
+
 /// Which step of [`score_places`] a registration of a proposed place runs: each has a
 /// scan of its own (`settle-points`, `score-points`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -541,11 +550,7 @@ pub fn score_places<E: Send>(
     };
     // Settled at the fine pairing distance before scoring: a place's score must not
     // depend on how well coarse iterations from its lattice yaw happened to converge.
-    let score_stage = Stage {
-        coarse: true,
-        max_pair_dist: fine.max_pair_dist,
-        max_iterations: SCORE_ITERATIONS,
-    };
+    let score_stage = score_stage(fine);
     let settled = settle_in_rounds(proposal, &coarse, params, &settle)?;
     let mut distinct: Vec<(usize, Pose)> = Vec::new();
     for (rank, result) in settled.iter().enumerate() {
@@ -718,14 +723,16 @@ pub struct Pinning {
 /// `found-tight-ratio` within `tight-distance` of it, with a covariance. A fitting
 /// place is `found` unless a place more than `distinct-m` / `distinct-deg` away scores
 /// within `ambiguity-margin` of it (`ambiguous`), or every such place only slides
-/// where the best is pinned (`pinned-share`; `pinning` measures a registered place);
-/// else the answer is `not-found`. `candidates`: places the search proposed.
+/// where the best is pinned (`pinned-share`: `pinning` measures a registered place,
+/// `rescore` registers another place again as it was scored); else the answer is
+/// `not-found`. `candidates`: places the search proposed.
 pub fn decide<E>(
     scored: &Scored,
     candidates: u32,
     fine: Stage,
     params: &RelocalizeParams,
     mut register: impl FnMut(&Pose, &Stage) -> Result<Option<RegistrationResult>, E>,
+    mut rescore: impl FnMut(&Pose) -> Result<Option<RegistrationResult>, E>,
     mut pinning: impl FnMut(&RegistrationResult) -> Result<Pinning, E>,
 ) -> Result<Relocalization, E> {
     let mut ranked: Vec<(Pose, f64)> = scored.places.iter().map(|p| (p.pose, p.score)).collect();
@@ -789,18 +796,13 @@ pub fn decide<E>(
             if best.slide_loss.is_none_or(|l| l < params.pinned_share) {
                 return Ok(false);
             }
-            // Each rival is registered as it was scored (the coarse scan at the fine
-            // distance, from where scoring left it): a few iterations, where the whole
+            // Each rival is registered again as it was scored (the coarse scan at the
+            // fine distance, from its scored pose): a few iterations, where the whole
             // scan's fine ones took 7-29 along a slide on balm_os0.
-            let as_scored = Stage {
-                coarse: true,
-                max_pair_dist: fine.max_pair_dist,
-                max_iterations: SCORE_ITERATIONS,
-            };
             for place in &near {
                 answer.registrations += 1;
                 // A place that does not fit at the fine distance is no rival.
-                let Some(other) = register(place, &as_scored)? else {
+                let Some(other) = rescore(place)? else {
                     continue;
                 };
                 // Nor one that settles onto the best.

@@ -13,7 +13,7 @@ use kfmap_map::place::pinning::{slide_loss, structure};
 use kfmap_map::place::{
     Columns, GridView, PeerBest, Pinning, PlaceStep, Proposal, Relocalization, RelocalizeParams,
     RelocalizeStatus, ScanUp, Scored, ScoredPlace, decide, own_up, propose, score_places,
-    thinned_scan, verification_selection,
+    score_stage, thinned_scan, verification_selection,
 };
 use kfmap_protocol::{
     DecodedScan, FLAG_FINISH_CHOSEN, FLAG_LEVELLED, FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN,
@@ -207,6 +207,8 @@ pub fn relocalize(
         let (cloud, covs) = stages.for_stage(stage).map_err(coarse_error)?;
         against.register(cloud, covs, start, stage)
     };
+    // A rival of the best is registered again as it was scored: on the scoring scan.
+    let rescore = |place: &Pose| settle(place, &score_stage(fine), PlaceStep::Score);
     let tight = fine.max_pair_dist * params.tight_distance;
     let pinned = |result: &RegistrationResult| pinning(map, scan.points, tight, result);
     let found = match phase {
@@ -220,6 +222,7 @@ pub fn relocalize(
                 fine,
                 &params,
                 register,
+                rescore,
                 pinned,
             )?;
             tracing::debug!(
@@ -247,7 +250,7 @@ pub fn relocalize(
                 },
                 None => scored_ranks(1 << rank)?,
             };
-            let mut found = decide(&lone, 1, fine, &params, register, pinned)?;
+            let mut found = decide(&lone, 1, fine, &params, register, rescore, pinned)?;
             // Alone it has no runner-up: it is found when it fits; the client that
             // chose it judges ambiguity over every tile's scores.
             if found.status == RelocalizeStatus::Ambiguous {
