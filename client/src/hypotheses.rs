@@ -238,16 +238,10 @@ pub fn slides_beside(lead: &Hypothesis, other: &Hypothesis, params: &HypothesisP
     if k == 0 || lead.pinned.len() < k || other.pinned.len() < k {
         return false;
     }
-    let last = |v: &[bool]| v[v.len() - k..].to_vec();
-    let lead_more = lead.explained[lead.explained.len() - k..]
-        .iter()
-        .zip(&other.explained[other.explained.len() - k..])
-        .map(|(a, b)| a - b)
-        .sum::<f64>()
-        / k as f64;
-    last(&lead.pinned).iter().all(|&p| p)
-        && !last(&other.pinned).iter().any(|&p| p)
-        && lead_more >= params.min_effect
+    let last = |v: &[f64]| v[v.len() - k..].iter().sum::<f64>() / k as f64;
+    lead.pinned[lead.pinned.len() - k..].iter().all(|&p| p)
+        && !other.pinned[other.pinned.len() - k..].iter().any(|&p| p)
+        && last(&lead.explained) - last(&other.explained) >= params.min_effect
 }
 
 /// One scan localized at one hypothesis.

@@ -504,15 +504,7 @@ impl Tracker {
         let expected = self.last_inlier_ratio;
         let mut localized =
             self.localize_from(client, scan, t, &predicted, max_correction, expected)?;
-        let (explained, slide_loss) = match localized.health.status {
-            TrackingStatus::Lost => (None, None),
-            _ => {
-                let structure = structure(scan.points, &localized.pose);
-                let here = self.explained_share(client, &structure, &localized.pose)?;
-                let slide = self.slide_loss(client, &structure, &localized, here)?;
-                (Some(here), slide)
-            }
-        };
+        let (explained, slide_loss) = self.explained_and_slide(client, scan, &localized)?;
         self.demote_doubtful(&mut localized, explained, slide_loss);
         widened_along_slide(&mut localized, slide_loss);
         self.confirm_after_unpinned_run(client, scan, t, &mut localized)?;
@@ -854,14 +846,10 @@ impl Tracker {
         // foreign map, seconds per place and scan). Server-side, the server's own ladder.
         options.tracking.yaw_step_deg = 0.0;
         let localized = self.localize_with(client, scan, start, &options)?;
-        let (pose, explained, slide_loss) = match localized.health.status {
-            TrackingStatus::Lost => (*start, None, None),
-            _ => {
-                let structure = structure(scan.points, &localized.pose);
-                let here = self.explained_share(client, &structure, &localized.pose)?;
-                let slide = self.slide_loss(client, &structure, &localized, here)?;
-                (renormalized(&localized.pose), Some(here), slide)
-            }
+        let (explained, slide_loss) = self.explained_and_slide(client, scan, &localized)?;
+        let pose = match explained {
+            Some(_) => renormalized(&localized.pose),
+            None => *start,
         };
         Ok(Evaluated {
             pose,
@@ -927,9 +915,7 @@ impl Tracker {
         // unit length would grow with every composition.
         let moved = renormalized(&self.motion_since_previous(scan, &(last.inverse() * predicted)));
         let previous: Vec<Pose> = self.hypotheses.iter().map(|h| h.pose).collect();
-        let mut localized = Vec::with_capacity(previous.len());
-        let mut outcomes = Vec::with_capacity(previous.len());
-        let mut slide_losses = Vec::with_capacity(previous.len());
+        let mut evaluated = Vec::with_capacity(previous.len());
         for from in &previous {
             let prediction = renormalized(&(from * moved));
             let e = self.evaluate(client, scan, &prediction)?;
@@ -940,22 +926,25 @@ impl Tracker {
                 e.explained,
                 e.slide_loss
             );
-            outcomes.push(Outcome {
+            evaluated.push((prediction, e));
+        }
+        let outcomes: Vec<Outcome> = evaluated
+            .iter()
+            .map(|(_, e)| Outcome {
                 pose: e.pose,
                 explained: e.explained,
                 pinned: self.pins(e.slide_loss),
-            });
-            slide_losses.push(e.slide_loss);
-            localized.push((prediction, e.localized));
-        }
+            })
+            .collect();
         let kept = hypotheses::observe(&mut self.hypotheses, &outcomes, &self.options.hypotheses);
         let Some(&lead) = kept.first() else {
             self.motion.restart();
-            let (prediction, lost) = localized.swap_remove(0);
-            return self.relocalize(client, scan, t, prediction, None, lost);
+            let (prediction, lost) = evaluated.swap_remove(0);
+            return self.relocalize(client, scan, t, prediction, None, lost.localized);
         };
         self.motion.relocate(previous[lead]);
-        let (prediction, mut found) = localized.swap_remove(lead);
+        let (prediction, place) = evaluated.swap_remove(lead);
+        let mut found = place.localized;
         if kept.len() > 1 {
             self.motion.update(t, self.hypotheses[0].pose, false);
             return Ok(self.undecided(t, prediction, found));
@@ -968,14 +957,31 @@ impl Tracker {
         self.restart_streaks();
         self.lost_streak = 0;
         found.health.reasons.insert(Reasons::RELOCALIZED);
-        let explained = outcomes[lead].explained;
-        let slide_loss = slide_losses[lead];
+        let (explained, slide_loss) = (place.explained, place.slide_loss);
         self.demote_doubtful(&mut found, explained, slide_loss);
         widened_along_slide(&mut found, slide_loss);
         let mut tracked = self.observe(t, prediction, None, found);
         tracked.explained = explained;
         tracked.slide_loss = slide_loss;
         Ok(tracked)
+    }
+
+    /// What the map explains of `scan`'s structure where it was localized, and what a
+    /// slide along the pose's weakest direction loses of it ([`Self::slide_loss`]);
+    /// nothing when the scan was lost.
+    fn explained_and_slide(
+        &self,
+        client: &mut Client,
+        scan: &ScanPayload,
+        localized: &Localized,
+    ) -> Result<(Option<f64>, Option<f64>), ClientError> {
+        if localized.health.status == TrackingStatus::Lost {
+            return Ok((None, None));
+        }
+        let structure = structure(scan.points, &localized.pose);
+        let here = self.explained_share(client, &structure, &localized.pose)?;
+        let slide = self.slide_loss(client, &structure, localized, here)?;
+        Ok((Some(here), slide))
     }
 
     /// The share of `scan`'s structure that the map explains at `pose` (see

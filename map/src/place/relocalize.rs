@@ -707,6 +707,48 @@ pub fn another_place(a: &Pose, b: &Pose, params: &RelocalizeParams) -> bool {
         || rotation_distance(a, b).to_degrees() > params.distinct_deg
 }
 
+/// Whether every place of `near` (scored within the margin of `best`'s place) only
+/// slides where `best` is pinned: `best` loses at least `pinned-share` under the slide,
+/// and each other place, registered again as it was scored (`rescore`: a few
+/// iterations, where the whole scan's fine ones took 7-29 along a slide on balm_os0),
+/// loses less and explains at least `explained-lead` less. A place that no longer
+/// fits, or settles onto `best`, is no rival. Counts the registrations in `answer`.
+fn only_slides<E>(
+    best: &RegistrationResult,
+    near: &[Pose],
+    params: &RelocalizeParams,
+    answer: &mut Relocalization,
+    mut rescore: impl FnMut(&Pose) -> Result<Option<RegistrationResult>, E>,
+    mut pinning: impl FnMut(&RegistrationResult) -> Result<Pinning, E>,
+) -> Result<bool, E> {
+    if params.pinned_share <= 0.0 {
+        return Ok(false);
+    }
+    let pinned = pinning(best)?;
+    if pinned.slide_loss.is_none_or(|l| l < params.pinned_share) {
+        return Ok(false);
+    }
+    for place in near {
+        answer.registrations += 1;
+        let Some(other) = rescore(place)? else {
+            continue;
+        };
+        if !another_place(&other.pose, &best.pose, params) {
+            continue;
+        }
+        tracing::debug!(
+            "relocalize: a rival registered in {} iterations",
+            other.iterations
+        );
+        let other = pinning(&other)?;
+        let slides = other.slide_loss.is_some_and(|l| l < params.pinned_share);
+        if !slides || other.explained + params.explained_lead > pinned.explained {
+            return Ok(false);
+        }
+    }
+    Ok(true)
+}
+
 /// What a place's structure shows of the map ([`super::pinning`]): the share explained
 /// there and what a slide along its weakest direction loses of it (`None` without a
 /// covariance).
@@ -732,8 +774,8 @@ pub fn decide<E>(
     fine: Stage,
     params: &RelocalizeParams,
     mut register: impl FnMut(&Pose, &Stage) -> Result<Option<RegistrationResult>, E>,
-    mut rescore: impl FnMut(&Pose) -> Result<Option<RegistrationResult>, E>,
-    mut pinning: impl FnMut(&RegistrationResult) -> Result<Pinning, E>,
+    rescore: impl FnMut(&Pose) -> Result<Option<RegistrationResult>, E>,
+    pinning: impl FnMut(&RegistrationResult) -> Result<Pinning, E>,
 ) -> Result<Relocalization, E> {
     let mut ranked: Vec<(Pose, f64)> = scored.places.iter().map(|p| (p.pose, p.score)).collect();
     ranked.sort_by(|a, b| b.1.total_cmp(&a.1));
@@ -788,40 +830,7 @@ pub fn decide<E>(
             .filter(|(_, s)| s + params.ambiguity_margin >= score)
             .map(|(p, _)| *p)
             .collect();
-        let mut only_slides = |answer: &mut Relocalization| -> Result<bool, E> {
-            if params.pinned_share <= 0.0 {
-                return Ok(false);
-            }
-            let best = pinning(&result)?;
-            if best.slide_loss.is_none_or(|l| l < params.pinned_share) {
-                return Ok(false);
-            }
-            // Each rival is registered again as it was scored (the coarse scan at the
-            // fine distance, from its scored pose): a few iterations, where the whole
-            // scan's fine ones took 7-29 along a slide on balm_os0.
-            for place in &near {
-                answer.registrations += 1;
-                // A place that does not fit at the fine distance is no rival.
-                let Some(other) = rescore(place)? else {
-                    continue;
-                };
-                // Nor one that settles onto the best.
-                if !another_place(&other.pose, &result.pose, params) {
-                    continue;
-                }
-                tracing::debug!(
-                    "relocalize: a rival registered in {} iterations",
-                    other.iterations
-                );
-                let other = pinning(&other)?;
-                let slides = other.slide_loss.is_some_and(|l| l < params.pinned_share);
-                if !slides || other.explained + params.explained_lead > best.explained {
-                    return Ok(false);
-                }
-            }
-            Ok(true)
-        };
-        if only_slides(&mut answer)? {
+        if only_slides(&result, &near, params, &mut answer, rescore, pinning)? {
             RelocalizeStatus::Found
         } else {
             RelocalizeStatus::Ambiguous
