@@ -138,10 +138,7 @@ fn balm_replay_is_accurate_and_reports_no_wrong_pose_ok() {
     let pose_text = std::fs::read_to_string(balm.join("poses.txt")).unwrap();
     let pose_lines: Vec<&str> = pose_text.lines().collect();
     assert_eq!((scans.len(), pose_lines.len()), (177, 177));
-    let mapped = dir.join("mapped");
-    linked_dataset(&mapped, &scans[..116], &pose_lines[..116]);
-    let map = dir.join("balm.kfmap");
-    bake_dataset(&mapped, &map);
+    let map = common::fixtures::balm_first_pass_map(&balm);
     // The independent reference: the dataset's own pose file (no IMU: map frame =
     // dataset frame).
     let reference = read_trajectory(&balm.join("poses.txt")).unwrap().poses;

@@ -212,18 +212,6 @@ fn replayed_site(
     }
 }
 
-/// The map of balm_os0's scans 0-115 at their reference poses, baked in `dir`.
-fn balm_map(balm: &Path, dir: &Path) -> PathBuf {
-    let scans = find_scans(balm).unwrap();
-    let pose_text = std::fs::read_to_string(balm.join("poses.txt")).unwrap();
-    let pose_lines: Vec<&str> = pose_text.lines().collect();
-    let mapped = dir.join("mapped");
-    linked_dataset(&mapped, &scans[..116], &pose_lines[..116]);
-    let map = dir.join("balm.kfmap");
-    bake_dataset(&mapped, &map);
-    map
-}
-
 /// Issue targets on balm_os0: the 61 revisit scans relocalized within 0.3 m and 3 deg
 /// as the README claims (58 of 61; at least 57 here, the issue's floor was 90 %, 55),
 /// no confident wrong answer, every foreign scan `not-found`. Then a
@@ -247,7 +235,7 @@ fn balm_scans_are_relocalized_and_foreign_scans_are_not_found() {
     let scans = find_scans(&balm).unwrap();
     let pose_text = std::fs::read_to_string(balm.join("poses.txt")).unwrap();
     let pose_lines: Vec<&str> = pose_text.lines().collect();
-    let map = balm_map(&balm, &dir);
+    let map = common::fixtures::balm_first_pass_map(&balm);
     let reference = read_trajectory(&balm.join("poses.txt")).unwrap().poses;
     let prefix = Prefix::new("balm-reloc");
     let _server = Server::start(&map, "balm", &prefix.0, &[]);
@@ -393,7 +381,7 @@ fn turned_balm_scans_are_found_at_any_heading() {
     };
     let dir = temp_dir("balm-turned");
     let scans = find_scans(&balm).unwrap();
-    let map = balm_map(&balm, &dir);
+    let map = common::fixtures::balm_first_pass_map(&balm);
     let prefix = Prefix::new("balm-turned");
     let _server = Server::start(&map, "balm-turned", &prefix.0, &[]);
     let map_from_input = map_from_input("balm-turned", &prefix);

@@ -70,6 +70,7 @@ pub(crate) fn in_private_network_namespace(module: &str, test: &str, inner: &str
         .arg("--include-ignored")
         .args(["--nocapture", "--test-threads", "1"])
         .env(IN_NAMESPACE, "1")
+        .env(common::fixtures::FIXTURES_ENV, common::fixtures::dir())
         .output()
         .unwrap();
     let (out_text, err_text) = (common::stdout(&out), stderr(&out));

@@ -52,6 +52,11 @@ const TRUTH_FROM_INITIAL_M: f64 = 0.025;
 /// namespaces side by side) whose module sorts first (tests/integration/main.rs).
 #[test]
 fn the_ros2_node_tracks_like_kfmap_localize_through_cyclone_and_fast_dds() {
+    // The balm map both namespaces serve, baked once out here: each reuses it.
+    let balm = kfmap_testdata::shared_data_dir().map(|d| d.join("balm_os0"));
+    if let Some(balm) = balm.filter(|b| b.join("poses.txt").is_file()) {
+        common::fixtures::balm_first_pass_map(&balm);
+    }
     std::thread::scope(|scope| {
         scope.spawn(|| in_namespace_with_dds(ROS2_TEST, "in_namespace::drive"));
         in_namespace_with_fast_dds(ROS2_TEST, "in_namespace::fast_dds");
@@ -622,15 +627,9 @@ struct BalmRevisit {
 }
 
 impl BalmRevisit {
-    fn served(balm: &Path, dir: &Path, name: &str) -> Self {
+    fn served(balm: &Path, name: &str) -> Self {
         let scans = find_scans(balm).unwrap();
-        let pose_text = std::fs::read_to_string(balm.join("poses.txt")).unwrap();
-        let pose_lines: Vec<&str> = pose_text.lines().collect();
-        assert_eq!((scans.len(), pose_lines.len()), (177, 177));
-        let mapped = dir.join("mapped");
-        common::linked_dataset(&mapped, &scans[..116], &pose_lines[..116]);
-        let map = dir.join("balm.kfmap");
-        bake_dataset(&mapped, &map);
+        let map = common::fixtures::balm_first_pass_map(balm);
         let prefix = Prefix::new(name);
         let server = Server::start(&map, "balm", &prefix.0, &[]);
         let oracle = localized(
@@ -1136,7 +1135,7 @@ mod in_namespace {
     /// balm_os0's revisit published by the Cyclone DDS peer on domain `domain`.
     fn cyclone_balm(python: &Path, balm: &Path, domain: u16) {
         let dir = temp_dir("ros2-balm");
-        let revisit = BalmRevisit::served(balm, &dir, "ros2-balm");
+        let revisit = BalmRevisit::served(balm, "ros2-balm");
         let clouds = scan_clouds(
             &dir.join("clouds"),
             &revisit.scans,
@@ -1543,7 +1542,7 @@ mod in_namespace {
     /// through Cyclone DDS in [`cyclone_balm`].
     fn fast_dds_balm(balm: &Path, domain: u16) {
         let dir = temp_dir("fastdds-balm");
-        let revisit = BalmRevisit::served(balm, &dir, "fastdds-balm");
+        let revisit = BalmRevisit::served(balm, "fastdds-balm");
         // The revisit's own stamps (0.495-0.498 s apart), one per line for the peer.
         let stamps: Vec<String> = revisit.poses.stamps[BALM_REVISIT]
             .iter()

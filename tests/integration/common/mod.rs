@@ -3,6 +3,7 @@
 
 #![allow(dead_code)]
 
+pub mod fixtures;
 pub mod picture;
 
 /// The libtest name of test `name` of the module at `module` (its `module_path!()`):
