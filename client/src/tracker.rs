@@ -856,9 +856,10 @@ impl Tracker {
         options.max_iterations = options.max_iterations.min(PLACE_IN_DOUBT_ITERATIONS);
         let localized = self.localize_with(client, scan, start, &options)?;
         let (explained, slide_loss) = self.explained_and_slide(client, scan, &localized)?;
-        let pose = match explained {
-            Some(_) => renormalized(&localized.pose),
-            None => *start,
+        // A lost place stays where it was carried to.
+        let pose = match localized.health.status {
+            TrackingStatus::Lost => *start,
+            _ => renormalized(&localized.pose),
         };
         Ok(Evaluated {
             pose,

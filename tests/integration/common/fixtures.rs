@@ -23,20 +23,24 @@ pub fn dir() -> &'static Path {
             return PathBuf::from(inherited);
         }
         remove_dead_runs_fixtures();
-        let dir = std::env::temp_dir().join(format!("kfmap-fixtures-{}", std::process::id()));
+        let dir = own_dir();
         std::fs::create_dir_all(&dir).unwrap();
-        // SAFETY: `remove_own_fixtures` is an `extern "C" fn()` that touches only a
-        // path it computes itself; registering it has no other precondition.
+        // SAFETY: `remove_own_fixtures` is an `extern "C" fn()` that touches only
+        // `own_dir()`; registering it has no other precondition.
         let registered = unsafe { libc::atexit(remove_own_fixtures) };
         assert_eq!(registered, 0, "atexit refused the fixtures' clean-up");
         dir
     })
 }
 
+/// The fixture directory of this process, when it is not a child given its parent's.
+fn own_dir() -> PathBuf {
+    std::env::temp_dir().join(format!("kfmap-fixtures-{}", std::process::id()))
+}
+
 /// Removes this process's fixture directory at exit (libtest has no end-of-run hook).
 extern "C" fn remove_own_fixtures() {
-    let dir = std::env::temp_dir().join(format!("kfmap-fixtures-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(dir);
+    let _ = std::fs::remove_dir_all(own_dir());
 }
 
 /// Removes every `kfmap-fixtures-<pid>` directory whose process no longer runs.
