@@ -130,8 +130,10 @@ fn demo_on_the_simulator_tracks_the_second_drive_and_draws_it() {
         .poses;
     let errors = errors(&out, &mapped, &second);
     let worst = errors.iter().copied().fold(0.0, f64::max);
+    println!("demo: the second drive's worst pose {worst:.4} m from the truth");
+    // Measured 0.0040 m (2026-12-05; the README's table says max 0.004 m).
     assert!(
-        worst < 0.05,
+        worst < 0.01,
         "worst localized pose {worst} m from the truth"
     );
 }
