@@ -130,7 +130,7 @@ fn throughput(prefix: &str, remote: bool, seconds: f64) -> anyhow::Result<f64> {
 /// sending server-side localize back to back for `seconds`; prints its rate as JSON.
 pub(super) fn worker(prefix: &str, remote: bool, seconds: f64) -> anyhow::Result<()> {
     let mut client = if remote {
-        Client::remote(ENDPOINT, "bench", options(prefix))?
+        kfmap_remote::connect(ENDPOINT, "bench", options(prefix))?
     } else {
         Client::connect("bench", options(prefix))?
     };
@@ -163,7 +163,7 @@ fn measure(map: &Path, prefix: &str, quick: bool) -> anyhow::Result<serde_json::
     let _server = start_bench_server(map, prefix, false)?;
     let _gateway = GatewayChild::start(prefix)?;
     let mut local = Client::connect("bench", options(prefix))?;
-    let mut remote = Client::remote(ENDPOINT, "bench", options(prefix))?;
+    let mut remote = kfmap_remote::connect(ENDPOINT, "bench", options(prefix))?;
     let request = Request::new();
     for _ in 0..5 {
         request.time(&mut local)?;

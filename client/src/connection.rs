@@ -10,6 +10,7 @@ use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::prelude::PortFactory;
 use kfmap_geometry::cov::CovOptions;
+use kfmap_map::tiles::TileIndex;
 use kfmap_protocol::transport::{
     ALLOCATION, INITIAL_SLICE_LEN, Transport, create_node, iceoryx_config, iox, no_room_for_client,
     open_request_event, open_response_event, open_rpc,
@@ -89,6 +90,27 @@ pub trait Dispatch: Send {
     ) -> (ResponseHeader, Vec<WirePairing>);
 }
 
+/// A link to a map server on another host that carries whole request and answer
+/// frames (`kfmap_protocol::remote`): `kfmap-remote` implements it over Zenoh to a
+/// `kfmap gateway`. Here so this crate, and the server that hosts its tracker, compile
+/// without a network stack.
+pub trait RemoteLink: Send {
+    /// Sends a request frame (`header` is its header, for routing) and waits at most
+    /// `timeout` for the answer frame.
+    fn call(
+        &mut self,
+        header: &RequestHeader,
+        frame: Vec<u8>,
+        timeout: Duration,
+    ) -> Result<Vec<u8>, ClientError>;
+    /// True while a server answers on the other side.
+    fn alive(&self) -> bool;
+    /// The tile set's index, when the map is served in tiles.
+    fn tile_index(&self) -> Option<&TileIndex>;
+    /// The tile the last request went to.
+    fn current_tile(&self) -> Option<&str>;
+}
+
 /// A connection to the server of one map.
 pub struct Connection {
     link: Link,
@@ -109,8 +131,7 @@ enum Link {
         node: Node<Transport>,
         ports: Option<Ports>,
     },
-    #[cfg(feature = "remote")]
-    Remote(crate::remote::RemoteLink),
+    Remote(Box<dyn RemoteLink>),
     InProcess(Box<dyn Dispatch>),
 }
 
@@ -148,17 +169,10 @@ impl Connection {
         }
     }
 
-    /// Connects to the server of `map_name` on another host, through the `kfmap gateway`
-    /// at `remote`'s endpoints; fails with `NoServer` when the gateway announces no live
-    /// server for the map's tile.
-    #[cfg(feature = "remote")]
-    pub fn connect_remote(
-        map_name: &str,
-        remote: &crate::remote::RemoteOptions,
-        options: ClientOptions,
-    ) -> Result<Self, ClientError> {
-        let link = crate::remote::RemoteLink::open(map_name, remote)?;
-        Ok(Self {
+    /// A connection to the server of `map_name` on another host over an open `link`
+    /// (`kfmap_remote::connect` opens one through a `kfmap gateway`).
+    pub fn over_remote(map_name: &str, link: Box<dyn RemoteLink>, options: ClientOptions) -> Self {
+        Self {
             link: Link::Remote(link),
             map_name: map_name.to_string(),
             options,
@@ -166,12 +180,11 @@ impl Connection {
             client_node: [0; 2],
             next_request_id: 1,
             served_covariance: None,
-        })
+        }
     }
 
     /// The tile set's index when the map is served remotely in tiles.
-    #[cfg(feature = "remote")]
-    pub fn tile_index(&self) -> Option<&kfmap_map::tiles::TileIndex> {
+    pub fn tile_index(&self) -> Option<&TileIndex> {
         match &self.link {
             Link::Remote(link) => link.tile_index(),
             Link::Local { .. } | Link::InProcess(_) => None,
@@ -179,7 +192,6 @@ impl Connection {
     }
 
     /// The tile the last remote request went to (`None` on the host, or before any).
-    #[cfg(feature = "remote")]
     pub fn current_tile(&self) -> Option<&str> {
         match &self.link {
             Link::Remote(link) => link.current_tile(),
@@ -189,10 +201,7 @@ impl Connection {
 
     /// True when requests travel to another host (through a gateway).
     pub fn is_remote(&self) -> bool {
-        #[cfg(feature = "remote")]
-        return matches!(self.link, Link::Remote(_));
-        #[cfg(not(feature = "remote"))]
-        false
+        matches!(self.link, Link::Remote(_))
     }
 
     /// This client's node id, as it writes it into every request's `client_node`.
@@ -216,8 +225,6 @@ impl Connection {
         self.options.timeout
     }
 
-    // Without the `remote` feature a link is always local.
-    #[cfg_attr(not(feature = "remote"), allow(irrefutable_let_patterns))]
     fn ports(&mut self) -> Result<(&Node<Transport>, &Ports), ClientError> {
         let Link::Local { node, ports } = &mut self.link else {
             return Err(ClientError::Invalid(
@@ -263,7 +270,6 @@ impl Connection {
                 let rpc = open_rpc(node, &self.map_name)?;
                 Ok(rpc.dynamic_config().number_of_servers() > 0)
             }
-            #[cfg(feature = "remote")]
             Link::Remote(link) => Ok(link.alive()),
             Link::InProcess(_) => Ok(true),
         }
@@ -468,7 +474,6 @@ impl Connection {
             .map(|v| unsafe { v.assume_init() })
             .collect();
         let (answer, pairings) = match &mut self.link {
-            #[cfg(feature = "remote")]
             Link::Remote(link) => {
                 let frame = kfmap_protocol::remote::encode_request(&header, &floats);
                 let answer = link.call(&header, frame, self.options.timeout)?;
@@ -502,7 +507,6 @@ impl Connection {
     }
 
     /// Cleans up dead nodes (e.g. a killed server) and rebuilds the ports on next use.
-    #[cfg_attr(not(feature = "remote"), allow(irrefutable_let_patterns))]
     pub fn reconnect(&mut self) {
         self.served_covariance = None;
         if let Link::Local { node, ports } = &mut self.link {

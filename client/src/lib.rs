@@ -14,8 +14,9 @@
 //! # Ok::<(), kfmap_client::ClientError>(())
 //! ```
 //!
-//! With the `remote` feature, [`Client::remote`] reaches a server on another host
-//! through its `kfmap gateway` (Zenoh), with the same calls and errors.
+//! The `kfmap-remote` crate's `connect` reaches a server on another host through its
+//! `kfmap gateway` (Zenoh) with a [`Client`] of the same calls and errors, over a
+//! [`RemoteLink`].
 #![warn(missing_docs)]
 
 mod connection;
@@ -24,13 +25,9 @@ pub mod hosted;
 pub mod hypotheses;
 mod localize;
 mod relocalize;
-#[cfg(feature = "remote")]
-pub mod remote;
-#[cfg(feature = "remote")]
-mod tiled;
 mod tracker;
 
-pub use connection::{ClientOptions, Connection, Dispatch, Response};
+pub use connection::{ClientOptions, Connection, Dispatch, RemoteLink, Response};
 pub use error::{ClientError, RemoteError};
 pub use hosted::HostedStart;
 pub use hypotheses::HypothesisParams;
@@ -183,30 +180,9 @@ impl Client {
         }
     }
 
-    /// Connects to the server of `map_name` on another host through the `kfmap gateway`
-    /// at `endpoint` (a Zenoh endpoint such as `tcp/10.0.0.5:7447`; several separated by
-    /// commas). The same calls and errors as [`Client::connect`]; a [`Tracker`] works over
-    /// it unchanged.
-    #[cfg(feature = "remote")]
-    pub fn remote(
-        endpoint: &str,
-        map_name: &str,
-        options: ClientOptions,
-    ) -> Result<Self, ClientError> {
-        Self::remote_with(&remote::RemoteOptions::new(endpoint), map_name, options)
-    }
-
-    /// As [`Client::remote`] with every remote option (Zenoh config file for TLS, client
-    /// id, tile).
-    #[cfg(feature = "remote")]
-    pub fn remote_with(
-        remote: &remote::RemoteOptions,
-        map_name: &str,
-        options: ClientOptions,
-    ) -> Result<Self, ClientError> {
-        Ok(Self {
-            connection: Connection::connect_remote(map_name, remote, options)?,
-        })
+    /// A client over an open connection (e.g. [`Connection::over_remote`]).
+    pub fn over(connection: Connection) -> Self {
+        Self { connection }
     }
 
     /// The raw connection (custom requests, tests).

@@ -16,13 +16,13 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use kfmap_client::remote::zenoh_config;
 use kfmap_client::{ClientError, ClientOptions, Connection};
 use kfmap_map::tiles::{PlaceRanking, TileIndex};
 use kfmap_protocol::remote::{
     WHOLE_MAP_TILE, alive_key, check_key_chunk, rpc_queryable_key, tile_index_key, tile_map_name,
 };
 use kfmap_protocol::transport::{Rpc, create_node, iceoryx_config, open_rpc, server_processes};
+use kfmap_remote::zenoh_config;
 use zenoh::Wait;
 
 pub use config::{GatewayConfig, GatewaySection};

@@ -1,8 +1,8 @@
 //! The remote path's frames and key expressions (docs/DESIGN.md#notes-remote): what a
-//! `kfmap gateway` and `Client::remote` exchange over Zenoh. No Zenoh here: a frame is
-//! the request's or answer's `#[repr(C)]` header bytes followed by its payload, the same
-//! bytes the iceoryx2 transport carries in shared memory (little-endian hosts; a peer of
-//! the other byte order reads as a version mismatch).
+//! `kfmap gateway` and a remote client (`kfmap-remote`) exchange over Zenoh. No Zenoh
+//! here: a frame is the request's or answer's `#[repr(C)]` header bytes followed by its
+//! payload, the same bytes the iceoryx2 transport carries in shared memory
+//! (little-endian hosts; a peer of the other byte order reads as a version mismatch).
 //!
 //! Keys: `kfmap/<map>/v<protocol>/<tile>/rpc/<client>` (one remote client's requests to
 //! one tile), `kfmap/<map>/v<protocol>/<tile>/alive` (a liveliness token: the tile's

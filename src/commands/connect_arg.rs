@@ -5,8 +5,8 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
-use kfmap_client::remote::RemoteOptions;
 use kfmap_client::{Client, ClientOptions};
+use kfmap_remote::RemoteOptions;
 
 /// Which server to talk to.
 #[derive(clap::Args)]
@@ -53,7 +53,7 @@ impl ConnectArgs {
                 let mut remote = RemoteOptions::new(endpoint);
                 remote.zenoh_config = self.zenoh_config.clone();
                 remote.client_id = self.client_id.clone();
-                Client::remote_with(&remote, &self.map_name, options)?
+                kfmap_remote::connect_with(&remote, &self.map_name, options)?
             }
             None => Client::connect(&self.map_name, options)?,
         })

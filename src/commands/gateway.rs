@@ -26,7 +26,7 @@ use kfmap_map::tiles::TileIndex;
 /// clients name the gateway's endpoint.
 ///
 /// Remote clients: `kfmap localize|relocalize|status|query --remote tcp/HOST:7447
-/// --map-name NAME`, `Client::remote` in Rust, `kfmap.Client.remote` in Python.
+/// --map-name NAME`, `kfmap_remote::connect` in Rust, `kfmap.Client.remote` in Python.
 ///
 /// Tile sets: --tiles DIR (the directory `kfmap bake --tile-size` wrote, as given to
 /// `kfmap serve --tiles`) announces each tile served on this host (all, or --only) as

@@ -13,7 +13,6 @@ use std::time::{Duration, Instant};
 use common::{Prefix, Server, bake_dataset, kfmap, signal, simulate, stderr, temp_dir};
 use kfmap_bake::config::BakeConfig;
 use kfmap_bake::dataset::{dataset_poses, find_scans, load_raw_scan};
-use kfmap_client::remote::RemoteOptions;
 use kfmap_client::{Client, ClientError, ClientOptions, LocalizeOptions, RelocalizeOptions};
 use kfmap_geometry::geometry::Pose;
 use kfmap_geometry::io::{ReadOptions, read_cloud};
@@ -22,6 +21,7 @@ use kfmap_map::place::RelocalizeStatus;
 use kfmap_map::tiles::{PlaceRanking, TileIndex};
 use kfmap_protocol::remote::{decode_answer, rpc_key};
 use kfmap_protocol::{ScanPayload, StatusCode};
+use kfmap_remote::RemoteOptions;
 use kfmap_testdata::require_capability;
 
 /// Set in the namespace's child: the scenario runs only there.
@@ -109,7 +109,7 @@ mod in_namespace {
             spin: false,
         };
         let mut local = Client::connect("court", options.clone()).unwrap();
-        let mut remote = Client::remote(ENDPOINT, "court", options.clone()).unwrap();
+        let mut remote = kfmap_remote::connect(ENDPOINT, "court", options.clone()).unwrap();
         answers_equal_the_local_clients(&data, &mut local, &mut remote);
         refusals_equal_the_local_clients(&mut local, &mut remote);
         broken_frames_are_refused_with_a_reason();
@@ -236,7 +236,8 @@ mod in_namespace {
             timeout: Duration::from_secs(120),
             spin: false,
         };
-        let mut remote = Client::remote(&endpoints.join(","), "court", options.clone()).unwrap();
+        let mut remote =
+            kfmap_remote::connect(&endpoints.join(","), "court", options.clone()).unwrap();
         // The gateways publish the cut's index with their servers' ranking settings
         // (the defaults here).
         let published = TileIndex {
@@ -578,7 +579,7 @@ fn a_killed_tile_server_is_an_explicit_error(
         timeout: remote.connection().timeout(),
         ..ClientOptions::default()
     };
-    let mut pinned = Client::remote_with(&to_tile, "court", options).unwrap();
+    let mut pinned = kfmap_remote::connect_with(&to_tile, "court", options).unwrap();
     let killing = Instant::now();
     host.server.take().unwrap().kill();
     let died = Instant::now();
@@ -797,7 +798,7 @@ fn refusals_equal_the_local_clients(local: &mut Client, remote: &mut Client) {
 /// naming the problem, never a crash of the gateway.
 fn broken_frames_are_refused_with_a_reason() {
     use zenoh::Wait;
-    let config = kfmap_client::remote::zenoh_config(None, &[], &[ENDPOINT.into()]).unwrap();
+    let config = kfmap_remote::zenoh_config(None, &[], &[ENDPOINT.into()]).unwrap();
     let session = zenoh::open(config).wait().unwrap();
     let key = rpc_key("court", "whole", "raw-tester");
     for (frame, expected) in [
@@ -837,7 +838,7 @@ fn remote_clients_are_capped_per_gateway(dir: &Path, prefix: &str) {
     )
     .unwrap();
     let gateway = Gateway::start(prefix, &config);
-    let zconfig = kfmap_client::remote::zenoh_config(None, &[], &[ENDPOINT.into()]).unwrap();
+    let zconfig = kfmap_remote::zenoh_config(None, &[], &[ENDPOINT.into()]).unwrap();
     let session = zenoh::open(zconfig).wait().unwrap();
     let status = |client: &str| -> StatusCode {
         let header = RequestHeader {

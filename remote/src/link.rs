@@ -1,9 +1,8 @@
-//! The remote link: requests as Zenoh queries to a `kfmap gateway` on another host,
+//! The Zenoh link: requests as Zenoh queries to a `kfmap gateway` on another host,
 //! which answers them through its local map server (docs/DESIGN.md#notes-remote).
 //! Frames and keys are `kfmap_protocol::remote`'s; this module only moves them.
 
 use std::collections::HashSet;
-use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -19,7 +18,9 @@ use zenoh::Wait;
 use zenoh::query::{ConsolidationMode, QueryTarget};
 use zenoh::sample::SampleKind;
 
-use crate::error::{ClientError, RemoteError};
+use kfmap_client::{ClientError, RemoteError, RemoteLink};
+
+use crate::options::{RemoteOptions, zenoh_config};
 use crate::tiled::Choice;
 
 /// How a pending answer is watched: the token check runs this often, so a client learns
@@ -31,80 +32,9 @@ const GONE_WAIT: Duration = Duration::from_millis(100);
 /// Longest wait for the gateway's liveliness token when connecting.
 const CONNECT_WAIT: Duration = Duration::from_secs(2);
 
-/// Where and how a remote client reaches a gateway.
-#[derive(Debug, Clone)]
-pub struct RemoteOptions {
-    /// Zenoh endpoints of gateways, e.g. `tcp/10.0.0.5:7447` (several: the client joins
-    /// them all; a request goes to the one serving its tile).
-    pub endpoints: Vec<String>,
-    /// A Zenoh configuration file (JSON5) for TLS, mutual TLS or other transports; the
-    /// endpoints above are added to its `connect` list.
-    pub zenoh_config: Option<PathBuf>,
-    /// This client's id, the last chunk of its request keys (access control lists grant
-    /// keys by it); a random one when `None`.
-    pub client_id: Option<String>,
-    /// The one tile the requests go to; `None`: the map's tiles when its gateways serve a
-    /// tile set (each request routed by its pose guess), else the map served whole.
-    pub tile: Option<String>,
-}
-
-impl RemoteOptions {
-    /// Options for the gateways at `endpoints` (comma-separated), map served whole.
-    pub fn new(endpoints: &str) -> Self {
-        Self {
-            endpoints: endpoints
-                .split(',')
-                .map(str::trim)
-                .filter(|e| !e.is_empty())
-                .map(str::to_string)
-                .collect(),
-            zenoh_config: None,
-            client_id: None,
-            tile: None,
-        }
-    }
-}
-
-/// A Zenoh configuration for kfmap: `base` (a file) or Zenoh's defaults, then
-/// multicast scouting off (peers are named, never discovered on a LAN), transport
-/// compression off, `listen` on `listen` only (nothing when empty) and `connect` to
-/// `connect`.
-pub fn zenoh_config(
-    base: Option<&std::path::Path>,
-    listen: &[String],
-    connect: &[String],
-) -> Result<zenoh::Config, ClientError> {
-    let mut config = match base {
-        Some(path) => zenoh::Config::from_file(path)
-            .map_err(|e| RemoteError::Config(format!("read {}: {e}", path.display())))?,
-        None => zenoh::Config::default(),
-    };
-    let set = |config: &mut zenoh::Config, key: &str, value: String| {
-        config.insert_json5(key, &value).map_err(|e| {
-            ClientError::from(RemoteError::Config(format!("set {key} = {value}: {e}")))
-        })
-    };
-    set(&mut config, "mode", "\"peer\"".into())?;
-    set(&mut config, "scouting/multicast/enabled", "false".into())?;
-    let list = |endpoints: &[String]| {
-        let quoted: Vec<String> = endpoints.iter().map(|e| format!("{e:?}")).collect();
-        format!("[{}]", quoted.join(","))
-    };
-    if base.is_none() || !listen.is_empty() {
-        set(&mut config, "listen/endpoints", list(listen))?;
-    }
-    if !connect.is_empty() {
-        set(&mut config, "connect/endpoints", list(connect))?;
-        // Fail at open when no endpoint answers, rather than retrying forever.
-        set(&mut config, "connect/exit_on_failure", "true".into())?;
-        set(&mut config, "connect/timeout_ms", "3000".into())?;
-    }
-    Ok(config)
-}
-
 /// An open remote link to a map: one tile (a map served whole, or the tile asked for),
 /// or every tile of a tile set, each request routed by its pose guess.
-pub(crate) struct RemoteLink {
+pub(crate) struct ZenohLink {
     session: zenoh::Session,
     map_name: String,
     client_id: String,
@@ -117,7 +47,7 @@ pub(crate) struct RemoteLink {
     _token_watch: zenoh::pubsub::Subscriber<()>,
 }
 
-impl RemoteLink {
+impl ZenohLink {
     /// Opens a Zenoh session to the gateways and waits for the map's tokens; learns the
     /// tile set (from a gateway's index) unless `remote.tile` names one tile.
     pub(crate) fn open(map_name: &str, remote: &RemoteOptions) -> Result<Self, ClientError> {
@@ -236,16 +166,6 @@ impl RemoteLink {
             .contains(&self.tiles[i])
     }
 
-    /// True while some tile's gateway announces a live server.
-    pub(crate) fn alive(&self) -> bool {
-        (0..self.tiles.len()).any(|i| self.tile_alive(i))
-    }
-
-    /// The tile set's index, when the map is served in tiles.
-    pub(crate) fn tile_index(&self) -> Option<&TileIndex> {
-        self.routing.as_ref().map(|(index, _)| index)
-    }
-
     /// The tile set's core squares, when the map is served in tiles whose searches
     /// overlap: a cut by an older kfmap, whose index gives no search regions, so each
     /// tile searches its whole region and neighbours propose the same places. A cut
@@ -254,30 +174,6 @@ impl RemoteLink {
         self.tile_index()
             .filter(|index| index.tiles.iter().all(|t| t.search_min.is_none()))
             .map(TileIndex::geometry)
-    }
-
-    /// The tile the last routed request went to.
-    pub(crate) fn current_tile(&self) -> Option<&str> {
-        match &self.routing {
-            Some((_, router)) => router.current().map(|i| self.tiles[i].as_str()),
-            None => self.tiles.first().map(String::as_str),
-        }
-    }
-
-    /// Sends a request frame (`header` is its header, for routing) and waits for the
-    /// answer frame: to the tile the pose guess routes to, or, to relocalize over a tile
-    /// set, to every tile at once, the answers ranked as one search would.
-    pub(crate) fn call(
-        &mut self,
-        header: &RequestHeader,
-        frame: Vec<u8>,
-        timeout: Duration,
-    ) -> Result<Vec<u8>, ClientError> {
-        if self.routing.is_some() && header.kind == RequestKind::Relocalize as u32 {
-            return self.call_every_tile(frame, timeout);
-        }
-        let tile = self.route(header)?;
-        self.call_tile(tile, frame, timeout)
     }
 
     /// The tile a request goes to.
@@ -553,6 +449,42 @@ impl RemoteLink {
 
     fn describe(&self, i: usize) -> String {
         format!("{} (remote, tile {})", self.map_name, self.tiles[i])
+    }
+}
+
+impl RemoteLink for ZenohLink {
+    /// Sends a request frame (`header` is its header, for routing) and waits for the
+    /// answer frame: to the tile the pose guess routes to, or, to relocalize over a tile
+    /// set, to every tile at once, the answers ranked as one search would.
+    fn call(
+        &mut self,
+        header: &RequestHeader,
+        frame: Vec<u8>,
+        timeout: Duration,
+    ) -> Result<Vec<u8>, ClientError> {
+        if self.routing.is_some() && header.kind == RequestKind::Relocalize as u32 {
+            return self.call_every_tile(frame, timeout);
+        }
+        let tile = self.route(header)?;
+        self.call_tile(tile, frame, timeout)
+    }
+
+    /// True while some tile's gateway announces a live server.
+    fn alive(&self) -> bool {
+        (0..self.tiles.len()).any(|i| self.tile_alive(i))
+    }
+
+    /// The tile set's index, when the map is served in tiles.
+    fn tile_index(&self) -> Option<&TileIndex> {
+        self.routing.as_ref().map(|(index, _)| index)
+    }
+
+    /// The tile the last routed request went to.
+    fn current_tile(&self) -> Option<&str> {
+        match &self.routing {
+            Some((_, router)) => router.current().map(|i| self.tiles[i].as_str()),
+            None => self.tiles.first().map(String::as_str),
+        }
     }
 }
 

@@ -16,8 +16,7 @@ use kfmap_protocol::{
     PLACES_FROM_RELIEF, ResponseHeader, StatusCode, WirePlace, place_from_wire, pose_from_wire,
 };
 
-use crate::ClientError;
-use crate::error::RemoteError;
+use kfmap_client::{ClientError, RemoteError};
 
 /// What the first phase decided.
 #[derive(Debug, PartialEq)]
