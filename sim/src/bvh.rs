@@ -180,7 +180,7 @@ fn split(items: &mut [(Bounds, Vector3<f64>, Shape)], centres: &Bounds, sah: boo
         items.select_nth_unstable_by(mid, |a, b| a.1[axis].total_cmp(&b.1[axis]));
         mid
     };
-    if !sah || !(extent[axis] > 0.0) {
+    if !sah || !extent[axis].is_finite() || extent[axis] <= 0.0 {
         return median(items);
     }
     let bin_of = |centre: &Vector3<f64>| {
