@@ -90,17 +90,17 @@ pub trait Dispatch: Send {
     ) -> (ResponseHeader, Vec<WirePairing>);
 }
 
-/// A link to a map server on another host that carries whole request and answer
-/// frames (`kfmap_protocol::remote`): `kfmap-remote` implements it over Zenoh to a
-/// `kfmap gateway`. Here so this crate, and the server that hosts its tracker, compile
+/// A link to a map server on another host that carries requests and answers as frames
+/// (`kfmap_protocol::remote`): `kfmap-remote` implements it over Zenoh to a `kfmap
+/// gateway`. Here so this crate, and the server that hosts its tracker, compile
 /// without a network stack.
 pub trait RemoteLink: Send {
-    /// Sends a request frame (`header` is its header, for routing) and waits at most
-    /// `timeout` for the answer frame.
+    /// Sends a request (`header` also routes it; the link frames it, or splits it into
+    /// phases over a tile set) and waits at most `timeout` for the answer frame.
     fn call(
         &mut self,
         header: &RequestHeader,
-        frame: Vec<u8>,
+        payload: &[f32],
         timeout: Duration,
     ) -> Result<Vec<u8>, ClientError>;
     /// True while a server answers on the other side.
@@ -475,8 +475,7 @@ impl Connection {
             .collect();
         let (answer, pairings) = match &mut self.link {
             Link::Remote(link) => {
-                let frame = kfmap_protocol::remote::encode_request(&header, &floats);
-                let answer = link.call(&header, frame, self.options.timeout)?;
+                let answer = link.call(&header, &floats, self.options.timeout)?;
                 kfmap_protocol::remote::decode_answer(&answer).map_err(|e| {
                     crate::error::RemoteError::BadAnswer(format!("the gateway's answer: {e}"))
                 })?

@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 
 use kfmap_map::tiles::{Route, TileGeometry, TileIndex, TileRouter};
 use kfmap_protocol::remote::{
-    RemoteFailure, WHOLE_MAP_TILE, alive_pattern, check_key_chunk, decode_request, encode_request,
+    RemoteFailure, WHOLE_MAP_TILE, alive_pattern, check_key_chunk, encode_request,
     rpc_all_tiles_key, rpc_key, tile_index_key, tile_of_alive_key, tile_of_rpc_key,
 };
 use kfmap_protocol::{
@@ -212,16 +212,19 @@ impl ZenohLink {
     /// phases (`crate::tiled`): every tile's places at once (`QueryTarget::All`); the
     /// best of them all scored by the tiles holding them; the best score finished by
     /// its tile.
-    fn call_every_tile(&self, frame: Vec<u8>, timeout: Duration) -> Result<Vec<u8>, ClientError> {
+    fn call_every_tile(
+        &self,
+        header: &RequestHeader,
+        payload: &[f32],
+        timeout: Duration,
+    ) -> Result<Vec<u8>, ClientError> {
         let started = Instant::now();
         let left = || timeout.saturating_sub(started.elapsed());
-        let (header, payload) = decode_request(&frame, usize::MAX)
-            .map_err(|e| ClientError::Invalid(format!("the request frame: {e}")))?;
         let phase = |flag: u32, ranks: u64| {
-            let mut h = header;
+            let mut h = *header;
             h.flags |= flag;
             h.keyframe_or_scan_id = ranks;
-            encode_request(&h, &payload)
+            encode_request(&h, payload)
         };
         let places = self.ask_every_tile(phase(FLAG_PLACES_ONLY, 0), timeout)?;
         let placed = started.elapsed();
@@ -453,20 +456,20 @@ impl ZenohLink {
 }
 
 impl RemoteLink for ZenohLink {
-    /// Sends a request frame (`header` is its header, for routing) and waits for the
-    /// answer frame: to the tile the pose guess routes to, or, to relocalize over a tile
+    /// Sends the request (`header` routes it) as a frame and waits for the answer
+    /// frame: to the tile the pose guess routes to, or, to relocalize over a tile
     /// set, to every tile at once, the answers ranked as one search would.
     fn call(
         &mut self,
         header: &RequestHeader,
-        frame: Vec<u8>,
+        payload: &[f32],
         timeout: Duration,
     ) -> Result<Vec<u8>, ClientError> {
         if self.routing.is_some() && header.kind == RequestKind::Relocalize as u32 {
-            return self.call_every_tile(frame, timeout);
+            return self.call_every_tile(header, payload, timeout);
         }
         let tile = self.route(header)?;
-        self.call_tile(tile, frame, timeout)
+        self.call_tile(tile, encode_request(header, payload), timeout)
     }
 
     /// True while some tile's gateway announces a live server.

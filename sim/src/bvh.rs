@@ -269,6 +269,24 @@ mod tests {
                 z1: rng.random_range(0.0..5.0),
             });
         }
+        // A site's ground: two triangles spanning everything, which the split must keep
+        // apart from the small shapes without losing a nearer hit behind them.
+        let ground = [
+            Vector3::new(-300.0, -300.0, -1.0),
+            Vector3::new(300.0, -300.0, -1.0),
+            Vector3::new(300.0, 300.0, -1.0),
+            Vector3::new(-300.0, 300.0, -1.0),
+        ];
+        shapes.push(Shape::Triangle {
+            a: ground[0],
+            b: ground[1],
+            c: ground[2],
+        });
+        shapes.push(Shape::Triangle {
+            a: ground[0],
+            b: ground[2],
+            c: ground[3],
+        });
         let bvh = Bvh::new(shapes);
         let mut hits = 0;
         for _ in 0..5000 {
