@@ -355,6 +355,11 @@ impl<'a> ActiveSet<'a> {
         let Some(n) = NonZeroUsize::new(k) else {
             return Vec::new();
         };
+        if k == 1 {
+            // The same hit as the k-NN below, from one search bounded across the
+            // keyframes (a tracker's explained-structure queries are all k = 1).
+            return self.nearest_one(p).into_iter().collect();
+        }
         let mut hits = self.gather(p, |tree, q| tree.nearest_n(q, n));
         hits.truncate(k);
         hits

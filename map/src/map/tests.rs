@@ -104,6 +104,7 @@ fn nearest_queries_match_a_linear_scan_in_both_modes() {
             ];
             let want = linear_scan(&oracle_map, &ids, &q, approximate);
             assert_eq!(active.nearest_one(&q).unwrap(), want[0], "query {i}");
+            assert_eq!(active.nearest_k(&q, 1), want[..1].to_vec(), "query {i}");
             if i % 10 == 0 {
                 assert_eq!(active.nearest_k(&q, 7), want[..7].to_vec());
                 let r2 = (0.6f64 * 0.6) as f32;
