@@ -2,7 +2,7 @@
 """Mean NEES of `kfmap localize --json-lines` poses against a reference, and how far
 the scans' errors are correlated in time.
 
-    tools/nees_time_correlation.py RUN.lines REFERENCE.tum [LABEL] [--map-from-input X,Y,Z,QX,QY,QZ,QW]
+    tools/nees_time_correlation.py RUN.lines REFERENCE.tum [LABEL] [--map-from-input X,Y,Z,QX,QY,QZ,QW] [--quarters]
 
 RUN.lines is `kfmap localize --json-lines` output (one object per scan, in order, plus
 a summary without "index"), REFERENCE.tum one TUM pose per scan in the frame of the
@@ -87,6 +87,24 @@ def whitened_errors(scans, reference):
     return rows
 
 
+def position_by_quarter(scans, reference):
+    """The ok scans in four consecutive quarters: per quarter the position error's RMS
+    and the published sigma's median along each sensor axis (x forward, y left, z up),
+    in mm, to see where along a drive the covariance under- or over-covers."""
+    ok = [(scan, truth) for scan, truth in zip(scans, reference) if scan["status"] == "ok"]
+    quarters = []
+    for q in range(4):
+        part = ok[q * len(ok) // 4:(q + 1) * len(ok) // 4]
+        errors = np.array([(np.linalg.inv(pose(s["pose"])) @ t)[:3, 3] for s, t in part])
+        sigmas = np.array([np.sqrt(np.diag(np.array(s["covariance"]).reshape(6, 6))[3:]) for s, _ in part])
+        quarters.append({
+            "scans": [part[0][0]["index"], part[-1][0]["index"]],
+            "error_rms_mm": [round(v, 2) for v in 1e3 * np.sqrt((errors ** 2).mean(axis=0))],
+            "sigma_median_mm": [round(v, 2) for v in 1e3 * np.median(sigmas, axis=0)],
+        })
+    return quarters
+
+
 def group_figures(w):
     n = len(w)
     nees = (w ** 2).sum(axis=1)
@@ -119,6 +137,8 @@ def main():
     parser.add_argument("label", nargs="?", help="printed with the figures (default: LINES)")
     parser.add_argument("--map-from-input", metavar="X,Y,Z,QX,QY,QZ,QW",
                         help="the map's T_map_input (kfmap status --json or kfmap inspect --json)")
+    parser.add_argument("--quarters", action="store_true",
+                        help="also the position error and published sigma per sensor axis, by quarter of the run")
     args = parser.parse_args()
     map_from_input = np.eye(4)
     if args.map_from_input is not None:
@@ -140,6 +160,8 @@ def main():
     figures = {"label": args.label or args.lines, "ok": len(rows), "scans": len(scans)}
     for g, name in ((0, "rotation"), (1, "position")):
         figures[name] = group_figures(np.array([r[g] for r in rows]))
+    if args.quarters:
+        figures["quarters"] = position_by_quarter(scans, reference)
     print(json.dumps(figures))
 
 
