@@ -551,7 +551,9 @@ pub fn score_places<E: Send>(
     // Settled at the fine pairing distance before scoring: a place's score must not
     // depend on how well coarse iterations from its lattice yaw happened to converge.
     let score_stage = score_stage(fine);
+    let started = std::time::Instant::now();
     let settled = settle_in_rounds(proposal, &coarse, params, &settle)?;
+    let settled_at = started.elapsed();
     let mut distinct: Vec<(usize, Pose)> = Vec::new();
     for (rank, result) in settled.iter().enumerate() {
         if let Some(result) = result
@@ -577,6 +579,12 @@ pub fn score_places<E: Send>(
         .into_iter()
         .flatten()
         .collect();
+    tracing::debug!(
+        "relocalize: settling {:.1} ms, scoring {} places {:.1} ms",
+        settled_at.as_secs_f64() * 1e3,
+        distinct.len(),
+        (started.elapsed() - settled_at).as_secs_f64() * 1e3
+    );
     for place in &places {
         let t = place.pose.translation.vector;
         tracing::debug!(
@@ -794,9 +802,11 @@ pub fn decide<E>(
         return Ok(answer);
     };
     answer.registrations += 1;
+    let started = std::time::Instant::now();
     let Some(result) = register(&start, &fine)? else {
         return Ok(answer);
     };
+    let registered = started.elapsed();
     let rivals: Vec<(Pose, f64)> = ranked
         .iter()
         .skip(1)
@@ -817,6 +827,12 @@ pub fn decide<E>(
     answer.registrations += 1;
     answer.tight_inlier_ratio =
         register(&result.pose, &tight)?.map_or(0.0, |r| r.fitness.inlier_ratio);
+    tracing::debug!(
+        "relocalize: the best place registered in {} iterations, {:.1} ms; its tight fit {:.1} ms",
+        result.iterations,
+        registered.as_secs_f64() * 1e3,
+        (started.elapsed() - registered).as_secs_f64() * 1e3
+    );
     let fits = result.fitness.inlier_ratio >= params.found_inlier_ratio
         && answer.tight_inlier_ratio >= params.found_tight_ratio
         && pose_covariance(&result).is_some();
