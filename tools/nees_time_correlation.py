@@ -68,16 +68,19 @@ def rotation_vector(M):
     return axis * (0.5 if angle < 1e-9 else angle / (2 * math.sin(angle)))
 
 
+def ok_errors(scans, reference):
+    """Per ok scan: (scan, d), d the right perturbation from the reported pose to the
+    reference (4x4, sensor frame), as kfmap defines the covariance."""
+    return [(scan, np.linalg.inv(pose(scan["pose"])) @ truth)
+            for scan, truth in zip(scans, reference) if scan["status"] == "ok"]
+
+
 def whitened_errors(scans, reference):
     """Per ok scan: (rotation, position) errors whitened by the published covariance's
-    blocks, d the right perturbation from the reported pose to the reference, as
-    kfmap defines the covariance; |w|^2 is the scan's NEES."""
+    blocks; |w|^2 is the scan's NEES."""
     rows = []
-    for scan, truth in zip(scans, reference):
-        if scan["status"] != "ok":
-            continue
+    for scan, d in ok_errors(scans, reference):
         covariance = np.array(scan["covariance"]).reshape(6, 6)
-        d = np.linalg.inv(pose(scan["pose"])) @ truth
         row = []
         for error, block in ((rotation_vector(d[:3, :3]), covariance[:3, :3]),
                              (d[:3, 3], covariance[3:, 3:])):
@@ -91,11 +94,11 @@ def position_by_quarter(scans, reference):
     """The ok scans in four consecutive quarters: per quarter the position error's RMS
     and the published sigma's median along each sensor axis (x forward, y left, z up),
     in mm, to see where along a drive the covariance under- or over-covers."""
-    ok = [(scan, truth) for scan, truth in zip(scans, reference) if scan["status"] == "ok"]
+    ok = ok_errors(scans, reference)
     quarters = []
     for q in range(4):
         part = ok[q * len(ok) // 4:(q + 1) * len(ok) // 4]
-        errors = np.array([(np.linalg.inv(pose(s["pose"])) @ t)[:3, 3] for s, t in part])
+        errors = np.array([d[:3, 3] for _, d in part])
         sigmas = np.array([np.sqrt(np.diag(np.array(s["covariance"]).reshape(6, 6))[3:]) for s, _ in part])
         quarters.append({
             "scans": [part[0][0]["index"], part[-1][0]["index"]],
