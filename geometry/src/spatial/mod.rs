@@ -403,7 +403,17 @@ impl<'a> TreeRef<'a> {
 
     /// The `n` nearest points, nearest first (ties by item): `(item, squared distance)`.
     pub fn nearest_n(&self, query: &[f32; 3], n: NonZeroUsize) -> Vec<(u32, f32)> {
-        let mut best = KNearest::new(n.get().min(self.len()));
+        self.nearest_n_within(query, n, f32::INFINITY)
+    }
+
+    /// [`TreeRef::nearest_n`] among the points with squared distance <= `max_dist_sq`.
+    pub fn nearest_n_within(
+        &self,
+        query: &[f32; 3],
+        n: NonZeroUsize,
+        max_dist_sq: f32,
+    ) -> Vec<(u32, f32)> {
+        let mut best = KNearest::within(n.get().min(self.len()), max_dist_sq);
         self.search(query, &mut best);
         best.hits()
     }

@@ -147,15 +147,16 @@ impl Collector for NearestAt {
 }
 
 /// The `k` nearest points, sorted by (squared distance, item). Slots not yet filled
-/// rank as an infinite distance with [`PAD_ITEM`].
+/// rank as the bound (infinite unless given) with [`PAD_ITEM`].
 pub(super) struct KNearest {
     ranks: Vec<u64>,
 }
 
 impl KNearest {
-    pub fn new(k: usize) -> Self {
+    /// The `k` nearest with squared distance at most `bound_sq` (inclusive).
+    pub fn within(k: usize, bound_sq: f32) -> Self {
         Self {
-            ranks: vec![rank(f32::INFINITY, PAD_ITEM); k],
+            ranks: vec![rank(bound_sq, PAD_ITEM); k],
         }
     }
 

@@ -69,6 +69,14 @@ fn searches_match_a_full_scan_including_ties() {
             for r2 in [0.01f32, 0.25, 2.0] {
                 let inside: Vec<_> = want.iter().copied().filter(|h| h.1 <= r2).collect();
                 assert_eq!(tree.within(&q, r2), inside, "radius^2 {r2}");
+                // Bounded k-NN: the nearest 7 among those within, the bound inclusive.
+                let seven = NonZeroUsize::new(7).unwrap();
+                let bounded = tree.nearest_n_within(&q, seven, r2);
+                assert_eq!(
+                    bounded,
+                    inside[..inside.len().min(7)].to_vec(),
+                    "k 7 within {r2}"
+                );
             }
         }
     }

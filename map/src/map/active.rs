@@ -292,19 +292,11 @@ impl<'a> ActiveSet<'a> {
         p: &[f32; 3],
         max_dist_sq: f32,
     ) -> Option<(&ActiveFrame<'a>, MapHit)> {
-        // Scans are densest near the sensor: the keyframe taken nearest to `p` likely
-        // holds its nearest point.
-        let origin_dist_sq =
-            |f: &ActiveFrame| (f.pose.translation.vector - to_vec3(p)).norm_squared();
-        let first = (0..self.frames.len()).min_by(|&a, &b| {
-            origin_dist_sq(&self.frames[a]).total_cmp(&origin_dist_sq(&self.frames[b]))
-        })?;
-        let order = std::iter::once(first).chain((0..self.frames.len()).filter(|&i| i != first));
         // The best so far as (frame, item, squared distance, local point): its map-frame
         // hit is built once, at the end.
         let mut best: Option<(&ActiveFrame<'a>, u32, f32, [f32; 3])> = None;
         let mut bound = max_dist_sq;
-        for f in order.map(|i| &self.frames[i]) {
+        for f in self.frames_nearest_first(p) {
             let query = Self::local_query(f, p);
             if f.bbox.dist_sq(&query) > bound {
                 continue;
@@ -322,6 +314,44 @@ impl<'a> ActiveSet<'a> {
             }
         }
         best.map(|(f, item, dist_sq, local)| (f, Self::hit_at(f, item, dist_sq, &local)))
+    }
+
+    /// The active keyframes, the one taken nearest to `p` first (scans are densest near
+    /// the sensor: it likely holds `p`'s nearest points, whose distance then bounds the
+    /// searches in the others), the rest in id order.
+    fn frames_nearest_first(&self, p: &[f32; 3]) -> impl Iterator<Item = &ActiveFrame<'a>> {
+        let origin_dist_sq =
+            |f: &ActiveFrame| (f.pose.translation.vector - to_vec3(p)).norm_squared();
+        let first = (0..self.frames.len()).min_by(|&a, &b| {
+            origin_dist_sq(&self.frames[a]).total_cmp(&origin_dist_sq(&self.frames[b]))
+        });
+        first
+            .into_iter()
+            .chain((0..self.frames.len()).filter(move |&i| Some(i) != first))
+            .map(|i| &self.frames[i])
+    }
+
+    /// Approximate mode: the `k` nearest points over the active keyframes, nearest
+    /// first. As [`Self::nearest_in_frames`] for one: each keyframe after the first is
+    /// searched within the `k`-th distance found so far (inclusive) and skipped when its
+    /// box lies beyond it, so the answer is the merged per-keyframe k-NN's.
+    fn nearest_k_in_frames(&self, p: &[f32; 3], k: NonZeroUsize) -> Vec<MapHit> {
+        let mut hits: Vec<MapHit> = Vec::new();
+        let mut bound = f32::INFINITY;
+        for f in self.frames_nearest_first(p) {
+            let query = Self::local_query(f, p);
+            if f.bbox.dist_sq(&query) > bound {
+                continue;
+            }
+            let found = f.view.tree.nearest_n_within(&query, k, bound);
+            hits.extend(found.into_iter().map(|(i, d)| Self::local_hit(f, i, d)));
+            hits.sort_by(hit_order);
+            hits.truncate(k.get());
+            if hits.len() == k.get() {
+                bound = hits[k.get() - 1].dist_sq;
+            }
+        }
+        hits
     }
 
     /// Runs `search` (returning `(item, squared distance)`) on the merged tree, or on
@@ -355,10 +385,10 @@ impl<'a> ActiveSet<'a> {
         let Some(n) = NonZeroUsize::new(k) else {
             return Vec::new();
         };
-        if k == 1 {
-            // The same hit as the k-NN below, from one search bounded across the
-            // keyframes (a tracker's explained-structure queries are all k = 1).
-            return self.nearest_one(p).into_iter().collect();
+        if self.merged.is_none() {
+            // Bounded across the keyframes, as `nearest_one` (a tracker's
+            // explained-structure queries ask for k = 1 on every adopted scan).
+            return self.nearest_k_in_frames(p, n);
         }
         let mut hits = self.gather(p, |tree, q| tree.nearest_n(q, n));
         hits.truncate(k);
