@@ -17,7 +17,8 @@ DATA = pathlib.Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / 
 
 
 def read_pcd(path):
-    """(N, 3) float64 points of a binary PCD file with FIELDS x y z, float32."""
+    """(N, 3) float64 points of a binary PCD file whose fields are float32 and begin with
+    x y z (balm_os0's; the simulator's add view_x view_y view_z, which are dropped)."""
     raw = pathlib.Path(path).read_bytes()
     header = {}
     offset = 0
@@ -30,10 +31,13 @@ def read_pcd(path):
             header[key] = values
             if key == "DATA":
                 break
-    if header["FIELDS"] != ["x", "y", "z"] or header["TYPE"] != ["F"] * 3 or header["DATA"] != ["binary"]:
-        raise ValueError(f"{path}: only binary PCD with float32 x y z is supported")
+    fields = header["FIELDS"]
+    if (fields[:3] != ["x", "y", "z"] or header["TYPE"] != ["F"] * len(fields)
+            or header["SIZE"] != ["4"] * len(fields) or header["DATA"] != ["binary"]):
+        raise ValueError(f"{path}: only binary PCD of float32 fields beginning x y z is supported")
     n = int(header["POINTS"][0])
-    return np.frombuffer(raw, dtype="<f4", count=3 * n, offset=offset).reshape(n, 3).astype(np.float64)
+    values = np.frombuffer(raw, dtype="<f4", count=len(fields) * n, offset=offset)
+    return values.reshape(n, len(fields))[:, :3].astype(np.float64)
 
 
 def scan_paths(dataset=DATA):
