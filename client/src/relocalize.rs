@@ -65,9 +65,9 @@ pub struct Relocalized {
     pub runner_up: f64,
     /// Places the server's search proposed.
     pub candidates: u32,
-    /// Every place the server scored, best score first (empty from a server that does
-    /// not send them, e.g. over a tile set): a tracker keeps those near the best as
-    /// hypotheses.
+    /// Every place the server scored, best score first (over a tile set, every tile's;
+    /// empty from a server too old to send them): a tracker keeps those near the best
+    /// as hypotheses.
     pub places: Vec<ScoredPlace>,
     /// 6x6 pose covariance (rotation first), when known.
     pub covariance: Option<Matrix6<f64>>,

@@ -505,8 +505,10 @@ def finish(frame: bytes, ranked: Ranked, searched_us: float,
     scored places distinct from where the best settled (farther than
     ``ranking.distinct_m`` or turned more than ``ranking.distinct_deg``); within
     ``ranking.ambiguity_margin`` a fitting answer is ``AMBIGUOUS``, else ``FOUND``; a
-    place that does not fit is ``NOT_FOUND``."""
-    header, rest = _split_answer(frame)
+    place that does not fit is ``NOT_FOUND``. Every tile's scored places travel in the
+    pairings' slots (settled pose, score, rank in the search's order), as one server
+    sends its scored places."""
+    header, _own_places = _split_answer(frame)
     if header.status != wire.StatusCode.OK:
         return frame
     header.candidates = ranked.candidates
@@ -523,7 +525,10 @@ def finish(frame: bytes, ranked: Ranked, searched_us: float,
         header.relocalization = (
             wire.RelocalizeStatus.AMBIGUOUS if close else wire.RelocalizeStatus.FOUND
         )
-    return _header_bytes(header) + rest
+    slots = np.zeros(len(ranked.places), dtype=wire.PLACE_DTYPE)
+    for rank, (_, _, pose, score) in enumerate(ranked.places):
+        slots[rank] = (pose[:3], pose[3:], score, rank)
+    return _header_bytes(header) + slots.tobytes()
 
 
 def _header_bytes(header: wire.ResponseHeader) -> bytes:

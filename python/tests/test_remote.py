@@ -314,6 +314,13 @@ def test_the_best_score_is_finished_and_judged_against_every_distinct_place():
     h = _header(kr.finish(_finished(_at(50.1, 1.0), 0.8, True), r, 1000.0))
     assert h.relocalization == AMBIGUOUS and list(h.place_scores) == [0.8, 0.8]
     assert (h.candidates, h.registrations, h.server_us) == (3, 8, 1250.0)
+    # Every tile's scored places travel with the verdict, in the search's order, as one
+    # server sends its scored places (as client/src/tiled.rs ``finish``).
+    frame = kr.finish(_finished(_at(50.1, 1.0), 0.8, True), r, 1000.0)
+    sent = np.frombuffer(frame[ctypes.sizeof(wire.ResponseHeader):], dtype=wire.PLACE_DTYPE)
+    assert [float(p["translation"][0]) for p in sent] == [0.0, 50.0, 90.0]
+    assert [float(p["score"]) for p in sent] == [0.6, 0.8, 0.8]
+    assert [int(p["rank"]) for p in sent] == [0, 1, 2]
     # The same place settled from two proposals is no runner-up: found.
     r = _ranked((_at(0.0), 0.6), (_at(50.0), 0.8), (_at(50.3, 2.0), 0.79))
     h = _header(kr.finish(_finished(_at(50.0), 0.8, True), r, 0.0))

@@ -13,7 +13,8 @@ use kfmap_map::place::{RelocalizeParams, RelocalizeStatus, another_place};
 use kfmap_map::tiles::{PlaceRanking, TileGeometry, tile_id};
 use kfmap_protocol::remote::{decode_answer, encode_answer};
 use kfmap_protocol::{
-    PLACES_FROM_RELIEF, ResponseHeader, StatusCode, WirePlace, place_from_wire, pose_from_wire,
+    PLACES_FROM_RELIEF, ResponseHeader, StatusCode, WirePairing, WirePlace, place_from_wire,
+    place_to_wire, pose_from_wire,
 };
 
 use kfmap_client::{ClientError, RemoteError};
@@ -254,14 +255,17 @@ pub(crate) fn nothing_settled(ranked: &Ranked, searched_us: f64) -> Vec<u8> {
 
 /// The final answer from the best place's `FLAG_FINISH_CHOSEN` answer frame: its
 /// registration and fit, the runner-up among every other scored place distinct from
-/// where it settled, the verdict, and the phases' counts and times.
+/// where it settled, the verdict, the phases' counts and times, and every tile's scored
+/// places in the pairings' slots (settled pose, score, rank in the search's order), as
+/// one server answers them: a tracker keeps those near the best as hypotheses, a
+/// look-alike in another tile included.
 pub(crate) fn finish(
     frame: &[u8],
     ranked: &Ranked,
     searched_us: f64,
     ranking: &PlaceRanking,
 ) -> Result<Vec<u8>, ClientError> {
-    let (mut header, pairings) = decode_answer(frame)
+    let (mut header, _own_places) = decode_answer(frame)
         .map_err(|e| RemoteError::BadAnswer(format!("the best place's final answer: {e}")))?;
     if StatusCode::from_code(header.status) != StatusCode::Ok {
         return Ok(frame.to_vec());
@@ -288,13 +292,19 @@ pub(crate) fn finish(
             RelocalizeStatus::Found
         } as u32;
     }
-    Ok(encode_answer(&header, &pairings))
+    let places: Vec<WirePairing> = ranked
+        .places
+        .iter()
+        .enumerate()
+        .map(|(rank, (_, _, pose, score))| place_to_wire(pose, *score, rank).to_slot())
+        .collect();
+    Ok(encode_answer(&header, &places))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use kfmap_protocol::{place_to_wire, pose_to_wire};
+    use kfmap_protocol::pose_to_wire;
     use nalgebra::{Translation3, UnitQuaternion};
 
     fn at(x: f64, yaw_deg: f64) -> Pose {
@@ -514,6 +524,30 @@ mod tests {
         assert_eq!(out.place_scores, [0.8, 0.8]);
         assert_eq!((out.candidates, out.registrations), (3, 8));
         assert_eq!(out.server_us, 1000.0 + 200.0 + 50.0);
+        // Every tile's scored places travel with the verdict, in the search's order, as
+        // one server sends its scored places; the finishing tile's own (none here) do not.
+        let frame = finish(&finished(&at(50.1, 1.0), 0.8, true), &r, 1000.0, &defaults).unwrap();
+        let sent: Vec<(Pose, f64, u64)> = decode_answer(&frame)
+            .unwrap()
+            .1
+            .into_iter()
+            .map(|slot| {
+                let place = WirePlace::from_slot(slot);
+                (place_from_wire(&place).unwrap(), place.score, place.rank)
+            })
+            .collect();
+        let expected = [
+            (at(0.0, 0.0), 0.6),
+            (at(50.0, 0.0), 0.8),
+            (at(90.0, 0.0), 0.8),
+        ];
+        assert_eq!(sent.len(), expected.len());
+        for (k, ((pose, score, rank), (want_pose, want_score))) in
+            sent.iter().zip(&expected).enumerate()
+        {
+            assert!(translation_distance(pose, want_pose) < 1e-9, "place {k}");
+            assert_eq!((*score, *rank as usize), (*want_score, k));
+        }
         // The same place settled from two proposals (0.3 m apart) is no runner-up; the
         // runner-up is then the best distinct one (0.6), outside the margin: found.
         let r = ranked([

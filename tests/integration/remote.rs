@@ -14,7 +14,7 @@ use common::{Prefix, Server, bake_dataset, kfmap, signal, simulate, stderr, temp
 use kfmap_bake::config::BakeConfig;
 use kfmap_bake::dataset::{dataset_poses, find_scans, load_raw_scan};
 use kfmap_client::{Client, ClientError, ClientOptions, LocalizeOptions, RelocalizeOptions};
-use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::geometry::{Pose, rotation_distance, translation_distance};
 use kfmap_geometry::io::{ReadOptions, read_cloud};
 use kfmap_map::archive::{OpenOptions, open_map};
 use kfmap_map::place::RelocalizeStatus;
@@ -375,6 +375,29 @@ mod in_namespace {
                 (tiled.runner_up - whole.runner_up).abs() < SCORE_SLACK,
                 "scan {i}"
             );
+            // The scored places come along over the tiles too, as the merged map sends
+            // them: a tracker's check keeps the places near the best as hypotheses, so
+            // each merged-map place within the hypotheses' margin (0.1) of the best has
+            // its tiled twin: the same place (0.5 m, 5 deg) scored alike.
+            let best = whole.places.first().map_or(0.0, |p| p.score);
+            for place in whole.places.iter().filter(|p| p.score + 0.1 >= best) {
+                let twin = tiled.places.iter().find(|t| {
+                    translation_distance(&t.pose, &place.pose) < 0.5
+                        && rotation_distance(&t.pose, &place.pose).to_degrees() < 5.0
+                });
+                println!(
+                    "relocalize scan {i}: merged place {:?} score {:.4}, tiled {:?}",
+                    place.pose.translation.vector.as_slice(),
+                    place.score,
+                    twin.map(|t| t.score)
+                );
+                assert!(
+                    twin.is_some_and(|t| (t.score - place.score).abs() < SCORE_SLACK),
+                    "scan {i}: the merged map's place scored {} has no tiled twin among {} places",
+                    place.score,
+                    tiled.places.len()
+                );
+            }
             // An ambiguous answer's pose is one of near-equal places: only found ones.
             // The best place settles from the same start against the keyframes nearest
             // it, which the halo check keeps in its tile; a wrong place would be metres
