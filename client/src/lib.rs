@@ -190,15 +190,29 @@ impl Client {
         &mut self.connection
     }
 
-    /// The `k` nearest map points of each scan point (sensor frame, moved by `pose`).
+    /// The `k` nearest map points of each scan point (sensor frame, moved by `pose`), in
+    /// the active keyframes at `pose`.
     pub fn nearest(
         &mut self,
         points: &[[f32; 3]],
         pose: &Pose,
         k: u32,
     ) -> Result<Vec<WirePairing>, ClientError> {
+        self.nearest_around(points, pose, k, 0)
+    }
+
+    /// As [`Self::nearest`], in the `keyframes` keyframes nearest `pose` by position (1
+    /// to 64; 0: the active set): the map around a place whichever way it was seen.
+    pub fn nearest_around(
+        &mut self,
+        points: &[[f32; 3]],
+        pose: &Pose,
+        k: u32,
+        keyframes: u32,
+    ) -> Result<Vec<WirePairing>, ClientError> {
         let h = RequestHeader {
             k,
+            keyframes,
             ..header(RequestKind::Nearest, pose)
         };
         Ok(self.connection.call_scan(h, &plain(points))?.pairings)

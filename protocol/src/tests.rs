@@ -181,7 +181,7 @@ fn header_layouts_are_the_documented_ones() {
         keyframe_or_scan_id = 120,
         imu_t0 = 128,
         expected_inlier_ratio = 136,
-        reserved = 140,
+        keyframes = 140,
         stamp = 144
     );
     layout!(

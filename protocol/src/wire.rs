@@ -28,7 +28,8 @@ pub const STATUS_SESSIONS: usize = 16;
 /// client_node 16, pose 32, point_count 88, flags 92, k 96, mode 100, radius 104,
 /// max_pair_dist 108, max_iterations 112, max_correction 116 (was `reserved` in
 /// protocol 2), keyframe_or_scan_id 120, imu_t0 128, expected_inlier_ratio 136 (new
-/// in protocol 3), reserved 140, stamp 144 (new in protocol 4).
+/// in protocol 3), keyframes 140 (was `reserved` before protocol 11), stamp 144 (new in
+/// protocol 4).
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend, Pod, Zeroable)]
 #[repr(C)]
 #[type_name("kfmap::RequestHeader")]
@@ -70,8 +71,9 @@ pub struct RequestHeader {
     /// `Localize`: the inlier ratio the client's tracker expects (that of its scans
     /// before); a first registration well below it is retried. 0 = unknown.
     pub expected_inlier_ratio: f32,
-    /// Reserved, zero.
-    pub reserved: u32,
+    /// `Nearest`: search this many keyframes, those nearest the pose by position (1 to 64)
+    /// instead of the active set; 0 = the active set.
+    pub keyframes: u32,
     /// With `FLAG_STAMPED`: the time `pose` was taken at, seconds on the IMU's clock
     /// (`Localize`: the scan's; `ImuWindow`: the window's end, its keyframe's). The
     /// session keeps these stamped poses to remove the platform's own acceleration
@@ -135,7 +137,7 @@ impl Default for RequestHeader {
             keyframe_or_scan_id: 0,
             imu_t0: 0.0,
             expected_inlier_ratio: 0.0,
-            reserved: 0,
+            keyframes: 0,
             stamp: 0.0,
         }
     }

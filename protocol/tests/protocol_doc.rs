@@ -336,7 +336,7 @@ fn request_header_layout() -> Layout {
         keyframe_or_scan_id,
         imu_t0,
         expected_inlier_ratio,
-        reserved,
+        keyframes,
         stamp,
     })
 }

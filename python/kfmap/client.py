@@ -216,10 +216,21 @@ class Client:
         return self._conn.call(header, np.concatenate(parts))
 
     def nearest(
-        self, points: npt.ArrayLike, pose: npt.ArrayLike | None = None, *, k: int = 1
+        self,
+        points: npt.ArrayLike,
+        pose: npt.ArrayLike | None = None,
+        *,
+        k: int = 1,
+        keyframes: int = 0,
     ) -> Pairings:
-        """The ``k`` nearest map points of each scan point (moved by ``pose``)."""
-        reply = self._scan(wire.RequestKind.NEAREST, points, pose, k=_uint("k", k))
+        """The ``k`` nearest map points of each scan point (moved by ``pose``), in the
+        active keyframes at ``pose``, or with ``keyframes`` (1 to 64) in that many
+        keyframes nearest ``pose`` by position: the map around a place whichever way it
+        was seen."""
+        reply = self._scan(
+            wire.RequestKind.NEAREST, points, pose, k=_uint("k", k),
+            keyframes=_uint("keyframes", keyframes),
+        )
         return Pairings.from_reply(reply.pairings, reply.header)
 
     def radius(

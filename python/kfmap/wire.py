@@ -1,4 +1,4 @@
-"""The kfmap wire protocol (protocol 10): the ``#[repr(C)]`` headers as ctypes
+"""The kfmap wire protocol (protocol 11): the ``#[repr(C)]`` headers as ctypes
 structures, request kinds, flags and status codes.
 
 Mirrors ``protocol/src/wire.rs`` and ``lib.rs``. iceoryx2 refuses to open a
@@ -16,7 +16,7 @@ import enum
 import numpy as np
 
 #: Version of the protocol; a server of another version answers VERSION_MISMATCH.
-PROTOCOL_VERSION = 10
+PROTOCOL_VERSION = 11
 #: Bytes of a response's status message.
 MESSAGE_LEN = 240
 #: Request kinds counted in a status report (index = kind code).
@@ -199,7 +199,7 @@ class RequestHeader(C.Structure):
         ("pose", f64 * 7), ("point_count", u32), ("flags", u32), ("k", u32), ("mode", u32),
         ("radius", f32), ("max_pair_dist", f32), ("max_iterations", u32),
         ("max_correction", f32), ("keyframe_or_scan_id", u64), ("imu_t0", f64),
-        ("expected_inlier_ratio", f32), ("reserved", u32), ("stamp", f64),
+        ("expected_inlier_ratio", f32), ("keyframes", u32), ("stamp", f64),
     ]
 
     @staticmethod

@@ -60,6 +60,7 @@ def test_bad_input_raises_value_error_before_sending(client, call) -> None:
     [
         (lambda c: c.nearest(GOOD, k=65), kfmap.StatusCode.BAD_REQUEST),  # MAX_K = 64
         (lambda c: c.nearest(GOOD, k=0), kfmap.StatusCode.BAD_REQUEST),
+        (lambda c: c.nearest(GOOD, keyframes=65), kfmap.StatusCode.BAD_REQUEST),  # MAX_KEYFRAMES
         (lambda c: c.radius(GOOD, r=25.0), kfmap.StatusCode.BAD_REQUEST),  # MAX_RADIUS
         (lambda c: c.radius(GOOD, r=-1.0), kfmap.StatusCode.BAD_REQUEST),
         (lambda c: c.cov2cov(GOOD, max_pair_dist=80.0), kfmap.StatusCode.BAD_REQUEST),

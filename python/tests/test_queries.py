@@ -57,6 +57,23 @@ def test_nearest_matches_cli(client, server, probe, tmp_path: Path, k: int) -> N
     assert_identical(ours, cli)
 
 
+def test_nearest_around_matches_cli_and_the_active_set(
+    client, server, probe, tmp_path: Path
+) -> None:
+    points, path, text, pose = probe
+    ours = client.nearest(points, pose, keyframes=2)
+    assert len(ours) == len(points) and len(ours.active) == 2
+    cli = cli_query(server, path, text, "nearest", tmp_path / "n2.csv", "--keyframes", "2")
+    assert_identical(ours, cli)
+    # On this 3-keyframe map the active set is all of it: 2 keyframes never find a
+    # nearer point, and the one left out held some points' nearest (the Rust test
+    # checks the answer against brute force).
+    everything = client.nearest(points, pose, k=1)
+    assert set(ours.active.tolist()) < set(everything.active.tolist())
+    assert np.all(ours.dist_sq >= everything.dist_sq)
+    assert np.any(ours.dist_sq > everything.dist_sq)
+
+
 def test_radius_matches_cli(client, server, probe, tmp_path: Path) -> None:
     points, path, text, pose = probe
     ours = client.radius(points, pose, r=0.4)

@@ -167,6 +167,12 @@ pub struct Args {
     /// --max-pair-dist of it.
     #[arg(long, default_value_t = TrustParams::default().tight_distance)]
     tight_distance: f64,
+    /// The explained share is measured in this many keyframes around the pose (nearest
+    /// by position), so that a look-alike place, which explains what the few keyframes
+    /// at it saw, is told from the right one by the map beyond them (0: only the
+    /// registration's active keyframes).
+    #[arg(long, default_value_t = TrustParams::default().explained_keyframes)]
+    explained_keyframes: u32,
     /// A scan is `ok` only when sliding its pose 0.5 m (either way) along its least
     /// constrained horizontal direction costs at least this share of the structure
     /// explained; below, `degraded` (unpinned: a street it could slide along). -1 turns
@@ -504,6 +510,7 @@ fn trust(args: &Args) -> TrustParams {
         tight_distance: args.tight_distance,
         ok_pinned: args.ok_pinned,
         confirm_after_unpinned: args.confirm_after_unpinned,
+        explained_keyframes: args.explained_keyframes,
     }
 }
 

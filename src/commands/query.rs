@@ -37,6 +37,10 @@ pub struct Args {
     /// Neighbours per point (nearest).
     #[arg(long, default_value_t = 1)]
     k: u32,
+    /// Search this many keyframes, those nearest the pose by position, instead of the
+    /// active set (nearest; 0: the active set, 1 to 64).
+    #[arg(long, default_value_t = 0)]
+    keyframes: u32,
     /// Search radius, metres (radius).
     #[arg(long, default_value_t = 0.5)]
     radius: f32,
@@ -90,7 +94,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut client = args.server.connect()?;
     let started = Instant::now();
     let pairings = match args.kind {
-        KindArg::Nearest => client.nearest(&cloud.points, &pose, args.k)?,
+        KindArg::Nearest => client.nearest_around(&cloud.points, &pose, args.k, args.keyframes)?,
         KindArg::Radius => client.radius(&cloud.points, &pose, args.radius)?,
         KindArg::Cov2cov => {
             let scan = ScanPayload {

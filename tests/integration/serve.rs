@@ -16,7 +16,7 @@ use kfmap_bake::config::BakeConfig;
 use kfmap_bake::dataset::{dataset_poses, find_scans, load_raw_scan};
 use kfmap_client::{Client, ClientError, ClientOptions, LocalizeOptions};
 use kfmap_geometry::cloud::PointCloud;
-use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::geometry::{Pose, transform_point};
 use kfmap_geometry::io::read_trajectory;
 use kfmap_protocol::{
     Cov2CovMode, PROTOCOL_VERSION, RequestHeader, RequestKind, ScanPayload, StatusCode,
@@ -120,6 +120,67 @@ fn ipc_answers_equal_in_process_answers_bit_for_bit() {
     );
     assert_eq!(ipc.len(), 3 * cloud.len());
     assert_eq!(ipc, local);
+
+    // Nearest in the keyframes around the pose, as in process and as a brute force over
+    // the keyframes whose positions are nearest the guess (whichever way they face):
+    // all but one of the map's, so the answer must leave the farthest out.
+    let count = served.map.len() - 1;
+    assert!(count >= 2, "{} keyframes", served.map.len());
+    let around = client
+        .nearest_around(&cloud.points, &guess, 1, count as u32)
+        .unwrap();
+    let local = in_process(
+        &served,
+        &RequestHeader {
+            kind: RequestKind::Nearest as u32,
+            keyframes: count as u32,
+            ..base
+        },
+        &plain,
+    );
+    assert_eq!(around, local);
+    let mut by_distance: Vec<(f64, u64)> = served
+        .map
+        .keyframes()
+        .map(|k| {
+            (
+                (k.pose.translation.vector - guess.translation.vector).norm(),
+                k.id,
+            )
+        })
+        .collect();
+    by_distance.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let nearest: Vec<u64> = by_distance[..count].iter().map(|d| d.1).collect();
+    let map_points: Vec<nalgebra::Vector3<f64>> = nearest
+        .iter()
+        .flat_map(|id| {
+            let k = served.map.keyframe(*id).unwrap();
+            let local: Vec<[f32; 3]> = k.view().unwrap().points.to_vec();
+            local.into_iter().map(move |p| transform_point(&k.pose, &p))
+        })
+        .collect();
+    assert_eq!(around.len(), cloud.len());
+    let mut farther_than_in_all = 0;
+    for (i, p) in cloud.points.iter().enumerate().step_by(7) {
+        let q = transform_point(&guess, p);
+        let want = map_points
+            .iter()
+            .map(|m| (m - q).norm_squared())
+            .fold(f64::INFINITY, f64::min);
+        let got = &around[i];
+        assert_eq!(got.query as usize, i);
+        assert!(nearest.contains(&got.keyframe), "point {i}");
+        assert!(
+            (f64::from(got.dist_sq) - want).abs() <= 1e-4 * want.max(1.0),
+            "point {i}: {} against {want}",
+            got.dist_sq
+        );
+        farther_than_in_all += usize::from(f64::from(ipc[3 * i].dist_sq) + 1e-4 < want);
+    }
+    // The active set (`ipc`) is the whole map here; the farthest keyframe was left out
+    // of the surroundings: some points found their nearest there.
+    assert_eq!(served.map.select(&guess).len(), served.map.len());
+    assert!(farther_than_in_all > 0);
 
     let ipc = client.radius(&cloud.points, &guess, 0.4).unwrap();
     let local = in_process(
@@ -250,6 +311,11 @@ fn bad_requests_get_a_named_error_and_change_nothing() {
 
     let e = client.nearest(&cloud.points[..10], &truth, 0).unwrap_err();
     assert_eq!(e.status(), Some(StatusCode::BadRequest));
+    let e = client
+        .nearest_around(&cloud.points[..10], &truth, 1, 65)
+        .unwrap_err();
+    assert_eq!(e.status(), Some(StatusCode::BadRequest));
+    assert!(e.to_string().contains("keyframes = 65"), "{e}");
 
     let header = RequestHeader {
         version: PROTOCOL_VERSION + 7,

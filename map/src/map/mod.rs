@@ -314,6 +314,22 @@ impl KeyframeMap {
         ids
     }
 
+    /// The `count` keyframes whose positions are nearest `pose`'s, ascending id: the map
+    /// around a place whichever way its keyframes faced (what a scan's structure is
+    /// checked against), where the active set keeps the few a registration needs.
+    pub fn surroundings(&self, pose: &Pose, count: usize) -> Vec<KeyframeId> {
+        let by_position = SelectionOptions {
+            max_search_keyframes: count,
+            num_diverse_keyframes: 0,
+            rotation_distance_weight: 0.0,
+        };
+        let poses: Vec<(KeyframeId, Pose)> =
+            self.keyframes.values().map(|k| (k.id, k.pose)).collect();
+        let mut ids = select_active(&poses, pose, &by_position);
+        ids.sort_unstable();
+        ids
+    }
+
     /// The active set for a query at `pose`: in exact mode its merged submap is built,
     /// or reused when the set is unchanged.
     pub fn activate(&mut self, pose: &Pose) -> Result<ActiveSet<'_>, MapError> {

@@ -533,3 +533,42 @@ fn fused_exact_submap_is_the_voxelization_of_the_merged_raw_clouds() {
         assert!(origin.coords.map(|c| (c / voxel).floor()) == want.map(|c| (c / voxel).floor()));
     }
 }
+
+#[test]
+fn surroundings_are_the_keyframes_nearest_by_position_whichever_way_they_face() {
+    let map = random_map(3, true);
+    let mut rng = StdRng::seed_from_u64(4);
+    for _ in 0..200 {
+        let at = pose(
+            rng.random_range(-3.0..5.0),
+            rng.random_range(-3.0..4.0),
+            rng.random_range(-3.1..3.1),
+        );
+        let count = rng.random_range(1..=5);
+        // Oracle: every keyframe sorted by its distance to the query's position.
+        let mut by_distance: Vec<(f64, KeyframeId)> = map
+            .keyframes()
+            .map(|k| {
+                (
+                    (k.pose.translation.vector - at.translation.vector).norm(),
+                    k.id,
+                )
+            })
+            .collect();
+        by_distance.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let mut want: Vec<KeyframeId> = by_distance.iter().take(count).map(|d| d.1).collect();
+        want.sort_unstable();
+        assert_eq!(map.surroundings(&at, count), want, "{at:?}, {count}");
+    }
+    // The active set weighs heading; the surroundings do not: at (0.3, 1.8), facing as
+    // keyframe 1 faced, keyframes 2 and 0 are nearest (1.80 m, 1.82 m) but a 2-keyframe
+    // selection by the map's metric takes keyframe 1 (1.96 m, no turn) for 2.
+    let facing_one = pose(0.3, 1.8, 0.4);
+    assert_eq!(map.surroundings(&facing_one, 2), vec![0, 2]);
+    let heading_weighed = SelectionOptions {
+        max_search_keyframes: 2,
+        num_diverse_keyframes: 0,
+        ..SelectionOptions::default()
+    };
+    assert_eq!(map.select_with(&facing_one, &heading_weighed), vec![0, 1]);
+}

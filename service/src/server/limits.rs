@@ -11,6 +11,10 @@ use crate::config::ServerConfig;
 /// Largest `k` of a `Nearest` request.
 pub const MAX_K: u32 = 64;
 
+/// Most keyframes a `Nearest` request may ask to search (`keyframes`): as many as a
+/// map's active set may hold.
+pub const MAX_KEYFRAMES: u32 = 64;
+
 /// Bytes of one answer pairing.
 pub const PAIRING_BYTES: u64 = std::mem::size_of::<WirePairing>() as u64;
 

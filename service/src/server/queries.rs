@@ -1,6 +1,6 @@
 //! Map queries of one scan: nearest neighbours, radius search and cov2cov pairings in
-//! the active keyframes at the scan's pose, each capped so an answer never outgrows
-//! the server's limits.
+//! the active keyframes at the scan's pose (nearest neighbours also in the keyframes
+//! around it), each capped so an answer never outgrows the server's limits.
 
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
@@ -14,7 +14,7 @@ use kfmap_protocol::{
 use rayon::prelude::*;
 
 use super::answer::{Answer, AnswerPairings, bad, map_error, with_active};
-use super::limits::{Limits, MAX_K, MAX_PAIR_DIST, MAX_RADIUS, PAIRING_BYTES};
+use super::limits::{Limits, MAX_K, MAX_KEYFRAMES, MAX_PAIR_DIST, MAX_RADIUS, PAIRING_BYTES};
 use super::session::Session;
 use super::state::ServedMap;
 
@@ -99,19 +99,17 @@ struct Caps {
     total: usize,
 }
 
-/// Every scan point moved by `pose` and searched by `search` in the active set: the
-/// hits as pairings without information, in query order. The search stops once a
-/// point finds more than `caps.per_point` or the answer more than `caps.total`, so the
-/// answer never outgrows them.
+/// Every scan point moved by `pose` and searched by `search` in `active`: the hits as
+/// pairings without information, in query order. The search stops once a point finds
+/// more than `caps.per_point` or the answer more than `caps.total`, so the answer never
+/// outgrows them.
 fn search_each(
-    map: &ServedMap,
-    session: &mut Session,
+    active: &ActiveSet,
     scan: &DecodedScan,
     pose: &Pose,
     caps: Caps,
     search: impl Fn(&ActiveSet, &[f32; 3]) -> Vec<MapHit> + Sync,
-) -> Result<Result<Answer, Overflow>, Rejection> {
-    let active = activate(map, session, pose, Activation::of_map(map, false))?;
+) -> Result<Answer, Overflow> {
     let (over_point, over_total) = (AtomicUsize::new(usize::MAX), AtomicBool::new(false));
     let found = AtomicUsize::new(0);
     let pairings: Vec<WirePairing> = scan
@@ -124,7 +122,7 @@ fn search_each(
             let mut hits = if stopped {
                 Vec::new()
             } else {
-                search(&active, &to_map_frame(pose, p))
+                search(active, &to_map_frame(pose, p))
             };
             if hits.len() > caps.per_point {
                 over_point.fetch_min(i, Ordering::Relaxed);
@@ -143,11 +141,11 @@ fn search_each(
             })
         })
         .collect();
-    Ok(match (over_point.into_inner(), over_total.into_inner()) {
+    match (over_point.into_inner(), over_total.into_inner()) {
         (usize::MAX, false) => Ok(with_active(AnswerPairings::Wire(pairings), active.ids())),
         (usize::MAX, true) => Err(Overflow::Total),
         (point, _) => Err(Overflow::Point(point)),
-    })
+    }
 }
 
 pub(super) fn nearest(
@@ -161,14 +159,29 @@ pub(super) fn nearest(
     if !(1..=MAX_K).contains(&k) {
         return Err(bad(format!("k = {k} must be within 1..={MAX_K}")));
     }
+    let keyframes = request.keyframes;
+    if keyframes > MAX_KEYFRAMES {
+        return Err(bad(format!(
+            "keyframes = {keyframes} must be within 0 (the active set) ..={MAX_KEYFRAMES}"
+        )));
+    }
+    let active = if keyframes == 0 {
+        activate(map, session, pose, Activation::of_map(map, false))?
+    } else {
+        // The surroundings are searched as they are: no merged submap is built for them.
+        let ids = map.map.surroundings(pose, keyframes as usize);
+        map.map
+            .activate_cached(ids, &mut None, false)
+            .map_err(map_error)?
+    };
     // Never over: the admission checked points x k against max-answer-bytes.
     let caps = Caps {
         per_point: usize::MAX,
         total: usize::MAX,
     };
-    let answer = search_each(map, session, scan, pose, caps, |active, p| {
+    let answer = search_each(&active, scan, pose, caps, |active, p| {
         active.nearest_k(p, k as usize)
-    })?;
+    });
     Ok(answer.expect("k-nearest answers have no caps"))
 }
 
@@ -190,9 +203,10 @@ pub(super) fn radius(
         per_point: limits.max_radius_points,
         total: (limits.max_answer_bytes / PAIRING_BYTES) as usize,
     };
-    let answer = search_each(map, session, scan, pose, caps, |active, p| {
+    let active = activate(map, session, pose, Activation::of_map(map, false))?;
+    let answer = search_each(&active, scan, pose, caps, |active, p| {
         active.within_radius(p, r as f64)
-    })?;
+    });
     answer.map_err(|overflow| match overflow {
         Overflow::Point(point) => Rejection {
             status: StatusCode::TooLarge,
