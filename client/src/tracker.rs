@@ -213,9 +213,9 @@ pub struct TrackedScan {
     /// `lost`, reason `ambiguous`, at the best one's pose); empty otherwise.
     pub hypotheses: Vec<Hypothesis>,
     /// The share of the scan's structure (points 1 m above their column's floor) with
-    /// a map point within `tight-distance` at the reported pose: what the map explains;
-    /// the rest moved since the map or was never mapped. `None` when nothing was
-    /// adopted.
+    /// a map point within `tight-distance` at the reported pose, in the
+    /// `explained-keyframes` around it: what the map explains; the rest moved since the
+    /// map or was never mapped. `None` when nothing was adopted.
     pub explained: Option<f64>,
     /// What a 0.5 m slide along the least constrained horizontal direction loses of
     /// the explained structure ([`Tracker::slide_loss`]); `None` when not measured.
