@@ -78,8 +78,9 @@ impl Default for TrackerOptions {
 }
 
 /// When the tracker calls a scan's pose `ok` and when it gives up on the place it
-/// tracks: `kfmap localize`'s `--ok-explained`, `--ok-pinned`, `--confirm-after-unpinned`,
-/// `--check-every`, `--lost-after-unfit`, `--recover-after`, the ROS 2 node's `[tracker]`.
+/// tracks: `kfmap localize`'s `--ok-explained`, `--explained-keyframes`, `--ok-pinned`,
+/// `--confirm-after-unpinned`, `--check-every`, `--lost-after-unfit`, `--recover-after`,
+/// the ROS 2 node's `[tracker]`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
 pub struct TrustParams {
@@ -1007,11 +1008,15 @@ impl Tracker {
         }
         let structure = structure(scan.points, &localized.pose);
         let surroundings = self.options.trust.explained_keyframes;
-        let in_active = self.explained_share(client, &structure, &localized.pose, 0)?;
-        let slide = self.slide_loss(client, &structure, localized, in_active)?;
-        let explained = match surroundings {
-            0 => in_active,
-            n => self.explained_share(client, &structure, &localized.pose, n)?,
+        let explained = self.explained_share(client, &structure, &localized.pose, surroundings)?;
+        // The slide probe compares shares on the active set, its base included.
+        let slide = match (localized.health.covariance, surroundings) {
+            (None, _) => None,
+            (Some(_), 0) => self.slide_loss(client, &structure, localized, explained)?,
+            (Some(_), _) => {
+                let base = self.explained_share(client, &structure, &localized.pose, 0)?;
+                self.slide_loss(client, &structure, localized, base)?
+            }
         };
         Ok((Some(explained), slide))
     }

@@ -52,7 +52,7 @@ struct Input {
     keyframe_or_scan_id: u64,
     imu_t0: f64,
     expected_inlier_ratio: f32,
-    reserved: u32,
+    keyframes: u32,
     stamp: f64,
     text: String,
     text_len: u32,
@@ -91,7 +91,7 @@ fn header_of(input: &Input, payload_len: usize) -> RequestHeader {
         keyframe_or_scan_id: input.keyframe_or_scan_id,
         imu_t0: input.imu_t0,
         expected_inlier_ratio: input.expected_inlier_ratio,
-        reserved: input.reserved,
+        keyframes: input.keyframes,
         stamp: input.stamp,
     }
 }

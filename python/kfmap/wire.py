@@ -368,6 +368,7 @@ def _check_layouts() -> None:
         (C.sizeof(RequestHeader), 152),
         (RequestHeader.stamp.offset, 144),
         (RequestHeader.expected_inlier_ratio.offset, 136),
+        (RequestHeader.keyframes.offset, 140),
         (C.sizeof(WirePairing), 56),
         (WirePairing.information.offset, 32),
         (C.sizeof(WireSessionGravity), 120),

@@ -403,6 +403,7 @@ mod tests {
                 "confirm-after-unpinned",
             ),
             ("[tracker]\nok-explained = 1.5", "ok-explained"),
+            ("[tracker]\nexplained-keyframes = 65", "explained-keyframes"),
             ("[tracker]\ntight-distance = 0.0", "tight-distance"),
             ("[tracker]\nlost-after-unfit = 0", "lost-after-unfit"),
             ("[tracker]\nrecover-after = 0", "recover-after"),

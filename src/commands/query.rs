@@ -38,7 +38,7 @@ pub struct Args {
     #[arg(long, default_value_t = 1)]
     k: u32,
     /// Search this many keyframes, those nearest the pose by position, instead of the
-    /// active set (nearest; 0: the active set, 1 to 64).
+    /// active set (nearest only; 0: the active set, 1 to 64).
     #[arg(long, default_value_t = 0)]
     keyframes: u32,
     /// Search radius, metres (radius).
@@ -86,6 +86,12 @@ fn write_csv(path: &PathBuf, pairings: &[WirePairing]) -> anyhow::Result<()> {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    if args.keyframes != 0 && !matches!(args.kind, KindArg::Nearest) {
+        anyhow::bail!(
+            "--keyframes {} applies to --kind nearest only; radius and cov2cov search the active set",
+            args.keyframes
+        );
+    }
     let cloud = read_cloud(&args.points, &ReadOptions::default())?.cloud;
     let pose = match &args.pose {
         Some(text) => super::pose_arg::parse_pose(text)?,

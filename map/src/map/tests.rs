@@ -561,8 +561,8 @@ fn surroundings_are_the_keyframes_nearest_by_position_whichever_way_they_face() 
         assert_eq!(map.surroundings(&at, count), want, "{at:?}, {count}");
     }
     // The active set weighs heading; the surroundings do not: at (0.3, 1.8), facing as
-    // keyframe 1 faced, keyframes 2 and 0 are nearest (1.80 m, 1.82 m) but a 2-keyframe
-    // selection by the map's metric takes keyframe 1 (1.96 m, no turn) for 2.
+    // keyframe 1 faced, keyframes 2 and 0 are nearest (1.81 m, 1.82 m) but a 2-keyframe
+    // selection by the map's metric takes keyframe 1 (1.88 m, no turn) for 2.
     let facing_one = pose(0.3, 1.8, 0.4);
     assert_eq!(map.surroundings(&facing_one, 2), vec![0, 2]);
     let heading_weighed = SelectionOptions {

@@ -170,6 +170,12 @@ pub(super) fn nearest(
     } else {
         // The surroundings are searched as they are: no merged submap is built for them.
         let ids = map.map.surroundings(pose, keyframes as usize);
+        if ids.is_empty() {
+            return Err(Rejection::new(
+                StatusCode::MapNotLoaded,
+                "the map has no keyframes",
+            ));
+        }
         map.map
             .activate_cached(ids, &mut None, false)
             .map_err(map_error)?

@@ -266,8 +266,11 @@ pub fn relocalize(
 
 /// [`Pinning`] of a registered place: the scan's structure there, and a slide along
 /// the registration's least constrained horizontal direction, each measured by
-/// nearest neighbours in the keyframes the map selects at the pose, as a tracker's
-/// `Nearest` requests are answered (`tight`: the distance a point is explained within).
+/// nearest neighbours in the keyframes the map selects at the pose, as the tracker's
+/// slide probe measures it (`tight`: the distance a point is explained within). The
+/// tracker's own explained share searches the keyframes around the pose instead; the
+/// verdict's `explained-lead` and `pinned-share` were measured on the active set and
+/// stay there.
 fn pinning(
     map: &ServedMap,
     points: &[[f32; 3]],
