@@ -28,6 +28,7 @@ use serde::{Deserialize, Serialize};
 
 use kfmap_map::place::pinning::{self, SLIDE_PROBE_M, structure, widest_horizontal};
 use kfmap_map::place::{RelocalizeStatus, levelling};
+use kfmap_map::select::MAX_KEYFRAMES;
 
 use crate::hypotheses::{self, Hypothesis, HypothesisParams, Outcome, distinct, near_best};
 use crate::{Client, ClientError, LocalizeOptions, Localized, RelocalizeOptions, ScoredPlace};
@@ -189,10 +190,10 @@ impl TrustParams {
             "0 (never) to 1000 scans",
         )?;
         ensure(
-            self.explained_keyframes <= 64,
+            self.explained_keyframes as usize <= MAX_KEYFRAMES,
             "explained-keyframes",
             self.explained_keyframes,
-            "0 (the active set) to 64 keyframes",
+            &format!("0 (the active set) to {MAX_KEYFRAMES} keyframes"),
         )
     }
 }
@@ -1009,15 +1010,9 @@ impl Tracker {
         let structure = structure(scan.points, &localized.pose);
         let surroundings = self.options.trust.explained_keyframes;
         let explained = self.explained_share(client, &structure, &localized.pose, surroundings)?;
-        // The slide probe compares shares on the active set, its base included.
-        let slide = match (localized.health.covariance, surroundings) {
-            (None, _) => None,
-            (Some(_), 0) => self.slide_loss(client, &structure, localized, explained)?,
-            (Some(_), _) => {
-                let base = self.explained_share(client, &structure, &localized.pose, 0)?;
-                self.slide_loss(client, &structure, localized, base)?
-            }
-        };
+        // On the active set itself, the share is already the probe's base.
+        let in_active = (surroundings == 0).then_some(explained);
+        let slide = self.slide_loss(client, &structure, localized, in_active)?;
         Ok((Some(explained), slide))
     }
 
@@ -1058,20 +1053,25 @@ impl Tracker {
         Ok(paired.iter().filter(|p| **p).count() as f64 / structure.len().max(1) as f64)
     }
 
-    /// How much of the structure explained at the localized pose (`here`, its share) a
-    /// slide of `SLIDE_PROBE_M` along the pose's least constrained horizontal direction
-    /// (the covariance's widest) loses, at the worse side: near zero when the scan does
-    /// not pin the pose to that distance (a street it may slide along), below zero when
-    /// a better fit lies beside it. `None` without a covariance.
+    /// How much of the structure explained at the localized pose a slide of
+    /// `SLIDE_PROBE_M` along the pose's least constrained horizontal direction (the
+    /// covariance's widest) loses, at the worse side, every share taken on the active
+    /// set (`in_active`: the pose's own, when already measured there): near zero when
+    /// the scan does not pin the pose to that distance (a street it may slide along),
+    /// below zero when a better fit lies beside it. `None` without a covariance.
     fn slide_loss(
         &self,
         client: &mut Client,
         structure: &[[f32; 3]],
         localized: &Localized,
-        here: f64,
+        in_active: Option<f64>,
     ) -> Result<Option<f64>, ClientError> {
         let Some(covariance) = localized.health.covariance else {
             return Ok(None);
+        };
+        let here = match in_active {
+            Some(share) => share,
+            None => self.explained_share(client, structure, &localized.pose, 0)?,
         };
         pinning::slide_loss(&localized.pose, &covariance, here, |at| {
             self.explained_share(client, structure, at, 0)

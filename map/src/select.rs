@@ -8,6 +8,9 @@ use kfmap_geometry::KeyframeId;
 use kfmap_geometry::geometry::Pose;
 use kfmap_geometry::options::{InvalidOption, ensure};
 
+/// Most keyframes one query searches: an active set, or the keyframes around a pose.
+pub const MAX_KEYFRAMES: usize = 64;
+
 /// Options of active-set selection.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
@@ -35,10 +38,10 @@ impl SelectionOptions {
     pub fn validate(&self) -> Result<(), InvalidOption> {
         let m = self.max_search_keyframes;
         ensure(
-            (1..=64).contains(&m),
+            (1..=MAX_KEYFRAMES).contains(&m),
             "max-search-keyframes",
             m,
-            "an integer in [1, 64]",
+            &format!("an integer in [1, {MAX_KEYFRAMES}]"),
         )?;
         let d = self.num_diverse_keyframes;
         ensure(

@@ -13,7 +13,7 @@ pub const MAX_K: u32 = 64;
 
 /// Most keyframes a `Nearest` request may ask to search (`keyframes`): as many as a
 /// map's active set may hold.
-pub const MAX_KEYFRAMES: u32 = 64;
+pub const MAX_KEYFRAMES: u32 = kfmap_map::select::MAX_KEYFRAMES as u32;
 
 /// Bytes of one answer pairing.
 pub const PAIRING_BYTES: u64 = std::mem::size_of::<WirePairing>() as u64;

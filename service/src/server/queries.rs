@@ -4,6 +4,7 @@
 
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
+use kfmap_geometry::KeyframeId;
 use kfmap_geometry::cloud::PointCloud;
 use kfmap_geometry::geometry::{Pose, to_point, transform_point};
 use kfmap_map::map::{ActiveSet, MapHit, Pairing};
@@ -68,6 +69,17 @@ fn activate<'m>(
     activation: Activation,
 ) -> Result<ActiveSet<'m>, Rejection> {
     let ids = map.map.select_with(pose, &activation.selection);
+    activate_ids(map, session, ids, activation.exact)
+}
+
+/// The active set of exactly `ids` (none: the map is empty), with the session's
+/// merged-submap cache.
+fn activate_ids<'m>(
+    map: &'m ServedMap,
+    session: &mut Session,
+    ids: Vec<KeyframeId>,
+    exact: bool,
+) -> Result<ActiveSet<'m>, Rejection> {
     if ids.is_empty() {
         return Err(Rejection::new(
             StatusCode::MapNotLoaded,
@@ -75,7 +87,7 @@ fn activate<'m>(
         ));
     }
     map.map
-        .activate_cached(ids, &mut session.merged, activation.exact)
+        .activate_cached(ids, &mut session.merged, exact)
         .map_err(map_error)
 }
 
@@ -165,20 +177,12 @@ pub(super) fn nearest(
             "keyframes = {keyframes} must be within 0 (the active set) ..={MAX_KEYFRAMES}"
         )));
     }
-    let active = if keyframes == 0 {
-        activate(map, session, pose, Activation::of_map(map, false))?
-    } else {
-        // The surroundings are searched as they are: no merged submap is built for them.
-        let ids = map.map.surroundings(pose, keyframes as usize);
-        if ids.is_empty() {
-            return Err(Rejection::new(
-                StatusCode::MapNotLoaded,
-                "the map has no keyframes",
-            ));
+    let active = match keyframes {
+        0 => activate(map, session, pose, Activation::of_map(map, false))?,
+        n => {
+            let ids = map.map.surroundings(pose, n as usize);
+            activate_ids(map, session, ids, false)?
         }
-        map.map
-            .activate_cached(ids, &mut None, false)
-            .map_err(map_error)?
     };
     // Never over: the admission checked points x k against max-answer-bytes.
     let caps = Caps {
