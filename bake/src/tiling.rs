@@ -22,7 +22,7 @@ use kfmap_map::archive::{
 use kfmap_map::covis::CovisSnapshot;
 use kfmap_map::map::{Keyframe, KeyframeMapOptions};
 use kfmap_map::place::{GridBuilder, GridContribution, GridError, GridParams, MarkedVoxels};
-use kfmap_map::select::{SelectionOptions, rank, select_active};
+use kfmap_map::select::{SURROUNDINGS, SelectionOptions, rank, select_active};
 use kfmap_map::tiles::{
     AUTOWARE_METADATA_FILE, INDEX_FILE, INDEX_FORMAT, TileEntry, TileGeometry, TileIndex, tile_id,
 };
@@ -45,9 +45,8 @@ pub struct TileSetSummary {
     pub place_bytes: u64,
     /// Largest place grid as a share of its tile's file.
     pub worst_place_share: f64,
-    /// The halo check: sampled guesses whose active set from the tile's keyframes is the
-    /// whole map's, and guesses sampled.
-    pub halo_check: (usize, usize),
+    /// The halo check, every tile's summed.
+    pub halo_check: HaloCheck,
     /// The whole map, when it was kept ([`TileSetWriter::create`]'s `keep_merged`).
     pub merged: Option<WriteSummary>,
     /// Seconds finishing the tiles once every keyframe was written (grids cut, indexes,
@@ -281,14 +280,13 @@ impl TileSetWriter {
             })
             .collect::<Result<_, BakeError>>()?;
         let (mut map_bytes, mut place_bytes, mut worst_place_share) = (0, 0, 0.0_f64);
-        let mut halo_check = (0, 0);
+        let mut halo_check = HaloCheck::default();
         for tile in written {
             place_bytes += tile.place_bytes;
             worst_place_share =
                 worst_place_share.max(tile.place_bytes as f64 / tile.entry.bytes.max(1) as f64);
             map_bytes += tile.entry.bytes;
-            halo_check.0 += tile.halo_check.0;
-            halo_check.1 += tile.halo_check.1;
+            halo_check.add(&tile.halo_check);
             index.tiles.push(tile.entry);
         }
         let merged = match merged {
@@ -340,7 +338,7 @@ fn open_tile_error(error: ArchiveError, open: usize) -> BakeError {
 struct WrittenTile {
     entry: TileEntry,
     place_bytes: u64,
-    halo_check: (usize, usize),
+    halo_check: HaloCheck,
 }
 
 /// What finishing a tile needs of the whole map.
@@ -476,17 +474,49 @@ fn core_cloud(
     Ok(PointCloud::from_points(core_points).voxel_downsample(PCD_VOXEL_M)?)
 }
 
-/// The halo check of one tile: for each of its core keyframes' poses, and each moved
-/// half the halo along x and y (where the router still sends a guess to the tile), the
-/// active set selected from the tile's keyframes `own` against the whole map's. Returns
-/// (agreeing, sampled).
+/// What a tile cut's halo check found: of the guesses sampled (each tile's core
+/// keyframes' poses, and each moved half the halo along x and y, where the router still
+/// sends a guess to the tile), how many select from their tile's keyframes what they
+/// select from the whole map's.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct HaloCheck {
+    /// Guesses sampled.
+    pub sampled: usize,
+    /// Those whose active set (what a registration pairs with) is the whole map's.
+    pub active_agree: usize,
+    /// Those whose [`SURROUNDINGS`] keyframes nearest by position (what the tracker's
+    /// explained share searches) are the whole map's.
+    pub surroundings_agree: usize,
+}
+
+impl HaloCheck {
+    fn add(&mut self, other: &Self) {
+        self.sampled += other.sampled;
+        self.active_agree += other.active_agree;
+        self.surroundings_agree += other.surroundings_agree;
+    }
+}
+
+/// The selection of the [`SURROUNDINGS`] keyframes nearest a pose by position, as
+/// `KeyframeMap::surroundings` makes it.
+fn surroundings_selection() -> SelectionOptions {
+    SelectionOptions {
+        max_search_keyframes: SURROUNDINGS,
+        num_diverse_keyframes: 0,
+        rotation_distance_weight: 0.0,
+    }
+}
+
+/// The halo check of one tile ([`HaloCheck`]): the keyframes selected from the tile's
+/// keyframes `own` against those selected from the whole map's, for the active set
+/// (`selection`) and the surroundings.
 fn check_halo(
     own: &[(KeyframeId, Pose)],
     everyone: &NearIndex,
     geometry: TileGeometry,
     (col, row): (i32, i32),
     selection: &SelectionOptions,
-) -> (usize, usize) {
+) -> HaloCheck {
     let h = geometry.halo / 2.0;
     let mut samples = Vec::new();
     for (_, pose) in own {
@@ -502,30 +532,43 @@ fn check_halo(
             }
         }
     }
-    let agree = samples
+    let surroundings = surroundings_selection();
+    let (active_agree, surroundings_agree) = samples
         .par_iter()
-        .filter(|q| {
-            let mut from_tile = select_active(own, q, selection);
-            // Whatever the whole map selects lies within `reach` (see `NearIndex`).
-            let Some(reach) = selection_reach(own, q, selection) else {
-                return true;
+        .map(|q| {
+            let agrees = |selection: &SelectionOptions| {
+                let mut from_tile = select_active(own, q, selection);
+                // Whatever the whole map selects lies within `reach` (see `NearIndex`);
+                // a tile with no more keyframes than it selects bounds nothing, and is
+                // compared with every keyframe of the map.
+                let nearby = match selection_reach(own, q, selection) {
+                    Some(reach) => everyone.within(q, reach),
+                    None => everyone.all.clone(),
+                };
+                let mut from_whole = select_active(&nearby, q, selection);
+                from_tile.sort_unstable();
+                from_whole.sort_unstable();
+                from_tile == from_whole
             };
-            let nearby = everyone.within(q, reach);
-            let mut from_whole = select_active(&nearby, q, selection);
-            from_tile.sort_unstable();
-            from_whole.sort_unstable();
-            from_tile == from_whole
+            (
+                usize::from(agrees(selection)),
+                usize::from(agrees(&surroundings)),
+            )
         })
-        .count();
-    (agree, samples.len())
+        .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
+    HaloCheck {
+        sampled: samples.len(),
+        active_agree,
+        surroundings_agree,
+    }
 }
 
 /// How far from `q` the whole map's active set can reach, given that a subset `own`
 /// selects as it does: the whole map's primary slots rank at least as well, so lie
 /// within the subset's worst primary metric `m` (metric >= distance); its diverse
 /// slots within `3 m` (the near pool's bound) or, falling back, within the subset's next
-/// metric. `None` when the subset has too few keyframes to bound anything (its set is
-/// then all it has: the check compares nothing).
+/// metric. `None` when the subset has too few keyframes to bound anything (it selects
+/// all it has, which only every keyframe of the map can be compared with).
 fn selection_reach(
     own: &[(KeyframeId, Pose)],
     q: &Pose,
@@ -548,6 +591,8 @@ fn selection_reach(
 struct NearIndex {
     cell: f64,
     cells: std::collections::HashMap<(i64, i64), Vec<(KeyframeId, Pose)>>,
+    /// Every keyframe, ascending id.
+    all: Vec<(KeyframeId, Pose)>,
 }
 
 impl NearIndex {
@@ -561,7 +606,9 @@ impl NearIndex {
                 .or_default()
                 .push((id, pose));
         }
-        Self { cell, cells }
+        let mut all = keyframes.to_vec();
+        all.sort_unstable_by_key(|(id, _)| *id);
+        Self { cell, cells, all }
     }
 
     /// Keyframes within `r` (in x-y, then exactly in 3D) of `q`, ascending id.
@@ -664,9 +711,10 @@ mod tests {
             .collect()
     }
 
-    /// The halo check against brute force: each sampled guess's active set from the
-    /// tile's keyframes against the one selected from every keyframe of the map (no
-    /// spatial index, no reach bound).
+    /// The halo check against brute force: each sampled guess's active set, and its
+    /// surroundings (the keyframes nearest by position the tracker's explained share
+    /// searches), from the tile's keyframes against those selected from every keyframe
+    /// of the map (no spatial index, no reach bound).
     #[test]
     fn the_halo_check_counts_what_selection_over_the_whole_map_finds() {
         let keyframes = spread(600, 60.0);
@@ -678,7 +726,7 @@ mod tests {
                 halo,
             };
             let near = NearIndex::new(&keyframes, halo.max(1.0));
-            let (mut agree_sum, mut sampled_sum) = (0, 0);
+            let (mut agree_sum, mut around_sum, mut sampled_sum) = (0, 0, 0);
             for tile in [(0, 0), (1, 1), (2, 0), (1, 2)] {
                 let own: Vec<(KeyframeId, Pose)> = keyframes
                     .iter()
@@ -688,9 +736,9 @@ mod tests {
                     })
                     .copied()
                     .collect();
-                let (agree, sampled) = check_halo(&own, &near, geometry, tile, &selection);
+                let check = check_halo(&own, &near, geometry, tile, &selection);
                 let h = halo / 2.0;
-                let (mut expected_agree, mut expected_sampled) = (0, 0);
+                let (mut expected_agree, mut expected_around, mut expected_sampled) = (0, 0, 0);
                 for (_, pose) in &own {
                     let t = pose.translation.vector;
                     if geometry.tile_of(t.x, t.y) != tile {
@@ -708,25 +756,57 @@ mod tests {
                         from_whole.sort_unstable();
                         expected_sampled += 1;
                         expected_agree += usize::from(from_tile == from_whole);
+                        // The surroundings: every keyframe sorted by distance, the first
+                        // SURROUNDINGS of the tile's against the first of the map's.
+                        let nearest = |set: &[(KeyframeId, Pose)]| {
+                            let mut by_distance: Vec<(f64, KeyframeId)> = set
+                                .iter()
+                                .map(|(id, p)| {
+                                    ((p.translation.vector - q.translation.vector).norm(), *id)
+                                })
+                                .collect();
+                            by_distance.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                            let mut ids: Vec<KeyframeId> = by_distance
+                                .iter()
+                                .take(SURROUNDINGS)
+                                .map(|(_, id)| *id)
+                                .collect();
+                            ids.sort_unstable();
+                            ids
+                        };
+                        expected_around += usize::from(nearest(&own) == nearest(&keyframes));
                     }
                 }
                 assert_eq!(
-                    (agree, sampled),
-                    (expected_agree, expected_sampled),
+                    check,
+                    HaloCheck {
+                        sampled: expected_sampled,
+                        active_agree: expected_agree,
+                        surroundings_agree: expected_around,
+                    },
                     "halo {halo} m, tile {tile:?}"
                 );
-                agree_sum += agree;
-                sampled_sum += sampled;
+                agree_sum += check.active_agree;
+                around_sum += check.surroundings_agree;
+                sampled_sum += check.sampled;
             }
-            per_halo.push((halo, agree_sum, sampled_sum));
+            per_halo.push((halo, agree_sum, around_sum, sampled_sum));
         }
         // The check tells halos apart: agreement grows with the halo, from a 1 m halo
         // that misses keyframes the whole map would use to a 15 m one that holds nearly
-        // all (measured 1046, 1250 and 1340 of 1345 guesses).
-        let agree: Vec<usize> = per_halo.iter().map(|h| h.1).collect();
-        assert!(agree[0] < agree[1] && agree[1] < agree[2], "{per_halo:?}");
-        let (_, wide_agree, wide_sampled) = per_halo[2];
+        // all (measured: active sets 1046, 1250 and 1340 of 1345 guesses, surroundings
+        // 1026, 1265 and 1345).
+        println!("(halo, active agree, surroundings agree, sampled): {per_halo:?}");
+        for column in [1, 2] {
+            let agree: Vec<usize> = per_halo
+                .iter()
+                .map(|h| if column == 1 { h.1 } else { h.2 })
+                .collect();
+            assert!(agree[0] < agree[1] && agree[1] < agree[2], "{per_halo:?}");
+        }
+        let (_, wide_agree, wide_around, wide_sampled) = per_halo[2];
         assert!(wide_agree * 100 >= wide_sampled * 99, "{per_halo:?}");
+        assert!(wide_around * 100 >= wide_sampled * 99, "{per_halo:?}");
     }
 
     /// A synthetic scan in the sensor frame: ground, two walls and posts within 12 m.

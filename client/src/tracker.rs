@@ -28,7 +28,7 @@ use serde::{Deserialize, Serialize};
 
 use kfmap_map::place::pinning::{self, SLIDE_PROBE_M, structure, widest_horizontal};
 use kfmap_map::place::{RelocalizeStatus, levelling};
-use kfmap_map::select::MAX_KEYFRAMES;
+use kfmap_map::select::{MAX_KEYFRAMES, SURROUNDINGS};
 
 use crate::hypotheses::{self, Hypothesis, HypothesisParams, Outcome, distinct, near_best};
 use crate::{Client, ClientError, LocalizeOptions, Localized, RelocalizeOptions, ScoredPlace};
@@ -142,7 +142,7 @@ impl Default for TrustParams {
             // The courtyard's turned twin: 0.006 behind the truth on the 3 active
             // keyframes, decided from the first scans on 5 or more (DESIGN, "The
             // courtyard's first 2.4 s").
-            explained_keyframes: 8,
+            explained_keyframes: SURROUNDINGS as u32,
         }
     }
 }

@@ -11,6 +11,11 @@ use kfmap_geometry::options::{InvalidOption, ensure};
 /// Most keyframes one query searches: an active set, or the keyframes around a pose.
 pub const MAX_KEYFRAMES: usize = 64;
 
+/// Keyframes nearest a place by position that the tracker's explained share searches
+/// by default (`explained-keyframes`): the map around the place whichever way its
+/// keyframes faced. A tile cut checks that its halo holds them (the halo check).
+pub const SURROUNDINGS: usize = 8;
+
 /// Options of active-set selection.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields, rename_all = "kebab-case")]

@@ -12,11 +12,12 @@ use kfmap_bake::pipeline::{
     scan_check_sidecar,
 };
 use kfmap_bake::scan_range::ScanRange;
-use kfmap_bake::tiling::{TileSetSummary, merged_map_path};
+use kfmap_bake::tiling::{HaloCheck, TileSetSummary, merged_map_path};
 use kfmap_geometry::gravity::GravityCorrection;
 use kfmap_geometry::motion::DeskewMode;
 use kfmap_geometry::options::ConfigFile;
 use kfmap_graph::refine::RefineReport;
+use kfmap_map::select::SURROUNDINGS;
 use kfmap_map::tiles::{AUTOWARE_METADATA_FILE, INDEX_FILE, TileGeometry};
 use serde_json::json;
 
@@ -154,7 +155,10 @@ pub struct Args {
     tile_size: Option<f64>,
     /// With --tile-size: keyframes this far outside a tile's square (per axis) also go
     /// into its file, so requests near a border find every keyframe the whole map would
-    /// use. At least the localizer's keyframe reach; default 50 m.
+    /// use. At least the localizer's keyframe reach; default 50 m. The cut checks it (the
+    /// halo check): at sampled guesses near each core, the active set and the 8 nearest
+    /// keyframes (the tracker's explained share) from the tile against the whole map's,
+    /// with a warning for each shortfall.
     #[arg(long, value_name = "METRES", requires = "tile_size")]
     halo: Option<f64>,
     /// With --tile-size: also write the whole map as DIR/merged.kfmap (the same keyframes'
@@ -273,7 +277,12 @@ fn tiles_json(t: &TileSetSummary) -> serde_json::Value {
         "map_bytes": t.map_bytes, "place_grid_bytes": t.place_bytes,
         "worst_place_grid_share": t.worst_place_share,
         "finish_seconds": t.finish_seconds,
-        "halo_check": {"agree": t.halo_check.0, "sampled": t.halo_check.1},
+        "halo_check": {
+            "sampled": t.halo_check.sampled,
+            "agree": t.halo_check.active_agree,
+            "surroundings_agree": t.halo_check.surroundings_agree,
+            "surroundings": SURROUNDINGS,
+        },
         "tiles": t.index.tiles.iter().map(|e| json!({
             "id": e.id, "file": e.file, "keyframes": e.keyframes,
             "core_keyframes": e.core_keyframes, "points": e.points, "bytes": e.bytes,
@@ -304,14 +313,24 @@ fn print_tiles(args: &Args, t: &TileSetSummary) {
         INDEX_FILE,
         AUTOWARE_METADATA_FILE
     );
-    let (agree, sampled) = t.halo_check;
+    let HaloCheck {
+        sampled,
+        active_agree,
+        surroundings_agree,
+    } = t.halo_check;
     println!(
-        "  halo check: {agree} of {sampled} sampled guesses (core keyframes, and half the halo past them) select the same keyframes from their tile as from the whole map"
+        "  halo check: {active_agree} of {sampled} sampled guesses (core keyframes, and half the halo past them) select the same keyframes from their tile as from the whole map; {surroundings_agree} the same {SURROUNDINGS} nearest (the tracker's explained share)"
     );
-    if agree < sampled {
+    if active_agree < sampled {
         println!(
             "  warning: {} guesses near tile borders would be answered from fewer keyframes than the whole map has; widen --halo",
-            sampled - agree
+            sampled - active_agree
+        );
+    }
+    if surroundings_agree < sampled {
+        println!(
+            "  warning: at {} guesses near tile borders the tracker would measure how much of a scan the map explains without some of the {SURROUNDINGS} nearest keyframes the whole map has; widen --halo",
+            sampled - surroundings_agree
         );
     }
     if args.keep_merged {
