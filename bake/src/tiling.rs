@@ -497,16 +497,6 @@ impl HaloCheck {
     }
 }
 
-/// The selection of the [`SURROUNDINGS`] keyframes nearest a pose by position, as
-/// `KeyframeMap::surroundings` makes it.
-fn surroundings_selection() -> SelectionOptions {
-    SelectionOptions {
-        max_search_keyframes: SURROUNDINGS,
-        num_diverse_keyframes: 0,
-        rotation_distance_weight: 0.0,
-    }
-}
-
 /// The halo check of one tile ([`HaloCheck`]): the keyframes selected from the tile's
 /// keyframes `own` against those selected from the whole map's, for the active set
 /// (`selection`) and the surroundings.
@@ -532,7 +522,7 @@ fn check_halo(
             }
         }
     }
-    let surroundings = surroundings_selection();
+    let surroundings = SelectionOptions::by_position(SURROUNDINGS);
     let (active_agree, surroundings_agree) = samples
         .par_iter()
         .map(|q| {
@@ -541,11 +531,10 @@ fn check_halo(
                 // Whatever the whole map selects lies within `reach` (see `NearIndex`);
                 // a tile with no more keyframes than it selects bounds nothing, and is
                 // compared with every keyframe of the map.
-                let nearby = match selection_reach(own, q, selection) {
-                    Some(reach) => everyone.within(q, reach),
-                    None => everyone.all.clone(),
+                let mut from_whole = match selection_reach(own, q, selection) {
+                    Some(reach) => select_active(&everyone.within(q, reach), q, selection),
+                    None => select_active(&everyone.all, q, selection),
                 };
-                let mut from_whole = select_active(&nearby, q, selection);
                 from_tile.sort_unstable();
                 from_whole.sort_unstable();
                 from_tile == from_whole
@@ -563,27 +552,28 @@ fn check_halo(
     }
 }
 
-/// How far from `q` the whole map's active set can reach, given that a subset `own`
+/// How far from `q` the whole map's selection can reach, given that a subset `own`
 /// selects as it does: the whole map's primary slots rank at least as well, so lie
-/// within the subset's worst primary metric `m` (metric >= distance); its diverse
-/// slots within `3 m` (the near pool's bound) or, falling back, within the subset's next
-/// metric. `None` when the subset has too few keyframes to bound anything (it selects
-/// all it has, which only every keyframe of the map can be compared with).
+/// within the subset's worst primary metric `m` (metric >= distance); its diverse slots
+/// within `3 m` (the near pool's bound) or, falling back, the first unselected in
+/// metric order, which for the `j`-th diverse slot ranks at most `primaries + j` in the
+/// whole map, so within the subset's metric at that rank: its last slot's at most.
+/// `None` when the subset has fewer keyframes than the selection takes (it selects all
+/// it has, which only every keyframe of the map can be compared with).
 fn selection_reach(
     own: &[(KeyframeId, Pose)],
     q: &Pose,
     selection: &SelectionOptions,
 ) -> Option<f64> {
     let ranked = rank(own, q, selection);
-    let total = selection.max_search_keyframes.min(ranked.len());
-    let diverse = selection.num_diverse_keyframes.min(total.saturating_sub(1));
-    let primaries = total - diverse;
-    if ranked.len() <= total || primaries == 0 {
+    let slots = selection.max_search_keyframes;
+    if slots == 0 || ranked.len() < slots {
         return None;
     }
+    let primaries = slots - selection.num_diverse_keyframes.min(slots - 1);
     let worst_primary = ranked[primaries - 1].metric;
-    let next = ranked[primaries].metric;
-    Some((3.0 * worst_primary).max(1.0).max(next))
+    let last_slot = ranked[slots - 1].metric;
+    Some((3.0 * worst_primary).max(1.0).max(last_slot))
 }
 
 /// The whole map's keyframes by position, in square cells, for "every keyframe within
@@ -711,10 +701,79 @@ mod tests {
             .collect()
     }
 
-    /// The halo check against brute force: each sampled guess's active set, and its
-    /// surroundings (the keyframes nearest by position the tracker's explained share
-    /// searches), from the tile's keyframes against those selected from every keyframe
-    /// of the map (no spatial index, no reach bound).
+    /// The keyframes `selection` takes from `set` at `q`, ascending id, by brute force:
+    /// for the surroundings, every keyframe sorted by distance (ties by id); otherwise
+    /// `select_active` over every keyframe given (no spatial index, no reach bound).
+    fn brute_force(
+        set: &[(KeyframeId, Pose)],
+        q: &Pose,
+        selection: &SelectionOptions,
+    ) -> Vec<KeyframeId> {
+        let mut ids = if *selection == SelectionOptions::by_position(SURROUNDINGS) {
+            let mut by_distance: Vec<(f64, KeyframeId)> = set
+                .iter()
+                .map(|(id, p)| ((p.translation.vector - q.translation.vector).norm(), *id))
+                .collect();
+            by_distance.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+            by_distance
+                .iter()
+                .take(SURROUNDINGS)
+                .map(|(_, id)| *id)
+                .collect()
+        } else {
+            select_active(set, q, selection)
+        };
+        ids.sort_unstable();
+        ids
+    }
+
+    /// Tile `tile`'s halo check, asserted equal to brute force: every sampled guess's
+    /// active set and surroundings from the tile's keyframes against those from every
+    /// keyframe of the map.
+    fn check_by_brute_force(
+        keyframes: &[(KeyframeId, Pose)],
+        geometry: TileGeometry,
+        tile: (i32, i32),
+        selection: &SelectionOptions,
+    ) -> HaloCheck {
+        let near = NearIndex::new(keyframes, geometry.halo.max(1.0));
+        let own: Vec<(KeyframeId, Pose)> = keyframes
+            .iter()
+            .filter(|(_, p)| {
+                let t = p.translation.vector;
+                geometry.tiles_holding(t.x, t.y).contains(&tile)
+            })
+            .copied()
+            .collect();
+        let check = check_halo(&own, &near, geometry, tile, selection);
+        let h = geometry.halo / 2.0;
+        let mut expected = HaloCheck::default();
+        let surroundings = SelectionOptions::by_position(SURROUNDINGS);
+        for (_, pose) in &own {
+            let t = pose.translation.vector;
+            if geometry.tile_of(t.x, t.y) != tile {
+                continue;
+            }
+            for (dx, dy) in [(0.0, 0.0), (h, 0.0), (-h, 0.0), (0.0, h), (0.0, -h)] {
+                if geometry.distance_to_core(tile.0, tile.1, t.x + dx, t.y + dy) > h {
+                    continue;
+                }
+                let mut q = *pose;
+                q.translation.vector += Vector3::new(dx, dy, 0.0);
+                let agrees = |s: &SelectionOptions| {
+                    brute_force(&own, &q, s) == brute_force(keyframes, &q, s)
+                };
+                expected.sampled += 1;
+                expected.active_agree += usize::from(agrees(selection));
+                expected.surroundings_agree += usize::from(agrees(&surroundings));
+            }
+        }
+        assert_eq!(check, expected, "halo {} m, tile {tile:?}", geometry.halo);
+        check
+    }
+
+    /// The halo check against brute force ([`check_by_brute_force`]) on 600 keyframes
+    /// in 20 m tiles, and how it tells halos apart.
     #[test]
     fn the_halo_check_counts_what_selection_over_the_whole_map_finds() {
         let keyframes = spread(600, 60.0);
@@ -725,77 +784,17 @@ mod tests {
                 tile_size: 20.0,
                 halo,
             };
-            let near = NearIndex::new(&keyframes, halo.max(1.0));
-            let (mut agree_sum, mut around_sum, mut sampled_sum) = (0, 0, 0);
+            let mut sum = HaloCheck::default();
             for tile in [(0, 0), (1, 1), (2, 0), (1, 2)] {
-                let own: Vec<(KeyframeId, Pose)> = keyframes
-                    .iter()
-                    .filter(|(_, p)| {
-                        let t = p.translation.vector;
-                        geometry.tiles_holding(t.x, t.y).contains(&tile)
-                    })
-                    .copied()
-                    .collect();
-                let check = check_halo(&own, &near, geometry, tile, &selection);
-                let h = halo / 2.0;
-                let (mut expected_agree, mut expected_around, mut expected_sampled) = (0, 0, 0);
-                for (_, pose) in &own {
-                    let t = pose.translation.vector;
-                    if geometry.tile_of(t.x, t.y) != tile {
-                        continue;
-                    }
-                    for (dx, dy) in [(0.0, 0.0), (h, 0.0), (-h, 0.0), (0.0, h), (0.0, -h)] {
-                        if geometry.distance_to_core(tile.0, tile.1, t.x + dx, t.y + dy) > h {
-                            continue;
-                        }
-                        let mut q = *pose;
-                        q.translation.vector += Vector3::new(dx, dy, 0.0);
-                        let mut from_tile = select_active(&own, &q, &selection);
-                        let mut from_whole = select_active(&keyframes, &q, &selection);
-                        from_tile.sort_unstable();
-                        from_whole.sort_unstable();
-                        expected_sampled += 1;
-                        expected_agree += usize::from(from_tile == from_whole);
-                        // The surroundings: every keyframe sorted by distance, the first
-                        // SURROUNDINGS of the tile's against the first of the map's.
-                        let nearest = |set: &[(KeyframeId, Pose)]| {
-                            let mut by_distance: Vec<(f64, KeyframeId)> = set
-                                .iter()
-                                .map(|(id, p)| {
-                                    ((p.translation.vector - q.translation.vector).norm(), *id)
-                                })
-                                .collect();
-                            by_distance.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-                            let mut ids: Vec<KeyframeId> = by_distance
-                                .iter()
-                                .take(SURROUNDINGS)
-                                .map(|(_, id)| *id)
-                                .collect();
-                            ids.sort_unstable();
-                            ids
-                        };
-                        expected_around += usize::from(nearest(&own) == nearest(&keyframes));
-                    }
-                }
-                assert_eq!(
-                    check,
-                    HaloCheck {
-                        sampled: expected_sampled,
-                        active_agree: expected_agree,
-                        surroundings_agree: expected_around,
-                    },
-                    "halo {halo} m, tile {tile:?}"
-                );
-                agree_sum += check.active_agree;
-                around_sum += check.surroundings_agree;
-                sampled_sum += check.sampled;
+                sum.add(&check_by_brute_force(
+                    &keyframes, geometry, tile, &selection,
+                ));
             }
-            per_halo.push((halo, agree_sum, around_sum, sampled_sum));
+            per_halo.push((halo, sum.active_agree, sum.surroundings_agree, sum.sampled));
         }
-        // The check tells halos apart: agreement grows with the halo, from a 1 m halo
-        // that misses keyframes the whole map would use to a 15 m one that holds nearly
-        // all (measured: active sets 1046, 1250 and 1340 of 1345 guesses, surroundings
-        // 1026, 1265 and 1345).
+        // Agreement grows with the halo, from a 1 m halo that misses keyframes the
+        // whole map would use to a 15 m one that holds nearly all (measured: active
+        // sets 1046, 1250 and 1340 of 1345 guesses, surroundings 1026, 1265 and 1345).
         println!("(halo, active agree, surroundings agree, sampled): {per_halo:?}");
         for column in [1, 2] {
             let agree: Vec<usize> = per_halo
@@ -807,6 +806,79 @@ mod tests {
         let (_, wide_agree, wide_around, wide_sampled) = per_halo[2];
         assert!(wide_agree * 100 >= wide_sampled * 99, "{per_halo:?}");
         assert!(wide_around * 100 >= wide_sampled * 99, "{per_halo:?}");
+    }
+
+    /// Tiles holding no more keyframes than a selection takes are compared with every
+    /// keyframe of the map (they bound nothing), and a selection with two diverse slots
+    /// that fall back past the near pool is bounded by the tile's last slot: both
+    /// against brute force, on 14 keyframes over 60 m in 20 m tiles.
+    #[test]
+    fn sparse_tiles_and_two_diverse_slots_are_checked_against_the_whole_map() {
+        let keyframes = spread(14, 60.0);
+        let two_diverse = SelectionOptions {
+            max_search_keyframes: 4,
+            num_diverse_keyframes: 2,
+            rotation_distance_weight: 2.0,
+        };
+        let (mut sparse_tiles, mut sum) = (0, HaloCheck::default());
+        for halo in [2.0, 10.0, 30.0] {
+            let geometry = TileGeometry {
+                tile_size: 20.0,
+                halo,
+            };
+            for col in 0..3 {
+                for row in 0..3 {
+                    let held = keyframes
+                        .iter()
+                        .filter(|(_, p)| {
+                            let t = p.translation.vector;
+                            geometry.tiles_holding(t.x, t.y).contains(&(col, row))
+                        })
+                        .count();
+                    sparse_tiles += usize::from(held > 0 && held <= SURROUNDINGS);
+                    for selection in [SelectionOptions::default(), two_diverse] {
+                        sum.add(&check_by_brute_force(
+                            &keyframes,
+                            geometry,
+                            (col, row),
+                            &selection,
+                        ));
+                    }
+                }
+            }
+        }
+        println!("{sparse_tiles} sparse tiles; {sum:?}");
+        // The cases the test is for happened: tiles with few keyframes, and guesses
+        // whose tile selects otherwise than the whole map.
+        assert!(sparse_tiles > 0);
+        assert!(sum.surroundings_agree < sum.sampled && sum.active_agree < sum.sampled);
+    }
+
+    /// Two diverse slots, the second falling back past the near pool (1 m) to the next
+    /// keyframe in metric order: the reach holds it, so a tile holding every keyframe
+    /// selects from its neighbourhood what the whole map selects.
+    #[test]
+    fn the_reach_holds_a_diverse_slot_that_falls_back() {
+        let at = |x: f64| Pose::new(Vector3::new(x, 0.0, 0.0), Vector3::zeros());
+        let keyframes: Vec<(KeyframeId, Pose)> = [0.1, 0.5, 5.0, 10.0]
+            .into_iter()
+            .enumerate()
+            .map(|(i, x)| (i as KeyframeId, at(x)))
+            .collect();
+        let selection = SelectionOptions {
+            max_search_keyframes: 3,
+            num_diverse_keyframes: 2,
+            rotation_distance_weight: 2.0,
+        };
+        let q = at(0.0);
+        let whole = select_active(&keyframes, &q, &selection);
+        assert_eq!(whole, vec![0, 1, 2]);
+        let reach = selection_reach(&keyframes, &q, &selection).expect("four keyframes bound it");
+        let near = NearIndex::new(&keyframes, 1.0);
+        assert_eq!(
+            select_active(&near.within(&q, reach), &q, &selection),
+            whole
+        );
     }
 
     /// A synthetic scan in the sensor frame: ground, two walls and posts within 12 m.

@@ -39,6 +39,16 @@ impl Default for SelectionOptions {
 }
 
 impl SelectionOptions {
+    /// The `count` keyframes nearest a pose by position, whichever way they face (no
+    /// diverse slot, no weight on rotation): the surroundings of a place.
+    pub const fn by_position(count: usize) -> Self {
+        Self {
+            max_search_keyframes: count,
+            num_diverse_keyframes: 0,
+            rotation_distance_weight: 0.0,
+        }
+    }
+
     /// Checks every option; the error names the first bad one.
     pub fn validate(&self) -> Result<(), InvalidOption> {
         let m = self.max_search_keyframes;

@@ -156,9 +156,9 @@ pub struct Args {
     /// With --tile-size: keyframes this far outside a tile's square (per axis) also go
     /// into its file, so requests near a border find every keyframe the whole map would
     /// use. At least the localizer's keyframe reach; default 50 m. The cut checks it (the
-    /// halo check): at sampled guesses near each core, the active set and the 8 nearest
-    /// keyframes (the tracker's explained share) from the tile against the whole map's,
-    /// with a warning for each shortfall.
+    /// halo check): at sampled guesses near each core, the active set and the keyframes
+    /// nearest by position that the tracker's explained share searches, from the tile
+    /// against the whole map's, with a warning for each shortfall.
     #[arg(long, value_name = "METRES", requires = "tile_size")]
     halo: Option<f64>,
     /// With --tile-size: also write the whole map as DIR/merged.kfmap (the same keyframes'
@@ -323,7 +323,7 @@ fn print_tiles(args: &Args, t: &TileSetSummary) {
     );
     if active_agree < sampled {
         println!(
-            "  warning: {} guesses near tile borders would be answered from fewer keyframes than the whole map has; widen --halo",
+            "  warning: {} guesses near tile borders would be answered from other keyframes than the whole map would use; widen --halo",
             sampled - active_agree
         );
     }

@@ -318,14 +318,9 @@ impl KeyframeMap {
     /// around a place whichever way its keyframes faced (what a scan's structure is
     /// checked against), where the active set keeps the few a registration needs.
     pub fn surroundings(&self, pose: &Pose, count: usize) -> Vec<KeyframeId> {
-        let by_position = SelectionOptions {
-            max_search_keyframes: count,
-            num_diverse_keyframes: 0,
-            rotation_distance_weight: 0.0,
-        };
         let poses: Vec<(KeyframeId, Pose)> =
             self.keyframes.values().map(|k| (k.id, k.pose)).collect();
-        let mut ids = select_active(&poses, pose, &by_position);
+        let mut ids = select_active(&poses, pose, &SelectionOptions::by_position(count));
         ids.sort_unstable();
         ids
     }
