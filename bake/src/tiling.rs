@@ -418,7 +418,8 @@ impl TileFinish<'_> {
         let covis = self.covis.restricted_to(&ids);
         let file = format!("{id}.kfmap");
         let written = writer.finish(self.next_id, &covis, &pool)?;
-        let halo_check = check_halo(&own, &self.near, geometry, (col, row), &self.selection);
+        let everyone = (&self.near, self.poses);
+        let halo_check = check_halo(&own, everyone, geometry, (col, row), &self.selection);
         let pcd = format!("{id}.pcd");
         let cloud = core_cloud(&self.dir.join(&file), geometry, (col, row))
             .map_err(|e| BakeError::Tiles(format!("tile {id}: its Autoware cloud: {e}")))?;
@@ -498,11 +499,12 @@ impl HaloCheck {
 }
 
 /// The halo check of one tile ([`HaloCheck`]): the keyframes selected from the tile's
-/// keyframes `own` against those selected from the whole map's, for the active set
-/// (`selection`) and the surroundings.
+/// keyframes `own` against those selected from the whole map's (`near`: its keyframes
+/// by position; `every`: all of them), for the active set (`selection`) and the
+/// surroundings.
 fn check_halo(
     own: &[(KeyframeId, Pose)],
-    everyone: &NearIndex,
+    (near, every): (&NearIndex, &[(KeyframeId, Pose)]),
     geometry: TileGeometry,
     (col, row): (i32, i32),
     selection: &SelectionOptions,
@@ -532,8 +534,8 @@ fn check_halo(
                 // a tile with no more keyframes than it selects bounds nothing, and is
                 // compared with every keyframe of the map.
                 let mut from_whole = match selection_reach(own, q, selection) {
-                    Some(reach) => select_active(&everyone.within(q, reach), q, selection),
-                    None => select_active(&everyone.all, q, selection),
+                    Some(reach) => select_active(&near.within(q, reach), q, selection),
+                    None => select_active(every, q, selection),
                 };
                 from_tile.sort_unstable();
                 from_whole.sort_unstable();
@@ -581,8 +583,6 @@ fn selection_reach(
 struct NearIndex {
     cell: f64,
     cells: std::collections::HashMap<(i64, i64), Vec<(KeyframeId, Pose)>>,
-    /// Every keyframe, ascending id.
-    all: Vec<(KeyframeId, Pose)>,
 }
 
 impl NearIndex {
@@ -596,9 +596,7 @@ impl NearIndex {
                 .or_default()
                 .push((id, pose));
         }
-        let mut all = keyframes.to_vec();
-        all.sort_unstable_by_key(|(id, _)| *id);
-        Self { cell, cells, all }
+        Self { cell, cells }
     }
 
     /// Keyframes within `r` (in x-y, then exactly in 3D) of `q`, ascending id.
@@ -701,28 +699,14 @@ mod tests {
             .collect()
     }
 
-    /// The keyframes `selection` takes from `set` at `q`, ascending id, by brute force:
-    /// for the surroundings, every keyframe sorted by distance (ties by id); otherwise
-    /// `select_active` over every keyframe given (no spatial index, no reach bound).
+    /// The keyframes `selection` takes from `set` at `q`, ascending id: over every
+    /// keyframe given, with no spatial index and no reach bound (what the check saves).
     fn brute_force(
         set: &[(KeyframeId, Pose)],
         q: &Pose,
         selection: &SelectionOptions,
     ) -> Vec<KeyframeId> {
-        let mut ids = if *selection == SelectionOptions::by_position(SURROUNDINGS) {
-            let mut by_distance: Vec<(f64, KeyframeId)> = set
-                .iter()
-                .map(|(id, p)| ((p.translation.vector - q.translation.vector).norm(), *id))
-                .collect();
-            by_distance.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-            by_distance
-                .iter()
-                .take(SURROUNDINGS)
-                .map(|(_, id)| *id)
-                .collect()
-        } else {
-            select_active(set, q, selection)
-        };
+        let mut ids = select_active(set, q, selection);
         ids.sort_unstable();
         ids
     }
@@ -745,7 +729,7 @@ mod tests {
             })
             .copied()
             .collect();
-        let check = check_halo(&own, &near, geometry, tile, selection);
+        let check = check_halo(&own, (&near, keyframes), geometry, tile, selection);
         let h = geometry.halo / 2.0;
         let mut expected = HaloCheck::default();
         let surroundings = SelectionOptions::by_position(SURROUNDINGS);

@@ -122,8 +122,10 @@ fn ipc_answers_equal_in_process_answers_bit_for_bit() {
     assert_eq!(ipc, local);
 
     // Nearest in the keyframes around the pose, as in process and as a brute force over
-    // the keyframes whose positions are nearest the guess (whichever way they face):
-    // all but one of the map's, so the answer must leave the farthest out.
+    // the points of the keyframes whose positions are nearest the guess (whichever way
+    // they face; `KeyframeMap::surroundings`, checked against sorted distances in the
+    // map's unit tests): all but one of the map's, so the answer must leave the
+    // farthest out.
     let count = served.map.len() - 1;
     assert!(count >= 2, "{} keyframes", served.map.len());
     let around = client
@@ -139,18 +141,7 @@ fn ipc_answers_equal_in_process_answers_bit_for_bit() {
         &plain,
     );
     assert_eq!(around, local);
-    let mut by_distance: Vec<(f64, u64)> = served
-        .map
-        .keyframes()
-        .map(|k| {
-            (
-                (k.pose.translation.vector - guess.translation.vector).norm(),
-                k.id,
-            )
-        })
-        .collect();
-    by_distance.sort_by(|a, b| a.0.total_cmp(&b.0));
-    let nearest: Vec<u64> = by_distance[..count].iter().map(|d| d.1).collect();
+    let nearest = served.map.surroundings(&guess, count);
     let map_points: Vec<nalgebra::Vector3<f64>> = nearest
         .iter()
         .flat_map(|id| {

@@ -296,8 +296,7 @@ impl KeyframeMap {
     /// As [`Self::select`] with `selection` in place of the map's own options (the
     /// active-set mode stays the map's).
     pub fn select_with(&self, pose: &Pose, selection: &SelectionOptions) -> Vec<KeyframeId> {
-        let poses: Vec<(KeyframeId, Pose)> =
-            self.keyframes.values().map(|k| (k.id, k.pose)).collect();
+        let poses = self.keyframe_poses();
         let mut ids = match self.options.active_set {
             ActiveSetMode::Distance => select_active(&poses, pose, selection),
             ActiveSetMode::Covisibility => match rank(&poses, pose, selection).first() {
@@ -318,11 +317,15 @@ impl KeyframeMap {
     /// around a place whichever way its keyframes faced (what a scan's structure is
     /// checked against), where the active set keeps the few a registration needs.
     pub fn surroundings(&self, pose: &Pose, count: usize) -> Vec<KeyframeId> {
-        let poses: Vec<(KeyframeId, Pose)> =
-            self.keyframes.values().map(|k| (k.id, k.pose)).collect();
-        let mut ids = select_active(&poses, pose, &SelectionOptions::by_position(count));
+        let by_position = SelectionOptions::by_position(count);
+        let mut ids = select_active(&self.keyframe_poses(), pose, &by_position);
         ids.sort_unstable();
         ids
+    }
+
+    /// Every keyframe's id and pose, what selection ranks.
+    fn keyframe_poses(&self) -> Vec<(KeyframeId, Pose)> {
+        self.keyframes.values().map(|k| (k.id, k.pose)).collect()
     }
 
     /// The active set for a query at `pose`: in exact mode its merged submap is built,
