@@ -12,7 +12,7 @@ use std::cell::RefCell;
 use std::sync::Arc;
 
 use kfmap_geometry::cloud::PointCloud;
-use kfmap_geometry::geometry::Pose;
+use kfmap_geometry::geometry::{Pose, translation_distance};
 use kfmap_geometry::imu::ImuSample;
 use kfmap_geometry::motion::{
     AdaptiveThreshold, AdaptiveThresholdParams, Gyro, GyroError, GyroParams, PosePredictor,
@@ -125,6 +125,13 @@ pub struct TrustParams {
     /// place does, but not the map beyond them. 0: the active set. The slide probe
     /// (`ok-pinned`) stays on the active set.
     pub explained_keyframes: u32,
+    /// A pose farther from the motion model's prediction than the sensor can move off
+    /// it, `0.5 m + max-acceleration dt^2 / 2` with `dt` since the last adopted
+    /// scan (m/s^2), is not adopted: `lost` at the prediction (`implausible`),
+    /// however well the scan fits there. A registration that slides metres along a
+    /// street between two scans has found another place, not the sensor's motion.
+    /// 0 turns the check off.
+    pub max_acceleration: f64,
 }
 
 impl Default for TrustParams {
@@ -143,6 +150,9 @@ impl Default for TrustParams {
             // keyframes, decided from the first scans on 5 or more (DESIGN, "The
             // courtyard's first 2.4 s").
             explained_keyframes: SURROUNDINGS as u32,
+            // About 1 g: a car's hardest braking; a walker's or a robot's steps are
+            // far less.
+            max_acceleration: 10.0,
         }
     }
 }
@@ -194,6 +204,12 @@ impl TrustParams {
             "explained-keyframes",
             self.explained_keyframes,
             &format!("0 (the active set) to {MAX_KEYFRAMES} keyframes"),
+        )?;
+        ensure(
+            self.max_acceleration.is_finite() && (0.0..=1000.0).contains(&self.max_acceleration),
+            "max-acceleration",
+            self.max_acceleration,
+            "0 (no check) to 1000 m/s^2",
         )
     }
 }
@@ -300,6 +316,10 @@ struct Evaluated {
 /// buildings changed: ok scans losing 0.13-0.24 were 0-17 mm off along the road, those
 /// losing 0.05-0.09 were 60-170 mm off with the registration's sigma at 5-20 mm.
 const SLIDE_PINNED_WELL: f64 = 0.15;
+/// How far a right pose may sit from a right prediction beyond what the acceleration
+/// explains (metres): the distance at which an `ok` pose counts as wrong, so a pose
+/// farther off means this scan or the ones before it are wrong by at least that.
+const JUMP_SLACK_M: f64 = 0.5;
 /// Sigma along the slide of a `degenerate` scan, metres: the scene says nothing there
 /// (a tunnel's axis, where the registration's weak pull may hold a repeat metres off),
 /// so an EKF fusing the pose must not trust that direction at all.
@@ -531,12 +551,18 @@ impl Tracker {
         let expected = self.last_inlier_ratio;
         let mut localized =
             self.localize_from(client, scan, t, &predicted, max_correction, expected)?;
+        let refused = self.refuse_impossible_jump(t, &predicted, by_model, &mut localized);
         let (explained, slide_loss) = self.explained_and_slide(client, scan, &localized)?;
         self.demote_doubtful(&mut localized, explained, slide_loss);
         widened_along_slide(&mut localized, slide_loss);
         self.confirm_after_unpinned_run(client, scan, t, &mut localized)?;
         self.give_up_when_unfit(&predicted, &mut localized);
-        if localized.health.status == TrackingStatus::Lost && self.options.relocalize_when_lost {
+        // A refused jump keeps the prediction, which is where the sensor is: a
+        // relocalization of the scan would weigh the same look-alike afresh.
+        if localized.health.status == TrackingStatus::Lost
+            && self.options.relocalize_when_lost
+            && !refused
+        {
             return self.relocalize(client, scan, t, predicted, max_correction, localized);
         }
         let mut tracked = self.adopt(t, predicted, max_correction, localized, by_model);
@@ -629,6 +655,39 @@ impl Tracker {
             localized.health.status = TrackingStatus::Degraded;
             localized.health.reasons.insert(Reasons::UNPINNED);
         }
+    }
+
+    /// Turns a pose the sensor cannot have reached since the last adopted scan into
+    /// `lost` at the prediction (`implausible`; see [`TrustParams::max_acceleration`]);
+    /// true when it did.
+    /// Checked only where the motion model predicted with a known velocity: the
+    /// registration's own gate bounds the correction at range, so a jump that fits
+    /// as well as the scans before (a look-alike along a street) passes it, and the
+    /// gate then learns from it and lets the next jump through too.
+    fn refuse_impossible_jump(
+        &self,
+        t: f64,
+        predicted: &Pose,
+        by_model: bool,
+        localized: &mut Localized,
+    ) -> bool {
+        let max_acceleration = self.options.trust.max_acceleration;
+        let since_last = self.motion.last_time().map(|t_last| (t - t_last).max(0.0));
+        let (Some(dt), true) = (
+            since_last,
+            max_acceleration > 0.0 && by_model && self.motion.has_velocity(),
+        ) else {
+            return false;
+        };
+        let reach = JUMP_SLACK_M + 0.5 * max_acceleration * dt * dt;
+        let refused = localized.health.status != TrackingStatus::Lost
+            && translation_distance(&localized.pose, predicted) > reach;
+        if refused {
+            localized.pose = *predicted;
+            localized.health.status = TrackingStatus::Lost;
+            localized.health.reasons.insert(Reasons::IMPLAUSIBLE);
+        }
+        refused
     }
 
     /// The scan counts that judge a tracked place start afresh: the map has just
@@ -1232,7 +1291,6 @@ impl Tracker {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use kfmap_geometry::geometry::translation_distance;
 
     fn at(x: f64) -> Pose {
         Pose::translation(x, 0.0, 0.0)
@@ -1429,6 +1487,79 @@ mod tests {
         }
         // 3 sigma of 0.2 m corrections is 0.6 m: clamped to the 1 m minimum.
         assert_eq!(tracker.max_correction(), Some(options.gate.min));
+    }
+
+    #[test]
+    fn a_pose_the_sensor_cannot_have_reached_is_lost_at_the_prediction() {
+        let options = TrackerOptions::default();
+        let mut tracker = Tracker::new(at(0.0), options);
+        // 1 m steps at 10 Hz (10 m/s): scans 0 and 1 give the velocity.
+        for (t, x) in [(0.0, 0.0), (0.1, 1.0)] {
+            let landed = scan(at(x), TrackingStatus::Ok, 0.9);
+            tracker.observe(t, tracker.predict(t), tracker.max_correction(), landed);
+        }
+        let predicted = tracker.predict(0.2);
+        assert!(translation_distance(&predicted, &at(2.0)) < 1e-9);
+        // Within 0.1 s the sensor can leave the prediction by 0.5 m plus 10 m/s^2 *
+        // (0.1 s)^2 / 2 = 0.55 m: 0.54 m off is adopted as registered, 0.56 m is not.
+        let judged = |tracker: &Tracker, t: f64, x: f64| {
+            let predicted = tracker.predict(t);
+            let mut localized = scan(at(x), TrackingStatus::Ok, 0.9);
+            let refused = tracker.refuse_impossible_jump(t, &predicted, true, &mut localized);
+            assert_eq!(refused, localized.health.status == TrackingStatus::Lost);
+            localized
+        };
+        let within = judged(&tracker, 0.2, 2.54);
+        assert_eq!(within.health.status, TrackingStatus::Ok);
+        assert_eq!(within.pose, at(2.54));
+        let beyond = judged(&tracker, 0.2, 2.0 - 0.56);
+        assert_eq!(beyond.health.status, TrackingStatus::Lost);
+        assert!(beyond.health.reasons.contains(Reasons::IMPLAUSIBLE));
+        assert_eq!(beyond.pose, predicted);
+        // The reach grows with the time since the last adopted scan: after five lost
+        // scans, 0.6 s since it, the prediction is at 7 m and the reach
+        // 0.5 + 10 * 0.6^2 / 2 = 2.3 m.
+        for k in 2..7 {
+            let t = k as f64 * 0.1;
+            tracker.observe(
+                t,
+                tracker.predict(t),
+                None,
+                scan(at(9.0), TrackingStatus::Lost, 0.1),
+            );
+        }
+        assert_eq!(
+            judged(&tracker, 0.7, 7.0 + 2.29).health.status,
+            TrackingStatus::Ok
+        );
+        assert_eq!(
+            judged(&tracker, 0.7, 7.0 - 2.31).health.status,
+            TrackingStatus::Lost
+        );
+        // A degraded pose is judged as well; a lost one, a pose the model did not
+        // predict (no velocity yet) and a check turned off leave the scan as it was.
+        let mut degraded = scan(at(10.0), TrackingStatus::Degraded, 0.9);
+        tracker.refuse_impossible_jump(0.7, &tracker.predict(0.7), true, &mut degraded);
+        assert_eq!(degraded.health.status, TrackingStatus::Lost);
+        let mut by_registration = scan(at(10.0), TrackingStatus::Ok, 0.9);
+        tracker.refuse_impossible_jump(0.7, &tracker.predict(0.7), false, &mut by_registration);
+        assert_eq!(by_registration.health.status, TrackingStatus::Ok);
+        let mut fresh = Tracker::new(at(0.0), options);
+        fresh.observe(0.0, at(0.0), None, scan(at(0.0), TrackingStatus::Ok, 0.9));
+        let mut first_step = scan(at(3.0), TrackingStatus::Ok, 0.9);
+        fresh.refuse_impossible_jump(0.1, &at(0.0), true, &mut first_step);
+        assert_eq!(
+            first_step.health.status,
+            TrackingStatus::Ok,
+            "no velocity known"
+        );
+        let mut off = TrackerOptions::default();
+        off.trust.max_acceleration = 0.0;
+        tracker.options = off;
+        assert_eq!(
+            judged(&tracker, 0.7, 20.0).health.status,
+            TrackingStatus::Ok
+        );
     }
 
     #[test]

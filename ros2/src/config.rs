@@ -398,6 +398,7 @@ mod tests {
             ("[server]\nmode = \"fast\"", "mode"),
             ("[topics]\nlidar = \"/x\"", "lidar"),
             ("[tracker]\nok-pinned = 3.0", "ok-pinned"),
+            ("[tracker]\nmax-acceleration = -1.0", "max-acceleration"),
             (
                 "[tracker]\nconfirm-after-unpinned = 5000",
                 "confirm-after-unpinned",

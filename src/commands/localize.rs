@@ -184,6 +184,11 @@ pub struct Args {
     /// a slide along a street ends somewhere unknown (0: no check).
     #[arg(long, default_value_t = TrustParams::default().confirm_after_unpinned)]
     confirm_after_unpinned: usize,
+    /// A pose farther from the motion model's prediction than 0.5 m plus what this
+    /// acceleration (m/s^2) moves the sensor since the last adopted scan is `lost`
+    /// (implausible): a slide onto a look-alike, not motion (0: no check).
+    #[arg(long, default_value_t = TrustParams::default().max_acceleration)]
+    max_acceleration: f64,
     /// Every this many adopted scans the scan is also relocalized, so that a look-alike
     /// place elsewhere becomes a hypothesis beside the tracked one (0: never).
     #[arg(long, default_value_t = TrustParams::default().check_every)]
@@ -511,6 +516,7 @@ fn trust(args: &Args) -> TrustParams {
         ok_pinned: args.ok_pinned,
         confirm_after_unpinned: args.confirm_after_unpinned,
         explained_keyframes: args.explained_keyframes,
+        max_acceleration: args.max_acceleration,
     }
 }
 

@@ -146,6 +146,10 @@ fn bad_input_exits_2_with_a_message_naming_the_problem() {
         ),
         (localize_with(&["--ok-pinned", "3"]), "--ok-pinned"),
         (
+            localize_with(&["--max-acceleration=-1"]),
+            "--max-acceleration",
+        ),
+        (
             localize_with(&["--vertical-angle-offset-deg", "-9"]),
             "--vertical-angle-offset-deg: option `vertical-angle-offset-deg` = -9 is invalid",
         ),

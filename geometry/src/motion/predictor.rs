@@ -61,6 +61,11 @@ impl PosePredictor {
         self.velocity.last()
     }
 
+    /// When the last pose was taken, seconds.
+    pub fn last_time(&self) -> Option<f64> {
+        self.velocity.last_time()
+    }
+
     /// The pose expected at time `t`, seconds: the constant-velocity prediction with the
     /// gyro's rotation since the last pose; `None` before the first pose.
     pub fn predict(&self, t: f64) -> Option<Pose> {
