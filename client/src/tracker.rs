@@ -1041,7 +1041,7 @@ impl Tracker {
         // Decided as a relocalization is: the motion starts afresh at this scan. The
         // scan-to-scan motion that carried the places says nothing of how wrong the
         // model's predictions are, so it neither sets the velocity nor feeds the gate.
-        self.motion.restart();
+        self.restart_at_decided(t, &found);
         self.restart_streaks();
         self.lost_streak = 0;
         found.health.reasons.insert(Reasons::RELOCALIZED);
@@ -1052,6 +1052,18 @@ impl Tracker {
         tracked.explained = explained;
         tracked.slide_loss = slide_loss;
         Ok(tracked)
+    }
+
+    /// Restarts the motion at the place just decided among hypotheses. Decided on a
+    /// scan that did not register there (`lost`), the place (the scan's prediction at
+    /// it) is still where the sensor is: unseeded, the next scan was predicted at the
+    /// start pose, and from there a courtyard's twin turned 180 deg about its centre,
+    /// 27 m off, registered as well as the right place and was tracked `ok`.
+    fn restart_at_decided(&mut self, t: f64, found: &Localized) {
+        self.motion.restart();
+        if found.health.status == TrackingStatus::Lost {
+            self.motion.update(t, found.pose, false);
+        }
     }
 
     /// What the map explains of `scan`'s structure where it was localized, and what a
@@ -1560,6 +1572,30 @@ mod tests {
             judged(&tracker, 0.7, 20.0).health.status,
             TrackingStatus::Ok
         );
+    }
+
+    #[test]
+    fn a_place_decided_on_a_lost_scan_is_where_the_next_scan_is_predicted() {
+        let mut tracker = Tracker::new(at(0.0), TrackerOptions::default());
+        for (t, x) in [(0.0, 0.0), (0.1, 1.0)] {
+            let landed = scan(at(x), TrackingStatus::Ok, 0.9);
+            tracker.observe(t, tracker.predict(t), None, landed);
+        }
+        // The places decided at t = 5 s on a scan lost there, reported as
+        // `track_hypotheses` reports it.
+        let found = scan(at(50.0), TrackingStatus::Lost, 0.1);
+        tracker.restart_at_decided(5.0, &found);
+        tracker.observe(5.0, at(50.0), None, found);
+        assert_eq!(tracker.predict(5.1), at(50.0), "at the place, at rest");
+        assert_eq!(
+            tracker.max_correction(),
+            Some(2.0 * tracker.gate.distance())
+        );
+        // A scan that registered there is the motion's first pose through `observe`.
+        let registered = scan(at(60.0), TrackingStatus::Degraded, 0.9);
+        tracker.restart_at_decided(6.0, &registered);
+        tracker.observe(6.0, at(60.0), None, registered);
+        assert_eq!(tracker.predict(6.1), at(60.0));
     }
 
     #[test]
