@@ -660,7 +660,8 @@ impl Tracker {
     /// Turns a pose the sensor cannot have reached since the last adopted scan into
     /// `lost` at the prediction (`implausible`; see [`TrustParams::max_acceleration`]);
     /// true when it did.
-    /// Checked only where the motion model predicted with a known velocity: the
+    ///
+    /// Checked only where the motion model predicted with a known velocity. The
     /// registration's own gate bounds the correction at range, so a jump that fits
     /// as well as the scans before (a look-alike along a street) passes it, and the
     /// gate then learns from it and lets the next jump through too.
@@ -671,23 +672,22 @@ impl Tracker {
         by_model: bool,
         localized: &mut Localized,
     ) -> bool {
-        let max_acceleration = self.options.trust.max_acceleration;
-        let since_last = self.motion.last_time().map(|t_last| (t - t_last).max(0.0));
-        let (Some(dt), true) = (
-            since_last,
-            max_acceleration > 0.0 && by_model && self.motion.has_velocity(),
-        ) else {
+        let a = self.options.trust.max_acceleration;
+        let judged = a > 0.0
+            && by_model
+            && self.motion.has_velocity()
+            && localized.health.status != TrackingStatus::Lost;
+        let Some(t_last) = self.motion.last_time().filter(|_| judged) else {
             return false;
         };
-        let reach = JUMP_SLACK_M + 0.5 * max_acceleration * dt * dt;
-        let refused = localized.health.status != TrackingStatus::Lost
-            && translation_distance(&localized.pose, predicted) > reach;
-        if refused {
-            localized.pose = *predicted;
-            localized.health.status = TrackingStatus::Lost;
-            localized.health.reasons.insert(Reasons::IMPLAUSIBLE);
+        let dt = (t - t_last).max(0.0);
+        if translation_distance(&localized.pose, predicted) <= JUMP_SLACK_M + 0.5 * a * dt * dt {
+            return false;
         }
-        refused
+        localized.pose = *predicted;
+        localized.health.status = TrackingStatus::Lost;
+        localized.health.reasons.insert(Reasons::IMPLAUSIBLE);
+        true
     }
 
     /// The scan counts that judge a tracked place start afresh: the map has just
@@ -1553,6 +1553,9 @@ mod tests {
         let mut degraded = scan(at(10.0), TrackingStatus::Degraded, 0.9);
         tracker.refuse_impossible_jump(0.7, &tracker.predict(0.7), true, &mut degraded);
         assert_eq!(degraded.health.status, TrackingStatus::Lost);
+        let mut lost = scan(at(20.0), TrackingStatus::Lost, 0.1);
+        assert!(!tracker.refuse_impossible_jump(0.7, &tracker.predict(0.7), true, &mut lost));
+        assert_eq!((lost.pose, lost.health.reasons), (at(20.0), Reasons::NONE));
         let mut by_registration = scan(at(10.0), TrackingStatus::Ok, 0.9);
         tracker.refuse_impossible_jump(0.7, &tracker.predict(0.7), false, &mut by_registration);
         assert_eq!(by_registration.health.status, TrackingStatus::Ok);
