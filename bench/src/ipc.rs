@@ -17,6 +17,7 @@ use kfmap_protocol::{Cov2CovMode, RequestHeader, RequestKind, ScanPayload, pose_
 use kfmap_service::server::ServedMap;
 use kfmap_service::server::session::Session;
 use kfmap_service::server::{Limits, answer};
+use nalgebra::Translation3;
 use serde_json::json;
 
 use super::child::child_bench;
@@ -57,9 +58,12 @@ fn client(prefix: &str, spin: bool) -> anyhow::Result<Client> {
 }
 
 /// The benchmark's request: a 10k-point scan near the middle keyframe (in that
-/// keyframe's frame) with its covariances, approximate cov2cov within 1 m.
+/// keyframe's frame) with its covariances, approximate cov2cov within 1 m, at one of two
+/// poses 0.5 m apart, alternately: the server remembers each point's neighbours between
+/// a registration's iterations (`NearestMemo`), and the same pose again would measure
+/// that recall instead of the searches of a registration's first iteration.
 struct Cov2CovRequest {
-    header: RequestHeader,
+    headers: [RequestHeader; 2],
     points: Vec<[f32; 3]>,
     /// Sent by the client (as its GICP iterations do), or `None`: the default call,
     /// the server estimates them from the scan.
@@ -72,15 +76,15 @@ impl Cov2CovRequest {
         let covariances = client_covariances.then(|| {
             kfmap_geometry::cov::estimate_covariances(&points, &CovOptions::default()).values
         });
-        let header = RequestHeader {
+        let header = |shift: f64| RequestHeader {
             kind: RequestKind::Cov2Cov as u32,
-            pose: pose_to_wire(&keyframe_pose(5)),
+            pose: pose_to_wire(&(Translation3::new(shift, 0.0, 0.0) * keyframe_pose(5))),
             max_pair_dist: 1.0,
             mode: Cov2CovMode::Approximate as u32,
             ..Default::default()
         };
         Self {
-            header,
+            headers: [header(0.0), header(0.5)],
             points,
             covariances,
         }
@@ -94,14 +98,15 @@ impl Cov2CovRequest {
         }
     }
 
-    /// One round trip, the client reading the pairings in place: (round trip, the
-    /// server's own compute time), microseconds.
-    fn over_ipc(&self, client: &mut Client) -> anyhow::Result<(f64, f64)> {
+    /// Round trip number `call`, the client reading the pairings in place: (round
+    /// trip, the server's own compute time), microseconds.
+    fn over_ipc(&self, client: &mut Client, call: usize) -> anyhow::Result<(f64, f64)> {
+        let header = self.headers[call % 2];
         let t = Instant::now();
         let (server_us, pairings) =
             client
                 .connection()
-                .call_scan_with(self.header, &self.scan(), |h, p| (h.server_us, p.len()))?;
+                .call_scan_with(header, &self.scan(), |h, p| (h.server_us, p.len()))?;
         std::hint::black_box(pairings);
         Ok((t.elapsed().as_secs_f64() * 1e6, server_us))
     }
@@ -113,7 +118,7 @@ fn hammer(client: &mut Client, seconds: f64) -> anyhow::Result<Vec<f64>> {
     let mut latencies = Vec::new();
     let started = Instant::now();
     while started.elapsed().as_secs_f64() < seconds {
-        latencies.push(request.over_ipc(client)?.0);
+        latencies.push(request.over_ipc(client, latencies.len())?.0);
     }
     Ok(latencies)
 }
@@ -130,19 +135,21 @@ fn ipc_against_in_process(
 ) -> anyhow::Result<Overhead> {
     let request = Cov2CovRequest::new(client_covariances);
     let served = ServedMap::open(map, false, 0)?;
-    let mut header = request.header;
-    let payload = request.scan().encode(&mut header);
+    let mut headers = request.headers;
+    let payloads = headers.each_mut().map(|h| request.scan().encode(h));
     let limits = Limits::default();
     let mut session = Session::new(0);
     let (mut ipc, mut server, mut local) = (Vec::new(), Vec::new(), Vec::new());
     let started = Instant::now();
     while started.elapsed().as_secs_f64() < seconds {
-        let (round_trip, server_us) = request.over_ipc(client)?;
+        let call = ipc.len();
+        let (round_trip, server_us) = request.over_ipc(client, call)?;
         ipc.push(round_trip);
         server.push(server_us);
+        let (header, payload) = (&headers[call % 2], &payloads[call % 2]);
         let t = Instant::now();
         // The same answer the IPC client reads: pairings in the wire layout.
-        let answered = answer(&served, &mut session, &header, &payload, &limits);
+        let answered = answer(&served, &mut session, header, payload, &limits);
         std::hint::black_box(answered.pairings.into_wire());
         local.push(t.elapsed().as_secs_f64() * 1e6);
     }

@@ -28,7 +28,7 @@ use std::num::NonZeroUsize;
 
 use build::BoxTree;
 pub use morton::morton_order;
-use search::{Counted, KNearest, Nearest, NearestAt, Within};
+use search::{Counted, KNearest, Nearest, NearestAt, NearestFewAt, Within};
 
 /// Points per leaf. On KITTI 00 (frame 1 against frame 0, one thread) leaves of 16
 /// (two blocks) answered 1-NN faster than 8 or 32 (`cargo bench --bench kdtree`).
@@ -138,6 +138,19 @@ pub(crate) fn rank_dist_sq(rank: u64) -> f32 {
 #[inline(always)]
 pub(crate) fn rank_item(rank: u64) -> u32 {
     rank as u32
+}
+
+/// The squared distance between a tree's point and a query, computed exactly as a
+/// search computes it (so a caller re-measuring a point a search found gets the same
+/// bits).
+#[inline(always)]
+pub fn point_dist_sq(point: &[f32; 3], query: &[f32; 3]) -> f32 {
+    let (dx, dy, dz) = (
+        point[0] - query[0],
+        point[1] - query[1],
+        point[2] - query[2],
+    );
+    dx * dx + dy * dy + dz * dz
 }
 
 /// Builds a tree over `points`; item `i` is `points[i]`. The same tree for any thread
@@ -383,6 +396,28 @@ impl<'a> TreeRef<'a> {
         };
         self.search(query, &mut best);
         best.nearest.found().map(|(item, d)| (item, d, best.point))
+    }
+
+    /// The `N` nearest points with squared distance <= `max_dist_sq`, nearest first
+    /// (ties by item), each as `(item, squared distance, point)` with the point's
+    /// coordinates as the tree stores them; slots past the points found hold
+    /// [`PAD_ITEM`] at `max_dist_sq`. No point of the tree but those found lies closer
+    /// to `query` than the last slot's distance.
+    #[inline]
+    pub fn nearest_few_within_at<const N: usize>(
+        &self,
+        query: &[f32; 3],
+        max_dist_sq: f32,
+    ) -> [(u32, f32, [f32; 3]); N] {
+        let mut few = NearestFewAt::<N>::within(max_dist_sq);
+        self.search(query, &mut few);
+        std::array::from_fn(|i| {
+            (
+                rank_item(few.ranks[i]),
+                rank_dist_sq(few.ranks[i]),
+                few.points[i],
+            )
+        })
     }
 
     /// What finding the nearest point costs: the nodes read and the blocks of

@@ -146,6 +146,65 @@ impl Collector for NearestAt {
     }
 }
 
+/// The `N` nearest points within an inclusive bound, with their coordinates, sorted by
+/// (squared distance, item); a slot not filled ranks as the bound with [`PAD_ITEM`].
+/// The last one's distance is what tells a caller that the others stay the nearest for
+/// a query moved less than their lead on it.
+pub(super) struct NearestFewAt<const N: usize> {
+    pub ranks: [u64; N],
+    pub points: [[f32; 3]; N],
+}
+
+impl<const N: usize> NearestFewAt<N> {
+    pub fn within(bound_sq: f32) -> Self {
+        Self {
+            ranks: [rank(bound_sq, PAD_ITEM); N],
+            points: [[f32::NAN; 3]; N],
+        }
+    }
+
+    /// Takes `new` with coordinates `point` where it ranks, dropping the last.
+    #[inline(always)]
+    fn insert(&mut self, new: u64, point: [f32; 3]) {
+        let mut at = N - 1;
+        if new >= self.ranks[at] {
+            return;
+        }
+        while at > 0 && self.ranks[at - 1] > new {
+            self.ranks[at] = self.ranks[at - 1];
+            self.points[at] = self.points[at - 1];
+            at -= 1;
+        }
+        self.ranks[at] = new;
+        self.points[at] = point;
+    }
+}
+
+impl<const N: usize> Collector for NearestFewAt<N> {
+    #[inline(always)]
+    fn bound(&self) -> f32 {
+        rank_dist_sq(self.ranks[N - 1])
+    }
+
+    /// Never called by a search, which offers whole blocks (below); a point offered
+    /// alone has no coordinates here (NaN).
+    fn offer(&mut self, dist_sq: f32, item: u32) {
+        self.insert(rank(dist_sq, item), [f32::NAN; 3]);
+    }
+
+    #[inline(always)]
+    fn offer_block(&mut self, dist_sq: &[f32; LANES], items: &[u32], block: &PointBlock) {
+        for lane in 0..LANES {
+            let d = dist_sq[lane];
+            // NaN lanes (padding) compare false.
+            if d <= self.bound() {
+                let point = [block[0][lane], block[1][lane], block[2][lane]];
+                self.insert(rank(d, items[lane]), point);
+            }
+        }
+    }
+}
+
 /// The `k` nearest points, sorted by (squared distance, item). Slots not yet filled
 /// rank as the bound (infinite unless given) with [`PAD_ITEM`].
 pub(super) struct KNearest {

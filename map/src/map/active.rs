@@ -17,7 +17,7 @@ use kfmap_geometry::cov::estimate_covariances;
 use kfmap_geometry::geometry::{
     PackedSym3, Pose, pack_sym3, to_point, to_vec3, transform_point, unpack_sym3,
 };
-use kfmap_geometry::spatial::{PointTree, TreeRef, build_tree};
+use kfmap_geometry::spatial::{PAD_ITEM, PointTree, TreeRef, build_tree, point_dist_sq};
 
 /// The active keyframes' points concatenated in ascending id order, in the map frame,
 /// with a tree and covariances of their own (neighbours may come from any keyframe).
@@ -320,6 +320,11 @@ impl<'a> ActiveSet<'a> {
     /// the sensor: it likely holds `p`'s nearest points, whose distance then bounds the
     /// searches in the others), the rest in id order.
     fn frames_nearest_first(&self, p: &[f32; 3]) -> impl Iterator<Item = &ActiveFrame<'a>> {
+        self.slots_nearest_first(p).map(|i| &self.frames[i])
+    }
+
+    /// [`Self::frames_nearest_first`] as indices into the active frames.
+    fn slots_nearest_first(&self, p: &[f32; 3]) -> impl Iterator<Item = usize> + use<'_> {
         let origin_dist_sq =
             |f: &ActiveFrame| (f.pose.translation.vector - to_vec3(p)).norm_squared();
         let first = (0..self.frames.len()).min_by(|&a, &b| {
@@ -328,7 +333,49 @@ impl<'a> ActiveSet<'a> {
         first
             .into_iter()
             .chain((0..self.frames.len()).filter(move |&i| Some(i) != first))
-            .map(|i| &self.frames[i])
+    }
+
+    /// Approximate mode: the [`MEMO_FOUND`] nearest points over the active keyframes
+    /// within `bound_sq`, nearest first by [`rank_order`] (so the first is
+    /// [`Self::nearest_in_frames`]'s), with the squared distance within which no other
+    /// lies (the next one's, `bound_sq` when there is none). Each keyframe's search is
+    /// bounded by the farthest kept so far.
+    fn few_nearest_in_frames(
+        &self,
+        p: &[f32; 3],
+        bound_sq: f32,
+    ) -> ([Option<FrameHit>; MEMO_FOUND], f32) {
+        // The kept points, then the one past them: its distance clears the rest.
+        let mut kept: [Option<FrameHit>; MEMO_FOUND + 1] = [None; MEMO_FOUND + 1];
+        let mut bound = bound_sq;
+        for slot in self.slots_nearest_first(p) {
+            let f = &self.frames[slot];
+            let query = Self::local_query(f, p);
+            if f.bbox.dist_sq(&query) > bound {
+                continue;
+            }
+            let found = f
+                .view
+                .tree
+                .nearest_few_within_at::<{ MEMO_FOUND + 1 }>(&query, bound);
+            for (item, dist_sq, local) in found.into_iter().take_while(|h| h.0 != PAD_ITEM) {
+                let key = |h: &FrameHit| (h.2, self.frames[h.0].id, h.1);
+                let new = (slot, item, dist_sq, local);
+                let Some(at) = kept
+                    .iter()
+                    .position(|k| k.is_none_or(|k| rank_order(key(&new), key(&k)).is_lt()))
+                else {
+                    break;
+                };
+                kept.copy_within(at..MEMO_FOUND, at + 1);
+                kept[at] = Some(new);
+            }
+            if let Some(last) = kept[MEMO_FOUND] {
+                bound = bound.min(last.2);
+            }
+        }
+        let clear = kept[MEMO_FOUND].map_or(bound_sq, |h| h.2);
+        (std::array::from_fn(|i| kept[i]), clear)
     }
 
     /// Approximate mode: the `k` nearest points over the active keyframes, nearest
@@ -387,7 +434,11 @@ impl<'a> ActiveSet<'a> {
         };
         if self.merged.is_none() {
             // Bounded across the keyframes, as `nearest_one` (a tracker's
-            // explained-structure queries ask for k = 1 on every adopted scan).
+            // explained-structure queries ask for k = 1 on every adopted scan, answered
+            // by the 1-NN search, which keeps no list).
+            if k == 1 {
+                return self.nearest_one(p).into_iter().collect();
+            }
             return self.nearest_k_in_frames(p, n);
         }
         let mut hits = self.gather(p, |tree, q| tree.nearest_n(q, n));
@@ -413,6 +464,21 @@ impl<'a> ActiveSet<'a> {
         max_pair_dist: f64,
         query_covariances: Option<&[PackedSym3]>,
     ) -> Result<Vec<Pairing>, MapError> {
+        self.cov2cov_remembering(scan, pose, max_pair_dist, query_covariances, None)
+    }
+
+    /// [`Self::cov2cov`], the same pairings, with `memo` remembering each scan point's
+    /// nearest map point and how far its runner-up lay: in approximate mode a point
+    /// that moved less than that gap since the memo's search (the iterations of one
+    /// registration) is paired without a search (see [`NearestMemo`]).
+    pub fn cov2cov_remembering(
+        &self,
+        scan: &PointCloud,
+        pose: &Pose,
+        max_pair_dist: f64,
+        query_covariances: Option<&[PackedSym3]>,
+        memo: Option<&mut NearestMemo>,
+    ) -> Result<Vec<Pairing>, MapError> {
         scan.validate()?;
         let estimated;
         let covs: &[PackedSym3] = match query_covariances {
@@ -433,35 +499,146 @@ impl<'a> ActiveSet<'a> {
         let cos_limit = options.max_view_angle_deg.to_radians().cos();
         let filter = options.view_filter_active() && scan.view_dirs.is_some();
         let rotation = pose.rotation.to_rotation_matrix().into_inner();
-        let pairings = (0..scan.len())
-            .into_par_iter()
-            .filter_map(|i| {
-                let p = to_point(&(pose * Point3::from(to_vec3(&scan.points[i]))).coords);
-                let (hit, map_cov, map_view) = self.nearest_with_attributes(&p, max_sq)?;
-                if filter {
-                    let vq = pose.rotation * to_vec3(&scan.view_dirs.as_ref()?[i]);
-                    // A missing vector (norm^2 < 0.25) never rejects.
-                    if vq.norm_squared() >= 0.25
-                        && map_view.norm_squared() >= 0.25
-                        && vq.dot(&map_view) < cos_limit
-                    {
-                        return None;
-                    }
+        let map_point =
+            |i: usize| to_point(&(pose * Point3::from(to_vec3(&scan.points[i]))).coords);
+        let pair = |i: usize, (hit, map_cov, map_view): (MapHit, Matrix3<f64>, Vector3<f64>)| {
+            if filter {
+                let vq = pose.rotation * to_vec3(&scan.view_dirs.as_ref()?[i]);
+                // A missing vector (norm^2 < 0.25) never rejects.
+                if vq.norm_squared() >= 0.25
+                    && map_view.norm_squared() >= 0.25
+                    && vq.dot(&map_view) < cos_limit
+                {
+                    return None;
                 }
-                let combined: Matrix3<f64> =
-                    map_cov + rotation * unpack_sym3(&covs[i]) * rotation.transpose();
-                let information = combined.try_inverse()?;
-                Some(Pairing {
-                    query_index: i as u32,
-                    keyframe: hit.keyframe,
-                    local_index: hit.local_index,
-                    map_point: hit.point,
-                    dist_sq: hit.dist_sq,
-                    information: pack_sym3(&information),
-                })
+            }
+            let combined: Matrix3<f64> =
+                map_cov + rotation * unpack_sym3(&covs[i]) * rotation.transpose();
+            let information = combined.try_inverse()?;
+            Some(Pairing {
+                query_index: i as u32,
+                keyframe: hit.keyframe,
+                local_index: hit.local_index,
+                map_point: hit.point,
+                dist_sq: hit.dist_sq,
+                information: pack_sym3(&information),
             })
-            .collect();
+        };
+        let pairings = match memo.filter(|_| self.merged.is_none()) {
+            None => (0..scan.len())
+                .into_par_iter()
+                .filter_map(|i| pair(i, self.nearest_with_attributes(&map_point(i), max_sq)?))
+                .collect(),
+            Some(memo) => {
+                memo.follow(&self.ids, scan.len());
+                memo.entries
+                    .par_iter_mut()
+                    .enumerate()
+                    .filter_map(|(i, entry)| {
+                        pair(i, self.nearest_remembered(&map_point(i), max_sq, entry)?)
+                    })
+                    .collect()
+            }
+        };
         Ok(pairings)
+    }
+
+    /// The nearest map point within `max_dist_sq` with its attributes (as
+    /// [`Self::nearest_with_attributes`] in approximate mode): recalled from `entry`
+    /// when its certificate still holds at `p`, else searched and remembered there.
+    fn nearest_remembered(
+        &self,
+        p: &[f32; 3],
+        max_dist_sq: f32,
+        entry: &mut Remembered,
+    ) -> Option<(MapHit, Matrix3<f64>, Vector3<f64>)> {
+        let found = match self.recall(entry, p, max_dist_sq) {
+            Ok(answer) => {
+                entry.recalled = true;
+                answer
+            }
+            Err(known_within) => {
+                let reach = max_dist_sq.sqrt();
+                let bound = known_within.map_or(reach, |k| k.min(reach));
+                let (few, clear_sq) = self.few_nearest_in_frames(p, bound * bound);
+                *entry = Remembered {
+                    query: *p,
+                    nearest: few
+                        .map(|h| h.map(|(slot, item, _, local)| (slot as u32, item, local))),
+                    clear: clear_sq.sqrt(),
+                    clear_by_point: clear_sq < bound * bound,
+                    recalled: false,
+                };
+                few[0].filter(|&(_, _, d, _)| d <= max_dist_sq)
+            }
+        }?;
+        let (slot, item, dist_sq, local) = found;
+        let f = &self.frames[slot];
+        let hit = Self::hit_at(f, item, dist_sq, &local);
+        let (cov, view) = Self::attributes(f, item);
+        Some((hit, cov, view))
+    }
+
+    /// What `entry` certifies at `p`: `Some(answer)` (the nearest within
+    /// `max_dist_sq` as (slot, item, squared distance, local point), or none) when the
+    /// nearest of the remembered points is closer to `p` than every other map point can
+    /// be (`clear` less how far `p` moved from the remembered query, less
+    /// [`MEMO_MARGIN_M`] for rounding). Else `Err`: a search is needed, and
+    /// `Some(d)` when [`MEMO_FOUND`] + 1 map points are known to lie within `d` metres
+    /// of `p` (the remembered ones and the one that cleared them), so a search bounded
+    /// by it finds what an unbounded one would.
+    fn recall(
+        &self,
+        entry: &Remembered,
+        p: &[f32; 3],
+        max_dist_sq: f32,
+    ) -> Result<Option<FrameHit>, Option<f32>> {
+        let moved = (to_vec3(p) - to_vec3(&entry.query)).norm();
+        // Every map point but the remembered ones lies at least this far from `p`.
+        let others_beyond = f64::from(entry.clear) - moved - MEMO_MARGIN_M;
+        // The query in each frame, once (the remembered points are few, frames fewer).
+        let mut local_queries = [(usize::MAX, [0.0f32; 3]); MEMO_FOUND];
+        let mut best: Option<FrameHit> = None;
+        let mut farthest_sq = 0.0f32;
+        for (n, &(slot, item, local)) in entry.nearest.iter().flatten().enumerate() {
+            let slot = slot as usize;
+            let Some(f) = self.frames.get(slot) else {
+                return Err(None);
+            };
+            let query = match local_queries[..n].iter().find(|q| q.0 == slot) {
+                Some(q) => q.1,
+                None => Self::local_query(f, p),
+            };
+            local_queries[n] = (slot, query);
+            let dist_sq = point_dist_sq(&local, &query);
+            farthest_sq = farthest_sq.max(dist_sq);
+            let new = (slot, item, dist_sq, local);
+            let key = |h: &FrameHit| (h.2, self.frames[h.0].id, h.1);
+            if best.is_none_or(|b| rank_order(key(&new), key(&b)).is_lt()) {
+                best = Some(new);
+            }
+        }
+        let certain = match best {
+            Some(hit) => (f64::from(hit.2).sqrt() < others_beyond)
+                .then_some((hit.2 <= max_dist_sq).then_some(hit)),
+            None => (others_beyond > f64::from(max_dist_sq).sqrt()).then_some(None),
+        };
+        certain.ok_or_else(|| {
+            let all_kept = entry.nearest.iter().all(Option::is_some);
+            (all_kept && entry.clear_by_point).then(|| {
+                let clearing = f64::from(entry.clear) + moved + MEMO_MARGIN_M;
+                (f64::from(farthest_sq).sqrt() + MEMO_MARGIN_M).max(clearing) as f32
+            })
+        })
+    }
+
+    /// Map-frame covariance and view direction of keyframe `f`'s point `item`.
+    fn attributes(f: &ActiveFrame, item: u32) -> (Matrix3<f64>, Vector3<f64>) {
+        let local_cov = unpack_sym3(&f.view.covariances[item as usize]);
+        let view = f.view.view_dirs.map_or(Vector3::zeros(), |v| {
+            f.rotation * to_vec3(&v[item as usize])
+        });
+        (f.rotation * local_cov * f.rotation.transpose(), view)
     }
 
     /// Nearest map point within `max_dist_sq` (inclusive) with its covariance and view
@@ -480,10 +657,136 @@ impl<'a> ActiveSet<'a> {
             ));
         }
         let (f, hit) = self.nearest_in_frames(p, max_dist_sq)?;
-        let local_cov = unpack_sym3(&f.view.covariances[hit.local_index as usize]);
-        let view = f.view.view_dirs.map_or(Vector3::zeros(), |v| {
-            f.rotation * to_vec3(&v[hit.local_index as usize])
-        });
-        Some((hit, f.rotation * local_cov * f.rotation.transpose(), view))
+        let (cov, view) = Self::attributes(f, hit.local_index);
+        Some((hit, cov, view))
+    }
+}
+
+/// A point of an active keyframe found for a query: (slot in the active frames, item,
+/// squared distance, the point in the keyframe's frame).
+type FrameHit = (usize, u32, f32, [f32; 3]);
+
+/// A point is recalled only when its nearest leads every other map point by more than
+/// this, for rounding: the distances compared are computed in `f32` in the keyframes'
+/// frames, from queries rounded there (points 128 m from a keyframe's origin round to
+/// 4 um, their distances to about 7 um), so ties and near-ties are always searched.
+const MEMO_MARGIN_M: f64 = 1e-4;
+
+/// Map points a memo keeps per scan point (the last search's nearest). Keeping more
+/// recalls more (a street replay: 29 % of its pairings with one, 40 % with two, 50 %
+/// with four), but each search then finds that many more and costs more than the
+/// recalls save: the server's CPU time rose with two and four.
+const MEMO_FOUND: usize = 1;
+
+/// Each scan point's last search in approximate mode, index by index, for
+/// [`ActiveSet::cov2cov_remembering`]: the query, its nearest map point and `clear`,
+/// the distance within which no other map point lay. When the point is queried again
+/// at `p`, moved `m` from that query, every other map point lies at least
+/// `clear - m` from `p`; if the nearest is closer than that (by [`MEMO_MARGIN_M`]) it
+/// is still the nearest and no search is needed. The answers are exactly a search's.
+/// A registration's iterations move a point millimetres while its runner-up lies
+/// centimetres behind, so most of them are recalled. Entries belong to one active set:
+/// another one clears them.
+#[derive(Debug, Default)]
+pub struct NearestMemo {
+    ids: Vec<KeyframeId>,
+    entries: Vec<Remembered>,
+}
+
+/// One scan point's last search (see [`NearestMemo`]).
+#[derive(Debug, Clone, Copy)]
+struct Remembered {
+    /// The query searched, map frame.
+    query: [f32; 3],
+    /// Its nearest map points as (active-frame slot, item, local point), nearest
+    /// first, those that lay within the pairing distance.
+    nearest: [Option<(u32, u32, [f32; 3])>; MEMO_FOUND],
+    /// No map point but those of `nearest` lies closer to `query` than this, metres.
+    clear: f32,
+    /// True when `clear` is a map point's distance, false when it is the search's bound.
+    clear_by_point: bool,
+    /// True when the last pairing recalled this entry instead of searching.
+    recalled: bool,
+}
+
+// The size `NearestMemos::MAX_POINTS` budgets for.
+const _: () = assert!(std::mem::size_of::<Remembered>() <= 44);
+
+/// An entry that certifies nothing.
+const FORGOTTEN: Remembered = Remembered {
+    query: [0.0; 3],
+    nearest: [None; MEMO_FOUND],
+    clear: 0.0,
+    clear_by_point: false,
+    recalled: false,
+};
+
+impl NearestMemo {
+    /// Points the memo holds entries for.
+    pub fn len(&self) -> usize {
+        self.entries.len()
+    }
+
+    /// True before the memo served any scan.
+    pub fn is_empty(&self) -> bool {
+        self.entries.is_empty()
+    }
+
+    /// Scan points the last pairing recalled without a search.
+    pub fn recalled(&self) -> usize {
+        self.entries.iter().filter(|e| e.recalled).count()
+    }
+
+    /// Entries for `points` scan points on the active set `ids`: all forgotten when
+    /// the set changed (slots name its frames).
+    fn follow(&mut self, ids: &[KeyframeId], points: usize) {
+        if self.ids != ids {
+            self.ids = ids.to_vec();
+            self.entries.clear();
+        }
+        self.entries.resize(points, FORGOTTEN);
+    }
+}
+
+/// A client's memos, one per scan size it pairs (a tracker pairs a coarse and a fine
+/// copy of each scan, each over several iterations), the most recent first; at most
+/// [`NearestMemos::KEPT`].
+#[derive(Debug, Default)]
+pub struct NearestMemos {
+    memos: Vec<NearestMemo>,
+}
+
+impl NearestMemos {
+    /// Memos kept at most.
+    pub const KEPT: usize = 2;
+
+    /// Scans of more points are paired without a memo: about 11 MB each at most (44
+    /// bytes a point), where a tracker's scans hold tens of thousands.
+    pub const MAX_POINTS: usize = 1 << 18;
+
+    /// The memo of scans of `points` points: the one last used for that size, else a
+    /// new one replacing the least recently used; `None` above [`Self::MAX_POINTS`].
+    pub fn for_points(&mut self, points: usize) -> Option<&mut NearestMemo> {
+        if points > Self::MAX_POINTS {
+            return None;
+        }
+        let at = match self.memos.iter().position(|m| m.len() == points) {
+            Some(at) => at,
+            None => {
+                if self.memos.len() >= Self::KEPT {
+                    self.memos.pop();
+                }
+                self.memos.push(NearestMemo::default());
+                self.memos.len() - 1
+            }
+        };
+        let memo = self.memos.remove(at);
+        self.memos.insert(0, memo);
+        Some(&mut self.memos[0])
+    }
+
+    /// Forgets everything (the map was reloaded).
+    pub fn clear(&mut self) {
+        self.memos.clear();
     }
 }

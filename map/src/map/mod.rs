@@ -10,7 +10,9 @@ mod options;
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
-pub use active::{ActiveFrame, ActiveSet, MapHit, MergedSubmap, Pairing};
+pub use active::{
+    ActiveFrame, ActiveSet, MapHit, MergedSubmap, NearestMemo, NearestMemos, Pairing,
+};
 pub(crate) use keyframe::weights_problem;
 pub use keyframe::{HeapKeyframe, Keyframe, KeyframeDecider, KeyframeView};
 pub use options::{ActiveSetMode, Cov2CovMode, KeyframeMapOptions};

@@ -239,6 +239,105 @@ fn approximate_and_exact_agree_on_a_single_keyframe() {
     }
 }
 
+/// A memo's pairings are exactly a search's, and most of a converging registration's
+/// iterations are recalled: the iterations of one registration (moves shrinking from
+/// 5 cm to none), a jump, another active set, another scan size, two keyframes holding
+/// the same points (ties, never a lead to recall by), each compared bit for bit with
+/// `cov2cov` without a memo (which `nearest_queries_match_a_linear_scan_in_both_modes`
+/// checks against a linear scan).
+#[test]
+fn remembered_pairings_are_exactly_the_searched_ones() {
+    let mut rng = StdRng::seed_from_u64(21);
+    let mut map = KeyframeMap::new(KeyframeMapOptions {
+        approximate_cov: true,
+        ..KeyframeMapOptions::default()
+    })
+    .unwrap();
+    let twin = random_cloud(&mut rng, 4000);
+    map.insert(twin.clone(), pose(0.0, 0.0, 0.0), 0.0).unwrap();
+    map.insert(twin, pose(0.0, 0.0, 0.0), 1.0).unwrap();
+    map.insert(random_cloud(&mut rng, 4000), pose(1.5, 0.5, 0.3), 2.0)
+        .unwrap();
+    map.insert(random_cloud(&mut rng, 4000), pose(30.0, 0.0, 0.0), 3.0)
+        .unwrap();
+    let scan = random_cloud(&mut rng, 3000);
+    let coarse = random_cloud(&mut rng, 700);
+    let mut memo = NearestMemo::default();
+    let mut x = 0.2;
+    let mut steps: Vec<(Pose, &PointCloud, Vec<KeyframeId>)> = Vec::new();
+    for step in [0.05, 0.02, 0.005, 0.001, 1e-4, 0.0] {
+        x += step;
+        steps.push((pose(x, 0.1, 0.05 + step), &scan, vec![0, 1, 2]));
+    }
+    steps.push((pose(x + 0.6, 0.1, 0.05), &scan, vec![0, 1, 2]));
+    steps.push((pose(x + 0.6, 0.1, 0.05), &coarse, vec![0, 1, 2]));
+    steps.push((pose(x + 0.6, 0.1, 0.05), &scan, vec![1, 2]));
+    steps.push((pose(29.5, 0.0, 0.0), &scan, vec![2, 3]));
+    steps.push((pose(29.5, 0.0, 0.0), &scan, vec![2, 3]));
+    let mut recalled = Vec::new();
+    for (k, (at, cloud, ids)) in steps.iter().enumerate() {
+        let active = map.activate_ids(ids.clone()).unwrap();
+        let searched = active.cov2cov(cloud, at, 1.0, None).unwrap();
+        let remembered = active
+            .cov2cov_remembering(cloud, at, 1.0, None, Some(&mut memo))
+            .unwrap();
+        assert!(searched.len() > cloud.len() / 2, "step {k}");
+        assert_eq!(remembered, searched, "step {k}");
+        recalled.push(memo.recalled() as f64 / cloud.len() as f64);
+    }
+    println!("recalled per step: {recalled:.2?}");
+    // A first search recalls nothing; then, as the moves shrink, nearly everything
+    // (the points whose nearest lies in both twin keyframes never).
+    assert_eq!(recalled[0], 0.0);
+    assert!(
+        recalled[1..6].windows(2).all(|w| w[1] >= w[0]),
+        "{recalled:?}"
+    );
+    assert!(recalled[5] > 0.3, "{recalled:?}");
+    // Moved 0.6 m: searched again. Another scan size or active set forgets.
+    assert!(recalled[6] < recalled[5], "{recalled:?}");
+    assert_eq!(recalled[8], 0.0, "{recalled:?}");
+    assert_eq!(recalled[9], 0.0, "{recalled:?}");
+    assert!(recalled[10] > 0.9, "{recalled:?}");
+}
+
+/// A session's memos: one per scan size, the two sizes last paired kept, none for
+/// scans too large to remember.
+#[test]
+fn memos_are_kept_per_scan_size_for_the_two_last_sizes() {
+    let mut map = random_map(23, true);
+    let active = map.activate(&pose(0.5, 0.5, 0.1)).unwrap();
+    let mut rng = StdRng::seed_from_u64(24);
+    let (fine, coarse, other) = (
+        random_cloud(&mut rng, 900),
+        random_cloud(&mut rng, 200),
+        random_cloud(&mut rng, 300),
+    );
+    let at = pose(0.5, 0.5, 0.1);
+    let mut memos = NearestMemos::default();
+    let pair = |cloud: &PointCloud, memos: &mut NearestMemos| {
+        let memo = memos.for_points(cloud.len()).unwrap();
+        active
+            .cov2cov_remembering(cloud, &at, 1.0, None, Some(&mut *memo))
+            .unwrap();
+        memo.recalled()
+    };
+    assert_eq!(pair(&fine, &mut memos), 0);
+    assert_eq!(pair(&coarse, &mut memos), 0);
+    // Both kept: the same scans at the same pose are recalled, all but the points
+    // whose two nearest lie within the rounding margin of each other.
+    let whole = |cloud: &PointCloud, recalled: usize| {
+        recalled <= cloud.len() && recalled as f64 >= 0.99 * cloud.len() as f64
+    };
+    assert!(whole(&fine, pair(&fine, &mut memos)));
+    assert!(whole(&coarse, pair(&coarse, &mut memos)));
+    // A third size replaces the least recently used (the fine one).
+    assert_eq!(pair(&other, &mut memos), 0);
+    assert!(whole(&coarse, pair(&coarse, &mut memos)));
+    assert_eq!(pair(&fine, &mut memos), 0);
+    assert!(memos.for_points(NearestMemos::MAX_POINTS + 1).is_none());
+}
+
 #[test]
 fn unchanged_active_set_rebuilds_nothing() {
     let mut map = random_map(7, false);

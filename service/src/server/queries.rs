@@ -253,8 +253,9 @@ pub(super) fn cov2cov(
         )));
     }
     let active = activate(map, session, pose, activation)?;
+    let memo = session.memos.for_points(cloud.len());
     let pairings = active
-        .cov2cov(cloud, pose, max_pair_dist as f64, Some(covariances))
+        .cov2cov_remembering(cloud, pose, max_pair_dist as f64, Some(covariances), memo)
         .map_err(map_error)?;
     Ok((pairings, active.ids().to_vec()))
 }

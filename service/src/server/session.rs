@@ -6,7 +6,7 @@ use std::time::Instant;
 
 use kfmap_client::Tracker;
 use kfmap_geometry::gravity::{GravityParams, LiveAnswer, LiveGravity};
-use kfmap_map::map::MergedSubmap;
+use kfmap_map::map::{MergedSubmap, NearestMemos};
 use kfmap_map::place::{Proposal, Scored};
 use nalgebra::Vector3;
 
@@ -14,6 +14,9 @@ use nalgebra::Vector3;
 pub struct Session {
     /// Exact mode: the merged submap of this client's last active set.
     pub merged: Option<Arc<MergedSubmap>>,
+    /// Approximate mode: what this client's last pairings found, point by point, so
+    /// the next iteration of a registration recalls most of them.
+    pub memos: NearestMemos,
     /// Gravity pool of this client's IMU windows, with its stamped poses (windows'
     /// and localized scans') to remove the platform's acceleration.
     pub gravity: LiveGravity,
@@ -32,6 +35,7 @@ impl Session {
     pub fn new(generation: u64) -> Self {
         Self {
             merged: None,
+            memos: NearestMemos::default(),
             last_places: None,
             hosted: Arc::default(),
             gravity: LiveGravity::new(GravityParams::default())
@@ -44,6 +48,7 @@ impl Session {
     pub fn follow(&mut self, generation: u64) {
         if generation != self.generation {
             self.merged = None;
+            self.memos.clear();
             self.last_places = None;
             self.generation = generation;
         }
