@@ -28,7 +28,7 @@ use std::num::NonZeroUsize;
 
 use build::BoxTree;
 pub use morton::morton_order;
-use search::{Counted, KNearest, Nearest, NearestAt, NearestFewAt, Within};
+use search::{Counted, KNearest, Nearest, NearestAt, NearestTwo, Within};
 
 /// Points per leaf. On KITTI 00 (frame 1 against frame 0, one thread) leaves of 16
 /// (two blocks) answered 1-NN faster than 8 or 32 (`cargo bench --bench kdtree`).
@@ -398,26 +398,20 @@ impl<'a> TreeRef<'a> {
         best.nearest.found().map(|(item, d)| (item, d, best.point))
     }
 
-    /// The `N` nearest points with squared distance <= `max_dist_sq`, nearest first
-    /// (ties by item), each as `(item, squared distance, point)` with the point's
-    /// coordinates as the tree stores them; slots past the points found hold
-    /// [`PAD_ITEM`] at `max_dist_sq`. No point of the tree but those found lies closer
-    /// to `query` than the last slot's distance.
+    /// [`TreeRef::nearest_one_within_at`] and the squared distance of the runner-up
+    /// within `max_dist_sq` (`max_dist_sq` itself when there is none): no point of the
+    /// tree but the nearest lies closer to `query` than that.
     #[inline]
-    pub fn nearest_few_within_at<const N: usize>(
+    pub fn nearest_two_within_at(
         &self,
         query: &[f32; 3],
         max_dist_sq: f32,
-    ) -> [(u32, f32, [f32; 3]); N] {
-        let mut few = NearestFewAt::<N>::within(max_dist_sq);
-        self.search(query, &mut few);
-        std::array::from_fn(|i| {
-            (
-                rank_item(few.ranks[i]),
-                rank_dist_sq(few.ranks[i]),
-                few.points[i],
-            )
-        })
+    ) -> (Option<(u32, f32, [f32; 3])>, f32) {
+        let mut two = NearestTwo::within(max_dist_sq);
+        self.search(query, &mut two);
+        let item = rank_item(two.first);
+        let nearest = (item != PAD_ITEM).then(|| (item, rank_dist_sq(two.first), two.point));
+        (nearest, rank_dist_sq(two.second))
     }
 
     /// What finding the nearest point costs: the nodes read and the blocks of

@@ -146,50 +146,48 @@ impl Collector for NearestAt {
     }
 }
 
-/// The `N` nearest points within an inclusive bound, with their coordinates, sorted by
-/// (squared distance, item); a slot not filled ranks as the bound with [`PAD_ITEM`].
-/// The last one's distance is what tells a caller that the others stay the nearest for
-/// a query moved less than their lead on it.
-pub(super) struct NearestFewAt<const N: usize> {
-    pub ranks: [u64; N],
-    pub points: [[f32; 3]; N],
+/// The nearest point within an inclusive bound, with its coordinates, and the runner-up
+/// (by the same order, (squared distance, item)); a slot not filled ranks as the bound
+/// with [`PAD_ITEM`]. The runner-up's distance tells a caller that the nearest stays the
+/// nearest for a query moved less than its lead.
+pub(super) struct NearestTwo {
+    pub first: u64,
+    pub second: u64,
+    pub point: [f32; 3],
 }
 
-impl<const N: usize> NearestFewAt<N> {
+impl NearestTwo {
     pub fn within(bound_sq: f32) -> Self {
         Self {
-            ranks: [rank(bound_sq, PAD_ITEM); N],
-            points: [[f32::NAN; 3]; N],
+            first: rank(bound_sq, PAD_ITEM),
+            second: rank(bound_sq, PAD_ITEM),
+            point: [f32::NAN; 3],
         }
     }
 
-    /// Takes `new` with coordinates `point` where it ranks, dropping the last.
+    /// Takes `new` (with coordinates `point`) as the nearest or the runner-up.
     #[inline(always)]
-    fn insert(&mut self, new: u64, point: [f32; 3]) {
-        let mut at = N - 1;
-        if new >= self.ranks[at] {
-            return;
+    fn take(&mut self, new: u64, point: [f32; 3]) {
+        if new < self.first {
+            self.second = self.first;
+            self.first = new;
+            self.point = point;
+        } else if new < self.second {
+            self.second = new;
         }
-        while at > 0 && self.ranks[at - 1] > new {
-            self.ranks[at] = self.ranks[at - 1];
-            self.points[at] = self.points[at - 1];
-            at -= 1;
-        }
-        self.ranks[at] = new;
-        self.points[at] = point;
     }
 }
 
-impl<const N: usize> Collector for NearestFewAt<N> {
+impl Collector for NearestTwo {
     #[inline(always)]
     fn bound(&self) -> f32 {
-        rank_dist_sq(self.ranks[N - 1])
+        rank_dist_sq(self.second)
     }
 
     /// Never called by a search, which offers whole blocks (below); a point offered
     /// alone has no coordinates here (NaN).
     fn offer(&mut self, dist_sq: f32, item: u32) {
-        self.insert(rank(dist_sq, item), [f32::NAN; 3]);
+        self.take(rank(dist_sq, item), [f32::NAN; 3]);
     }
 
     #[inline(always)]
@@ -199,7 +197,7 @@ impl<const N: usize> Collector for NearestFewAt<N> {
             // NaN lanes (padding) compare false.
             if d <= self.bound() {
                 let point = [block[0][lane], block[1][lane], block[2][lane]];
-                self.insert(rank(d, items[lane]), point);
+                self.take(rank(d, items[lane]), point);
             }
         }
     }

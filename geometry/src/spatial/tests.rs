@@ -109,21 +109,24 @@ fn bounded_nearest_is_inclusive_and_can_find_nothing() {
 }
 
 #[test]
-fn the_few_nearest_are_a_full_scan_s_and_distances_repeat_bit_for_bit() {
+fn the_runner_up_is_a_full_scan_s_second_and_distances_repeat_bit_for_bit() {
     let many = awkward_cloud(11);
     let tree = build_tree(&many).unwrap();
     for q in queries(&many, 12) {
         let want = brute(&many, &q);
         for bound in [want[0].1 * 0.5, want[0].1, want[1].1, want[2].1 * 3.0] {
-            let few = tree.view().nearest_few_within_at::<3>(&q, bound);
-            for (slot, &(item, d, point)) in few.iter().enumerate() {
-                if want[slot].1 <= bound {
-                    let at = (want[slot].0, want[slot].1, many[want[slot].0 as usize]);
-                    assert_eq!((item, d, point), at, "query {q:?} within {bound}");
-                } else {
-                    assert_eq!((item, d.to_bits()), (PAD_ITEM, bound.to_bits()));
-                }
-            }
+            let (nearest, runner_up) = tree.view().nearest_two_within_at(&q, bound);
+            let expected = (want[0].1 <= bound).then(|| {
+                let item = want[0].0;
+                (item, want[0].1, many[item as usize])
+            });
+            assert_eq!(nearest, expected, "query {q:?} within {bound}");
+            let second = if want[1].1 <= bound { want[1].1 } else { bound };
+            assert_eq!(
+                runner_up.to_bits(),
+                second.to_bits(),
+                "query {q:?} within {bound}"
+            );
         }
         // Re-measuring the point found gives the distance the search gave.
         let (item, d) = tree.view().nearest_one(&q);

@@ -17,7 +17,7 @@ use kfmap_geometry::cov::estimate_covariances;
 use kfmap_geometry::geometry::{
     PackedSym3, Pose, pack_sym3, to_point, to_vec3, transform_point, unpack_sym3,
 };
-use kfmap_geometry::spatial::{PAD_ITEM, PointTree, TreeRef, build_tree, point_dist_sq};
+use kfmap_geometry::spatial::{PointTree, TreeRef, build_tree, point_dist_sq};
 
 /// The active keyframes' points concatenated in ascending id order, in the map frame,
 /// with a tree and covariances of their own (neighbours may come from any keyframe).
@@ -335,47 +335,43 @@ impl<'a> ActiveSet<'a> {
             .chain((0..self.frames.len()).filter(move |&i| Some(i) != first))
     }
 
-    /// Approximate mode: the [`MEMO_FOUND`] nearest points over the active keyframes
-    /// within `bound_sq`, nearest first by [`rank_order`] (so the first is
-    /// [`Self::nearest_in_frames`]'s), with the squared distance within which no other
-    /// lies (the next one's, `bound_sq` when there is none). Each keyframe's search is
-    /// bounded by the farthest kept so far.
-    fn few_nearest_in_frames(
-        &self,
-        p: &[f32; 3],
-        bound_sq: f32,
-    ) -> ([Option<FrameHit>; MEMO_FOUND], f32) {
-        // The kept points, then the one past them: its distance clears the rest.
-        let mut kept: [Option<FrameHit>; MEMO_FOUND + 1] = [None; MEMO_FOUND + 1];
-        let mut bound = bound_sq;
+    /// Approximate mode: the nearest point over the active keyframes within `bound_sq`
+    /// (as [`Self::nearest_in_frames`], ties alike) and the squared distance of the
+    /// runner-up over them all (`bound_sq` when there is none). Each keyframe's search
+    /// is bounded by the runner-up so far.
+    fn two_nearest_in_frames(&self, p: &[f32; 3], bound_sq: f32) -> (Option<FrameHit>, f32) {
+        let mut best: Option<FrameHit> = None;
+        let mut second = bound_sq;
         for slot in self.slots_nearest_first(p) {
             let f = &self.frames[slot];
             let query = Self::local_query(f, p);
-            if f.bbox.dist_sq(&query) > bound {
+            if f.bbox.dist_sq(&query) > second {
                 continue;
             }
-            let found = f
-                .view
-                .tree
-                .nearest_few_within_at::<{ MEMO_FOUND + 1 }>(&query, bound);
-            for (item, dist_sq, local) in found.into_iter().take_while(|h| h.0 != PAD_ITEM) {
-                let key = |h: &FrameHit| (h.2, self.frames[h.0].id, h.1);
-                let new = (slot, item, dist_sq, local);
-                let Some(at) = kept
-                    .iter()
-                    .position(|k| k.is_none_or(|k| rank_order(key(&new), key(&k)).is_lt()))
-                else {
-                    break;
-                };
-                kept.copy_within(at..MEMO_FOUND, at + 1);
-                kept[at] = Some(new);
-            }
-            if let Some(last) = kept[MEMO_FOUND] {
-                bound = bound.min(last.2);
+            let (nearest, runner_up) = f.view.tree.nearest_two_within_at(&query, second);
+            second = second.min(runner_up);
+            let Some((item, dist_sq, local)) = nearest else {
+                continue;
+            };
+            let new = (slot, item, dist_sq, local);
+            match best {
+                Some(b) if !rank_order(self.rank_key(&new), self.rank_key(&b)).is_lt() => {
+                    second = second.min(dist_sq);
+                }
+                _ => {
+                    if let Some(b) = best {
+                        second = second.min(b.2);
+                    }
+                    best = Some(new);
+                }
             }
         }
-        let clear = kept[MEMO_FOUND].map_or(bound_sq, |h| h.2);
-        (std::array::from_fn(|i| kept[i]), clear)
+        (best, second)
+    }
+
+    /// A found point's [`rank_order`] key: (squared distance, keyframe id, item).
+    fn rank_key(&self, hit: &FrameHit) -> (f32, KeyframeId, u32) {
+        (hit.2, self.frames[hit.0].id, hit.1)
     }
 
     /// Approximate mode: the `k` nearest points over the active keyframes, nearest
@@ -560,16 +556,15 @@ impl<'a> ActiveSet<'a> {
             Err(known_within) => {
                 let reach = max_dist_sq.sqrt();
                 let bound = known_within.map_or(reach, |k| k.min(reach));
-                let (few, clear_sq) = self.few_nearest_in_frames(p, bound * bound);
+                let (nearest, runner_up_sq) = self.two_nearest_in_frames(p, bound * bound);
                 *entry = Remembered {
                     query: *p,
-                    nearest: few
-                        .map(|h| h.map(|(slot, item, _, local)| (slot as u32, item, local))),
-                    clear: clear_sq.sqrt(),
-                    clear_by_point: clear_sq < bound * bound,
+                    nearest: nearest.map(|(slot, item, _, local)| (slot as u32, item, local)),
+                    clear: runner_up_sq.sqrt(),
+                    clear_by_point: runner_up_sq < bound * bound,
                     recalled: false,
                 };
-                few[0].filter(|&(_, _, d, _)| d <= max_dist_sq)
+                nearest.filter(|h| h.2 <= max_dist_sq)
             }
         }?;
         let (slot, item, dist_sq, local) = found;
@@ -579,14 +574,13 @@ impl<'a> ActiveSet<'a> {
         Some((hit, cov, view))
     }
 
-    /// What `entry` certifies at `p`: `Some(answer)` (the nearest within
-    /// `max_dist_sq` as (slot, item, squared distance, local point), or none) when the
-    /// nearest of the remembered points is closer to `p` than every other map point can
-    /// be (`clear` less how far `p` moved from the remembered query, less
-    /// [`MEMO_MARGIN_M`] for rounding). Else `Err`: a search is needed, and
-    /// `Some(d)` when [`MEMO_FOUND`] + 1 map points are known to lie within `d` metres
-    /// of `p` (the remembered ones and the one that cleared them), so a search bounded
-    /// by it finds what an unbounded one would.
+    /// What `entry` certifies at `p`: `Ok(answer)` (the nearest within `max_dist_sq`,
+    /// or none) when the remembered nearest is closer to `p` than every other map point
+    /// can be (`clear` less how far `p` moved from the remembered query, less
+    /// [`MEMO_MARGIN_M`] for rounding). Else `Err`: a search is needed, and `Some(d)`
+    /// when two map points (the remembered nearest and its runner-up) are known to lie
+    /// within `d` metres of `p`, so a search bounded by `d` finds what an unbounded one
+    /// would.
     fn recall(
         &self,
         entry: &Remembered,
@@ -594,42 +588,27 @@ impl<'a> ActiveSet<'a> {
         max_dist_sq: f32,
     ) -> Result<Option<FrameHit>, Option<f32>> {
         let moved = (to_vec3(p) - to_vec3(&entry.query)).norm();
-        // Every map point but the remembered ones lies at least this far from `p`.
+        // Every map point but the remembered nearest lies at least this far from `p`.
         let others_beyond = f64::from(entry.clear) - moved - MEMO_MARGIN_M;
-        // The query in each frame, once (the remembered points are few, frames fewer).
-        let mut local_queries = [(usize::MAX, [0.0f32; 3]); MEMO_FOUND];
-        let mut best: Option<FrameHit> = None;
-        let mut farthest_sq = 0.0f32;
-        for (n, &(slot, item, local)) in entry.nearest.iter().flatten().enumerate() {
-            let slot = slot as usize;
-            let Some(f) = self.frames.get(slot) else {
-                return Err(None);
+        let Some((slot, item, local)) = entry.nearest else {
+            return if others_beyond > f64::from(max_dist_sq).sqrt() {
+                Ok(None)
+            } else {
+                Err(None)
             };
-            let query = match local_queries[..n].iter().find(|q| q.0 == slot) {
-                Some(q) => q.1,
-                None => Self::local_query(f, p),
-            };
-            local_queries[n] = (slot, query);
-            let dist_sq = point_dist_sq(&local, &query);
-            farthest_sq = farthest_sq.max(dist_sq);
-            let new = (slot, item, dist_sq, local);
-            let key = |h: &FrameHit| (h.2, self.frames[h.0].id, h.1);
-            if best.is_none_or(|b| rank_order(key(&new), key(&b)).is_lt()) {
-                best = Some(new);
-            }
-        }
-        let certain = match best {
-            Some(hit) => (f64::from(hit.2).sqrt() < others_beyond)
-                .then_some((hit.2 <= max_dist_sq).then_some(hit)),
-            None => (others_beyond > f64::from(max_dist_sq).sqrt()).then_some(None),
         };
-        certain.ok_or_else(|| {
-            let all_kept = entry.nearest.iter().all(Option::is_some);
-            (all_kept && entry.clear_by_point).then(|| {
-                let clearing = f64::from(entry.clear) + moved + MEMO_MARGIN_M;
-                (f64::from(farthest_sq).sqrt() + MEMO_MARGIN_M).max(clearing) as f32
-            })
-        })
+        let slot = slot as usize;
+        let f = self.frames.get(slot).ok_or(None)?;
+        // The distance exactly as a search computes it.
+        let dist_sq = point_dist_sq(&local, &Self::local_query(f, p));
+        let dist = f64::from(dist_sq).sqrt();
+        if dist < others_beyond {
+            return Ok((dist_sq <= max_dist_sq).then_some((slot, item, dist_sq, local)));
+        }
+        Err(entry.clear_by_point.then(|| {
+            let runner_up = f64::from(entry.clear) + moved;
+            (dist.max(runner_up) + MEMO_MARGIN_M) as f32
+        }))
     }
 
     /// Map-frame covariance and view direction of keyframe `f`'s point `item`.
@@ -672,12 +651,6 @@ type FrameHit = (usize, u32, f32, [f32; 3]);
 /// 4 um, their distances to about 7 um), so ties and near-ties are always searched.
 const MEMO_MARGIN_M: f64 = 1e-4;
 
-/// Map points a memo keeps per scan point (the last search's nearest). Keeping more
-/// recalls more (a street replay: 29 % of its pairings with one, 40 % with two, 50 %
-/// with four), but each search then finds that many more and costs more than the
-/// recalls save: the server's CPU time rose with two and four.
-const MEMO_FOUND: usize = 1;
-
 /// Each scan point's last search in approximate mode, index by index, for
 /// [`ActiveSet::cov2cov_remembering`]: the query, its nearest map point and `clear`,
 /// the distance within which no other map point lay. When the point is queried again
@@ -698,10 +671,11 @@ pub struct NearestMemo {
 struct Remembered {
     /// The query searched, map frame.
     query: [f32; 3],
-    /// Its nearest map points as (active-frame slot, item, local point), nearest
-    /// first, those that lay within the pairing distance.
-    nearest: [Option<(u32, u32, [f32; 3])>; MEMO_FOUND],
-    /// No map point but those of `nearest` lies closer to `query` than this, metres.
+    /// Its nearest map point as (active-frame slot, item, local point), if one lay
+    /// within the search's bound.
+    nearest: Option<(u32, u32, [f32; 3])>,
+    /// No map point but `nearest` lies closer to `query` than this, metres: the
+    /// runner-up's distance, or the search's bound.
     clear: f32,
     /// True when `clear` is a map point's distance, false when it is the search's bound.
     clear_by_point: bool,
@@ -715,7 +689,7 @@ const _: () = assert!(std::mem::size_of::<Remembered>() <= 44);
 /// An entry that certifies nothing.
 const FORGOTTEN: Remembered = Remembered {
     query: [0.0; 3],
-    nearest: [None; MEMO_FOUND],
+    nearest: None,
     clear: 0.0,
     clear_by_point: false,
     recalled: false,

@@ -253,7 +253,11 @@ pub(super) fn cov2cov(
         )));
     }
     let active = activate(map, session, pose, activation)?;
-    let memo = session.memos.for_points(cloud.len());
+    // Exact mode searches its merged tree once per point: nothing to remember.
+    let memo = match active.merged() {
+        None => session.memos.for_points(cloud.len()),
+        Some(_) => None,
+    };
     let pairings = active
         .cov2cov_remembering(cloud, pose, max_pair_dist as f64, Some(covariances), memo)
         .map_err(map_error)?;
