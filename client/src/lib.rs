@@ -198,21 +198,25 @@ impl Client {
         pose: &Pose,
         k: u32,
     ) -> Result<Vec<WirePairing>, ClientError> {
-        self.nearest_around(points, pose, k, 0)
+        self.nearest_around(points, pose, k, 0, None)
     }
 
     /// As [`Self::nearest`], in the `keyframes` keyframes nearest `pose` by position (1
-    /// to 64; 0: the active set): the map around a place whichever way it was seen.
+    /// to 64; 0: the active set): the map around a place whichever way it was seen;
+    /// with `max_dist` (metres, up to 20), only the neighbours within it: a point with
+    /// none near then costs the server little.
     pub fn nearest_around(
         &mut self,
         points: &[[f32; 3]],
         pose: &Pose,
         k: u32,
         keyframes: u32,
+        max_dist: Option<f32>,
     ) -> Result<Vec<WirePairing>, ClientError> {
         let h = RequestHeader {
             k,
             keyframes,
+            radius: max_dist.unwrap_or(0.0),
             ..header(RequestKind::Nearest, pose)
         };
         Ok(self.connection.call_scan(h, &plain(points))?.pairings)

@@ -1112,7 +1112,9 @@ impl Tracker {
     ) -> Result<f64, ClientError> {
         let tight =
             f64::from(self.options.localize.max_pair_dist) * self.options.trust.tight_distance;
-        let pairings = client.nearest_around(structure, pose, 1, keyframes)?;
+        // Asked no farther than a hair beyond `tight` (rounding), and judged here.
+        let reach = (tight * (1.0 + 1e-6)) as f32;
+        let pairings = client.nearest_around(structure, pose, 1, keyframes, Some(reach))?;
         let mut paired = vec![false; structure.len()];
         for p in pairings {
             if f64::from(p.dist_sq) <= tight * tight

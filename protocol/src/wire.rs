@@ -53,7 +53,8 @@ pub struct RequestHeader {
     pub k: u32,
     /// [`super::Cov2CovMode`] code (`Cov2Cov`, `Localize`).
     pub mode: u32,
-    /// Search radius, metres (`Radius`).
+    /// Search radius, metres (`Radius`); `Nearest`: when above 0, only the neighbours
+    /// within it (inclusive), 0 = at any distance.
     pub radius: f32,
     /// Largest pairing distance, metres (`Cov2Cov`, `Localize`).
     pub max_pair_dist: f32,

@@ -222,14 +222,16 @@ class Client:
         *,
         k: int = 1,
         keyframes: int = 0,
+        max_dist: float | None = None,
     ) -> Pairings:
         """The ``k`` nearest map points of each scan point (moved by ``pose``), in the
         active keyframes at ``pose``, or with ``keyframes`` (1 to 64) in that many
         keyframes nearest ``pose`` by position: the map around a place whichever way it
-        was seen."""
+        was seen. With ``max_dist`` (metres, up to 20) only the neighbours within it."""
         reply = self._scan(
             wire.RequestKind.NEAREST, points, pose, k=_uint("k", k),
             keyframes=_uint("keyframes", keyframes),
+            radius=0.0 if max_dist is None else _f32("max_dist", max_dist),
         )
         return Pairings.from_reply(reply.pairings, reply.header)
 

@@ -74,6 +74,22 @@ def test_nearest_around_matches_cli_and_the_active_set(
     assert np.any(ours.dist_sq > everything.dist_sq)
 
 
+def test_bounded_nearest_is_the_unbounded_within_the_bound_and_matches_cli(
+    client, server, probe, tmp_path: Path
+) -> None:
+    points, path, text, pose = probe
+    everything = client.nearest(points, pose, k=1)
+    ours = client.nearest(points, pose, k=1, max_dist=0.05)
+    near = everything.dist_sq <= np.float32(0.05) ** 2
+    assert 0 < len(ours) < len(everything)
+    assert np.array_equal(ours.query, everything.query[near])
+    assert np.array_equal(ours.dist_sq, everything.dist_sq[near])
+    cli = cli_query(server, path, text, "nearest", tmp_path / "nb.csv", "--max-dist", "0.05")
+    assert_identical(ours, cli)
+    with pytest.raises(kfmap.KfmapError, match="radius"):
+        client.nearest(points, pose, max_dist=-1.0)
+
+
 def test_radius_matches_cli(client, server, probe, tmp_path: Path) -> None:
     points, path, text, pose = probe
     ours = client.radius(points, pose, r=0.4)

@@ -20,6 +20,7 @@ use super::connect_arg::ConnectArgs;
 ///   kfmap query --map-name site --points scan.pcd --pose "10 2 0 0 0 90"
 ///   kfmap query --map-name site --points scan.pcd --kind cov2cov --out pairs.csv
 ///   kfmap query --map-name site --points scan.pcd --kind radius --radius 0.5 --json
+///   kfmap query --map-name site --points scan.pcd --max-dist 0.3 --out near.csv
 #[derive(clap::Args)]
 #[command(verbatim_doc_comment)]
 pub struct Args {
@@ -44,6 +45,10 @@ pub struct Args {
     /// Search radius, metres (radius).
     #[arg(long, default_value_t = 0.5)]
     radius: f32,
+    /// Only neighbours within this many metres (nearest; up to 20, default: any
+    /// distance): points with none that near get no answer.
+    #[arg(long)]
+    max_dist: Option<f32>,
     /// Largest pairing distance, metres (cov2cov).
     #[arg(long, default_value_t = 1.0)]
     max_pair_dist: f32,
@@ -92,6 +97,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             args.keyframes
         );
     }
+    if args.max_dist.is_some() && !matches!(args.kind, KindArg::Nearest) {
+        anyhow::bail!(
+            "--max-dist applies to --kind nearest only; radius has --radius, cov2cov --max-pair-dist"
+        );
+    }
+    if let Some(d) = args.max_dist.filter(|d| !(d.is_finite() && *d > 0.0)) {
+        anyhow::bail!("--max-dist {d} must be a distance above 0 m");
+    }
     let cloud = read_cloud(&args.points, &ReadOptions::default())?.cloud;
     let pose = match &args.pose {
         Some(text) => super::pose_arg::parse_pose(text)?,
@@ -100,7 +113,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut client = args.server.connect()?;
     let started = Instant::now();
     let pairings = match args.kind {
-        KindArg::Nearest => client.nearest_around(&cloud.points, &pose, args.k, args.keyframes)?,
+        KindArg::Nearest => {
+            client.nearest_around(&cloud.points, &pose, args.k, args.keyframes, args.max_dist)?
+        }
         KindArg::Radius => client.radius(&cloud.points, &pose, args.radius)?,
         KindArg::Cov2cov => {
             let scan = ScanPayload {

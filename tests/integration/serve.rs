@@ -129,8 +129,26 @@ fn ipc_answers_equal_in_process_answers_bit_for_bit() {
     let count = served.map.len() - 1;
     assert!(count >= 2, "{} keyframes", served.map.len());
     let around = client
-        .nearest_around(&cloud.points, &guess, 1, count as u32)
+        .nearest_around(&cloud.points, &guess, 1, count as u32, None)
         .unwrap();
+    // Bounded (as the tracker asks): the unbounded answer's pairs within 0.1 m, the
+    // others left out; a bound that is no distance is refused by name.
+    let bounded = client
+        .nearest_around(&cloud.points, &guess, 1, count as u32, Some(0.1))
+        .unwrap();
+    let near: Vec<_> = around
+        .iter()
+        .copied()
+        .filter(|p| p.dist_sq <= 0.1f32 * 0.1)
+        .collect();
+    assert!(!near.is_empty() && near.len() < around.len());
+    assert_eq!(bounded, near);
+    for bad in [-1.0, f32::NAN, 20.5] {
+        let e = client
+            .nearest_around(&cloud.points, &guess, 1, 0, Some(bad))
+            .unwrap_err();
+        assert!(e.to_string().contains("radius"), "{bad}: {e}");
+    }
     let local = in_process(
         &served,
         &RequestHeader {
@@ -303,7 +321,7 @@ fn bad_requests_get_a_named_error_and_change_nothing() {
     let e = client.nearest(&cloud.points[..10], &truth, 0).unwrap_err();
     assert_eq!(e.status(), Some(StatusCode::BadRequest));
     let e = client
-        .nearest_around(&cloud.points[..10], &truth, 1, 65)
+        .nearest_around(&cloud.points[..10], &truth, 1, 65, None)
         .unwrap_err();
     assert_eq!(e.status(), Some(StatusCode::BadRequest));
     assert!(e.to_string().contains("keyframes = 65"), "{e}");

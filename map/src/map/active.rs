@@ -277,9 +277,15 @@ impl<'a> ActiveSet<'a> {
 
     /// The nearest map point to `p` (map frame).
     pub fn nearest_one(&self, p: &[f32; 3]) -> Option<MapHit> {
+        self.nearest_one_within(p, f32::INFINITY)
+    }
+
+    /// [`Self::nearest_one`] when it lies within `max_dist_sq` (inclusive): the search
+    /// stops at that distance, so a point with nothing near costs little.
+    pub fn nearest_one_within(&self, p: &[f32; 3], max_dist_sq: f32) -> Option<MapHit> {
         match &self.merged {
-            Some(m) => Self::merged_nearest(m, p, f32::INFINITY).map(|(_, hit)| hit),
-            None => self.nearest_in_frames(p, f32::INFINITY).map(|(_, hit)| hit),
+            Some(m) => Self::merged_nearest(m, p, max_dist_sq).map(|(_, hit)| hit),
+            None => self.nearest_in_frames(p, max_dist_sq).map(|(_, hit)| hit),
         }
     }
 
@@ -439,6 +445,20 @@ impl<'a> ActiveSet<'a> {
         }
         let mut hits = self.gather(p, |tree, q| tree.nearest_n(q, n));
         hits.truncate(k);
+        hits
+    }
+
+    /// [`Self::nearest_k`]'s points within `max_dist_sq` (inclusive); for k = 1 the
+    /// search itself stops at that distance.
+    pub fn nearest_k_within(&self, p: &[f32; 3], k: usize, max_dist_sq: f32) -> Vec<MapHit> {
+        if k == 1 && self.merged.is_none() {
+            return self
+                .nearest_one_within(p, max_dist_sq)
+                .into_iter()
+                .collect();
+        }
+        let mut hits = self.nearest_k(p, k);
+        hits.retain(|h| h.dist_sq <= max_dist_sq);
         hits
     }
 

@@ -105,12 +105,23 @@ fn nearest_queries_match_a_linear_scan_in_both_modes() {
             let want = linear_scan(&oracle_map, &ids, &q, approximate);
             assert_eq!(active.nearest_one(&q).unwrap(), want[0], "query {i}");
             assert_eq!(active.nearest_k(&q, 1), want[..1].to_vec(), "query {i}");
+            // Bounded: the nearest when it lies within the bound (inclusive), else none.
+            for bound in [0.05f32, 0.2, want[0].dist_sq] {
+                let near = want[..1].iter().copied().filter(|h| h.dist_sq <= bound);
+                assert_eq!(
+                    active.nearest_k_within(&q, 1, bound),
+                    near.collect::<Vec<_>>(),
+                    "query {i} within {bound}"
+                );
+            }
             if i % 10 == 0 {
                 assert_eq!(active.nearest_k(&q, 7), want[..7].to_vec());
                 let r2 = (0.6f64 * 0.6) as f32;
                 let within: Vec<MapHit> =
                     want.iter().copied().filter(|h| h.dist_sq <= r2).collect();
                 assert_eq!(active.within_radius(&q, 0.6), within);
+                let near: Vec<MapHit> = within.iter().copied().take(7).collect();
+                assert_eq!(active.nearest_k_within(&q, 7, r2), near);
             }
         }
     }
@@ -241,8 +252,10 @@ fn approximate_and_exact_agree_on_a_single_keyframe() {
 
 /// A memo's pairings are exactly a search's, and most of a converging registration's
 /// iterations are recalled: the iterations of one registration (moves shrinking from
-/// 5 cm to none), a jump, another active set, another scan size, two keyframes holding
-/// the same points (ties, never a lead to recall by), each compared bit for bit with
+/// 5 cm to none), a jump, another active set, another scan size, another pairing
+/// distance (a relocalization settles a place at the coarse one and scores it at the
+/// fine one with the same memo), two keyframes holding the same points (ties, never a
+/// lead to recall by), each compared bit for bit with
 /// `cov2cov` without a memo (which `nearest_queries_match_a_linear_scan_in_both_modes`
 /// checks against a linear scan).
 #[test]
@@ -264,24 +277,30 @@ fn remembered_pairings_are_exactly_the_searched_ones() {
     let coarse = random_cloud(&mut rng, 700);
     let mut memo = NearestMemo::default();
     let mut x = 0.2;
-    let mut steps: Vec<(Pose, &PointCloud, Vec<KeyframeId>)> = Vec::new();
+    let mut steps: Vec<(Pose, &PointCloud, Vec<KeyframeId>, f64)> = Vec::new();
     for step in [0.05, 0.02, 0.005, 0.001, 1e-4, 0.0] {
         x += step;
-        steps.push((pose(x, 0.1, 0.05 + step), &scan, vec![0, 1, 2]));
+        steps.push((pose(x, 0.1, 0.05 + step), &scan, vec![0, 1, 2], 1.0));
     }
-    steps.push((pose(x + 0.6, 0.1, 0.05), &scan, vec![0, 1, 2]));
-    steps.push((pose(x + 0.6, 0.1, 0.05), &coarse, vec![0, 1, 2]));
-    steps.push((pose(x + 0.6, 0.1, 0.05), &scan, vec![1, 2]));
-    steps.push((pose(29.5, 0.0, 0.0), &scan, vec![2, 3]));
-    steps.push((pose(29.5, 0.0, 0.0), &scan, vec![2, 3]));
+    steps.push((pose(x + 0.6, 0.1, 0.05), &scan, vec![0, 1, 2], 1.0));
+    steps.push((pose(x + 0.6, 0.1, 0.05), &coarse, vec![0, 1, 2], 1.0));
+    steps.push((pose(x + 0.6, 0.1, 0.05), &scan, vec![1, 2], 1.0));
+    steps.push((pose(29.5, 0.0, 0.0), &scan, vec![2, 3], 1.0));
+    steps.push((pose(29.5, 0.0, 0.0), &scan, vec![2, 3], 1.0));
+    // Pairs beyond the new distance are dropped, those a shorter search never saw found.
+    steps.push((pose(29.5, 0.0, 0.001), &scan, vec![2, 3], 0.05));
+    steps.push((pose(29.5, 0.0, 0.002), &scan, vec![2, 3], 2.0));
     let mut recalled = Vec::new();
-    for (k, (at, cloud, ids)) in steps.iter().enumerate() {
+    for (k, (at, cloud, ids, max_pair_dist)) in steps.iter().enumerate() {
         let active = map.activate_ids(ids.clone()).unwrap();
-        let searched = active.cov2cov(cloud, at, 1.0, None).unwrap();
+        let searched = active.cov2cov(cloud, at, *max_pair_dist, None).unwrap();
         let remembered = active
-            .cov2cov_remembering(cloud, at, 1.0, None, Some(&mut memo))
+            .cov2cov_remembering(cloud, at, *max_pair_dist, None, Some(&mut memo))
             .unwrap();
-        assert!(searched.len() > cloud.len() / 2, "step {k}");
+        assert!(
+            searched.len() > cloud.len() / 2 || *max_pair_dist < 1.0,
+            "step {k}"
+        );
         assert_eq!(remembered, searched, "step {k}");
         recalled.push(memo.recalled() as f64 / cloud.len() as f64);
     }
@@ -299,6 +318,8 @@ fn remembered_pairings_are_exactly_the_searched_ones() {
     assert_eq!(recalled[8], 0.0, "{recalled:?}");
     assert_eq!(recalled[9], 0.0, "{recalled:?}");
     assert!(recalled[10] > 0.9, "{recalled:?}");
+    // Moved 1 mm: recalled where the nearest still leads, whatever the pairing distance.
+    assert!(recalled[11] > 0.5 && recalled[12] > 0.5, "{recalled:?}");
 }
 
 /// A session's memos: one per scan size, the two sizes last paired kept, none for

@@ -12,6 +12,7 @@ use serde::{Deserialize, Serialize};
 use super::grid::GridView;
 use super::level::{estimate_up, levelling};
 use super::search::{Columns, PeerBest, SearchOutcome, SearchParams, search};
+use crate::map::NearestMemo;
 use crate::select::SelectionOptions;
 use kfmap_geometry::cloud::{CloudError, PointCloud};
 use kfmap_geometry::geometry::{PackedSym3, Pose, rotation_distance, translation_distance};
@@ -532,8 +533,9 @@ pub struct Scored {
 
 /// Settles and scores each proposed place: coarse iterations from it, then
 /// [`SCORE_ITERATIONS`] at the fine pairing distance on the coarse scan, whose inlier
-/// ratio is the score (places in parallel; `settle(start, stage, step)` runs one
-/// registration against the map). A place that settles within `distinct-m`
+/// ratio is the score (places in parallel; `settle(start, stage, step, memo)` runs one
+/// registration against the map, `memo` the place's own from its first round to its
+/// scoring: the answers of a search, fewer searches). A place that settles within `distinct-m`
 /// and `distinct-deg` of a better-ranked one's settled pose is that place: it is not
 /// scored again (on balm_os0 nearly half the proposed places settle onto another's).
 pub fn score_places<E: Send>(
@@ -541,7 +543,8 @@ pub fn score_places<E: Send>(
     fine: Stage,
     tracking: &TrackingParams,
     params: &RelocalizeParams,
-    settle: impl Fn(&Pose, &Stage, PlaceStep) -> Result<Option<RegistrationResult>, E> + Sync,
+    settle: impl Fn(&Pose, &Stage, PlaceStep, &mut NearestMemo) -> Result<Option<RegistrationResult>, E>
+    + Sync,
 ) -> Result<Scored, E> {
     let coarse = Stage {
         coarse: true,
@@ -554,21 +557,25 @@ pub fn score_places<E: Send>(
     let started = std::time::Instant::now();
     let settled = settle_in_rounds(proposal, &coarse, params, &settle)?;
     let settled_at = started.elapsed();
-    let mut distinct: Vec<(usize, Pose)> = Vec::new();
-    for (rank, result) in settled.iter().enumerate() {
+    let mut distinct: Vec<(usize, Pose, NearestMemo)> = Vec::new();
+    for (rank, (result, memo)) in settled.into_iter().enumerate() {
         if let Some(result) = result
             && distinct
                 .iter()
-                .all(|(_, kept)| another_place(kept, &result.pose, params))
+                .all(|(_, kept, _)| another_place(kept, &result.pose, params))
         {
-            distinct.push((rank, result.pose));
+            distinct.push((rank, result.pose, memo));
         }
     }
+    let (scoring, registrations) = (
+        distinct.len(),
+        (proposal.poses.len() + distinct.len()) as u32,
+    );
     let places: Vec<ScoredPlace> = distinct
-        .par_iter()
-        .map(|&(rank, pose)| {
+        .into_par_iter()
+        .map(|(rank, pose, mut memo)| {
             Ok(
-                settle(&pose, &score_stage, PlaceStep::Score)?.map(|s| ScoredPlace {
+                settle(&pose, &score_stage, PlaceStep::Score, &mut memo)?.map(|s| ScoredPlace {
                     rank,
                     pose: s.pose,
                     score: s.fitness.inlier_ratio,
@@ -582,7 +589,7 @@ pub fn score_places<E: Send>(
     tracing::debug!(
         "relocalize: settling {:.1} ms, scoring {} places {:.1} ms",
         settled_at.as_secs_f64() * 1e3,
-        distinct.len(),
+        scoring,
         (started.elapsed() - settled_at).as_secs_f64() * 1e3
     );
     for place in &places {
@@ -599,7 +606,7 @@ pub fn score_places<E: Send>(
     }
     Ok(Scored {
         places,
-        registrations: (proposal.poses.len() + distinct.len()) as u32,
+        registrations,
     })
 }
 
@@ -627,14 +634,19 @@ fn settle_in_rounds<E: Send>(
     proposal: &Proposal,
     coarse: &Stage,
     params: &RelocalizeParams,
-    settle: &(impl Fn(&Pose, &Stage, PlaceStep) -> Result<Option<RegistrationResult>, E> + Sync),
-) -> Result<Vec<Option<RegistrationResult>>, E> {
+    settle: &(
+         impl Fn(&Pose, &Stage, PlaceStep, &mut NearestMemo) -> Result<Option<RegistrationResult>, E>
+         + Sync
+     ),
+) -> Result<Vec<(Option<RegistrationResult>, NearestMemo)>, E> {
     /// One place's settling so far.
     struct Settling {
         result: Option<RegistrationResult>,
         start: Pose,
         iterations: usize,
         running: bool,
+        /// Its points' nearest map points, from round to round (the scoring's too).
+        memo: NearestMemo,
     }
     let mut places: Vec<Settling> = proposal
         .poses
@@ -644,6 +656,7 @@ fn settle_in_rounds<E: Send>(
             start: *start,
             iterations: 0,
             running: true,
+            memo: NearestMemo::default(),
         })
         .collect();
     let same = |a: &Pose, b: &Pose| {
@@ -662,7 +675,7 @@ fn settle_in_rounds<E: Send>(
                     max_iterations: round,
                     ..*coarse
                 };
-                let result = settle(&place.start, &stage, PlaceStep::Settle)?;
+                let result = settle(&place.start, &stage, PlaceStep::Settle, &mut place.memo)?;
                 let iterations = result.as_ref().map_or(0, |r| r.iterations);
                 place.iterations += round;
                 // Converged, stopped on a step it could not take, or out of iterations.
@@ -705,7 +718,7 @@ fn settle_in_rounds<E: Send>(
         places.len(),
         places.iter().map(|p| p.iterations).sum::<usize>()
     );
-    Ok(places.into_iter().map(|p| p.result).collect())
+    Ok(places.into_iter().map(|p| (p.result, p.memo)).collect())
 }
 
 /// True when `b` is another place than `a`: farther than `distinct-m` or turned more

@@ -1296,6 +1296,7 @@ fn scored_with_defaults(
         &kfmap_geometry::geometry::Pose,
         &kfmap_geometry::tracking::Stage,
         super::relocalize::PlaceStep,
+        &mut crate::map::NearestMemo,
     ) -> Result<Option<kfmap_geometry::registration::RegistrationResult>, ()>
     + Sync,
 ) -> super::Scored {
@@ -1330,7 +1331,10 @@ fn places_settling_onto_a_better_ranked_one_are_scored_once() {
         ..Default::default()
     };
     let steps = std::sync::Mutex::new(Vec::new());
-    let settle = |start: &kfmap_geometry::geometry::Pose, _: &Stage, step: PlaceStep| {
+    let settle = |start: &kfmap_geometry::geometry::Pose,
+                  _: &Stage,
+                  step: PlaceStep,
+                  _: &mut crate::map::NearestMemo| {
         steps.lock().unwrap().push((start.translation.x, step));
         let x = start.translation.x;
         Ok::<_, ()>(match x {
@@ -1374,7 +1378,10 @@ fn places_settle_in_rounds_and_stop_on_a_better_ranked_one() {
         ..Default::default()
     };
     let settles = std::sync::Mutex::new(Vec::new());
-    let settle = |start: &kfmap_geometry::geometry::Pose, stage: &Stage, step: PlaceStep| {
+    let settle = |start: &kfmap_geometry::geometry::Pose,
+                  stage: &Stage,
+                  step: PlaceStep,
+                  _: &mut crate::map::NearestMemo| {
         let x0 = start.translation.x;
         let basin = if x0 < 5.0 { 0.0 } else { 10.0 };
         let score = if basin == 0.0 { 0.8 } else { 0.6 };
@@ -1427,7 +1434,10 @@ fn a_place_pairing_far_less_than_the_best_stops_settling_after_two_rounds() {
         _ => (0.0, 0.8),
     };
     let settles = std::sync::Mutex::new(Vec::new());
-    let settle = |start: &kfmap_geometry::geometry::Pose, stage: &Stage, step: PlaceStep| {
+    let settle = |start: &kfmap_geometry::geometry::Pose,
+                  stage: &Stage,
+                  step: PlaceStep,
+                  _: &mut crate::map::NearestMemo| {
         let x0 = start.translation.x;
         let (to, ratio) = basin(x0);
         if step == PlaceStep::Score {

@@ -177,6 +177,12 @@ pub(super) fn nearest(
             "keyframes = {keyframes} must be within 0 (the active set) ..={MAX_KEYFRAMES}"
         )));
     }
+    let r = request.radius;
+    if !(r.is_finite() && (0.0..=MAX_RADIUS).contains(&r)) {
+        return Err(bad(format!(
+            "radius {r} m of a nearest request must be 0 (any distance) or within (0, {MAX_RADIUS}]"
+        )));
+    }
     let active = match keyframes {
         0 => activate(map, session, pose, Activation::of_map(map, false))?,
         n => {
@@ -190,7 +196,11 @@ pub(super) fn nearest(
         total: usize::MAX,
     };
     let answer = search_each(&active, scan, pose, caps, |active, p| {
-        active.nearest_k(p, k as usize)
+        if r > 0.0 {
+            active.nearest_k_within(p, k as usize, r * r)
+        } else {
+            active.nearest_k(p, k as usize)
+        }
     });
     Ok(answer.expect("k-nearest answers have no caps"))
 }

@@ -5,7 +5,7 @@ use kfmap_geometry::cloud::{CloudError, PointCloud};
 use kfmap_geometry::geometry::Pose;
 use kfmap_geometry::registration::{RegistrationError, RegistrationResult, solve_pose};
 use kfmap_geometry::tracking::{PreparedScan, Stage};
-use kfmap_map::map::Pairing;
+use kfmap_map::map::{NearestMemo, Pairing};
 use kfmap_map::select::SelectionOptions;
 use kfmap_protocol::{DecodedScan, Rejection, correspondences_from_pairings};
 
@@ -70,7 +70,8 @@ impl MapRegistration<'_> {
 
 /// As [`MapRegistration::register`] in approximate mode and outside any session (no
 /// merged-submap cache to share), so registrations may run on several threads; the
-/// active keyframes chosen with `selection`.
+/// active keyframes chosen with `selection`, each point's nearest map point recalled
+/// from `memo` while it certifies it (the answers of a search, see [`NearestMemo`]).
 pub(super) fn register_approximate(
     map: &ServedMap,
     selection: &SelectionOptions,
@@ -78,6 +79,7 @@ pub(super) fn register_approximate(
     covs: &[[f32; 6]],
     start: &Pose,
     stage: &Stage,
+    memo: &mut NearestMemo,
 ) -> Result<Option<RegistrationResult>, Rejection> {
     register_over(cloud, start, stage, |at| {
         let ids = map.map.select_with(at, selection);
@@ -86,7 +88,7 @@ pub(super) fn register_approximate(
             .activate_cached(ids, &mut None, false)
             .map_err(map_error)?;
         active
-            .cov2cov(cloud, at, stage.max_pair_dist, Some(covs))
+            .cov2cov_remembering(cloud, at, stage.max_pair_dist, Some(covs), Some(memo))
             .map_err(map_error)
     })
 }

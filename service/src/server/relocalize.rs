@@ -9,6 +9,7 @@ use std::sync::{Arc, Mutex, PoisonError};
 use kfmap_geometry::geometry::{Pose, to_point, transform_point};
 use kfmap_geometry::registration::RegistrationResult;
 use kfmap_geometry::tracking::{covariance_to_wire, pose_covariance};
+use kfmap_map::map::NearestMemo;
 use kfmap_map::place::pinning::{slide_loss, structure};
 use kfmap_map::place::{
     Columns, GridView, PeerBest, Pinning, PlaceStep, Proposal, Relocalization, RelocalizeParams,
@@ -186,14 +187,14 @@ pub fn relocalize(
         .map(|(c, v)| (c, v.as_slice()))
         .or(coarse);
     let score_scan = to_score.as_ref().map(|(c, v)| (c, v.as_slice())).or(coarse);
-    let settle = |start: &Pose, stage: &_, step| {
+    let settle = |start: &Pose, stage: &_, step, memo: &mut NearestMemo| {
         let scan = match step {
             PlaceStep::Settle => settle_scan,
             PlaceStep::Score => score_scan,
         };
         let (cloud, covs) =
             scan.ok_or_else(|| Rejection::new(StatusCode::Internal, "no coarse scan"))?;
-        register_approximate(map, &activation.selection, cloud, covs, start, stage)
+        register_approximate(map, &activation.selection, cloud, covs, start, stage, memo)
     };
     let scored_ranks = |ranks: u64| -> Result<Scored, Rejection> {
         let (chosen, of) = chosen_places(&proposal, ranks)?;
@@ -208,7 +209,14 @@ pub fn relocalize(
         against.register(cloud, covs, start, stage)
     };
     // A rival of the best is registered again as it was scored: on the scoring scan.
-    let rescore = |place: &Pose| settle(place, &score_stage(fine), PlaceStep::Score);
+    let rescore = |place: &Pose| {
+        settle(
+            place,
+            &score_stage(fine),
+            PlaceStep::Score,
+            &mut NearestMemo::default(),
+        )
+    };
     let tight = fine.max_pair_dist * params.tight_distance;
     let pinned = |result: &RegistrationResult| pinning(map, scan.points, tight, result);
     let found = match phase {
