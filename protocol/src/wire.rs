@@ -54,7 +54,7 @@ pub struct RequestHeader {
     /// [`super::Cov2CovMode`] code (`Cov2Cov`, `Localize`).
     pub mode: u32,
     /// Search radius, metres (`Radius`); `Nearest`: when above 0, only the neighbours
-    /// within it (inclusive), 0 = at any distance.
+    /// within it (inclusive), 0 = at any distance (new in protocol 12).
     pub radius: f32,
     /// Largest pairing distance, metres (`Cov2Cov`, `Localize`).
     pub max_pair_dist: f32,

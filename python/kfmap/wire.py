@@ -1,4 +1,4 @@
-"""The kfmap wire protocol (protocol 11): the ``#[repr(C)]`` headers as ctypes
+"""The kfmap wire protocol (protocol 12): the ``#[repr(C)]`` headers as ctypes
 structures, request kinds, flags and status codes.
 
 Mirrors ``protocol/src/wire.rs`` and ``lib.rs``. iceoryx2 refuses to open a
@@ -16,7 +16,7 @@ import enum
 import numpy as np
 
 #: Version of the protocol; a server of another version answers VERSION_MISMATCH.
-PROTOCOL_VERSION = 11
+PROTOCOL_VERSION = 12
 #: Bytes of a response's status message.
 MESSAGE_LEN = 240
 #: Request kinds counted in a status report (index = kind code).
