@@ -228,6 +228,8 @@ class Client:
         active keyframes at ``pose``, or with ``keyframes`` (1 to 64) in that many
         keyframes nearest ``pose`` by position: the map around a place whichever way it
         was seen. With ``max_dist`` (metres, up to 20) only the neighbours within it."""
+        if max_dist is not None and not 0.0 < _f32("max_dist", max_dist) <= 20.0:
+            raise InvalidArgument(f"max_dist must be a distance in (0, 20] m, got {max_dist!r}")
         reply = self._scan(
             wire.RequestKind.NEAREST, points, pose, k=_uint("k", k),
             keyframes=_uint("keyframes", keyframes),

@@ -86,8 +86,9 @@ def test_bounded_nearest_is_the_unbounded_within_the_bound_and_matches_cli(
     assert np.array_equal(ours.dist_sq, everything.dist_sq[near])
     cli = cli_query(server, path, text, "nearest", tmp_path / "nb.csv", "--max-dist", "0.05")
     assert_identical(ours, cli)
-    with pytest.raises(kfmap.KfmapError, match="radius"):
-        client.nearest(points, pose, max_dist=-1.0)
+    for bad in (-1.0, 0.0, 25.0, float("nan")):
+        with pytest.raises(kfmap.InvalidArgument, match="max_dist"):
+            client.nearest(points, pose, max_dist=bad)
 
 
 def test_radius_matches_cli(client, server, probe, tmp_path: Path) -> None:

@@ -102,8 +102,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "--max-dist applies to --kind nearest only; radius has --radius, cov2cov --max-pair-dist"
         );
     }
-    if let Some(d) = args.max_dist.filter(|d| !(d.is_finite() && *d > 0.0)) {
-        anyhow::bail!("--max-dist {d} must be a distance above 0 m");
+    if let Some(d) = args
+        .max_dist
+        .filter(|d| !(d.is_finite() && *d > 0.0 && *d <= 20.0))
+    {
+        anyhow::bail!("--max-dist {d} must be a distance in (0, 20] m");
     }
     let cloud = read_cloud(&args.points, &ReadOptions::default())?.cloud;
     let pose = match &args.pose {
