@@ -8,6 +8,7 @@ use anyhow::Context;
 use kfmap_geometry::geometry::Pose;
 use kfmap_geometry::io::{ReadOptions, read_cloud};
 use kfmap_protocol::{Cov2CovMode, ScanPayload, WirePairing};
+use kfmap_service::server::MAX_RADIUS;
 use serde_json::json;
 
 use super::connect_arg::ConnectArgs;
@@ -104,9 +105,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     if let Some(d) = args
         .max_dist
-        .filter(|d| !(d.is_finite() && *d > 0.0 && *d <= 20.0))
+        .filter(|d| !(d.is_finite() && *d > 0.0 && *d <= MAX_RADIUS))
     {
-        anyhow::bail!("--max-dist {d} must be a distance in (0, 20] m");
+        anyhow::bail!("--max-dist {d} must be a distance in (0, {MAX_RADIUS}] m");
     }
     let cloud = read_cloud(&args.points, &ReadOptions::default())?.cloud;
     let pose = match &args.pose {

@@ -140,9 +140,9 @@ pub(crate) fn rank_item(rank: u64) -> u32 {
     rank as u32
 }
 
-/// The squared distance between a tree's point and a query, computed exactly as a
-/// search computes it (so a caller re-measuring a point a search found gets the same
-/// bits).
+/// The squared distance between a tree's point and a query: what every search
+/// computes for each point it scans, so a caller re-measuring a point a search found
+/// gets the same bits.
 #[inline(always)]
 pub fn point_dist_sq(point: &[f32; 3], query: &[f32; 3]) -> f32 {
     let (dx, dy, dz) = (

@@ -6,7 +6,8 @@
 use std::mem::MaybeUninit;
 
 use super::{
-    LANES, LEAF_TAG, MAX_DEPTH, PAD_ITEM, PointBlock, TreeRef, rank, rank_dist_sq, rank_item,
+    LANES, LEAF_TAG, MAX_DEPTH, PAD_ITEM, PointBlock, TreeRef, point_dist_sq, rank, rank_dist_sq,
+    rank_item,
 };
 
 /// What a search keeps of the points the leaves offer.
@@ -357,12 +358,7 @@ impl TreeRef<'_> {
         let [xs, ys, zs] = &self.blocks[block];
         let mut dist_sq = [0.0f32; LANES];
         for lane in 0..LANES {
-            let (dx, dy, dz) = (
-                xs[lane] - query[0],
-                ys[lane] - query[1],
-                zs[lane] - query[2],
-            );
-            dist_sq[lane] = dx * dx + dy * dy + dz * dz;
+            dist_sq[lane] = point_dist_sq(&[xs[lane], ys[lane], zs[lane]], query);
         }
         let bound = collector.bound();
         // NaN lanes (padding) compare false.

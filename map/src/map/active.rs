@@ -384,9 +384,9 @@ impl<'a> ActiveSet<'a> {
     /// first. As [`Self::nearest_in_frames`] for one: each keyframe after the first is
     /// searched within the `k`-th distance found so far (inclusive) and skipped when its
     /// box lies beyond it, so the answer is the merged per-keyframe k-NN's.
-    fn nearest_k_in_frames(&self, p: &[f32; 3], k: NonZeroUsize) -> Vec<MapHit> {
+    fn nearest_k_in_frames(&self, p: &[f32; 3], k: NonZeroUsize, max_dist_sq: f32) -> Vec<MapHit> {
         let mut hits: Vec<MapHit> = Vec::new();
-        let mut bound = f32::INFINITY;
+        let mut bound = max_dist_sq;
         for f in self.frames_nearest_first(p) {
             let query = Self::local_query(f, p);
             if f.bbox.dist_sq(&query) > bound {
@@ -431,34 +431,28 @@ impl<'a> ActiveSet<'a> {
 
     /// The `k` nearest map points to `p`, nearest first.
     pub fn nearest_k(&self, p: &[f32; 3], k: usize) -> Vec<MapHit> {
+        self.nearest_k_within(p, k, f32::INFINITY)
+    }
+
+    /// [`Self::nearest_k`]'s points within `max_dist_sq` (inclusive): every search stops
+    /// at that distance.
+    pub fn nearest_k_within(&self, p: &[f32; 3], k: usize, max_dist_sq: f32) -> Vec<MapHit> {
         let Some(n) = NonZeroUsize::new(k) else {
             return Vec::new();
         };
-        if self.merged.is_none() {
-            // Bounded across the keyframes, as `nearest_one` (a tracker's
-            // explained-structure queries ask for k = 1 on every adopted scan, answered
-            // by the 1-NN search, which keeps no list).
-            if k == 1 {
-                return self.nearest_one(p).into_iter().collect();
-            }
-            return self.nearest_k_in_frames(p, n);
-        }
-        let mut hits = self.gather(p, |tree, q| tree.nearest_n(q, n));
-        hits.truncate(k);
-        hits
-    }
-
-    /// [`Self::nearest_k`]'s points within `max_dist_sq` (inclusive); for k = 1 the
-    /// search itself stops at that distance.
-    pub fn nearest_k_within(&self, p: &[f32; 3], k: usize, max_dist_sq: f32) -> Vec<MapHit> {
-        if k == 1 && self.merged.is_none() {
+        // A tracker's explained-structure queries ask for k = 1 on every adopted scan:
+        // the 1-NN search, which keeps no list.
+        if k == 1 {
             return self
                 .nearest_one_within(p, max_dist_sq)
                 .into_iter()
                 .collect();
         }
-        let mut hits = self.nearest_k(p, k);
-        hits.retain(|h| h.dist_sq <= max_dist_sq);
+        if self.merged.is_none() {
+            return self.nearest_k_in_frames(p, n, max_dist_sq);
+        }
+        let mut hits = self.gather(p, |tree, q| tree.nearest_n_within(q, n, max_dist_sq));
+        hits.truncate(k);
         hits
     }
 

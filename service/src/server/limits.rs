@@ -18,7 +18,7 @@ pub const MAX_KEYFRAMES: u32 = kfmap_map::select::MAX_KEYFRAMES as u32;
 /// Bytes of one answer pairing.
 pub const PAIRING_BYTES: u64 = std::mem::size_of::<WirePairing>() as u64;
 
-/// Largest radius of a `Radius` request, metres.
+/// Largest radius of a `Radius` request and bound of a `Nearest` request, metres.
 pub const MAX_RADIUS: f32 = 20.0;
 
 /// Largest pairing distance of `Cov2Cov` / `Localize`, metres.

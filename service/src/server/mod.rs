@@ -48,7 +48,7 @@ pub use answer::{Answer, AnswerPairings};
 use budget::{Budget, BudgetLimits};
 pub use dispatch::answer;
 use leader::{RequestServer, Requests};
-pub use limits::Limits;
+pub use limits::{Limits, MAX_RADIUS};
 pub use localize::localize_params;
 use ports::ClientPorts;
 use queue::FairQueue;

@@ -195,12 +195,9 @@ pub(super) fn nearest(
         per_point: usize::MAX,
         total: usize::MAX,
     };
+    let bound_sq = if r > 0.0 { r * r } else { f32::INFINITY };
     let answer = search_each(&active, scan, pose, caps, |active, p| {
-        if r > 0.0 {
-            active.nearest_k_within(p, k as usize, r * r)
-        } else {
-            active.nearest_k(p, k as usize)
-        }
+        active.nearest_k_within(p, k as usize, bound_sq)
     });
     Ok(answer.expect("k-nearest answers have no caps"))
 }
