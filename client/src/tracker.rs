@@ -130,7 +130,8 @@ pub struct TrustParams {
     /// scan (m/s^2), is not adopted: `lost` at the prediction (`implausible`),
     /// however well the scan fits there. A registration that slides metres along a
     /// street between two scans has found another place, not the sensor's motion.
-    /// 0 turns the check off.
+    /// With an IMU log, the acceleration it measured bounds the reach tighter where
+    /// it does ([`PosePredictor::reach`]). 0 turns the check off.
     pub max_acceleration: f64,
 }
 
@@ -316,10 +317,6 @@ struct Evaluated {
 /// buildings changed: ok scans losing 0.13-0.24 were 0-17 mm off along the road, those
 /// losing 0.05-0.09 were 60-170 mm off with the registration's sigma at 5-20 mm.
 const SLIDE_PINNED_WELL: f64 = 0.15;
-/// How far a right pose may sit from a right prediction beyond what the acceleration
-/// explains (metres): the distance at which an `ok` pose counts as wrong, so a pose
-/// farther off means this scan or the ones before it are wrong by at least that.
-const JUMP_SLACK_M: f64 = 0.5;
 /// Sigma along the slide of a `degenerate` scan, metres: the scene says nothing there
 /// (a tunnel's axis, where the registration's weak pull may hold a repeat metres off),
 /// so an EKF fusing the pose must not trust that direction at all.
@@ -680,8 +677,12 @@ impl Tracker {
         let Some(t_last) = self.motion.last_time().filter(|_| judged) else {
             return false;
         };
-        let dt = (t - t_last).max(0.0);
-        if translation_distance(&localized.pose, predicted) <= JUMP_SLACK_M + 0.5 * a * dt * dt {
+        let reach = self.motion.reach(t, a).unwrap_or(f64::INFINITY);
+        tracing::debug!(
+            "tracker: t {t:.3} reach {reach:.2} m over {:.2} s",
+            (t - t_last).max(0.0)
+        );
+        if translation_distance(&localized.pose, predicted) <= reach {
             return false;
         }
         localized.pose = *predicted;

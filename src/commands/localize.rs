@@ -186,7 +186,9 @@ pub struct Args {
     confirm_after_unpinned: usize,
     /// A pose farther from the motion model's prediction than 0.5 m plus what this
     /// acceleration (m/s^2) moves the sensor since the last adopted scan is `lost`
-    /// (implausible): a slide onto a look-alike, not motion (0: no check).
+    /// (implausible): a slide onto a look-alike, not motion (0: no check). With an IMU
+    /// log the acceleration it measured (plus 1 m/s^2, and 0.5 m/s of velocity error)
+    /// bounds it tighter when that is less.
     #[arg(long, default_value_t = TrustParams::default().max_acceleration)]
     max_acceleration: f64,
     /// Every this many adopted scans the scan is also relocalized, so that a look-alike

@@ -659,8 +659,7 @@ fn a_later_recording_with_moved_clutter_is_never_confidently_wrong() {
 /// one; measured now 0 and 0 (the tracked place holds), with 28 % and 41 % of the scans
 /// `ok` and right. Seed 42 replayed with no start: before `confirm-after-unpinned`, 3
 /// scans `ok` 25 m off (a look-alike decided, then a slide that ended on a locally
-/// pinned scan); now 0. Seed 44 (its first 4 s): a look-alike 2.4 m along the road
-/// (below).
+/// pinned scan); now 0. Seed 44: a look-alike 2.2-2.5 m along the road (below).
 #[test]
 fn a_street_whose_buildings_changed_is_not_called_ok_while_sliding_along_it() {
     let dir = temp_dir("street-later");
@@ -694,17 +693,18 @@ fn a_street_whose_buildings_changed_is_not_called_ok_while_sliding_along_it() {
         assert!(weak > 0, "seed {seed}");
     }
     // Seed 44's street holds a place 2.0-2.5 m along the road that the registration
-    // slides to from the right prediction every few scans, and fits as well. Before
-    // the acceleration bound (`--max-acceleration`) the correction gate learned from
-    // the first jump and let the next ones through: in its first 4 s (40 scans) 18
-    // scans `ok` 2.5-6.4 m off; measured now 0, 50 % `ok` and right. (Over 12 s, 4
-    // scans are still `ok` 2.2-2.3 m off: adopted after six refused scans, when 0.6 s
-    // of acceleration reaches the look-alike; docs/DESIGN.md#tracking.)
-    let (replayed, share) = replayed_from_true_start(&dir, "street", "4", "44", "street", &prefix);
+    // slides to from the right prediction every few scans, and fits as well (better,
+    // after scan 58). Before the acceleration bound (`--max-acceleration`) the
+    // correction gate learned from the first jump and let the next ones through: in
+    // its first 4 s 18 scans `ok` 2.5-6.4 m off. With 1 g as the bound, 4 scans of its
+    // 12 s were still `ok` 2.2-2.3 m off, adopted after six refused scans, when 0.6 s
+    // of 1 g reaches the look-alike; with the acceleration its IMU log measured
+    // (docs/DESIGN.md#tracking) measured now 0, 17 % `ok` and right (the same 20 scans).
+    let (replayed, share) = replayed_from_true_start(&dir, "street", "12", "44", "street", &prefix);
     let refused = refused_jumps(&replayed.scans);
     println!("street seed 44: {refused} jumps refused");
     assert!(replayed.wrong.is_empty(), "seed 44: {:?}", replayed.wrong);
-    assert!(share >= 0.45, "seed 44: {share}");
+    assert!(share >= 0.15, "seed 44: {share}");
     assert!(refused > 0, "seed 44: no jump refused");
     let wrong = replay_against_truth(&dir.join("run-42"), "street", &prefix, &[]).wrong;
     println!("street seed 42 on the map of seed 41, no start: wrong ok {wrong:?}");

@@ -8,6 +8,19 @@ use super::{ConstantVelocity, Gyro};
 use crate::cloud::{DeskewError, PointCloud, Twist, deskew};
 use crate::geometry::Pose;
 
+/// How far a right pose may sit from a right prediction beyond what the motion
+/// explains, metres: the registration's error on the poses the velocity came from, at
+/// the distance where a pose counts as wrong.
+pub const REACH_SLACK_M: f64 = 0.5;
+/// How wrong the velocity of two adopted poses may be, m/s: 0.5 m/s is 5 cm of
+/// registration error over a 10 Hz scan interval.
+pub const REACH_VELOCITY_SLACK_MPS: f64 = 0.5;
+/// Added to the accelerometer's largest linear acceleration, m/s^2: its bias, the
+/// map's tilt from gravity (0.17 m/s^2 per degree) and the IMU's lever arm in turns.
+pub const REACH_ACCELERATION_MARGIN_MPS2: f64 = 1.0;
+/// Standard gravity, m/s^2, pointing down the map's z axis (a levelled map).
+const GRAVITY_MPS2: f64 = 9.80665;
+
 /// Predicts the sensor's pose from the poses accepted so far (and the gyro).
 #[derive(Debug, Clone, Default)]
 pub struct PosePredictor {
@@ -77,6 +90,32 @@ impl PosePredictor {
             None => motion,
         };
         Some(last * motion)
+    }
+
+    /// How far from [`PosePredictor::predict`]'s position the sensor can be at `t`,
+    /// metres, for a platform that accelerates at most `max_acceleration` (m/s^2):
+    /// [`REACH_SLACK_M`] plus half that acceleration times the squared time since the
+    /// last pose. Where the IMU log covers that time, the acceleration it measured
+    /// (gravity removed in the map's frame, plus [`REACH_ACCELERATION_MARGIN_MPS2`])
+    /// with the velocity's own error ([`REACH_VELOCITY_SLACK_MPS`] times the time)
+    /// bounds it tighter when it does: a car cruising through a lost second cannot
+    /// have jumped to a look-alike 2 m along the street that 1 g would allow.
+    /// `None` before the first pose.
+    pub fn reach(&self, t: f64, max_acceleration: f64) -> Option<f64> {
+        let t_last = self.velocity.last_time()?;
+        let last = self.velocity.last()?;
+        let dt = (t - t_last).max(0.0);
+        let worst = REACH_SLACK_M + 0.5 * max_acceleration * dt * dt;
+        let gravity = Vector3::new(0.0, 0.0, -GRAVITY_MPS2);
+        let measured = self
+            .gyro
+            .as_ref()
+            .and_then(|g| g.max_linear_acceleration(t_last, t, &last.rotation, &gravity))
+            .map(|a| {
+                let a = a + REACH_ACCELERATION_MARGIN_MPS2;
+                REACH_SLACK_M + REACH_VELOCITY_SLACK_MPS * dt + 0.5 * a * dt * dt
+            });
+        Some(measured.map_or(worst, |m| m.min(worst)))
     }
 
     /// The body twist over `[t0, t1]`: the last velocity's linear part, and the gyro's
@@ -251,5 +290,51 @@ mod tests {
         scan.time = None;
         let bare = model.mid_scan(&scan, 1.0, true).unwrap();
         assert!(bare.deskewed.is_none() && bare.offset == 0.0);
+    }
+
+    /// A platform at rest on level ground that starts pulling 2 m/s^2 along x: the
+    /// constant-velocity prediction falls `t^2` behind (closed form), the reach
+    /// measured by the accelerometer holds that and is far short of 1 g's; without
+    /// the log the reach is 1 g's.
+    #[test]
+    fn the_reach_holds_a_measured_acceleration_and_is_tighter_than_one_g() {
+        let samples = (0..=600)
+            .map(|k| {
+                let t = k as f64 / 200.0;
+                let pulling = if t > 1.0 { 2.0 } else { 0.0 };
+                ImuSample {
+                    t,
+                    acc: [pulling, 0.0, GRAVITY_MPS2],
+                    gyro: [0.0; 3],
+                }
+            })
+            .collect();
+        let gyro = Gyro::new(samples, GyroParams::default()).unwrap();
+        let mut with_imu = PosePredictor::new(Some(gyro));
+        let mut without = PosePredictor::new(None);
+        for model in [&mut with_imu, &mut without] {
+            model.update(0.9, Pose::identity(), false);
+            model.update(1.0, Pose::identity(), false);
+        }
+        let one_g = 9.81;
+        for ahead in [0.1, 0.5, 1.0, 1.5] {
+            let t = 1.0 + ahead;
+            let behind = ahead * ahead;
+            let reach = with_imu.reach(t, one_g).unwrap();
+            let measured = REACH_SLACK_M
+                + REACH_VELOCITY_SLACK_MPS * ahead
+                + 0.5 * (2.0 + REACH_ACCELERATION_MARGIN_MPS2) * ahead * ahead;
+            let worst = REACH_SLACK_M + 0.5 * one_g * ahead * ahead;
+            assert!(
+                (reach - measured.min(worst)).abs() < 1e-6,
+                "{ahead}: {reach}"
+            );
+            assert!(
+                reach - REACH_SLACK_M >= behind,
+                "{ahead}: {reach} < {behind}"
+            );
+            assert!((without.reach(t, one_g).unwrap() - worst).abs() < 1e-12);
+        }
+        assert!(PosePredictor::new(None).reach(1.0, one_g).is_none());
     }
 }

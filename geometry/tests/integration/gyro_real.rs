@@ -1,12 +1,14 @@
 //! The gyro in the motion model, on a real IMU (`../shared/data/imu_real`: 100 Hz IMU
 //! and a 10 Hz LiDAR-IMU SLAM trajectory over 238 s). The oracle is the trajectory's
 //! own rotation between poses: predicting it by integrating the gyro must beat
-//! extrapolating the last motion (constant velocity) at every scan rate.
+//! extrapolating the last motion (constant velocity) at every scan rate; and the
+//! reach the accelerometer measures around a prediction must hold the trajectory's
+//! positions.
 
 use kfmap_geometry::geometry::Pose;
 use kfmap_geometry::imu::{ImuSample, read_imu_csv};
 use kfmap_geometry::io::read_trajectory;
-use kfmap_geometry::motion::{Gyro, GyroParams, PosePredictor};
+use kfmap_geometry::motion::{Gyro, GyroParams, PosePredictor, REACH_SLACK_M};
 use kfmap_testdata::require_test_data;
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
 
@@ -69,11 +71,12 @@ fn predict_all(
     errors
 }
 
-#[test]
-fn the_gyro_predicts_real_rotations_better_than_constant_velocity() {
-    let Some(dir) = require_test_data("imu_real", "gyro_real") else {
-        return;
-    };
+/// The log, the trajectory's stamps and poses, and the gyro's settings.
+type Calibrated = (Vec<ImuSample>, Vec<f64>, Vec<Pose>, GyroParams);
+
+/// imu_real with `R_traj_imu` calibrated on the trajectory's first half.
+fn calibrated(test: &str) -> Option<Calibrated> {
+    let dir = require_test_data("imu_real", test)?;
     let imu = read_imu_csv(&dir.join("imu.txt")).unwrap();
     let trajectory = read_trajectory(&dir.join("traj.txt")).unwrap();
     let stamps = trajectory.stamps.unwrap();
@@ -93,6 +96,14 @@ fn the_gyro_predicts_real_rotations_better_than_constant_velocity() {
     let params = GyroParams {
         lidar_from_imu_rpy_deg: [r, p, y].map(f64::to_degrees),
         ..GyroParams::default()
+    };
+    Some((imu, stamps, poses, params))
+}
+
+#[test]
+fn the_gyro_predicts_real_rotations_better_than_constant_velocity() {
+    let Some((imu, stamps, poses, params)) = calibrated("gyro_real") else {
+        return;
     };
     println!(
         "R_traj_imu from the first half: rpy {:?} deg",
@@ -118,5 +129,60 @@ fn the_gyro_predicts_real_rotations_better_than_constant_velocity() {
             rms(&e.constant_velocity)
         );
         assert!(max(&e.gyro) < max(&e.constant_velocity));
+    }
+}
+
+/// The tracker refuses a pose farther from the motion model's prediction than
+/// [`PosePredictor::reach`]; with an IMU log the reach is the accelerometer's measured
+/// acceleration (gravity removed in the trajectory's levelled frame) instead of 1 g.
+/// Oracle: the SLAM trajectory. From every pose of the second half (the velocity from
+/// it and the pose before, as the tracker's from two adopted scans), predicted
+/// `h` = 0.1-1.5 s ahead (as many scans refused in a row at 10 Hz), the true
+/// position must lie within the reach, and the reach must stay short of a look-alike
+/// 2 m along a street for the 0.6 s after which one was adopted (docs/DESIGN.md#tracking).
+#[test]
+fn the_measured_reach_holds_every_real_position_and_is_tighter_than_one_g() {
+    let Some((imu, stamps, poses, params)) = calibrated("imu_real_reach") else {
+        return;
+    };
+    let mut predictor = PosePredictor::new(Some(Gyro::new(imu, params).unwrap()));
+    let one_g = 9.81;
+    for steps in [1, 3, 6, 10, 15] {
+        let (mut reaches, mut headroom, mut farthest) = (Vec::new(), f64::INFINITY, 0.0_f64);
+        for i in stamps.len() / 2..stamps.len() - steps {
+            predictor.restart();
+            predictor.update(stamps[i - 1], poses[i - 1], false);
+            predictor.update(stamps[i], poses[i], false);
+            let t = stamps[i + steps];
+            let off = (predictor.predict(t).unwrap().translation.vector
+                - poses[i + steps].translation.vector)
+                .norm();
+            let reach = predictor.reach(t, one_g).unwrap();
+            // The slack is for a tracker's registration error; these poses have
+            // none to speak of, so the motion terms alone must hold them.
+            let motion_reach = reach - REACH_SLACK_M;
+            assert!(
+                off <= motion_reach,
+                "pose {i} + {steps}: {off:.3} m off the prediction, reach {reach:.3} m"
+            );
+            headroom = headroom.min(motion_reach - off);
+            farthest = farthest.max(off);
+            reaches.push(reach);
+        }
+        reaches.sort_by(f64::total_cmp);
+        let dt = stamps[stamps.len() - 1] - stamps[stamps.len() - 1 - steps];
+        let worst = 0.5 + 0.5 * one_g * dt * dt;
+        let (median, p95) = (
+            reaches[reaches.len() / 2],
+            reaches[reaches.len() * 95 / 100],
+        );
+        println!(
+            "{dt:.1} s ahead: reach median {median:.2} m, p95 {p95:.2} m (1 g: {worst:.2} m), farthest off {farthest:.3} m, least headroom {headroom:.3} m"
+        );
+        assert!(steps < 3 || median < worst, "{dt} s: {median} vs {worst}");
+        if steps == 6 {
+            // Measured 1.01 / 1.03 m: short of the street's look-alike 2.2 m along.
+            assert!(median <= 1.1 && p95 < 2.0, "{median} / {p95}");
+        }
     }
 }
