@@ -50,11 +50,20 @@ fn maps_beyond_2_gib_are_written_and_read_in_place() {
     .unwrap();
     let options = KeyframeMapOptions::default();
     let mut writer = MapWriter::create(&path, &options).unwrap();
-    for id in 0..KEYFRAMES {
-        let mut k = template.clone(); // Shares the data: one keyframe in memory.
-        k.id = id;
-        k.pose = Pose::new(Vector3::new(30.0 * id as f64, 0.0, 0.0), Vector3::zeros());
-        writer.write_keyframe(&k).unwrap();
+    let ids: Vec<u64> = (0..KEYFRAMES).collect();
+    // Two at a time, serialized in parallel (the bake's path); the clones share the
+    // template's data, so two keyframes' archives are in memory at once.
+    for pair in ids.chunks(2) {
+        let keyframes: Vec<Keyframe> = pair
+            .iter()
+            .map(|&id| {
+                let mut k = template.clone();
+                k.id = id;
+                k.pose = Pose::new(Vector3::new(30.0 * id as f64, 0.0, 0.0), Vector3::zeros());
+                k
+            })
+            .collect();
+        writer.write_keyframes(&keyframes).unwrap();
     }
     drop(template);
     let summary = writer
