@@ -398,6 +398,10 @@ mod tests {
             ("[server]\nmode = \"fast\"", "mode"),
             ("[topics]\nlidar = \"/x\"", "lidar"),
             ("[tracker]\nok-pinned = 3.0", "ok-pinned"),
+            (
+                "[tracker]\nok-pinned-after-doubt = 3.0",
+                "ok-pinned-after-doubt",
+            ),
             ("[tracker]\nmax-acceleration = -1.0", "max-acceleration"),
             (
                 "[tracker]\nconfirm-after-unpinned = 5000",

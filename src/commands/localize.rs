@@ -184,6 +184,12 @@ pub struct Args {
     /// a slide along a street ends somewhere unknown (0: no check).
     #[arg(long, default_value_t = TrustParams::default().confirm_after_unpinned)]
     confirm_after_unpinned: usize,
+    /// A place decided among places in doubt (not the one tracked before) is `ok` only
+    /// once a relocalization of a pinned scan finds it itself or a scan pins it at
+    /// least this well (the slide loss of --ok-pinned): a look-alike along a street is
+    /// held loosely and stays ambiguous (2: only a relocalization lifts the doubt).
+    #[arg(long, default_value_t = TrustParams::default().ok_pinned_after_doubt, allow_hyphen_values = true)]
+    ok_pinned_after_doubt: f64,
     /// A pose farther from the motion model's prediction than 0.5 m plus what this
     /// acceleration (m/s^2) moves the sensor since the last adopted scan is `lost`
     /// (implausible): a slide onto a look-alike, not motion (0: no check). With an IMU
@@ -517,6 +523,7 @@ fn trust(args: &Args) -> TrustParams {
         tight_distance: args.tight_distance,
         ok_pinned: args.ok_pinned,
         confirm_after_unpinned: args.confirm_after_unpinned,
+        ok_pinned_after_doubt: args.ok_pinned_after_doubt,
         explained_keyframes: args.explained_keyframes,
         max_acceleration: args.max_acceleration,
     }

@@ -146,6 +146,10 @@ fn bad_input_exits_2_with_a_message_naming_the_problem() {
         ),
         (localize_with(&["--ok-pinned", "3"]), "--ok-pinned"),
         (
+            localize_with(&["--ok-pinned-after-doubt", "3"]),
+            "ok-pinned-after-doubt",
+        ),
+        (
             localize_with(&["--max-acceleration=-1"]),
             "--max-acceleration",
         ),
