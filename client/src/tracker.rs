@@ -80,8 +80,8 @@ impl Default for TrackerOptions {
 
 /// When the tracker calls a scan's pose `ok` and when it gives up on the place it
 /// tracks: `kfmap localize`'s `--ok-explained`, `--explained-keyframes`, `--ok-pinned`,
-/// `--confirm-after-unpinned`, `--ok-pinned-after-doubt`, `--check-every`, `--lost-after-unfit`, `--recover-after`,
-/// the ROS 2 node's `[tracker]`.
+/// `--confirm-after-unpinned`, `--ok-pinned-after-doubt`, `--check-every`,
+/// `--lost-after-unfit`, `--recover-after`, the ROS 2 node's `[tracker]`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
 pub struct TrustParams {
@@ -125,8 +125,8 @@ pub struct TrustParams {
     /// least this well (the `ok-pinned` slide loss); until then `degraded`
     /// (`unpinned`). The doubt showed look-alikes, and the right place may be one no
     /// relocalization proposed (the map's end of a street scores below its middle): a
-    /// look-alike along a street is held loosely and stays ambiguous. 2 lifts the doubt
-    /// only by a relocalization.
+    /// look-alike along a street is held loosely and stays ambiguous. 2: only a
+    /// relocalization lifts the doubt; -1: the first scan with a slide probe does.
     pub ok_pinned_after_doubt: f64,
     /// A scan's explained share (what `ok-explained` judges and what places in doubt
     /// are compared by) is measured in this many keyframes around the pose, the
