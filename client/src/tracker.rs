@@ -575,9 +575,7 @@ impl Tracker {
         let refused = self.refuse_impossible_jump(t, &predicted, by_model, &mut localized);
         let (explained, slide_loss) = self.explained_and_slide(client, scan, &localized)?;
         self.demote_doubtful(&mut localized, explained, slide_loss);
-        if localized.health.status != TrackingStatus::Lost {
-            self.clear_doubt(slide_loss);
-        }
+        self.clear_doubt(slide_loss);
         widened_along_slide(&mut localized, slide_loss);
         self.confirm_after_unpinned_run(client, scan, t, &mut localized)?;
         self.give_up_when_unfit(&predicted, &mut localized);
@@ -709,17 +707,14 @@ impl Tracker {
             && by_model
             && self.motion.has_velocity()
             && localized.health.status != TrackingStatus::Lost;
-        let Some(t_last) = self.motion.last_time().filter(|_| judged) else {
+        let Some(reach) = self.motion.reach(t, a).filter(|_| judged) else {
             return false;
         };
-        let reach = self.motion.reach(t, a).unwrap_or(f64::INFINITY);
-        tracing::debug!(
-            "tracker: t {t:.3} reach {reach:.2} m over {:.2} s",
-            (t - t_last).max(0.0)
-        );
-        if translation_distance(&localized.pose, predicted) <= reach {
+        let off = translation_distance(&localized.pose, predicted);
+        if off <= reach {
             return false;
         }
+        tracing::debug!("tracker: t = {t:.2} s, {off:.2} m off the prediction, reach {reach:.2} m");
         localized.pose = *predicted;
         localized.health.status = TrackingStatus::Lost;
         localized.health.reasons.insert(Reasons::IMPLAUSIBLE);

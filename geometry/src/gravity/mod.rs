@@ -41,6 +41,9 @@ pub use motion::{MotionModel, compensated_sample};
 pub use pool::{KeyframeStamp, PoolFill, fill_pool};
 pub use window::{ImuWindow, KfAccSample, MIN_ACC_STD};
 
+/// Standard gravity, m/s^2 (the magnitude an accelerometer at rest reads).
+pub const STANDARD_GRAVITY_MPS2: f64 = 9.80665;
+
 /// Aligner parameters (defaults from docs/DESIGN.md#gravity).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
@@ -81,7 +84,7 @@ impl Default for GravityParams {
             motion_compensation: true,
             estimate_accel_bias: true,
             accel_bias_prior_mps2: 0.1,
-            gravity_mps2: 9.80665,
+            gravity_mps2: STANDARD_GRAVITY_MPS2,
             gravity_sigma_mps2: 0.02,
         }
     }

@@ -18,9 +18,7 @@ mod predictor;
 mod sweep;
 
 pub use gyro::{Gyro, GyroError, GyroParams, MIN_UP_SAMPLES};
-pub use predictor::{
-    MidScan, PosePredictor, REACH_ACCELERATION_MARGIN_MPS2, REACH_SLACK_M, REACH_VELOCITY_SLACK_MPS,
-};
+pub use predictor::{MidScan, PosePredictor, REACH_SLACK_M};
 pub use sweep::{DeskewMode, SpinDirection, SweepParams};
 
 /// `relative` scaled to a fraction `s` of itself along its screw motion,

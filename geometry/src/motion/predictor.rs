@@ -7,6 +7,7 @@ use nalgebra::Vector3;
 use super::{ConstantVelocity, Gyro};
 use crate::cloud::{DeskewError, PointCloud, Twist, deskew};
 use crate::geometry::Pose;
+use crate::gravity::STANDARD_GRAVITY_MPS2;
 
 /// How far a right pose may sit from a right prediction beyond what the motion
 /// explains, metres: the registration's error on the poses the velocity came from, at
@@ -14,12 +15,10 @@ use crate::geometry::Pose;
 pub const REACH_SLACK_M: f64 = 0.5;
 /// How wrong the velocity of two adopted poses may be, m/s: 0.5 m/s is 5 cm of
 /// registration error over a 10 Hz scan interval.
-pub const REACH_VELOCITY_SLACK_MPS: f64 = 0.5;
+const REACH_VELOCITY_SLACK_MPS: f64 = 0.5;
 /// Added to the accelerometer's largest linear acceleration, m/s^2: its bias, the
 /// map's tilt from gravity (0.17 m/s^2 per degree) and the IMU's lever arm in turns.
-pub const REACH_ACCELERATION_MARGIN_MPS2: f64 = 1.0;
-/// Standard gravity, m/s^2, pointing down the map's z axis (a levelled map).
-const GRAVITY_MPS2: f64 = 9.80665;
+const REACH_ACCELERATION_MARGIN_MPS2: f64 = 1.0;
 
 /// Predicts the sensor's pose from the poses accepted so far (and the gyro).
 #[derive(Debug, Clone, Default)]
@@ -106,7 +105,8 @@ impl PosePredictor {
         let last = self.velocity.last()?;
         let dt = (t - t_last).max(0.0);
         let worst = REACH_SLACK_M + 0.5 * max_acceleration * dt * dt;
-        let gravity = Vector3::new(0.0, 0.0, -GRAVITY_MPS2);
+        // Down the map's z axis: a levelled map, as the relocalization tilt assumes.
+        let gravity = Vector3::new(0.0, 0.0, -STANDARD_GRAVITY_MPS2);
         let measured = self
             .gyro
             .as_ref()
@@ -304,7 +304,7 @@ mod tests {
                 let pulling = if t > 1.0 { 2.0 } else { 0.0 };
                 ImuSample {
                     t,
-                    acc: [pulling, 0.0, GRAVITY_MPS2],
+                    acc: [pulling, 0.0, STANDARD_GRAVITY_MPS2],
                     gyro: [0.0; 3],
                 }
             })

@@ -171,7 +171,7 @@ fn the_measured_reach_holds_every_real_position_and_is_tighter_than_one_g() {
         }
         reaches.sort_by(f64::total_cmp);
         let dt = stamps[stamps.len() - 1] - stamps[stamps.len() - 1 - steps];
-        let worst = 0.5 + 0.5 * one_g * dt * dt;
+        let worst = REACH_SLACK_M + 0.5 * one_g * dt * dt;
         let (median, p95) = (
             reaches[reaches.len() / 2],
             reaches[reaches.len() * 95 / 100],
