@@ -16,7 +16,7 @@ use kfmap_geometry::geometry::{Pose, translation_distance};
 use kfmap_geometry::imu::ImuSample;
 use kfmap_geometry::motion::{
     AdaptiveThreshold, AdaptiveThresholdParams, Gyro, GyroError, GyroParams, PosePredictor,
-    point_displacement,
+    REACH_SLACK_M, point_displacement,
 };
 use kfmap_geometry::options::{InvalidOption, ensure, ensure_ratio};
 use kfmap_geometry::registration::{PreparedCloud, RegistrationParams, align};
@@ -141,7 +141,8 @@ pub struct TrustParams {
     /// however well the scan fits there. A registration that slides metres along a
     /// street between two scans has found another place, not the sensor's motion.
     /// With an IMU log, the acceleration it measured bounds the reach tighter where
-    /// it does ([`PosePredictor::reach`]). 0 turns the check off.
+    /// it does ([`PosePredictor::reach`]); and a pose that far off is judged against
+    /// the scans' own motion too (dead reckoning, scan to scan). 0 turns both checks off.
     pub max_acceleration: f64,
 }
 
@@ -294,10 +295,87 @@ pub struct Tracker {
     /// This scan prepared for scan-to-scan registration (`Prepared`), when a
     /// registration did so.
     prepared_now: Option<PreviousScan>,
+    /// The scan before with the pose it was taken at, while tracking: adopted, or
+    /// dead-reckoned from the last adopted one across refused jumps ([`Reckoning`]).
+    odometry: Option<Reckoning>,
+    /// This scan's dead-reckoned pose when its map pose was refused against it.
+    reckoned_now: Option<Pose>,
+    /// The motion registered from the scan before to this one, when it was.
+    step_now: Option<(Pose, bool)>,
     /// The last scan's covariances and coarse copy as client-side localization built
     /// them: while places are in doubt one scan is localized at each of them.
     localized_scan: RefCell<PreparedParts>,
 }
+
+/// The motion from `previous` to `scan` registered scan to scan from `guess`, `None`
+/// when the registration fails or pairs less than half of the scan; with `scan` as
+/// prepared for it (the next scan's target).
+fn registered_motion_from(
+    previous: &PreviousScan,
+    scan: &ScanPayload,
+    guess: &Pose,
+) -> (Option<Pose>, Option<Arc<PreparedCloud>>) {
+    let params = RegistrationParams::default();
+    let current = PointCloud::from_points(scan.points.to_vec());
+    let (target, source) = rayon::join(
+        || match previous {
+            PreviousScan::Prepared(prepared) => Ok(Arc::clone(prepared)),
+            PreviousScan::Sent(cloud) => PreparedCloud::new(cloud, &params, "target").map(Arc::new),
+        },
+        || PreparedCloud::new(&current, &params, "source").map(Arc::new),
+    );
+    let Ok(source) = source else {
+        return (None, None);
+    };
+    let moved = target
+        .ok()
+        .and_then(|target| match align(&target, &source, guess, &params) {
+            Ok(r) if r.converged && r.fitness.inlier_ratio >= 0.5 => Some(renormalized(&r.pose)),
+            _ => None,
+        });
+    (moved, Some(source))
+}
+
+/// Dead reckoning between scans while the map's answers are refused: a registration
+/// that slides to a look-alike along a street fits the map as well as the right place,
+/// but not the motion the scans themselves show (docs/DESIGN.md#tracking).
+#[derive(Debug, Clone)]
+struct Reckoning {
+    /// The scan before.
+    scan: PreviousScan,
+    /// Where it was taken, map frame: adopted, or reckoned.
+    pose: Pose,
+    /// When it was taken.
+    taken: f64,
+    /// When and where the last adopted scan was taken: the chain of reckoned scans
+    /// began there.
+    since: f64,
+    start: Pose,
+    /// The motion into the scan before from its own scan before, if reckoned, and
+    /// whether it was registered (not coasted): the next registration's guess, and
+    /// what one scan that does not register (a stretch too open) coasts on.
+    step: Option<(Pose, bool)>,
+}
+
+/// A map pose farther than this from where the scans' own motion put the sensor is
+/// refused, metres, plus [`RECKON_DRIFT`] of the distance reckoned: scan-to-scan
+/// registration is millimetres to centimetres off per scan (on the changed street 0.12
+/// m over 8 m), and a chain lasts at most [`RECKON_MAX_S`]. The reach's slack.
+const RECKON_REACH_M: f64 = REACH_SLACK_M;
+
+/// See [`RECKON_REACH_M`]: the share of the distance reckoned.
+const RECKON_DRIFT: f64 = 0.05;
+
+/// Scans farther apart than this are not reckoned, seconds: a handheld sensor at 1-2 Hz
+/// turns tens of degrees between scans, where the prediction that seeds the
+/// registration is as far off and it converges elsewhere (balm_os0 at 1 Hz: a right
+/// map pose refused against a wrong motion, the track lost). Spinning LiDARs at 5-20 Hz
+/// are reckoned.
+const RECKON_MAX_GAP_S: f64 = 0.25;
+
+/// Dead reckoning runs at most this long past the last adopted scan, seconds; then the
+/// acceleration bound judges alone.
+const RECKON_MAX_S: f64 = 3.0;
 
 /// The scan before, as sent or already prepared for registration (downsampled, with
 /// covariances and a tree): a scan registered from the one before becomes the next
@@ -459,6 +537,9 @@ impl Tracker {
             since_check: 0,
             previous_scan: None,
             prepared_now: None,
+            odometry: None,
+            reckoned_now: None,
+            step_now: None,
             localized_scan: RefCell::default(),
         }
     }
@@ -534,18 +615,51 @@ impl Tracker {
         t: f64,
     ) -> Result<TrackedScan, ClientError> {
         self.prepared_now = None;
+        self.reckoned_now = None;
+        self.step_now = None;
         let tracked = self.track_scan(client, scan, t);
         // The motion registered from the scan before carries hypotheses, and the scan
         // after one adopted with no velocity known (see `Self::predict_scan`).
         let adopted_at_rest = tracked.as_ref().is_ok_and(|t| {
             t.localized.health.status != TrackingStatus::Lost && !self.motion.has_velocity()
         });
-        let prepared = self.prepared_now.take();
-        self.previous_scan = (!self.hypotheses.is_empty() || adopted_at_rest).then(|| {
-            prepared.unwrap_or_else(|| {
-                PreviousScan::Sent(PointCloud::from_points(scan.points.to_vec()))
-            })
-        });
+        // Where this scan was taken, if known: adopted, or reckoned while refused.
+        let known = match &tracked {
+            Ok(_) if !self.hypotheses.is_empty() => None,
+            Ok(tracked) if tracked.localized.health.status != TrackingStatus::Lost => Some((
+                tracked.localized.pose,
+                t,
+                tracked.localized.pose,
+                self.step_now.take(),
+            )),
+            // A scan lost otherwise than against the scans' motion carries the chain too.
+            Ok(tracked) => self
+                .reckoned_now
+                .or_else(|| self.reckoned_pose(scan, t, &tracked.predicted))
+                .zip(self.odometry.as_ref())
+                .map(|(pose, o)| (pose, o.since, o.start, self.step_now.take())),
+            Err(_) => None,
+        };
+        let prepared = self
+            .prepared_now
+            .take()
+            .unwrap_or_else(|| PreviousScan::Sent(PointCloud::from_points(scan.points.to_vec())));
+        let keep_previous = !self.hypotheses.is_empty() || adopted_at_rest;
+        (self.odometry, self.previous_scan) = match known {
+            Some((pose, since, start, step)) => {
+                let previous = keep_previous.then(|| prepared.clone());
+                let odometry = Reckoning {
+                    scan: prepared,
+                    pose,
+                    taken: t,
+                    since,
+                    start,
+                    step,
+                };
+                (Some(odometry), previous)
+            }
+            None => (None, keep_previous.then_some(prepared)),
+        };
         tracked
     }
 
@@ -572,7 +686,9 @@ impl Tracker {
         let expected = self.last_inlier_ratio;
         let mut localized =
             self.localize_from(client, scan, t, &predicted, max_correction, expected)?;
-        let refused = self.refuse_impossible_jump(t, &predicted, by_model, &mut localized);
+        let reckoned = self.reckon(scan, t, &predicted, by_model, &localized);
+        let refused =
+            self.refuse_impossible_jump(t, &predicted, by_model, reckoned, &mut localized);
         let (explained, slide_loss) = self.explained_and_slide(client, scan, &localized)?;
         self.demote_doubtful(&mut localized, explained, slide_loss);
         self.clear_doubt(slide_loss);
@@ -581,9 +697,13 @@ impl Tracker {
         self.give_up_when_unfit(&predicted, &mut localized);
         // A refused jump keeps the prediction, which is where the sensor is: a
         // relocalization of the scan would weigh the same look-alike afresh.
+        // Nor while the scans' own motion says where the sensor is (the scan before's
+        // place moved by it, [`Reckoning`]): the relocalization of a scan the map fits
+        // badly here weighs the look-alikes that made it fit badly.
         if localized.health.status == TrackingStatus::Lost
             && self.options.relocalize_when_lost
             && !refused
+            && !self.reckoning_alive(t)
         {
             return self.relocalize(client, scan, t, predicted, max_correction, localized);
         }
@@ -696,29 +816,113 @@ impl Tracker {
     /// as well as the scans before (a look-alike along a street) passes it, and the
     /// gate then learns from it and lets the next jump through too.
     fn refuse_impossible_jump(
-        &self,
+        &mut self,
         t: f64,
         predicted: &Pose,
         by_model: bool,
+        reckoned: Option<(Pose, f64)>,
         localized: &mut Localized,
     ) -> bool {
-        let a = self.options.trust.max_acceleration;
-        let judged = a > 0.0
-            && by_model
-            && self.motion.has_velocity()
-            && localized.health.status != TrackingStatus::Lost;
-        let Some(reach) = self.motion.reach(t, a).filter(|_| judged) else {
-            return false;
-        };
-        let off = translation_distance(&localized.pose, predicted);
-        if off <= reach {
+        let beyond_reach = self
+            .motion
+            .reach(t, self.options.trust.max_acceleration)
+            .filter(|_| self.judges_jumps(by_model, localized))
+            .is_some_and(|reach| translation_distance(&localized.pose, predicted) > reach);
+        // The scans' own motion only ever refuses more: where it agrees with the map,
+        // the acceleration bound still judges.
+        let off_the_motion = reckoned
+            .is_some_and(|(pose, reach)| translation_distance(&localized.pose, &pose) > reach);
+        if !beyond_reach && !off_the_motion {
             return false;
         }
-        tracing::debug!("tracker: t = {t:.2} s, {off:.2} m off the prediction, reach {reach:.2} m");
-        localized.pose = *predicted;
+        tracing::debug!(
+            "tracker: t = {t:.2} s, {:.2} m off the prediction{}",
+            translation_distance(&localized.pose, predicted),
+            if off_the_motion {
+                ", off the scans' own motion"
+            } else {
+                ""
+            }
+        );
+        self.reckoned_now = reckoned.map(|(pose, _)| pose);
+        localized.pose = self.reckoned_now.unwrap_or(*predicted);
         localized.health.status = TrackingStatus::Lost;
         localized.health.reasons.insert(Reasons::IMPLAUSIBLE);
         true
+    }
+
+    /// Whether the jump check judges `localized`: a pose the registration adopted from
+    /// the motion model's prediction, with a known velocity.
+    fn judges_jumps(&self, by_model: bool, localized: &Localized) -> bool {
+        self.options.trust.max_acceleration > 0.0
+            && by_model
+            && self.motion.has_velocity()
+            && localized.health.status != TrackingStatus::Lost
+    }
+
+    /// Where the scans' own motion puts the sensor when the map's answer is more than
+    /// the reach's slack off the prediction: the scan before's pose (adopted, or
+    /// reckoned so) moved by the motion registered scan to scan, with how far from it
+    /// the map's answer may lie ([`RECKON_REACH_M`]). `None` when the answer is near
+    /// the prediction, or [`Self::reckoned_pose`] is.
+    fn reckon(
+        &mut self,
+        scan: &ScanPayload,
+        t: f64,
+        predicted: &Pose,
+        by_model: bool,
+        localized: &Localized,
+    ) -> Option<(Pose, f64)> {
+        if !self.judges_jumps(by_model, localized)
+            || translation_distance(&localized.pose, predicted) <= REACH_SLACK_M
+        {
+            return None;
+        }
+        let reckoned = self.reckoned_pose(scan, t, predicted)?;
+        let start = self.odometry.as_ref()?.start;
+        let reach = RECKON_REACH_M + RECKON_DRIFT * translation_distance(&start, &reckoned);
+        Some((reckoned, reach))
+    }
+
+    /// Whether a scan at `t` can be dead-reckoned from the scan before: the jump check
+    /// is on (`max-acceleration` above 0), the scan before's pose is known, it is at
+    /// most [`RECKON_MAX_GAP_S`] before, and the chain is younger than [`RECKON_MAX_S`].
+    fn reckoning_alive(&self, t: f64) -> bool {
+        self.options.trust.max_acceleration > 0.0
+            && self
+                .odometry
+                .as_ref()
+                .is_some_and(|o| t - o.since <= RECKON_MAX_S && t - o.taken <= RECKON_MAX_GAP_S)
+    }
+
+    /// The scan before's pose moved by the motion registered from it to `scan` (from
+    /// the step before, else the prediction); `None` when no scan before is known, it
+    /// is more than [`RECKON_MAX_GAP_S`] before, the chain of reckoned scans is older
+    /// than [`RECKON_MAX_S`], or the registration fails.
+    fn reckoned_pose(&mut self, scan: &ScanPayload, t: f64, predicted: &Pose) -> Option<Pose> {
+        let from = self.odometry.as_ref().filter(|_| self.reckoning_alive(t))?;
+        // The step before is the better guess along a chain: the prediction carries the
+        // last adopted scan's velocity, seconds old by then.
+        let guess = from
+            .step
+            .map_or_else(|| from.pose.inverse() * predicted, |(step, _)| step);
+        let (moved, prepared) = registered_motion_from(&from.scan, scan, &guess);
+        // A scan that does not register coasts on a registered step before, once.
+        self.step_now = match (moved, from.step) {
+            (Some(moved), _) => Some((moved, true)),
+            (None, Some((step, true))) => Some((step, false)),
+            (None, _) => None,
+        };
+        let reckoned = self
+            .step_now
+            .map(|(moved, _)| renormalized(&(from.pose * moved)));
+        tracing::debug!(
+            "tracker: t = {t:.2} s, reckoned {:?} ({:.1} s since the last adopted scan)",
+            reckoned.map(|p| p.translation.vector),
+            t - from.since
+        );
+        self.prepared_now = prepared.map(PreviousScan::Prepared);
+        reckoned
     }
 
     /// The scan counts that judge a tracked place start afresh: the map has just
@@ -1202,23 +1406,9 @@ impl Tracker {
     /// [`Self::motion_since_previous`], `None` where it falls back to the guess.
     fn registered_motion(&mut self, scan: &ScanPayload, guess: &Pose) -> Option<Pose> {
         let previous = self.previous_scan.as_ref()?;
-        let params = RegistrationParams::default();
-        let current = PointCloud::from_points(scan.points.to_vec());
-        let (target, source) = rayon::join(
-            || match previous {
-                PreviousScan::Prepared(prepared) => Ok(Arc::clone(prepared)),
-                PreviousScan::Sent(cloud) => {
-                    PreparedCloud::new(cloud, &params, "target").map(Arc::new)
-                }
-            },
-            || PreparedCloud::new(&current, &params, "source").map(Arc::new),
-        );
-        let source = source.ok()?;
-        self.prepared_now = Some(PreviousScan::Prepared(Arc::clone(&source)));
-        match align(&*target.ok()?, &source, guess, &params) {
-            Ok(r) if r.converged && r.fitness.inlier_ratio >= 0.5 => Some(renormalized(&r.pose)),
-            _ => None,
-        }
+        let (moved, prepared) = registered_motion_from(previous, scan, guess);
+        self.prepared_now = prepared.map(PreviousScan::Prepared);
+        moved
     }
 
     /// A scan while several places are in doubt: `lost` (`ambiguous`) at the best's
@@ -1556,17 +1746,17 @@ mod tests {
         assert!(translation_distance(&predicted, &at(2.0)) < 1e-9);
         // Within 0.1 s the sensor can leave the prediction by 0.5 m plus 10 m/s^2 *
         // (0.1 s)^2 / 2 = 0.55 m: 0.54 m off is adopted as registered, 0.56 m is not.
-        let judged = |tracker: &Tracker, t: f64, x: f64| {
+        let judged = |tracker: &mut Tracker, t: f64, x: f64| {
             let predicted = tracker.predict(t);
             let mut localized = scan(at(x), TrackingStatus::Ok, 0.9);
-            let refused = tracker.refuse_impossible_jump(t, &predicted, true, &mut localized);
+            let refused = tracker.refuse_impossible_jump(t, &predicted, true, None, &mut localized);
             assert_eq!(refused, localized.health.status == TrackingStatus::Lost);
             localized
         };
-        let within = judged(&tracker, 0.2, 2.54);
+        let within = judged(&mut tracker, 0.2, 2.54);
         assert_eq!(within.health.status, TrackingStatus::Ok);
         assert_eq!(within.pose, at(2.54));
-        let beyond = judged(&tracker, 0.2, 2.0 - 0.56);
+        let beyond = judged(&mut tracker, 0.2, 2.0 - 0.56);
         assert_eq!(beyond.health.status, TrackingStatus::Lost);
         assert!(beyond.health.reasons.contains(Reasons::IMPLAUSIBLE));
         assert_eq!(beyond.pose, predicted);
@@ -1583,28 +1773,29 @@ mod tests {
             );
         }
         assert_eq!(
-            judged(&tracker, 0.7, 7.0 + 2.29).health.status,
+            judged(&mut tracker, 0.7, 7.0 + 2.29).health.status,
             TrackingStatus::Ok
         );
         assert_eq!(
-            judged(&tracker, 0.7, 7.0 - 2.31).health.status,
+            judged(&mut tracker, 0.7, 7.0 - 2.31).health.status,
             TrackingStatus::Lost
         );
         // A degraded pose is judged as well; a lost one, a pose the model did not
         // predict (no velocity yet) and a check turned off leave the scan as it was.
         let mut degraded = scan(at(10.0), TrackingStatus::Degraded, 0.9);
-        tracker.refuse_impossible_jump(0.7, &tracker.predict(0.7), true, &mut degraded);
+        let predicted = tracker.predict(0.7);
+        tracker.refuse_impossible_jump(0.7, &predicted, true, None, &mut degraded);
         assert_eq!(degraded.health.status, TrackingStatus::Lost);
         let mut lost = scan(at(20.0), TrackingStatus::Lost, 0.1);
-        assert!(!tracker.refuse_impossible_jump(0.7, &tracker.predict(0.7), true, &mut lost));
+        assert!(!tracker.refuse_impossible_jump(0.7, &predicted, true, None, &mut lost));
         assert_eq!((lost.pose, lost.health.reasons), (at(20.0), Reasons::NONE));
         let mut by_registration = scan(at(10.0), TrackingStatus::Ok, 0.9);
-        tracker.refuse_impossible_jump(0.7, &tracker.predict(0.7), false, &mut by_registration);
+        tracker.refuse_impossible_jump(0.7, &predicted, false, None, &mut by_registration);
         assert_eq!(by_registration.health.status, TrackingStatus::Ok);
         let mut fresh = Tracker::new(at(0.0), options);
         fresh.observe(0.0, at(0.0), None, scan(at(0.0), TrackingStatus::Ok, 0.9));
         let mut first_step = scan(at(3.0), TrackingStatus::Ok, 0.9);
-        fresh.refuse_impossible_jump(0.1, &at(0.0), true, &mut first_step);
+        fresh.refuse_impossible_jump(0.1, &at(0.0), true, None, &mut first_step);
         assert_eq!(
             first_step.health.status,
             TrackingStatus::Ok,
@@ -1614,9 +1805,139 @@ mod tests {
         off.trust.max_acceleration = 0.0;
         tracker.options = off;
         assert_eq!(
-            judged(&tracker, 0.7, 20.0).health.status,
+            judged(&mut tracker, 0.7, 20.0).health.status,
             TrackingStatus::Ok
         );
+    }
+
+    /// A room 20 x 10 x 4 m with two pillars, sampled every 0.2 m: structure that
+    /// pins every direction of a scan-to-scan registration.
+    fn room_points() -> Vec<[f64; 3]> {
+        let steps = |from: f64, to: f64| {
+            let n = ((to - from) / 0.2).round() as usize;
+            (0..=n).map(move |i| from + i as f64 * 0.2)
+        };
+        let mut points = Vec::new();
+        for x in steps(-10.0, 10.0) {
+            for y in steps(-5.0, 5.0) {
+                points.push([x, y, 0.0]);
+            }
+            for z in steps(0.0, 4.0) {
+                points.extend([[x, -5.0, z], [x, 5.0, z]]);
+            }
+        }
+        for y in steps(-5.0, 5.0) {
+            for z in steps(0.0, 4.0) {
+                points.extend([[-10.0, y, z], [10.0, y, z]]);
+            }
+        }
+        for (cx, cy) in [(2.0, 1.5), (-4.0, -2.0)] {
+            for k in 0..16 {
+                let a = k as f64 * std::f64::consts::TAU / 16.0;
+                for z in steps(0.0, 4.0) {
+                    points.push([cx + 0.3 * a.cos(), cy + 0.3 * a.sin(), z]);
+                }
+            }
+        }
+        points
+    }
+
+    /// Dead reckoning: the scan before's pose moved by the motion registered scan to
+    /// scan lands on the sensor's true pose (oracle: the poses the room was seen from),
+    /// from a prediction 0.3 m and 2 deg off; not past [`RECKON_MAX_S`].
+    #[test]
+    fn the_scans_own_motion_reckons_where_the_sensor_went() {
+        use kfmap_geometry::geometry::rotation_distance;
+        use nalgebra::{Point3, Translation3, UnitQuaternion};
+        let room = room_points();
+        let seen = |p: &Pose| -> Vec<[f32; 3]> {
+            room.iter()
+                .map(|w| {
+                    let q = p.inverse() * Point3::new(w[0], w[1], w[2]);
+                    [q.x as f32, q.y as f32, q.z as f32]
+                })
+                .collect()
+        };
+        let yawed = |x: f64, y: f64, deg: f64| {
+            Pose::from_parts(
+                Translation3::new(x, y, 1.5),
+                UnitQuaternion::from_euler_angles(0.0, 0.0, deg.to_radians()),
+            )
+        };
+        let (before, now) = (yawed(-3.0, 0.0, 0.0), yawed(-2.2, 0.1, 3.0));
+        let mut tracker = Tracker::new(before, TrackerOptions::default());
+        tracker.odometry = Some(Reckoning {
+            scan: PreviousScan::Sent(PointCloud::from_points(seen(&before))),
+            pose: before,
+            taken: 0.0,
+            since: 0.0,
+            start: before,
+            step: None,
+        });
+        let points = seen(&now);
+        let payload = ScanPayload {
+            points: &points,
+            view_dirs: None,
+            covariances: None,
+        };
+        let predicted = now * yawed(0.3, 0.0, -2.0) * Pose::translation(0.0, 0.0, -1.5);
+        let reckoned = tracker.reckoned_pose(&payload, 0.1, &predicted).unwrap();
+        assert!(translation_distance(&reckoned, &now) < 0.01, "{reckoned:?}");
+        assert!(rotation_distance(&reckoned, &now) < 0.1f64.to_radians());
+        // Not from a scan more than 0.25 s before, nor 3 s past the last adopted one.
+        assert!(tracker.reckoned_pose(&payload, 0.26, &predicted).is_none());
+        if let Some(o) = tracker.odometry.as_mut() {
+            o.taken = RECKON_MAX_S - 0.1;
+        }
+        assert!(
+            tracker
+                .reckoned_pose(&payload, RECKON_MAX_S, &predicted)
+                .is_some()
+        );
+        assert!(
+            tracker
+                .reckoned_pose(&payload, RECKON_MAX_S + 0.01, &predicted)
+                .is_none()
+        );
+    }
+
+    /// The reckoned pose refuses a map pose farther from it than its reach, also one
+    /// the acceleration bound lets through, and never lets through one the bound
+    /// refuses; a refused scan is reported where the motion put it.
+    #[test]
+    fn the_scans_own_motion_only_ever_refuses_more() {
+        let mut tracker = Tracker::new(at(0.0), TrackerOptions::default());
+        for (t, x) in [(0.0, 0.0), (0.1, 1.0)] {
+            let landed = scan(at(x), TrackingStatus::Ok, 0.9);
+            tracker.observe(t, tracker.predict(t), tracker.max_correction(), landed);
+        }
+        // The prediction at 0.2 s is 2 m, the acceleration bound's reach 0.55 m.
+        let mut judged = |x: f64, reckoned: f64| {
+            let predicted = tracker.predict(0.2);
+            let mut localized = scan(at(x), TrackingStatus::Ok, 0.9);
+            tracker.reckoned_now = None;
+            let refused = tracker.refuse_impossible_jump(
+                0.2,
+                &predicted,
+                true,
+                Some((at(reckoned), 0.5)),
+                &mut localized,
+            );
+            assert_eq!(refused, localized.health.status == TrackingStatus::Lost);
+            (localized, tracker.reckoned_now)
+        };
+        let (kept, none) = judged(2.3, 2.0);
+        assert_eq!(
+            (kept.health.status, kept.pose, none),
+            (TrackingStatus::Ok, at(2.3), None)
+        );
+        let (off_motion, now) = judged(2.5, 1.9);
+        assert_eq!(off_motion.health.status, TrackingStatus::Lost);
+        assert!(off_motion.health.reasons.contains(Reasons::IMPLAUSIBLE));
+        assert_eq!((off_motion.pose, now), (at(1.9), Some(at(1.9))));
+        let (beyond_reach, _) = judged(1.4, 1.5);
+        assert_eq!(beyond_reach.health.status, TrackingStatus::Lost);
+        assert_eq!(beyond_reach.pose, at(1.5));
     }
 
     #[test]
