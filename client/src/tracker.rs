@@ -1899,6 +1899,10 @@ mod tests {
                 .reckoned_pose(&payload, RECKON_MAX_S + 0.01, &predicted)
                 .is_none()
         );
+        // `max-acceleration 0` turns the jump check off, and the reckoning with it.
+        assert!(tracker.reckoned_pose(&payload, 0.1, &predicted).is_some());
+        tracker.options.trust.max_acceleration = 0.0;
+        assert!(tracker.reckoned_pose(&payload, 0.1, &predicted).is_none());
     }
 
     /// The reckoned pose refuses a map pose farther from it than its reach, also one
