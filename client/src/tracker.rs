@@ -298,7 +298,8 @@ pub struct Tracker {
     /// The scan before with the pose it was taken at, while tracking: adopted, or
     /// dead-reckoned from the last adopted one across refused jumps ([`Reckoning`]).
     odometry: Option<Reckoning>,
-    /// This scan's dead-reckoned pose when its map pose was refused against it.
+    /// This scan's dead-reckoned pose, once worked out: a scan lost afterwards
+    /// carries the chain with it instead of registering the motion again.
     reckoned_now: Option<Pose>,
     /// The motion registered from the scan before to this one, when it was.
     step_now: Option<(Pose, bool)>,
@@ -623,43 +624,46 @@ impl Tracker {
         let adopted_at_rest = tracked.as_ref().is_ok_and(|t| {
             t.localized.health.status != TrackingStatus::Lost && !self.motion.has_velocity()
         });
-        // Where this scan was taken, if known: adopted, or reckoned while refused.
+        // Where this scan was taken, if known (adopted, or reckoned: a scan lost
+        // otherwise than against the scans' motion carries the chain too), and where
+        // the chain began; kept for a reckoning only while the jump check is on.
         let known = match &tracked {
+            _ if self.options.trust.max_acceleration <= 0.0 => None,
             Ok(_) if !self.hypotheses.is_empty() => None,
-            Ok(tracked) if tracked.localized.health.status != TrackingStatus::Lost => Some((
-                tracked.localized.pose,
-                t,
-                tracked.localized.pose,
-                self.step_now.take(),
-            )),
-            // A scan lost otherwise than against the scans' motion carries the chain too.
+            Ok(tracked) if tracked.localized.health.status != TrackingStatus::Lost => {
+                Some((tracked.localized.pose, t, tracked.localized.pose))
+            }
             Ok(tracked) => self
                 .reckoned_now
                 .or_else(|| self.reckoned_pose(scan, t, &tracked.predicted))
                 .zip(self.odometry.as_ref())
-                .map(|(pose, o)| (pose, o.since, o.start, self.step_now.take())),
+                .map(|(pose, o)| (pose, o.since, o.start)),
             Err(_) => None,
         };
-        let prepared = self
-            .prepared_now
-            .take()
-            .unwrap_or_else(|| PreviousScan::Sent(PointCloud::from_points(scan.points.to_vec())));
         let keep_previous = !self.hypotheses.is_empty() || adopted_at_rest;
-        (self.odometry, self.previous_scan) = match known {
-            Some((pose, since, start, step)) => {
-                let previous = keep_previous.then(|| prepared.clone());
-                let odometry = Reckoning {
-                    scan: prepared,
-                    pose,
-                    taken: t,
-                    since,
-                    start,
-                    step,
-                };
-                (Some(odometry), previous)
-            }
-            None => (None, keep_previous.then_some(prepared)),
+        // The scan as a registration prepared it, else a copy as sent; only where kept.
+        let prepared = self.prepared_now.take();
+        let mut kept = (known.is_some() || keep_previous).then(|| {
+            prepared.unwrap_or_else(|| {
+                PreviousScan::Sent(PointCloud::from_points(scan.points.to_vec()))
+            })
+        });
+        self.previous_scan = match (keep_previous, known.is_some()) {
+            (true, true) => kept.clone(),
+            (true, false) => kept.take(),
+            (false, _) => None,
         };
+        let step = self.step_now.take();
+        self.odometry = known
+            .zip(kept)
+            .map(|((pose, since, start), scan)| Reckoning {
+                scan,
+                pose,
+                taken: t,
+                since,
+                start,
+                step,
+            });
         tracked
     }
 
@@ -816,7 +820,7 @@ impl Tracker {
     /// as well as the scans before (a look-alike along a street) passes it, and the
     /// gate then learns from it and lets the next jump through too.
     fn refuse_impossible_jump(
-        &mut self,
+        &self,
         t: f64,
         predicted: &Pose,
         by_model: bool,
@@ -844,8 +848,7 @@ impl Tracker {
                 ""
             }
         );
-        self.reckoned_now = reckoned.map(|(pose, _)| pose);
-        localized.pose = self.reckoned_now.unwrap_or(*predicted);
+        localized.pose = reckoned.map_or(*predicted, |(pose, _)| pose);
         localized.health.status = TrackingStatus::Lost;
         localized.health.reasons.insert(Reasons::IMPLAUSIBLE);
         true
@@ -879,6 +882,7 @@ impl Tracker {
             return None;
         }
         let reckoned = self.reckoned_pose(scan, t, predicted)?;
+        self.reckoned_now = Some(reckoned);
         let start = self.odometry.as_ref()?.start;
         let reach = RECKON_REACH_M + RECKON_DRIFT * translation_distance(&start, &reckoned);
         Some((reckoned, reach))
@@ -1900,9 +1904,12 @@ mod tests {
                 .is_none()
         );
         // `max-acceleration 0` turns the jump check off, and the reckoning with it.
-        assert!(tracker.reckoned_pose(&payload, 0.1, &predicted).is_some());
         tracker.options.trust.max_acceleration = 0.0;
-        assert!(tracker.reckoned_pose(&payload, 0.1, &predicted).is_none());
+        assert!(
+            tracker
+                .reckoned_pose(&payload, RECKON_MAX_S, &predicted)
+                .is_none()
+        );
     }
 
     /// The reckoned pose refuses a map pose farther from it than its reach, also one
@@ -1916,10 +1923,9 @@ mod tests {
             tracker.observe(t, tracker.predict(t), tracker.max_correction(), landed);
         }
         // The prediction at 0.2 s is 2 m, the acceleration bound's reach 0.55 m.
-        let mut judged = |x: f64, reckoned: f64| {
+        let judged = |x: f64, reckoned: f64| {
             let predicted = tracker.predict(0.2);
             let mut localized = scan(at(x), TrackingStatus::Ok, 0.9);
-            tracker.reckoned_now = None;
             let refused = tracker.refuse_impossible_jump(
                 0.2,
                 &predicted,
@@ -1928,18 +1934,18 @@ mod tests {
                 &mut localized,
             );
             assert_eq!(refused, localized.health.status == TrackingStatus::Lost);
-            (localized, tracker.reckoned_now)
+            localized
         };
-        let (kept, none) = judged(2.3, 2.0);
+        let kept = judged(2.3, 2.0);
         assert_eq!(
-            (kept.health.status, kept.pose, none),
-            (TrackingStatus::Ok, at(2.3), None)
+            (kept.health.status, kept.pose),
+            (TrackingStatus::Ok, at(2.3))
         );
-        let (off_motion, now) = judged(2.5, 1.9);
+        let off_motion = judged(2.5, 1.9);
         assert_eq!(off_motion.health.status, TrackingStatus::Lost);
         assert!(off_motion.health.reasons.contains(Reasons::IMPLAUSIBLE));
-        assert_eq!((off_motion.pose, now), (at(1.9), Some(at(1.9))));
-        let (beyond_reach, _) = judged(1.4, 1.5);
+        assert_eq!(off_motion.pose, at(1.9));
+        let beyond_reach = judged(1.4, 1.5);
         assert_eq!(beyond_reach.health.status, TrackingStatus::Lost);
         assert_eq!(beyond_reach.pose, at(1.5));
     }
