@@ -119,11 +119,11 @@ pub struct TrustParams {
     /// not say where. 0 turns the check off.
     pub confirm_after_unpinned: usize,
     /// A place decided among places in doubt that the tracker did not already hold
-    /// (proposed by a relocalization, or a rival that displaced the tracked place) is
-    /// `ok` only once a relocalization of a pinned scan finds it itself (as after
-    /// `confirm-after-unpinned`, which 0 turns off for this too) or a scan pins it at
-    /// least this well (the `ok-pinned` slide loss); until then `degraded`
-    /// (`unpinned`). The doubt showed look-alikes, and the right place may be one no
+    /// (proposed by a relocalization, or a rival that displaced the tracked place), or
+    /// a held one still so doubted, is `ok` only once a relocalization of a pinned scan
+    /// finds it itself (as after `confirm-after-unpinned`, which 0 turns off for this
+    /// too) or a scan pins it at least this well (the `ok-pinned` slide loss); until
+    /// then `degraded` (`unpinned`). The doubt showed look-alikes, and the right place may be one no
     /// relocalization proposed (the map's end of a street scores below its middle): a
     /// look-alike along a street is held loosely and stays ambiguous. 2: only a
     /// relocalization lifts the doubt; -1: the first scan with a slide probe does.
@@ -1281,9 +1281,10 @@ impl Tracker {
             self.motion.update(t, self.hypotheses[0].pose, false);
             return Ok(self.undecided(t, prediction, found));
         }
-        // A place the tracker held before the doubt keeps its standing; any other was
-        // only the best of what relocalizations proposed.
-        self.doubted = !self.hypotheses[0].incumbent;
+        // A place the tracker held before the doubt keeps its standing, a doubt of its
+        // own not yet lifted included; any other was only the best of what
+        // relocalizations proposed.
+        self.doubted |= !self.hypotheses[0].incumbent;
         self.hypotheses.clear();
         // Decided as a relocalization is: the motion starts afresh at this scan. The
         // scan-to-scan motion that carried the places says nothing of how wrong the

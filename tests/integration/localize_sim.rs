@@ -660,7 +660,8 @@ fn a_later_recording_with_moved_clutter_is_never_confidently_wrong() {
 /// `ok` and right. Seed 42 replayed with no start: before `confirm-after-unpinned`, 3
 /// scans `ok` 25 m off (a look-alike decided, then a slide that ended on a locally
 /// pinned scan); now 0. Seed 44: a look-alike 2.2-2.5 m along the road; seed 47 with
-/// no start: one 104 m along (below).
+/// no start: one 104 m along; seed 45 with no start and no IMU log: one 121 m along
+/// (below).
 #[test]
 fn a_street_whose_buildings_changed_is_not_called_ok_while_sliding_along_it() {
     let dir = temp_dir("street-later");
@@ -765,6 +766,18 @@ fn a_street_whose_buildings_changed_is_not_called_ok_while_sliding_along_it() {
         "seed 47: the look-alike was never adopted"
     );
     assert!(loose.iter().all(|&l| l < 0.1), "seed 47: {loose:?}");
+    // Seed 45's first 4 s with no start and without its IMU log: the places in doubt are
+    // decided for a look-alike 121 m along (the map's far end), still doubted; the
+    // periodic check then doubts it against the right place, and when the scans turn
+    // back to the look-alike (the place the tracker held), that place kept the standing
+    // of a confirmed one: one scan `ok` 121 m off. It keeps its doubt now (measured 0
+    // wrong).
+    let run = dir.join("run-45");
+    simulate(&run, "street", "4", "64", &["--seed", "45"]);
+    std::fs::remove_file(run.join("imu.csv")).unwrap();
+    let wrong = replay_against_truth(&run, "street", &prefix, &[]).wrong;
+    println!("street seed 45, no start, no IMU log, 4 s: wrong ok {wrong:?}");
+    assert!(wrong.is_empty(), "seed 45 with no start: {wrong:?}");
 }
 
 /// `seconds` of `preset` at `seed` (64 beams) simulated under `dir` and replayed from
