@@ -123,10 +123,11 @@ pub struct TrustParams {
     /// a held one still so doubted, is `ok` only once a relocalization of a pinned scan
     /// finds it itself (as after `confirm-after-unpinned`, which 0 turns off for this
     /// too) or a scan pins it at least this well (the `ok-pinned` slide loss); until
-    /// then `degraded` (`unpinned`). The doubt showed look-alikes, and the right place may be one no
-    /// relocalization proposed (the map's end of a street scores below its middle): a
-    /// look-alike along a street is held loosely and stays ambiguous. 2: only a
-    /// relocalization lifts the doubt; -1: the first scan with a slide probe does.
+    /// then `degraded` (`unpinned`). The doubt showed look-alikes, and the right place
+    /// may be one no relocalization proposed (the map's end of a street scores below
+    /// its middle): a look-alike along a street is held loosely and stays ambiguous.
+    /// 2: only a relocalization lifts the doubt; -1: the first scan with a slide probe
+    /// does.
     pub ok_pinned_after_doubt: f64,
     /// A scan's explained share (what `ok-explained` judges and what places in doubt
     /// are compared by) is measured in this many keyframes around the pose, the

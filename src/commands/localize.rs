@@ -184,10 +184,11 @@ pub struct Args {
     /// a slide along a street ends somewhere unknown (0: no check).
     #[arg(long, default_value_t = TrustParams::default().confirm_after_unpinned)]
     confirm_after_unpinned: usize,
-    /// A place decided among places in doubt (not the one tracked before) is `ok` only
-    /// once a relocalization of a pinned scan finds it itself or a scan pins it at
-    /// least this well (the slide loss of --ok-pinned): a look-alike along a street is
-    /// held loosely and stays ambiguous (2: only a relocalization lifts the doubt).
+    /// A place decided among places in doubt (not the one tracked before, unless that
+    /// one was itself so decided and is not yet confirmed) is `ok` only once a
+    /// relocalization of a pinned scan finds it itself or a scan pins it at least this
+    /// well (the slide loss of --ok-pinned): a look-alike along a street is held loosely
+    /// and stays ambiguous (2: only a relocalization lifts the doubt).
     #[arg(long, default_value_t = TrustParams::default().ok_pinned_after_doubt, allow_hyphen_values = true)]
     ok_pinned_after_doubt: f64,
     /// A pose farther from the motion model's prediction than 0.5 m plus what this
