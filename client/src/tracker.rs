@@ -1752,17 +1752,17 @@ mod tests {
         assert!(translation_distance(&predicted, &at(2.0)) < 1e-9);
         // Within 0.1 s the sensor can leave the prediction by 0.5 m plus 10 m/s^2 *
         // (0.1 s)^2 / 2 = 0.55 m: 0.54 m off is adopted as registered, 0.56 m is not.
-        let judged = |tracker: &mut Tracker, t: f64, x: f64| {
+        let judged = |tracker: &Tracker, t: f64, x: f64| {
             let predicted = tracker.predict(t);
             let mut localized = scan(at(x), TrackingStatus::Ok, 0.9);
             let refused = tracker.refuse_impossible_jump(t, &predicted, true, None, &mut localized);
             assert_eq!(refused, localized.health.status == TrackingStatus::Lost);
             localized
         };
-        let within = judged(&mut tracker, 0.2, 2.54);
+        let within = judged(&tracker, 0.2, 2.54);
         assert_eq!(within.health.status, TrackingStatus::Ok);
         assert_eq!(within.pose, at(2.54));
-        let beyond = judged(&mut tracker, 0.2, 2.0 - 0.56);
+        let beyond = judged(&tracker, 0.2, 2.0 - 0.56);
         assert_eq!(beyond.health.status, TrackingStatus::Lost);
         assert!(beyond.health.reasons.contains(Reasons::IMPLAUSIBLE));
         assert_eq!(beyond.pose, predicted);
@@ -1779,11 +1779,11 @@ mod tests {
             );
         }
         assert_eq!(
-            judged(&mut tracker, 0.7, 7.0 + 2.29).health.status,
+            judged(&tracker, 0.7, 7.0 + 2.29).health.status,
             TrackingStatus::Ok
         );
         assert_eq!(
-            judged(&mut tracker, 0.7, 7.0 - 2.31).health.status,
+            judged(&tracker, 0.7, 7.0 - 2.31).health.status,
             TrackingStatus::Lost
         );
         // A degraded pose is judged as well; a lost one, a pose the model did not
@@ -1811,7 +1811,7 @@ mod tests {
         off.trust.max_acceleration = 0.0;
         tracker.options = off;
         assert_eq!(
-            judged(&mut tracker, 0.7, 20.0).health.status,
+            judged(&tracker, 0.7, 20.0).health.status,
             TrackingStatus::Ok
         );
     }
