@@ -33,6 +33,10 @@ const TRUTH_M: f64 = 0.05;
 /// The same after `/initialpose` on the whole drive: measured 1.66 cm at worst (the
 /// README's figure; the run is deterministic), so a regression fails well before 5 cm.
 const TRUTH_FROM_INITIAL_M: f64 = 0.025;
+/// The Fast DDS peer publishes the simulated drive at its own rate; `--lockstep` makes
+/// each cloud wait for the node's answer to the one before, so a slow host slows the
+/// drive and the node still takes every cloud.
+const DRIVE_RATE_HZ: u32 = 10;
 
 /// The node against both independent middlewares at once, each in a private network
 /// namespace of its own (the two scenarios share nothing but the CPU: iceoryx prefixes,
@@ -1191,10 +1195,10 @@ mod in_namespace {
         let poses = dataset_poses(&data, &scans).unwrap().unwrap();
         let to_map = map_from_input("court", &prefix.0);
 
-        // The drive at its recorded stamps, published at half its rate and each cloud
-        // only once the node's diagnostics for the one before came (`--lockstep`: a
-        // loaded CI host slows the drive instead of making the node skip clouds), so the
-        // node takes every cloud: the same statuses and poses as `kfmap localize`.
+        // The drive at its recorded stamps and rate (10 Hz), each cloud only once the
+        // node's diagnostics for the one before came (`--lockstep`: a loaded CI host
+        // slows the drive instead of making the node skip clouds), so the node takes
+        // every cloud: the same statuses and poses as `kfmap localize`.
         let sent = scans.len();
         // A fresh node in `name` (`start`: its configuration), given the drive's first
         // `count` clouds by the peer at `rate` with `extra` arguments; the peer's events
@@ -1239,7 +1243,7 @@ mod in_namespace {
             "drive",
             Node::start_mounted_by_tf,
             sent,
-            5,
+            DRIVE_RATE_HZ,
             &["--sub-cloud", "/kfmap/map_cloud"],
         );
         common::signal(&latched, libc::SIGTERM);
@@ -1320,7 +1324,13 @@ mod in_namespace {
 
         // The same node with nobody mounting the clouds' frame: each cloud is localized
         // and its pose held back, said in the diagnostics; none goes out as the base's.
-        let records = publish("unmounted", Node::start_mounted_by_tf, 3, 5, &[]);
+        let records = publish(
+            "unmounted",
+            Node::start_mounted_by_tf,
+            3,
+            DRIVE_RATE_HZ,
+            &[],
+        );
         let said: Vec<&str> = records
             .iter()
             .filter(|r| r["event"] == "diag")
@@ -1346,7 +1356,7 @@ mod in_namespace {
         );
         let truth: Vec<Pose> = poses.poses.iter().map(|p| to_map * p).collect();
         let initial = pose_to_xyz_quat(&truth[0]).map(|v| v.to_string()).join(",");
-        let records = publish_drive("reset", 5, &["--initial-pose", &initial]);
+        let records = publish_drive("reset", DRIVE_RATE_HZ, &["--initial-pose", &initial]);
         let (_, _, skipped) = node_counts(&dir.join("reset/node.log"));
         assert_eq!(skipped, 0, "every cloud taken");
         let published = poses_by_stamp(&records);
@@ -1403,7 +1413,7 @@ mod in_namespace {
         let imu_path = imu_file.display().to_string();
         let records = publish_drive(
             "imu",
-            5,
+            DRIVE_RATE_HZ,
             &[
                 "--initial-pose",
                 &initial,
