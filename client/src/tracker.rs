@@ -304,6 +304,9 @@ pub struct Tracker {
     reckoned_now: Option<Pose>,
     /// The motion registered from the scan before to this one, when it was.
     step_now: Option<(Pose, bool)>,
+    /// How far this scan's dead-reckoned pose may have drifted since the chain began,
+    /// metres (see [`Reckoning::drift`]).
+    drift_now: f64,
     /// The last scan's covariances and coarse copy as client-side localization built
     /// them: while places are in doubt one scan is localized at each of them.
     localized_scan: RefCell<PreparedParts>,
@@ -349,24 +352,30 @@ struct Reckoning {
     pose: Pose,
     /// When it was taken.
     taken: f64,
-    /// When and where the last adopted scan was taken: the chain of reckoned scans
-    /// began there.
+    /// When the last adopted scan was taken: the chain of reckoned scans began there.
     since: f64,
-    start: Pose,
     /// The motion into the scan before from its own scan before, if reckoned, and
     /// whether it was registered (not coasted): the next registration's guess, and
     /// what one scan that does not register (a stretch too open) coasts on.
     step: Option<(Pose, bool)>,
+    /// How far `pose` may have drifted from where the sensor was since the chain
+    /// began, metres: each reckoned step adds [`RECKON_DRIFT`] of its length and how
+    /// far its registration moved from its guess (the step before, at constant
+    /// motion). A steady drive adds little; a step the motion did not foresee (a fast
+    /// corner, a scan smeared by a turn) adds what it may have got wrong. 0 when
+    /// adopted.
+    drift: f64,
 }
 
 /// A map pose farther than this from where the scans' own motion put the sensor is
-/// refused, metres, plus [`RECKON_DRIFT`] of the distance reckoned: scan-to-scan
-/// registration is millimetres to centimetres off per scan (on the changed street 0.12
-/// m over 8 m), and a chain lasts at most [`RECKON_MAX_S`]. The reach's slack.
+/// refused, metres, plus the chain's [`Reckoning::drift`]: scan-to-scan registration is
+/// millimetres to centimetres off per scan (on the changed street 0.12 m over 8 m), and
+/// a chain lasts at most [`RECKON_MAX_S`]. The reach's slack.
 const RECKON_REACH_M: f64 = REACH_SLACK_M;
 
-/// See [`RECKON_REACH_M`]: the share of the distance reckoned.
-const RECKON_DRIFT: f64 = 0.05;
+/// See [`Reckoning::drift`]: the share of each reckoned step's length (the changed
+/// streets' chains drifted 0.7-1.5 %).
+const RECKON_DRIFT: f64 = 0.02;
 
 /// Scans farther apart than this are not reckoned, seconds: a handheld sensor at 1-2 Hz
 /// turns tens of degrees between scans, where the prediction that seeds the
@@ -542,6 +551,7 @@ impl Tracker {
             odometry: None,
             reckoned_now: None,
             step_now: None,
+            drift_now: 0.0,
             localized_scan: RefCell::default(),
         }
     }
@@ -619,6 +629,7 @@ impl Tracker {
         self.prepared_now = None;
         self.reckoned_now = None;
         self.step_now = None;
+        self.drift_now = 0.0;
         let tracked = self.track_scan(client, scan, t);
         // The motion registered from the scan before carries hypotheses, and the scan
         // after one adopted with no velocity known (see `Self::predict_scan`).
@@ -632,13 +643,13 @@ impl Tracker {
             _ if self.options.trust.max_acceleration <= 0.0 => None,
             Ok(_) if !self.hypotheses.is_empty() => None,
             Ok(tracked) if tracked.localized.health.status != TrackingStatus::Lost => {
-                Some((tracked.localized.pose, t, tracked.localized.pose))
+                Some((tracked.localized.pose, t, 0.0))
             }
             Ok(tracked) => self
                 .reckoned_now
                 .or_else(|| self.reckoned_pose(scan, t, &tracked.predicted))
                 .zip(self.odometry.as_ref())
-                .map(|(pose, o)| (pose, o.since, o.start)),
+                .map(|(pose, o)| (pose, o.since, self.drift_now)),
             Err(_) => None,
         };
         let keep_previous = !self.hypotheses.is_empty() || adopted_at_rest;
@@ -657,13 +668,13 @@ impl Tracker {
         let step = self.step_now.take();
         self.odometry = known
             .zip(kept)
-            .map(|((pose, since, start), scan)| Reckoning {
+            .map(|((pose, since, drift), scan)| Reckoning {
                 scan,
                 pose,
                 taken: t,
                 since,
-                start,
                 step,
+                drift,
             });
         tracked
     }
@@ -877,16 +888,17 @@ impl Tracker {
         by_model: bool,
         localized: &Localized,
     ) -> Option<(Pose, f64)> {
+        // Along a chain the prediction carries the last adopted scan's velocity, and a
+        // look-alike near it is judged by the scans' motion as well.
+        let in_chain = self.odometry.as_ref().is_some_and(|o| o.taken > o.since);
         if !self.judges_jumps(by_model, localized)
-            || translation_distance(&localized.pose, predicted) <= REACH_SLACK_M
+            || (!in_chain && translation_distance(&localized.pose, predicted) <= REACH_SLACK_M)
         {
             return None;
         }
         let reckoned = self.reckoned_pose(scan, t, predicted)?;
         self.reckoned_now = Some(reckoned);
-        let start = self.odometry.as_ref()?.start;
-        let reach = RECKON_REACH_M + RECKON_DRIFT * translation_distance(&start, &reckoned);
-        Some((reckoned, reach))
+        Some((reckoned, RECKON_REACH_M + self.drift_now))
     }
 
     /// Whether a scan at `t` can be dead-reckoned from the scan before: the jump check
@@ -918,6 +930,17 @@ impl Tracker {
             (None, Some((step, true))) => Some((step, false)),
             (None, _) => None,
         };
+        // A coasted step may be as wrong as it is long.
+        self.drift_now = from.drift
+            + self.step_now.map_or(0.0, |(step, registered)| {
+                let length = step.translation.vector.norm();
+                let unforeseen = if registered {
+                    translation_distance(&step, &guess)
+                } else {
+                    length
+                };
+                RECKON_DRIFT * length + unforeseen
+            });
         let reckoned = self
             .step_now
             .map(|(moved, _)| renormalized(&(from.pose * moved)));
@@ -1877,8 +1900,8 @@ mod tests {
             pose: before,
             taken: 0.0,
             since: 0.0,
-            start: before,
             step: None,
+            drift: 0.0,
         });
         let points = seen(&now);
         let payload = ScanPayload {
@@ -1890,6 +1913,45 @@ mod tests {
         let reckoned = tracker.reckoned_pose(&payload, 0.1, &predicted).unwrap();
         assert!(translation_distance(&reckoned, &now) < 0.01, "{reckoned:?}");
         assert!(rotation_distance(&reckoned, &now) < 0.1f64.to_radians());
+        // The drift it may carry: the chain's, plus 2 % of the step and how far the
+        // step lies from its guess (the prediction, seen from the scan before).
+        let (step, guess) = (before.inverse() * now, before.inverse() * predicted);
+        let expected =
+            0.4 + 0.02 * step.translation.vector.norm() + translation_distance(&step, &guess);
+        if let Some(o) = tracker.odometry.as_mut() {
+            o.drift = 0.4;
+        }
+        tracker.reckoned_pose(&payload, 0.1, &predicted).unwrap();
+        assert!(
+            (tracker.drift_now - expected).abs() < 0.01,
+            "{} vs {expected}",
+            tracker.drift_now
+        );
+        // A scan that does not register coasts on the registered step before, which may
+        // be as wrong as it is long.
+        if let Some(o) = tracker.odometry.as_mut() {
+            o.step = Some((step, true));
+        }
+        let too_few = [[1.0_f32, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+        let unregistered = ScanPayload {
+            points: &too_few,
+            view_dirs: None,
+            covariances: None,
+        };
+        let coasted = tracker
+            .reckoned_pose(&unregistered, 0.1, &predicted)
+            .unwrap();
+        assert!(translation_distance(&coasted, &now) < 1e-6);
+        let length = step.translation.vector.norm();
+        let expected = 0.4 + 1.02 * length;
+        assert!(
+            (tracker.drift_now - expected).abs() < 1e-9,
+            "{} vs {expected}",
+            tracker.drift_now
+        );
+        if let Some(o) = tracker.odometry.as_mut() {
+            o.step = None;
+        }
         // Not from a scan more than 0.25 s before, nor 3 s past the last adopted one.
         assert!(tracker.reckoned_pose(&payload, 0.26, &predicted).is_none());
         if let Some(o) = tracker.odometry.as_mut() {

@@ -195,9 +195,10 @@ pub struct Args {
     /// acceleration (m/s^2) moves the sensor since the last adopted scan is `lost`
     /// (implausible): a slide onto a look-alike, not motion (0: no check). With an IMU
     /// log the acceleration it measured (plus 1 m/s^2, and 0.5 m/s of velocity error)
-    /// bounds it tighter when that is less. A pose that far off is also judged against
-    /// the scans' own motion, registered scan to scan from the last adopted scan (0.5 m
-    /// plus 5 % of the distance; scans at most 0.25 s apart, for up to 3 s).
+    /// bounds it tighter when that is less. A pose that far off, and every scan after a
+    /// refused one, is also judged against the scans' own motion, registered scan to scan
+    /// from the last adopted scan (0.5 m, plus per step 2 % of it and how far it lay from
+    /// the step before; scans at most 0.25 s apart, for up to 3 s).
     #[arg(long, default_value_t = TrustParams::default().max_acceleration)]
     max_acceleration: f64,
     /// Every this many adopted scans the scan is also relocalized, so that a look-alike
