@@ -876,10 +876,11 @@ impl Tracker {
     }
 
     /// Where the scans' own motion puts the sensor when the map's answer is more than
-    /// the reach's slack off the prediction: the scan before's pose (adopted, or
-    /// reckoned so) moved by the motion registered scan to scan, with how far from it
-    /// the map's answer may lie ([`RECKON_REACH_M`]). `None` when the answer is near
-    /// the prediction, or [`Self::reckoned_pose`] is.
+    /// the reach's slack off the prediction, or the scan before was reckoned (a chain):
+    /// the scan before's pose (adopted, or reckoned so) moved by the motion registered
+    /// scan to scan, with how far from it the map's answer may lie ([`RECKON_REACH_M`]
+    /// plus the chain's drift). `None` when the answer is near the prediction outside
+    /// a chain, or [`Self::reckoned_pose`] is.
     fn reckon(
         &mut self,
         scan: &ScanPayload,
@@ -913,9 +914,10 @@ impl Tracker {
     }
 
     /// The scan before's pose moved by the motion registered from it to `scan` (from
-    /// the step before, else the prediction); `None` when no scan before is known, it
-    /// is more than [`RECKON_MAX_GAP_S`] before, the chain of reckoned scans is older
-    /// than [`RECKON_MAX_S`], or the registration fails.
+    /// the step before, else the prediction), its drift in `drift_now`; `None` when no
+    /// scan before is known, it is more than [`RECKON_MAX_GAP_S`] before, the chain of
+    /// reckoned scans is older than [`RECKON_MAX_S`], or the registration fails and no
+    /// registered step before is there to coast on.
     fn reckoned_pose(&mut self, scan: &ScanPayload, t: f64, predicted: &Pose) -> Option<Pose> {
         let from = self.odometry.as_ref().filter(|_| self.reckoning_alive(t))?;
         // The step before is the better guess along a chain: the prediction carries the
