@@ -299,14 +299,12 @@ pub struct Tracker {
     /// The scan before with the pose it was taken at, while tracking: adopted, or
     /// dead-reckoned from the last adopted one across refused jumps ([`Reckoning`]).
     odometry: Option<Reckoning>,
-    /// This scan's dead-reckoned pose, once worked out: a scan lost afterwards
-    /// carries the chain with it instead of registering the motion again.
-    reckoned_now: Option<Pose>,
+    /// This scan's dead-reckoned pose and its drift ([`Reckoning::drift`]), once worked
+    /// out: a scan lost afterwards carries the chain with it instead of registering the
+    /// motion again.
+    reckoned_now: Option<(Pose, f64)>,
     /// The motion registered from the scan before to this one, when it was.
     step_now: Option<(Pose, bool)>,
-    /// How far this scan's dead-reckoned pose may have drifted since the chain began,
-    /// metres (see [`Reckoning::drift`]).
-    drift_now: f64,
     /// The last scan's covariances and coarse copy as client-side localization built
     /// them: while places are in doubt one scan is localized at each of them.
     localized_scan: RefCell<PreparedParts>,
@@ -551,7 +549,6 @@ impl Tracker {
             odometry: None,
             reckoned_now: None,
             step_now: None,
-            drift_now: 0.0,
             localized_scan: RefCell::default(),
         }
     }
@@ -629,7 +626,6 @@ impl Tracker {
         self.prepared_now = None;
         self.reckoned_now = None;
         self.step_now = None;
-        self.drift_now = 0.0;
         let tracked = self.track_scan(client, scan, t);
         // The motion registered from the scan before carries hypotheses, and the scan
         // after one adopted with no velocity known (see `Self::predict_scan`).
@@ -649,7 +645,7 @@ impl Tracker {
                 .reckoned_now
                 .or_else(|| self.reckoned_pose(scan, t, &tracked.predicted))
                 .zip(self.odometry.as_ref())
-                .map(|(pose, o)| (pose, o.since, self.drift_now)),
+                .map(|((pose, drift), o)| (pose, o.since, drift)),
             Err(_) => None,
         };
         let keep_previous = !self.hypotheses.is_empty() || adopted_at_rest;
@@ -897,9 +893,9 @@ impl Tracker {
         {
             return None;
         }
-        let reckoned = self.reckoned_pose(scan, t, predicted)?;
-        self.reckoned_now = Some(reckoned);
-        Some((reckoned, RECKON_REACH_M + self.drift_now))
+        let (reckoned, drift) = self.reckoned_pose(scan, t, predicted)?;
+        self.reckoned_now = Some((reckoned, drift));
+        Some((reckoned, RECKON_REACH_M + drift))
     }
 
     /// Whether a scan at `t` can be dead-reckoned from the scan before: the jump check
@@ -914,11 +910,16 @@ impl Tracker {
     }
 
     /// The scan before's pose moved by the motion registered from it to `scan` (from
-    /// the step before, else the prediction), its drift in `drift_now`; `None` when no
+    /// the step before, else the prediction), with its drift; `None` when no
     /// scan before is known, it is more than [`RECKON_MAX_GAP_S`] before, the chain of
     /// reckoned scans is older than [`RECKON_MAX_S`], or the registration fails and no
     /// registered step before is there to coast on.
-    fn reckoned_pose(&mut self, scan: &ScanPayload, t: f64, predicted: &Pose) -> Option<Pose> {
+    fn reckoned_pose(
+        &mut self,
+        scan: &ScanPayload,
+        t: f64,
+        predicted: &Pose,
+    ) -> Option<(Pose, f64)> {
         let from = self.odometry.as_ref().filter(|_| self.reckoning_alive(t))?;
         // The step before is the better guess along a chain: the prediction carries the
         // last adopted scan's velocity, seconds old by then.
@@ -932,23 +933,20 @@ impl Tracker {
             (None, Some((step, true))) => Some((step, false)),
             (None, _) => None,
         };
-        // A coasted step may be as wrong as it is long.
-        self.drift_now = from.drift
-            + self.step_now.map_or(0.0, |(step, registered)| {
-                let length = step.translation.vector.norm();
-                let unforeseen = if registered {
-                    translation_distance(&step, &guess)
-                } else {
-                    length
-                };
-                RECKON_DRIFT * length + unforeseen
-            });
-        let reckoned = self
-            .step_now
-            .map(|(moved, _)| renormalized(&(from.pose * moved)));
+        let reckoned = self.step_now.map(|(step, registered)| {
+            let length = step.translation.vector.norm();
+            // A coasted step may be as wrong as it is long.
+            let unforeseen = if registered {
+                translation_distance(&step, &guess)
+            } else {
+                length
+            };
+            let drift = from.drift + RECKON_DRIFT * length + unforeseen;
+            (renormalized(&(from.pose * step)), drift)
+        });
         tracing::debug!(
             "tracker: t = {t:.2} s, reckoned {:?} ({:.1} s since the last adopted scan)",
-            reckoned.map(|p| p.translation.vector),
+            reckoned.map(|(p, _)| p.translation.vector),
             t - from.since
         );
         self.prepared_now = prepared.map(PreviousScan::Prepared);
@@ -1912,7 +1910,7 @@ mod tests {
             covariances: None,
         };
         let predicted = now * yawed(0.3, 0.0, -2.0) * Pose::translation(0.0, 0.0, -1.5);
-        let reckoned = tracker.reckoned_pose(&payload, 0.1, &predicted).unwrap();
+        let (reckoned, _) = tracker.reckoned_pose(&payload, 0.1, &predicted).unwrap();
         assert!(translation_distance(&reckoned, &now) < 0.01, "{reckoned:?}");
         assert!(rotation_distance(&reckoned, &now) < 0.1f64.to_radians());
         // The drift it may carry: the chain's, plus 2 % of the step and how far the
@@ -1923,12 +1921,8 @@ mod tests {
         if let Some(o) = tracker.odometry.as_mut() {
             o.drift = 0.4;
         }
-        tracker.reckoned_pose(&payload, 0.1, &predicted).unwrap();
-        assert!(
-            (tracker.drift_now - expected).abs() < 0.01,
-            "{} vs {expected}",
-            tracker.drift_now
-        );
+        let (_, drift) = tracker.reckoned_pose(&payload, 0.1, &predicted).unwrap();
+        assert!((drift - expected).abs() < 0.01, "{drift} vs {expected}");
         // A scan that does not register coasts on the registered step before, which may
         // be as wrong as it is long.
         if let Some(o) = tracker.odometry.as_mut() {
@@ -1940,17 +1934,12 @@ mod tests {
             view_dirs: None,
             covariances: None,
         };
-        let coasted = tracker
+        let (coasted, drift) = tracker
             .reckoned_pose(&unregistered, 0.1, &predicted)
             .unwrap();
         assert!(translation_distance(&coasted, &now) < 1e-6);
-        let length = step.translation.vector.norm();
-        let expected = 0.4 + 1.02 * length;
-        assert!(
-            (tracker.drift_now - expected).abs() < 1e-9,
-            "{} vs {expected}",
-            tracker.drift_now
-        );
+        let expected = 0.4 + 1.02 * step.translation.vector.norm();
+        assert!((drift - expected).abs() < 1e-9, "{drift} vs {expected}");
         if let Some(o) = tracker.odometry.as_mut() {
             o.step = None;
         }

@@ -642,7 +642,7 @@ fn a_later_recording_with_moved_clutter_is_never_confidently_wrong() {
     // start, and the twin, 27 m off, was tracked `ok` (8 scans here, 69 over 30 s);
     // measured now 0, 92 % `ok` and right.
     let (replayed, share) =
-        replayed_from_true_start(&dir, "courtyard", "21.5", "44", "later", &prefix);
+        replayed_from_true_start(&dir, ("courtyard", "21.5", "44", true), "later", &prefix);
     assert!(replayed.wrong.is_empty(), "seed 44: {:?}", replayed.wrong);
     assert!(share >= 0.85, "seed 44: {share}");
 }
@@ -668,12 +668,9 @@ fn a_street_whose_buildings_changed_is_not_called_ok_while_sliding_along_it() {
     let (prefix, _server) = serve_the_map_day(&dir, "street", "street");
     // (seed, wrong `ok` scans at most, share `ok` and right at least)
     for (seed, max_wrong, min_right) in [("43", 0, 0.18), ("42", 0, 0.40)] {
-        let run = dir.join(format!("run-{seed}"));
-        simulate(&run, "street", "12", "64", &["--seed", seed]);
-        let replayed =
-            replay_against_truth(&run, "street", &prefix, &["--initial-from-ground-truth"]);
+        let (replayed, share) =
+            replayed_from_true_start(&dir, ("street", "12", seed, true), "street", &prefix);
         let (scans, wrong) = (&replayed.scans, &replayed.wrong);
-        let share = replayed.right_ok.len() as f64 / scans.len() as f64;
         // Along the road the registration cannot see how far the changed buildings'
         // ends pull the pose; the slide probe widens the covariance there (DESIGN
         // #covariance). Measured NEES 1.10 / 3.40 position, 0.69 / 0.55 rotation
@@ -702,7 +699,8 @@ fn a_street_whose_buildings_changed_is_not_called_ok_while_sliding_along_it() {
     // 12 s were still `ok` 2.2-2.3 m off, adopted after six refused scans, when 0.6 s
     // of 1 g reaches the look-alike; with the acceleration its IMU log measured
     // (docs/DESIGN.md#tracking) measured now 0, 17 % `ok` and right (the same 20 scans).
-    let (replayed, share) = replayed_from_true_start(&dir, "street", "12", "44", "street", &prefix);
+    let (replayed, share) =
+        replayed_from_true_start(&dir, ("street", "12", "44", true), "street", &prefix);
     let refused = refused_jumps(&replayed.scans);
     println!("street seed 44: {refused} jumps refused");
     assert!(replayed.wrong.is_empty(), "seed 44: {:?}", replayed.wrong);
@@ -718,7 +716,7 @@ fn a_street_whose_buildings_changed_is_not_called_ok_while_sliding_along_it() {
         &prefix,
         &["--initial-from-ground-truth"],
     );
-    let share = without_imu.right_ok.len() as f64 / without_imu.scans.len() as f64;
+    let share = without_imu.share_right();
     println!(
         "street seed 44 without its IMU log: wrong ok {:?}, {:.0} % ok and right",
         without_imu.wrong,
@@ -785,37 +783,31 @@ fn a_street_whose_buildings_changed_is_not_called_ok_while_sliding_along_it() {
     // 14 m it reached the look-alike (3 scans `ok` 1.08 m off); now it grows by what
     // each step may have got wrong (2 % of it and how far it lay from its guess), and
     // each scan of a chain is judged (measured 0 wrong, 26 of 50 `ok` and right).
-    let run = dir.join("run-52");
-    simulate(&run, "street", "5", "64", &["--seed", "52"]);
-    std::fs::remove_file(run.join("imu.csv")).unwrap();
-    let replayed = replay_against_truth(&run, "street", &prefix, &["--initial-from-ground-truth"]);
-    let share = replayed.right_ok.len() as f64 / replayed.scans.len() as f64;
-    println!(
-        "street seed 52 from its true start, no IMU log, 5 s: wrong ok {:?}, {:.0} % ok and right",
-        replayed.wrong,
-        share * 100.0
-    );
+    let (replayed, share) =
+        replayed_from_true_start(&dir, ("street", "5", "52", false), "street", &prefix);
     assert!(replayed.wrong.is_empty(), "seed 52: {:?}", replayed.wrong);
     assert!(share >= 0.45, "seed 52: {share}");
 }
 
-/// `seconds` of `preset` at `seed` (64 beams) simulated under `dir` and replayed from
-/// its true start against the map served as `name`, with the share of its scans `ok`
-/// and right.
+/// `seconds` of `preset` at `seed` (64 beams) simulated under `dir` (its IMU log
+/// removed unless `with_imu`) and replayed from its true start against the map served
+/// as `name`, with the share of its scans `ok` and right.
 fn replayed_from_true_start(
     dir: &Path,
-    preset: &str,
-    seconds: &str,
-    seed: &str,
+    (preset, seconds, seed, with_imu): (&str, &str, &str, bool),
     name: &str,
     prefix: &Prefix,
 ) -> (Replayed, f64) {
     let run = dir.join(format!("run-{seed}"));
     simulate(&run, preset, seconds, "64", &["--seed", seed]);
+    if !with_imu {
+        std::fs::remove_file(run.join("imu.csv")).unwrap();
+    }
     let replayed = replay_against_truth(&run, name, prefix, &["--initial-from-ground-truth"]);
-    let share = replayed.right_ok.len() as f64 / replayed.scans.len() as f64;
+    let share = replayed.share_right();
     println!(
-        "{preset} seed {seed} on the map of seed 41 from its true start, {seconds} s: wrong ok {:?}, {:.0} % ok and right",
+        "{preset} seed {seed} on the map of seed 41 from its true start, {seconds} s{}: wrong ok {:?}, {:.0} % ok and right",
+        if with_imu { "" } else { ", no IMU log" },
         replayed.wrong,
         share * 100.0
     );
@@ -849,6 +841,13 @@ struct Replayed {
     wrong: Vec<(usize, f64)>,
     /// The `ok` scans within both, in order.
     right_ok: Vec<usize>,
+}
+
+impl Replayed {
+    /// The share of the scans `ok` and right.
+    fn share_right(&self) -> f64 {
+        self.right_ok.len() as f64 / self.scans.len() as f64
+    }
 }
 
 /// Replays `run` against the map served as `name` with `extra` flags ([`Replayed`]).

@@ -1217,10 +1217,12 @@ mod in_namespace {
                 drop(node);
                 records
             };
-        // The mounting's scenarios run on domain 0 while those of a live robot's inputs
+        // The mounting's scenarios run on MOUNTING_DOMAIN (the default, where the latched
+        // `/tf_static` publisher is) while those of a live robot's inputs
         // (`/initialpose`, the IMU, dense clouds) run on LIVE_DOMAIN beside them: neither
         // hears the other, and the scenarios wait on discovery and lockstep more than
         // they compute.
+        const MOUNTING_DOMAIN: u16 = 0;
         const LIVE_DOMAIN: u16 = 2;
         // The whole drive on LIVE_DOMAIN, its clouds' frame the base's.
         let publish_drive = |name: &str, rate: u32, extra: &[&str]| {
@@ -1250,7 +1252,7 @@ mod in_namespace {
                 .unwrap();
             let records = publish(
                 "drive",
-                0,
+                MOUNTING_DOMAIN,
                 Node::start_mounted_by_tf,
                 sent,
                 DRIVE_RATE_HZ,
@@ -1337,7 +1339,7 @@ mod in_namespace {
             // and its pose held back, said in the diagnostics; none goes out as the base's.
             let records = publish(
                 "unmounted",
-                0,
+                MOUNTING_DOMAIN,
                 Node::start_mounted_by_tf,
                 3,
                 DRIVE_RATE_HZ,
