@@ -367,8 +367,8 @@ struct Reckoning {
 
 /// A map pose farther than this from where the scans' own motion put the sensor is
 /// refused, metres, plus the chain's [`Reckoning::drift`]: scan-to-scan registration is
-/// millimetres to centimetres off per scan (on the changed street 0.12 m over 8 m), and
-/// a chain lasts at most [`RECKON_MAX_S`]. The reach's slack.
+/// millimetres to centimetres off per scan (on the changed street 0.12 m over 8 m). The
+/// reach's slack.
 const RECKON_REACH_M: f64 = REACH_SLACK_M;
 
 /// See [`Reckoning::drift`]: the share of each reckoned step's length (the changed
@@ -381,10 +381,6 @@ const RECKON_DRIFT: f64 = 0.02;
 /// map pose refused against a wrong motion, the track lost). Spinning LiDARs at 5-20 Hz
 /// are reckoned.
 const RECKON_MAX_GAP_S: f64 = 0.25;
-
-/// Dead reckoning runs at most this long past the last adopted scan, seconds; then the
-/// acceleration bound judges alone.
-const RECKON_MAX_S: f64 = 3.0;
 
 /// The scan before, as sent or already prepared for registration (downsampled, with
 /// covariances and a tree): a scan registered from the one before becomes the next
@@ -899,21 +895,22 @@ impl Tracker {
     }
 
     /// Whether a scan at `t` can be dead-reckoned from the scan before: the jump check
-    /// is on (`max-acceleration` above 0), the scan before's pose is known, it is at
-    /// most [`RECKON_MAX_GAP_S`] before, and the chain is younger than [`RECKON_MAX_S`].
+    /// is on (`max-acceleration` above 0), the scan before's pose is known and it is at
+    /// most [`RECKON_MAX_GAP_S`] before. A chain has no age limit: its allowance grows
+    /// with its drift, and a chain cut by time handed a map that kept sliding to the
+    /// acceleration bound, seconds wide by then (docs/DESIGN.md#tracking).
     fn reckoning_alive(&self, t: f64) -> bool {
         self.options.trust.max_acceleration > 0.0
             && self
                 .odometry
                 .as_ref()
-                .is_some_and(|o| t - o.since <= RECKON_MAX_S && t - o.taken <= RECKON_MAX_GAP_S)
+                .is_some_and(|o| t - o.taken <= RECKON_MAX_GAP_S)
     }
 
     /// The scan before's pose moved by the motion registered from it to `scan` (from
     /// the step before, else the prediction), with its drift; `None` when no
-    /// scan before is known, it is more than [`RECKON_MAX_GAP_S`] before, the chain of
-    /// reckoned scans is older than [`RECKON_MAX_S`], or the registration fails and no
-    /// registered step before is there to coast on.
+    /// scan before is known, it is more than [`RECKON_MAX_GAP_S`] before, or the
+    /// registration fails and no registered step before is there to coast on.
     fn reckoned_pose(
         &mut self,
         scan: &ScanPayload,
@@ -1873,7 +1870,8 @@ mod tests {
 
     /// Dead reckoning: the scan before's pose moved by the motion registered scan to
     /// scan lands on the sensor's true pose (oracle: the poses the room was seen from),
-    /// from a prediction 0.3 m and 2 deg off; not past [`RECKON_MAX_S`].
+    /// from a prediction 0.3 m and 2 deg off; not across a gap of more than 0.25 s, at
+    /// any age of the chain.
     #[test]
     fn the_scans_own_motion_reckons_where_the_sensor_went() {
         use kfmap_geometry::geometry::rotation_distance;
@@ -1943,28 +1941,17 @@ mod tests {
         if let Some(o) = tracker.odometry.as_mut() {
             o.step = None;
         }
-        // Not from a scan more than 0.25 s before, nor 3 s past the last adopted one.
+        // Not from a scan more than 0.25 s before; at any age of the chain (a minute
+        // past the last adopted scan) from one 0.1 s before.
         assert!(tracker.reckoned_pose(&payload, 0.26, &predicted).is_none());
         if let Some(o) = tracker.odometry.as_mut() {
-            o.taken = RECKON_MAX_S - 0.1;
+            o.taken = 59.9;
         }
-        assert!(
-            tracker
-                .reckoned_pose(&payload, RECKON_MAX_S, &predicted)
-                .is_some()
-        );
-        assert!(
-            tracker
-                .reckoned_pose(&payload, RECKON_MAX_S + 0.01, &predicted)
-                .is_none()
-        );
+        assert!(tracker.reckoned_pose(&payload, 60.0, &predicted).is_some());
+        assert!(tracker.reckoned_pose(&payload, 60.26, &predicted).is_none());
         // `max-acceleration 0` turns the jump check off, and the reckoning with it.
         tracker.options.trust.max_acceleration = 0.0;
-        assert!(
-            tracker
-                .reckoned_pose(&payload, RECKON_MAX_S, &predicted)
-                .is_none()
-        );
+        assert!(tracker.reckoned_pose(&payload, 60.0, &predicted).is_none());
     }
 
     /// The reckoned pose refuses a map pose farther from it than its reach, also one

@@ -198,7 +198,7 @@ pub struct Args {
     /// bounds it tighter when that is less. A pose that far off, and every scan after a
     /// refused one, is also judged against the scans' own motion, registered scan to scan
     /// from the last adopted scan (0.5 m, plus per step 2 % of it and how far it lay from
-    /// the step before; scans at most 0.25 s apart, for up to 3 s).
+    /// the step before; scans at most 0.25 s apart, however long the chain).
     #[arg(long, default_value_t = TrustParams::default().max_acceleration)]
     max_acceleration: f64,
     /// Every this many adopted scans the scan is also relocalized, so that a look-alike

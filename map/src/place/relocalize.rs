@@ -63,7 +63,9 @@ pub struct RelocalizeParams {
     /// at least `explained-lead` less: a place along a corridor-like stretch is no
     /// rival to one the scan pins. 0: never.
     pub pinned_share: f64,
-    /// See `pinned-share` (share of the scan's structure).
+    /// See `pinned-share` (share of the scan's structure). 0 by default: the rival
+    /// may explain no more than the best; a lead of 0.015 lay within the share's own
+    /// sampling noise and turned verdicts on millimetres of the best place's pose.
     pub explained_lead: f64,
 }
 
@@ -140,7 +142,7 @@ impl Default for RelocalizeParams {
             min_range: 0.5,
             search_points: 300,
             max_tilt_deg: 40.0,
-            settle_points: 0,
+            settle_points: 1100,
             score_points: 0,
             search: SearchParams {
                 candidates: 5,
@@ -153,7 +155,7 @@ impl Default for RelocalizeParams {
             distinct_m: 1.0,
             distinct_deg: 5.0,
             pinned_share: 0.05,
-            explained_lead: 0.015,
+            explained_lead: 0.0,
         }
     }
 }
@@ -469,11 +471,11 @@ pub fn verification_selection(
 /// The coarse scan (`cloud`, with its covariances `covs`) as places are settled or
 /// scored on it: every k-th point, the smallest k leaving at most `points` (0: every
 /// point). The covariances come from the whole coarse scan: a kept point's still
-/// describes its neighbourhood. Neither is thinned by default: settling on 1 100 of
-/// balm_os0's 2 100 coarse points took a third off the scoring phase but changed which
-/// look-alikes the simulated street's runs took for right; scoring on 1 000 halved it
-/// but over a tile set one place's score then stood 0.016 from the merged map's (0.0015
-/// on every coarse point) (docs/DESIGN.md#notes-relocalization).
+/// describes its neighbourhood. Places settle on 1 100 points by default (half of
+/// balm_os0's 2 100 coarse points: a third off the scoring phase) and are scored on
+/// every coarse point: scoring on 1 000 halved the scoring too, but over a tile set one
+/// place's score then stood 0.016 from the merged map's (0.0015 on every coarse point)
+/// (docs/DESIGN.md#notes-relocalization).
 pub fn thinned_scan(
     cloud: &PointCloud,
     covs: &[PackedSym3],
