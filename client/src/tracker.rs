@@ -382,6 +382,10 @@ const RECKON_DRIFT: f64 = 0.02;
 /// are reckoned.
 const RECKON_MAX_GAP_S: f64 = 0.25;
 
+/// A chain holds off relocalizing scans the map does not fit for this long past the
+/// last adopted scan, seconds; it still judges every map answer after that.
+const RECKON_HOLDS_RELOCALIZATION_S: f64 = 3.0;
+
 /// The scan before, as sent or already prepared for registration (downsampled, with
 /// covariances and a tree): a scan registered from the one before becomes the next
 /// scan's target as it was prepared, instead of being prepared again (the covariances
@@ -692,8 +696,8 @@ impl Tracker {
             return self.track_hypotheses(client, scan, t, predicted);
         }
         let expected = self.last_inlier_ratio;
-        let mut localized =
-            self.localize_from(client, scan, t, &predicted, max_correction, expected)?;
+        let seed = self.chain_seed(t).unwrap_or(predicted);
+        let mut localized = self.localize_from(client, scan, t, &seed, max_correction, expected)?;
         let reckoned = self.reckon(scan, t, &predicted, by_model, &localized);
         let refused =
             self.refuse_impossible_jump(t, &predicted, by_model, reckoned, &mut localized);
@@ -707,11 +711,14 @@ impl Tracker {
         // relocalization of the scan would weigh the same look-alike afresh.
         // Nor while the scans' own motion says where the sensor is (the scan before's
         // place moved by it, [`Reckoning`]): the relocalization of a scan the map fits
-        // badly here weighs the look-alikes that made it fit badly.
+        // badly here weighs the look-alikes that made it fit badly. Past
+        // [`RECKON_HOLDS_RELOCALIZATION_S`] a scan the map fits nowhere near the chain is
+        // relocalized after all: a chain that drifted out of the registration's reach
+        // would otherwise stay `lost` for as long as its scans register.
         if localized.health.status == TrackingStatus::Lost
             && self.options.relocalize_when_lost
             && !refused
-            && !self.reckoning_alive(t)
+            && !self.reckoning_holds_relocalization(t)
         {
             return self.relocalize(client, scan, t, predicted, max_correction, localized);
         }
@@ -898,13 +905,37 @@ impl Tracker {
     /// is on (`max-acceleration` above 0), the scan before's pose is known and it is at
     /// most [`RECKON_MAX_GAP_S`] before. A chain has no age limit: its allowance grows
     /// with its drift, and a chain cut by time handed a map that kept sliding to the
-    /// acceleration bound, seconds wide by then (docs/DESIGN.md#tracking).
+    /// acceleration bound, tens of metres wide after seconds (docs/DESIGN.md#tracking).
     fn reckoning_alive(&self, t: f64) -> bool {
         self.options.trust.max_acceleration > 0.0
             && self
                 .odometry
                 .as_ref()
                 .is_some_and(|o| t - o.taken <= RECKON_MAX_GAP_S)
+    }
+
+    /// Whether a chain alive at `t` still holds off relocalizing a scan the map does
+    /// not fit: for [`RECKON_HOLDS_RELOCALIZATION_S`] past the last adopted scan.
+    fn reckoning_holds_relocalization(&self, t: f64) -> bool {
+        self.reckoning_alive(t)
+            && self
+                .odometry
+                .as_ref()
+                .is_some_and(|o| t - o.since <= RECKON_HOLDS_RELOCALIZATION_S)
+    }
+
+    /// Where a scan along a chain is registered against the map from: the chain's last
+    /// pose moved by its last step (the motion the scans measured), not the motion
+    /// model's prediction, whose velocity is the last adopted scan's and seconds old
+    /// along a long chain (a sensor that stopped or turned is sought where it is).
+    /// `None` outside a chain or before its first step.
+    fn chain_seed(&self, t: f64) -> Option<Pose> {
+        let o = self
+            .odometry
+            .as_ref()
+            .filter(|o| o.taken > o.since && self.reckoning_alive(t))?;
+        let (step, _) = o.step?;
+        Some(renormalized(&(o.pose * step)))
     }
 
     /// The scan before's pose moved by the motion registered from it to `scan` (from
@@ -1871,7 +1902,9 @@ mod tests {
     /// Dead reckoning: the scan before's pose moved by the motion registered scan to
     /// scan lands on the sensor's true pose (oracle: the poses the room was seen from),
     /// from a prediction 0.3 m and 2 deg off; not across a gap of more than 0.25 s, at
-    /// any age of the chain.
+    /// any age of the chain. Along a chain the map registration starts at the scan
+    /// before's pose moved by the chain's last step, and relocalizing an unfit scan is
+    /// held off for 3 s past the last adopted scan only.
     #[test]
     fn the_scans_own_motion_reckons_where_the_sensor_went() {
         use kfmap_geometry::geometry::rotation_distance;
@@ -1944,14 +1977,54 @@ mod tests {
         // Not from a scan more than 0.25 s before; at any age of the chain (a minute
         // past the last adopted scan) from one 0.1 s before.
         assert!(tracker.reckoned_pose(&payload, 0.26, &predicted).is_none());
+        let a_minute = 60.0;
+        let taken = a_minute - 0.1;
         if let Some(o) = tracker.odometry.as_mut() {
-            o.taken = 59.9;
+            o.taken = taken;
         }
-        assert!(tracker.reckoned_pose(&payload, 60.0, &predicted).is_some());
-        assert!(tracker.reckoned_pose(&payload, 60.26, &predicted).is_none());
+        assert!(
+            tracker
+                .reckoned_pose(&payload, a_minute, &predicted)
+                .is_some()
+        );
+        let too_late = taken + RECKON_MAX_GAP_S + 0.01;
+        assert!(
+            tracker
+                .reckoned_pose(&payload, too_late, &predicted)
+                .is_none()
+        );
+        // Past 3 s the chain no longer holds off relocalizing a scan the map does not
+        // fit, though it still reckons.
+        assert!(!tracker.reckoning_holds_relocalization(a_minute));
+        if let Some(o) = tracker.odometry.as_mut() {
+            o.since = taken - RECKON_HOLDS_RELOCALIZATION_S + 0.2;
+        }
+        assert!(tracker.reckoning_holds_relocalization(a_minute));
+        // Along the chain the map registration starts where its last step carries the
+        // sensor: the scan before's pose moved by that step.
+        if let Some(o) = tracker.odometry.as_mut() {
+            o.pose = now;
+            o.step = Some((step, true));
+        }
+        let seed = tracker.chain_seed(a_minute).unwrap();
+        assert!(translation_distance(&seed, &(now * step)) < 1e-9);
+        // Not at the chain's first scan (the adopted one: no step yet), nor past a gap.
+        if let Some(o) = tracker.odometry.as_mut() {
+            o.step = None;
+        }
+        assert!(tracker.chain_seed(a_minute).is_none());
+        if let Some(o) = tracker.odometry.as_mut() {
+            o.step = Some((step, true));
+        }
+        assert!(tracker.chain_seed(too_late).is_none());
         // `max-acceleration 0` turns the jump check off, and the reckoning with it.
         tracker.options.trust.max_acceleration = 0.0;
-        assert!(tracker.reckoned_pose(&payload, 60.0, &predicted).is_none());
+        assert!(
+            tracker
+                .reckoned_pose(&payload, a_minute, &predicted)
+                .is_none()
+        );
+        assert!(tracker.chain_seed(a_minute).is_none());
     }
 
     /// The reckoned pose refuses a map pose farther from it than its reach, also one

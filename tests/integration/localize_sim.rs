@@ -795,7 +795,7 @@ fn a_street_whose_buildings_changed_is_not_called_ok_while_sliding_along_it() {
     // Seed 56's first 6 s at 7 Hz from the true start, with its IMU log: from 2.3 s on
     // the map's best fit slides 2-6 m along the road and the scans' own motion refuses
     // it, right (the reckoned poses 0.01-0.03 m off). A chain lived 3 s past the last
-    // adopted scan; then the acceleration bound alone judged, 20 m wide by then, and
+    // adopted scan; then the acceleration bound alone judged, about 25 m wide, and
     // let a registration 9.8 m along through: `ok` at 5.4 s. A chain now lives while
     // its scans register (measured 0 wrong, 16 of 42 `ok` and right; before 1 wrong).
     let (replayed, share) =
