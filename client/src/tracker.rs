@@ -365,6 +365,19 @@ struct Reckoning {
     drift: f64,
 }
 
+impl Reckoning {
+    /// True when the scan before was reckoned, not adopted: a chain runs.
+    fn is_chain(&self) -> bool {
+        self.taken > self.since
+    }
+
+    /// Whether a scan at `t` can be dead-reckoned from this one: the jump check is on
+    /// (`max_acceleration` above 0) and it is at most [`RECKON_MAX_GAP_S`] before.
+    fn reckons_at(&self, t: f64, max_acceleration: f64) -> bool {
+        max_acceleration > 0.0 && t - self.taken <= RECKON_MAX_GAP_S
+    }
+}
+
 /// A map pose farther than this from where the scans' own motion put the sensor is
 /// refused, metres, plus the chain's [`Reckoning::drift`]: scan-to-scan registration is
 /// millimetres to centimetres off per scan (on the changed street 0.12 m over 8 m). The
@@ -890,7 +903,7 @@ impl Tracker {
     ) -> Option<(Pose, f64)> {
         // Along a chain the prediction carries the last adopted scan's velocity, and a
         // look-alike near it is judged by the scans' motion as well.
-        let in_chain = self.odometry.as_ref().is_some_and(|o| o.taken > o.since);
+        let in_chain = self.odometry.as_ref().is_some_and(Reckoning::is_chain);
         if !self.judges_jumps(by_model, localized)
             || (!in_chain && translation_distance(&localized.pose, predicted) <= REACH_SLACK_M)
         {
@@ -901,27 +914,23 @@ impl Tracker {
         Some((reckoned, RECKON_REACH_M + drift))
     }
 
-    /// Whether a scan at `t` can be dead-reckoned from the scan before: the jump check
-    /// is on (`max-acceleration` above 0), the scan before's pose is known and it is at
-    /// most [`RECKON_MAX_GAP_S`] before. A chain has no age limit: its allowance grows
-    /// with its drift, and a chain cut by time handed a map that kept sliding to the
-    /// acceleration bound, tens of metres wide after seconds (docs/DESIGN.md#tracking).
-    fn reckoning_alive(&self, t: f64) -> bool {
-        self.options.trust.max_acceleration > 0.0
-            && self
-                .odometry
-                .as_ref()
-                .is_some_and(|o| t - o.taken <= RECKON_MAX_GAP_S)
+    /// The scan before's [`Reckoning`] when a scan at `t` can be dead-reckoned from it
+    /// ([`Reckoning::reckons_at`]). A chain has no age limit:
+    /// its allowance grows with its drift, and a chain cut by time handed a map that
+    /// kept sliding to the acceleration bound, tens of metres wide after seconds
+    /// (docs/DESIGN.md#tracking).
+    fn live_reckoning(&self, t: f64) -> Option<&Reckoning> {
+        let max_acceleration = self.options.trust.max_acceleration;
+        self.odometry
+            .as_ref()
+            .filter(|o| o.reckons_at(t, max_acceleration))
     }
 
     /// Whether a chain alive at `t` still holds off relocalizing a scan the map does
     /// not fit: for [`RECKON_HOLDS_RELOCALIZATION_S`] past the last adopted scan.
     fn reckoning_holds_relocalization(&self, t: f64) -> bool {
-        self.reckoning_alive(t)
-            && self
-                .odometry
-                .as_ref()
-                .is_some_and(|o| t - o.since <= RECKON_HOLDS_RELOCALIZATION_S)
+        self.live_reckoning(t)
+            .is_some_and(|o| t - o.since <= RECKON_HOLDS_RELOCALIZATION_S)
     }
 
     /// Where a scan along a chain is registered against the map from: the chain's last
@@ -930,10 +939,7 @@ impl Tracker {
     /// along a long chain (a sensor that stopped or turned is sought where it is).
     /// `None` outside a chain or before its first step.
     fn chain_seed(&self, t: f64) -> Option<Pose> {
-        let o = self
-            .odometry
-            .as_ref()
-            .filter(|o| o.taken > o.since && self.reckoning_alive(t))?;
+        let o = self.live_reckoning(t).filter(|o| o.is_chain())?;
         let (step, _) = o.step?;
         Some(renormalized(&(o.pose * step)))
     }
@@ -948,7 +954,12 @@ impl Tracker {
         t: f64,
         predicted: &Pose,
     ) -> Option<(Pose, f64)> {
-        let from = self.odometry.as_ref().filter(|_| self.reckoning_alive(t))?;
+        // The field, not `live_reckoning`: `step_now` is set below while `from` is held.
+        let max_acceleration = self.options.trust.max_acceleration;
+        let from = self
+            .odometry
+            .as_ref()
+            .filter(|o| o.reckons_at(t, max_acceleration))?;
         // The step before is the better guess along a chain: the prediction carries the
         // last adopted scan's velocity, seconds old by then.
         let guess = from
@@ -2001,13 +2012,18 @@ mod tests {
         }
         assert!(tracker.reckoning_holds_relocalization(a_minute));
         // Along the chain the map registration starts where its last step carries the
-        // sensor: the scan before's pose moved by that step.
+        // sensor: at steady motion, the pose after `now` by the same 0.8 m ahead, 0.1 m
+        // left and 3 deg turn, worked out by hand: (-2.2, 0.1) + R(3 deg) (0.8, 0.1) at
+        // 6 deg.
         if let Some(o) = tracker.odometry.as_mut() {
             o.pose = now;
             o.step = Some((step, true));
         }
         let seed = tracker.chain_seed(a_minute).unwrap();
-        assert!(translation_distance(&seed, &(now * step)) < 1e-9);
+        let (c, s) = (3f64.to_radians().cos(), 3f64.to_radians().sin());
+        let next = yawed(-2.2 + 0.8 * c - 0.1 * s, 0.1 + 0.8 * s + 0.1 * c, 6.0);
+        assert!(translation_distance(&seed, &next) < 1e-9, "{seed:?}");
+        assert!(rotation_distance(&seed, &next) < 1e-9);
         // Not at the chain's first scan (the adopted one: no step yet), nor past a gap.
         if let Some(o) = tracker.odometry.as_mut() {
             o.step = None;

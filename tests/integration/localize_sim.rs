@@ -643,8 +643,7 @@ fn a_later_recording_with_moved_clutter_is_never_confidently_wrong() {
     // measured now 0, 92 % `ok` and right.
     let (replayed, share) = replayed_from_true_start(
         &dir,
-        ("courtyard", "21.5", "44", true),
-        "10",
+        ("courtyard", "21.5", "44", "10", true),
         "later",
         &prefix,
     );
@@ -674,7 +673,7 @@ fn a_street_whose_buildings_changed_is_not_called_ok_while_sliding_along_it() {
     // (seed, wrong `ok` scans at most, share `ok` and right at least)
     for (seed, max_wrong, min_right) in [("43", 0, 0.18), ("42", 0, 0.40)] {
         let (replayed, share) =
-            replayed_from_true_start(&dir, ("street", "12", seed, true), "10", "street", &prefix);
+            replayed_from_true_start(&dir, ("street", "12", seed, "10", true), "street", &prefix);
         let (scans, wrong) = (&replayed.scans, &replayed.wrong);
         // Along the road the registration cannot see how far the changed buildings'
         // ends pull the pose; the slide probe widens the covariance there (DESIGN
@@ -705,7 +704,7 @@ fn a_street_whose_buildings_changed_is_not_called_ok_while_sliding_along_it() {
     // of 1 g reaches the look-alike; with the acceleration its IMU log measured
     // (docs/DESIGN.md#tracking) measured now 0, 17 % `ok` and right (the same 20 scans).
     let (replayed, share) =
-        replayed_from_true_start(&dir, ("street", "12", "44", true), "10", "street", &prefix);
+        replayed_from_true_start(&dir, ("street", "12", "44", "10", true), "street", &prefix);
     let refused = refused_jumps(&replayed.scans);
     println!("street seed 44: {refused} jumps refused");
     assert!(replayed.wrong.is_empty(), "seed 44: {:?}", replayed.wrong);
@@ -789,7 +788,7 @@ fn a_street_whose_buildings_changed_is_not_called_ok_while_sliding_along_it() {
     // each step may have got wrong (2 % of it and how far it lay from its guess), and
     // each scan of a chain is judged (measured 0 wrong, 26 of 50 `ok` and right).
     let (replayed, share) =
-        replayed_from_true_start(&dir, ("street", "5", "52", false), "10", "street", &prefix);
+        replayed_from_true_start(&dir, ("street", "5", "52", "10", false), "street", &prefix);
     assert!(replayed.wrong.is_empty(), "seed 52: {:?}", replayed.wrong);
     assert!(share >= 0.45, "seed 52: {share}");
     // Seed 56's first 6 s at 7 Hz from the true start, with its IMU log: from 2.3 s on
@@ -799,7 +798,7 @@ fn a_street_whose_buildings_changed_is_not_called_ok_while_sliding_along_it() {
     // let a registration 9.8 m along through: `ok` at 5.4 s. A chain now lives while
     // its scans register (measured 0 wrong, 16 of 42 `ok` and right; before 1 wrong).
     let (replayed, share) =
-        replayed_from_true_start(&dir, ("street", "6", "56", true), "7", "street", &prefix);
+        replayed_from_true_start(&dir, ("street", "6", "56", "7", true), "street", &prefix);
     assert!(replayed.wrong.is_empty(), "seed 56: {:?}", replayed.wrong);
     assert!(share >= 0.35, "seed 56: {share}");
 }
@@ -809,8 +808,7 @@ fn a_street_whose_buildings_changed_is_not_called_ok_while_sliding_along_it() {
 /// against the map served as `name`, with the share of its scans `ok` and right.
 fn replayed_from_true_start(
     dir: &Path,
-    (preset, seconds, seed, with_imu): (&str, &str, &str, bool),
-    rate_hz: &str,
+    (preset, seconds, seed, rate_hz, with_imu): (&str, &str, &str, &str, bool),
     name: &str,
     prefix: &Prefix,
 ) -> (Replayed, f64) {
