@@ -42,6 +42,10 @@ pub struct RelocalizeParams {
     /// ... and scored (fine pairing distance) on the coarse scan thinned to at most this
     /// many points; 0: on every coarse point.
     pub score_points: usize,
+    /// The best place's final registration (and its tight fit) runs on the scan as
+    /// sent thinned to at most this many points; 0: on every point. A tracker
+    /// refines the pose on its next scan; the verdict needs shares, not millimetres.
+    pub final_points: usize,
     /// The place search.
     pub search: SearchParams,
     /// `found` needs this share of the scan paired at the request's distance...
@@ -60,12 +64,13 @@ pub struct RelocalizeParams {
     /// slide along its least constrained horizontal direction loses at least this
     /// share of the structure it explains, [`super::pinning`]) and every other place
     /// within the margin, registered as the best was, slides (loses less) and explains
-    /// at least `explained-lead` less: a place along a corridor-like stretch is no
-    /// rival to one the scan pins. 0: never.
+    /// at least `explained-lead` less, give or take the share's sampling noise: a
+    /// place along a corridor-like stretch is no rival to one the scan pins. 0: never.
     pub pinned_share: f64,
     /// See `pinned-share` (share of the scan's structure). 0 by default: the rival
-    /// may explain no more than the best; a lead of 0.015 lay within the share's own
-    /// sampling noise and turned verdicts on millimetres of the best place's pose.
+    /// may explain no more than the best beyond two standard errors of the best's
+    /// share ([`Pinning::share_noise`]); a fixed lead of 0.015, and later none, lay
+    /// within that noise and turned verdicts on millimetres of the best place's pose.
     pub explained_lead: f64,
 }
 
@@ -102,6 +107,12 @@ impl RelocalizeParams {
                 "0 (every coarse point) or 100 to 100000",
             )?;
         }
+        ensure(
+            self.final_points == 0 || (1000..=1_000_000).contains(&self.final_points),
+            "final-points",
+            self.final_points,
+            "0 (every point) or 1000 to 1000000",
+        )?;
         ensure(
             self.max_tilt_deg.is_finite() && (1.0..=90.0).contains(&self.max_tilt_deg),
             "max-tilt-deg",
@@ -144,6 +155,7 @@ impl Default for RelocalizeParams {
             max_tilt_deg: 40.0,
             settle_points: 1100,
             score_points: 0,
+            final_points: 10_000,
             search: SearchParams {
                 candidates: 5,
                 ..SearchParams::default()
@@ -734,7 +746,8 @@ pub fn another_place(a: &Pose, b: &Pose, params: &RelocalizeParams) -> bool {
 /// slides where `best` is pinned: `best` loses at least `pinned-share` under the slide,
 /// and each other place, registered again as it was scored (`rescore`: a few
 /// iterations, where the whole scan's fine ones took 7-29 along a slide on balm_os0),
-/// loses less and explains at least `explained-lead` less. A place that no longer
+/// loses less and explains no more (beyond the share's noise, [`Pinning::share_noise`])
+/// than `explained-lead` less. A place that no longer
 /// fits, or settles onto `best`, is no rival. Counts the registrations in `answer`.
 fn only_slides<E>(
     best: &RegistrationResult,
@@ -765,7 +778,9 @@ fn only_slides<E>(
         );
         let other = pinning(&other)?;
         let slides = other.slide_loss.is_some_and(|l| l < params.pinned_share);
-        if !slides || other.explained + params.explained_lead > pinned.explained {
+        let explains_more =
+            other.explained + params.explained_lead > pinned.explained + pinned.share_noise();
+        if !slides || explains_more {
             return Ok(false);
         }
     }
@@ -781,6 +796,17 @@ pub struct Pinning {
     pub explained: f64,
     /// What a 0.5 m slide loses of it, at the worse side.
     pub slide_loss: Option<f64>,
+    /// Structure points the share is of.
+    pub points: usize,
+}
+
+impl Pinning {
+    /// Two standard errors of `explained` as a share of `points` draws: shares closer
+    /// than this do not tell two places apart.
+    pub fn share_noise(&self) -> f64 {
+        let p = self.explained.clamp(0.0, 1.0);
+        2.0 * (p * (1.0 - p) / self.points.max(1) as f64).sqrt()
+    }
 }
 
 /// The best of `scored` (the first of equal scores) gets fine iterations; it fits when

@@ -94,7 +94,7 @@ impl Default for SearchParams {
             separation_m: 2.0,
             separation_deg: 20.0,
             max_lookups: 400_000_000,
-            yaw_range: 30.0,
+            yaw_range: 20.0,
         }
     }
 }

@@ -1473,10 +1473,94 @@ fn settle_and_score_points_are_checked_by_name() {
         ..RelocalizeParams::default()
     };
     assert_eq!(score.validate().unwrap_err().option, "score-points");
+    let final_points = RelocalizeParams {
+        final_points: 999,
+        ..RelocalizeParams::default()
+    };
+    assert_eq!(final_points.validate().unwrap_err().option, "final-points");
     let off = RelocalizeParams {
         settle_points: 0,
         score_points: 0,
+        final_points: 0,
         ..RelocalizeParams::default()
     };
     assert!(off.validate().is_ok());
+}
+
+/// Two standard errors of a share of `n` draws, worked out by hand: p = 0.5 of 1 600
+/// is sqrt(0.25 / 1 600) = 0.0125 each, so 0.025.
+#[test]
+fn a_shares_noise_is_two_standard_errors() {
+    let at = |explained, points| super::Pinning {
+        explained,
+        slide_loss: None,
+        points,
+    };
+    assert!((at(0.5, 1600).share_noise() - 0.025).abs() < 1e-12);
+    // p = 0.1 of 900: sqrt(0.09 / 900) = 0.01 each.
+    assert!((at(0.1, 900).share_noise() - 0.02).abs() < 1e-12);
+    assert_eq!(at(1.0, 50).share_noise(), 0.0);
+}
+
+/// The verdict on a best place (x = 0, score 0.70) with a rival 6.5 m along (x = 6.5,
+/// 0.68, within the 0.05 margin): `found` only when the best is pinned (a slide loses
+/// 0.2 of its structure), the rival slides (0.01) and explains no more than the best
+/// beyond two standard errors of the best's share (1 580 points at 0.512: 0.0251).
+#[test]
+fn a_rival_that_slides_is_no_rival_unless_it_explains_clearly_more() {
+    use super::relocalize::{Pinning, RelocalizeParams, RelocalizeStatus, Scored, ScoredPlace};
+    let fine = kfmap_geometry::tracking::Stage {
+        coarse: false,
+        max_pair_dist: 1.0,
+        max_iterations: 10,
+    };
+    let scored = Scored {
+        places: vec![
+            ScoredPlace {
+                rank: 0,
+                pose: at_x(0.0),
+                score: 0.70,
+            },
+            ScoredPlace {
+                rank: 1,
+                pose: at_x(6.5),
+                score: 0.68,
+            },
+        ],
+        registrations: 2,
+    };
+    let verdict = |best_loss: f64, rival_loss: f64, rival_explained: f64| {
+        let pinning = |r: &kfmap_geometry::registration::RegistrationResult| {
+            let best = r.pose.translation.x.abs() < 1.0;
+            Ok::<_, ()>(Pinning {
+                explained: if best { 0.512 } else { rival_explained },
+                slide_loss: Some(if best { best_loss } else { rival_loss }),
+                points: 1580,
+            })
+        };
+        super::decide(
+            &scored,
+            2,
+            fine,
+            &RelocalizeParams::default(),
+            |start: &kfmap_geometry::geometry::Pose, _: &_| Ok(Some(settled_at(*start, 0.95))),
+            |place: &kfmap_geometry::geometry::Pose| Ok(Some(settled_at(*place, 0.9))),
+            pinning,
+        )
+        .unwrap()
+        .status
+    };
+    // 0.525 against 0.512: 0.013 more, within the noise (balm_os0's scan 146 turned
+    // 37 deg, whose verdict flipped with millimetres of the best place's pose).
+    assert_eq!(verdict(0.2, 0.01, 0.525), RelocalizeStatus::Found);
+    assert_eq!(verdict(0.2, 0.01, 0.512 + 0.0245), RelocalizeStatus::Found);
+    // Clearly more of the scan's structure explained there: a rival still.
+    assert_eq!(
+        verdict(0.2, 0.01, 0.512 + 0.026),
+        RelocalizeStatus::Ambiguous
+    );
+    assert_eq!(verdict(0.2, 0.01, 0.60), RelocalizeStatus::Ambiguous);
+    // A rival pinned as well, or a best that slides too: a look-alike, undecided.
+    assert_eq!(verdict(0.2, 0.2, 0.40), RelocalizeStatus::Ambiguous);
+    assert_eq!(verdict(0.01, 0.01, 0.40), RelocalizeStatus::Ambiguous);
 }

@@ -6,7 +6,7 @@
 
 use std::sync::{Arc, Mutex, PoisonError};
 
-use kfmap_geometry::geometry::{Pose, to_point, transform_point};
+use kfmap_geometry::geometry::{PackedSym3, Pose, to_point, transform_point};
 use kfmap_geometry::registration::RegistrationResult;
 use kfmap_geometry::tracking::{covariance_to_wire, pose_covariance};
 use kfmap_map::map::NearestMemo;
@@ -108,9 +108,12 @@ pub fn relocalize(
             .filter(|p| p.points == scan.points && p.map_up == map_up),
         Phase::Whole | Phase::Places => None,
     };
-    // The final registration's scan and the candidates' coarse one: each a copy with
+    // The final registration's scan (thinned to `final-points`, its covariances
+    // estimated on what is kept) and the candidates' coarse one: each a copy with
     // covariances, built once on first use.
-    let mut stages = prepare(scan, limits);
+    let final_thinned = ThinnedScan::of(scan, params.final_points);
+    let final_scan = final_thinned.as_ref().map(ThinnedScan::scan);
+    let mut stages = prepare(final_scan.as_ref().unwrap_or(scan), limits);
     let mut candidates = prepare(scan, limits);
     let (points, proposal, scored) = match kept {
         Some(kept) => (Some(kept.points), kept.proposal, kept.scored),
@@ -272,6 +275,41 @@ pub fn relocalize(
     Ok(verdict_answer(&found, &against.active, &[]))
 }
 
+/// Every k-th point of a scan as sent (the smallest k leaving at most `points`), with
+/// its view directions and any covariances the client sent.
+struct ThinnedScan {
+    points: Vec<[f32; 3]>,
+    view_dirs: Option<Vec<[f32; 3]>>,
+    covariances: Option<Vec<PackedSym3>>,
+}
+
+impl ThinnedScan {
+    /// `None` when `scan` has at most `points` points or `points` is 0 (every point).
+    fn of(scan: &DecodedScan, points: usize) -> Option<Self> {
+        let n = scan.points.len();
+        if points == 0 || n <= points {
+            return None;
+        }
+        let stride = n.div_ceil(points);
+        let thin = |v: &[[f32; 3]]| v.iter().step_by(stride).copied().collect::<Vec<_>>();
+        Some(Self {
+            points: thin(scan.points),
+            view_dirs: scan.view_dirs.map(thin),
+            covariances: scan
+                .covariances
+                .map(|c| c.iter().step_by(stride).copied().collect()),
+        })
+    }
+
+    fn scan(&self) -> DecodedScan<'_> {
+        DecodedScan {
+            points: &self.points,
+            view_dirs: self.view_dirs.as_deref(),
+            covariances: self.covariances.as_deref(),
+        }
+    }
+}
+
 /// [`Pinning`] of a registered place: the scan's structure there, and a slide along
 /// the registration's least constrained horizontal direction, each measured by
 /// nearest neighbours in the keyframes the map selects at the pose, as the tracker's
@@ -301,6 +339,7 @@ fn pinning(
     Ok(Pinning {
         explained,
         slide_loss,
+        points: structure.len(),
     })
 }
 
