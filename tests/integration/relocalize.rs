@@ -440,10 +440,9 @@ fn turned_balm_scans_are_found_at_any_heading() {
             "{turn_deg} deg: confident wrong {wrong:?}"
         );
         // README: 61 / 61 / 61 / 61 at 37 / 143 / 180 / 250 deg, also with `final-points`
-        // and the yaw step of most points (60 at 37 deg with half the scan before the
-        // share's noise allowance; 61 / 61 / 61 / 60 before `explained-lead` 0 and
-        // `settle-points` 1100, 59 / 59 / 58 / 58 before `pinned-share`); the target,
-        // 60 of 61 at any heading.
+        // (60 at 37 deg with half the scan before the share's noise allowance;
+        // 61 / 61 / 61 / 60 before `explained-lead` 0 and `settle-points` 1100,
+        // 59 / 59 / 58 / 58 before `pinned-share`); the target, 60 of 61 at any heading.
         assert!(success >= 60, "{turn_deg} deg: {success} of 61");
     }
 }

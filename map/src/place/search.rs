@@ -41,9 +41,8 @@ pub struct SearchParams {
     /// Most point lookups before the search stops with what it has (bounds the work
     /// of a scan that fits nowhere or everywhere).
     pub max_lookups: u64,
-    /// Yaws are tried on a step that moves a point this far away (metres, or the range
-    /// within which most searched points lie when nearer, [`YAW_STEP_SHARE`]) by one
-    /// voxel; farther points move more.
+    /// Yaws are tried on a step that moves a point this far away (metres, or the
+    /// farthest point when nearer) by one voxel; farther points move more.
     pub yaw_range: f64,
 }
 
@@ -225,7 +224,11 @@ pub fn search(
     grid_from_levelled: &UnitQuaternion<f64>,
 ) -> SearchOutcome {
     let n = points.len();
-    let range = yaw_step_range(points, params.yaw_range);
+    let range = points
+        .iter()
+        .map(|p| p[0].hypot(p[1]))
+        .fold(0.0_f64, f64::max)
+        .min(params.yaw_range);
     let yaws = (TAU / yaw_step(grid.resolution(), range)).ceil() as usize;
     let searched = if n == 0 || !region.min.iter().zip(&region.max).all(|(a, b)| a <= b) {
         SearchOutcome::default()
@@ -242,23 +245,6 @@ pub fn search(
         yaws,
         ..searched
     }
-}
-
-/// Share of the searched points a yaw step moves by at most one voxel.
-const YAW_STEP_SHARE: f64 = 0.8;
-
-/// The range the yaw step is set for: the horizontal range within which
-/// [`YAW_STEP_SHARE`] of `points` lie, at most `yaw_range`. Points of open ground far
-/// away (a campus's buildings at 30-120 m) keep the step of `yaw_range`; a scan whose
-/// structure is near (balm_os0's, mostly within 20 m) gets wider steps, its farthest
-/// points moving by a voxel and a half.
-pub(super) fn yaw_step_range(points: &[[f64; 3]], yaw_range: f64) -> f64 {
-    let mut ranges: Vec<f64> = points.iter().map(|p| p[0].hypot(p[1])).collect();
-    ranges.sort_by(f64::total_cmp);
-    let at = ((ranges.len() as f64 - 1.0) * YAW_STEP_SHARE)
-        .round()
-        .max(0.0) as usize;
-    ranges.get(at).copied().unwrap_or(0.0).min(yaw_range)
 }
 
 /// True when `placement` is within the separation of one of `kept`.

@@ -9,7 +9,7 @@ use super::grid::SearchRegion;
 use super::grid::{GridParams, GridView, PlaceGrid};
 use super::relocalize::{Ground, above_ground};
 use super::search::{
-    Columns, OwnedColumns, PeerBest, SearchOutcome, SearchParams, search, yaw_step, yaw_step_range,
+    Columns, OwnedColumns, PeerBest, SearchOutcome, SearchParams, search, yaw_step,
 };
 use super::{GridBuilder, estimate_map_up, estimate_up, verification_selection};
 use crate::select::SelectionOptions;
@@ -145,8 +145,7 @@ fn the_search_finds_the_exhaustive_optimum() {
             },
             &UnitQuaternion::identity(),
         );
-        // The yaw lattice as the search sets it (its range checked on its own below).
-        let range = yaw_step_range(&points, SearchParams::default().yaw_range);
+        let range = points.iter().map(|p| p[0].hypot(p[1])).fold(0.0, f64::max);
         let yaws = (TAU / yaw_step(1.0, range)).ceil() as usize;
         assert_eq!(found.yaws, yaws);
         let best = exhaustive_best(&view, &points, &area, yaws, |_, _| true);
@@ -1564,18 +1563,4 @@ fn a_rival_that_slides_is_no_rival_unless_it_explains_clearly_more() {
     // A rival pinned as well, or a best that slides too: a look-alike, undecided.
     assert_eq!(verdict(0.2, 0.2, 0.40), RelocalizeStatus::Ambiguous);
     assert_eq!(verdict(0.01, 0.01, 0.40), RelocalizeStatus::Ambiguous);
-}
-
-/// The yaw step's range is where 80 % of the points lie, at most `yaw-range`: ranges
-/// 1-10 m (horizontal) put the 80th percentile at the 8th of 10, 8 m; with far points
-/// (60-110 m, a campus's open ground) the step stays that of `yaw-range`.
-#[test]
-fn the_yaw_step_is_set_for_most_points_not_the_farthest() {
-    let at = |r: f64| [r * 0.6, r * 0.8, 1.5];
-    let near: Vec<[f64; 3]> = (1..=10).map(|r| at(f64::from(r))).collect();
-    assert!((yaw_step_range(&near, 30.0) - 8.0).abs() < 1e-9);
-    assert!((yaw_step_range(&near, 5.0) - 5.0).abs() < 1e-9);
-    let far: Vec<[f64; 3]> = (6..=11).map(|r| at(f64::from(r) * 10.0)).collect();
-    assert!((yaw_step_range(&far, 30.0) - 30.0).abs() < 1e-9);
-    assert_eq!(yaw_step_range(&[], 30.0), 0.0);
 }
