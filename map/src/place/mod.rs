@@ -29,7 +29,7 @@ pub use level::{estimate_map_up, estimate_up, levelling};
 pub use relocalize::{
     Ground, Pinning, PlaceStep, Proposal, Relocalization, RelocalizeParams, RelocalizeStatus,
     ScanUp, Scored, ScoredPlace, another_place, decide, off_ground, own_up, propose, score_places,
-    score_stage, thinned_scan, verification_selection,
+    score_stage, thinned_scan, thinning_stride, verification_selection,
 };
 pub use search::{Columns, OwnedColumns, PeerBest, Placement, SearchOutcome, SearchParams, search};
 

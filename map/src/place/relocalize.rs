@@ -493,13 +493,20 @@ pub fn thinned_scan(
     covs: &[PackedSym3],
     points: usize,
 ) -> (PointCloud, Vec<PackedSym3>) {
-    let stride = match points {
-        0 => 1,
-        n => cloud.len().div_ceil(n).max(1),
-    };
-    let kept: Vec<usize> = (0..cloud.len()).step_by(stride).collect();
+    let kept: Vec<usize> = (0..cloud.len())
+        .step_by(thinning_stride(cloud.len(), points))
+        .collect();
     let covs = kept.iter().filter_map(|&i| covs.get(i).copied()).collect();
     (cloud.select(&kept), covs)
+}
+
+/// The k of "every k-th point": the smallest leaving at most `points` of `len` (1 when
+/// `points` is 0, every point).
+pub fn thinning_stride(len: usize, points: usize) -> usize {
+    match points {
+        0 => 1,
+        n => len.div_ceil(n).max(1),
+    }
 }
 
 /// Iterations of the scoring registration (coarse scan, fine pairing distance).
@@ -746,8 +753,8 @@ pub fn another_place(a: &Pose, b: &Pose, params: &RelocalizeParams) -> bool {
 /// slides where `best` is pinned: `best` loses at least `pinned-share` under the slide,
 /// and each other place, registered again as it was scored (`rescore`: a few
 /// iterations, where the whole scan's fine ones took 7-29 along a slide on balm_os0),
-/// loses less and explains no more (beyond the share's noise, [`Pinning::share_noise`])
-/// than `explained-lead` less. A place that no longer
+/// loses less and explains at least `explained-lead` less, give or take
+/// [`Pinning::share_noise`]. A place that no longer
 /// fits, or settles onto `best`, is no rival. Counts the registrations in `answer`.
 fn only_slides<E>(
     best: &RegistrationResult,

@@ -1224,6 +1224,13 @@ fn a_thinned_scan_keeps_every_kth_point_with_its_own_covariance() {
     assert_eq!(whole.points, cloud.points);
     let (off, _) = super::thinned_scan(&cloud, &covs, 0);
     assert_eq!(off.points, cloud.points);
+    // The final registration's thinning of scans as sent (`final-points` 10 000), by
+    // hand: 12 812 points -> every 2nd (6 406); 10 000 and 9 000 -> every point;
+    // 30 001 -> every 4th (7 501).
+    for (len, stride) in [(12_812, 2), (10_000, 1), (9_000, 1), (30_001, 4)] {
+        assert_eq!(super::thinning_stride(len, 10_000), stride, "{len} points");
+    }
+    assert_eq!(super::thinning_stride(12_812, 0), 1);
 }
 
 /// A registration result at `pose` pairing `inlier_ratio` of the scan.

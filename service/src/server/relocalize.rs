@@ -14,7 +14,7 @@ use kfmap_map::place::pinning::{slide_loss, structure};
 use kfmap_map::place::{
     Columns, GridView, PeerBest, Pinning, PlaceStep, Proposal, Relocalization, RelocalizeParams,
     RelocalizeStatus, ScanUp, Scored, ScoredPlace, decide, own_up, propose, score_places,
-    score_stage, thinned_scan, verification_selection,
+    score_stage, thinned_scan, thinning_stride, verification_selection,
 };
 use kfmap_protocol::{
     DecodedScan, FLAG_FINISH_CHOSEN, FLAG_LEVELLED, FLAG_PLACES_ONLY, FLAG_SCORE_CHOSEN,
@@ -275,8 +275,8 @@ pub fn relocalize(
     Ok(verdict_answer(&found, &against.active, &[]))
 }
 
-/// Every k-th point of a scan as sent (the smallest k leaving at most `points`), with
-/// its view directions and any covariances the client sent.
+/// Every k-th point of a scan as sent ([`thinning_stride`], as the coarse scan is
+/// thinned), with its view directions and any covariances the client sent.
 struct ThinnedScan {
     points: Vec<[f32; 3]>,
     view_dirs: Option<Vec<[f32; 3]>>,
@@ -290,7 +290,7 @@ impl ThinnedScan {
         if points == 0 || n <= points {
             return None;
         }
-        let stride = n.div_ceil(points);
+        let stride = thinning_stride(n, points);
         let thin = |v: &[[f32; 3]]| v.iter().step_by(stride).copied().collect::<Vec<_>>();
         Some(Self {
             points: thin(scan.points),
