@@ -2,7 +2,7 @@
 """Mean NEES of `kfmap localize --json-lines` poses against a reference, and how far
 the scans' errors are correlated in time.
 
-    tools/nees_time_correlation.py RUN.lines REFERENCE.tum [LABEL] [--map-from-input X,Y,Z,QX,QY,QZ,QW] [--quarters]
+    tools/nees_time_correlation.py RUN.lines REFERENCE.tum [LABEL] [--map-from-input X,Y,Z,QX,QY,QZ,QW] [--quarters] [--axes] [--relative-motion]
 
 RUN.lines is `kfmap localize --json-lines` output (one object per scan, in order, plus
 a summary without "index"), REFERENCE.tum one TUM pose per scan in the frame of the
@@ -17,6 +17,11 @@ rho_k^2) from the lag-k correlation rho_k of the whitened error components (for
 Gaussian errors, Var(mean NEES) = 6/N (1 + 2 sum rho_k^2)), the chi-square 95 %
 band of a calibrated covariance's mean NEES for N independent scans and for N_eff,
 and the chance that a calibrated covariance lands inside the independent-scan band.
+--axes adds each sensor axis's error RMS and published sigma median (rotation in mdeg,
+position in mm); --relative-motion what an online calibration from consecutive scans'
+relative motion would see at best (the reference's exact relative motion standing in
+for scan-to-scan registration): per group k = mean(d^T S^-1 d) / 3 over consecutive ok
+pairs, d the relative-motion error, S = C_(i+1) + Ad C_i Ad^T, and the mean NEES / k.
 Needs numpy only (Wilson-Hilferty for the chi-square quantiles); TUM files and
 quaternions are read by tools/anchors/ate.py.
 """
@@ -108,6 +113,65 @@ def position_by_quarter(scans, reference):
     return quarters
 
 
+def per_axis(scans, reference):
+    """Error RMS and published sigma median per sensor axis over the ok scans: rotation
+    (roll, pitch, yaw) in mdeg, position (x, y, z) in mm."""
+    errors, sigmas = [], []
+    for scan, d in ok_errors(scans, reference):
+        errors.append(np.concatenate([np.degrees(rotation_vector(d[:3, :3])) * 1e3, d[:3, 3] * 1e3]))
+        sd = np.sqrt(np.diag(np.array(scan["covariance"]).reshape(6, 6)))
+        sigmas.append(np.concatenate([np.degrees(sd[:3]) * 1e3, sd[3:] * 1e3]))
+    rms = np.sqrt((np.array(errors) ** 2).mean(axis=0))
+    median = np.median(np.array(sigmas), axis=0)
+    return {"rotation_rms_mdeg": [round(v, 2) for v in rms[:3]],
+            "rotation_sigma_median_mdeg": [round(v, 2) for v in median[:3]],
+            "position_rms_mm": [round(v, 2) for v in rms[3:]],
+            "position_sigma_median_mm": [round(v, 2) for v in median[3:]]}
+
+
+def adjoint(T):
+    """The adjoint of T acting on (rotation, position) right perturbations."""
+    R, t = T[:3, :3], T[:3, 3]
+    skew = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    A = np.zeros((6, 6))
+    A[:3, :3] = R
+    A[3:, 3:] = R
+    A[3:, :3] = skew @ R
+    return A
+
+
+def relative_motion_calibration(scans, reference):
+    """Per group: the mean NEES, k = mean(d^T S^-1 d) / 3 of consecutive ok scans'
+    relative-motion errors, and the mean NEES / k."""
+    ok = [s["status"] == "ok" for s in scans]
+    poses = [pose(s["pose"]) for s in scans]
+    nees, pairs = ([], []), ([], [])
+    for i, scan in enumerate(scans):
+        if not ok[i]:
+            continue
+        C = np.array(scan["covariance"]).reshape(6, 6)
+        e = np.linalg.inv(poses[i]) @ reference[i]
+        e = np.concatenate([rotation_vector(e[:3, :3]), e[:3, 3]])
+        for g in range(2):
+            block = slice(3 * g, 3 * g + 3)
+            nees[g].append(e[block] @ np.linalg.solve(C[block, block], e[block]))
+        if i == 0 or not ok[i - 1]:
+            continue
+        moved = np.linalg.inv(poses[i - 1]) @ poses[i]
+        d = np.linalg.inv(moved) @ np.linalg.inv(reference[i - 1]) @ reference[i]
+        d = np.concatenate([rotation_vector(d[:3, :3]), d[:3, 3]])
+        A = adjoint(np.linalg.inv(moved))
+        S = C + A @ np.array(scans[i - 1]["covariance"]).reshape(6, 6) @ A.T
+        for g in range(2):
+            block = slice(3 * g, 3 * g + 3)
+            pairs[g].append(d[block] @ np.linalg.solve(S[block, block], d[block]))
+    figures = {}
+    for g, name in ((0, "rotation"), (1, "position")):
+        mean, k = float(np.mean(nees[g])), float(np.mean(pairs[g])) / 3
+        figures[name] = {"mean_nees": round(mean, 2), "k": round(k, 2), "nees_over_k": round(mean / k, 2)}
+    return figures
+
+
 def group_figures(w):
     n = len(w)
     nees = (w ** 2).sum(axis=1)
@@ -142,6 +206,10 @@ def main():
                         help="the map's T_map_input (kfmap status --json or kfmap inspect --json)")
     parser.add_argument("--quarters", action="store_true",
                         help="also the position error and published sigma per sensor axis, by quarter of the run")
+    parser.add_argument("--axes", action="store_true",
+                        help="also the error RMS and published sigma per sensor axis")
+    parser.add_argument("--relative-motion", action="store_true",
+                        help="also what a calibration from consecutive scans' relative motion would see")
     args = parser.parse_args()
     map_from_input = np.eye(4)
     if args.map_from_input is not None:
@@ -165,6 +233,10 @@ def main():
         figures[name] = group_figures(np.array([r[g] for r in rows]))
     if args.quarters:
         figures["quarters"] = position_by_quarter(scans, reference)
+    if args.axes:
+        figures["axes"] = per_axis(scans, reference)
+    if args.relative_motion:
+        figures["relative_motion"] = relative_motion_calibration(scans, reference)
     print(json.dumps(figures))
 
 

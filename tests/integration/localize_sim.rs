@@ -171,7 +171,9 @@ fn campus_run_localizes_against_the_map_of_another_run() {
         );
     }
     // The published covariance is calibrated: the errors' NEES against it is near 3
-    // per group (DESIGN #covariance; measured 3.41 rotation, 4.76 position here; the
+    // per group (DESIGN #covariance; measured 5.11 rotation, 4.76 position here,
+    // rotation 3.41 while the heading was floored at 0.01 deg, the heading erring 5.8 mdeg
+    // RMS against a sandwich of 4.1 on this drive, along with its along-track; the
     // registration's Hessian alone gave 17 000 and 330 on a like campus run). Client
     // and server publish the same covariance.
     let trace = |scan: &serde_json::Value| -> f64 {
@@ -619,7 +621,8 @@ fn a_later_recording_with_moved_clutter_is_never_confidently_wrong() {
         );
         // The covariance errs on the careful side on this site (its same world too,
         // 1.52; the moved clutter's pairs account for about a third of it, DESIGN
-        // #covariance): measured 1.43-1.56 rotation, 0.81-0.93 position (1.48-1.65,
+        // #covariance): measured 1.65-1.77 rotation (1.43-1.56 while the
+        // heading was floored at 0.01 deg), 0.81-0.93 position (1.48-1.65,
         // 0.82-1.03 when fewer scans were `ok`); the registration's Hessian alone gave
         // 509 / 55.
         assert_nees(
@@ -677,9 +680,10 @@ fn a_street_whose_buildings_changed_is_not_called_ok_while_sliding_along_it() {
         let (scans, wrong) = (&replayed.scans, &replayed.wrong);
         // Along the road the registration cannot see how far the changed buildings'
         // ends pull the pose; the slide probe widens the covariance there (DESIGN
-        // #covariance). Measured NEES 1.10 / 3.40 position, 0.69 / 0.55 rotation
-        // (seeds 43 / 42; 1.37 / 0.90 for seed 43 before its slides were refused as
-        // jumps); 28 position without the widening.
+        // #covariance). Measured NEES 1.10 / 3.40 position, 1.06 / 1.26 rotation
+        // (seeds 43 / 42; 1.37 / 0.90 position for seed 43 before its slides were refused
+        // as jumps; rotation 0.69 / 0.55 while the heading was floored at 0.01 deg, which
+        // the rotation's lower bound catches); 28 position without the widening.
         assert!(wrong.len() <= max_wrong, "seed {seed}: {wrong:?}");
         assert!(share >= min_right, "seed {seed}: {share}");
         assert_nees(
@@ -687,7 +691,7 @@ fn a_street_whose_buildings_changed_is_not_called_ok_while_sliding_along_it() {
             scans,
             &replayed.truth,
             20,
-            0.25..3.0,
+            0.8..3.0,
             0.6..6.5,
         );
         // The checks engaged: a changed street is not pinned everywhere (seed 43's

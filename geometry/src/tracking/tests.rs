@@ -8,6 +8,7 @@ use crate::registration::{
     Constraint, Correspondence, Fitness, RegistrationParams, RegistrationResult, RobustKernel,
     linearize, solve_pose,
 };
+use crate::tracking::health::{COVARIANCE_INFLATION, ROTATION_FLOOR_RAD2};
 
 /// Point-to-point correspondences: `source` points and targets `source + noise`.
 fn problem(rng: &mut StdRng, n: usize, sigma: f64) -> (Vec<Vector3<f64>>, Vec<Correspondence>) {
@@ -218,6 +219,41 @@ fn the_sandwich_predicts_the_scatter_when_surfaces_err_together() {
             "axis {i}: independent pairs only {under}x under"
         );
     }
+}
+
+/// The rotation floor lies about the map's horizontal axes, none about its vertical,
+/// whatever way the sensor is turned: worked out by hand for a level sensor (the floor
+/// on its roll and pitch) and for one pitched 90 deg (the map's up along its -x axis:
+/// the floor on its y and z axes).
+#[test]
+fn the_rotation_floor_lies_about_the_maps_horizontal_axes() {
+    let mut rng = StdRng::seed_from_u64(11);
+    let (_, pairs) = problem(&mut rng, 200, 0.01);
+    let mut result = result_at_identity(&pairs);
+    let floor_of = |result: &RegistrationResult| -> Matrix3<f64> {
+        let added = pose_covariance(result).unwrap()
+            - registration_covariance(result).unwrap() * COVARIANCE_INFLATION;
+        // Only the rotation block gains.
+        assert!(added.fixed_view::<3, 3>(3, 3).abs().max() < 1e-18);
+        assert!(added.fixed_view::<3, 3>(0, 3).abs().max() < 1e-18);
+        added.fixed_view::<3, 3>(0, 0).into_owned() / ROTATION_FLOOR_RAD2
+    };
+    let level = Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, 0.0));
+    assert!(
+        (floor_of(&result) - level).abs().max() < 1e-9,
+        "{}",
+        floor_of(&result)
+    );
+    result.pose = Pose::from_parts(
+        nalgebra::Translation3::new(3.0, -2.0, 1.0),
+        nalgebra::UnitQuaternion::from_euler_angles(0.0, std::f64::consts::FRAC_PI_2, 0.0),
+    );
+    let pitched = Matrix3::from_diagonal(&Vector3::new(0.0, 1.0, 1.0));
+    assert!(
+        (floor_of(&result) - pitched).abs().max() < 1e-9,
+        "{}",
+        floor_of(&result)
+    );
 }
 
 #[test]
