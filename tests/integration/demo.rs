@@ -205,5 +205,6 @@ fn demo_real_maps_and_tracks_balm_against_its_reference_poses() {
         .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
         .filter(|v| v.get("index").is_some())
         .collect();
-    common::assert_nees("demo --real", &scans, &truth, 55, 0.8..6.5, 1.0..6.5);
+    // Bounds: within 2x of 3 either way, the target on real data.
+    common::assert_nees("demo --real", &scans, &truth, 55, 1.5..6.0, 1.5..6.0);
 }
