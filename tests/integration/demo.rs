@@ -191,8 +191,8 @@ fn demo_real_maps_and_tracks_balm_against_its_reference_poses() {
     // The published covariance against the adjusted reference (moved into the built
     // map's frame as above): a calibrated one gives a mean NEES of 3 per group. Measured
     // here 2.03 position, 1.99 rotation (1.91 with the heading floored too; on a map
-    // baked at that reference 2.07 / 2.18);
-    // the registration's Hessian alone said 1-2 mm where the poses are 17 mm off.
+    // baked at that reference 2.07 / 2.28, 2.18 with the heading floored); the
+    // registration's Hessian alone said 1-2 mm where the poses are 17 mm off.
     let built = read_trajectory(&out.join("map_poses.tum")).unwrap().poses;
     let map_from_reference = rigid_alignment(&adjusted[..116], &built);
     let truth: Vec<Pose> = adjusted[116..177]
