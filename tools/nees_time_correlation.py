@@ -21,7 +21,8 @@ and the chance that a calibrated covariance lands inside the independent-scan ba
 position in mm); --relative-motion what an online calibration from consecutive scans'
 relative motion would see at best (the reference's exact relative motion standing in
 for scan-to-scan registration): per group k = mean(d^T S^-1 d) / 3 over consecutive ok
-pairs, d the relative-motion error, S = C_(i+1) + Ad C_i Ad^T, and the mean NEES / k.
+pairs, d the relative-motion error, S = C_(i+1) + Ad C_i Ad^T with Ad the adjoint of
+the inverse of the reported relative motion, and the mean NEES / k.
 Needs numpy only (Wilson-Hilferty for the chi-square quantiles); TUM files and
 quaternions are read by tools/anchors/ate.py.
 """
