@@ -96,6 +96,29 @@ def whitened_errors(scans, reference):
     return rows
 
 
+def twist(T):
+    """The (rotation vector, translation) of a 4x4 pose, as the covariance orders them."""
+    return np.concatenate([rotation_vector(T[:3, :3]), T[:3, 3]])
+
+
+def covariance_of(scan):
+    return np.array(scan["covariance"]).reshape(6, 6)
+
+
+def per_axis(ok):
+    """Over `ok` ((scan, d) pairs of `ok_errors`): the error's RMS and the published
+    sigma's median per sensor axis, rotation (roll, pitch, yaw) in mdeg and position
+    (x forward, y left, z up) in mm."""
+    to_display = np.array([1e3 * 180 / math.pi] * 3 + [1e3] * 3)
+    errors = np.array([twist(d) for _, d in ok]) * to_display
+    sigmas = np.array([np.sqrt(np.diag(covariance_of(s))) for s, _ in ok]) * to_display
+    rms = np.sqrt((errors ** 2).mean(axis=0))
+    median = np.median(sigmas, axis=0)
+    rounded = lambda v: [round(float(x), 2) for x in v]
+    return {"rotation_rms_mdeg": rounded(rms[:3]), "rotation_sigma_median_mdeg": rounded(median[:3]),
+            "position_rms_mm": rounded(rms[3:]), "position_sigma_median_mm": rounded(median[3:])}
+
+
 def position_by_quarter(scans, reference):
     """The ok scans in four consecutive quarters: per quarter the position error's RMS
     and the published sigma's median along each sensor axis (x forward, y left, z up),
@@ -104,30 +127,13 @@ def position_by_quarter(scans, reference):
     quarters = []
     for q in range(4):
         part = ok[q * len(ok) // 4:(q + 1) * len(ok) // 4]
-        errors = np.array([d[:3, 3] for _, d in part])
-        sigmas = np.array([np.sqrt(np.diag(np.array(s["covariance"]).reshape(6, 6))[3:]) for s, _ in part])
+        axes = per_axis(part)
         quarters.append({
             "scans": [part[0][0]["index"], part[-1][0]["index"]],
-            "error_rms_mm": [round(v, 2) for v in 1e3 * np.sqrt((errors ** 2).mean(axis=0))],
-            "sigma_median_mm": [round(v, 2) for v in 1e3 * np.median(sigmas, axis=0)],
+            "error_rms_mm": axes["position_rms_mm"],
+            "sigma_median_mm": axes["position_sigma_median_mm"],
         })
     return quarters
-
-
-def per_axis(scans, reference):
-    """Error RMS and published sigma median per sensor axis over the ok scans: rotation
-    (roll, pitch, yaw) in mdeg, position (x, y, z) in mm."""
-    errors, sigmas = [], []
-    for scan, d in ok_errors(scans, reference):
-        errors.append(np.concatenate([np.degrees(rotation_vector(d[:3, :3])) * 1e3, d[:3, 3] * 1e3]))
-        sd = np.sqrt(np.diag(np.array(scan["covariance"]).reshape(6, 6)))
-        sigmas.append(np.concatenate([np.degrees(sd[:3]) * 1e3, sd[3:] * 1e3]))
-    rms = np.sqrt((np.array(errors) ** 2).mean(axis=0))
-    median = np.median(np.array(sigmas), axis=0)
-    return {"rotation_rms_mdeg": [round(v, 2) for v in rms[:3]],
-            "rotation_sigma_median_mdeg": [round(v, 2) for v in median[:3]],
-            "position_rms_mm": [round(v, 2) for v in rms[3:]],
-            "position_sigma_median_mm": [round(v, 2) for v in median[3:]]}
 
 
 def adjoint(T):
@@ -141,36 +147,22 @@ def adjoint(T):
     return A
 
 
-def relative_motion_calibration(scans, reference):
-    """Per group: the mean NEES, k = mean(d^T S^-1 d) / 3 of consecutive ok scans'
-    relative-motion errors, and the mean NEES / k."""
-    ok = [s["status"] == "ok" for s in scans]
-    poses = [pose(s["pose"]) for s in scans]
-    nees, pairs = ([], []), ([], [])
-    for i, scan in enumerate(scans):
-        if not ok[i]:
+def relative_motion_k(scans, reference):
+    """Per group, k = mean(d^T S^-1 d) / 3 over consecutive ok scans: d the error of the
+    reported relative motion against the reference's, S = C_(i+1) + Ad C_i Ad^T with Ad
+    the adjoint of the inverse of the reported relative motion."""
+    pairs = ([], [])
+    for i in range(1, len(scans)):
+        if scans[i - 1]["status"] != "ok" or scans[i]["status"] != "ok":
             continue
-        C = np.array(scan["covariance"]).reshape(6, 6)
-        e = np.linalg.inv(poses[i]) @ reference[i]
-        e = np.concatenate([rotation_vector(e[:3, :3]), e[:3, 3]])
-        for g in range(2):
-            block = slice(3 * g, 3 * g + 3)
-            nees[g].append(e[block] @ np.linalg.solve(C[block, block], e[block]))
-        if i == 0 or not ok[i - 1]:
-            continue
-        moved = np.linalg.inv(poses[i - 1]) @ poses[i]
-        d = np.linalg.inv(moved) @ np.linalg.inv(reference[i - 1]) @ reference[i]
-        d = np.concatenate([rotation_vector(d[:3, :3]), d[:3, 3]])
+        moved = np.linalg.inv(pose(scans[i - 1]["pose"])) @ pose(scans[i]["pose"])
+        d = twist(np.linalg.inv(moved) @ np.linalg.inv(reference[i - 1]) @ reference[i])
         A = adjoint(np.linalg.inv(moved))
-        S = C + A @ np.array(scans[i - 1]["covariance"]).reshape(6, 6) @ A.T
+        S = covariance_of(scans[i]) + A @ covariance_of(scans[i - 1]) @ A.T
         for g in range(2):
             block = slice(3 * g, 3 * g + 3)
             pairs[g].append(d[block] @ np.linalg.solve(S[block, block], d[block]))
-    figures = {}
-    for g, name in ((0, "rotation"), (1, "position")):
-        mean, k = float(np.mean(nees[g])), float(np.mean(pairs[g])) / 3
-        figures[name] = {"mean_nees": round(mean, 2), "k": round(k, 2), "nees_over_k": round(mean / k, 2)}
-    return figures
+    return [float(np.mean(p)) / 3 for p in pairs]
 
 
 def group_figures(w):
@@ -230,14 +222,17 @@ def main():
     if len(rows) < 8:
         sys.exit(f"{len(rows)} ok scans: too few for a mean NEES")
     figures = {"label": args.label or args.lines, "ok": len(rows), "scans": len(scans)}
-    for g, name in ((0, "rotation"), (1, "position")):
-        figures[name] = group_figures(np.array([r[g] for r in rows]))
+    groups = {name: np.array([r[g] for r in rows]) for g, name in ((0, "rotation"), (1, "position"))}
+    for name, w in groups.items():
+        figures[name] = group_figures(w)
     if args.quarters:
         figures["quarters"] = position_by_quarter(scans, reference)
     if args.axes:
-        figures["axes"] = per_axis(scans, reference)
+        figures["axes"] = per_axis(ok_errors(scans, reference))
     if args.relative_motion:
-        figures["relative_motion"] = relative_motion_calibration(scans, reference)
+        figures["relative_motion"] = {
+            name: {"k": round(k, 2), "nees_over_k": round((groups[name] ** 2).sum(axis=1).mean() / k, 2)}
+            for name, k in zip(("rotation", "position"), relative_motion_k(scans, reference))}
     print(json.dumps(figures))
 
 
