@@ -38,6 +38,24 @@ struct Line {
 
 /// `kfmap localize ... --json-lines`: the scan lines and the summary.
 fn localize_lines(args: &[&str]) -> (Vec<Line>, serde_json::Value) {
+    let (values, summary) = localize_values(args);
+    let lines = values
+        .iter()
+        .map(|v| {
+            let pose: Vec<f64> = serde_json::from_value(v["pose"].clone()).unwrap();
+            Line {
+                index: v["index"].as_u64().unwrap() as usize,
+                pose: pose_from_xyz_quat(pose.try_into().unwrap()).unwrap(),
+                status: v["status"].as_str().unwrap().to_string(),
+                fitness: v["fitness"].as_f64().unwrap(),
+            }
+        })
+        .collect();
+    (lines, summary)
+}
+
+/// `kfmap localize ... --json-lines`: each scan's object and the summary.
+fn localize_values(args: &[&str]) -> (Vec<serde_json::Value>, serde_json::Value) {
     let mut all = vec!["localize", "--rate", "0", "--json-lines"];
     all.extend_from_slice(args);
     let out = kfmap(&all);
@@ -52,19 +70,7 @@ fn localize_lines(args: &[&str]) -> (Vec<Line>, serde_json::Value) {
         .map(|l| serde_json::from_str(l).expect("one JSON object per line"))
         .collect();
     let summary = values.pop().expect("a summary line");
-    let lines = values
-        .iter()
-        .map(|v| {
-            let pose: Vec<f64> = serde_json::from_value(v["pose"].clone()).unwrap();
-            Line {
-                index: v["index"].as_u64().unwrap() as usize,
-                pose: pose_from_xyz_quat(pose.try_into().unwrap()).unwrap(),
-                status: v["status"].as_str().unwrap().to_string(),
-                fitness: v["fitness"].as_f64().unwrap(),
-            }
-        })
-        .collect();
-    (lines, summary)
+    (values, summary)
 }
 
 /// Position (m) and rotation (deg) errors of each line against `reference[index]`.
@@ -403,4 +409,68 @@ fn bad_scan_ranges_and_missing_ground_truth_are_named() {
         err.contains("--initial-from-ground-truth") && err.contains("no pose file"),
         "{err}"
     );
+}
+
+/// The published covariance on a second sensor, hku2_avia (Livox Avia class, handheld,
+/// no IMU log: the map frame is the pose file's): its odd scans replayed by `kfmap
+/// localize --initial-from-ground-truth` against a map of its even ones, both at the
+/// reference `kfmap bake --refine-only` makes of the whole sequence (the plane bundle
+/// adjustment over every scan, another estimator than scan-to-map tracking; DESIGN
+/// #covariance). The NEES is computed here from that reference. Measured 4.11
+/// rotation, 2.91 position over 96 `ok` scans of 133 (3.85 rotation while the heading
+/// was floored); the target within 2x of 3; bounds about 1.45x around the
+/// figures.
+#[test]
+fn hku2_covariance_is_within_twice_calibrated_on_a_map_of_its_other_scans() {
+    let Some(hku2) = require_test_data("hku2_avia", "hku2_covariance") else {
+        return;
+    };
+    let dir = temp_dir("hku2-covariance");
+    let reference = dir.join("reference.tum");
+    let out = kfmap(&[
+        "bake",
+        "--dataset",
+        hku2.to_str().unwrap(),
+        "--poses",
+        hku2.join("poses.txt").to_str().unwrap(),
+        "--refine-only",
+        "--trajectory-out",
+        reference.to_str().unwrap(),
+        "--out",
+        dir.join("refined.kfmap").to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", common::stderr(&out));
+    let reference_text = std::fs::read_to_string(&reference).unwrap();
+    let pose_lines: Vec<&str> = reference_text
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .collect();
+    let scans = find_scans(&hku2).unwrap();
+    assert_eq!((scans.len(), pose_lines.len()), (266, 266));
+    let half = |parity: usize| -> (Vec<_>, Vec<&str>) {
+        (0..scans.len())
+            .filter(|i| i % 2 == parity)
+            .map(|i| (scans[i].clone(), pose_lines[i]))
+            .unzip()
+    };
+    let (even, odd) = (dir.join("even"), dir.join("odd"));
+    for (dataset, parity) in [(&even, 0), (&odd, 1)] {
+        let (scans, poses) = half(parity);
+        linked_dataset(dataset, &scans, &poses);
+    }
+    let map = dir.join("even.kfmap");
+    bake_dataset(&even, &map);
+    let prefix = Prefix::new("hku2-covariance");
+    let _server = Server::start(&map, "hku2", &prefix.0, &[]);
+    let (values, _) = localize_values(&[
+        "--map-name",
+        "hku2",
+        "--iceoryx-prefix",
+        &prefix.0,
+        "--dataset",
+        odd.to_str().unwrap(),
+        "--initial-from-ground-truth",
+    ]);
+    let truth = read_trajectory(&odd.join("poses.txt")).unwrap().poses;
+    common::assert_nees("hku2_avia", &values, &truth, 90, 2.8..6.0, 2.0..4.3);
 }
